@@ -1,0 +1,79 @@
+"""Shared fixtures: real photographs (shipped with scikit-image) and paper-protocol homographies.
+
+The normalization matrix and the OpenCV reference are written out here independently of
+``stnh_tf.geometry`` so that the tests check the library against something it did not compute.
+"""
+
+import cv2
+import numpy as np
+import pytest
+import skimage.data
+
+SIZE = 128
+
+
+def norm_matrix(w=SIZE, h=SIZE):
+    """The paper's M, written independently of stnh_tf.geometry."""
+    return np.array([[2.0 / w, 0.0, -1.0], [0.0, 2.0 / h, -1.0], [0.0, 0.0, 1.0]])
+
+
+def paper_homography(rng, size=SIZE, rho=32):
+    """H_ba (pixels) from corners perturbed uniformly in [-rho, rho] (DeTone et al. protocol)."""
+    corners = np.array([[0, 0], [size, 0], [size, size], [0, size]], np.float32)
+    offsets = rng.uniform(-rho, rho, size=(4, 2)).astype(np.float32)
+    return cv2.getPerspectiveTransform(corners, corners + offsets).astype(np.float64)
+
+
+def to_bar(h_pix, size=SIZE):
+    """H_bar = M H inv(M), scaled so [2,2] = 1 (independent of the library)."""
+    m = norm_matrix(size, size)
+    hb = m @ h_pix @ np.linalg.inv(m)
+    return hb / hb[2, 2]
+
+
+def cv2_warp(image, h_pix):
+    """OpenCV reference: out(p) = image(H @ p), bilinear, zero border. image [h, w] or [h, w, C]."""
+    h, w = image.shape[:2]
+    return cv2.warpPerspective(image.astype(np.float32), h_pix, (w, h),
+                               flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def inside_mask(h_pix, h=SIZE, w=SIZE):
+    """Output pixels whose source point H @ p and its whole bilinear neighbourhood lie inside."""
+    ys, xs = np.mgrid[0:h, 0:w]
+    p = np.stack([xs.ravel(), ys.ravel(), np.ones(h * w)]).astype(np.float64)
+    q = h_pix @ p
+    x, y = q[0] / q[2], q[1] / q[2]
+    ok = (q[2] > 0) & (x >= 0) & (x <= w - 1 - 1e-3) & (y >= 0) & (y <= h - 1 - 1e-3)
+    return ok.reshape(h, w)
+
+
+def _crop(rgb_or_gray, x0, y0, size=SIZE, color=False):
+    img = rgb_or_gray
+    if img.ndim == 3 and not color:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    img = cv2.resize(img, (320, 240), interpolation=cv2.INTER_AREA)
+    return img[y0:y0 + size, x0:x0 + size].astype(np.float32)
+
+
+@pytest.fixture(scope="session")
+def photo_patches():
+    """Four 128x128 grayscale float32 patches (0..255) of real photographs."""
+    return {
+        "camera": _crop(skimage.data.camera(), 100, 40),
+        "astronaut": _crop(skimage.data.astronaut(), 120, 50),
+        "coffee": _crop(skimage.data.coffee(), 96, 64),
+        "chelsea": _crop(skimage.data.chelsea(), 140, 60),
+    }
+
+
+@pytest.fixture(scope="session")
+def color_patch():
+    """A 128x128x3 float32 RGB patch of a real photograph."""
+    return _crop(skimage.data.astronaut(), 120, 50, color=True)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)
