@@ -14,13 +14,12 @@ with ``jit_compile`` off, on, or both (``--compare_jit``). Prints one JSON objec
 from __future__ import annotations
 
 import json
-import os
-import platform
 import statistics
-import subprocess
 import time
 
 from absl import app, flags
+
+from experiments import common
 
 flags.DEFINE_integer("batch_size", 64, "Patches per batch.")
 flags.DEFINE_integer("size", 128, "Patch side in pixels.")
@@ -72,15 +71,6 @@ def _median_ms(fn, iterations: int, warmup: int) -> float:
     return 1e3 * statistics.median(times)
 
 
-def _git_commit():
-    try:
-        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, check=True,
-                              capture_output=True, text=True, timeout=10).stdout.strip()
-    except Exception:  # no git, not a checkout
-        return None
-
-
 def run_benchmark(batch_size=64, size=128, iterations=30, warmup=3, seed=0, jit_modes=(False,)):
     """Runs every measurement and returns the result dict (see module docstring)."""
     import cv2
@@ -100,16 +90,7 @@ def run_benchmark(batch_size=64, size=128, iterations=30, warmup=3, seed=0, jit_
         "benchmark": "stn_layers",
         "batch_size": batch_size, "size": size, "channels": 1,
         "iterations": iterations, "warmup": warmup, "seed": seed,
-        "machine": {
-            "platform": platform.platform(), "processor": platform.processor() or None,
-            "python": platform.python_version(), "cpu_count": os.cpu_count(),
-            "tf_intra_op_threads": tf.config.threading.get_intra_op_parallelism_threads(),
-            "gpus": [d.name for d in tf.config.list_physical_devices("GPU")],
-            "tensorflow": tf.__version__, "keras": keras.__version__,
-            "opencv": cv2.__version__, "numpy": np.__version__,
-            "keras_backend": keras.backend.backend(),
-        },
-        "git_commit": _git_commit(),
+        "machine": common.machine_info(),
         "stn": {},
     }
 
@@ -158,11 +139,7 @@ def main(argv):
     jit_modes = (False, True) if FLAGS.compare_jit else (FLAGS.jit_compile,)
     result = run_benchmark(FLAGS.batch_size, FLAGS.size, FLAGS.iterations, FLAGS.warmup,
                            FLAGS.seed, jit_modes)
-    text = json.dumps(result, indent=2)
-    print(text)
-    if FLAGS.json_out:
-        with open(FLAGS.json_out, "w") as f:
-            f.write(text + "\n")
+    common.emit_json(result, FLAGS.json_out)
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ __version__ = "0.1.0"
 _LAZY = {
     "SpatialTransformer": "stnh_tf.layers",
     "HomographyMerge": "stnh_tf.layers",
+    "HomographyEstimator": "stnh_tf.inference",
 }
 
 __all__ = ["geometry", *_LAZY]

@@ -81,8 +81,12 @@ class SpatialTransformer(keras.layers.Layer):
         grid = np.stack([xs.ravel(), ys.ravel(), np.ones(height * width)], axis=0)
         grid = ops.convert_to_tensor(grid.astype(dtype))  # [3, N]
         src = ops.matmul(h_pix, grid)  # [B, 3, N]
-        x = src[:, 0] / src[:, 2]
-        y = src[:, 1] / src[:, 2]
+        # A point on the homography's line at infinity (w = 0) is sent far away, not to inf/NaN,
+        # and the gradient stays finite (the safe denominator is chosen before dividing).
+        w = src[:, 2]
+        w = ops.where(ops.abs(w) < 1e-6, 1e-6, w)
+        x = src[:, 0] / w
+        y = src[:, 1] / w
         values = _bilinear_sample(ops.cast(images, dtype), x, y)  # [B, N, C]
         out = ops.reshape(values, (-1, height, width, channels))
         return ops.cast(out, self.compute_dtype)
@@ -106,14 +110,19 @@ def _bilinear_sample(images, x, y):
     pad_w, pad_h = width + 2, height + 2
     padded = ops.pad(images, [[0, 0], [1, 1], [1, 1], [0, 0]])
     flat = ops.reshape(padded, (-1, channels))  # [B * pad_h * pad_w, C]
+    # Points beyond one pixel outside the image sample only zeros, so clamping them to
+    # [-2, size + 1] changes no value; it keeps far-away (or infinite, from a degenerate H)
+    # coordinates finite, so the weights below never become inf - inf = NaN.
+    finite = ops.logical_and(ops.isfinite(x), ops.isfinite(y))
+    x = ops.clip(ops.where(finite, x, -2.0), -2.0, float(width + 1))
+    y = ops.clip(ops.where(finite, y, -2.0), -2.0, float(height + 1))
     x0 = ops.floor(x)
     y0 = ops.floor(y)
     fx = ops.expand_dims(x - x0, -1)  # [B, N, 1]
     fy = ops.expand_dims(y - y0, -1)
-    # Clip in float before the int cast (no overflow for far-away points), then shift into the
-    # padded frame; any index outside [1, w] (resp. [1, h]) lands on the zero ring.
-    xi = ops.cast(ops.clip(x0, -2.0, float(width + 1)), "int32") + 1
-    yi = ops.cast(ops.clip(y0, -2.0, float(height + 1)), "int32") + 1
+    # Shift into the padded frame; any index outside [1, w] (resp. [1, h]) lands on the zero ring.
+    xi = ops.cast(x0, "int32") + 1
+    yi = ops.cast(y0, "int32") + 1
     x_left = ops.clip(xi, 0, pad_w - 1)
     x_right = ops.clip(xi + 1, 0, pad_w - 1)
     batch_offset = ops.reshape(ops.arange(ops.shape(images)[0], dtype="int32") * (pad_h * pad_w),

@@ -359,3 +359,25 @@ def test_benchmark_binary_smoke(tmp_path):
         assert r["forward_ms"] > 0 and r["forward_backward_ms"] > 0
         assert r["mean_abs_diff_vs_cv2_all_pixels"] < 0.5
     assert result["machine"]["cpu_count"] >= 1 and result["cv2_loop_forward_ms"] > 0
+
+
+def test_degenerate_homography_gives_finite_output_and_gradient(photo_patches):
+    """A homography sending points to infinity (w = 0 on a line through the patch) or NaN must
+    not poison a training batch: samples out there are zero, gradients finite."""
+    patch = photo_patches["camera"][None, ..., None]
+    h_pix = np.array([[1.0, 0, 0], [0, 1, 0], [-1.0 / 100, 0, 1]])  # w = 0 on the column x = 100
+    h_bar = tf.Variable(to_bar(h_pix)[None].astype(np.float32))
+    layer = SpatialTransformer()
+    with tf.GradientTape() as tape:
+        out = layer([patch, h_bar])
+        loss = tf.reduce_sum(out)
+    grad = tape.gradient(loss, h_bar).numpy()
+    out = out.numpy()
+    assert np.all(np.isfinite(out)) and np.all(np.isfinite(grad))
+    # Columns x >= 101 map to negative coordinates (outside) and sample zero, as in OpenCV.
+    ref = cv2_warp(patch[0, ..., 0], h_pix)
+    np.testing.assert_array_equal(out[0, :, 101:, 0], 0.0)
+    np.testing.assert_array_equal(ref[:, 101:], 0.0)
+    assert np.abs(out[0, :, :90, 0] - ref[:, :90]).mean() < 0.5
+    nan_out = layer([patch, np.full((1, 8), np.nan, np.float32)]).numpy()
+    np.testing.assert_array_equal(nan_out, 0.0)

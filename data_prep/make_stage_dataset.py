@@ -1,0 +1,48 @@
+r"""Generate the stage-k dataset of hierarchical STN-Homography from stage k-1's data and model.
+
+  python -m data_prep.make_stage_dataset --stage=2 --input_dir=data/cpu --model_dir=runs/stage1 \
+      --output_dir=data/cpu_stage2                      # train and test splits
+  python -m data_prep.make_stage_dataset --stage=3 --input_dir=data/cpu_stage2 \
+      --model_dir=runs/stage2 --output_dir=data/cpu_stage3
+
+Runs the stage-(k-1) model on every stored pair, composes its prediction with the earlier
+estimate (degenerate predictions are replaced by the identity and counted), re-crops patch_a from
+the stored context with OpenCV, and stores the residual target, the new patch_a_t, the original
+H_ba and the composed estimate (data_prep/stage_k.py). Same sharding, atomic writes, metadata and
+progress as data_prep.make_dataset.
+"""
+
+from __future__ import annotations
+
+import os
+
+from absl import app, flags, logging
+
+from data_prep import stage_k
+
+flags.DEFINE_integer("stage", None, "Stage k >= 2 of the dataset to build.", required=True)
+flags.DEFINE_string("input_dir", None, "Stage-(k-1) dataset directory.", required=True)
+flags.DEFINE_string("model_dir", None, "Trained stage-(k-1) model directory.", required=True)
+flags.DEFINE_string("output_dir", None, "Stage-k dataset directory (created).", required=True)
+flags.DEFINE_list("splits", ["train", "test"], "Splits to build.")
+flags.DEFINE_integer("num_shards", 0, "Shards per split; 0 = as many as the input split has.")
+flags.DEFINE_integer("num_workers", os.cpu_count() or 1, "Re-cropping processes.")
+FLAGS = flags.FLAGS
+
+
+def main(argv):
+    if len(argv) > 1:
+        raise app.UsageError(f"unexpected arguments: {argv[1:]}")
+    for split in FLAGS.splits:
+        try:
+            result = stage_k.make_stage_dataset(
+                FLAGS.stage, FLAGS.input_dir, FLAGS.output_dir, split, model_dir=FLAGS.model_dir,
+                num_shards=FLAGS.num_shards, num_workers=FLAGS.num_workers, log=logging.info)
+        except (ValueError, OSError) as e:
+            raise SystemExit(f"make_stage_dataset: {e}") from None
+        logging.info("%s: %d samples; degenerate predictions %s", split, result["num_samples"],
+                     result["degenerate_predictions"])
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -1,0 +1,135 @@
+"""Stage-1 dataset generation (the paper's protocol) as a library: sources -> sharded TFRecords.
+
+``python -m data_prep.make_dataset`` is the command-line wrapper around :func:`make_dataset`.
+Sources: ``folder`` (every image file below a directory), ``bundled`` (photographs shipped in
+installed packages, no download) and ``coco2014`` (tensorflow-datasets ``coco/2014``; fails fast
+when it is not prepared and cannot be downloaded). NumPy/OpenCV only at import.
+"""
+
+from __future__ import annotations
+
+import functools
+import platform
+import shlex
+import socket
+import sys
+
+from data_prep import writer
+from stnh_tf import pairs, sources
+
+SOURCES = ("folder", "bundled", "coco2014")
+COCO_TFDS_SPLITS = {"train": "train+validation", "test": "test"}
+
+
+def folder_items(image_dir: str, max_images: int = 0):
+    """WorkItems (payload = path) of every image below ``image_dir``, plus unreadable dirs."""
+    listing = sources.scan_image_folder(image_dir)
+    files = listing.files[:max_images] if max_images > 0 else listing.files
+    items = [writer.WorkItem(i, listing.image_id(p), p) for i, p in enumerate(files)]
+    info = {"image_dir": listing.root, "num_files_listed": len(listing.files),
+            "num_non_image_files_ignored": listing.ignored}
+    return items, listing.unreadable, info
+
+
+def bundled_items(max_images: int = 0):
+    """WorkItems (payload = path) of the photographs bundled with installed packages."""
+    files = sources.bundled_image_files()
+    files = files[:max_images] if max_images > 0 else files
+    items = [writer.WorkItem(i, image_id, p) for i, (image_id, p) in enumerate(files)]
+    return items, [], {"num_files_listed": len(files)}
+
+
+def _network_reachable(host: str = "images.cocodataset.org", port: int = 80,
+                       timeout: float = 3.0) -> bool:
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+        return True
+    except OSError:
+        return False
+
+
+def coco2014_items(split: str, tfds_split=None, data_dir=None, max_images: int = 0, log=print):
+    """Lazily streamed WorkItems (payload = encoded JPEG bytes) of tfds ``coco/2014``.
+
+    Fails fast (before any download) when the dataset is not prepared and cannot be downloaded.
+    """
+    hint = ("use --source=folder --image_dir=DIR with the COCO 2014 images extracted there "
+            "(train2014 + val2014 for train, test2014 for test)")
+    try:
+        import tensorflow_datasets as tfds
+    except ImportError as e:
+        raise sources.SourceError(f"--source=coco2014 needs tensorflow-datasets and "
+                                  f"importlib_resources ({e}); {hint}.") from None
+    builder = tfds.builder("coco/2014", data_dir=data_dir)
+    if not builder.is_prepared():
+        if not _network_reachable():
+            raise sources.SourceError(
+                f"tensorflow-datasets coco/2014 is not prepared in {builder.data_dir!r} and cannot "
+                f"be downloaded (no network connection); {hint}.")
+        log(f"downloading and preparing coco/2014 (about 40 GB) into {builder.data_dir}")
+        builder.download_and_prepare()
+    tfds_split = tfds_split or COCO_TFDS_SPLITS.get(split, split)
+    total = builder.info.splits[tfds_split].num_examples
+    n = min(total, max_images) if max_images > 0 else total
+    ds = builder.as_dataset(split=tfds_split, shuffle_files=False,
+                            decoders={"image": tfds.decode.SkipDecoding()}).take(n)
+
+    def generate():
+        for i, ex in enumerate(tfds.as_numpy(ds)):
+            name = ex["image/filename"]
+            name = name.decode("utf-8") if isinstance(name, bytes) else str(name)
+            yield writer.WorkItem(i, name, bytes(ex["image"]))
+
+    return generate(), n, {"tfds_name": "coco/2014", "tfds_split": tfds_split,
+                           "tfds_data_dir": str(builder.data_dir), "num_files_listed": total}
+
+
+def make_dataset(source: str, output_dir: str, split: str = "train", *, image_dir=None,
+                 samples_per_image: int = 3, seed: int = 0, num_shards: int = 0,
+                 num_workers: int = 1, max_images: int = 0, tfds_data_dir=None, tfds_split=None,
+                 chunk_size: int = 4, log=print, command=None) -> dict:
+    """Library entry point of the binary (tests call it directly). Returns the split's metadata.
+
+    Raises:
+      sources.SourceError: unknown/empty source, missing folder, coco2014 unavailable.
+      OSError: ``output_dir`` not writable.
+    """
+    protocol = pairs.Protocol(samples_per_image=samples_per_image)
+    output_dir = writer.check_output_dir(output_dir)  # fail before listing a huge folder
+    if source == "folder":
+        if not image_dir:
+            raise sources.SourceError("--source=folder needs --image_dir.")
+        items, preskipped, info = folder_items(image_dir, max_images)
+        num_items = len(items)
+    elif source == "bundled":
+        items, preskipped, info = bundled_items(max_images)
+        num_items = len(items)
+    elif source == "coco2014":
+        items, num_items, info = coco2014_items(split, tfds_split, tfds_data_dir, max_images,
+                                                  log)
+        preskipped = []
+    else:
+        raise sources.SourceError(f"unknown source {source!r}; expected one of {SOURCES}.")
+    if num_items == 0:
+        where = info.get("image_dir", source)
+        extra = f" ({len(preskipped)} unreadable directories)" if preskipped else ""
+        raise sources.SourceError(f"no image files found in {where}{extra}; image files end in "
+                                  f"{', '.join(sources.IMAGE_EXTENSIONS)}.")
+    if num_shards <= 0:
+        num_shards = writer.auto_num_shards(num_items, samples_per_image)
+    import cv2
+    import numpy as np
+
+    split_metadata = {
+        "source": source, **info, "seed": seed, "max_images": max_images,
+        "protocol": {**protocol.as_dict(), "resize": sources.RESIZE_POLICY,
+                     "gray": sources.GRAY_POLICY},
+        "command": command or " ".join(shlex.quote(a) for a in getattr(sys, "orig_argv", sys.argv)),
+        "versions": {"python": platform.python_version(), "numpy": np.__version__,
+                     "opencv": cv2.__version__},
+    }
+    worker_fn = functools.partial(pairs.generate_item_samples, seed=seed, protocol=protocol)
+    return writer.write_sharded(
+        output_dir, split, items, worker_fn, num_shards=num_shards, num_items=num_items,
+        num_workers=num_workers, split_metadata=split_metadata, top_metadata={"stage": 1},
+        preskipped=preskipped, chunk_size=chunk_size, log=log)

@@ -1,0 +1,158 @@
+"""Stage-k dataset generation for hierarchical STN-Homography (paper section 4), as a library.
+
+``python -m data_prep.make_stage_dataset`` is the command-line wrapper around
+:func:`make_stage_dataset`. From a stage-(k-1) dataset and the trained stage-(k-1) model:
+
+1. the model predicts ``H_{k-1}`` on every stored pair (patch_a_{k-1}, patch_b), in read order
+   and fixed batches (deterministic);
+2. the estimate so far becomes ``H_prev_k = H_prev_{k-1} @ H_{k-1}``, subject to the
+   degenerate-prediction rule of :mod:`stnh_tf.hierarchy` (non-finite or near-singular: the
+   prediction is replaced by the identity; corners leaving the stored context: clipped onto its
+   border and ``H`` refitted). Each case is counted by reason in ``metadata.json``; no sample is
+   dropped;
+3. ``patch_a_k(p) = patch_a(H_prev_k @ p)`` is re-cropped from the stored context with OpenCV
+   (image content beyond the patch border, as the paper's hierarchy sees it);
+4. the residual target ``H_k* = inv(H_prev_k) @ H_ba`` gives ``h_bar`` (normalized with the
+   paper's ``M``), and ``patch_a_t_k = patch_a_k`` warped by ``H_k*`` (zero outside patch_a_k:
+   what the stage's spatial transformer sees, so the L1 target matches it);
+5. ``h_ba``, ``context_a``, ``square_xy``, ``image_id``, ``index`` and ``h_mask`` are kept.
+
+The model runs in the parent process; the re-cropping runs in the writer's worker processes
+(NumPy/OpenCV only). Sharding, atomic writes, metadata and progress are those of
+:mod:`data_prep.writer`, shared with the stage-1 generator.
+"""
+
+from __future__ import annotations
+
+import collections
+import functools
+import os
+import shlex
+import sys
+
+import cv2
+import numpy as np
+
+from data_prep import writer
+from stnh_tf import features, geometry, hierarchy
+
+READ_BATCH = 256
+"""Pairs per model call (fixed, so predictions do not depend on anything but the data)."""
+
+
+def stage_sample(item: writer.WorkItem) -> list:
+    """Worker: one stage-(k-1) record + the accepted composed estimate -> the stage-k sample.
+
+    ``item.payload = (record_bytes, h_prev_k [3, 3] float64)``.
+    """
+    record, h_prev = item.payload
+    s = features.decode_example(record)
+    h_ba = np.asarray(s["h_ba"], np.float64).reshape(3, 3)
+    patch_a = hierarchy.crop_warped_context(s["context_a"], h_prev)
+    residual = hierarchy.residual_target(h_prev, h_ba)
+    h_bar = geometry.matrix_to_vector(geometry.normalize_homography(residual))
+    patch_a_t = cv2.warpPerspective(patch_a, residual, (geometry.PATCH_SIZE, geometry.PATCH_SIZE),
+                                    flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    to_u8 = lambda x: np.clip(np.rint(x), 0, 255).astype(np.uint8)
+    return [{**s, "patch_a": to_u8(patch_a), "patch_a_t": to_u8(patch_a_t),
+             "h_bar": h_bar.astype(np.float32), "h_prev": h_prev.reshape(9).astype(np.float32)}]
+
+
+def _records(paths):
+    """Serialized records of the shards, in shard order then file order (no shuffling)."""
+    import tensorflow as tf
+
+    for path in paths:
+        for record in tf.data.TFRecordDataset(path):
+            yield record.numpy()
+
+
+def _items(paths, predict, counts: dict):
+    """WorkItems in read order; runs ``predict`` on batches of :data:`READ_BATCH` records and
+    applies the degenerate-prediction rule (counting rejections into ``counts``)."""
+    batch = []
+    index = 0
+
+    def flush():
+        nonlocal index
+        decoded = [features.decode_example(r, names=("patch_a", "patch_b", "h_prev")) for r in batch]
+        patch_a = np.stack([d["patch_a"] for d in decoded])[..., None].astype(np.float32) / 255.0
+        patch_b = np.stack([d["patch_b"] for d in decoded])[..., None].astype(np.float32) / 255.0
+        h_prev = np.stack([np.asarray(d["h_prev"], np.float64).reshape(3, 3) for d in decoded])
+        h_stage = predict(patch_a, patch_b)
+        h_new, reasons = hierarchy.accept_or_reject(h_prev, h_stage)
+        for r in reasons:
+            counts[r or "accepted"] += 1
+        out = [writer.WorkItem(index + i, f"record {index + i}", (rec, h))
+               for i, (rec, h) in enumerate(zip(batch, h_new))]
+        index += len(batch)
+        batch.clear()
+        return out
+
+    for record in _records(paths):
+        batch.append(record)
+        if len(batch) == READ_BATCH:
+            yield from flush()
+    if batch:
+        yield from flush()
+
+
+def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, *,
+                       model_dir: str | None = None, predict=None, num_shards: int = 0,
+                       num_workers: int = 1, log=print, command=None) -> dict:
+    """Write the stage-``stage`` ``split`` from the stage-(k-1) data and model. Returns the split's
+    metadata section (``degenerate_predictions`` counts by reason).
+
+    Args:
+      model_dir: the trained stage-(k-1) model; or
+      predict: ``predict(patch_a [N,S,S,1], patch_b [N,S,S,1]) -> pixel H [N,3,3]`` (float
+        patches in [0, 1]; e.g. an oracle in tests).
+    Raises:
+      ValueError: ``stage < 2``, the input is not stage ``k-1`` data, or the split is missing.
+      FileNotFoundError: no model in ``model_dir``.
+    """
+    from stnh_tf import data, evaluation
+
+    if stage < 2:
+        raise ValueError(f"stage must be >= 2 (stage 1 is data_prep.make_dataset); received {stage}.")
+    meta = data.read_metadata(input_dir)
+    if int(meta.get("stage", 1)) != stage - 1:
+        raise ValueError(f"{input_dir} holds stage-{meta.get('stage', 1)} data; stage {stage} is "
+                         f"built from stage-{stage - 1} data.")
+    if os.path.abspath(input_dir) == os.path.abspath(output_dir):
+        raise ValueError("output_dir must differ from input_dir.")
+    info = data.split_info(input_dir, split)
+    paths = data.shard_paths(input_dir, split, "size")
+    output_dir = writer.check_output_dir(output_dir)
+    if (model_dir is None) == (predict is None):
+        raise ValueError("give exactly one of model_dir and predict.")
+    if predict is None:
+        predict = functools.partial(_predict_pixel, evaluation.compiled_forward(evaluation.load_model(model_dir)))
+    counts = collections.Counter()
+    split_metadata = {
+        "source": "stage", "input_dir": os.path.abspath(input_dir),
+        "model_dir": os.path.abspath(model_dir) if model_dir else repr(predict),
+        "input_seed": info.get("seed"),
+        "protocol": info.get("protocol"),
+        "degenerate_rule": "non-finite or near-singular (|det| < 1e-6, or w <= 0 at a corner) "
+                           "composition: prediction replaced by identity (estimate so far kept); "
+                           "a patch corner mapped outside the stored context: corners clipped onto "
+                           "the context border and H refitted (stnh_tf.hierarchy)",
+        "command": command or " ".join(shlex.quote(a) for a in getattr(sys, "orig_argv", sys.argv)),
+    }
+    result = writer.write_sharded(
+        output_dir, split, _items(paths, predict, counts), stage_sample,
+        num_shards=num_shards or len(paths), num_items=int(info["num_samples"]),
+        num_workers=num_workers, split_metadata=split_metadata, top_metadata={"stage": stage},
+        log=log)
+    counts_dict = {k: int(counts.get(k, 0)) for k in ("accepted", *hierarchy.REJECT_REASONS)}
+    writer.update_metadata(output_dir, split, {**result, "degenerate_predictions": counts_dict})
+    result["degenerate_predictions"] = counts_dict
+    return result
+
+
+def _predict_pixel(forward, patch_a, patch_b):
+    from stnh_tf import evaluation
+
+    return evaluation.h_bar_to_pixel(forward(patch_a, patch_b))

@@ -1,0 +1,412 @@
+"""Generic, deterministic, atomic sharded TFRecord writer with a process pool and progress.
+
+Used by ``data_prep.make_dataset`` (stage 1) and reusable by later-stage generators: give it a
+sequence of :class:`WorkItem` and a picklable ``worker_fn(item) -> list of sample dicts`` (the
+dicts hold :data:`stnh_tf.features.FEATURE_NAMES`).
+
+* **Determinism.** Item ``i`` of ``n`` goes to shard ``i * num_shards // n`` (contiguous blocks, so
+  the shards read in order list the items in order); results are written in item order whatever
+  ``num_workers`` is. Byte-identical output therefore only needs ``worker_fn`` to depend on the
+  item alone (seed its RNG from the item's index).
+* **Workers** are ``spawn``-ed processes (``num_workers > 1``) that import only what ``worker_fn``'s
+  module imports (no TensorFlow for ``stnh_tf.pairs``); they build and serialize the samples. The
+  parent process writes the records (TensorFlow's ``TFRecordWriter``, imported lazily here).
+  ``num_workers <= 1`` runs everything in-process.
+* **Atomicity.** Each shard is written to ``<name>.tmp-<pid>`` and renamed when complete; the
+  split's section of ``metadata.json`` is marked ``"incomplete"`` before any shard is touched and
+  replaced only at the end, so a killed run never leaves a split that looks finished. A re-run
+  removes stale temporary files, rewrites every shard, and removes old shards of the split that the
+  new layout no longer has (e.g. another ``num_shards``).
+* **Bad input.** An exception from ``worker_fn`` skips that item: it is counted and listed with its
+  reason in the split's ``skipped`` list (and logged); it never stops the run.
+* **metadata.json** (``{"stage": ..., "feature_spec": ..., "splits": {split: {...}}}``) is
+  read-modify-written under a file lock and replaced atomically, so separate commands can write
+  ``train`` and ``test`` into one directory.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import dataclasses
+import glob
+import json
+import math
+import multiprocessing
+import os
+import re
+import time
+from typing import Any, Callable, Iterable, Optional
+
+from stnh_tf import features
+
+METADATA_FILE = "metadata.json"
+LOCK_FILE = ".metadata.lock"
+TARGET_SHARD_BYTES = 128 * 2 ** 20
+BYTES_PER_SAMPLE_ESTIMATE = 86_600  # stage-1 record, measured (see docs/data.md)
+
+
+@dataclasses.dataclass(frozen=True)
+class WorkItem:
+    """One unit of work: ``index`` (position in the ordered item list, seeds the RNG), ``item_id``
+    (named in skip reports) and a picklable ``payload`` (a path, encoded bytes, arrays...)."""
+
+    index: int
+    item_id: str
+    payload: Any = None
+
+
+class SkipItem(Exception):
+    """Raise from ``worker_fn`` to skip an item with a reason (any exception skips it too)."""
+
+
+def shard_name(split: str, shard: int, num_shards: int) -> str:
+    """``{split}-00003-of-00008.tfrecord``."""
+    return f"{split}-{shard:05d}-of-{num_shards:05d}.tfrecord"
+
+
+def shard_of(item_position: int, num_items: int, num_shards: int) -> int:
+    """Shard of the ``item_position``-th of ``num_items`` items: contiguous, balanced blocks."""
+    return item_position * num_shards // max(num_items, 1)
+
+
+def auto_num_shards(num_items: int, samples_per_item: int,
+                    bytes_per_sample: int = BYTES_PER_SAMPLE_ESTIMATE) -> int:
+    """Shards of about 128 MiB, and at least ``min(8, num_items)`` for interleaved reading."""
+    by_size = math.ceil(num_items * samples_per_item * bytes_per_sample / TARGET_SHARD_BYTES)
+    return max(1, by_size, min(8, num_items))
+
+
+# ------------------------------------------------------------------------------------------------
+# metadata.json
+# ------------------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def _metadata_lock(output_dir: str):
+    import fcntl
+
+    with open(os.path.join(output_dir, LOCK_FILE), "a") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def _read_metadata_file(output_dir: str) -> dict:
+    path = os.path.join(output_dir, METADATA_FILE)
+    if not os.path.exists(path):
+        return {}
+    try:
+        with open(path) as f:
+            meta = json.load(f)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path} exists but is not valid JSON ({e}); move it away.") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path} does not hold a JSON object.")
+    return meta
+
+
+def atomic_write_json(path: str, obj) -> None:
+    """Write JSON to ``path`` via a temporary file, fsync and rename (never half-written)."""
+    tmp = f"{path}.tmp-{os.getpid()}"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=2, sort_keys=True)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def update_metadata(output_dir: str, split: str, section: Optional[dict],
+                    top: Optional[dict] = None) -> dict:
+    """Merge ``top`` into metadata.json and set ``splits[split] = section`` (locked, atomic).
+
+    Raises:
+      ValueError: ``top`` contradicts a value already there (e.g. another ``stage``).
+    """
+    with _metadata_lock(output_dir):
+        meta = _read_metadata_file(output_dir)
+        for key, value in (top or {}).items():
+            if key in meta and meta[key] != value and key in ("stage", "feature_spec"):
+                raise ValueError(f"{os.path.join(output_dir, METADATA_FILE)} has {key}="
+                                 f"{json.dumps(meta[key])[:200]}, this run has "
+                                 f"{json.dumps(value)[:200]}; write to another --output_dir.")
+            meta[key] = value
+        meta.setdefault("splits", {})
+        if section is not None:
+            meta["splits"][split] = section
+        atomic_write_json(os.path.join(output_dir, METADATA_FILE), meta)
+        return meta
+
+
+def check_output_dir(output_dir: str) -> str:
+    """Create ``output_dir`` if needed and prove it writable; clear ``OSError`` otherwise."""
+    path = os.path.abspath(output_dir)
+    try:
+        os.makedirs(path, exist_ok=True)
+        probe = os.path.join(path, f".write-test-{os.getpid()}")
+        with open(probe, "w") as f:
+            f.write("ok")
+        os.remove(probe)
+    except OSError as e:
+        raise OSError(f"output directory {path!r} is not writable: {e.strerror or e}") from None
+    return path
+
+
+# ------------------------------------------------------------------------------------------------
+# Workers
+# ------------------------------------------------------------------------------------------------
+def _init_worker():
+    import cv2
+
+    cv2.setNumThreads(1)
+    try:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    except AttributeError:  # pragma: no cover
+        pass
+
+
+def _run_chunk(worker_fn: Callable, items: list) -> list:
+    """Run ``worker_fn`` on each item; returns ``[(records or None, skip reason or None)]``."""
+    out = []
+    for item in items:
+        try:
+            samples = worker_fn(item)
+            out.append(([features.serialize_example(s) for s in samples], None))
+        except Exception as e:  # noqa: BLE001 - bad input must never stop the run
+            msg = str(e) if isinstance(e, SkipItem) or type(e).__name__ == "ImageDecodeError" \
+                else f"{type(e).__name__}: {e}"
+            out.append((None, msg or type(e).__name__))
+    return out
+
+
+def _chunks(items: Iterable, size: int):
+    buf = []
+    for item in items:
+        buf.append(item)
+        if len(buf) == size:
+            yield buf
+            buf = []
+    if buf:
+        yield buf
+
+
+def _ordered_results(items: Iterable, worker_fn: Callable, num_workers: int, chunk_size: int):
+    """Yield ``(item, records, reason)`` in item order; at most a few chunks in flight."""
+    if num_workers <= 1:
+        import cv2
+
+        threads = cv2.getNumThreads()
+        cv2.setNumThreads(1)  # as in the workers; restored for the caller afterwards
+        try:
+            for chunk in _chunks(items, chunk_size):
+                for item, (records, reason) in zip(chunk, _run_chunk(worker_fn, chunk)):
+                    yield item, records, reason
+        finally:
+            cv2.setNumThreads(threads)
+        return
+    from concurrent.futures import ProcessPoolExecutor
+
+    # spawn: workers start clean (no TensorFlow state forked from the parent); a worker that
+    # dies (e.g. a decoder crash) raises BrokenProcessPool here instead of hanging the run.
+    pool = ProcessPoolExecutor(num_workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_init_worker)
+    try:
+        pending = collections.deque()
+        chunk_iter = _chunks(items, chunk_size)
+        max_in_flight = 4 * num_workers
+        exhausted = False
+        while True:
+            while not exhausted and len(pending) < max_in_flight:
+                chunk = next(chunk_iter, None)
+                if chunk is None:
+                    exhausted = True
+                    break
+                pending.append((chunk, pool.submit(_run_chunk, worker_fn, chunk)))
+            if not pending:
+                break
+            chunk, future = pending.popleft()
+            for item, (records, reason) in zip(chunk, future.result()):
+                yield item, records, reason
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+# ------------------------------------------------------------------------------------------------
+# The writer
+# ------------------------------------------------------------------------------------------------
+class _Progress:
+    def __init__(self, split, total, log, interval_s):
+        self.split, self.total, self.log, self.interval = split, total, log, interval_s
+        self.t0 = time.perf_counter()
+        self.last = self.t0
+        self.items = self.samples = self.skipped = 0
+
+    def update(self, n_samples, skipped, force=False):
+        self.items += 1
+        self.samples += n_samples
+        self.skipped += int(skipped)
+        now = time.perf_counter()
+        if force or now - self.last >= self.interval:
+            self.last = now
+            dt = max(now - self.t0, 1e-9)
+            rate = self.samples / dt
+            left = (self.total - self.items) * (dt / max(self.items, 1))
+            self.log(f"[{self.split}] {self.items}/{self.total} items "
+                     f"({100.0 * self.items / max(self.total, 1):.0f}%), {self.samples} samples, "
+                     f"{self.skipped} skipped, {rate:.0f} samples/s, ETA {left:.0f} s")
+
+
+def _shard_pattern_matches(output_dir, split):
+    rx = re.compile(rf"^{re.escape(split)}-\d{{5}}-of-\d{{5}}\.tfrecord$")
+    return [p for p in glob.glob(os.path.join(output_dir, f"{glob.escape(split)}-*.tfrecord"))
+            if rx.match(os.path.basename(p))]
+
+
+def _fsync_path(path):
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: Callable, *,
+                  num_shards: int, num_items: Optional[int] = None, num_workers: int = 1,
+                  split_metadata: Optional[dict] = None, top_metadata: Optional[dict] = None,
+                  preskipped: Iterable = (), chunk_size: int = 4, log: Callable = print,
+                  progress_interval_s: float = 5.0) -> dict:
+    """Generate and write ``split`` as ``num_shards`` TFRecord shards in ``output_dir``.
+
+    Args:
+      output_dir: created if needed; must be writable (checked before any work).
+      split: e.g. ``"train"``; names the shards ``{split}-00003-of-00008.tfrecord``.
+      work_items: :class:`WorkItem` in order (a sequence, or an iterable with ``num_items``);
+        consumed lazily, a few chunks ahead of the writer.
+      worker_fn: picklable (module-level function or ``functools.partial`` of one);
+        ``worker_fn(item) -> list of sample dicts`` for :func:`features.serialize_example`.
+        Any exception skips the item with a reason.
+      num_shards: number of shards (>= 1).
+      num_items: ``len(work_items)`` when ``work_items`` has no ``len``.
+      num_workers: processes (``<= 1``: in-process).
+      split_metadata: extra keys for this split's section (seed, protocol, source, command...).
+      top_metadata: keys for the top level (e.g. ``{"stage": 1}``); a different ``stage`` already
+        recorded there is an error.
+      preskipped: ``(item_id, reason)`` found before generation (e.g. unreadable directories),
+        listed with the skipped items.
+      chunk_size: items per task sent to a worker.
+      log: progress/warning printer; progress every ``progress_interval_s`` seconds.
+    Returns:
+      The split's metadata section (also written to ``metadata.json``).
+    Raises:
+      ValueError: no work items, bad ``num_shards``/``split``, or every item skipped.
+      OSError: ``output_dir`` not writable.
+    """
+    if not re.fullmatch(r"[A-Za-z0-9_.]+", split or ""):
+        raise ValueError(f"split must be a plain name like 'train'; received {split!r}.")
+    if num_items is None:
+        num_items = len(work_items)
+    if num_items <= 0:
+        raise ValueError(f"no work items for split {split!r}: nothing to write.")
+    if num_shards < 1:
+        raise ValueError(f"num_shards must be >= 1; received {num_shards}.")
+    output_dir = check_output_dir(output_dir)
+    top = {"feature_spec": features.spec_as_dict(), **(top_metadata or {})}
+    update_metadata(output_dir, split, {"status": "incomplete", "started_pid": os.getpid()}, top)
+    for stale in glob.glob(os.path.join(output_dir, f"{glob.escape(split)}-*.tfrecord.tmp-*")):
+        os.remove(stale)
+
+    import tensorflow as tf  # the parent writes; workers never import TensorFlow
+
+    names = [shard_name(split, k, num_shards) for k in range(num_shards)]
+    shards = [{"file": n, "num_samples": 0, "num_bytes": 0} for n in names]
+    skipped = [{"item_id": i, "reason": r} for i, r in preskipped]
+    for entry in skipped:
+        log(f"[{split}] skipped {entry['item_id']}: {entry['reason']}")
+    progress = _Progress(split, num_items, log, progress_interval_s)
+    t0 = time.perf_counter()
+    writer, current, tmp_path = None, -1, None
+
+    def open_shard(k):
+        nonlocal writer, current, tmp_path
+        current = k
+        tmp_path = os.path.join(output_dir, f"{names[k]}.tmp-{os.getpid()}")
+        writer = tf.io.TFRecordWriter(tmp_path)
+
+    def close_shard():
+        nonlocal writer, tmp_path
+        writer.close()
+        _fsync_path(tmp_path)
+        final = os.path.join(output_dir, names[current])
+        os.replace(tmp_path, final)
+        shards[current]["num_bytes"] = os.path.getsize(final)
+        writer, tmp_path = None, None
+
+    results = _ordered_results(work_items, worker_fn, num_workers, chunk_size)
+    try:
+        position = 0
+        for item, records, reason in results:
+            k = shard_of(position, num_items, num_shards)
+            position += 1
+            while current < k:
+                if writer is not None:
+                    close_shard()
+                open_shard(current + 1)
+            if reason is not None:
+                skipped.append({"item_id": item.item_id, "reason": reason})
+                log(f"[{split}] skipped {item.item_id}: {reason}")
+                progress.update(0, True)
+                continue
+            for rec in records:
+                writer.write(rec)
+            shards[k]["num_samples"] += len(records)
+            progress.update(len(records), False)
+        if position != num_items:
+            raise ValueError(f"work_items yielded {position} items, num_items said {num_items}.")
+        while current < num_shards - 1:
+            if writer is not None:
+                close_shard()
+            open_shard(current + 1)
+        close_shard()
+    except BaseException:
+        results.close()  # stops the worker pool now
+        if writer is not None:
+            with contextlib.suppress(Exception):
+                writer.close()
+        if tmp_path and os.path.exists(tmp_path):
+            os.remove(tmp_path)
+        raise
+    wall = time.perf_counter() - t0
+    for old in _shard_pattern_matches(output_dir, split):
+        if os.path.basename(old) not in names:
+            os.remove(old)
+
+    num_samples = sum(s["num_samples"] for s in shards)
+    num_bytes = sum(s["num_bytes"] for s in shards)
+    section = dict(split_metadata or {})
+    section.update(
+        status="complete" if num_samples else "empty",
+        num_items=num_items,
+        num_items_used=num_items - progress.skipped,
+        num_items_skipped=progress.skipped,
+        num_preskipped=len(skipped) - progress.skipped,
+        skipped=skipped,
+        num_samples=num_samples,
+        num_shards=num_shards,
+        shards=shards,
+        num_bytes=num_bytes,
+        bytes_per_sample=round(num_bytes / num_samples, 1) if num_samples else None,
+        num_workers=num_workers,
+        generation_wall_s=round(wall, 3),
+        samples_per_s=round(num_samples / wall, 1) if wall > 0 else None,
+        finished_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    )
+    update_metadata(output_dir, split, section, top)
+    log(f"[{split}] wrote {num_samples} samples from {section['num_items_used']} items "
+        f"({len(skipped)} skipped) into {num_shards} shards, {num_bytes / 2 ** 20:.1f} MiB, "
+        f"{wall:.1f} s ({section['samples_per_s']} samples/s) -> {output_dir}")
+    if not num_samples:
+        reasons = "; ".join(f"{s['item_id']}: {s['reason']}" for s in skipped[:5])
+        raise ValueError(f"every item of split {split!r} was skipped, nothing written "
+                         f"(first reasons: {reasons}).")
+    return section

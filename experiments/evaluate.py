@@ -1,0 +1,46 @@
+r"""Evaluate models, hierarchies and classical baselines on stored test pairs (MACE in pixels).
+
+  python -m experiments.evaluate --model_dir=runs/stage1 --data_dir=data/coco_mini --split=test
+  python -m experiments.evaluate --model_dir=runs/stage1,runs/stage2,runs/stage3 --data_dir=...
+  python -m experiments.evaluate --baselines=identity,orb_ransac,sift_ransac --data_dir=...
+
+One model directory: its final estimate (every stage's for a sequence model). Several: a
+hierarchy, reported after 1, 2, ..., n stages. Prints JSON (mean/median/p90/p99 MACE, the identity
+baseline on the same pairs, the number of pairs), or writes it to --json_out.
+"""
+
+import json
+
+from absl import app, flags
+
+flags.DEFINE_list("model_dir", [], "Model directory, or several (comma-separated) for a hierarchy.")
+flags.DEFINE_string("data_dir", None, "Dataset directory (data_prep output).", required=True)
+flags.DEFINE_string("split", "test", "Split to evaluate.")
+flags.DEFINE_list("baselines", [], "Classical baselines: identity, orb_ransac, sift_ransac, orb_default.")
+flags.DEFINE_integer("max_samples", None, "Evaluate only the first N pairs.")
+flags.DEFINE_integer("batch_size", 64, "Inference batch size.")
+flags.DEFINE_string("json_out", None, "Write the JSON here instead of stdout.")
+FLAGS = flags.FLAGS
+
+
+def main(argv):
+    del argv
+    from stnh_tf import evaluation
+
+    if not FLAGS.model_dir and not FLAGS.baselines:
+        raise SystemExit("evaluate: give --model_dir and/or --baselines.")
+    try:
+        result = evaluation.evaluate(FLAGS.model_dir, FLAGS.data_dir, FLAGS.split, FLAGS.baselines,
+                                     FLAGS.max_samples, FLAGS.batch_size)
+    except (ValueError, OSError) as e:
+        raise SystemExit(f"evaluate: {e}") from None
+    text = json.dumps(result, indent=2, sort_keys=True)
+    if FLAGS.json_out:
+        with open(FLAGS.json_out, "w") as f:
+            f.write(text + "\n")
+    else:
+        print(text)
+
+
+if __name__ == "__main__":
+    app.run(main)

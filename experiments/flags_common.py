@@ -1,0 +1,60 @@
+"""Training flags shared by ``train_stage`` and ``train_sequence`` (one definition, two binaries)."""
+
+from absl import flags
+
+from stnh_tf.training import TrainConfig
+
+_D = TrainConfig()
+
+
+def define_training_flags():
+    flags.DEFINE_string("data_dir", None, "TFRecord dataset directory (from data_prep).", required=True)
+    flags.DEFINE_string("model_dir", None, "Output directory (config, checkpoints, logs, model).",
+                        required=True)
+    flags.DEFINE_integer("train_steps", _D.train_steps, "Total steps: warm-up + cosine decay.")
+    flags.DEFINE_integer("warmup_steps", _D.warmup_steps, "Linear warm-up steps (0 -> learning_rate).")
+    flags.DEFINE_integer("batch_size", _D.batch_size, "Global batch size.")
+    flags.DEFINE_float("learning_rate", _D.learning_rate, "Peak learning rate after warm-up.")
+    flags.DEFINE_float("momentum", _D.momentum, "SGD momentum.")
+    flags.DEFINE_float("l2_weight", _D.l2_weight, "Weight of the L2 loss on H_bar.")
+    flags.DEFINE_float("l1_weight", _D.l1_weight, "Weight of the L1 photometric loss.")
+    flags.DEFINE_enum("batch_norm", _D.batch_norm, ["none", "conv"],
+                      "none (paper's literal network, default) or BatchNorm after every conv.")
+    flags.DEFINE_float("dropout", _D.dropout, "Dropout after the 1024-unit layer.")
+    flags.DEFINE_integer("seed", _D.seed, "Seed for initialisation, dropout and data order.")
+    flags.DEFINE_integer("shuffle_buffer", _D.shuffle_buffer, "Training shuffle buffer (records).")
+    flags.DEFINE_bool("mixed_precision", _D.mixed_precision, "Keras mixed_bfloat16 policy.")
+    flags.DEFINE_integer("checkpoint_every", _D.checkpoint_every, "Steps between checkpoints.")
+    flags.DEFINE_integer("log_every", _D.log_every, "Steps between progress lines / TB points.")
+    flags.DEFINE_string("val_split", _D.val_split, "Split for the validation MACE (monitoring only).")
+    flags.DEFINE_integer("val_samples", _D.val_samples, "Validation pairs per checkpoint (0: off).")
+    flags.DEFINE_enum("strategy", _D.strategy, ["default", "mirrored"], "tf.distribute strategy.")
+    flags.DEFINE_bool("overwrite", False, "Delete and retrain a model_dir that holds a finished run.")
+
+
+def config_from_flags(**overrides) -> TrainConfig:
+    f = flags.FLAGS
+    cfg = TrainConfig(
+        data_dir=f.data_dir, model_dir=f.model_dir, train_steps=f.train_steps,
+        warmup_steps=f.warmup_steps, batch_size=f.batch_size, learning_rate=f.learning_rate,
+        momentum=f.momentum, l2_weight=f.l2_weight, l1_weight=f.l1_weight,
+        batch_norm=f.batch_norm, dropout=f.dropout, seed=f.seed, shuffle_buffer=f.shuffle_buffer,
+        mixed_precision=f.mixed_precision, checkpoint_every=f.checkpoint_every,
+        log_every=f.log_every, val_split=f.val_split, val_samples=f.val_samples,
+        strategy=f.strategy)
+    for k, v in overrides.items():
+        setattr(cfg, k, v)
+    return cfg
+
+
+def run_training(cfg, binary: str) -> None:
+    """Train (or resume) ``cfg``; user errors exit with ``{binary}: message``, not a traceback."""
+    from absl import logging
+
+    from stnh_tf import training
+
+    try:
+        result = training.train(cfg, overwrite=flags.FLAGS.overwrite, printer=logging.info)
+    except (ValueError, OSError, training.TrainingDiverged) as e:
+        raise SystemExit(f"{binary}: {e}") from None
+    logging.info("finished at step %d", result["final_step"])

@@ -1,0 +1,187 @@
+"""Evaluation: MACE of models, hierarchies and baselines on the same stored test pairs.
+
+Every estimate is brought to the pixel ``H_ba`` of the **original** pair (patch_b -> patch_a,
+see :mod:`stnh_tf.geometry`) and compared with the stored truth ``h_ba``: a stage-k dataset's
+pairs carry ``h_prev`` (the earlier stages' composed estimate), so a model's prediction on them is
+composed as ``h_prev @ H_k``.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from stnh_tf import geometry
+
+
+def error_summary(errors) -> dict:
+    """Mean (MACE), median, 90th and 99th percentile and count of per-pair corner errors (px)."""
+    errors = np.asarray(errors, dtype=np.float64)
+    if errors.size == 0:
+        raise ValueError("no pairs to evaluate.")
+    return {"mace": float(errors.mean()), "median": float(np.median(errors)),
+            "p90": float(np.percentile(errors, 90)), "p99": float(np.percentile(errors, 99)),
+            "count": int(errors.size)}
+
+
+def load_model(model_dir_or_file):
+    """Load a trained Keras model from a model directory (its ``model.keras``) or a file."""
+    import keras
+
+    import stnh_tf.layers  # noqa: F401  (registers the custom layers)
+    import stnh_tf.losses  # noqa: F401
+    import stnh_tf.models  # noqa: F401
+
+    path = model_dir_or_file
+    if os.path.isdir(path):
+        path = os.path.join(path, "model.keras")
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"no trained model at {model_dir_or_file} (looked for {path}).")
+    return keras.models.load_model(path, compile=False)
+
+
+def final_h_bar_name(model) -> str:
+    """The output holding a model's final ``H_bar``: ``h_bar`` or the last ``h_bar_k``."""
+    names = list(model.output_names) if hasattr(model, "output_names") else []
+    seq = sorted((n for n in names if n.startswith("h_bar_")), key=lambda n: int(n.split("_")[-1]))
+    return seq[-1] if seq else "h_bar"
+
+
+def compiled_forward(model, output=None):
+    """A compiled batch-any-size forward pass ``(patch_a, patch_b) -> H_bar`` (NumPy in and out).
+
+    Under the TensorFlow backend a ``tf.function`` with an unknown batch dimension (no retracing,
+    ~5x less per-call overhead than ``model.predict`` at batch 1); otherwise ``predict_on_batch``.
+    ``output`` names the ``h_bar`` output (default: the model's final one).
+    """
+    import keras
+
+    name = output or final_h_bar_name(model)
+    if keras.backend.backend() == "tensorflow":
+        import tensorflow as tf
+
+        size = model.inputs[0].shape[1]
+        spec = tf.TensorSpec([None, size, size, 1], tf.float32)
+
+        @tf.function(input_signature=[spec, spec])
+        def fn(a, b):
+            return model({"patch_a": a, "patch_b": b}, training=False)[name]
+
+        return lambda a, b: np.asarray(fn(np.asarray(a, np.float32), np.asarray(b, np.float32)))
+    return lambda a, b: np.asarray(model.predict_on_batch({"patch_a": np.asarray(a, np.float32),
+                                                           "patch_b": np.asarray(b, np.float32)})[name])
+
+
+def predict_h_bar(model, patches_a, patches_b, batch_size=64, output=None):
+    """Run ``model`` on float ``[N, S, S, 1]`` patches in [0, 1]; returns ``[N, 8]`` ``H_bar``
+    (or a dict of every ``h_bar*`` output if ``output == "all"``)."""
+    out = model.predict({"patch_a": patches_a, "patch_b": patches_b}, batch_size=batch_size,
+                        verbose=0)
+    if output == "all":
+        return {k: np.asarray(v, np.float64) for k, v in out.items() if k.startswith("h_bar")}
+    return np.asarray(out[output or final_h_bar_name(model)], np.float64)
+
+
+def h_bar_to_pixel(h_bar, size=geometry.PATCH_SIZE):
+    """``[N, 8]`` normalized ``H_bar`` -> ``[N, 3, 3]`` pixel ``H_ba``."""
+    return geometry.denormalize_homography(geometry.vector_to_matrix(np.asarray(h_bar, np.float64)),
+                                           size, size)
+
+
+def evaluate_model_on_arrays(model, samples: dict, batch_size=64) -> dict:
+    """MACE of ``model`` on a dict of stored pairs (``patch_a``, ``patch_b``, ``h_ba``, ``h_prev``).
+
+    Returns the error summary of the model's final output, of every ``h_bar_k`` output for a
+    sequence model (``stages``), the identity baseline (``identity``: ``h_prev`` alone) and the
+    time per pair.
+    """
+    h_true = np.asarray(samples["h_ba"], np.float64)
+    h_prev = np.asarray(samples.get("h_prev", np.broadcast_to(np.eye(3), h_true.shape)), np.float64)
+    t0 = time.perf_counter()
+    outs = predict_h_bar(model, samples["patch_a"], samples["patch_b"], batch_size, output="all")
+    elapsed = time.perf_counter() - t0
+    final = final_h_bar_name(model)
+    result = {}
+    for name, h_bar in outs.items():
+        h_est = geometry.compose(h_prev, h_bar_to_pixel(h_bar))
+        result[name] = error_summary(geometry.corner_errors(h_est, h_true))
+    summary = dict(result[final])
+    if len(outs) > 1:
+        summary["stages"] = {k: v for k, v in sorted(result.items())}
+    summary["identity"] = error_summary(geometry.corner_errors(h_prev, h_true))
+    summary["ms_per_pair_batched"] = 1000.0 * elapsed / len(h_true)
+    return summary
+
+
+def evaluate_hierarchy(models, samples: dict, batch_size=64) -> dict:
+    """MACE after 1, 2, ..., n stages of a hierarchy of single-stage models on stage-1 pairs.
+
+    Stage k sees patch_a re-cropped from the stored context warped by the estimate so far (the
+    paper's OpenCV warp between stages, :func:`stnh_tf.hierarchy.run_hierarchy`).
+    Returns the final summary with ``stages`` (``after_k_stages``), ``identity``, the
+    degenerate-prediction counts (``rejected``) and the time per pair.
+    """
+    from stnh_tf import hierarchy
+
+    h_true = np.asarray(samples["h_ba"], np.float64)
+    t0 = time.perf_counter()
+    run = hierarchy.run_hierarchy([hierarchy.keras_stage(m, batch_size) for m in models],
+                                  samples["context_a"], samples["patch_b"])
+    elapsed = time.perf_counter() - t0
+    stages = {f"after_{k}_stages": error_summary(geometry.corner_errors(h, h_true))
+              for k, h in enumerate(run["per_stage"], start=1)}
+    summary = dict(stages[f"after_{len(models)}_stages"])
+    summary["stages"] = stages
+    summary["rejected"] = run["rejected"]
+    summary["identity"] = error_summary(geometry.corner_errors(np.broadcast_to(np.eye(3), h_true.shape),
+                                                               h_true))
+    summary["ms_per_pair_batched"] = 1000.0 * elapsed / len(h_true)
+    return summary
+
+
+def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(),
+             max_samples=None, batch_size=64) -> dict:
+    """The library core of ``experiments.evaluate``.
+
+    Args:
+      model_dirs: one model directory (single stage, sequence or HomographyNet; on a stage-k
+        dataset its estimate is composed with the stored ``h_prev``), or several single-stage
+        directories forming a hierarchy (run on stage-1 pairs with the context warp between
+        stages), or none.
+      data_dir, split: the stored pairs (``stnh_tf.data``).
+      baselines: names from :data:`stnh_tf.baselines.BASELINES`, evaluated on the same pairs.
+      max_samples: evaluate the first N pairs only (reported as ``count``; default all).
+    Returns:
+      ``{"data_dir", "split", "count", "identity", "model" (if any), "baselines" (if any)}``.
+    """
+    from stnh_tf import baselines as baselines_lib
+    from stnh_tf import data
+
+    samples = data.load_arrays(data_dir, split, max_samples=max_samples)
+    h_true = np.asarray(samples["h_ba"], np.float64)
+    h_prev = np.asarray(samples["h_prev"], np.float64)
+    out = {"data_dir": data_dir, "split": split, "count": int(len(h_true)),
+           "identity": error_summary(geometry.corner_errors(
+               np.broadcast_to(np.eye(3), h_true.shape), h_true))}
+    model_dirs = [d for d in (model_dirs or ()) if d]
+    if len(model_dirs) == 1:
+        out["model"] = evaluate_model_on_arrays(load_model(model_dirs[0]), samples, batch_size)
+        out["model"]["model_dir"] = model_dirs[0]
+    elif len(model_dirs) > 1:
+        if not np.allclose(h_prev, np.eye(3)):
+            raise ValueError(f"a hierarchy is evaluated on stage-1 pairs; {data_dir} holds pairs "
+                             "with earlier-stage estimates (h_prev != identity).")
+        out["model"] = evaluate_hierarchy([load_model(d) for d in model_dirs], samples, batch_size)
+        out["model"]["model_dirs"] = list(model_dirs)
+    if baselines:
+        if not np.allclose(h_prev, np.eye(3)):
+            raise ValueError(f"baselines are evaluated on stage-1 pairs; {data_dir} holds pairs with "
+                             "earlier-stage estimates (h_prev != identity).")
+        u8 = lambda x: np.clip(np.rint(np.asarray(x)[..., 0] * 255.0), 0, 255).astype(np.uint8)
+        pa, pb = u8(samples["patch_a"]), u8(samples["patch_b"])
+        out["baselines"] = {}
+        for name in baselines:
+            out["baselines"][name] = baselines_lib.evaluate_baseline(name, pa, pb, h_true)
+    return out

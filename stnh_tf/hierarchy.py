@@ -1,0 +1,167 @@
+"""Hierarchical STN-Homography (paper section 4): stages run one after another with an OpenCV warp
+between them, each refining the composed estimate of the ones before.
+
+Conventions (see :mod:`stnh_tf.geometry` and ``conventions.md`` section 3):
+
+* Every homography here is a **pixel** ``H_ba`` in the patch frame (patch_b -> patch_a).
+* ``context_a`` is the ``(S + 2m) x (S + 2m)`` crop of image_a around the square (``m = 32``),
+  so patch_a is ``context_a[m:m+S, m:m+S]`` and a patch-frame point ``p`` lies at ``p + (m, m)``
+  in the context.
+* Stage k sees ``patch_a_k(p) = patch_a(H_prev @ p)`` with ``H_prev = H_1 @ ... @ H_{k-1}``, read
+  from the context (image content, not zeros, beyond the patch border):
+  ``warpPerspective(context_a, T_m @ H_prev, (S, S), flags=WARP_INVERSE_MAP | INTER_LINEAR)``.
+  Its target is the residual ``H_k* = inv(H_prev) @ H_ba``; the estimate after stage k is
+  ``H_prev @ H_k``.
+
+**Degenerate-prediction rule** (one rule, used by evaluation and by stage-data generation), on
+the composed estimate ``H = H_prev @ H_k``:
+
+* non-finite, or near-singular (``|det| < 1e-6`` after scaling to ``[2,2] = 1``, or a patch
+  corner mapped to ``w <= 0``, behind the camera): the prediction is replaced by the identity,
+  the estimate stays ``H_prev`` (reasons ``non_finite``, ``singular``);
+* a patch corner mapped outside the stored context (more than ``m`` pixels beyond the patch):
+  those corners are clipped onto the context's border and ``H`` is refitted to the four corners
+  (``cv2.getPerspectiveTransform``), so a nearly right estimate is kept rather than discarded and
+  the next stage never samples beyond the context (reason ``outside_context``; if the refit is
+  itself degenerate, the identity rule applies).
+
+Each case is counted by reason.
+
+NumPy/OpenCV only; the stage models are called through a ``predict`` function so that this module
+imports no deep-learning backend.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import cv2
+import numpy as np
+
+from stnh_tf import geometry
+
+CONTEXT_MARGIN = geometry.MAX_PERTURBATION
+"""Margin (pixels) of image_a stored around the square on every side."""
+
+REJECT_REASONS = ("non_finite", "singular", "outside_context")
+
+
+def crop_warped_context(context_a: np.ndarray, h_prev: np.ndarray, margin: int = CONTEXT_MARGIN,
+                        size: int = geometry.PATCH_SIZE) -> np.ndarray:
+    """``patch_a_k(p) = patch_a(H_prev @ p)`` read from the context (zero beyond the context).
+
+    Args:
+      context_a: ``[S + 2m, S + 2m]`` (uint8 or float) crop of image_a around the square.
+      h_prev: ``[3, 3]`` pixel ``H_ba`` in the patch frame (patch_b -> patch_a).
+    Returns:
+      ``[S, S]`` float32, same value range as ``context_a``.
+    """
+    h = geometry.translation(margin, margin) @ np.asarray(h_prev, np.float64)
+    return cv2.warpPerspective(np.asarray(context_a, np.float32), h, (size, size),
+                               flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def residual_target(h_prev: np.ndarray, h_ba: np.ndarray) -> np.ndarray:
+    """``H_k* = inv(H_prev) @ H_ba`` (``[..., 3, 3]``), scaled so ``[2,2] = 1``."""
+    return geometry.scale_to_unit(np.linalg.inv(np.asarray(h_prev, np.float64))
+                                  @ np.asarray(h_ba, np.float64))
+
+
+def rejection_reason(h_composed: np.ndarray, margin: int = CONTEXT_MARGIN,
+                     size: int = geometry.PATCH_SIZE) -> str | None:
+    """Why a composed estimate ``[3, 3]`` breaks the degenerate-prediction rule, or ``None``."""
+    h = np.asarray(h_composed, np.float64)
+    if not np.all(np.isfinite(h)) or abs(h[2, 2]) < 1e-12:
+        return "non_finite"
+    h = h / h[2, 2]
+    corners = np.concatenate([geometry.patch_corners(size), np.ones((4, 1))], axis=1)
+    mapped = corners @ h.T
+    if abs(np.linalg.det(h)) < 1e-6 or np.any(mapped[:, 2] <= 1e-9):
+        return "singular"
+    xy = mapped[:, :2] / mapped[:, 2:3]
+    if np.any(xy < -margin) or np.any(xy > size + margin):
+        return "outside_context"
+    return None
+
+
+def _clip_to_context(h: np.ndarray, margin: int, size: int) -> np.ndarray:
+    """Refit ``h`` after clipping the patch corners it maps into ``[-m, S + m]^2``."""
+    corners = geometry.patch_corners(size).astype(np.float32)
+    mapped = cv2.perspectiveTransform(corners[None].astype(np.float64), h)[0]
+    clipped = np.clip(mapped, -margin, size + margin).astype(np.float32)
+    return cv2.getPerspectiveTransform(corners, clipped).astype(np.float64)
+
+
+def accept_or_reject(h_prev: np.ndarray, h_stage: np.ndarray, margin: int = CONTEXT_MARGIN,
+                     size: int = geometry.PATCH_SIZE):
+    """Apply the degenerate-prediction rule to a batch.
+
+    Args:
+      h_prev: ``[N, 3, 3]`` composed estimate so far; h_stage: ``[N, 3, 3]`` this stage's output.
+    Returns:
+      ``(h_composed [N, 3, 3], reasons)``: ``h_prev @ h_stage`` where accepted; refitted to the
+      context where corners left it; ``h_prev`` where non-finite or singular. ``reasons`` holds
+      ``None`` or a reason from :data:`REJECT_REASONS` per sample.
+    """
+    h_prev = np.asarray(h_prev, np.float64)
+    with np.errstate(all="ignore"):
+        composed = h_prev @ np.asarray(h_stage, np.float64)
+    out, reasons = [], []
+    for prev, h in zip(h_prev, composed):
+        reason = rejection_reason(h, margin, size)
+        if reason == "outside_context":
+            h = _clip_to_context(h / h[2, 2], margin, size)
+            if rejection_reason(h, margin + 1e-3, size) is not None:
+                reason = "singular"
+        out.append(prev if reason in ("non_finite", "singular") else h / h[2, 2])
+        reasons.append(reason)
+    return np.stack(out), reasons
+
+
+PredictFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+"""``predict(patch_a [N,S,S,1] float32 in [0,1], patch_b [N,S,S,1]) -> pixel H [N,3,3]``."""
+
+
+def run_hierarchy(stages: Sequence[PredictFn], context_a: np.ndarray, patch_b: np.ndarray,
+                  h_init: np.ndarray | None = None, margin: int = CONTEXT_MARGIN,
+                  size: int = geometry.PATCH_SIZE) -> dict:
+    """Run ``n`` stages on a batch as the paper does (OpenCV warp of the context between stages).
+
+    Args:
+      stages: one predict function per stage (each returns the stage's pixel ``H_k``).
+      context_a: ``[N, S+2m, S+2m]`` uint8 (0..255) or float in [0, 1].
+      patch_b: ``[N, S, S]`` or ``[N, S, S, 1]``, same value range as ``context_a``.
+      h_init: ``[N, 3, 3]`` estimate to start from (identity when ``None``).
+    Returns:
+      ``{"h": [N,3,3] composed H_ba after all stages, "per_stage": [n x [N,3,3]] estimate after
+      each stage, "rejected": [n x {reason: count}]}``.
+    """
+    context_a = np.asarray(context_a)
+    scale = 255.0 if context_a.dtype == np.uint8 else 1.0
+    patch_b = np.asarray(patch_b, np.float32).reshape(len(context_a), size, size, 1) / scale
+    h = (np.repeat(np.eye(3)[None], len(context_a), 0) if h_init is None
+         else np.asarray(h_init, np.float64).copy())
+    per_stage, rejected = [], []
+    for predict in stages:
+        patch_a = np.stack([crop_warped_context(c, hp, margin, size) for c, hp in zip(context_a, h)])
+        h_stage = np.asarray(predict(patch_a[..., None] / scale, patch_b), np.float64)
+        h, reasons = accept_or_reject(h, h_stage, margin, size)
+        per_stage.append(h.copy())
+        rejected.append({r: reasons.count(r) for r in REJECT_REASONS})
+    return {"h": h, "per_stage": per_stage, "rejected": rejected}
+
+
+def keras_stage(model, batch_size: int = 64) -> PredictFn:
+    """Wrap a trained single-stage Keras model (output ``h_bar``) as a :data:`PredictFn`, run in
+    chunks of ``batch_size`` through a compiled forward pass."""
+    from stnh_tf import evaluation
+
+    forward = evaluation.compiled_forward(model)
+
+    def predict(patch_a, patch_b):
+        h_bar = np.concatenate([forward(patch_a[i:i + batch_size], patch_b[i:i + batch_size])
+                                for i in range(0, len(patch_a), batch_size)])
+        return evaluation.h_bar_to_pixel(h_bar)
+
+    return predict

@@ -1,0 +1,231 @@
+"""STN-Homography models (Zhou & Li 2019, sections 3-5) as Functional Keras models.
+
+* :func:`regression_network`: the paper's VGG-style regressor, ``[B,128,128,2] -> [B,8]``.
+* :func:`build_stn_homography`: one stage, ``{"patch_a", "patch_b"} -> {"h_bar", "patch_a_warp"}``.
+* :func:`build_sequence_stn_homography` (alias :data:`SequenceSTNHomography`): n stages chained by
+  :class:`HomographyMerge`.
+* :func:`build_homographynet`: DeTone et al.'s 4-point regression on the same backbone (baseline).
+
+Inputs are float32 patches in ``[0, 1]``, ``[B, 128, 128, 1]``. ``h_bar`` is the normalized
+``H_ba`` (patch_b -> patch_a, the paper's ``M``; see :mod:`stnh_tf.geometry`), and
+``patch_a_warp(p) = patch_a(H_ba @ p)``, the image compared with patch_a_t by the L1 loss.
+"""
+
+from __future__ import annotations
+
+import keras
+import numpy as np
+from keras import layers, ops
+
+from stnh_tf import geometry
+from stnh_tf.layers import HomographyMerge, SpatialTransformer
+
+IDENTITY_H_BAR = np.array([1, 0, 0, 0, 1, 0, 0, 0], dtype=np.float32)
+CONV_FILTERS = (64, 64, 64, 64, 128, 128, 128, 128)
+BATCH_NORM_CHOICES = ("none", "conv")
+DEFAULT_BATCH_NORM = "none"
+"""The paper's literal network (no BatchNorm): it trains stably at the paper's learning rate 0.05
+with the identity-initialised output layer, and a training step costs about a quarter of the
+BatchNorm variant's on a CPU (README, "Batch normalization")."""
+
+
+def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5, dense_units: int = 1024,
+                       outputs: int = 8, identity_init: bool = True, size: int = geometry.PATCH_SIZE,
+                       name: str = "regression") -> keras.Model:
+    """The paper's regression network.
+
+    8 conv 3x3 layers (64, 64, 64, 64, 128, 128, 128, 128 filters, ReLU), 2x2 stride-2 max pooling
+    after every two convolutions, global average pooling, Dense 1024 + ReLU, Dropout, Dense 8.
+
+    Args:
+      batch_norm: ``"none"`` (default) is the paper's literal text and trains stably at the
+        paper's learning rate 0.05; ``"conv"`` puts BatchNormalization after every convolution
+        (bias off), about 4x slower per step on a CPU (see README).
+      identity_init: start the last layer at zero kernel and the identity ``H_bar`` as bias (as
+        Jaderberg et al. initialise a spatial transformer's localisation net), so an untrained
+        stage predicts "no motion" rather than noise.
+    Input ``[B, size, size, 2]`` (patch_a, patch_b); output ``[B, outputs]`` float32.
+    """
+    if batch_norm not in BATCH_NORM_CHOICES:
+        raise ValueError(f"batch_norm must be one of {BATCH_NORM_CHOICES}; received {batch_norm!r}.")
+    inputs = keras.Input((size, size, 2), name=f"{name}_pair")
+    x = layers.Rescaling(2.0, offset=-1.0, name="to_unit_range")(inputs)  # [0,1] -> [-1,1]
+    for i, filters in enumerate(CONV_FILTERS):
+        use_bn = batch_norm == "conv"
+        x = layers.Conv2D(filters, 3, padding="same", use_bias=not use_bn,
+                          kernel_initializer="he_normal", name=f"conv{i + 1}")(x)
+        if use_bn:
+            x = layers.BatchNormalization(name=f"bn{i + 1}")(x)
+        x = layers.ReLU(name=f"relu{i + 1}")(x)
+        if i % 2 == 1 and i < len(CONV_FILTERS) - 1:
+            x = layers.MaxPooling2D(2, strides=2, name=f"pool{i // 2 + 1}")(x)
+    x = layers.GlobalAveragePooling2D(name="gap")(x)
+    x = layers.Dense(dense_units, activation="relu", kernel_initializer="he_normal", name="fc1")(x)
+    x = layers.Dropout(dropout, name="dropout")(x)
+    if identity_init and outputs == 8:
+        kernel_init, bias_init = "zeros", keras.initializers.Constant(IDENTITY_H_BAR.tolist())
+    else:
+        kernel_init, bias_init = "glorot_uniform", "zeros"
+    out = layers.Dense(outputs, kernel_initializer=kernel_init, bias_initializer=bias_init,
+                       dtype="float32", name="fc2")(x)
+    return keras.Model(inputs, out, name=name)
+
+
+def _patch_inputs(size):
+    patch_a = keras.Input((size, size, 1), name="patch_a")
+    patch_b = keras.Input((size, size, 1), name="patch_b")
+    return patch_a, patch_b
+
+
+def _stage(patch_a_in, patch_b, regressor, stage_name):
+    pair = layers.Concatenate(axis=-1, name=f"{stage_name}_pair")([patch_a_in, patch_b])
+    return regressor(pair)
+
+
+def build_stn_homography(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5,
+                         size: int = geometry.PATCH_SIZE, name: str = "stn_homography") -> keras.Model:
+    """Single STN-Homography stage.
+
+    Inputs ``{"patch_a", "patch_b"}`` (``[B, S, S, 1]`` float in [0, 1]); outputs
+    ``{"h_bar": [B, 8] float32, "patch_a_warp": [B, S, S, 1]}`` where ``patch_a_warp`` is patch_a
+    warped by the predicted ``H_ba`` (sampled at ``H_ba @ p``).
+    """
+    patch_a, patch_b = _patch_inputs(size)
+    regressor = regression_network(batch_norm=batch_norm, dropout=dropout, size=size)
+    h_bar = _stage(patch_a, patch_b, regressor, "stage1")
+    h_bar = layers.Identity(name="h_bar", dtype="float32")(h_bar)
+    warp = SpatialTransformer(name="patch_a_warp", dtype="float32")([patch_a, h_bar])
+    return keras.Model({"patch_a": patch_a, "patch_b": patch_b},
+                       {"h_bar": h_bar, "patch_a_warp": warp}, name=name)
+
+
+def sequence_output_names(num_stages: int):
+    """Output names of a sequence model: ``h_bar_k`` and ``patch_a_warp_k`` for k = 1..n."""
+    return ([f"h_bar_{k}" for k in range(1, num_stages + 1)],
+            [f"patch_a_warp_{k}" for k in range(1, num_stages + 1)])
+
+
+def _check_num_stages(num_stages):
+    if isinstance(num_stages, bool) or not isinstance(num_stages, (int, np.integer)) or num_stages < 1:
+        raise ValueError(f"num_stages must be an integer >= 1; received {num_stages!r}.")
+    return int(num_stages)
+
+
+def sequence_stages(patch_a, patch_b, num_stages: int, regress) -> dict:
+    """The wiring of Sequence STN-Homography (paper section 5; conventions section 3), on tensors.
+
+    The single implementation used by :func:`build_sequence_stn_homography`; tests call it with
+    an oracle ``regress`` to check the composition with the real layers.
+
+    For k = 1..n: stage k stacks ``(warp_{k-1}, patch_b)`` (``warp_0`` = patch_a) into the pair
+    ``[B, S, S, 2]`` (layer ``stage{k}_pair``), regresses the residual ``H_k'`` (patch_b ->
+    patch_a_warp_{k-1}), merges ``H_k = H_{k-1} @ H_k'`` (:class:`HomographyMerge` ``merge_k``,
+    rescaled to ``[2,2] = 1``; ``H_1 = H_1'``), and warps the **original** patch_a with ``H_k``:
+    ``patch_a_warp_k(p) = patch_a(H_k @ p)`` (:class:`SpatialTransformer` ``patch_a_warp_k``).
+
+    Args:
+      patch_a, patch_b: symbolic ``[B, S, S, 1]`` tensors.
+      num_stages: n >= 1.
+      regress: ``regress(k, pair, h_prev) -> [B, 8]`` normalized ``H_k'``; ``pair`` is the stage's
+        ``[B, S, S, 2]`` input, ``h_prev`` the merged ``[B, 8]`` ``H_{k-1}`` (``None`` for k = 1).
+        A real stage uses only ``pair``.
+    Returns:
+      ``{"h_bar_k": [B, 8] float32, "patch_a_warp_k": [B, S, S, 1]}`` for k = 1..n.
+    """
+    num_stages = _check_num_stages(num_stages)
+    outputs = {}
+    warp, h_prev = patch_a, None
+    for k in range(1, num_stages + 1):
+        pair = layers.Concatenate(axis=-1, name=f"stage{k}_pair")([warp, patch_b])
+        h_res = regress(k, pair, h_prev)
+        h_k = h_res if h_prev is None else HomographyMerge(name=f"merge_{k}")([h_prev, h_res])
+        h_k = layers.Identity(name=f"h_bar_{k}", dtype="float32")(h_k)
+        warp = SpatialTransformer(name=f"patch_a_warp_{k}", dtype="float32")([patch_a, h_k])
+        outputs[f"h_bar_{k}"] = h_k
+        outputs[f"patch_a_warp_{k}"] = warp
+        h_prev = h_k
+    return outputs
+
+
+def build_sequence_stn_homography(num_stages: int = 2, batch_norm: str = DEFAULT_BATCH_NORM,
+                                  dropout: float = 0.5, size: int = geometry.PATCH_SIZE,
+                                  name: str | None = None,
+                                  regressor_factory=None) -> keras.Model:
+    """Sequence STN-Homography (paper section 5), trained end to end. Also :data:`SequenceSTNHomography`.
+
+    Stage 1 regresses ``H_1`` from (patch_a, patch_b); stage k regresses ``H_k'`` from
+    (patch_a_warp_{k-1}, patch_b); :class:`HomographyMerge` forms ``H_k = H_{k-1} @ H_k'``; every
+    stage warps the **original** patch_a with ``H_k`` (see :func:`sequence_stages`). Each stage has
+    its own regression network (sub-model ``regression_k``, the layout
+    :func:`stnh_tf.training.initialize_sequence_from` copies single-stage weights into).
+
+    Inputs ``{"patch_a", "patch_b"}`` (``[B, S, S, 1]`` float in [0, 1]); outputs ``h_bar_k``
+    ``[B, 8]`` float32 (normalized ``H_ba`` after k stages) and ``patch_a_warp_k`` ``[B, S, S, 1]``
+    for every k (names from :func:`sequence_output_names`).
+
+    Args:
+      regressor_factory: optional ``factory(k) -> layer`` mapping the pair ``[B, S, S, 2]`` to
+        ``[B, 8]`` (e.g. a small network in tests); default :func:`regression_network` named
+        ``regression_k`` with ``batch_norm`` and ``dropout``.
+    """
+    num_stages = _check_num_stages(num_stages)
+    if regressor_factory is None:
+        def regressor_factory(k):
+            return regression_network(batch_norm=batch_norm, dropout=dropout, size=size,
+                                      name=f"regression_{k}")
+    regressors = {k: regressor_factory(k) for k in range(1, num_stages + 1)}
+    patch_a, patch_b = _patch_inputs(size)
+    outputs = sequence_stages(patch_a, patch_b, num_stages,
+                              lambda k, pair, h_prev: regressors[k](pair))
+    return keras.Model({"patch_a": patch_a, "patch_b": patch_b}, outputs,
+                       name=name or f"sequence_stn_homography_{num_stages}")
+
+
+SequenceSTNHomography = build_sequence_stn_homography
+"""Public name of the sequence model: ``SequenceSTNHomography(num_stages=2, ...)`` returns the
+Functional model of :func:`build_sequence_stn_homography` (the same function)."""
+
+
+HOMOGRAPHYNET_SCALE = float(geometry.MAX_PERTURBATION)
+
+
+@keras.saving.register_keras_serializable(package="stnh_tf")
+class OffsetsToHBar(layers.Layer):
+    """Four-point offsets (scaled by 1/32) ``[B, 8]`` -> normalized ``H_bar`` ``[B, 8]``.
+
+    Lets the HomographyNet baseline be trained and evaluated through the same ``h_bar`` interface:
+    offsets are ``H_ba @ c - c`` for the corners of :func:`geometry.patch_corners`.
+    """
+
+    def __init__(self, size: int = geometry.PATCH_SIZE, scale: float = HOMOGRAPHYNET_SCALE, **kwargs):
+        kwargs.setdefault("dtype", "float32")
+        super().__init__(**kwargs)
+        self.size, self.scale = int(size), float(scale)
+
+    def call(self, offsets):
+        offsets = ops.cast(offsets, "float32") * self.scale
+        h = geometry.offsets_to_homography(ops.reshape(offsets, (-1, 4, 2)), self.size)
+        h_bar = geometry.normalize_homography(h, self.size, self.size)
+        return ops.reshape(h_bar, (-1, 9))[:, :8]
+
+    def get_config(self):
+        return {**super().get_config(), "size": self.size, "scale": self.scale}
+
+
+def build_homographynet(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5,
+                        size: int = geometry.PATCH_SIZE, name: str = "homographynet") -> keras.Model:
+    """HomographyNet (DeTone et al. 2016): the same VGG backbone regressing the 4-point offsets.
+
+    Outputs ``{"offsets": [B, 8] (pixels / 32), "h_bar": [B, 8], "patch_a_warp"}``; only the
+    ``offsets`` output is trained (L2 against the true offsets / 32), the others let it be
+    evaluated through the same path as STN-Homography.
+    """
+    patch_a, patch_b = _patch_inputs(size)
+    regressor = regression_network(batch_norm=batch_norm, dropout=dropout, size=size,
+                                   identity_init=False, name="regression")
+    pair = layers.Concatenate(axis=-1, name="stage1_pair")([patch_a, patch_b])
+    offsets = layers.Identity(name="offsets", dtype="float32")(regressor(pair))
+    h_bar = OffsetsToHBar(size=size, name="h_bar")(offsets)
+    warp = SpatialTransformer(name="patch_a_warp", dtype="float32")([patch_a, h_bar])
+    return keras.Model({"patch_a": patch_a, "patch_b": patch_b},
+                       {"offsets": offsets, "h_bar": h_bar, "patch_a_warp": warp}, name=name)

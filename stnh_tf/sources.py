@@ -1,0 +1,296 @@
+"""Image sources for data generation: listing, decoding and the paper's 320x240 gray conversion.
+
+NumPy / OpenCV (and Pillow as a decoding fallback) only: this module never imports TensorFlow or
+Keras, so data-generation worker processes and the backend-free ``PairSequence`` can use it.
+
+Every source image becomes ``uint8 [240, 320]`` (height, width) through :func:`load_gray_320x240`:
+
+* decoded with OpenCV (``IMREAD_IGNORE_ORIENTATION``: raw pixel order, EXIF rotation ignored, the
+  same as tensorflow-datasets' decoder); JPEGs straight to gray (libjpeg's luma), every other
+  file unchanged and then converted here; Pillow is tried when OpenCV cannot decode a file;
+* 16-bit and other wide integer images scaled to 8 bits (``round(v * 255 / 65535)``), float
+  images taken as ``[0, 1]`` when their maximum is <= 1 (else ``[0, 255]``), booleans as 0/255;
+* colour (BGR/RGB, palette expanded, CMYK converted by the decoder) to gray with the ITU-R 601
+  weights ``0.299 R + 0.587 G + 0.114 B`` (``cv2.COLOR_BGR2GRAY``);
+* an alpha channel is composited onto black (``gray * alpha``), so that hidden colour values of
+  transparent pixels never leak into the data;
+* resized to exactly 320x240 (aspect ratio not kept, as in the paper): ``cv2.INTER_AREA`` when
+  both sides shrink, ``cv2.INTER_LINEAR`` otherwise (small images are enlarged, never skipped).
+
+Files that cannot be turned into an image raise :class:`ImageDecodeError`, whose message is the
+reason recorded in a dataset's ``metadata.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import os
+
+import cv2
+import numpy as np
+
+from stnh_tf import geometry
+
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".pgm", ".ppm", ".pbm", ".pnm", ".tif",
+                    ".tiff")
+"""File name endings (case-insensitive) that the ``folder`` source treats as images."""
+
+RESIZE_POLICY = "cv2.INTER_AREA if both sides shrink else cv2.INTER_LINEAR"
+GRAY_POLICY = ("ITU-R 601 luma (cv2 BGR2GRAY; JPEG decoded to gray by libjpeg), 16-bit scaled by "
+               "255/65535, alpha composited onto black, EXIF orientation ignored")
+
+_JPEG_MAGIC = b"\xff\xd8"
+
+# Natural photographs shipped inside scikit-image's wheel (no download needed); synthetic
+# images (checkerboards, logos, colour wheels, silhouettes) are left out on purpose.
+_SKIMAGE_PHOTOS = ("astronaut.png", "brick.png", "camera.png", "cell.png", "chelsea.png",
+                   "clock_motion.png", "coffee.png", "coins.png", "grass.png", "gravel.png",
+                   "hubble_deep_field.jpg", "ihc.png", "moon.png", "motorcycle_left.png",
+                   "motorcycle_right.png", "page.png", "retina.jpg", "rocket.jpg", "text.png")
+_MATPLOTLIB_PHOTOS = ("grace_hopper.jpg",)
+_SKLEARN_PHOTOS = ("china.jpg", "flower.jpg")
+
+
+class ImageDecodeError(ValueError):
+    """A file that cannot be turned into an 8-bit gray image; ``str(e)`` is the reason."""
+
+
+class SourceError(ValueError):
+    """A source that cannot be used at all (missing folder, no images, no download possible)."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Listing
+# ------------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class FolderListing:
+    """Result of scanning a folder for images.
+
+    Attributes:
+      root: absolute path of the scanned folder.
+      files: absolute paths of image files, sorted by their path relative to ``root`` (POSIX
+        separators), so the order (and hence every image index) is the same on every machine.
+      unreadable: ``(path, reason)`` for directories that could not be listed.
+      ignored: number of files skipped because of their extension (not image files).
+    """
+
+    root: str
+    files: list
+    unreadable: list
+    ignored: int
+
+    def image_id(self, path: str) -> str:
+        """The id stored with each sample: the path relative to ``root``, POSIX separators."""
+        return os.path.relpath(path, self.root).replace(os.sep, "/")
+
+
+def scan_image_folder(folder: str) -> FolderListing:
+    """Every image file below ``folder`` (recursively; extensions in :data:`IMAGE_EXTENSIONS`).
+
+    Raises:
+      SourceError: if ``folder`` is not an existing directory.
+    """
+    root = os.path.abspath(folder)
+    if not os.path.isdir(root):
+        raise SourceError(f"image folder {root!r} does not exist or is not a directory.")
+    files, unreadable, ignored = [], [], 0
+
+    def onerror(err: OSError):
+        unreadable.append((getattr(err, "filename", None) or str(err),
+                           f"unreadable directory: {type(err).__name__}: {err.strerror or err}"))
+
+    for dirpath, dirnames, filenames in os.walk(root, onerror=onerror, followlinks=False):
+        dirnames.sort()
+        for name in filenames:
+            if name.lower().endswith(IMAGE_EXTENSIONS):
+                files.append(os.path.join(dirpath, name))
+            else:
+                ignored += 1
+    listing = FolderListing(root=root, files=[], unreadable=sorted(unreadable), ignored=ignored)
+    listing.files = sorted(files, key=listing.image_id)
+    return listing
+
+
+def list_image_files(folder: str) -> list:
+    """Absolute paths of every image file below ``folder``, sorted (:func:`scan_image_folder`)."""
+    return scan_image_folder(folder).files
+
+
+def bundled_image_files() -> list:
+    """``(image_id, path)`` of the natural photographs shipped inside installed packages.
+
+    scikit-image's bundled photographs (no download), matplotlib's sample photograph(s), and
+    scikit-learn's two sample images when scikit-learn is installed. Sorted by id; ids look like
+    ``"skimage/camera.png"``.
+    """
+    found = []
+    import skimage
+
+    sk_dir = os.path.join(os.path.dirname(skimage.__file__), "data")
+    found += [(f"skimage/{n}", os.path.join(sk_dir, n)) for n in _SKIMAGE_PHOTOS]
+    try:
+        import matplotlib
+
+        mpl_dir = os.path.join(matplotlib.get_data_path(), "sample_data")
+        found += [(f"matplotlib/{n}", os.path.join(mpl_dir, n)) for n in _MATPLOTLIB_PHOTOS]
+    except ImportError:
+        pass
+    try:
+        import sklearn  # optional: not a dependency of this project
+
+        sl_dir = os.path.join(os.path.dirname(sklearn.__file__), "datasets", "images")
+        found += [(f"sklearn/{n}", os.path.join(sl_dir, n)) for n in _SKLEARN_PHOTOS]
+    except ImportError:
+        pass
+    return sorted((i, p) for i, p in found if os.path.isfile(p))
+
+
+def bundled_images() -> list:
+    """``(image_id, uint8 [240, 320])`` for every :func:`bundled_image_files` photograph."""
+    return [(i, load_gray_320x240(p)) for i, p in bundled_image_files()]
+
+
+# ------------------------------------------------------------------------------------------------
+# Decoding
+# ------------------------------------------------------------------------------------------------
+def to_gray_uint8(image: np.ndarray, channel_order: str = "bgr") -> np.ndarray:
+    """Any decoded image -> ``uint8 [h, w]`` gray (see the module docstring for the rules).
+
+    Args:
+      image: ``[h, w]``, ``[h, w, 1]``, ``[h, w, 2]`` (gray + alpha), ``[h, w, 3]`` (colour) or
+        ``[h, w, 4]`` (colour + alpha); uint8, uint16, other integers, float or bool.
+      channel_order: ``"bgr"`` (OpenCV) or ``"rgb"`` (Pillow) for 3/4-channel images.
+    Raises:
+      ImageDecodeError: unsupported shape or dtype.
+    """
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (2, 3, 4)) \
+            or img.shape[0] == 0 or img.shape[1] == 0:
+        raise ImageDecodeError(f"unsupported image shape {img.shape}")
+    alpha = None
+    if img.ndim == 3 and img.shape[2] in (2, 4):
+        img, alpha = img[..., :-1], img[..., -1]
+        if img.shape[2] == 1:
+            img = img[..., 0]
+    if img.dtype == np.uint8 and alpha is None:  # the common case, in OpenCV's fixed point
+        if img.ndim == 2:
+            return np.ascontiguousarray(img)
+        code = cv2.COLOR_BGR2GRAY if channel_order == "bgr" else cv2.COLOR_RGB2GRAY
+        return cv2.cvtColor(np.ascontiguousarray(img), code)
+    gray = _unit_float(img)
+    if gray.ndim == 3:
+        b, g, r = (gray[..., 0], gray[..., 1], gray[..., 2]) if channel_order == "bgr" else \
+            (gray[..., 2], gray[..., 1], gray[..., 0])
+        gray = 0.299 * r + 0.587 * g + 0.114 * b
+    if alpha is not None:
+        gray = gray * _unit_float(alpha)
+    return np.clip(np.rint(gray * 255.0), 0, 255).astype(np.uint8)
+
+
+def _unit_float(img: np.ndarray) -> np.ndarray:
+    """Scale any dtype to float64 in [0, 1]."""
+    if img.dtype == np.bool_:
+        return img.astype(np.float64)
+    if img.dtype == np.uint8:
+        return img.astype(np.float64) / 255.0
+    if np.issubdtype(img.dtype, np.integer):
+        # 16-bit (uint16, or Pillow's int32 mode "I" holding 16-bit data): full scale 65535.
+        return np.clip(img.astype(np.float64), 0, 65535.0) / 65535.0
+    if np.issubdtype(img.dtype, np.floating):
+        f = np.nan_to_num(img.astype(np.float64))
+        return np.clip(f if f.size == 0 or f.max() <= 1.0 else f / 255.0, 0.0, 1.0)
+    raise ImageDecodeError(f"unsupported pixel type {img.dtype}")
+
+
+def decode_gray(data: bytes) -> np.ndarray:
+    """Encoded image bytes -> ``uint8 [h, w]`` gray at the file's own size.
+
+    Raises:
+      ImageDecodeError: empty, truncated, corrupt or non-image data (message = reason).
+    """
+    if len(data) == 0:
+        raise ImageDecodeError("empty file (0 bytes)")
+    buf = np.frombuffer(data, np.uint8)
+    flags = cv2.IMREAD_IGNORE_ORIENTATION
+    if data[:2] == _JPEG_MAGIC:
+        img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE | flags)
+        if img is not None:
+            return img
+    else:
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED | flags)
+        if img is not None:
+            return to_gray_uint8(img, "bgr")
+    return _decode_with_pillow(data)
+
+
+def _decode_with_pillow(data: bytes) -> np.ndarray:
+    try:
+        from PIL import Image, UnidentifiedImageError
+    except ImportError:  # pragma: no cover - Pillow comes with matplotlib
+        raise ImageDecodeError("not a decodable image (OpenCV failed; Pillow unavailable)")
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            im.load()  # raises OSError on truncated data
+            mode = im.mode
+            if mode == "P" or mode == "PA":
+                im = im.convert("RGBA")
+            elif mode in ("CMYK", "YCbCr", "LAB", "HSV"):
+                im = im.convert("RGB")
+            elif mode == "1":
+                im = im.convert("L")
+            elif mode.startswith("I;16"):
+                return to_gray_uint8(np.asarray(im, dtype=np.uint16))
+            arr = np.asarray(im)
+    except UnidentifiedImageError:
+        raise ImageDecodeError("not a decodable image (unknown or corrupt format)") from None
+    except (OSError, ValueError, SyntaxError) as e:
+        raise ImageDecodeError(f"corrupt or truncated image: {e}") from None
+    return to_gray_uint8(arr, "rgb")
+
+
+def resize_to_protocol(gray: np.ndarray, width: int = geometry.IMAGE_WIDTH,
+                       height: int = geometry.IMAGE_HEIGHT) -> np.ndarray:
+    """``uint8 [h, w]`` -> ``uint8 [height, width]`` (area when shrinking, else bilinear)."""
+    h, w = gray.shape[:2]
+    if (w, h) == (width, height):
+        return np.ascontiguousarray(gray)
+    interp = cv2.INTER_AREA if (w >= width and h >= height) else cv2.INTER_LINEAR
+    return cv2.resize(gray, (width, height), interpolation=interp)
+
+
+def load_gray_320x240(path_or_bytes) -> np.ndarray:
+    """Read an image file (path) or encoded bytes -> ``uint8 [240, 320]`` gray.
+
+    Raises:
+      ImageDecodeError: the file cannot be read or decoded (message = reason).
+    """
+    if isinstance(path_or_bytes, (bytes, bytearray, memoryview)):
+        data = bytes(path_or_bytes)
+    else:
+        try:
+            with open(path_or_bytes, "rb") as f:
+                data = f.read()
+        except OSError as e:
+            reason = f"unreadable file: {type(e).__name__}: {e.strerror or e}"
+            raise ImageDecodeError(reason) from None
+    return resize_to_protocol(decode_gray(data))
+
+
+def as_gray_320x240(image) -> np.ndarray:
+    """Path, encoded bytes, or an already decoded array (any dtype/channels, BGR order) ->
+    ``uint8 [240, 320]``."""
+    if isinstance(image, np.ndarray):
+        return resize_to_protocol(to_gray_uint8(image, "bgr"))
+    return load_gray_320x240(image)
+
+
+def quiet_opencv() -> None:
+    """Silence OpenCV's decoder warnings (bad files are reported through ImageDecodeError)."""
+    try:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    except AttributeError:  # pragma: no cover - very old OpenCV
+        pass
+

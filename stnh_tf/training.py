@@ -1,0 +1,489 @@
+"""Stage and sequence training: one implementation of the paper's recipe for every model kind.
+
+``train(config)`` builds the model named by the config (single STN-Homography stage, sequence
+model, or the HomographyNet baseline), compiles it with the paper's optimizer and losses, and fits
+it on the TFRecord dataset in ``config.data_dir`` with:
+
+* SGD, momentum 0.9, batch 64; learning rate rising linearly 0 -> 0.05 over ``warmup_steps``, then
+  cosine decay to 0 over the remaining ``train_steps - warmup_steps`` (Keras' ``CosineDecay`` with
+  ``warmup_target``): the paper's 1,000 + 90,000 steps by default.
+* Atomic periodic checkpoints (model + optimizer + RNG state) every ``checkpoint_every`` steps; a
+  killed run restarted with the same command resumes at the last checkpoint, repositions the data
+  stream at that step, and follows the same schedule to the same final step.
+* TensorBoard logs (both loss terms, learning rate, validation MACE) and console progress.
+* A non-finite loss stops training with an error naming the step and the last good checkpoint.
+* ``strategy="mirrored"`` runs under ``tf.distribute.MirroredStrategy``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shutil
+import time
+from typing import Callable
+
+import keras
+import numpy as np
+
+from stnh_tf import losses as losses_lib
+from stnh_tf import models
+
+MODEL_KINDS = ("stn", "sequence", "homographynet")
+FINAL_MODEL = "model.keras"
+CONFIG_FILE = "config.json"
+CHECKPOINT_DIR = "checkpoint"
+CHECKPOINT_WEIGHTS = "ckpt.weights.h5"
+CHECKPOINT_STATE = "state.json"
+
+
+@dataclasses.dataclass
+class TrainConfig:
+    """Everything a training run depends on (written to ``model_dir/config.json``)."""
+
+    data_dir: str = ""                 # TFRecord dataset directory (train split, + val split)
+    model_dir: str = ""                # output: config, checkpoints, logs, final model
+    model: str = "stn"                 # "stn" | "sequence" | "homographynet"
+    stage: int = 1                     # hierarchical stage this model is (dataset must match)
+    num_stages: int = 2                # sequence model only
+    train_steps: int = 91_000          # total optimizer steps (warm-up + cosine decay)
+    warmup_steps: int = 1_000          # linear warm-up 0 -> learning_rate
+    batch_size: int = 64
+    learning_rate: float = 0.05        # peak learning rate, reached after warm-up
+    momentum: float = 0.9
+    l2_weight: float = 1.0             # weight of the L2 loss on H_bar
+    l1_weight: float = 1.0             # weight of the L1 photometric loss
+    stage_loss_weights: tuple = ()     # sequence only: per-stage multipliers (default all 1)
+    batch_norm: str = "none"           # "none" (paper's literal text) | "conv" (BN after each conv)
+    dropout: float = 0.5
+    seed: int = 0                      # weights init, dropout and data order
+    shuffle_buffer: int = 10_000       # records in the shuffle buffer (~86 KB each; shards hold
+                                       # an image's samples together, so a large buffer matters)
+    mixed_precision: bool = False      # Keras mixed_bfloat16 policy
+    checkpoint_every: int = 500        # steps between checkpoints (= one Keras "epoch")
+    log_every: int = 50                # steps between console/TensorBoard training logs
+    val_split: str = "test"            # split used for the validation MACE (monitoring only)
+    val_samples: int = 1024            # validation pairs evaluated at every checkpoint (0: none)
+    strategy: str = "default"          # "default" | "mirrored"
+    init_from: tuple = ()              # sequence: single-stage model dirs to initialise stages
+
+    def validate(self):
+        if self.model not in MODEL_KINDS:
+            raise ValueError(f"model must be one of {MODEL_KINDS}; received {self.model!r}.")
+        if not self.data_dir or not self.model_dir:
+            raise ValueError("data_dir and model_dir are required.")
+        if self.train_steps <= 0 or self.warmup_steps < 0 or self.warmup_steps > self.train_steps:
+            raise ValueError(f"need 0 <= warmup_steps <= train_steps, train_steps > 0; received "
+                             f"warmup_steps={self.warmup_steps}, train_steps={self.train_steps}.")
+        if self.train_steps % self.checkpoint_every:
+            raise ValueError(f"train_steps ({self.train_steps}) must be a multiple of "
+                             f"checkpoint_every ({self.checkpoint_every}).")
+        if self.strategy not in ("default", "mirrored"):
+            raise ValueError(f"strategy must be 'default' or 'mirrored'; received {self.strategy!r}.")
+        if self.stage < 1:
+            raise ValueError(f"stage must be >= 1; received {self.stage}.")
+
+    def to_json(self):
+        d = dataclasses.asdict(self)
+        d["stage_loss_weights"] = list(self.stage_loss_weights)
+        d["init_from"] = list(self.init_from)
+        return d
+
+    @classmethod
+    def from_json(cls, d):
+        d = dict(d)
+        d["stage_loss_weights"] = tuple(d.get("stage_loss_weights", ()))
+        d["init_from"] = tuple(d.get("init_from", ()))
+        return cls(**{k: v for k, v in d.items() if k in {f.name for f in dataclasses.fields(cls)}})
+
+
+# Fields that may differ between a run and its resumption without changing the result.
+_RESUME_FREE_FIELDS = {"log_every", "model_dir", "data_dir"}
+
+
+class TrainingDiverged(RuntimeError):
+    """Raised when the loss becomes non-finite."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Pieces
+# ------------------------------------------------------------------------------------------------
+def learning_rate_schedule(cfg: TrainConfig):
+    """Linear warm-up from 0 to ``learning_rate`` over ``warmup_steps``, then cosine decay to 0
+    over ``train_steps - warmup_steps`` (Keras' own ``CosineDecay``)."""
+    return keras.optimizers.schedules.CosineDecay(
+        initial_learning_rate=0.0 if cfg.warmup_steps else cfg.learning_rate,
+        decay_steps=max(cfg.train_steps - cfg.warmup_steps, 1),
+        alpha=0.0,
+        warmup_target=cfg.learning_rate if cfg.warmup_steps else None,
+        warmup_steps=cfg.warmup_steps,
+    )
+
+
+def build_model(cfg: TrainConfig) -> keras.Model:
+    if cfg.model == "stn":
+        return models.build_stn_homography(batch_norm=cfg.batch_norm, dropout=cfg.dropout)
+    if cfg.model == "homographynet":
+        return models.build_homographynet(batch_norm=cfg.batch_norm, dropout=cfg.dropout)
+    return models.build_sequence_stn_homography(cfg.num_stages, batch_norm=cfg.batch_norm,
+                                                dropout=cfg.dropout)
+
+
+def loss_spec(cfg: TrainConfig):
+    """(losses, loss_weights, metrics) dicts keyed by the model's output names."""
+    if cfg.model == "stn":
+        return ({"h_bar": losses_lib.h_bar_l2, "patch_a_warp": losses_lib.photometric_l1},
+                {"h_bar": cfg.l2_weight, "patch_a_warp": cfg.l1_weight},
+                {"h_bar": [losses_lib.MeanCornerError()]})
+    if cfg.model == "homographynet":
+        return ({"offsets": "mse"}, {"offsets": 1.0}, {"h_bar": [losses_lib.MeanCornerError()]})
+    weights = list(cfg.stage_loss_weights) or [1.0] * cfg.num_stages
+    if len(weights) != cfg.num_stages:
+        raise ValueError(f"stage_loss_weights needs {cfg.num_stages} values; received {weights}.")
+    losses, loss_weights, metrics = {}, {}, {}
+    h_names, w_names = models.sequence_output_names(cfg.num_stages)
+    for k, (hn, wn) in enumerate(zip(h_names, w_names)):
+        losses[hn], loss_weights[hn] = losses_lib.h_bar_l2, cfg.l2_weight * weights[k]
+        losses[wn], loss_weights[wn] = losses_lib.photometric_l1, cfg.l1_weight * weights[k]
+        metrics[hn] = [losses_lib.MeanCornerError()]
+    return losses, loss_weights, metrics
+
+
+def targets_for(cfg: TrainConfig) -> Callable:
+    """Map the dataset's ``(x, y, sample_weight)`` (keys ``h_bar``, ``patch_a_warp``) onto the
+    model's output names."""
+    if cfg.model == "stn":
+        return None
+    if cfg.model == "homographynet":
+        def fn(x, y, w):
+            import tensorflow as tf  # noqa: F401  (runs inside tf.data)
+            from stnh_tf import geometry
+            h = geometry.denormalize_homography(geometry.vector_to_matrix(y["h_bar"]))
+            offsets = keras.ops.reshape(geometry.homography_to_offsets(h), (-1, 8))
+            offsets = offsets / models.HOMOGRAPHYNET_SCALE
+            return x, {"offsets": offsets, "h_bar": y["h_bar"]}, {"offsets": w["h_bar"], "h_bar": w["h_bar"]}
+        return fn
+    h_names, w_names = models.sequence_output_names(cfg.num_stages)
+
+    def fn(x, y, w):
+        ys, ws = {}, {}
+        for hn, wn in zip(h_names, w_names):
+            ys[hn], ys[wn] = y["h_bar"], y["patch_a_warp"]
+            ws[hn], ws[wn] = w["h_bar"], w["patch_a_warp"]
+        return x, ys, ws
+    return fn
+
+
+def compile_model(model, cfg: TrainConfig):
+    losses, loss_weights, metrics = loss_spec(cfg)
+    optimizer = keras.optimizers.SGD(learning_rate=learning_rate_schedule(cfg), momentum=cfg.momentum)
+    model.compile(optimizer=optimizer, loss=losses, loss_weights=loss_weights,
+                  weighted_metrics=metrics)
+    return model
+
+
+# ------------------------------------------------------------------------------------------------
+# Callbacks
+# ------------------------------------------------------------------------------------------------
+def _atomic_write_json(path, obj):
+    tmp = f"{path}.tmp-{os.getpid()}"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=2, sort_keys=True)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _seed_variables(model):
+    """The model's random-seed state variables (dropout), in model order."""
+    return [v for v in model.variables if "seed_generator_state" in v.path]
+
+
+def _seed_states(model):
+    # A list in model order: variable paths ("seed_generator_3/...") depend on how many seed
+    # generators the process created before, so they cannot identify the state across processes.
+    return [np.asarray(keras.ops.convert_to_numpy(v)).tolist() for v in _seed_variables(model)]
+
+
+def _restore_seed_states(model, states):
+    variables = _seed_variables(model)
+    if isinstance(states, dict):  # checkpoints written before states were kept in order
+        states = list(states.values())
+    if len(states) != len(variables):
+        raise RuntimeError(f"checkpoint holds {len(states)} random-seed states; the model has "
+                           f"{len(variables)}.")
+    for v, state in zip(variables, states):
+        v.assign(np.asarray(state, dtype=keras.backend.standardize_dtype(v.dtype)))
+
+
+class AtomicCheckpoint(keras.callbacks.Callback):
+    """Saves weights + optimizer state (and dropout RNG state) at every epoch end, atomically:
+    written under a temporary name, then renamed, so a kill -9 never leaves a half checkpoint."""
+
+    def __init__(self, directory, guard=None):
+        super().__init__()
+        self.directory = directory
+        self.guard = guard
+        os.makedirs(directory, exist_ok=True)
+
+    @property
+    def weights_path(self):
+        return os.path.join(self.directory, CHECKPOINT_WEIGHTS)
+
+    @property
+    def state_path(self):
+        return os.path.join(self.directory, CHECKPOINT_STATE)
+
+    def on_epoch_end(self, epoch, logs=None):
+        if self.guard is not None and self.guard.bad_step is not None:
+            return
+        step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
+        tmp = os.path.join(self.directory, f"tmp-{os.getpid()}.weights.h5")
+        self.model.save_weights(tmp)
+        os.replace(tmp, self.weights_path)
+        _atomic_write_json(self.state_path, {"step": step, "epoch": epoch + 1, "time": time.time(),
+                                             "seed_states": _seed_states(self.model),
+                                             "logs": {k: float(v) for k, v in (logs or {}).items()}})
+
+
+def load_checkpoint(model, directory) -> int:
+    """Restore the latest checkpoint in ``directory`` into a compiled ``model``; returns its step
+    (0 if there is none)."""
+    weights = os.path.join(directory, CHECKPOINT_WEIGHTS)
+    state_path = os.path.join(directory, CHECKPOINT_STATE)
+    if not (os.path.exists(weights) and os.path.exists(state_path)):
+        return 0
+    with open(state_path) as f:
+        state = json.load(f)
+    model.optimizer.build(model.trainable_variables)
+    model.load_weights(weights)
+    _restore_seed_states(model, state.get("seed_states", []))
+    step = int(keras.ops.convert_to_numpy(model.optimizer.iterations))
+    if step != state["step"]:
+        raise RuntimeError(f"checkpoint {weights} holds step {step} but {state_path} says "
+                           f"{state['step']}.")
+    return step
+
+
+class NonFiniteGuard(keras.callbacks.Callback):
+    """Stops training at the first non-finite loss and remembers the step."""
+
+    def __init__(self):
+        super().__init__()
+        self.bad_step = None
+
+    def on_train_batch_end(self, batch, logs=None):
+        loss = (logs or {}).get("loss")
+        if loss is not None and not math.isfinite(float(loss)):
+            self.bad_step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
+            self.model.stop_training = True
+
+
+class ProgressLogger(keras.callbacks.Callback):
+    """One console line every ``every`` steps: step, losses, learning rate, steps/s."""
+
+    def __init__(self, every, total, printer=print):
+        super().__init__()
+        self.every, self.total, self.printer = max(int(every), 1), total, printer
+        self._t0 = self._s0 = None
+
+    def on_train_batch_end(self, batch, logs=None):
+        step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
+        if self._t0 is None:
+            self._t0, self._s0 = time.time(), step
+        if step % self.every and step != self.total:
+            return
+        rate = (step - self._s0) / max(time.time() - self._t0, 1e-9)
+        lr = float(keras.ops.convert_to_numpy(self.model.optimizer.learning_rate))
+        parts = " ".join(f"{k}={float(v):.5g}" for k, v in sorted((logs or {}).items()))
+        self.printer(f"step {step}/{self.total} lr={lr:.5g} {parts} ({rate:.2f} steps/s)")
+
+    def on_epoch_end(self, epoch, logs=None):
+        vals = {k: v for k, v in (logs or {}).items() if k.startswith("val_")}
+        if vals:
+            step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
+            self.printer(f"step {step} validation " +
+                         " ".join(f"{k}={float(v):.5g}" for k, v in sorted(vals.items())))
+
+
+# ------------------------------------------------------------------------------------------------
+# The run
+# ------------------------------------------------------------------------------------------------
+def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False):
+    """Create ``model_dir``; refuse to overwrite a finished run without ``overwrite``; refuse to
+    resume a run whose configuration differs."""
+    final = os.path.join(cfg.model_dir, FINAL_MODEL)
+    config_path = os.path.join(cfg.model_dir, CONFIG_FILE)
+    if os.path.exists(final) and not overwrite:
+        raise FileExistsError(f"{cfg.model_dir} holds a finished model ({final}); pass --overwrite "
+                              "to train it again.")
+    if overwrite and os.path.isdir(cfg.model_dir):
+        shutil.rmtree(cfg.model_dir)
+    os.makedirs(cfg.model_dir, exist_ok=True)
+    if not os.access(cfg.model_dir, os.W_OK):
+        raise PermissionError(f"model_dir {cfg.model_dir} is not writable.")
+    if os.path.exists(config_path):
+        with open(config_path) as f:
+            old = json.load(f)
+        new = cfg.to_json()
+        diff = {k: (old.get(k), new[k]) for k in new
+                if k not in _RESUME_FREE_FIELDS and old.get(k) != new[k]}
+        if diff:
+            raise ValueError(f"{cfg.model_dir} holds an unfinished run with a different configuration "
+                             f"{diff} (old, new); use the same flags to resume, or --overwrite.")
+    _atomic_write_json(config_path, cfg.to_json())
+
+
+def _strategy(cfg):
+    import tensorflow as tf
+
+    if cfg.strategy == "mirrored":
+        return tf.distribute.MirroredStrategy()
+    return tf.distribute.get_strategy()
+
+
+def initialize_sequence_from(model, stage_dirs):
+    """Copy the regression weights of trained single-stage models into a sequence model's stages."""
+    for k, d in enumerate(stage_dirs, start=1):
+        src = keras.models.load_model(os.path.join(d, FINAL_MODEL), compile=False)
+        model.get_layer(f"regression_{k}").set_weights(src.get_layer("regression").get_weights())
+
+
+# ------------------------------------------------------------------------------------------------
+# Data streams (on top of stnh_tf.data)
+# ------------------------------------------------------------------------------------------------
+def check_dataset(data_dir: str, split: str, stage: int) -> dict:
+    """Metadata of ``data_dir`` after checking it holds ``split`` for hierarchical ``stage``.
+
+    Raises ``FileNotFoundError`` / ``ValueError`` with a message naming the directory when the
+    dataset is missing, lacks the split, or was built for another stage (a stage-k model must be
+    trained on the stage-k data that ``data_prep.make_stage_dataset`` writes).
+    """
+    from stnh_tf import data
+
+    meta = data.read_metadata(data_dir)
+    splits = meta.get("splits", {})
+    if split not in splits:
+        raise ValueError(f"dataset {data_dir} has no {split!r} split (it has {sorted(splits)}); "
+                         f"generate it with data_prep.make_dataset --split={split}.")
+    found = int(meta.get("stage", 1))
+    if found != stage:
+        hint = ("data_prep.make_dataset" if stage == 1 else
+                f"data_prep.make_stage_dataset --stage={stage}")
+        raise ValueError(f"dataset {data_dir} holds stage-{found} data but stage {stage} was asked "
+                         f"for; build the stage-{stage} data with {hint}.")
+    return meta
+
+
+def has_split(data_dir: str, split: str) -> bool:
+    """Whether ``data_dir`` holds a complete ``split`` (:func:`stnh_tf.data.has_split`)."""
+    from stnh_tf import data
+
+    return data.has_split(data_dir, split)
+
+
+def training_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0):
+    """The endless, seeded training stream positioned at ``start_step``.
+
+    The order of batches is a pure function of ``cfg.seed`` (seeded shuffle, deterministic
+    interleave), so a resumed run skips the batches it has already consumed and sees exactly the
+    batches an uninterrupted run would have seen.
+    """
+    from stnh_tf import data
+
+    ds = data.load_split(cfg.data_dir, split, cfg.batch_size, shuffle=True, seed=cfg.seed, repeat=True,
+                         shuffle_buffer=cfg.shuffle_buffer, cycle_length=64)
+    return ds.skip(start_step) if start_step else ds
+
+
+def _validation_batches(cfg: TrainConfig) -> int:
+    """Validation batches per evaluation: ``val_samples`` pairs, at most the whole split."""
+    from stnh_tf import data
+
+    available = data.split_info(cfg.data_dir, cfg.val_split).get("num_samples", cfg.val_samples)
+    n = min(cfg.val_samples, int(available))
+    return max(-(-n // cfg.batch_size), 1)
+
+
+def validation_stream(cfg: TrainConfig, split: str):
+    """The first ``cfg.val_samples`` pairs of ``split`` (unshuffled, fixed), batched."""
+    from stnh_tf import data
+
+    batches = _validation_batches(cfg)
+    return data.load_split(cfg.data_dir, split, cfg.batch_size, shuffle=False, repeat=False,
+                           drop_remainder=False).take(batches)
+
+
+def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=None,
+          extra_callbacks=()):
+    """Train (or resume) the model described by ``cfg``. Returns a dict of final results.
+
+    ``stream_fn(cfg, split, start_step)`` may replace the TFRecord stream (tests, generators);
+    ``extra_callbacks`` run after the built-in ones (checkpointing comes first).
+    """
+    cfg.validate()
+    stream_fn = stream_fn or training_stream
+    check_dataset(cfg.data_dir, "train", cfg.stage)
+    prepare_model_dir(cfg, overwrite=overwrite)
+    keras.utils.set_random_seed(cfg.seed)
+    keras.mixed_precision.set_global_policy("mixed_bfloat16" if cfg.mixed_precision else "float32")
+    try:
+        strategy = _strategy(cfg)
+        with strategy.scope():
+            model = build_model(cfg)
+            compile_model(model, cfg)
+            ckpt_dir = os.path.join(cfg.model_dir, CHECKPOINT_DIR)
+            start_step = load_checkpoint(model, ckpt_dir)
+            if start_step == 0 and cfg.init_from:
+                initialize_sequence_from(model, cfg.init_from)
+        if start_step:
+            printer(f"resuming {cfg.model_dir} from step {start_step}")
+        if start_step >= cfg.train_steps:
+            printer("checkpoint already at the final step")
+        mapper = targets_for(cfg)
+        train_ds = stream_fn(cfg, "train", start_step)
+        val_ds = None
+        if cfg.val_samples and has_split(cfg.data_dir, cfg.val_split):
+            val_ds = validation_stream(cfg, cfg.val_split)
+        if mapper is not None:
+            train_ds = train_ds.map(mapper)
+            val_ds = val_ds.map(mapper) if val_ds is not None else None
+        val_steps = _validation_batches(cfg) if val_ds is not None else None
+        guard = NonFiniteGuard()
+        callbacks = [
+            guard,
+            AtomicCheckpoint(ckpt_dir, guard),
+            ProgressLogger(cfg.log_every, cfg.train_steps, printer),
+            keras.callbacks.TensorBoard(os.path.join(cfg.model_dir, "logs"),
+                                        update_freq=cfg.log_every, write_graph=False),
+            *extra_callbacks,
+        ]
+        epochs = cfg.train_steps // cfg.checkpoint_every
+        t0 = time.time()
+        history = model.fit(train_ds, epochs=epochs, initial_epoch=start_step // cfg.checkpoint_every,
+                            steps_per_epoch=cfg.checkpoint_every, validation_data=val_ds,
+                            validation_steps=val_steps if val_ds is not None else None,
+                            callbacks=callbacks, verbose=0)
+        if guard.bad_step is not None:
+            last = os.path.join(ckpt_dir, CHECKPOINT_WEIGHTS)
+            last_step = 0
+            if os.path.exists(os.path.join(ckpt_dir, CHECKPOINT_STATE)):
+                with open(os.path.join(ckpt_dir, CHECKPOINT_STATE)) as f:
+                    last_step = json.load(f)["step"]
+            raise TrainingDiverged(
+                f"non-finite loss at step {guard.bad_step}; last good checkpoint: "
+                f"{last if last_step else '(none)'} (step {last_step}). Lower --learning_rate or "
+                "check the data, then resume with the same command.")
+        final_path = os.path.join(cfg.model_dir, FINAL_MODEL)
+        tmp = os.path.join(cfg.model_dir, f"tmp-{os.getpid()}-{FINAL_MODEL}")
+        model.save(tmp)
+        os.replace(tmp, final_path)
+        result = {"final_step": int(keras.ops.convert_to_numpy(model.optimizer.iterations)),
+                  "wall_s_this_run": time.time() - t0,
+                  "history": {k: [float(x) for x in v] for k, v in history.history.items()}}
+        _atomic_write_json(os.path.join(cfg.model_dir, "result.json"), result)
+        return result
+    finally:
+        keras.mixed_precision.set_global_policy("float32")

@@ -1,0 +1,154 @@
+"""Hierarchical composition: context re-cropping, residual targets, oracle stages, the
+degenerate-prediction rule. References are computed here with OpenCV on the full 320x240 image."""
+
+import cv2
+import numpy as np
+import pytest
+import skimage.data
+
+from conftest import paper_homography
+from stnh_tf import geometry, hierarchy
+
+M = 32  # context margin
+S = 128
+
+
+def _mace(h_pred, h_true):
+    """Independent MACE: corners through both homographies with OpenCV."""
+    c = np.array([[[0, 0], [S, 0], [S, S], [0, S]]], np.float64)
+    errs = [np.linalg.norm(cv2.perspectiveTransform(c, p)[0] - cv2.perspectiveTransform(c, t)[0], axis=1).mean()
+            for p, t in zip(h_pred, h_true)]
+    return float(np.mean(errs))
+
+
+@pytest.fixture(scope="module")
+def pairs():
+    """Paper-protocol pairs made here: image, square, H_ba (patch frame), context, patch_b."""
+    rng = np.random.default_rng(3)
+    photos = [skimage.data.astronaut(), skimage.data.coffee(), skimage.data.chelsea(), skimage.data.camera()]
+    out = {"image": [], "xy": [], "h_ba": [], "context": [], "patch_b": []}
+    for i in range(8):
+        p = photos[i % len(photos)]
+        gray = cv2.resize(p if p.ndim == 2 else cv2.cvtColor(p, cv2.COLOR_RGB2GRAY), (320, 240),
+                          interpolation=cv2.INTER_AREA)
+        x0, y0 = int(rng.integers(32, 161)), int(rng.integers(32, 81))
+        h_patch = paper_homography(rng)
+        t = np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]])
+        h_img = t @ h_patch @ np.linalg.inv(t)
+        image_b = cv2.warpPerspective(gray, h_img, (320, 240), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+        out["image"].append(gray)
+        out["xy"].append((x0, y0))
+        out["h_ba"].append(h_patch)
+        out["context"].append(gray[y0 - M:y0 + S + M, x0 - M:x0 + S + M])
+        out["patch_b"].append(image_b[y0:y0 + S, x0:x0 + S])
+    return {k: (np.stack(v) if k != "xy" else v) for k, v in out.items()}
+
+
+def test_crop_warped_context_equals_full_image_warp(pairs, rng):
+    for i in range(4):
+        x0, y0 = pairs["xy"][i]
+        h_prev = paper_homography(rng)
+        t = np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]])
+        full = cv2.warpPerspective(pairs["image"][i].astype(np.float32), t @ h_prev @ np.linalg.inv(t),
+                                   (320, 240), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+        ref = full[y0:y0 + S, x0:x0 + S]
+        got = hierarchy.crop_warped_context(pairs["context"][i], h_prev)
+        assert got.shape == (S, S)
+        # Corners move by at most 32 px, so every source point lies inside the context.
+        np.testing.assert_allclose(got, ref, atol=1e-3)
+
+
+def test_context_warped_by_true_h_reproduces_patch_b(pairs):
+    for i in range(len(pairs["h_ba"])):
+        got = hierarchy.crop_warped_context(pairs["context"][i], pairs["h_ba"][i])
+        diff = np.abs(got - pairs["patch_b"][i].astype(np.float32))
+        assert diff.mean() < 0.6 and diff.max() <= 1.0  # uint8 rounding of patch_b only
+
+
+def test_patch_a_is_the_centre_of_the_context(pairs):
+    got = hierarchy.crop_warped_context(pairs["context"][0], np.eye(3))
+    np.testing.assert_array_equal(got, pairs["context"][0][M:M + S, M:M + S].astype(np.float32))
+
+
+def test_residual_target(rng):
+    h_prev, h_ba = paper_homography(rng), paper_homography(rng)
+    res = hierarchy.residual_target(h_prev, h_ba)
+    composed = h_prev @ res
+    np.testing.assert_allclose(composed / composed[2, 2], h_ba / h_ba[2, 2], atol=1e-9)
+    assert res[2, 2] == pytest.approx(1.0)
+
+
+class _Oracle:
+    """Stage k returns a fixed matrix per sample (precomputed from the truth), recording the
+    patches it was shown."""
+
+    def __init__(self, outputs):
+        self.outputs, self.seen = outputs, None
+
+    def __call__(self, patch_a, patch_b):
+        self.seen = (patch_a, patch_b)
+        return self.outputs
+
+
+@pytest.mark.parametrize("num_stages", [1, 2, 3])
+def test_oracle_stages_give_zero_mace(pairs, num_stages, rng):
+    h_true = pairs["h_ba"]
+    n = len(h_true)
+    # Stages 1..n-1 return deliberately wrong estimates; the last returns the exact residual.
+    wrong = [np.stack([paper_homography(rng) for _ in range(n)]) * 0.1 + np.eye(3) * 0.9
+             for _ in range(num_stages - 1)]
+    prev = np.repeat(np.eye(3)[None], n, 0)
+    outputs = []
+    for w in wrong:
+        outputs.append(w)
+        prev = prev @ w
+    outputs.append(np.linalg.inv(prev) @ h_true)
+    run = hierarchy.run_hierarchy([_Oracle(o) for o in outputs], pairs["context"], pairs["patch_b"])
+    assert run["h"].shape == (n, 3, 3) and len(run["per_stage"]) == num_stages
+    assert _mace(run["h"], h_true) < 1e-6
+    assert all(sum(r.values()) == 0 for r in run["rejected"])
+    if num_stages > 1:  # the intermediate estimate is the product of the wrong stages, not the truth
+        assert _mace(run["per_stage"][0], h_true) == pytest.approx(_mace(wrong[0], h_true), rel=1e-9)
+        assert _mace(run["per_stage"][0], h_true) > 1.0
+
+
+def test_stage_two_sees_the_warped_context(pairs):
+    """With a perfect stage 1, stage 2's patch_a equals patch_b (up to uint8 rounding)."""
+    h_true = pairs["h_ba"]
+    o1, o2 = _Oracle(h_true), _Oracle(np.repeat(np.eye(3)[None], len(h_true), 0))
+    run = hierarchy.run_hierarchy([o1, o2], pairs["context"], pairs["patch_b"])
+    patch_a_2, patch_b = o2.seen
+    assert patch_a_2.shape == (len(h_true), S, S, 1) and patch_a_2.max() <= 1.0
+    assert np.abs(patch_a_2 - patch_b).mean() < 0.6 / 255
+    # Stage 1 saw the centre of the context, scaled to [0, 1].
+    np.testing.assert_allclose(o1.seen[0][..., 0], pairs["context"][:, M:M + S, M:M + S] / 255.0, atol=1e-6)
+    assert _mace(run["h"], h_true) < 1e-6
+
+
+def test_degenerate_rule():
+    eye = np.eye(3)
+    assert hierarchy.rejection_reason(eye) is None
+    assert hierarchy.rejection_reason(np.full((3, 3), np.nan)) == "non_finite"
+    assert hierarchy.rejection_reason(np.diag([1e-4, 1e-4, 1.0])) == "singular"
+    behind = np.array([[1, 0, 0], [0, 1, 0], [-0.02, 0, 1.0]])  # w <= 0 for x >= 50
+    assert hierarchy.rejection_reason(behind) == "singular"
+    assert hierarchy.rejection_reason(geometry.translation(33, 0)) == "outside_context"
+    assert hierarchy.rejection_reason(geometry.translation(32, -32)) is None  # on the boundary
+    # A batch: rejected samples keep the previous estimate; accepted ones compose.
+    h_prev = np.stack([geometry.translation(5, 0)] * 3)
+    h_stage = np.stack([geometry.translation(2, 1), np.full((3, 3), np.inf), geometry.translation(40, 0)])
+    out, reasons = hierarchy.accept_or_reject(h_prev, h_stage)
+    assert reasons == [None, "non_finite", "outside_context"]
+    np.testing.assert_allclose(out[0], geometry.translation(7, 1))
+    np.testing.assert_allclose(out[1], h_prev[1])
+    # Translation by 45 px: the right corners (x = 173) are clipped onto the border x = 160, the
+    # left ones (x = 45) stay: x' = 45 + (115 / 128) x.
+    np.testing.assert_allclose(out[2], [[115 / 128, 0, 45], [0, 1, 0], [0, 0, 1]], atol=1e-6)
+    # A perspective estimate with one corner 10 px outside keeps its other three corners.
+    corners = geometry.patch_corners().astype(np.float32)
+    target = corners + np.array([[-42, 3], [-5, 4], [6, -7], [2, 8]], np.float32)
+    h = cv2.getPerspectiveTransform(corners, target).astype(np.float64)
+    out, reasons = hierarchy.accept_or_reject(np.eye(3)[None], h[None])
+    assert reasons == ["outside_context"]
+    mapped = cv2.perspectiveTransform(corners[None].astype(np.float64), out[0])[0]
+    np.testing.assert_allclose(mapped, target.astype(np.float64) + [[10, 0], [0, 0], [0, 0], [0, 0]], atol=1e-3)

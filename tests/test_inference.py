@@ -1,0 +1,513 @@
+"""Tests of HomographyEstimator, the SavedModel export and the predict/export binaries.
+
+References are computed here with NumPy/OpenCV (conftest's ``norm_matrix``, ``cv2_warp``), from
+the Keras models called directly; models are fresh builds whose weights are perturbed so that
+their output depends on the input (a lost weight would change the numbers), or models whose
+last layer is set so that they output a chosen ``H_bar``.
+"""
+
+import json
+import os
+import subprocess
+import sys
+
+import cv2
+import keras
+import numpy as np
+import pytest
+import skimage.data
+
+from conftest import cv2_warp, inside_mask, norm_matrix, paper_homography, to_bar
+from stnh_tf import export, geometry, inference, models
+from stnh_tf.inference import HomographyEstimator
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+S = 128
+
+
+# --------------------------------------------------------------------------------------------
+# Helpers (independent references)
+# --------------------------------------------------------------------------------------------
+def _randomize(regressor, seed):
+    """Perturb BatchNorm statistics and the last layer so outputs depend on every weight."""
+    rng = np.random.default_rng(seed)
+    for layer in regressor.layers:
+        if layer.name.startswith("bn"):
+            gamma, beta, mean, var = layer.get_weights()
+            layer.set_weights([rng.uniform(0.8, 1.2, gamma.shape).astype("float32"),
+                               rng.normal(0, 0.1, beta.shape).astype("float32"),
+                               rng.normal(0, 0.1, mean.shape).astype("float32"),
+                               rng.uniform(0.5, 1.5, var.shape).astype("float32")])
+    fc2 = regressor.get_layer("fc2")
+    kernel, bias = fc2.get_weights()
+    fc2.set_weights([rng.normal(0, 2e-3, kernel.shape).astype("float32"), bias])
+
+
+def _random_stage(seed, name):
+    model = models.build_stn_homography(name=name)
+    _randomize(model.get_layer("regression"), seed)
+    return model
+
+
+def _constant_stage(h_pix, name="constant"):
+    """A single-stage model that outputs H_bar = M @ h_pix @ inv(M) whatever its input."""
+    model = models.build_stn_homography(name=name)
+    fc2 = model.get_layer("regression").get_layer("fc2")
+    kernel, _ = fc2.get_weights()
+    fc2.set_weights([np.zeros_like(kernel), to_bar(h_pix).ravel()[:8].astype("float32")])
+    return model
+
+
+def _spy_stage(gain, h_const, name):
+    """Tiny model with H_bar = to_bar(h_const) + gain * mean(patch_a) on the x-translation entry,
+    so its output reveals what patch_a it was given."""
+    a = keras.Input((S, S, 1), name="patch_a")
+    b = keras.Input((S, S, 1), name="patch_b")
+    means = keras.layers.Concatenate()([keras.layers.GlobalAveragePooling2D()(a),
+                                        keras.layers.GlobalAveragePooling2D()(b)])
+    kernel = np.zeros((2, 8), np.float32)
+    kernel[0, 2] = gain
+    dense = keras.layers.Dense(8, name="fc")
+    h = keras.layers.Identity(name="h_bar")(dense(means))
+    model = keras.Model({"patch_a": a, "patch_b": b}, {"h_bar": h}, name=name)
+    dense.set_weights([kernel, to_bar(h_const).ravel()[:8].astype(np.float32)])
+    return model
+
+
+def _spy_expected_h(h_const, gain, patch_a_seen):
+    hb = to_bar(h_const)
+    hb[0, 2] += gain * float(np.mean(patch_a_seen, dtype=np.float64))
+    m = norm_matrix()
+    h = np.linalg.inv(m) @ hb @ m
+    return h / h[2, 2]
+
+
+def _direct(model, a_f32, b_f32, output="h_bar"):
+    """Run the Keras model itself; convert its H_bar with geometry.denormalize_homography."""
+    out = model.predict({"patch_a": a_f32, "patch_b": b_f32}, verbose=0)
+    return geometry.denormalize_homography(geometry.vector_to_matrix(np.asarray(out[output], np.float64)))
+
+
+def _unit(h):
+    return h / h[..., 2:3, 2:3]
+
+
+# --------------------------------------------------------------------------------------------
+# Fixtures
+# --------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def pairs(photo_patches):
+    """Four uint8 [4, 128, 128, 1] pairs: real photographs and paper-protocol warps of them."""
+    rng = np.random.default_rng(7)
+    a, b, hs = [], [], []
+    for patch in photo_patches.values():
+        h = paper_homography(rng)
+        a.append(np.clip(np.rint(patch), 0, 255).astype(np.uint8))
+        b.append(np.clip(np.rint(cv2_warp(patch, h)), 0, 255).astype(np.uint8))
+        hs.append(h)
+    return np.stack(a)[..., None], np.stack(b)[..., None], np.stack(hs)
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    """Perturbed single-stage, 2-stage hierarchy and 2-stage sequence models, saved to disk."""
+    root = tmp_path_factory.mktemp("models")
+    single = _random_stage(1, "single")
+    single.save(root / "single.keras")
+    os.makedirs(root / "run")
+    single.save(root / "run" / "model.keras")  # training-run layout
+
+    stage1, stage2 = _random_stage(2, "stage_one"), _random_stage(3, "stage_two")
+    os.makedirs(root / "hier" / "stage1")
+    stage1.save(root / "hier" / "stage1" / "model.keras")
+    stage2.save(root / "hier" / "stage2.keras")
+    manifest = {"format": "stnh_tf.hierarchy", "version": 1,
+                "stages": ["stage1", "stage2.keras"], "description": "test hierarchy"}
+    (root / "hier" / "hierarchy.json").write_text(json.dumps(manifest))
+
+    seq = models.build_sequence_stn_homography(2)
+    _randomize(seq.get_layer("regression_1"), 4)
+    _randomize(seq.get_layer("regression_2"), 5)
+    seq.save(root / "seq.keras")
+    return {"root": root, "single": single, "stage1": stage1, "stage2": stage2, "seq": seq}
+
+
+@pytest.fixture(scope="module")
+def identity_model_path(tmp_path_factory):
+    path = tmp_path_factory.mktemp("identity") / "identity.keras"
+    _constant_stage(np.eye(3), "identity").save(path)
+    return str(path)
+
+
+# --------------------------------------------------------------------------------------------
+# load: round trips of every kind
+# --------------------------------------------------------------------------------------------
+def _hierarchy_reference(stage1, stage2, a_u8, b_u8):
+    a, b = a_u8.astype(np.float32) / 255.0, b_u8.astype(np.float32) / 255.0
+    h1 = _direct(stage1, a, b)
+    a2 = np.stack([cv2_warp(p[..., 0], h) for p, h in zip(a, h1)])[..., None]  # zero outside
+    h2 = _direct(stage2, a2, b)
+    return _unit(h1 @ h2), h1
+
+
+def test_load_single_stage_round_trip(saved, pairs):
+    a, b, _ = pairs
+    ref = _direct(saved["single"], a.astype(np.float32) / 255, b.astype(np.float32) / 255)
+    assert np.std(ref[:, 0, 2]) > 0.05  # the output depends on the input: a real comparison
+    for path in (saved["root"] / "single.keras", saved["root"] / "run"):
+        est = HomographyEstimator.load(path)
+        assert (est.kind, est.num_stages) == ("single", 1)
+        h = est.estimate(a, b)
+        np.testing.assert_allclose(h, ref, rtol=1e-5, atol=1e-4)
+
+
+def test_load_hierarchy_manifest_round_trip(saved, pairs):
+    a, b, _ = pairs
+    ref, h1 = _hierarchy_reference(saved["stage1"], saved["stage2"], a, b)
+    assert np.max(geometry.corner_errors(ref, h1)) > 0.5  # stage 2 changes the estimate
+    for path in (saved["root"] / "hier" / "hierarchy.json", saved["root"] / "hier"):
+        est = HomographyEstimator.load(path)
+        assert (est.kind, est.num_stages) == ("hierarchy", 2)
+        np.testing.assert_allclose(est.estimate(a, b), ref, rtol=1e-5, atol=1e-4)
+
+
+def test_load_numbered_stage_directory(saved, pairs, tmp_path):
+    """A folder holding stage1/, stage2.keras (no manifest) is a hierarchy in numeric order."""
+    os.makedirs(tmp_path / "stage1")
+    saved["stage1"].save(tmp_path / "stage1" / "model.keras")
+    saved["stage2"].save(tmp_path / "stage2.keras")
+    assert inference.resolve_model_paths(tmp_path) == [str(tmp_path / "stage1"),
+                                                      str(tmp_path / "stage2.keras")]
+    a, b, _ = pairs
+    ref, _ = _hierarchy_reference(saved["stage1"], saved["stage2"], a[:2], b[:2])
+    np.testing.assert_allclose(HomographyEstimator.load(tmp_path).estimate(a[:2], b[:2]), ref,
+                               rtol=1e-5, atol=1e-4)
+
+
+def test_load_sequence_round_trip(saved, pairs):
+    a, b, _ = pairs
+    est = HomographyEstimator.load(saved["root"] / "seq.keras")
+    assert (est.kind, est.num_stages) == ("sequence", 1)
+    af, bf = a.astype(np.float32) / 255, b.astype(np.float32) / 255
+    ref = _direct(saved["seq"], af, bf, "h_bar_2")
+    assert np.max(geometry.corner_errors(ref, _direct(saved["seq"], af, bf, "h_bar_1"))) > 0.5
+    np.testing.assert_allclose(est.estimate(a, b), ref, rtol=1e-5, atol=1e-4)
+
+
+def test_write_manifest_round_trip(saved, tmp_path):
+    path = inference.write_manifest(tmp_path / "h.json", [saved["root"] / "single.keras",
+                                                          tmp_path / "sub" / "x.keras"])
+    doc = json.loads(open(path).read())
+    assert doc["format"] == "stnh_tf.hierarchy" and doc["version"] == 1
+    assert doc["stages"] == [str(saved["root"] / "single.keras"), "sub/x.keras"]
+    assert inference.read_manifest(path) == [str(saved["root"] / "single.keras"),
+                                             str(tmp_path / "sub" / "x.keras")]
+
+
+def test_load_default_weights(monkeypatch, tmp_path, identity_model_path):
+    monkeypatch.setattr(inference, "default_weights_dir", lambda: str(tmp_path))
+    with pytest.raises(FileNotFoundError, match="no shipped weights"):
+        HomographyEstimator.load()
+    os.link(identity_model_path, tmp_path / "default.keras")
+    assert HomographyEstimator.load().kind == "single"
+    inference.write_manifest(tmp_path / "default.json", [tmp_path / "default.keras"] * 2)
+    assert HomographyEstimator.load().kind == "hierarchy"  # the manifest wins
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="holds no model"):
+        HomographyEstimator.load(tmp_path)
+    with pytest.raises(FileNotFoundError, match="no model at"):
+        HomographyEstimator.load(tmp_path / "missing.keras")
+    (tmp_path / "bad.json").write_text(json.dumps({"stages": ["a.keras"]}))
+    with pytest.raises(ValueError, match="not a hierarchy manifest"):
+        HomographyEstimator.load(tmp_path / "bad.json")
+    (tmp_path / "empty.json").write_text(json.dumps(
+        {"format": "stnh_tf.hierarchy", "version": 1, "stages": []}))
+    with pytest.raises(ValueError, match="non-empty list"):
+        HomographyEstimator.load(tmp_path / "empty.json")
+    (tmp_path / "junk.keras").write_text("not a model")
+    with pytest.raises(ValueError, match="junk.keras"):
+        HomographyEstimator.load(tmp_path / "junk.keras")
+
+
+# --------------------------------------------------------------------------------------------
+# estimate: shape, dtype, direction, composition, input types
+# --------------------------------------------------------------------------------------------
+def test_estimate_known_output_shape_dtype_and_direction(pairs, rng):
+    a, _, _ = pairs
+    h_true = paper_homography(rng)
+    est = HomographyEstimator([_constant_stage(h_true)])
+    # patch_b(p) = patch_a(H p): the estimate must be H itself (patch_b -> patch_a).
+    b = np.stack([np.clip(np.rint(cv2_warp(p[..., 0], h_true)), 0, 255) for p in a]).astype(np.uint8)
+    h = est.estimate(a, b)
+    assert h.shape == (4, 3, 3) and h.dtype == np.float64
+    m = norm_matrix()
+    expected = np.linalg.inv(m) @ to_bar(h_true) @ m
+    np.testing.assert_allclose(h, np.broadcast_to(expected / expected[2, 2], h.shape), atol=1e-5)
+    np.testing.assert_allclose(h[0], h_true, atol=2e-3)
+    # Direction: warping patch_a with the estimate reproduces patch_b where both are defined.
+    mask = inside_mask(h[0])
+    assert mask.mean() > 0.3
+    diff = np.abs(cv2_warp(a[0, ..., 0], h[0]) - b[0].astype(np.float64))[mask]
+    assert diff.mean() < 1.0
+    # ...and the inverse direction does not.
+    wrong = np.abs(cv2_warp(a[0, ..., 0], np.linalg.inv(h[0])) - b[0].astype(np.float64))[mask]
+    assert wrong.mean() > 5.0
+    # One pair in: still [1, 3, 3].
+    single = est.estimate(a[0, ..., 0], b[0])
+    assert single.shape == (1, 3, 3)
+
+
+def test_hierarchy_of_constant_stages_is_the_product(pairs, rng):
+    a, b, _ = pairs
+    h1, h2 = paper_homography(rng), paper_homography(rng)
+    est = HomographyEstimator([_constant_stage(h1, "c1"), _constant_stage(h2, "c2")])
+    assert est.kind == "hierarchy"
+    got = est.estimate(a, b)
+    want = h1 @ h2
+    np.testing.assert_allclose(got, np.broadcast_to(want / want[2, 2], got.shape), atol=1e-4)
+    other = h2 @ h1
+    assert np.max(np.abs(other / other[2, 2] - want / want[2, 2])) > 0.5  # order matters
+
+
+def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs):
+    """estimate (patches only): stage 2 sees patch_a(H_1 p), zero outside the patch."""
+    a, b, _ = pairs
+    h1 = geometry.translation(20.0, -12.0) @ np.diag([1.1, 0.95, 1.0])
+    gain = 0.8
+    est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
+    got = est.estimate(a, b)
+    for i in range(len(a)):
+        seen = cv2_warp(a[i, ..., 0].astype(np.float32) / 255, h1)
+        want = h1 @ _spy_expected_h(np.eye(3), gain, seen)
+        np.testing.assert_allclose(got[i], want / want[2, 2], atol=1e-4)
+
+
+def test_uint8_and_float_inputs_agree(saved, pairs):
+    a, b, _ = pairs
+    est = HomographyEstimator([saved["single"]])
+    h_u8 = est.estimate(a, b)
+    h_f32 = est.estimate(a.astype(np.float32) / 255, b.astype(np.float32) / 255)
+    h_f64 = est.estimate(a / 255.0, b / 255.0)
+    np.testing.assert_allclose(h_f32, h_u8, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(h_f64, h_u8, rtol=1e-6, atol=1e-5)
+    # Every accepted layout of the same pair gives the same answer.
+    for pa, pb in ((a[1, ..., 0], b[1, ..., 0]), (a[1], b[1]), (a[1:2, ..., 0], b[1:2, ..., 0])):
+        np.testing.assert_allclose(est.estimate(pa, pb), h_u8[1:2], rtol=1e-5, atol=1e-4)
+    # Chunking does not change the answer.
+    np.testing.assert_allclose(est.estimate(a, b, batch_size=3), h_u8, rtol=1e-5, atol=1e-4)
+
+
+# --------------------------------------------------------------------------------------------
+# estimate_images: resizing rule and context
+# --------------------------------------------------------------------------------------------
+def _resize_ref(src_wh, dst_wh):
+    """Pixel map src -> dst of cv2.resize (centres at integers): x' = s (x + 1/2) - 1/2."""
+    sx, sy = dst_wh[0] / src_wh[0], dst_wh[1] / src_wh[1]
+    return np.array([[sx, 0, (sx - 1) / 2], [0, sy, (sy - 1) / 2], [0, 0, 1.0]])
+
+
+def test_estimate_images_pure_rescaling(identity_model_path):
+    est = HomographyEstimator.load(identity_model_path)
+    image_a = skimage.data.astronaut()  # 512 x 512 RGB
+    image_b = cv2.resize(image_a, (1024, 1024), interpolation=cv2.INTER_LINEAR)  # 2x
+    h = est.estimate_images(image_a, image_b)
+    assert h.shape == (3, 3) and h.dtype == np.float64
+    expected = np.array([[0.5, 0, -0.25], [0, 0.5, -0.25], [0, 0, 1]])
+    np.testing.assert_allclose(h, expected, atol=1e-9)
+    # The half-pixel offset is real: warping image_a by H reproduces cv2's 2x resize.
+    gray_a = cv2.cvtColor(image_a, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    gray_b = cv2.resize(gray_a, (1024, 1024), interpolation=cv2.INTER_LINEAR)
+    warped = cv2.warpPerspective(gray_a, h, (1024, 1024),
+                                 flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    inner = (slice(2, -2), slice(2, -2))
+    assert np.abs(warped - gray_b)[inner].max() < 1.0
+    # Images of different sizes and aspect ratios, colour vs gray, float vs uint8.
+    image_c = cv2.resize(image_a, (300, 700), interpolation=cv2.INTER_AREA)
+    h_ca = est.estimate_images(image_c[..., 0] / 255.0, image_a)
+    np.testing.assert_allclose(h_ca, np.linalg.inv(_resize_ref((300, 700), (512, 512))), atol=1e-9)
+
+
+def test_prepare_image_gray_conversion():
+    rgb = skimage.data.astronaut()[:50, :60]
+    ref = (rgb.astype(np.float64) @ [0.299, 0.587, 0.114]) / 255  # ITU-R 601 luma
+    np.testing.assert_allclose(inference.prepare_image(rgb), ref, atol=2e-3)
+    np.testing.assert_allclose(inference.prepare_image(rgb[..., ::-1].copy(), channel_order="bgr"),
+                               ref, atol=2e-3)
+    alpha = np.random.default_rng(0).integers(0, 256, rgb.shape[:2], dtype=np.uint8)
+    rgba = np.concatenate([rgb, alpha[..., None]], axis=-1)
+    np.testing.assert_allclose(inference.prepare_image(rgba), ref * alpha / 255, atol=2e-3)
+    np.testing.assert_allclose(inference.prepare_image(rgb[..., :1] / 255.0), rgb[..., 0] / 255,
+                               atol=1e-6)
+
+
+def test_estimate_images_maps_patch_estimate_to_image_frames(rng):
+    h_patch = paper_homography(rng)
+    est = HomographyEstimator([_constant_stage(h_patch)])
+    image = skimage.data.camera()  # 512 x 512 gray
+    image_b = cv2.resize(image, (640, 480), interpolation=cv2.INTER_AREA)
+    got = est.estimate_images(image, image_b)
+    t = np.array([[1, 0, 96.0], [0, 1, 56.0], [0, 0, 1]])  # central 128 square of 320 x 240
+    s_a, s_b = _resize_ref((512, 512), (320, 240)), _resize_ref((640, 480), (320, 240))
+    want = np.linalg.inv(s_a) @ t @ h_patch @ np.linalg.inv(t) @ s_b
+    np.testing.assert_allclose(got, want / want[2, 2], rtol=1e-5, atol=1e-5)
+
+
+def test_estimate_images_hierarchy_uses_image_context():
+    """Stage 2 gets the patch cropped from the warped 320 x 240 image_a (not zero-filled)."""
+    image = skimage.data.camera()
+    h1 = geometry.translation(-30.0, 20.0)  # brings 30 px of image beyond the patch border in
+    gain = 0.8
+    est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
+    got = est.estimate_images(image, image)  # same size: S_a = S_b = 320 x 240 resize
+    work = cv2.resize(image.astype(np.float32) / 255, (320, 240), interpolation=cv2.INTER_AREA)
+    t = geometry.translation(96, 56)
+    full = cv2.warpPerspective(work, t @ h1 @ np.linalg.inv(t), (320, 240),
+                               flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    seen = full[56:56 + S, 96:96 + S]
+    zero_filled = cv2_warp(work[56:56 + S, 96:96 + S], h1)
+    assert abs(seen.mean() - zero_filled.mean()) > 0.02  # the two readings are distinguishable
+    h_patch = h1 @ _spy_expected_h(np.eye(3), gain, seen)
+    s = _resize_ref((512, 512), (320, 240))
+    want = np.linalg.inv(s) @ t @ h_patch @ np.linalg.inv(t) @ s
+    np.testing.assert_allclose(got, want / want[2, 2], rtol=1e-5, atol=1e-4)
+
+
+# --------------------------------------------------------------------------------------------
+# Bad input
+# --------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def identity_estimator():
+    return HomographyEstimator([_constant_stage(np.eye(3), "ident")])
+
+
+_OK = np.zeros((S, S), np.uint8)
+
+
+@pytest.mark.parametrize("patch_a, patch_b, fragment", [
+    (np.zeros((64, 64), np.uint8), _OK, "(64, 64)"),
+    (np.zeros((S, S, 3), np.uint8), _OK, "(128, 128, 3)"),
+    (_OK, np.zeros((2, S, S, 2), np.uint8), "(2, 128, 128, 2)"),
+    (np.zeros((1, 1, S, S, 1), np.uint8), _OK, "(1, 1, 128, 128, 1)"),
+    (np.zeros((S,), np.uint8), _OK, "(128,)"),
+    (np.zeros((0, S, S), np.uint8), np.zeros((0, S, S), np.uint8), "(0, 128, 128)"),
+    (np.zeros((2, S, S), np.uint8), np.zeros((3, S, S), np.uint8), "(3, 128, 128)"),
+    (np.full((S, S), 200.0), _OK, "(128, 128)"),          # float outside [0, 1]
+    (np.full((S, S), np.nan, np.float32), _OK, "(128, 128)"),
+    (np.zeros((S, S), np.int64), _OK, "int64"),
+    (np.array([["a"]]), _OK, "<U1"),
+    (None, _OK, "None"),
+])
+def test_estimate_bad_input(identity_estimator, patch_a, patch_b, fragment):
+    with pytest.raises(ValueError) as info:
+        identity_estimator.estimate(patch_a, patch_b)
+    assert fragment in str(info.value)
+
+
+@pytest.mark.parametrize("image, fragment", [
+    (np.zeros((10, 12, 2), np.uint8), "(10, 12, 2)"),
+    (np.zeros((1, 10, 12, 3), np.uint8), "(1, 10, 12, 3)"),
+    (np.zeros((0, 12), np.uint8), "(0, 12)"),
+    (np.zeros((12,), np.uint8), "(12,)"),
+    (np.full((10, 12), 2.0), "(10, 12)"),
+])
+def test_estimate_images_bad_input(identity_estimator, image, fragment):
+    with pytest.raises(ValueError) as info:
+        identity_estimator.estimate_images(image, np.zeros((10, 12), np.uint8))
+    assert fragment in str(info.value)
+
+
+def test_bad_model_is_rejected():
+    x = keras.Input((S, S, 2), name="pair")
+    with pytest.raises(ValueError, match="patch_a and patch_b"):
+        HomographyEstimator([keras.Model(x, keras.layers.Dense(8)(keras.layers.Flatten()(x)))])
+
+
+# --------------------------------------------------------------------------------------------
+# SavedModel export (once per module) and the binaries
+# --------------------------------------------------------------------------------------------
+def _run(module, *args, cwd=None):
+    env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2", PYTHONPATH=REPO)
+    return subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True,
+                          env=env, cwd=cwd or REPO, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def exported(saved, tmp_path_factory):
+    """The single-stage model exported with the export binary."""
+    out = tmp_path_factory.mktemp("export") / "saved_model"
+    proc = _run("experiments.export", f"--model={saved['root'] / 'single.keras'}",
+                f"--output={out}", "--check_pairs=3")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out, json.loads(proc.stdout), proc
+
+
+def test_export_binary_reports_agreement(exported):
+    _, report, proc = exported
+    assert report["ok"] is True and report["kind"] == "single" and report["pairs"] == 3
+    assert report["max_abs_diff"] <= 1e-3 and report["max_abs_diff_estimate"] <= 1e-3
+    assert "max abs difference" in proc.stderr
+
+
+def test_saved_model_matches_keras_model(exported, saved, pairs):
+    import tensorflow as tf
+
+    path, _, _ = exported
+    a, b, _ = pairs
+    fn = tf.saved_model.load(str(path)).signatures["serving_default"]
+    specs = fn.structured_input_signature[1]
+    assert {k: (v.dtype, tuple(v.shape)) for k, v in specs.items()} == {
+        "patch_a": (tf.uint8, (None, S, S, 1)), "patch_b": (tf.uint8, (None, S, S, 1))}
+    out = fn(patch_a=tf.constant(a), patch_b=tf.constant(b))["homography"]
+    assert out.dtype == tf.float32 and tuple(out.shape) == (4, 3, 3)
+    ref = _direct(saved["single"], a.astype(np.float32) / 255, b.astype(np.float32) / 255)
+    np.testing.assert_allclose(out.numpy(), ref, rtol=1e-4, atol=1e-3)
+    # Refuses to overwrite without the flag, and never deletes a non-SavedModel folder.
+    with pytest.raises(FileExistsError, match="overwrite"):
+        export.export_saved_model(HomographyEstimator([saved["single"]]), path)
+    with pytest.raises(FileExistsError, match="not a SavedModel"):
+        export.export_saved_model(HomographyEstimator([saved["single"]]), path.parent.parent,
+                                  overwrite=True)
+
+
+def test_saved_model_hierarchy_matches_estimator(saved, pairs, tmp_path):
+    a, b, _ = pairs
+    est = HomographyEstimator([saved["stage1"], saved["stage2"]])
+    path = export.export_saved_model(est, tmp_path / "hier")
+    got = export.run_saved_model(path, a, b)
+    ref, _ = _hierarchy_reference(saved["stage1"], saved["stage2"], a, b)
+    # TF bilinear warp vs OpenCV's 1/32-px quantized one between stages: tiny corner differences.
+    assert np.max(geometry.corner_errors(got.astype(np.float64), ref)) < 0.05
+    report = export.verify_export(path, est, a, b)
+    assert report["ok"] and report["max_abs_diff"] < 1e-3
+
+
+def test_predict_binary(identity_model_path, tmp_path):
+    image_a = skimage.data.coffee()  # 600 x 400 RGB
+    image_b = cv2.resize(image_a, (300, 200), interpolation=cv2.INTER_AREA)
+    cv2.imwrite(str(tmp_path / "a.png"), image_a[..., ::-1])
+    cv2.imwrite(str(tmp_path / "b.png"), image_b[..., ::-1])
+    proc = _run("experiments.predict", f"--image_a={tmp_path / 'a.png'}",
+                f"--image_b={tmp_path / 'b.png'}", f"--model={identity_model_path}",
+                f"--output_dir={tmp_path / 'out'}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(proc.stdout)
+    np.testing.assert_allclose(result["homography"],
+                               np.linalg.inv(_resize_ref((600, 400), (300, 200))), atol=1e-9)
+    assert result["image_a_size"] == [600, 400] and result["image_b_size"] == [300, 200]
+    png = cv2.imread(result["overlay_png"])
+    assert png is not None and png.shape == (400, 600 + 8 + 300 + 8, 3)
+    assert json.loads((tmp_path / "out" / "a__b_homography.json").read_text()) == result
+    # With the identity model, image_a warped onto image_b equals image_b (gray overlay):
+    blend = png[:200, 608:908].astype(np.float64)
+    assert np.abs(blend[..., 1] - blend[..., 0])[4:-4, 4:-4].mean() < 3.0
+
+    (tmp_path / "junk.png").write_text("not an image")
+    for bad, what in ((tmp_path / "junk.png", "cannot read image_a"),
+                      (tmp_path / "missing.png", "does not exist")):
+        proc = _run("experiments.predict", f"--image_a={bad}", f"--image_b={tmp_path / 'b.png'}",
+                    f"--model={identity_model_path}", f"--output_dir={tmp_path / 'out2'}")
+        assert proc.returncode != 0
+        assert what in proc.stderr and str(bad) in proc.stderr
+        assert "Traceback" not in proc.stderr
