@@ -46,9 +46,31 @@ CONTEXT_MARGIN = geometry.MAX_PERTURBATION
 REJECT_REASONS = ("non_finite", "singular", "outside_context")
 
 
+def warp_crop(source: np.ndarray, a_from_b: np.ndarray, origin=(0, 0),
+              size: int = geometry.PATCH_SIZE) -> np.ndarray:
+    """``out(p) = source(T @ H @ p)`` on the ``size x size`` grid, ``T`` the translation by
+    ``origin`` (where the patch's top-left corner lies in ``source``): bilinear, zero outside.
+
+    The one inter-stage warp of the hierarchy: with ``source`` the stored context and
+    ``origin = (m, m)`` it re-crops ``patch_a_k``; with the whole image and the square's corner it
+    is the same warp with all of image_a as context; with the patch itself and ``(0, 0)`` it is
+    ``patch(H @ p)``, zero beyond the patch.
+
+    Args:
+      source: ``[h, w]`` (uint8 or float) image holding patch_a at ``origin``.
+      a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame (patch_b -> patch_a).
+    Returns:
+      ``[size, size]`` float32, same value range as ``source``.
+    """
+    h = geometry.translation(*origin) @ np.asarray(a_from_b, np.float64)
+    return cv2.warpPerspective(np.asarray(source, np.float32), h, (size, size),
+                               flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
 def crop_warped_context(context_a: np.ndarray, h_prev: np.ndarray, margin: int = CONTEXT_MARGIN,
                         size: int = geometry.PATCH_SIZE) -> np.ndarray:
-    """``patch_a_k(p) = patch_a(H_prev @ p)`` read from the context (zero beyond the context).
+    """``patch_a_k(p) = patch_a(H_prev @ p)`` read from the stored context (zero beyond it).
 
     Args:
       context_a: ``[S + 2m, S + 2m]`` (uint8 or float) crop of image_a around the square.
@@ -56,10 +78,7 @@ def crop_warped_context(context_a: np.ndarray, h_prev: np.ndarray, margin: int =
     Returns:
       ``[S, S]`` float32, same value range as ``context_a``.
     """
-    h = geometry.translation(margin, margin) @ np.asarray(h_prev, np.float64)
-    return cv2.warpPerspective(np.asarray(context_a, np.float32), h, (size, size),
-                               flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return warp_crop(context_a, h_prev, (margin, margin), size)
 
 
 def residual_target(h_prev: np.ndarray, h_ba: np.ndarray) -> np.ndarray:

@@ -300,18 +300,11 @@ def resize_to_work_size(gray: np.ndarray) -> np.ndarray:
 
 
 def warp_patch(source, a_from_b, origin=(0, 0), size: int = PATCH_SIZE) -> np.ndarray:
-    """``out(p) = source(T @ H @ p)`` for the ``size x size`` output grid, ``T`` the translation
-    by ``origin``: bilinear (``cv2.INTER_LINEAR``), zero outside ``source``.
+    """The hierarchy's inter-stage warp, :func:`stnh_tf.hierarchy.warp_crop` (``source``
+    float32 ``[h, w]`` holding the patch at ``origin``; ``a_from_b`` ``[3, 3]`` patch frame)."""
+    from stnh_tf import hierarchy
 
-    With ``source`` a patch and ``origin = (0, 0)`` this is ``patch(H @ p)`` (zero beyond the
-    patch); with ``source`` the whole image and ``origin`` the patch's top-left corner it is the
-    same warp with image content beyond the patch border (the paper's hierarchy).
-    ``source``: float32 ``[h, w]``; ``a_from_b``: ``[3, 3]`` in the patch frame.
-    """
-    m = geometry.translation(*origin) @ np.asarray(a_from_b, np.float64)
-    return cv2.warpPerspective(source, m, (size, size),
-                               flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return hierarchy.warp_crop(source, a_from_b, origin, size)
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,63 @@
+r"""Copy trained stage models into the package as its shipped weights, with a model card.
+
+  python -m experiments.ship_weights --model_dir=runs/cpu/stage1,runs/cpu/stage2 \
+      --eval_json=runs/cpu/eval_hierarchy.json
+
+Writes ``stnh_tf/weights/stage{k}.keras`` (weights and architecture only, no optimizer state), the
+manifest ``default.json`` naming them in order (the default of ``HomographyEstimator.load()``),
+and ``model_card.json`` with each stage's training configuration, its final step and the given
+evaluation results.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+from absl import app, flags
+
+flags.DEFINE_list("model_dir", None, "Trained stage model directories, in stage order.", required=True)
+flags.DEFINE_string("eval_json", None, "experiments.evaluate output to record in the card.")
+flags.DEFINE_string("weights_dir", None, "Destination (default: the package's stnh_tf/weights).")
+FLAGS = flags.FLAGS
+
+
+def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
+    from stnh_tf import evaluation, inference
+
+    weights_dir = weights_dir or inference.default_weights_dir()
+    os.makedirs(weights_dir, exist_ok=True)
+    card = {"stages": []}
+    names = []
+    for k, d in enumerate(model_dirs, start=1):
+        model = evaluation.load_model(d)  # compile=False: no optimizer state is saved
+        name = f"stage{k}.keras"
+        model.save(os.path.join(weights_dir, name))
+        names.append(os.path.join(weights_dir, name))
+        entry = {"file": name, "source": os.path.abspath(d)}
+        for extra in ("config.json", "result.json"):
+            path = os.path.join(d, extra)
+            if os.path.exists(path):
+                with open(path) as f:
+                    doc = json.load(f)
+                entry[extra[:-5]] = ({k: v for k, v in doc.items() if k != "history"}
+                                     if extra == "result.json" else doc)
+        card["stages"].append(entry)
+    inference.write_manifest(os.path.join(weights_dir, "default.json"), names,
+                             description=f"{len(names)}-stage hierarchy shipped with stnh-tf")
+    if eval_json:
+        with open(eval_json) as f:
+            card["evaluation"] = json.load(f)
+    with open(os.path.join(weights_dir, "model_card.json"), "w") as f:
+        json.dump(card, f, indent=2)
+    return card
+
+
+def main(argv):
+    del argv
+    card = ship(FLAGS.model_dir, FLAGS.weights_dir, FLAGS.eval_json)
+    print(json.dumps({"shipped": [s["file"] for s in card["stages"]]}))
+
+
+if __name__ == "__main__":
+    app.run(main)

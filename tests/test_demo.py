@@ -1,0 +1,56 @@
+"""The demo (the README's main job) and the figure helpers."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from conftest import paper_homography
+from stnh_tf import figures, geometry
+
+
+def test_quadrilateral_is_h_applied_to_the_corners(rng):
+    h = paper_homography(rng)
+    q = figures.quadrilateral(h, offset=32)
+    assert q.shape == (5, 2)
+    np.testing.assert_allclose(q[0], q[-1])
+    c = np.array([[0, 0, 1], [128, 0, 1], [128, 128, 1], [0, 128, 1]], np.float64) @ h.T
+    np.testing.assert_allclose(q[:4], c[:, :2] / c[:, 2:] + 32, atol=1e-9)
+
+
+def test_figures_write_pngs(tmp_path, rng):
+    n = 3
+    ctx = rng.integers(0, 256, (n, 192, 192), dtype=np.uint8)
+    pb = rng.integers(0, 256, (n, 128, 128, 1), dtype=np.uint8)
+    h_true = np.stack([paper_homography(rng) for _ in range(n)])
+    png = figures.prediction_examples(ctx, pb, h_true, h_true, str(tmp_path / "f5.png"))
+    bars = figures.mace_bars({"identity": 24.6, "ours": 5.0}, str(tmp_path / "f4.png"),
+                             paper={"ours": 5.83})
+    for p in (png, bars):
+        with open(p, "rb") as f:
+            assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+        assert os.path.getsize(p) > 5000
+
+
+def test_demo_runs_offline(tmp_path):
+    from experiments import demo
+
+    lines = []
+    result = demo.run_demo(str(tmp_path / "out"), seed=0, samples_per_image=1, examples=2,
+                           printer=lines.append)
+    assert result["conventions"]["ok"]
+    methods = result["methods"]
+    assert {"identity", "ORB + RANSAC", "SIFT + RANSAC"} <= set(methods)
+    # Identity on the paper's protocol: about 24.6 px (corners moved uniformly in [-32, 32]).
+    assert 18 < methods["identity"]["mace"] < 31
+    for name, r in methods.items():
+        assert np.isfinite(r["mace"]) and r["ms_per_pair"] >= 0
+    shipped = demo.shipped_models()
+    for name in shipped:  # every shipped model is evaluated and beats the identity
+        assert methods[name]["mace"] < methods["identity"]["mace"]
+    if shipped:
+        assert os.path.exists(result["figure"])
+    saved = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert saved["num_pairs"] == result["num_pairs"] > 0
+    assert any("MACE" in l for l in lines)
