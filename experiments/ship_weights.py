@@ -48,9 +48,41 @@ def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
     if eval_json:
         with open(eval_json) as f:
             card["evaluation"] = json.load(f)
+    card["bundled_check"] = bundled_check(names)
     with open(os.path.join(weights_dir, "model_card.json"), "w") as f:
         json.dump(card, f, indent=2)
     return card
+
+
+BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_image": 3}
+
+
+def bundled_check(stage_paths) -> dict:
+    """MACE of ``HomographyEstimator.estimate`` with the first k shipped stages, k = 1..n, on the
+    seeded bundled test pairs (:data:`BUNDLED_CHECK`): the numbers the shipped weights must keep
+    reproducing (``tests/test_shipped_weights.py``)."""
+    import tempfile
+
+    import numpy as np
+
+    from data_prep import stage1
+    from stnh_tf import data, geometry
+    from stnh_tf.inference import HomographyEstimator
+
+    with tempfile.TemporaryDirectory() as tmp:
+        stage1.make_dataset("bundled", tmp, "test", seed=BUNDLED_CHECK["seed"],
+                            samples_per_image=BUNDLED_CHECK["samples_per_image"], num_shards=1,
+                            log=lambda *a, **k: None)
+        arrays = data.load_arrays(tmp, "test")
+    out = dict(BUNDLED_CHECK, count=int(len(arrays["h_ba"])),
+               identity_mace=float(geometry.mean_corner_error(
+                   np.broadcast_to(np.eye(3), arrays["h_ba"].shape), arrays["h_ba"])))
+    for k in range(1, len(stage_paths) + 1):
+        est = HomographyEstimator.load(stage_paths[0]) if k == 1 else HomographyEstimator(
+            [HomographyEstimator.load(p).stages[0] for p in stage_paths[:k]])
+        h = est.estimate(arrays["patch_a"], arrays["patch_b"])
+        out[f"estimate_mace_{k}_stages"] = float(geometry.mean_corner_error(h, arrays["h_ba"]))
+    return out
 
 
 def main(argv):

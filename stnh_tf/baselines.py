@@ -19,8 +19,9 @@ estimator returns the identity with ``ok = False``; on this protocol identity sc
 24.6 px MACE.
 
 Settings (:data:`ORB_SETTINGS`, :data:`SIFT_SETTINGS`) were chosen with
-``experiments/tune_baselines.py`` on 300 paper-protocol pairs from 100 COCO photographs (seed 0);
-the numbers are in the docstrings of the two dicts. OpenCV's ORB defaults
+``python -m experiments.tune_baselines --image_dir=../shared/data/coco_mini/train --num_pairs=300
+--seed=0`` on 300 paper-protocol pairs from the 219 coco_mini **train** photographs (never the
+test photographs the baselines are reported on); the numbers are in the docstrings of the dicts. OpenCV's ORB defaults
 (:data:`ORB_DEFAULT_SETTINGS`: ``edgeThreshold = patchSize = 31``, 500 features, 8 levels) leave
 only the central ~66 px of a 128 px patch for keypoints and are far worse; they are kept as a
 registered baseline (``orb_default``) so that the gap stays visible.
@@ -61,12 +62,12 @@ ORB_SETTINGS = {
     "patchSize": 15,         # OpenCV default 31
     "fastThreshold": 5,      # OpenCV default 20
     "WTA_K": 2,
-    "ratio": 0.85,
+    "ratio": None,           # no Lowe ratio test ...
+    "cross_check": True,     # ... but mutual nearest neighbours
 }
-"""Tuned ORB + RANSAC (see module docstring; numbers in ``/tmp/notes``-style report below).
-
-Placeholder numbers are replaced by the tuning run recorded in the README of the experiment.
-"""
+"""Tuned ORB + RANSAC. On the tuning pairs (coco_mini train, 300 pairs, seed 0): MACE 1.47 px,
+median 0.98, no failures; with a ratio test at 0.85 instead of cross-checking 1.82 px; OpenCV's
+defaults (``orb_default``) 14.6 px with 12% failures."""
 
 ORB_DEFAULT_SETTINGS = {
     **_COMMON,
@@ -81,12 +82,13 @@ SIFT_SETTINGS = {
     **_COMMON,
     "nfeatures": 0,              # 0: keep every keypoint
     "nOctaveLayers": 3,
-    "contrastThreshold": 0.02,   # OpenCV default 0.04
+    "contrastThreshold": 0.01,   # OpenCV default 0.04
     "edgeThreshold": 10.0,
     "sigma": 1.6,
     "ratio": 0.8,
 }
-"""Tuned SIFT + RANSAC."""
+"""Tuned SIFT + RANSAC. On the tuning pairs (coco_mini train, 300 pairs, seed 0): MACE 1.15 px,
+median 0.66, no failures; at contrastThreshold 0.02 1.55 px, at OpenCV's 0.04 2.67 px."""
 
 
 def _check_keys(settings: dict, allowed: dict, cls_name: str):
