@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import json
 import os
-import statistics
-import time
 
 from absl import app, flags
 
@@ -37,17 +35,6 @@ flags.DEFINE_bool("sequence", True, "Also time sequence models with 1..max_stage
 flags.DEFINE_integer("seed", 0, "Seed of the inputs and weights.")
 flags.DEFINE_string("json_out", None, "Also write the JSON here.")
 FLAGS = flags.FLAGS
-
-
-def median_ms(fn, runs, warmup):
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
 
 
 def measure(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", sequence=True, seed=0):
@@ -70,7 +57,7 @@ def measure(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
         forward = evaluation.compiled_forward(stage_models[0])
         a = context[:, 32:160, 32:160, None].astype(np.float32) / 255.0
         b = patch_b[..., None].astype(np.float32) / 255.0
-        l_m = median_ms(lambda: forward(a, b), runs, warmup)
+        l_m = common.median_ms(lambda: forward(a, b), runs, warmup)
         h_prev = np.eye(3)[None] + 0.01
         h_stage = np.eye(3)[None]
 
@@ -80,10 +67,10 @@ def measure(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
             hierarchy.accept_or_reject(h_prev, h_stage)
             return patch
 
-        l_w = median_ms(between_stages, runs, warmup)
+        l_w = common.median_ms(between_stages, runs, warmup)
         result = {"l_m_ms": l_m, "l_w_ms": l_w, "l_w_over_l_m": l_w / l_m, "hierarchy": {}}
         for n in range(1, len(stages) + 1):
-            d_e = median_ms(lambda: hierarchy.run_hierarchy(stages[:n], context, patch_b), runs, warmup)
+            d_e = common.median_ms(lambda: hierarchy.run_hierarchy(stages[:n], context, patch_b), runs, warmup)
             result["hierarchy"][str(n)] = {"d_e_ms": d_e, "formula_ms": n * (l_m + l_w),
                                            "ratio_to_one_stage": None}
         one = result["hierarchy"]["1"]["d_e_ms"]
@@ -93,7 +80,7 @@ def measure(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
             result["sequence"] = {}
             for n in range(1, max_stages + 1):
                 seq_fwd = evaluation.compiled_forward(models.build_sequence_stn_homography(n))
-                result["sequence"][str(n)] = {"forward_ms": median_ms(lambda: seq_fwd(a, b), runs, warmup)}
+                result["sequence"][str(n)] = {"forward_ms": common.median_ms(lambda: seq_fwd(a, b), runs, warmup)}
         return result
     finally:
         keras.mixed_precision.set_global_policy("float32")

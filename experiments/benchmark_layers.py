@@ -14,8 +14,6 @@ with ``jit_compile`` off, on, or both (``--compare_jit``). Prints one JSON objec
 from __future__ import annotations
 
 import json
-import statistics
-import time
 
 from absl import app, flags
 
@@ -60,17 +58,6 @@ def make_inputs(batch_size: int, size: int, seed: int):
     return images, np.stack(h_bars).astype(np.float32), np.stack(h_pix)
 
 
-def _median_ms(fn, iterations: int, warmup: int) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(iterations):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
-
-
 def run_benchmark(batch_size=64, size=128, iterations=30, warmup=3, seed=0, jit_modes=(False,)):
     """Runs every measurement and returns the result dict (see module docstring)."""
     import cv2
@@ -108,8 +95,8 @@ def run_benchmark(batch_size=64, size=128, iterations=30, warmup=3, seed=0, jit_
 
         key = "jit" if jit else "no_jit"
         result["stn"][key] = {
-            "forward_ms": _median_ms(lambda: forward(images, h_bar).numpy(), iterations, warmup),
-            "forward_backward_ms": _median_ms(
+            "forward_ms": common.median_ms(lambda: forward(images, h_bar).numpy(), iterations, warmup),
+            "forward_backward_ms": common.median_ms(
                 lambda: [g.numpy() for g in forward_backward(images, h_bar)], iterations, warmup),
         }
         # Sanity: the timed function computes the OpenCV warp (mean |diff| on this batch).
@@ -124,7 +111,7 @@ def run_benchmark(batch_size=64, size=128, iterations=30, warmup=3, seed=0, jit_
             cv2.warpPerspective(images_np[i, ..., 0], h_pix[i], (size, size),
                                 flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
 
-    result["cv2_loop_forward_ms"] = _median_ms(cv2_loop, iterations, warmup)
+    result["cv2_loop_forward_ms"] = common.median_ms(cv2_loop, iterations, warmup)
     if "jit" in result["stn"] and "no_jit" in result["stn"]:
         nj, j = result["stn"]["no_jit"], result["stn"]["jit"]
         result["jit_speedup"] = {

@@ -5,8 +5,10 @@ from __future__ import annotations
 import json
 import os
 import platform
+import statistics
 import subprocess
 import sys
+import time
 
 
 def git_commit() -> str | None:
@@ -59,3 +61,15 @@ def emit_json(result: dict, json_out: str | None = None) -> None:
     if json_out:
         with open(json_out, "w") as f:
             f.write(text + "\n")
+
+
+def median_ms(fn, runs: int, warmup: int) -> float:
+    """Median wall time of ``fn()`` in milliseconds over ``runs`` calls after ``warmup`` calls."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(times)

@@ -49,6 +49,32 @@ def inside_mask(h_pix, h=SIZE, w=SIZE):
     return ok.reshape(h, w)
 
 
+def photo_pairs(rng, n, margin=32):
+    """``n`` paper-protocol pairs made here with OpenCV from scikit-image's photographs.
+
+    Returns a dict: ``image`` (gray 320x240), ``xy`` (square corners), ``h_ba`` (patch frame),
+    ``context`` (the square plus ``margin`` px), ``patch_a`` and ``patch_b`` (uint8 128x128).
+    """
+    photos = [skimage.data.astronaut(), skimage.data.coffee(), skimage.data.chelsea(), skimage.data.camera()]
+    out = {"image": [], "xy": [], "h_ba": [], "context": [], "patch_a": [], "patch_b": []}
+    for i in range(n):
+        p = photos[i % len(photos)]
+        gray = cv2.resize(p if p.ndim == 2 else cv2.cvtColor(p, cv2.COLOR_RGB2GRAY), (320, 240),
+                          interpolation=cv2.INTER_AREA)
+        x0, y0 = int(rng.integers(32, 161)), int(rng.integers(32, 81))
+        h = paper_homography(rng)
+        t = np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]])
+        image_b = cv2.warpPerspective(gray, t @ h @ np.linalg.inv(t), (320, 240),
+                                      flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+        out["image"].append(gray)
+        out["xy"].append((x0, y0))
+        out["h_ba"].append(h)
+        out["context"].append(gray[y0 - margin:y0 + SIZE + margin, x0 - margin:x0 + SIZE + margin])
+        out["patch_a"].append(gray[y0:y0 + SIZE, x0:x0 + SIZE])
+        out["patch_b"].append(image_b[y0:y0 + SIZE, x0:x0 + SIZE])
+    return {k: (np.stack(v) if k != "xy" else v) for k, v in out.items()}
+
+
 def _crop(rgb_or_gray, x0, y0, size=SIZE, color=False):
     img = rgb_or_gray
     if img.ndim == 3 and not color:

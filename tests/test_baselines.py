@@ -1,32 +1,16 @@
 """Classical baselines (ORB/SIFT + RANSAC): direction, accuracy on real photographs, failure
 fallback and bad input. Pairs are made here with OpenCV from scikit-image's photographs."""
 
-import cv2
 import numpy as np
 import pytest
 
-from conftest import paper_homography
+from conftest import photo_pairs
 from stnh_tf import baselines, geometry
 
 
 def _pairs(rng, n=12):
-    import skimage.data
-
-    photos = [skimage.data.astronaut(), skimage.data.coffee(), skimage.data.chelsea(), skimage.data.camera()]
-    pa, pb, hs = [], [], []
-    for i in range(n):
-        p = photos[i % len(photos)]
-        gray = cv2.resize(p if p.ndim == 2 else cv2.cvtColor(p, cv2.COLOR_RGB2GRAY), (320, 240),
-                          interpolation=cv2.INTER_AREA)
-        x0, y0 = int(rng.integers(32, 161)), int(rng.integers(32, 81))
-        h = paper_homography(rng)
-        t = np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]])
-        image_b = cv2.warpPerspective(gray, t @ h @ np.linalg.inv(t), (320, 240),
-                                      flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
-        pa.append(gray[y0:y0 + 128, x0:x0 + 128])
-        pb.append(image_b[y0:y0 + 128, x0:x0 + 128])
-        hs.append(h)
-    return np.stack(pa), np.stack(pb), np.stack(hs)
+    p = photo_pairs(rng, n)
+    return p["patch_a"], p["patch_b"], p["h_ba"]
 
 
 @pytest.mark.parametrize("name", ["orb_ransac", "sift_ransac"])

@@ -4,9 +4,8 @@ degenerate-prediction rule. References are computed here with OpenCV on the full
 import cv2
 import numpy as np
 import pytest
-import skimage.data
 
-from conftest import paper_homography
+from conftest import paper_homography, photo_pairs
 from stnh_tf import geometry, hierarchy
 
 M = 32  # context margin
@@ -24,24 +23,7 @@ def _mace(h_pred, h_true):
 @pytest.fixture(scope="module")
 def pairs():
     """Paper-protocol pairs made here: image, square, H_ba (patch frame), context, patch_b."""
-    rng = np.random.default_rng(3)
-    photos = [skimage.data.astronaut(), skimage.data.coffee(), skimage.data.chelsea(), skimage.data.camera()]
-    out = {"image": [], "xy": [], "h_ba": [], "context": [], "patch_b": []}
-    for i in range(8):
-        p = photos[i % len(photos)]
-        gray = cv2.resize(p if p.ndim == 2 else cv2.cvtColor(p, cv2.COLOR_RGB2GRAY), (320, 240),
-                          interpolation=cv2.INTER_AREA)
-        x0, y0 = int(rng.integers(32, 161)), int(rng.integers(32, 81))
-        h_patch = paper_homography(rng)
-        t = np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]])
-        h_img = t @ h_patch @ np.linalg.inv(t)
-        image_b = cv2.warpPerspective(gray, h_img, (320, 240), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
-        out["image"].append(gray)
-        out["xy"].append((x0, y0))
-        out["h_ba"].append(h_patch)
-        out["context"].append(gray[y0 - M:y0 + S + M, x0 - M:x0 + S + M])
-        out["patch_b"].append(image_b[y0:y0 + S, x0:x0 + S])
-    return {k: (np.stack(v) if k != "xy" else v) for k, v in out.items()}
+    return photo_pairs(np.random.default_rng(3), 8, margin=M)
 
 
 def test_crop_warped_context_equals_full_image_warp(pairs, rng):
