@@ -150,15 +150,18 @@ def run_hierarchy(stages: Sequence[PredictFn], context_a: np.ndarray, patch_b: n
     Args:
       stages: one predict function per stage (each returns the stage's pixel ``H_k``).
       context_a: ``[N, S+2m, S+2m]`` uint8 (0..255) or float in [0, 1].
-      patch_b: ``[N, S, S]`` or ``[N, S, S, 1]``, same value range as ``context_a``.
+      patch_b: ``[N, S, S]`` or ``[N, S, S, 1]``, uint8 (0..255) or float in [0, 1] (each input
+        is scaled by its own dtype).
       h_init: ``[N, 3, 3]`` estimate to start from (identity when ``None``).
     Returns:
       ``{"h": [N,3,3] composed H_ba after all stages, "per_stage": [n x [N,3,3]] estimate after
       each stage, "rejected": [n x {reason: count}]}``.
     """
     context_a = np.asarray(context_a)
+    patch_b = np.asarray(patch_b)
     scale = 255.0 if context_a.dtype == np.uint8 else 1.0
-    patch_b = np.asarray(patch_b, np.float32).reshape(len(context_a), size, size, 1) / scale
+    patch_b = patch_b.astype(np.float32).reshape(len(context_a), size, size, 1) / (
+        255.0 if patch_b.dtype == np.uint8 else 1.0)
     h = (np.repeat(np.eye(3)[None], len(context_a), 0) if h_init is None
          else np.asarray(h_init, np.float64).copy())
     per_stage, rejected = [], []

@@ -134,3 +134,14 @@ def test_degenerate_rule():
     assert reasons == ["outside_context"]
     mapped = cv2.perspectiveTransform(corners[None].astype(np.float64), out[0])[0]
     np.testing.assert_allclose(mapped, target.astype(np.float64) + [[10, 0], [0, 0], [0, 0], [0, 0]], atol=1e-3)
+
+
+def test_inputs_are_scaled_by_their_own_dtype(pairs):
+    """uint8 context with float patch_b in [0, 1] (as stnh_tf.data.load_arrays returns them) must
+    show the stage the same patches as all-uint8 inputs."""
+    o_u8, o_mixed = _Oracle(pairs["h_ba"]), _Oracle(pairs["h_ba"])
+    hierarchy.run_hierarchy([o_u8], pairs["context"], pairs["patch_b"])
+    hierarchy.run_hierarchy([o_mixed], pairs["context"], pairs["patch_b"].astype(np.float32) / 255.0)
+    for a, b in zip(o_u8.seen, o_mixed.seen):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+    assert 0.2 < o_mixed.seen[1].mean() < 0.8  # patch_b in [0, 1], not divided twice
