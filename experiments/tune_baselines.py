@@ -6,21 +6,16 @@ scikit-image's bundled photographs), evaluates identity, the registered baseline
 of ORB and SIFT settings around them, and prints one JSON object (MACE, median, p90, p99, failure
 rate, ms per pair for each).
 
-  python -m experiments.tune_baselines --image_dir=/work/shared/data/coco_mini/test \
+  python -m experiments.tune_baselines --image_dir=../shared/data/coco_mini/train \
       --num_pairs=300 --seed=0 --json_out=/tmp/tune_baselines.json
 
-The pair generator here is a minimal local one (the official one lives in data preparation):
-gray image resized to 320x240 (INTER_AREA), square top-left ``x0`` in [32, 160], ``y0`` in
-[32, 80], corners perturbed uniformly in [-32, 32],
-``H_img = getPerspectiveTransform(square, perturbed)``,
-``image_b = warpPerspective(image_a, H_img, (320, 240), flags=WARP_INVERSE_MAP)``, patches cropped
-at the same square of both, ``H_ba(patch) = inv(T) @ H_img @ T``.
+Pairs come from the data generator's own protocol (:mod:`stnh_tf.sources` decoding and
+resizing, :mod:`stnh_tf.pairs`), drawn in memory with one seeded generator.
 """
 
 from __future__ import annotations
 
 import json
-import os
 
 from absl import app, flags
 
@@ -35,54 +30,40 @@ flags.DEFINE_string("json_out", None, "Also write the JSON result to this file."
 
 FLAGS = flags.FLAGS
 
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp")
 
 
 def load_gray_images(image_dir=None):
-    """uint8 grayscale images resized to 320x240: every photograph of ``image_dir`` (sorted) or
-    scikit-image's bundled photographs."""
-    import cv2
-    import skimage.data
+    """uint8 ``[240, 320]`` grayscale images (the data generator's decoding and resizing): every
+    image file below ``image_dir`` (sorted; unreadable files skipped) or the bundled photographs."""
+    from stnh_tf import sources
 
-    if image_dir:
-        names = sorted(n for n in os.listdir(image_dir) if n.lower().endswith(IMAGE_EXTENSIONS))
-        images = [cv2.imread(os.path.join(image_dir, n), cv2.IMREAD_GRAYSCALE) for n in names]
-        images = [im for im in images if im is not None]
-        if not images:
-            raise ValueError(f"no readable images in {image_dir}.")
-    else:
-        images = [skimage.data.astronaut(), skimage.data.camera(), skimage.data.coffee(),
-                  skimage.data.chelsea(), skimage.data.rocket(), skimage.data.immunohistochemistry(),
-                  skimage.data.hubble_deep_field(), skimage.data.coins(), skimage.data.moon(),
-                  skimage.data.page()]
-        images = [im if im.ndim == 2 else cv2.cvtColor(im[..., :3], cv2.COLOR_RGB2GRAY)
-                  for im in images]
-    return [cv2.resize(im, (320, 240), interpolation=cv2.INTER_AREA) for im in images]
+    if not image_dir:
+        return [img for _, img in sources.bundled_images()]
+    images = []
+    for path in sources.list_image_files(image_dir):
+        try:
+            images.append(sources.load_gray_320x240(path))
+        except (sources.ImageDecodeError, OSError):
+            pass
+    if not images:
+        raise ValueError(f"no readable images in {image_dir}.")
+    return images
 
 
-def make_pairs(images, num_pairs, seed, size=128, rho=32):
-    """Paper-protocol pairs: uint8 ``patches_a``, ``patches_b`` ``[N, 128, 128]`` and pixel
-    ``H_ba`` ``[N, 3, 3]`` (patch_b -> patch_a). Image i % len(images) is used for pair i."""
-    import cv2
+def make_pairs(images, num_pairs, seed):
+    """Paper-protocol pairs (:mod:`stnh_tf.pairs`, the data generator's protocol): uint8
+    ``patches_a``, ``patches_b`` ``[N, 128, 128]`` and pixel ``H_ba`` ``[N, 3, 3]`` (patch_b ->
+    patch_a). Image ``i % len(images)`` is used for pair i; one seeded generator draws them all."""
     import numpy as np
 
+    from stnh_tf import pairs
+
     rng = np.random.default_rng(seed)
-    pa, pb, hs = [], [], []
-    for i in range(num_pairs):
-        image_a = images[i % len(images)]
-        x0 = int(rng.integers(rho, 320 - size - rho + 1))  # [32, 160]
-        y0 = int(rng.integers(rho, 240 - size - rho + 1))  # [32, 80]
-        square = np.array([[x0, y0], [x0 + size, y0], [x0 + size, y0 + size], [x0, y0 + size]],
-                          np.float32)
-        perturbed = square + rng.uniform(-rho, rho, size=(4, 2)).astype(np.float32)
-        h_img = cv2.getPerspectiveTransform(square, perturbed).astype(np.float64)
-        image_b = cv2.warpPerspective(image_a, h_img, (320, 240), flags=cv2.WARP_INVERSE_MAP)
-        t = np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1]], np.float64)
-        h = np.linalg.inv(t) @ h_img @ t
-        pa.append(image_a[y0:y0 + size, x0:x0 + size])
-        pb.append(image_b[y0:y0 + size, x0:x0 + size])
-        hs.append(h / h[2, 2])
-    return np.stack(pa), np.stack(pb), np.stack(hs)
+    one = pairs.Protocol(samples_per_image=1)
+    samples = [pairs.make_pair(images[i % len(images)], pairs.draw_params(rng, one)[0], one)
+               for i in range(num_pairs)]
+    return (np.stack([s["patch_a"] for s in samples]), np.stack([s["patch_b"] for s in samples]),
+            np.stack([s["h_ba"] for s in samples]))
 
 
 def settings_grid(grid="small"):
@@ -104,7 +85,7 @@ def settings_grid(grid="small"):
         ("orb/nfeatures2000", "orb_ransac", {"nfeatures": 2000}),
         ("orb/ratio0.75", "orb_ransac", {"ratio": 0.75}),
         ("orb/ratio0.9", "orb_ransac", {"ratio": 0.9}),
-        ("orb/crosscheck", "orb_ransac", {"ratio": None, "cross_check": True}),
+        ("orb/ratio0.85_no_crosscheck", "orb_ransac", {"ratio": 0.85, "cross_check": False}),
         ("orb/ratio+crosscheck", "orb_ransac", {"cross_check": True}),
         ("orb/thresh2", "orb_ransac", {"ransac_thresh": 2.0}),
         ("orb/thresh5", "orb_ransac", {"ransac_thresh": 5.0}),
@@ -116,7 +97,7 @@ def settings_grid(grid="small"):
         ("sift/defaults_ratio0.75", "sift_ransac",
          {"contrastThreshold": 0.04, "ratio": 0.75, "ransac_thresh": 5.0}),
         ("sift/contrast0.04", "sift_ransac", {"contrastThreshold": 0.04}),
-        ("sift/contrast0.01", "sift_ransac", {"contrastThreshold": 0.01}),
+        ("sift/contrast0.02", "sift_ransac", {"contrastThreshold": 0.02}),
         ("sift/ratio0.7", "sift_ransac", {"ratio": 0.7}),
         ("sift/ratio0.75", "sift_ransac", {"ratio": 0.75}),
         ("sift/ratio0.85", "sift_ransac", {"ratio": 0.85}),

@@ -65,9 +65,9 @@ ORB_SETTINGS = {
     "ratio": None,           # no Lowe ratio test ...
     "cross_check": True,     # ... but mutual nearest neighbours
 }
-"""Tuned ORB + RANSAC. On the tuning pairs (coco_mini train, 300 pairs, seed 0): MACE 1.47 px,
-median 0.98, no failures; with a ratio test at 0.85 instead of cross-checking 1.82 px; OpenCV's
-defaults (``orb_default``) 14.6 px with 12% failures."""
+"""Tuned ORB + RANSAC. On the tuning pairs (coco_mini train, 300 pairs, seed 0): MACE 1.35 px,
+median 0.90, no failures; with a ratio test at 0.85 instead of cross-checking 1.76 px; OpenCV's
+defaults (``orb_default``) 15.7 px with 15% failures."""
 
 ORB_DEFAULT_SETTINGS = {
     **_COMMON,
@@ -87,8 +87,8 @@ SIFT_SETTINGS = {
     "sigma": 1.6,
     "ratio": 0.8,
 }
-"""Tuned SIFT + RANSAC. On the tuning pairs (coco_mini train, 300 pairs, seed 0): MACE 1.15 px,
-median 0.66, no failures; at contrastThreshold 0.02 1.55 px, at OpenCV's 0.04 2.67 px."""
+"""Tuned SIFT + RANSAC. On the tuning pairs (coco_mini train, 300 pairs, seed 0): MACE 0.76 px,
+median 0.44, no failures; at contrastThreshold 0.02 1.29 px, at OpenCV's 0.04 2.16 px."""
 
 
 def _check_keys(settings: dict, allowed: dict, cls_name: str):
