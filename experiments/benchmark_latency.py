@@ -37,58 +37,21 @@ flags.DEFINE_string("json_out", None, "Also write the JSON here.")
 FLAGS = flags.FLAGS
 
 
-def measure(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", sequence=True, seed=0):
-    import keras
-    import numpy as np
+def measure(*args, **kwargs):
+    """:func:`stnh_tf.evaluation.latency` (the library core, also used by the reproduce driver)."""
+    from stnh_tf import evaluation
 
-    from stnh_tf import evaluation, hierarchy, models
-
-    rng = np.random.default_rng(seed)
-    context = rng.integers(0, 256, (1, 192, 192), dtype=np.uint8)
-    patch_b = rng.integers(0, 256, (1, 128, 128), dtype=np.uint8)
-    keras.mixed_precision.set_global_policy(policy)
-    keras.utils.set_random_seed(seed)
-    try:
-        if model_dirs:
-            stage_models = [evaluation.load_model(d) for d in model_dirs]
-        else:
-            stage_models = [models.build_stn_homography() for _ in range(max_stages)]
-        stages = [hierarchy.keras_stage(m) for m in stage_models]
-        forward = evaluation.compiled_forward(stage_models[0])
-        a = context[:, 32:160, 32:160, None].astype(np.float32) / 255.0
-        b = patch_b[..., None].astype(np.float32) / 255.0
-        l_m = common.median_ms(lambda: forward(a, b), runs, warmup)
-        h_prev = np.eye(3)[None] + 0.01
-        h_stage = np.eye(3)[None]
-
-        def between_stages():
-            patch = hierarchy.crop_warped_context(context[0], h_prev[0])
-            patch = patch[None, ..., None] / 255.0
-            hierarchy.accept_or_reject(h_prev, h_stage)
-            return patch
-
-        l_w = common.median_ms(between_stages, runs, warmup)
-        result = {"l_m_ms": l_m, "l_w_ms": l_w, "l_w_over_l_m": l_w / l_m, "hierarchy": {}}
-        for n in range(1, len(stages) + 1):
-            d_e = common.median_ms(lambda: hierarchy.run_hierarchy(stages[:n], context, patch_b), runs, warmup)
-            result["hierarchy"][str(n)] = {"d_e_ms": d_e, "formula_ms": n * (l_m + l_w),
-                                           "ratio_to_one_stage": None}
-        one = result["hierarchy"]["1"]["d_e_ms"]
-        for v in result["hierarchy"].values():
-            v["ratio_to_one_stage"] = v["d_e_ms"] / one
-        if sequence:
-            result["sequence"] = {}
-            for n in range(1, max_stages + 1):
-                seq_fwd = evaluation.compiled_forward(models.build_sequence_stn_homography(n))
-                result["sequence"][str(n)] = {"forward_ms": common.median_ms(lambda: seq_fwd(a, b), runs, warmup)}
-        return result
-    finally:
-        keras.mixed_precision.set_global_policy("float32")
+    return evaluation.latency(*args, **kwargs)
 
 
 def main(argv):
     del argv
-    import tensorflow as tf  # noqa: F401  (loaded first, so machine_info reports it)
+    import keras
+
+    if keras.backend.backend() == "tensorflow":
+        import tensorflow as tf  # noqa: F401  (loaded first, so machine_info reports it)
+    elif keras.backend.backend() == "jax":
+        import jax  # noqa: F401
 
     result = {"benchmark": "latency_batch1", "policy": FLAGS.policy, "runs": FLAGS.runs,
               "seed": FLAGS.seed, "model_dirs": FLAGS.model_dir or "untrained",

@@ -5,10 +5,8 @@ from __future__ import annotations
 import json
 import os
 import platform
-import statistics
 import subprocess
 import sys
-import time
 
 
 def git_commit() -> str | None:
@@ -47,6 +45,10 @@ def machine_info() -> dict:
         tf = sys.modules["tensorflow"]
         info["tensorflow"] = tf.__version__
         info["gpus"] = [d.name for d in tf.config.list_physical_devices("GPU")]
+    if "jax" in sys.modules:
+        jax = sys.modules["jax"]
+        info["jax"] = jax.__version__
+        info["jax_devices"] = [str(d.device_kind) for d in jax.devices()]
     if "keras" in sys.modules:
         keras = sys.modules["keras"]
         info["keras"] = keras.__version__
@@ -64,12 +66,7 @@ def emit_json(result: dict, json_out: str | None = None) -> None:
 
 
 def median_ms(fn, runs: int, warmup: int) -> float:
-    """Median wall time of ``fn()`` in milliseconds over ``runs`` calls after ``warmup`` calls."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
+    """Median wall time of ``fn()`` in ms (:func:`stnh_tf.evaluation.median_ms`)."""
+    from stnh_tf import evaluation
+
+    return evaluation.median_ms(fn, runs, warmup)

@@ -361,22 +361,37 @@ class PairBatches:
             return self._cache[index]
         return sources.as_gray_320x240(payload)
 
-    def sample(self, s: int) -> dict:
-        """Sample ``s`` (stored order) as a dict like one TFRecord example (uint8 patches)."""
+    def sample(self, s: int, epoch: int = 0) -> dict:
+        """Sample ``s`` (stored order) as a dict like one TFRecord example (uint8 patches).
+
+        ``epoch > 0`` draws a fresh sample from the same image (RNG
+        ``default_rng([seed, image_index, epoch])``); epoch 0 is make_dataset's sample."""
         pos, k = divmod(int(s), self.protocol.samples_per_image)
         index, image_id, _ = self.entries[pos]
-        params = pairs.draw_params(pairs.image_rng(self.seed, index), self.protocol)[k]
+        rng = (pairs.image_rng(self.seed, index) if epoch == 0 else
+               np.random.default_rng([self.seed, int(index), int(epoch)]))
+        params = pairs.draw_params(rng, self.protocol)[k]
         out = pairs.make_pair(self._image(pos), params, self.protocol)
         out.update(h_prev=np.eye(3), h_mask=np.float32(1.0), image_id=image_id,
                    index=np.int64(index * self.protocol.samples_per_image + k))
         return out
 
-    def batch(self, i: int):
-        """Batch ``i`` as ``(x, y, w)`` NumPy arrays (see the module docstring)."""
+    def epoch_order(self, epoch: int) -> np.ndarray:
+        """Sample order of ``epoch`` (epoch 0: ``self.order``; later epochs: a new seeded
+        permutation when shuffling)."""
+        if epoch == 0 or not self.shuffle:
+            return self.order
+        return np.random.default_rng([self.seed, int(epoch), 0x5348]).permutation(self.num_samples)
+
+    def batch(self, i: int, epoch: int = 0, fresh: bool = False):
+        """Batch ``i`` of ``epoch`` as ``(x, y, w)`` NumPy arrays (see the module docstring).
+
+        ``fresh``: draw new squares and perturbations every epoch instead of repeating epoch 0's
+        samples (on-the-fly training on an effectively unlimited set of pairs)."""
         if not 0 <= i < len(self):
             raise IndexError(f"batch {i} out of range [0, {len(self)}).")
-        ids = self.order[i * self.batch_size:(i + 1) * self.batch_size]
-        return numpy_model_batch([self.sample(s) for s in ids])
+        ids = self.epoch_order(epoch)[i * self.batch_size:(i + 1) * self.batch_size]
+        return numpy_model_batch([self.sample(s, epoch if fresh else 0) for s in ids])
 
 
 def _image_entries(images) -> list:
@@ -406,16 +421,122 @@ class PairSequence(keras.utils.PyDataset):
 
     def __init__(self, images="bundled", batch_size: int = 64, *, samples_per_image: int = 3,
                  seed: int = 0, shuffle: bool = True, drop_remainder: bool = True,
-                 max_images: int = 0, cache_images: bool = True, workers: int = 1,
+                 max_images: int = 0, cache_images: bool = True, mapper=None, workers: int = 1,
                  use_multiprocessing: bool = False, max_queue_size: int = 10):
         super().__init__(workers=workers, use_multiprocessing=use_multiprocessing,
                          max_queue_size=max_queue_size)
         self.batches = PairBatches(images, batch_size, samples_per_image=samples_per_image,
                                    seed=seed, shuffle=shuffle, drop_remainder=drop_remainder,
                                    max_images=max_images, cache_images=cache_images)
+        self.mapper = mapper
 
     def __len__(self) -> int:
         return len(self.batches)
 
     def __getitem__(self, index: int):
-        return self.batches.batch(index)
+        batch = self.batches.batch(index)
+        return self.mapper(*batch) if self.mapper is not None else batch
+
+
+def _generate_samples(batches, start, stop):
+    _limit_threads_in_worker()
+    return numpy_model_batch([batches.sample(s) for s in range(start, stop)])
+
+
+def materialize(batches: "PairBatches", workers: int = 0, chunk: int = 256) -> tuple:
+    """Every sample of ``batches`` (epoch 0, stored order: sample ``s`` at row ``s``) as one
+    ``(x, y, w)`` tuple of NumPy arrays, generated in ``workers`` processes (0: this process).
+    The fixed set of ``len(images) * samples_per_image`` pairs then trains from memory
+    (:class:`ArrayStream`; float32, 192 KB a pair)."""
+    import functools
+
+    bounds = [(a, min(a + chunk, batches.num_samples))
+              for a in range(0, batches.num_samples, chunk)]
+    if workers > 0:
+        import multiprocessing
+
+        with multiprocessing.get_context("forkserver").Pool(workers) as pool:
+            parts = pool.starmap(functools.partial(_generate_samples, batches), bounds)
+    else:
+        parts = [_generate_samples(batches, a, b) for a, b in bounds]
+    return tuple({k: np.concatenate([p[j][k] for p in parts]) for k in parts[0][j]}
+                 for j in range(3))
+
+
+class ArrayStream(keras.utils.PyDataset):
+    """:class:`PairStream` without ``fresh_pairs``, served from :func:`materialize`'s arrays in
+    this process: item ``i`` is the same batch (same samples, same order) as
+    ``PairStream(...)[i]``, without generating anything after the start."""
+
+    def __init__(self, arrays, batches: "PairBatches", *, start_step: int = 0, mapper=None):
+        super().__init__()
+        if len(arrays[0]["patch_a"]) != batches.num_samples:
+            raise ValueError(f"arrays hold {len(arrays[0]['patch_a'])} samples; batches has "
+                             f"{batches.num_samples}.")
+        self.arrays, self.batches = arrays, batches
+        self.start_step, self.mapper = int(start_step), mapper
+        self._order = (0, batches.epoch_order(0))
+
+    @property
+    def num_batches(self):
+        return None
+
+    def __getitem__(self, index: int):
+        epoch, i = divmod(self.start_step + int(index), len(self.batches))
+        if self._order[0] != epoch:
+            self._order = (epoch, self.batches.epoch_order(epoch))
+        size = self.batches.batch_size
+        ids = self._order[1][i * size:(i + 1) * size]
+        batch = tuple({k: v[ids] for k, v in part.items()} for part in self.arrays)
+        return self.mapper(*batch) if self.mapper is not None else batch
+
+
+_THREADS_LIMITED = False
+
+
+def _limit_threads_in_worker():
+    """In a generator worker process, run OpenCV single-threaded: N workers each starting one
+    OpenCV thread per core oversubscribe the machine (measured on a 16-core GPU host: 5 batches/s
+    from 14 workers)."""
+    global _THREADS_LIMITED
+    if not _THREADS_LIMITED:
+        import multiprocessing
+
+        import cv2
+
+        if multiprocessing.current_process().name != "MainProcess":
+            cv2.setNumThreads(1)
+        _THREADS_LIMITED = True
+
+
+class PairStream(keras.utils.PyDataset):
+    """Endless training stream of :class:`PairBatches` for ``model.fit(..., steps_per_epoch=k)``.
+
+    Item ``i`` is global step ``start_step + i``: batch ``step % n`` of data epoch ``step // n``
+    (``n = len(batches)``), so a resumed run given ``start_step`` sees exactly the batches an
+    uninterrupted run would have seen. Every data epoch is a new seeded permutation; with
+    ``fresh_pairs`` it also draws new squares and perturbations (epoch 0 is make_dataset's set),
+    else it repeats the fixed set of ``len(images) * samples_per_image`` pairs, like training on
+    the TFRecords. ``mapper(x, y, w)`` maps batches onto the model's outputs (NumPy). With
+    ``workers > 1`` and ``use_multiprocessing`` the pairs are generated in worker processes.
+    """
+
+    def __init__(self, images, batch_size: int = 64, *, samples_per_image: int = 3, seed: int = 0,
+                 start_step: int = 0, fresh_pairs: bool = False, mapper=None, max_images: int = 0,
+                 workers: int = 1, use_multiprocessing: bool = False, max_queue_size: int = 10):
+        super().__init__(workers=workers, use_multiprocessing=use_multiprocessing,
+                         max_queue_size=max_queue_size)
+        self.batches = PairBatches(images, batch_size, samples_per_image=samples_per_image,
+                                   seed=seed, shuffle=True, drop_remainder=True,
+                                   max_images=max_images, cache_images=True)
+        self.start_step, self.fresh_pairs, self.mapper = int(start_step), bool(fresh_pairs), mapper
+
+    @property
+    def num_batches(self):
+        return None  # endless: Keras keeps counting indices across epochs
+
+    def __getitem__(self, index: int):
+        _limit_threads_in_worker()
+        epoch, i = divmod(self.start_step + int(index), len(self.batches))
+        batch = self.batches.batch(i, epoch, fresh=self.fresh_pairs)
+        return self.mapper(*batch) if self.mapper is not None else batch

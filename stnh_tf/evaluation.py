@@ -53,7 +53,8 @@ def compiled_forward(model, output=None):
     """A compiled batch-any-size forward pass ``(patch_a, patch_b) -> H_bar`` (NumPy in and out).
 
     Under the TensorFlow backend a ``tf.function`` with an unknown batch dimension (no retracing,
-    ~5x less per-call overhead than ``model.predict`` at batch 1); otherwise ``predict_on_batch``.
+    ~5x less per-call overhead than ``model.predict`` at batch 1); under JAX a ``jax.jit`` of
+    ``model.stateless_call`` (one trace per batch size); otherwise ``predict_on_batch``.
     ``output`` names the ``h_bar`` output (default: the model's final one).
     """
     import keras
@@ -70,6 +71,20 @@ def compiled_forward(model, output=None):
             return model({"patch_a": a, "patch_b": b}, training=False)[name]
 
         return lambda a, b: np.asarray(fn(np.asarray(a, np.float32), np.asarray(b, np.float32)))
+    if keras.backend.backend() == "jax":
+        import jax
+
+        @jax.jit
+        def jfn(trainable, non_trainable, a, b):
+            out, _ = model.stateless_call(trainable, non_trainable, {"patch_a": a, "patch_b": b},
+                                          training=False)
+            return out[name]
+
+        def run(a, b):  # reads the variables at call time, so later weight changes are seen
+            return np.asarray(jfn([v.value for v in model.trainable_variables],
+                                  [v.value for v in model.non_trainable_variables],
+                                  np.asarray(a, np.float32), np.asarray(b, np.float32)))
+        return run
     return lambda a, b: np.asarray(model.predict_on_batch({"patch_a": np.asarray(a, np.float32),
                                                            "patch_b": np.asarray(b, np.float32)})[name])
 
@@ -185,3 +200,66 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
         for name in baselines:
             out["baselines"][name] = baselines_lib.evaluate_baseline(name, pa, pb, h_true)
     return out
+
+
+def median_ms(fn, runs: int, warmup: int) -> float:
+    """Median wall time of ``fn()`` in milliseconds over ``runs`` calls after ``warmup`` calls."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", sequence=True, seed=0):
+    """Table 2: batch-1 latency (ms) of 1..n hierarchical stages (``d_e``, with its terms ``l_m``
+    and ``l_w``) and of sequence models; see ``experiments.benchmark_latency``."""
+    import keras
+    import numpy as np
+
+    from stnh_tf import hierarchy, models
+
+    rng = np.random.default_rng(seed)
+    context = rng.integers(0, 256, (1, 192, 192), dtype=np.uint8)
+    patch_b = rng.integers(0, 256, (1, 128, 128), dtype=np.uint8)
+    keras.mixed_precision.set_global_policy(policy)
+    keras.utils.set_random_seed(seed)
+    try:
+        if model_dirs:
+            stage_models = [load_model(d) for d in model_dirs]
+        else:
+            stage_models = [models.build_stn_homography() for _ in range(max_stages)]
+        stages = [hierarchy.keras_stage(m) for m in stage_models]
+        forward = compiled_forward(stage_models[0])
+        a = context[:, 32:160, 32:160, None].astype(np.float32) / 255.0
+        b = patch_b[..., None].astype(np.float32) / 255.0
+        l_m = median_ms(lambda: forward(a, b), runs, warmup)
+        h_prev = np.eye(3)[None] + 0.01
+        h_stage = np.eye(3)[None]
+
+        def between_stages():
+            patch = hierarchy.crop_warped_context(context[0], h_prev[0])
+            patch = patch[None, ..., None] / 255.0
+            hierarchy.accept_or_reject(h_prev, h_stage)
+            return patch
+
+        l_w = median_ms(between_stages, runs, warmup)
+        result = {"l_m_ms": l_m, "l_w_ms": l_w, "l_w_over_l_m": l_w / l_m, "hierarchy": {}}
+        for n in range(1, len(stages) + 1):
+            d_e = median_ms(lambda: hierarchy.run_hierarchy(stages[:n], context, patch_b), runs, warmup)
+            result["hierarchy"][str(n)] = {"d_e_ms": d_e, "formula_ms": n * (l_m + l_w),
+                                           "ratio_to_one_stage": None}
+        one = result["hierarchy"]["1"]["d_e_ms"]
+        for v in result["hierarchy"].values():
+            v["ratio_to_one_stage"] = v["d_e_ms"] / one
+        if sequence:
+            result["sequence"] = {}
+            for n in range(1, max_stages + 1):
+                seq_fwd = compiled_forward(models.build_sequence_stn_homography(n))
+                result["sequence"][str(n)] = {"forward_ms": median_ms(lambda: seq_fwd(a, b), runs, warmup)}
+        return result
+    finally:
+        keras.mixed_precision.set_global_policy("float32")

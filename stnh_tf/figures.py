@@ -4,9 +4,12 @@
   square) with patch_b's true quadrilateral in green and the predicted one in red, beside
   patch_b.
 * :func:`mace_bars`: the paper's Fig. 4, MACE of several methods as bars.
+* :func:`hbar_histogram`: the paper's Fig. 1, value histograms of the eight entries of H_bar.
 """
 
 from __future__ import annotations
+
+import os
 
 import numpy as np
 
@@ -83,3 +86,41 @@ def mace_bars(results: dict, path: str, paper: dict | None = None,
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+ENTRY_NAMES = ("h11", "h12", "h13", "h21", "h22", "h23", "h31", "h32")
+
+
+def read_h_bar(data_dir: str, split: str, max_samples: int = 0) -> np.ndarray:
+    """``float32 [N, 8]``: the stored H_bar targets of ``split`` (only that feature is parsed)."""
+    from stnh_tf import data
+
+    ds = data.load_raw(data_dir, split, fields=("h_bar",)).batch(4096)
+    if max_samples > 0:
+        ds = ds.unbatch().take(max_samples).batch(4096)
+    parts = [b["h_bar"].numpy() for b in ds]
+    return np.concatenate(parts) if parts else np.zeros((0, 8), np.float32)
+
+
+def hbar_histogram(h_bar, output: str, bins: int = 100, title: str = "") -> dict:
+    """Fig. 1: the 2 x 4 histogram figure of ``h_bar [N, 8]`` written to ``output``; returns
+    the statistics (mean, std, min, max of each entry)."""
+    plt = _pyplot()
+    h_bar = np.asarray(h_bar, np.float64)
+    if h_bar.ndim != 2 or h_bar.shape[1] != 8 or len(h_bar) == 0:
+        raise ValueError(f"h_bar must be a non-empty [N, 8] array; received shape {h_bar.shape}.")
+    stats = {}
+    fig, axes = plt.subplots(2, 4, figsize=(14, 6), constrained_layout=True)
+    for j, ax in enumerate(axes.ravel()):
+        v = h_bar[:, j]
+        stats[ENTRY_NAMES[j]] = {"mean": float(v.mean()), "std": float(v.std()),
+                                 "min": float(v.min()), "max": float(v.max())}
+        ax.hist(v, bins=bins, color="tab:blue")
+        ax.set_title(f"{ENTRY_NAMES[j]}: mean {v.mean():.3f}, std {v.std():.3f}", fontsize=10)
+        ax.set_xlabel("value")
+        ax.set_ylabel("count")
+    fig.suptitle(title or f"Value histogram of normalized H_bar ({len(h_bar)} samples)")
+    os.makedirs(os.path.dirname(os.path.abspath(output)), exist_ok=True)
+    fig.savefig(output, dpi=100)
+    plt.close(fig)
+    return {"num_samples": int(len(h_bar)), "entries": stats}

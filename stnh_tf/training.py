@@ -13,11 +13,21 @@ it on the TFRecord dataset in ``config.data_dir`` with:
 * TensorBoard logs (both loss terms, learning rate, validation MACE) and console progress.
 * A non-finite loss stops training with an error naming the step and the last good checkpoint.
 * ``strategy="mirrored"`` runs under ``tf.distribute.MirroredStrategy``.
+
+Two data sources, same losses and schedule: the TFRecords in ``data_dir`` (TensorFlow backend), or
+``image_dir``: stage-1 pairs generated on the fly from a folder of images by
+:class:`stnh_tf.data.PairStream` (NumPy/OpenCV in worker processes; any Keras backend, e.g. JAX on
+a GPU machine without TensorFlow). ``image_dir`` with ``samples_per_image=N`` and ``seed=S`` gives
+exactly the pairs ``data_prep.make_dataset --samples_per_image=N --seed=S`` writes (shuffled
+differently); ``fresh_pairs`` draws new pairs every data epoch instead.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
+import importlib.util
 import json
 import math
 import os
@@ -68,12 +78,31 @@ class TrainConfig:
     val_samples: int = 1024            # validation pairs evaluated at every checkpoint (0: none)
     strategy: str = "default"          # "default" | "mirrored"
     init_from: tuple = ()              # sequence: single-stage model dirs to initialise stages
+    image_dir: str = ""                # instead of data_dir: generate stage-1 pairs on the fly
+    val_image_dir: str = ""            # with image_dir: validation pairs from these images
+    samples_per_image: int = 3         # with image_dir: squares per image (per data epoch)
+    fresh_pairs: bool = False          # with image_dir: new pairs every data epoch
+    val_seed: int = 1                  # with image_dir: seed of the validation pairs
+    workers: int = 0                   # with image_dir: generator processes (0: in-process)
+    in_memory: bool = False            # with image_dir: generate the fixed set once, train from RAM
 
     def validate(self):
         if self.model not in MODEL_KINDS:
             raise ValueError(f"model must be one of {MODEL_KINDS}; received {self.model!r}.")
-        if not self.data_dir or not self.model_dir:
-            raise ValueError("data_dir and model_dir are required.")
+        if not self.model_dir:
+            raise ValueError("model_dir is required.")
+        if bool(self.data_dir) == bool(self.image_dir):
+            raise ValueError("give exactly one of data_dir (TFRecords) and image_dir (pairs "
+                             f"generated on the fly); received data_dir={self.data_dir!r}, "
+                             f"image_dir={self.image_dir!r}.")
+        if self.image_dir and self.stage != 1:
+            raise ValueError("image_dir generates stage-1 pairs only; stage-k data needs the "
+                             "previous stages' predictions (data_prep.make_stage_dataset).")
+        if self.model == "sequence" and self.num_stages < 1:
+            raise ValueError(f"num_stages must be >= 1; received {self.num_stages}.")
+        if self.model == "sequence" and self.init_from and len(self.init_from) > self.num_stages:
+            raise ValueError(f"init_from names {len(self.init_from)} models for {self.num_stages} "
+                             "stages.")
         if self.train_steps <= 0 or self.warmup_steps < 0 or self.warmup_steps > self.train_steps:
             raise ValueError(f"need 0 <= warmup_steps <= train_steps, train_steps > 0; received "
                              f"warmup_steps={self.warmup_steps}, train_steps={self.train_steps}.")
@@ -100,7 +129,8 @@ class TrainConfig:
 
 
 # Fields that may differ between a run and its resumption without changing the result.
-_RESUME_FREE_FIELDS = {"log_every", "model_dir", "data_dir"}
+_RESUME_FREE_FIELDS = {"log_every", "model_dir", "data_dir", "image_dir", "val_image_dir",
+                       "workers", "in_memory"}
 
 
 class TrainingDiverged(RuntimeError):
@@ -151,29 +181,35 @@ def loss_spec(cfg: TrainConfig):
     return losses, loss_weights, metrics
 
 
-def targets_for(cfg: TrainConfig) -> Callable:
+def _homographynet_targets(x, y, w):
+    from stnh_tf import geometry
+
+    h = geometry.denormalize_homography(geometry.vector_to_matrix(y["h_bar"]))
+    offsets = keras.ops.reshape(geometry.homography_to_offsets(h), (-1, 8))
+    offsets = offsets / models.HOMOGRAPHYNET_SCALE
+    # patch_a_warp carries no loss (HomographyNet has no photometric term) but Keras matches the
+    # targets to every output.
+    return (x, {"offsets": offsets, "h_bar": y["h_bar"], "patch_a_warp": y["patch_a_warp"]},
+            {"offsets": w["h_bar"], "h_bar": w["h_bar"], "patch_a_warp": w["patch_a_warp"]})
+
+
+def _sequence_targets(x, y, w, num_stages):
+    ys, ws = {}, {}
+    for hn, wn in zip(*models.sequence_output_names(num_stages)):
+        ys[hn], ys[wn] = y["h_bar"], y["patch_a_warp"]
+        ws[hn], ws[wn] = w["h_bar"], w["patch_a_warp"]
+    return x, ys, ws
+
+
+def targets_for(cfg: TrainConfig) -> Callable | None:
     """Map the dataset's ``(x, y, sample_weight)`` (keys ``h_bar``, ``patch_a_warp``) onto the
-    model's output names."""
+    model's output names: tensors inside ``tf.data`` or NumPy batches in a ``PyDataset``. The
+    mapper is picklable (generator worker processes may be spawned)."""
     if cfg.model == "stn":
         return None
     if cfg.model == "homographynet":
-        def fn(x, y, w):
-            import tensorflow as tf  # noqa: F401  (runs inside tf.data)
-            from stnh_tf import geometry
-            h = geometry.denormalize_homography(geometry.vector_to_matrix(y["h_bar"]))
-            offsets = keras.ops.reshape(geometry.homography_to_offsets(h), (-1, 8))
-            offsets = offsets / models.HOMOGRAPHYNET_SCALE
-            return x, {"offsets": offsets, "h_bar": y["h_bar"]}, {"offsets": w["h_bar"], "h_bar": w["h_bar"]}
-        return fn
-    h_names, w_names = models.sequence_output_names(cfg.num_stages)
-
-    def fn(x, y, w):
-        ys, ws = {}, {}
-        for hn, wn in zip(h_names, w_names):
-            ys[hn], ys[wn] = y["h_bar"], y["patch_a_warp"]
-            ws[hn], ws[wn] = w["h_bar"], w["patch_a_warp"]
-        return x, ys, ws
-    return fn
+        return _homographynet_targets
+    return functools.partial(_sequence_targets, num_stages=cfg.num_stages)
 
 
 def compile_model(model, cfg: TrainConfig):
@@ -337,6 +373,12 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False):
 
 
 def _strategy(cfg):
+    """The tf.distribute strategy (None on other backends, which run on their default device)."""
+    if keras.backend.backend() != "tensorflow":
+        if cfg.strategy != "default":
+            raise ValueError(f"strategy={cfg.strategy!r} needs the TensorFlow backend; this is "
+                             f"{keras.backend.backend()!r}.")
+        return None
     import tensorflow as tf
 
     if cfg.strategy == "mirrored":
@@ -344,11 +386,26 @@ def _strategy(cfg):
     return tf.distribute.get_strategy()
 
 
+def _strategy_scope(cfg):
+    strategy = _strategy(cfg)
+    return strategy.scope() if strategy is not None else contextlib.nullcontext()
+
+
+def tensorboard_available() -> bool:
+    """Keras' TensorBoard callback writes through TensorFlow's summary ops."""
+    return importlib.util.find_spec("tensorflow") is not None
+
+
 def initialize_sequence_from(model, stage_dirs):
     """Copy the regression weights of trained single-stage models into a sequence model's stages."""
     for k, d in enumerate(stage_dirs, start=1):
         src = keras.models.load_model(os.path.join(d, FINAL_MODEL), compile=False)
-        model.get_layer(f"regression_{k}").set_weights(src.get_layer("regression").get_weights())
+        try:
+            regression = src.get_layer("regression")
+        except ValueError:
+            raise ValueError(f"{d} is not a single-stage STN-Homography model (no 'regression' "
+                             "layer); init_from takes train_stage --model=stn runs.") from None
+        model.get_layer(f"regression_{k}").set_weights(regression.get_weights())
 
 
 # ------------------------------------------------------------------------------------------------
@@ -398,6 +455,37 @@ def training_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0)
     return ds.skip(start_step) if start_step else ds
 
 
+def generated_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0):
+    """The endless stream of pairs generated from ``cfg.image_dir`` (mapped onto the model's
+    outputs), positioned at ``start_step`` (:class:`stnh_tf.data.PairStream`)."""
+    from stnh_tf import data
+
+    del split
+    if cfg.in_memory:
+        if cfg.fresh_pairs:
+            raise ValueError("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
+        batches = data.PairBatches(cfg.image_dir, cfg.batch_size,
+                                   samples_per_image=cfg.samples_per_image, seed=cfg.seed)
+        return data.ArrayStream(data.materialize(batches, cfg.workers), batches,
+                                start_step=start_step, mapper=targets_for(cfg))
+    return data.PairStream(cfg.image_dir, cfg.batch_size, samples_per_image=cfg.samples_per_image,
+                           seed=cfg.seed, start_step=start_step, fresh_pairs=cfg.fresh_pairs,
+                           mapper=targets_for(cfg), workers=max(cfg.workers, 1),
+                           use_multiprocessing=cfg.workers > 0,
+                           max_queue_size=max(2 * cfg.workers, 10))
+
+
+def generated_validation(cfg: TrainConfig):
+    """``cfg.val_samples`` fixed pairs from ``cfg.val_image_dir`` (seed ``cfg.val_seed``, three
+    per image in image order: with seed 1, make_dataset's test pairs)."""
+    from stnh_tf import data
+
+    per_image = 3
+    return data.PairSequence(cfg.val_image_dir, cfg.batch_size, samples_per_image=per_image,
+                             seed=cfg.val_seed, shuffle=False, drop_remainder=False,
+                             max_images=-(-cfg.val_samples // per_image), mapper=targets_for(cfg))
+
+
 def _validation_batches(cfg: TrainConfig) -> int:
     """Validation batches per evaluation: ``val_samples`` pairs, at most the whole split."""
     from stnh_tf import data
@@ -424,14 +512,15 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     ``extra_callbacks`` run after the built-in ones (checkpointing comes first).
     """
     cfg.validate()
-    stream_fn = stream_fn or training_stream
-    check_dataset(cfg.data_dir, "train", cfg.stage)
+    generated = bool(cfg.image_dir)
+    stream_fn = stream_fn or (generated_stream if generated else training_stream)
+    if not generated:
+        check_dataset(cfg.data_dir, "train", cfg.stage)
     prepare_model_dir(cfg, overwrite=overwrite)
     keras.utils.set_random_seed(cfg.seed)
     keras.mixed_precision.set_global_policy("mixed_bfloat16" if cfg.mixed_precision else "float32")
     try:
-        strategy = _strategy(cfg)
-        with strategy.scope():
+        with _strategy_scope(cfg):
             model = build_model(cfg)
             compile_model(model, cfg)
             ckpt_dir = os.path.join(cfg.model_dir, CHECKPOINT_DIR)
@@ -442,29 +531,35 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             printer(f"resuming {cfg.model_dir} from step {start_step}")
         if start_step >= cfg.train_steps:
             printer("checkpoint already at the final step")
-        mapper = targets_for(cfg)
         train_ds = stream_fn(cfg, "train", start_step)
-        val_ds = None
-        if cfg.val_samples and has_split(cfg.data_dir, cfg.val_split):
-            val_ds = validation_stream(cfg, cfg.val_split)
-        if mapper is not None:
-            train_ds = train_ds.map(mapper)
-            val_ds = val_ds.map(mapper) if val_ds is not None else None
-        val_steps = _validation_batches(cfg) if val_ds is not None else None
+        val_ds = val_steps = None
+        if generated:
+            if cfg.val_samples and cfg.val_image_dir:
+                val_ds = generated_validation(cfg)
+                val_steps = len(val_ds)
+        else:
+            mapper = targets_for(cfg)
+            if cfg.val_samples and has_split(cfg.data_dir, cfg.val_split):
+                val_ds = validation_stream(cfg, cfg.val_split)
+                val_steps = _validation_batches(cfg)
+            if mapper is not None:
+                train_ds = train_ds.map(mapper)
+                val_ds = val_ds.map(mapper) if val_ds is not None else None
         guard = NonFiniteGuard()
-        callbacks = [
-            guard,
-            AtomicCheckpoint(ckpt_dir, guard),
-            ProgressLogger(cfg.log_every, cfg.train_steps, printer),
-            keras.callbacks.TensorBoard(os.path.join(cfg.model_dir, "logs"),
-                                        update_freq=cfg.log_every, write_graph=False),
-            *extra_callbacks,
-        ]
+        callbacks = [guard, AtomicCheckpoint(ckpt_dir, guard),
+                     ProgressLogger(cfg.log_every, cfg.train_steps, printer)]
+        if tensorboard_available():
+            callbacks.append(keras.callbacks.TensorBoard(os.path.join(cfg.model_dir, "logs"),
+                                                         update_freq=cfg.log_every,
+                                                         write_graph=False))
+        else:
+            printer("TensorFlow is not installed: no TensorBoard logs (console progress only)")
+        callbacks.extend(extra_callbacks)
         epochs = cfg.train_steps // cfg.checkpoint_every
         t0 = time.time()
         history = model.fit(train_ds, epochs=epochs, initial_epoch=start_step // cfg.checkpoint_every,
                             steps_per_epoch=cfg.checkpoint_every, validation_data=val_ds,
-                            validation_steps=val_steps if val_ds is not None else None,
+                            validation_steps=val_steps,
                             callbacks=callbacks, verbose=0)
         if guard.bad_step is not None:
             last = os.path.join(ckpt_dir, CHECKPOINT_WEIGHTS)

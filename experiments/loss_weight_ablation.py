@@ -1,0 +1,55 @@
+r"""The paper's Table 1: single-stage STN-Homography trained with five (L2, L1) loss weightings.
+
+  python -m experiments.loss_weight_ablation --budget=cpu --image_dir=../shared/data/coco_mini/train \
+      --test_image_dir=../shared/data/coco_mini/test --output_dir=runs/reproduce_cpu
+
+Rows (1,1), (1,10), (1,0.1), (10,1), (0.1,1) by default (--weights=l2:l1,...), each trained at the
+budget's schedule (--steps overrides it for the ablation only; say so next to the table) and
+evaluated on the same stage-1 test pairs. Resumable: finished rows are kept, an interrupted row
+resumes from its checkpoint. Writes OUTPUT_DIR/table1.md and table1.json. Shares its data and
+models with experiments.reproduce (same OUTPUT_DIR, same --reuse).
+"""
+
+import dataclasses
+
+from absl import app, flags
+
+from experiments.reproduce import parse_reuse
+from stnh_tf import reproduce
+
+flags.DEFINE_enum("budget", "cpu", sorted(reproduce.BUDGETS), "Training budget.")
+flags.DEFINE_integer("steps", 0, "Steps per row (0: the budget's).")
+flags.DEFINE_string("output_dir", None, "Where data, models and the table go.", required=True)
+flags.DEFINE_enum("source", "folder", ["folder", "bundled", "coco2014"], "Image source.")
+flags.DEFINE_string("image_dir", "", "Training images (--source=folder).")
+flags.DEFINE_string("test_image_dir", "", "Test images (--source=folder).")
+flags.DEFINE_list("weights", [f"{a:g}:{b:g}" for a, b in reproduce.ABLATION_WEIGHTS],
+                  "Rows as l2:l1.")
+flags.DEFINE_list("reuse", [], "name=dir pairs, as experiments.reproduce.")
+FLAGS = flags.FLAGS
+
+
+def main(argv):
+    del argv
+    try:
+        weights = [tuple(float(v) for v in w.split(":")) for w in FLAGS.weights]
+        if any(len(w) != 2 for w in weights):
+            raise ValueError
+    except ValueError:
+        raise SystemExit(f"--weights entries are l2:l1; received {FLAGS.weights}.") from None
+    budget = reproduce.BUDGETS[FLAGS.budget]
+    if FLAGS.steps:
+        budget = dataclasses.replace(budget, ablation_steps=FLAGS.steps)
+    try:
+        run = reproduce.Reproduction(budget, FLAGS.output_dir, image_dir=FLAGS.image_dir,
+                                     test_image_dir=FLAGS.test_image_dir, source=FLAGS.source,
+                                     reuse=parse_reuse(FLAGS.reuse), ablation_weights=weights)
+        table = run.table1(run.ablation(run.ablation_weights))
+    except (ValueError, OSError) as e:
+        raise SystemExit(f"loss_weight_ablation: {e}") from None
+    for (l2, l1), mace in table.items():
+        print(f"l2={l2:g} l1={l1:g}: MACE {mace:.2f} px (paper {reproduce.PAPER_TABLE1.get((l2, l1))})")
+
+
+if __name__ == "__main__":
+    app.run(main)

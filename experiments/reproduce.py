@@ -1,0 +1,55 @@
+r"""Every table and figure of the paper in one resumable command.
+
+  python -m experiments.reproduce --budget=cpu --image_dir=../shared/data/coco_mini/train \
+      --test_image_dir=../shared/data/coco_mini/test --output_dir=runs/reproduce_cpu
+  python -m experiments.reproduce --budget=paper --source=coco2014 --output_dir=runs/reproduce_paper
+
+Runs data generation, the 3-stage hierarchy, HomographyNet, the 2-stage sequence model, the
+loss-weight ablation (Table 1), the evaluation of everything (and identity / ORB / SIFT + RANSAC)
+on the same seeded test pairs, batch-1 latency (Table 2) and the figures (Fig. 1, 4, 5), skipping
+whatever is already complete; writes OUTPUT_DIR/tables.md (the paper's numbers beside ours),
+results.json and figures/. Models trained elsewhere at the same budget are used in place with
+--reuse=stage1=runs/cpu/stage1,homographynet=...; their recorded configuration must match the
+budget. See stnh_tf/reproduce.py for the steps and budgets.
+"""
+
+from absl import app, flags
+
+from stnh_tf import reproduce
+
+flags.DEFINE_enum("budget", "cpu", sorted(reproduce.BUDGETS), "Training budget of every model.")
+flags.DEFINE_string("output_dir", None, "Where data, models, tables and figures go.", required=True)
+flags.DEFINE_enum("source", "folder", ["folder", "bundled", "coco2014"], "Image source.")
+flags.DEFINE_string("image_dir", "", "Training images (--source=folder).")
+flags.DEFINE_string("test_image_dir", "", "Test images (--source=folder).")
+flags.DEFINE_list("reuse", [], "name=dir pairs of finished models / datasets to use in place "
+                  "(stage1, stage2, stage3, homographynet, sequence2, ablation_l2-10_l1-1, ..., "
+                  "data_stage1, data_stage2, data_stage3).")
+FLAGS = flags.FLAGS
+
+
+def parse_reuse(items) -> dict:
+    out = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not path:
+            raise SystemExit(f"--reuse entries are name=dir; received {item!r}.")
+        out[name.strip()] = path.strip()
+    return out
+
+
+def main(argv):
+    del argv
+    if FLAGS.source == "folder" and not (FLAGS.image_dir and FLAGS.test_image_dir):
+        raise SystemExit("reproduce: --source=folder needs --image_dir and --test_image_dir.")
+    try:
+        run = reproduce.Reproduction(reproduce.BUDGETS[FLAGS.budget], FLAGS.output_dir,
+                                     image_dir=FLAGS.image_dir, test_image_dir=FLAGS.test_image_dir,
+                                     source=FLAGS.source, reuse=parse_reuse(FLAGS.reuse))
+        run.run()
+    except (ValueError, OSError) as e:
+        raise SystemExit(f"reproduce: {e}") from None
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -1,0 +1,367 @@
+"""The paper's tables and figures in one resumable run (library core of ``experiments.reproduce``
+and ``experiments.loss_weight_ablation``).
+
+Steps, in order, each skipped when its output is already complete (so an interrupted run is
+re-run with the same command):
+
+1. stage-1 pairs (train: ``samples_per_image`` per image, seed 0; test: 3 per image, seed 1);
+2. hierarchy: stage 1, stage-2 data, stage 2, stage-3 data, stage 3;
+3. HomographyNet and the 2-stage sequence model on the stage-1 data;
+4. Table 1: the loss-weight ablation (the (1, 1) row is stage 1 itself);
+5. evaluation of everything on the same test pairs (plus identity, ORB and SIFT + RANSAC);
+6. Table 2: batch-1 latency of 1/2/3 stages;
+7. figures (Fig. 1 histogram, Fig. 4 bars, Fig. 5 examples) and ``tables.md`` / ``results.json``
+   with the paper's numbers beside ours.
+
+A model trained elsewhere at the same budget is used in place (``reuse={"stage1": dir, ...}``)
+after checking that its recorded configuration is the budget's; a finished model is never
+trained again.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+
+import numpy as np
+
+# The paper's numbers (Zhou & Li 2019; the 2-stage sequence model is the journal version's).
+PAPER_TABLE1 = {(1.0, 1.0): 5.83, (1.0, 10.0): 21.86, (1.0, 0.1): 6.21, (10.0, 1.0): 4.85,
+                (0.1, 1.0): 6.24}
+PAPER_TABLE2_GPU_MS = {1: 4.87, 2: 11.46, 3: 17.85}
+PAPER_FIG4 = {"HomographyNet": 9.2, "STN-Homography 1 stage": 5.83,
+              "STN-Homography 2 stages": 2.6, "STN-Homography 3 stages": 1.57,
+              "Sequence 2 stages": 2.14}
+ABLATION_WEIGHTS = tuple(PAPER_TABLE1)
+BASELINES = ("identity", "orb_ransac", "sift_ransac")
+BASELINE_NAMES = {"identity": "Identity", "orb_ransac": "ORB + RANSAC",
+                  "sift_ransac": "SIFT + RANSAC"}
+# Configuration fields a reused model must share with the budget.
+_BUDGET_FIELDS = ("model", "stage", "train_steps", "warmup_steps", "batch_size", "learning_rate",
+                  "momentum", "l2_weight", "l1_weight", "batch_norm", "dropout")
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """A training budget: the schedule every model of a reproduction is trained with."""
+
+    name: str
+    train_steps: int
+    warmup_steps: int
+    samples_per_image: int           # stage-1 training pairs per image
+    batch_size: int = 64
+    mixed_precision: bool = False
+    checkpoint_every: int = 1000
+    val_samples: int = 1024
+    ablation_steps: int = 0          # 0: as train_steps
+    test_samples_per_image: int = 3
+    max_images: int = 0              # 0: every image
+    latency_runs: int = 200
+    latency_warmup: int = 20
+    num_workers: int = 1             # data-generation processes
+
+    @property
+    def ablation_train_steps(self) -> int:
+        return self.ablation_steps or self.train_steps
+
+
+BUDGETS = {
+    # The paper: 1,000 warm-up + 90,000 cosine steps, 3 pairs per COCO image.
+    "paper": Budget("paper", 91_000, 1_000, samples_per_image=3, checkpoint_every=1_000),
+    # The 2-core CPU budget of BENCHMARKS.md: 4.4% of the paper's steps, mixed bfloat16,
+    # 100 pairs per image (coco_mini has 219 training images; 3 per image would be memorized).
+    "cpu": Budget("cpu", 4_000, 100, samples_per_image=100, mixed_precision=True,
+                  checkpoint_every=500, val_samples=300, num_workers=2),
+    # A smoke budget for tests: a few steps of every model.
+    "tiny": Budget("tiny", 2, 1, samples_per_image=2, batch_size=4, checkpoint_every=2,
+                   val_samples=4, max_images=4, latency_runs=3, latency_warmup=1),
+}
+
+
+def ablation_name(l2: float, l1: float) -> str:
+    return f"ablation_l2-{l2:g}_l1-{l1:g}"
+
+
+class Reproduction:
+    """One reproduction in ``output_dir`` (see the module docstring)."""
+
+    def __init__(self, budget: Budget, output_dir: str, *, image_dir: str = "",
+                 test_image_dir: str = "", source: str = "folder", reuse: dict | None = None,
+                 ablation_weights=ABLATION_WEIGHTS, printer=print):
+        self.budget, self.out, self.printer = budget, output_dir, printer
+        self.image_dir, self.test_image_dir, self.source = image_dir, test_image_dir, source
+        self.reuse = dict(reuse or {})
+        self.ablation_weights = tuple((float(a), float(b)) for a, b in ablation_weights)
+        unknown = set(self.reuse) - {"data_stage1", "data_stage2", "data_stage3", "stage1",
+                                     "stage2", "stage3", "homographynet", "sequence2",
+                                     *(ablation_name(*w) for w in self.ablation_weights)}
+        if unknown:
+            raise ValueError(f"unknown reuse names {sorted(unknown)}.")
+        self.timings = {}
+        os.makedirs(os.path.join(output_dir, "figures"), exist_ok=True)
+        os.makedirs(os.path.join(output_dir, "eval"), exist_ok=True)
+
+    # -- paths ----------------------------------------------------------------------------------
+    def data_dir(self, stage: int) -> str:
+        return self.reuse.get(f"data_stage{stage}") or os.path.join(self.out, "data", f"stage{stage}")
+
+    def model_dir(self, name: str) -> str:
+        return self.reuse.get(name) or os.path.join(self.out, "models", name)
+
+    def _timed(self, key, fn):
+        t0 = time.time()
+        result = fn()
+        self.timings[key] = self.timings.get(key, 0.0) + time.time() - t0
+        return result
+
+    # -- data -----------------------------------------------------------------------------------
+    def stage1_data(self):
+        from data_prep import stage1
+        from stnh_tf import data
+
+        d, b = self.data_dir(1), self.budget
+        quiet = lambda *a, **k: None  # noqa: E731
+        for split, image_dir, per_image, seed in (
+                ("train", self.image_dir, b.samples_per_image, 0),
+                ("test", self.test_image_dir, b.test_samples_per_image, 1)):
+            if data.has_split(d, split):
+                continue
+            self.printer(f"[data] stage-1 {split} pairs -> {d}")
+            self._timed("data", lambda: stage1.make_dataset(
+                self.source, d, split, image_dir=image_dir or None, samples_per_image=per_image,
+                seed=seed, max_images=b.max_images, num_workers=b.num_workers, log=quiet))
+        return d
+
+    def stage_data(self, stage: int):
+        from data_prep import stage_k
+        from stnh_tf import data
+
+        d = self.data_dir(stage)
+        for split in ("train", "test"):
+            if data.has_split(d, split):
+                continue
+            self.printer(f"[data] stage-{stage} {split} pairs from {self.model_dir(f'stage{stage - 1}')}")
+            self._timed("data", lambda: stage_k.make_stage_dataset(
+                stage, self.data_dir(stage - 1), d, split,
+                model_dir=self.model_dir(f"stage{stage - 1}"), num_workers=self.budget.num_workers,
+                log=lambda *a, **k: None))
+        return d
+
+    # -- training -------------------------------------------------------------------------------
+    def config(self, name: str, **kw):
+        from stnh_tf import training
+
+        b = self.budget
+        base = dict(model_dir=self.model_dir(name), train_steps=b.train_steps,
+                    warmup_steps=b.warmup_steps, batch_size=b.batch_size,
+                    mixed_precision=b.mixed_precision, checkpoint_every=b.checkpoint_every,
+                    val_samples=b.val_samples, log_every=max(b.checkpoint_every // 5, 1))
+        base.update(kw)
+        return training.TrainConfig(**base)
+
+    def train(self, name: str, cfg) -> str:
+        """Train ``cfg`` unless ``cfg.model_dir`` already holds a finished model of this budget."""
+        from stnh_tf import training
+
+        final = os.path.join(cfg.model_dir, training.FINAL_MODEL)
+        if os.path.exists(final):
+            check_budget(cfg.model_dir, cfg)
+            return cfg.model_dir
+        self.printer(f"[train] {name} ({cfg.model}, {cfg.train_steps} steps) -> {cfg.model_dir}")
+        self._timed(f"train_{name}", lambda: training.train(cfg, printer=lambda *a: None))
+        return cfg.model_dir
+
+    def hierarchy(self, stages: int = 3) -> list:
+        dirs = []
+        for k in range(1, stages + 1):
+            d = self.stage1_data() if k == 1 else self.stage_data(k)
+            dirs.append(self.train(f"stage{k}", self.config(f"stage{k}", data_dir=d, stage=k)))
+        return dirs
+
+    def ablation(self, weights=ABLATION_WEIGHTS) -> dict:
+        """Table 1 rows ``{(l2, l1): model_dir}``; (1, 1) at the ablation budget is stage 1."""
+        rows = {}
+        d = self.stage1_data()
+        steps = self.budget.ablation_train_steps
+        for l2, l1 in weights:
+            same_as_stage1 = (l2, l1) == (1.0, 1.0) and steps == self.budget.train_steps
+            name = "stage1" if same_as_stage1 else ablation_name(l2, l1)
+            cfg = self.config(name, data_dir=d, l2_weight=l2, l1_weight=l1, train_steps=steps,
+                              warmup_steps=min(self.budget.warmup_steps, steps))
+            rows[(l2, l1)] = self.train(name, cfg)
+        return rows
+
+    def table1(self, rows: dict) -> dict:
+        """Evaluate the ablation rows; writes ``table1.md``; returns ``{(l2, l1): MACE}``."""
+        table = {}
+        for (l2, l1), d in rows.items():
+            key = "stage1_alone" if d == self.model_dir("stage1") else ablation_name(l2, l1)
+            table[(l2, l1)] = self.evaluate(key, [d])["model"]["mace"]
+        steps = self.budget.ablation_train_steps
+        lines = [f"# Table 1: loss weights, single stage, {steps} steps per row (budget "
+                 f"'{self.budget.name}')", "", "| L2 weight | L1 weight | MACE (px), ours | paper |",
+                 "| ---: | ---: | ---: | ---: |"]
+        for (l2, l1), v in table.items():
+            p = PAPER_TABLE1.get((l2, l1))
+            lines.append(f"| {l2:g} | {l1:g} | {v:.2f} | {'' if p is None else f'{p:.2f}'} |")
+        with open(os.path.join(self.out, "table1.md"), "w") as f:
+            f.write("\n".join(lines) + "\n")
+        _write_json(os.path.join(self.out, "table1.json"),
+                    {f"{a:g},{b:g}": {"mace": v, "model_dir": rows[(a, b)],
+                                      "paper": PAPER_TABLE1.get((a, b))} for (a, b), v in table.items()})
+        return table
+
+    # -- evaluation -----------------------------------------------------------------------------
+    def evaluate(self, key: str, model_dirs=(), baselines=()) -> dict:
+        """``evaluation.evaluate`` on the stage-1 test pairs, cached in ``eval/{key}.json`` (kept
+        while it is newer than every model it evaluated)."""
+        from stnh_tf import evaluation, training
+
+        path = os.path.join(self.out, "eval", f"{key}.json")
+        finals = [os.path.join(d, training.FINAL_MODEL) for d in model_dirs]
+        if os.path.exists(path) and all(os.path.getmtime(f) < os.path.getmtime(path) for f in finals):
+            with open(path) as f:
+                return json.load(f)
+        result = self._timed("evaluate", lambda: evaluation.evaluate(
+            list(model_dirs), self.data_dir(1), "test", list(baselines)))
+        _write_json(path, result)
+        return result
+
+    def latency(self, stage_dirs) -> dict:
+        from stnh_tf import evaluation
+
+        path = os.path.join(self.out, "eval", "latency.json")
+        if os.path.exists(path):
+            with open(path) as f:
+                return json.load(f)
+        policy = "mixed_bfloat16" if self.budget.mixed_precision else "float32"
+        result = self._timed("latency", lambda: evaluation.latency(
+            stage_dirs, runs=self.budget.latency_runs, warmup=self.budget.latency_warmup,
+            policy=policy, sequence=True))
+        result["policy"] = policy
+        _write_json(path, result)
+        return result
+
+    # -- the whole run --------------------------------------------------------------------------
+    def run(self) -> dict:
+        t0 = time.time()
+        stages = self.hierarchy(3)
+        d1 = self.data_dir(1)
+        hnet = self.train("homographynet", self.config("homographynet", data_dir=d1,
+                                                       model="homographynet"))
+        seq = self.train("sequence2", self.config("sequence2", data_dir=d1, model="sequence",
+                                                  num_stages=2))
+        rows = self.ablation(self.ablation_weights)
+        self.printer("[evaluate] baselines, HomographyNet, hierarchy, sequence, ablation rows")
+        base = self.evaluate("baselines", baselines=BASELINES)
+        fig4 = {BASELINE_NAMES[k]: base["baselines"][k]["mace"] for k in BASELINES}
+        fig4["HomographyNet"] = self.evaluate("homographynet", [hnet])["model"]["mace"]
+        hier = self.evaluate("hierarchy", stages)["model"]
+        for k in range(1, len(stages) + 1):
+            fig4[f"STN-Homography {k} stage{'s' if k > 1 else ''}"] = \
+                hier["stages"][f"after_{k}_stages"]["mace"]
+        fig4["Sequence 2 stages"] = self.evaluate("sequence2", [seq])["model"]["mace"]
+        table1 = self.table1(rows)
+        self.printer("[latency] 1/2/3 stages, batch 1")
+        lat = self.latency(stages)
+        self.printer("[figures]")
+        figs = self.figures(fig4, stages)
+        result = {"budget": dataclasses.asdict(self.budget), "fig4_mace": fig4,
+                  "table1_mace": {f"{l2:g},{l1:g}": v for (l2, l1), v in table1.items()},
+                  "table2_latency_ms": {k: v["d_e_ms"] for k, v in lat["hierarchy"].items()},
+                  "sequence_latency_ms": {k: v["forward_ms"] for k, v in lat.get("sequence", {}).items()},
+                  "test_pairs": base["count"], "models": {"stages": stages, "homographynet": hnet,
+                                                          "sequence2": seq,
+                                                          "ablation": {f"{a:g},{b:g}": d for (a, b), d in rows.items()}},
+                  "figures": figs, "wall_s_this_run": time.time() - t0,
+                  "timings_this_run_s": self.timings, "paper": {
+                      "fig4_mace": PAPER_FIG4,
+                      "table1_mace": {f"{a:g},{b:g}": v for (a, b), v in PAPER_TABLE1.items()},
+                      "table2_gpu_ms": PAPER_TABLE2_GPU_MS}}
+        _write_json(os.path.join(self.out, "results.json"), result)
+        with open(os.path.join(self.out, "tables.md"), "w") as f:
+            f.write(tables_markdown(result, lat))
+        self.printer(f"[done] {os.path.join(self.out, 'tables.md')}")
+        return result
+
+    def figures(self, fig4: dict, stages) -> dict:
+        from stnh_tf import data, evaluation, figures, hierarchy
+
+        fdir = os.path.join(self.out, "figures")
+        out = {}
+        h_bar = figures.read_h_bar(self.data_dir(1), "train")
+        stats = figures.hbar_histogram(h_bar, os.path.join(fdir, "fig1_hbar_histogram.png"))
+        _write_json(os.path.join(fdir, "fig1_hbar_histogram.json"), stats)
+        out["fig1"] = os.path.join(fdir, "fig1_hbar_histogram.png")
+        out["fig4"] = figures.mace_bars(fig4, os.path.join(fdir, "fig4_mace_bars.png"),
+                                        paper=PAPER_FIG4,
+                                        title=f"MACE on the same test pairs, budget '{self.budget.name}'")
+        samples = data.load_arrays(self.data_dir(1), "test", max_samples=64)
+        run = hierarchy.run_hierarchy([hierarchy.keras_stage(evaluation.load_model(d)) for d in stages],
+                                      samples["context_a"], samples["patch_b"])
+        n = len(samples["h_ba"])
+        idx = np.linspace(0, n - 1, min(4, n)).astype(int)
+        out["fig5"] = figures.prediction_examples(
+            samples["context_a"][idx], samples["patch_b"][idx], samples["h_ba"][idx],
+            run["h"][idx], os.path.join(fdir, "fig5_prediction_examples.png"),
+            titles=[str(samples["image_id"][i]) for i in idx])
+        return out
+
+
+def check_budget(model_dir: str, cfg) -> None:
+    """Raise ``ValueError`` unless the finished model in ``model_dir`` was trained with ``cfg``'s
+    budget (model kind, schedule, loss weights, network options)."""
+    from stnh_tf import training
+
+    with open(os.path.join(model_dir, training.CONFIG_FILE)) as f:
+        saved = json.load(f)
+    want = cfg.to_json()
+    diff = {k: (saved.get(k), want[k]) for k in _BUDGET_FIELDS if saved.get(k) != want[k]}
+    if cfg.model == "sequence" and saved.get("num_stages") != cfg.num_stages:
+        diff["num_stages"] = (saved.get("num_stages"), cfg.num_stages)
+    if diff:
+        raise ValueError(f"{model_dir} holds a model trained with a different budget {diff} "
+                         "(saved, wanted); reuse only models of the same budget.")
+
+
+def tables_markdown(result: dict, latency: dict) -> str:
+    b = result["budget"]
+    paper = result["paper"]
+    lines = [f"# Reproduction at budget '{b['name']}'", "",
+             f"{b['train_steps']} steps per model ({b['warmup_steps']} warm-up), batch "
+             f"{b['batch_size']}, {'mixed bfloat16' if b['mixed_precision'] else 'float32'}; "
+             f"{result['test_pairs']} test pairs (seed 1). The paper trains 91,000 steps on all of "
+             "COCO 2014 on a GPU: numbers at a smaller budget are not expected to match it.", "",
+             "## Fig. 4: mean corner error on the same test pairs", "",
+             "| method | MACE (px), ours | paper |", "| --- | ---: | ---: |"]
+    for name, v in result["fig4_mace"].items():
+        p = paper["fig4_mace"].get(name)
+        lines.append(f"| {name} | {v:.2f} | {'' if p is None else f'{p:.2f}'} |")
+    steps = b["ablation_steps"] or b["train_steps"]
+    lines += ["", f"## Table 1: loss weights, single stage ({steps} steps per row)", "",
+              "| L2 weight | L1 weight | MACE (px), ours | paper |", "| ---: | ---: | ---: | ---: |"]
+    for key, v in result["table1_mace"].items():
+        l2, l1 = key.split(",")
+        lines.append(f"| {l2} | {l1} | {v:.2f} | {paper['table1_mace'].get(key, float('nan')):.2f} |")
+    lines += ["", f"## Table 2: batch-1 latency ({latency.get('policy', '')}; paper: a GPU)", "",
+              "| stages | d_e (ms), ours | formula (l_m + l_w) n | paper GPU (ms) |",
+              "| ---: | ---: | ---: | ---: |"]
+    for k, v in latency["hierarchy"].items():
+        lines.append(f"| {k} | {v['d_e_ms']:.2f} | {v['formula_ms']:.2f} | "
+                     f"{paper['table2_gpu_ms'].get(int(k), float('nan')):.2f} |")
+    if latency.get("sequence"):
+        lines += ["", "Sequence models, forward pass: " + ", ".join(
+            f"{k} stage{'s' if k != '1' else ''} {v['forward_ms']:.2f} ms"
+            for k, v in latency["sequence"].items()) + "."]
+    lines += ["", "Figures: " + ", ".join(f"[{k}](figures/{os.path.basename(v)})"
+                                          for k, v in result["figures"].items()), ""]
+    return "\n".join(lines)
+
+
+def _write_json(path, obj):
+    tmp = f"{path}.tmp-{os.getpid()}"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=2, sort_keys=True, default=float)
+    os.replace(tmp, path)

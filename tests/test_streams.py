@@ -1,0 +1,120 @@
+"""On-the-fly training streams (``--image_dir``): PairStream, materialize + ArrayStream, and
+training from a folder of images, checked against the TFRecords make_dataset writes from the
+same folder."""
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from data_prep import stage1
+from stnh_tf import data, evaluation, pairs, sources, training
+
+N_IMAGES, PER_IMAGE, BATCH = 4, 3, 4  # 12 samples, 3 batches per data epoch
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    """Four bundled photographs copied into a folder (the form users train from)."""
+    d = tmp_path_factory.mktemp("images")
+    for k, (_, path) in enumerate(sources.bundled_image_files()[:N_IMAGES]):
+        shutil.copy(path, d / f"{k:02d}{os.path.splitext(path)[1]}")
+    return str(d)
+
+
+@pytest.fixture(scope="module")
+def records(folder, tmp_path_factory):
+    d = str(tmp_path_factory.mktemp("records"))
+    log = lambda *a, **k: None
+    stage1.make_dataset("folder", d, "train", image_dir=folder, seed=0, num_shards=1, log=log)
+    stage1.make_dataset("folder", d, "test", image_dir=folder, seed=1, num_shards=1, log=log)
+    return d
+
+
+def _h(batch):
+    return batch[1]["h_bar"]
+
+
+def _rows(a):
+    return sorted(map(tuple, np.round(a, 6)))
+
+
+def test_pair_stream_epoch0_is_make_dataset_set_and_resume_positions(folder, records):
+    stream = data.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
+    stored = data.load_arrays(records, "train")
+    epoch0 = np.concatenate([_h(stream[i]) for i in range(3)])
+    assert _rows(epoch0) == _rows(stored["h_bar"])
+    # Items of a stream started at step s are items s, s+1, ... of a stream started at 0,
+    # across the data-epoch boundary (3 batches an epoch).
+    resumed = data.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=0, start_step=2)
+    for i in range(4):
+        np.testing.assert_array_equal(resumed[i][0]["patch_b"], stream[2 + i][0]["patch_b"])
+    # Without fresh_pairs a later epoch repeats the same pairs in a new order.
+    epoch1 = np.concatenate([_h(stream[i]) for i in range(3, 6)])
+    assert _rows(epoch1) == _rows(epoch0)
+    assert not np.array_equal(epoch1, epoch0)
+
+
+def test_fresh_pairs_draw_new_samples_from_the_documented_rng(folder):
+    stream = data.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=5, fresh_pairs=True)
+    b = stream.batches
+    epoch0 = np.concatenate([_h(stream[i]) for i in range(3)])
+    epoch1 = np.concatenate([_h(stream[i]) for i in range(3, 6)])
+    assert not set(_rows(epoch1)) & set(_rows(epoch0))
+    # Oracle: the first sample of epoch 1, rebuilt from pairs.draw_params with
+    # default_rng([seed, image_index, epoch]).
+    s = int(b.epoch_order(1)[0])
+    pos, k = divmod(s, PER_IMAGE)
+    index = b.entries[pos][0]
+    params = pairs.draw_params(np.random.default_rng([5, index, 1]), b.protocol)[k]
+    expect = pairs.make_pair(sources.as_gray_320x240(b.entries[pos][2]), params, b.protocol)
+    np.testing.assert_allclose(stream[3][1]["h_bar"][0], expect["h_bar"], rtol=0, atol=1e-7)
+    np.testing.assert_array_equal(stream[3][0]["patch_b"][0, ..., 0],
+                                  expect["patch_b"].astype(np.float32) / 255.0)
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_array_stream_serves_the_pair_stream_batches(folder, workers):
+    batches = data.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
+    arrays = data.materialize(batches, workers=workers, chunk=5)
+    x, y, w = arrays
+    assert x["patch_a"].shape == (12, 128, 128, 1) and w["h_bar"].shape == (12,)
+    stream = data.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=0, start_step=1)
+    served = data.ArrayStream(arrays, batches, start_step=1)
+    for i in range(7):  # epochs 0, 1 and 2
+        for part_s, part_a in zip(stream[i], served[i]):
+            for key in part_s:
+                np.testing.assert_array_equal(part_a[key], part_s[key])
+    with pytest.raises(ValueError, match="samples"):
+        data.ArrayStream(tuple({k: v[:5] for k, v in p.items()} for p in arrays), batches)
+
+
+def test_config_needs_exactly_one_source():
+    with pytest.raises(ValueError, match="exactly one"):
+        training.TrainConfig(model_dir="m").validate()
+    with pytest.raises(ValueError, match="exactly one"):
+        training.TrainConfig(data_dir="d", image_dir="i", model_dir="m").validate()
+    with pytest.raises(ValueError, match="stage-1"):
+        training.TrainConfig(image_dir="i", model_dir="m", stage=2).validate()
+
+
+@pytest.mark.parametrize("in_memory", [False, True])
+def test_train_from_image_folder_validates_on_make_dataset_test_pairs(folder, records, tmp_path,
+                                                                       in_memory):
+    """Training from a folder runs the paper's losses on generated pairs, and its validation
+    pairs (seed 1, three per image) are exactly make_dataset's test split: the validation MACE
+    equals the evaluation of the saved model on the TFRecords."""
+    cfg = training.TrainConfig(image_dir=folder, val_image_dir=folder, model_dir=str(tmp_path / "m"),
+                               samples_per_image=PER_IMAGE, train_steps=2, warmup_steps=1,
+                               batch_size=BATCH, checkpoint_every=2, val_samples=12,
+                               learning_rate=0.01, in_memory=in_memory)
+    result = training.train(cfg, printer=lambda *a: None)
+    assert result["final_step"] == 2
+    val_mace = result["history"]["val_h_bar_mace"][-1]
+    evaluated = evaluation.evaluate([cfg.model_dir], records, "test")
+    assert evaluated["count"] == 12
+    assert val_mace == pytest.approx(evaluated["model"]["mace"], rel=1e-4)
+    saved = json.loads((tmp_path / "m" / "config.json").read_text())
+    assert saved["image_dir"] == folder and saved["in_memory"] is in_memory
