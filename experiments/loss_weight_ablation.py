@@ -14,18 +14,13 @@ import dataclasses
 
 from absl import app, flags
 
-from experiments.reproduce import parse_reuse
-from stnh_tf import reproduce
+from experiments.reproduce import parse_reuse  # also defines the shared flags: --budget,
+from stnh_tf import reproduce                   # --output_dir, --source, --image_dir,
+                                                # --test_image_dir, --reuse
 
-flags.DEFINE_enum("budget", "cpu", sorted(reproduce.BUDGETS), "Training budget.")
 flags.DEFINE_integer("steps", 0, "Steps per row (0: the budget's).")
-flags.DEFINE_string("output_dir", None, "Where data, models and the table go.", required=True)
-flags.DEFINE_enum("source", "folder", ["folder", "bundled", "coco2014"], "Image source.")
-flags.DEFINE_string("image_dir", "", "Training images (--source=folder).")
-flags.DEFINE_string("test_image_dir", "", "Test images (--source=folder).")
 flags.DEFINE_list("weights", [f"{a:g}:{b:g}" for a, b in reproduce.ABLATION_WEIGHTS],
                   "Rows as l2:l1.")
-flags.DEFINE_list("reuse", [], "name=dir pairs, as experiments.reproduce.")
 FLAGS = flags.FLAGS
 
 

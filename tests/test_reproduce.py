@@ -1,0 +1,107 @@
+"""The reproduce driver end to end at a tiny budget (a few steps per model, bundled photographs)."""
+
+import dataclasses
+import json
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from stnh_tf import data, reproduce, training
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = str(tmp_path_factory.mktemp("reproduce"))
+    logs = []
+    run = reproduce.Reproduction(reproduce.BUDGETS["tiny"], out, source="bundled",
+                                 printer=logs.append)
+    result = run.run()
+    return out, result, logs
+
+
+def test_every_table_and_figure_is_written(tiny_run):
+    out, result, _ = tiny_run
+    tables = open(os.path.join(out, "tables.md")).read()
+    for heading in ("Fig. 4", "Table 1", "Table 2"):
+        assert heading in tables
+    # Every method of Fig. 4 and every ablation row has a number, with the paper's beside it.
+    fig4 = result["fig4_mace"]
+    assert set(fig4) == {"Identity", "ORB + RANSAC", "SIFT + RANSAC", "HomographyNet",
+                         "STN-Homography 1 stage", "STN-Homography 2 stages",
+                         "STN-Homography 3 stages", "Sequence 2 stages"}
+    assert all(np.isfinite(v) and v >= 0 for v in fig4.values())
+    assert re.search(r"\| STN-Homography 3 stages \| \d+\.\d\d \| 1\.57 \|", tables)
+    assert set(result["table1_mace"]) == {"1,1", "1,10", "1,0.1", "10,1", "0.1,1"}
+    assert re.search(r"\| 10 \| 1 \| \d+\.\d\d \| 4\.85 \|", tables)
+    assert set(result["table2_latency_ms"]) == {"1", "2", "3"}
+    assert all(v > 0 for v in result["table2_latency_ms"].values())
+    for name in ("fig1_hbar_histogram.png", "fig4_mace_bars.png", "fig5_prediction_examples.png"):
+        with open(os.path.join(out, "figures", name), "rb") as f:
+            assert f.read(8) == PNG
+    assert open(os.path.join(out, "table1.md")).read().count("\n| ") == 7  # header, rule, 5 rows
+
+
+def test_numbers_come_from_the_models_on_the_test_pairs(tiny_run):
+    """Identity and the (1, 1) ablation row (= stage 1 alone) recomputed here from the stored test
+    pairs: the model's raw H_bar, denormalized with the paper's M written out independently."""
+    out, result, _ = tiny_run
+    import keras
+
+    from conftest import norm_matrix
+
+    samples = data.load_arrays(os.path.join(out, "data", "stage1"), "test")
+    h_true = samples["h_ba"]
+    corners = np.array([[0, 0, 1], [128, 0, 1], [128, 128, 1], [0, 128, 1]], np.float64).T
+
+    def mace(h):
+        p, q = h @ corners, h_true @ corners
+        return float(np.linalg.norm(p[:, :2] / p[:, 2:] - q[:, :2] / q[:, 2:], axis=1).mean())
+
+    assert result["fig4_mace"]["Identity"] == pytest.approx(mace(np.eye(3)[None]), rel=1e-9)
+    stage1 = result["models"]["stages"][0]
+    assert result["models"]["ablation"]["1,1"] == stage1
+    model = keras.models.load_model(os.path.join(stage1, "model.keras"), compile=False)
+    h8 = model.predict({"patch_a": samples["patch_a"], "patch_b": samples["patch_b"]},
+                       verbose=0)["h_bar"].astype(np.float64)
+    h_bar = np.concatenate([h8, np.ones((len(h8), 1))], axis=1).reshape(-1, 3, 3)
+    m = norm_matrix()
+    h_pix = np.linalg.inv(m) @ h_bar @ m
+    assert result["table1_mace"]["1,1"] == pytest.approx(mace(h_pix), rel=1e-4)
+
+
+def test_rerun_skips_finished_work_and_ablation_binary_reuses_rows(tiny_run):
+    out, first, _ = tiny_run
+    logs = []
+    again = reproduce.Reproduction(reproduce.BUDGETS["tiny"], out, source="bundled",
+                                   printer=logs.append).run()
+    assert not any(line.startswith(("[train]", "[data]")) for line in logs), logs
+    assert not [k for k in again["timings_this_run_s"] if k.startswith("train_")]
+    assert again["fig4_mace"] == first["fig4_mace"]
+    res = subprocess.run([sys.executable, "-m", "experiments.loss_weight_ablation", "--budget=tiny",
+                          "--source=bundled", f"--output_dir={out}", "--weights=10:1,1:1"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "l2=10 l1=1: MACE" in res.stdout and "[train]" not in res.stdout
+    table = json.load(open(os.path.join(out, "table1.json")))
+    assert table["10,1"]["mace"] == pytest.approx(first["table1_mace"]["10,1"], rel=1e-9)
+
+
+def test_reuse_refuses_a_model_of_another_budget(tiny_run, tmp_path):
+    out, _, _ = tiny_run
+    stage1 = os.path.join(out, "models", "stage1")
+    other = dataclasses.replace(reproduce.BUDGETS["tiny"], train_steps=4)
+    run = reproduce.Reproduction(other, str(tmp_path), source="bundled", printer=lambda *a: None,
+                                 reuse={"stage1": stage1, "data_stage1": os.path.join(out, "data", "stage1")})
+    with pytest.raises(ValueError, match="different budget"):
+        run.hierarchy(1)
+    with pytest.raises(ValueError, match="unknown reuse"):
+        reproduce.Reproduction(other, str(tmp_path), reuse={"stage9": stage1})
+    cfg = json.load(open(os.path.join(stage1, training.CONFIG_FILE)))
+    assert cfg["train_steps"] == 2
