@@ -400,11 +400,11 @@ def initialize_sequence_from(model, stage_dirs):
     """Copy the regression weights of trained single-stage models into a sequence model's stages."""
     for k, d in enumerate(stage_dirs, start=1):
         src = keras.models.load_model(os.path.join(d, FINAL_MODEL), compile=False)
-        try:
-            regression = src.get_layer("regression")
-        except ValueError:
-            raise ValueError(f"{d} is not a single-stage STN-Homography model (no 'regression' "
-                             "layer); init_from takes train_stage --model=stn runs.") from None
+        if sorted(src.output_names) != ["h_bar", "patch_a_warp"]:
+            raise ValueError(f"{d} is not a single-stage STN-Homography model (its outputs are "
+                             f"{sorted(src.output_names)}); init_from takes train_stage "
+                             "--model=stn runs.")
+        regression = src.get_layer("regression")
         model.get_layer(f"regression_{k}").set_weights(regression.get_weights())
 
 

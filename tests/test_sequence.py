@@ -404,6 +404,18 @@ def test_initialize_sequence_from_single_stage_models(tmp_path, batch):
     assert np.abs(s2["h_bar"] - models.IDENTITY_H_BAR).max() > 1e-2
 
 
+def test_initialize_sequence_from_rejects_other_model_kinds(tmp_path):
+    d = tmp_path / "hnet"
+    d.mkdir()
+    models.build_homographynet().save(d / training.FINAL_MODEL)
+    with pytest.raises(ValueError, match="not a single-stage STN-Homography model"):
+        training.initialize_sequence_from(models.SequenceSTNHomography(num_stages=2), [str(d)])
+    cfg = training.TrainConfig(data_dir="d", model_dir="m", model="sequence", num_stages=2,
+                               init_from=("a", "b", "c"))
+    with pytest.raises(ValueError, match="init_from names 3 models for 2 stages"):
+        cfg.validate()
+
+
 # --------------------------------------------------------------------------------------------
 # Binary (subprocess: its absl flags must not clash with train_stage's)
 # --------------------------------------------------------------------------------------------
