@@ -40,8 +40,6 @@ def parse_reuse(items) -> dict:
 
 def main(argv):
     del argv
-    if FLAGS.source == "folder" and not (FLAGS.image_dir and FLAGS.test_image_dir):
-        raise SystemExit("reproduce: --source=folder needs --image_dir and --test_image_dir.")
     try:
         run = reproduce.Reproduction(reproduce.BUDGETS[FLAGS.budget], FLAGS.output_dir,
                                      image_dir=FLAGS.image_dir, test_image_dir=FLAGS.test_image_dir,

@@ -355,9 +355,38 @@ def tables_markdown(result: dict, latency: dict) -> str:
         lines += ["", "Sequence models, forward pass: " + ", ".join(
             f"{k} stage{'s' if k != '1' else ''} {v['forward_ms']:.2f} ms"
             for k, v in latency["sequence"].items()) + "."]
+    lines += ["", "## Models", "", "| model | directory | trained on |", "| --- | --- | --- |"]
+    for name, d in _model_dirs(result["models"]):
+        lines.append(f"| {name} | `{d}` | {_trained_on(d)} |")
     lines += ["", "Figures: " + ", ".join(f"[{k}](figures/{os.path.basename(v)})"
                                           for k, v in result["figures"].items()), ""]
     return "\n".join(lines)
+
+
+def _model_dirs(models: dict):
+    for k, d in enumerate(models["stages"], start=1):
+        yield f"stage {k}", d
+    yield "HomographyNet", models["homographynet"]
+    yield "sequence, 2 stages", models["sequence2"]
+    for key, d in models["ablation"].items():
+        if d not in models["stages"]:
+            yield f"ablation L2:L1 = {key.replace(',', ':')}", d
+
+
+def _trained_on(model_dir: str) -> str:
+    """The data source a model's recorded configuration names."""
+    from stnh_tf import training
+
+    try:
+        with open(os.path.join(model_dir, training.CONFIG_FILE)) as f:
+            cfg = json.load(f)
+    except OSError:
+        return "?"
+    if cfg.get("image_dir"):
+        how = "in memory" if cfg.get("in_memory") else "generated on the fly"
+        return (f"pairs from `{cfg['image_dir']}` ({cfg.get('samples_per_image')} per image, "
+                f"seed {cfg.get('seed')}, {how})")
+    return f"TFRecords `{cfg.get('data_dir')}`"
 
 
 def _write_json(path, obj):
