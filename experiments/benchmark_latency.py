@@ -19,7 +19,6 @@ depend on the weights, so without ``--model_dir`` untrained models are built (un
 
 from __future__ import annotations
 
-import json
 import os
 
 from absl import app, flags

@@ -13,7 +13,6 @@ with ``jit_compile`` off, on, or both (``--compare_jit``). Prints one JSON objec
 
 from __future__ import annotations
 
-import json
 
 from absl import app, flags
 

@@ -16,7 +16,6 @@ inference latency of the full model (median over ``--latency_runs`` calls of a c
 
 from __future__ import annotations
 
-import json
 import statistics
 import time
 

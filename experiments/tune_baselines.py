@@ -15,7 +15,6 @@ resizing, :mod:`stnh_tf.pairs`), drawn in memory with one seeded generator.
 
 from __future__ import annotations
 
-import json
 
 from absl import app, flags
 
@@ -115,7 +114,6 @@ def settings_grid(grid="small"):
 def run_tuning(image_dir=None, num_pairs=300, seed=0, grid="small"):
     """Generate the pairs, evaluate every entry of :func:`settings_grid`; returns the result dict."""
     import cv2
-    import numpy as np
 
     from stnh_tf import baselines
 

@@ -4,10 +4,9 @@ import json
 import os
 
 import numpy as np
-import pytest
 
 from conftest import paper_homography
-from stnh_tf import figures, geometry
+from stnh_tf import figures
 
 
 def test_quadrilateral_is_h_applied_to_the_corners(rng):
