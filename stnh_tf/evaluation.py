@@ -218,7 +218,6 @@ def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
     """Table 2: batch-1 latency (ms) of 1..n hierarchical stages (``d_e``, with its terms ``l_m``
     and ``l_w``) and of sequence models; see ``experiments.benchmark_latency``."""
     import keras
-    import numpy as np
 
     from stnh_tf import hierarchy, models
 
