@@ -30,11 +30,10 @@ import os
 import shlex
 import sys
 
-import cv2
 import numpy as np
 
 from data_prep import writer
-from stnh_tf import features, geometry, hierarchy
+from stnh_tf import features, hierarchy
 
 READ_BATCH = 256
 """Pairs per model call (fixed, so predictions do not depend on anything but the data)."""
@@ -48,15 +47,8 @@ def stage_sample(item: writer.WorkItem) -> list:
     record, h_prev = item.payload
     s = features.decode_example(record)
     h_ba = np.asarray(s["h_ba"], np.float64).reshape(3, 3)
-    patch_a = hierarchy.crop_warped_context(s["context_a"], h_prev)
-    residual = hierarchy.residual_target(h_prev, h_ba)
-    h_bar = geometry.matrix_to_vector(geometry.normalize_homography(residual))
-    patch_a_t = cv2.warpPerspective(patch_a, residual, (geometry.PATCH_SIZE, geometry.PATCH_SIZE),
-                                    flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
-                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    to_u8 = lambda x: np.clip(np.rint(x), 0, 255).astype(np.uint8)
-    return [{**s, "patch_a": to_u8(patch_a), "patch_a_t": to_u8(patch_a_t),
-             "h_bar": h_bar.astype(np.float32), "h_prev": h_prev.reshape(9).astype(np.float32)}]
+    pair = hierarchy.stage_pair(s["context_a"], h_ba, h_prev)
+    return [{**s, **pair, "h_prev": h_prev.reshape(9).astype(np.float32)}]
 
 
 def _records(paths):

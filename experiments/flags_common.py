@@ -1,7 +1,5 @@
 """Training flags shared by ``train_stage`` and ``train_sequence`` (one definition, two binaries)."""
 
-import multiprocessing
-
 from absl import flags
 
 from stnh_tf.training import TrainConfig
@@ -11,7 +9,7 @@ _D = TrainConfig()
 
 def define_training_flags():
     flags.DEFINE_string("data_dir", "", "TFRecord dataset directory (from data_prep).")
-    flags.DEFINE_string("image_dir", "", "Instead of --data_dir: a folder of images; stage-1 pairs "
+    flags.DEFINE_string("image_dir", "", "Instead of --data_dir: a folder of images; pairs "
                         "are generated on the fly (any Keras backend, e.g. KERAS_BACKEND=jax).")
     flags.DEFINE_string("val_image_dir", "", "With --image_dir: images for the validation pairs.")
     flags.DEFINE_integer("samples_per_image", _D.samples_per_image,
@@ -20,7 +18,9 @@ def define_training_flags():
                       "(else the fixed set make_dataset would write, reshuffled).")
     flags.DEFINE_integer("workers", _D.workers, "With --image_dir: pair-generator processes.")
     flags.DEFINE_bool("in_memory", _D.in_memory, "With --image_dir (fixed pairs): generate the set "
-                      "once with the workers, then train from memory (float32, 192 KB a pair).")
+                      "once with the workers, then train from memory (uint8, 48 KB a pair).")
+    flags.DEFINE_list("prev_stages", [], "With --image_dir --in_memory --stage=k>1: model dirs "
+                      "of stages 1..k-1, whose predictions make the stage-k pairs in memory.")
     flags.DEFINE_string("model_dir", None, "Output directory (config, checkpoints, logs, model).",
                         required=True)
     flags.DEFINE_integer("train_steps", _D.train_steps, "Total steps: warm-up + cosine decay.")
@@ -55,7 +55,7 @@ def config_from_flags(**overrides) -> TrainConfig:
         log_every=f.log_every, val_split=f.val_split, val_samples=f.val_samples,
         strategy=f.strategy, image_dir=f.image_dir, val_image_dir=f.val_image_dir,
         samples_per_image=f.samples_per_image, fresh_pairs=f.fresh_pairs, workers=f.workers,
-        in_memory=f.in_memory)
+        in_memory=f.in_memory, prev_stages=tuple(f.prev_stages))
     for k, v in overrides.items():
         setattr(cfg, k, v)
     return cfg
@@ -67,10 +67,6 @@ def run_training(cfg, binary: str) -> None:
 
     from stnh_tf import training
 
-    if cfg.workers > 0:
-        # Generator processes start from a clean server, not by forking a process whose backend
-        # (JAX, TensorFlow) already runs threads.
-        multiprocessing.set_start_method("forkserver", force=True)
     try:
         result = training.train(cfg, overwrite=flags.FLAGS.overwrite, printer=logging.info)
     except (ValueError, OSError, training.TrainingDiverged) as e:

@@ -24,11 +24,14 @@ from __future__ import annotations
 import json
 import logging
 import os
+import time
 
 import keras
 import numpy as np
 
-from stnh_tf import features, pairs, sources
+from stnh_tf import features
+from stnh_tf.batches import (PairBatches, generator_pool, materialize, model_batch,  # noqa: F401
+                             numpy_model_batch, stack_samples, step_batch_async)
 from stnh_tf.sources import (ImageDecodeError, SourceError, bundled_image_files,  # noqa: F401
                              bundled_images, list_image_files, load_gray_320x240,
                              scan_image_folder)
@@ -280,136 +283,6 @@ def _empty_arrays() -> dict:
 # ------------------------------------------------------------------------------------------------
 # TF-free on-the-fly generation
 # ------------------------------------------------------------------------------------------------
-def numpy_model_batch(samples: list):
-    """Sample dicts (:func:`pairs.make_pair` + ``h_mask``) -> ``(x, y, w)`` of NumPy arrays,
-    the same structure and values as :func:`to_model_batch`."""
-    def unit(name):
-        stacked = np.stack([s[name] for s in samples]).astype(np.float32)
-        return (stacked / np.float32(255.0))[..., None]
-
-    h_mask = np.array([s.get("h_mask", 1.0) for s in samples], np.float32)
-    x = {"patch_a": unit("patch_a"), "patch_b": unit("patch_b")}
-    y = {"h_bar": np.stack([s["h_bar"] for s in samples]).astype(np.float32),
-         "patch_a_warp": unit("patch_a_t")}
-    w = {"h_bar": h_mask, "patch_a_warp": np.ones_like(h_mask)}
-    return x, y, w
-
-
-class PairBatches:
-    """Stage-1 samples generated on the fly from images, batched; NumPy/OpenCV only.
-
-    Sample ``s`` is sample ``k = s % samples_per_image`` of image ``s // samples_per_image``
-    (counting usable images), generated exactly as ``make_dataset`` does (RNG
-    ``default_rng([seed, image_index])`` with ``image_index`` the image's position in the given
-    list), so the same images, seed and protocol give the same samples as the TFRecords.
-    Batch ``i`` depends only on ``(seed, i)``; with ``shuffle`` the sample order is one fixed,
-    seeded permutation.
-
-    Args:
-      images: ``"bundled"``; a folder (every image file below it, sorted as make_dataset does);
-        a list of paths; or a list of ``(image_id, path | encoded bytes | array)``.
-      batch_size: samples per batch.
-      samples_per_image: squares per image (paper: 3).
-      seed: as ``make_dataset --seed``.
-      shuffle: permute samples (seeded); else stored order.
-      drop_remainder: drop the last partial batch.
-      max_images: use only the first N images (0 = all), as ``make_dataset --max_images``.
-      cache_images: decode every image once at construction (unusable ones are dropped and
-        listed in ``self.skipped`` with reasons); else decode on demand (errors then raise).
-    """
-
-    def __init__(self, images="bundled", batch_size: int = 64, *, samples_per_image: int = 3,
-                 seed: int = 0, shuffle: bool = True, drop_remainder: bool = True,
-                 max_images: int = 0, cache_images: bool = True):
-        self.protocol = pairs.Protocol(samples_per_image=samples_per_image)
-        self.batch_size, self.seed = int(batch_size), int(seed)
-        self.shuffle, self.drop_remainder = shuffle, drop_remainder
-        if self.batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1; received {batch_size}.")
-        entries = _image_entries(images)
-        if max_images > 0:
-            entries = entries[:max_images]
-        self.skipped = []
-        self._cache = {}
-        if cache_images:
-            kept = []
-            for index, image_id, payload in entries:
-                try:
-                    self._cache[index] = sources.as_gray_320x240(payload)
-                    kept.append((index, image_id, payload))
-                except ImageDecodeError as e:
-                    self.skipped.append((image_id, str(e)))
-                    _log.warning("PairBatches: skipped %s: %s", image_id, e)
-            entries = kept
-        if not entries:
-            raise SourceError(f"no usable images in {images!r}.")
-        self.entries = entries
-        self.num_samples = len(entries) * samples_per_image
-        if drop_remainder and self.num_samples < self.batch_size:
-            raise ValueError(f"{self.num_samples} samples, fewer than one batch of {batch_size}.")
-        self.order = (np.random.default_rng([self.seed, 0, 0x5348]).permutation(self.num_samples)
-                      if shuffle else np.arange(self.num_samples))
-
-    def __len__(self) -> int:
-        if self.drop_remainder:
-            return self.num_samples // self.batch_size
-        return -(-self.num_samples // self.batch_size)
-
-    def _image(self, pos: int) -> np.ndarray:
-        index, _, payload = self.entries[pos]
-        if index in self._cache:
-            return self._cache[index]
-        return sources.as_gray_320x240(payload)
-
-    def sample(self, s: int, epoch: int = 0) -> dict:
-        """Sample ``s`` (stored order) as a dict like one TFRecord example (uint8 patches).
-
-        ``epoch > 0`` draws a fresh sample from the same image (RNG
-        ``default_rng([seed, image_index, epoch])``); epoch 0 is make_dataset's sample."""
-        pos, k = divmod(int(s), self.protocol.samples_per_image)
-        index, image_id, _ = self.entries[pos]
-        rng = (pairs.image_rng(self.seed, index) if epoch == 0 else
-               np.random.default_rng([self.seed, int(index), int(epoch)]))
-        params = pairs.draw_params(rng, self.protocol)[k]
-        out = pairs.make_pair(self._image(pos), params, self.protocol)
-        out.update(h_prev=np.eye(3), h_mask=np.float32(1.0), image_id=image_id,
-                   index=np.int64(index * self.protocol.samples_per_image + k))
-        return out
-
-    def epoch_order(self, epoch: int) -> np.ndarray:
-        """Sample order of ``epoch`` (epoch 0: ``self.order``; later epochs: a new seeded
-        permutation when shuffling)."""
-        if epoch == 0 or not self.shuffle:
-            return self.order
-        return np.random.default_rng([self.seed, int(epoch), 0x5348]).permutation(self.num_samples)
-
-    def batch(self, i: int, epoch: int = 0, fresh: bool = False):
-        """Batch ``i`` of ``epoch`` as ``(x, y, w)`` NumPy arrays (see the module docstring).
-
-        ``fresh``: draw new squares and perturbations every epoch instead of repeating epoch 0's
-        samples (on-the-fly training on an effectively unlimited set of pairs)."""
-        if not 0 <= i < len(self):
-            raise IndexError(f"batch {i} out of range [0, {len(self)}).")
-        ids = self.epoch_order(epoch)[i * self.batch_size:(i + 1) * self.batch_size]
-        return numpy_model_batch([self.sample(s, epoch if fresh else 0) for s in ids])
-
-
-def _image_entries(images) -> list:
-    """``[(image_index, image_id, payload)]`` from the accepted ``images`` forms."""
-    if isinstance(images, str) and images == "bundled":
-        return [(i, image_id, p) for i, (image_id, p) in enumerate(bundled_image_files())]
-    if isinstance(images, (str, os.PathLike)):
-        listing = scan_image_folder(os.fspath(images))
-        return [(i, listing.image_id(p), p) for i, p in enumerate(listing.files)]
-    out = []
-    for i, item in enumerate(images):
-        if isinstance(item, tuple) and len(item) == 2:
-            out.append((i, str(item[0]), item[1]))
-        else:
-            out.append((i, os.fspath(item), os.fspath(item)))
-    return out
-
-
 class PairSequence(keras.utils.PyDataset):
     """:class:`PairBatches` as a ``keras.utils.PyDataset``: ``model.fit(PairSequence(...))``.
 
@@ -438,29 +311,23 @@ class PairSequence(keras.utils.PyDataset):
         return self.mapper(*batch) if self.mapper is not None else batch
 
 
-def _generate_samples(batches, start, stop):
-    _limit_threads_in_worker()
-    return numpy_model_batch([batches.sample(s) for s in range(start, stop)])
+class ArraySequence(keras.utils.PyDataset):
+    """Compact arrays (:func:`stack_samples`' form) served in stored order, ``batch_size`` pairs
+    a batch (the last one partial): e.g. fixed validation pairs made in memory."""
 
+    def __init__(self, arrays: dict, batch_size: int, mapper=None):
+        super().__init__()
+        self.arrays, self.batch_size, self.mapper = arrays, int(batch_size), mapper
 
-def materialize(batches: "PairBatches", workers: int = 0, chunk: int = 256) -> tuple:
-    """Every sample of ``batches`` (epoch 0, stored order: sample ``s`` at row ``s``) as one
-    ``(x, y, w)`` tuple of NumPy arrays, generated in ``workers`` processes (0: this process).
-    The fixed set of ``len(images) * samples_per_image`` pairs then trains from memory
-    (:class:`ArrayStream`; float32, 192 KB a pair)."""
-    import functools
+    def __len__(self) -> int:
+        return -(-len(self.arrays["patch_a"]) // self.batch_size)
 
-    bounds = [(a, min(a + chunk, batches.num_samples))
-              for a in range(0, batches.num_samples, chunk)]
-    if workers > 0:
-        import multiprocessing
-
-        with multiprocessing.get_context("forkserver").Pool(workers) as pool:
-            parts = pool.starmap(functools.partial(_generate_samples, batches), bounds)
-    else:
-        parts = [_generate_samples(batches, a, b) for a, b in bounds]
-    return tuple({k: np.concatenate([p[j][k] for p in parts]) for k in parts[0][j]}
-                 for j in range(3))
+    def __getitem__(self, index: int):
+        if not 0 <= index < len(self):
+            raise IndexError(f"batch {index} out of range [0, {len(self)}).")
+        rows = slice(index * self.batch_size, (index + 1) * self.batch_size)
+        batch = model_batch({k: v[rows] for k, v in self.arrays.items()})
+        return self.mapper(*batch) if self.mapper is not None else batch
 
 
 class ArrayStream(keras.utils.PyDataset):
@@ -468,10 +335,10 @@ class ArrayStream(keras.utils.PyDataset):
     this process: item ``i`` is the same batch (same samples, same order) as
     ``PairStream(...)[i]``, without generating anything after the start."""
 
-    def __init__(self, arrays, batches: "PairBatches", *, start_step: int = 0, mapper=None):
+    def __init__(self, arrays: dict, batches: PairBatches, *, start_step: int = 0, mapper=None):
         super().__init__()
-        if len(arrays[0]["patch_a"]) != batches.num_samples:
-            raise ValueError(f"arrays hold {len(arrays[0]['patch_a'])} samples; batches has "
+        if len(arrays["patch_a"]) != batches.num_samples:
+            raise ValueError(f"arrays hold {len(arrays['patch_a'])} samples; batches has "
                              f"{batches.num_samples}.")
         self.arrays, self.batches = arrays, batches
         self.start_step, self.mapper = int(start_step), mapper
@@ -487,26 +354,8 @@ class ArrayStream(keras.utils.PyDataset):
             self._order = (epoch, self.batches.epoch_order(epoch))
         size = self.batches.batch_size
         ids = self._order[1][i * size:(i + 1) * size]
-        batch = tuple({k: v[ids] for k, v in part.items()} for part in self.arrays)
+        batch = model_batch({k: v[ids] for k, v in self.arrays.items()})
         return self.mapper(*batch) if self.mapper is not None else batch
-
-
-_THREADS_LIMITED = False
-
-
-def _limit_threads_in_worker():
-    """In a generator worker process, run OpenCV single-threaded, so that N workers do not each
-    start one OpenCV thread per core (on a 16-core host one process generated a batch in 130 ms
-    with 1 thread and 137 ms with 16: the workers gain nothing from OpenCV's threads)."""
-    global _THREADS_LIMITED
-    if not _THREADS_LIMITED:
-        import multiprocessing
-
-        import cv2
-
-        if multiprocessing.current_process().name != "MainProcess":
-            cv2.setNumThreads(1)
-        _THREADS_LIMITED = True
 
 
 class PairStream(keras.utils.PyDataset):
@@ -517,26 +366,84 @@ class PairStream(keras.utils.PyDataset):
     uninterrupted run would have seen. Every data epoch is a new seeded permutation; with
     ``fresh_pairs`` it also draws new squares and perturbations (epoch 0 is make_dataset's set),
     else it repeats the fixed set of ``len(images) * samples_per_image`` pairs, like training on
-    the TFRecords. ``mapper(x, y, w)`` maps batches onto the model's outputs (NumPy). With
-    ``workers > 1`` and ``use_multiprocessing`` the pairs are generated in worker processes.
+    the TFRecords. ``mapper(x, y, w)`` maps batches onto the model's outputs (NumPy).
+
+    With ``workers > 0`` the stream owns a pool of that many generator processes
+    (:func:`generator_pool`), started at the first item and kept for the stream's life, that
+    works ``prefetch`` steps ahead of the last item read (default ``2 * workers``) and sends back
+    uint8 batches. Keras itself reads the items in order in its own process, so its per-epoch
+    enqueuer (a new process pool every ``fit`` epoch, float batches pickled back) is not used.
+    Reading out of order is allowed (it restarts the look-ahead there). ``close()`` stops the
+    workers (also done when the stream is garbage-collected).
     """
 
     def __init__(self, images, batch_size: int = 64, *, samples_per_image: int = 3, seed: int = 0,
                  start_step: int = 0, fresh_pairs: bool = False, mapper=None, max_images: int = 0,
-                 workers: int = 1, use_multiprocessing: bool = False, max_queue_size: int = 10):
-        super().__init__(workers=workers, use_multiprocessing=use_multiprocessing,
-                         max_queue_size=max_queue_size)
+                 workers: int = 0, prefetch: int = 0):
+        super().__init__()
+        if workers < 0 or prefetch < 0:
+            raise ValueError(f"workers and prefetch must be >= 0; received {workers}, {prefetch}.")
         self.batches = PairBatches(images, batch_size, samples_per_image=samples_per_image,
                                    seed=seed, shuffle=True, drop_remainder=True,
                                    max_images=max_images, cache_images=True)
         self.start_step, self.fresh_pairs, self.mapper = int(start_step), bool(fresh_pairs), mapper
+        self.num_workers = int(workers)
+        self.prefetch = int(prefetch) or 2 * self.num_workers
+        self._pool, self._pending, self._next, self._submitted = None, {}, 0, []
 
     @property
     def num_batches(self):
         return None  # endless: Keras keeps counting indices across epochs
 
     def __getitem__(self, index: int):
-        _limit_threads_in_worker()
-        epoch, i = divmod(self.start_step + int(index), len(self.batches))
-        batch = self.batches.batch(i, epoch, fresh=self.fresh_pairs)
+        step = self.start_step + int(index)
+        if self.num_workers == 0:
+            stacked = self.batches.step_batch(step, self.fresh_pairs)
+        else:
+            stacked = self._from_workers(step)
+        batch = model_batch(stacked)
         return self.mapper(*batch) if self.mapper is not None else batch
+
+    def _from_workers(self, step: int) -> dict:
+        if self._pool is None:
+            self._pool = generator_pool(self.batches, self.num_workers)
+        if step not in self._pending:  # first read, or out of order: look ahead from here
+            self._pending, self._next = {}, step
+        for old in [s for s in self._pending if s < step]:
+            del self._pending[old]
+        while self._next < step + max(self.prefetch, 1):
+            self._pending[self._next] = step_batch_async(self._pool, self._next, self.fresh_pairs)
+            self._submitted.append(self._pending[self._next])
+            self._next += 1
+        self._submitted = [r for r in self._submitted if not r.ready()]
+        return self._pending.pop(step).get()
+
+    def close(self, timeout: float = 60.0):
+        """Stop the worker processes (a later item starts new ones).
+
+        The batches in flight are let finish first (``Pool.terminate`` while a worker sends a
+        batch back can hang the pool's result thread); only if they take longer than ``timeout``
+        seconds are the workers killed."""
+        pool, self._pool, self._pending = self._pool, None, {}
+        if pool is None:
+            return
+        pool.close()
+        deadline = time.monotonic() + timeout
+        for result in self._submitted:
+            result.wait(max(deadline - time.monotonic(), 0.0))
+        if all(r.ready() for r in self._submitted):
+            pool.join()
+        else:
+            pool.terminate()
+        self._submitted = []
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown
+            pass
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state.update(_pool=None, _pending={}, _next=0, _submitted=[])
+        return state

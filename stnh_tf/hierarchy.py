@@ -87,6 +87,30 @@ def residual_target(h_prev: np.ndarray, h_ba: np.ndarray) -> np.ndarray:
                                   @ np.asarray(h_ba, np.float64))
 
 
+def stage_pair(context_a: np.ndarray, h_ba: np.ndarray, h_prev: np.ndarray,
+               margin: int = CONTEXT_MARGIN, size: int = geometry.PATCH_SIZE) -> dict:
+    """The next stage's training pair for one stored sample, given the accepted estimate so far.
+
+    ``patch_a_k(p) = patch_a(H_prev @ p)`` re-cropped from the context; the residual target
+    ``H_k* = inv(H_prev) @ H_ba`` as ``h_bar`` (normalized with the paper's ``M``); and
+    ``patch_a_t_k`` = ``patch_a_k`` warped by ``H_k*`` (zero outside patch_a_k: what the stage's
+    spatial transformer sees, so the L1 target matches it). Patches are rounded to uint8, as
+    stored in TFRecords.
+
+    Returns:
+      ``{"patch_a": uint8 [S, S], "patch_a_t": uint8 [S, S], "h_bar": float32 [8]}``.
+    """
+    patch_a = crop_warped_context(context_a, h_prev, margin, size)
+    residual = residual_target(h_prev, h_ba)
+    h_bar = geometry.matrix_to_vector(geometry.normalize_homography(residual, size, size))
+    patch_a_t = cv2.warpPerspective(patch_a, residual, (size, size),
+                                    flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    to_u8 = lambda x: np.clip(np.rint(x), 0, 255).astype(np.uint8)
+    return {"patch_a": to_u8(patch_a), "patch_a_t": to_u8(patch_a_t),
+            "h_bar": h_bar.astype(np.float32)}
+
+
 def rejection_reason(h_composed: np.ndarray, margin: int = CONTEXT_MARGIN,
                      size: int = geometry.PATCH_SIZE) -> str | None:
     """Why a composed estimate ``[3, 3]`` breaks the degenerate-prediction rule, or ``None``."""
@@ -172,6 +196,48 @@ def run_hierarchy(stages: Sequence[PredictFn], context_a: np.ndarray, patch_b: n
         per_stage.append(h.copy())
         rejected.append({r: reasons.count(r) for r in REJECT_REASONS})
     return {"h": h, "per_stage": per_stage, "rejected": rejected}
+
+
+def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 1024,
+                      margin: int = CONTEXT_MARGIN, size: int = geometry.PATCH_SIZE):
+    """Stage-``n+1`` training pairs, in memory, from stage-1 pairs and ``n`` trained stages.
+
+    The in-memory counterpart of ``data_prep.make_stage_dataset`` chained ``n`` times: the stages
+    run as at test time (:func:`run_hierarchy`, degenerate-prediction rule included) on each
+    pair's ``context_a`` and ``patch_b``, and :func:`stage_pair` builds the pair from the
+    composed estimate. For ``n = 1`` the result equals make_stage_dataset's records from the
+    stage-1 records; for ``n > 1`` the intermediate ``patch_a`` is not rounded to uint8 between
+    stages (as at test time; the TFRecord chain stores rounded patches).
+
+    Args:
+      arrays: stage-1 pairs in :func:`stnh_tf.batches.stack_samples`' compact form with context
+        (``patch_a``, ``patch_b``, ``patch_a_t`` uint8 ``[N, S, S]``, ``h_bar``, ``h_mask``,
+        ``context_a`` uint8 ``[N, S+2m, S+2m]``, ``h_ba`` ``[N, 3, 3]``).
+      stages: the trained stages 1..n as :data:`PredictFn` (e.g. :func:`keras_stage`).
+    Returns:
+      ``(pairs, rejected)``: ``pairs`` in the compact form (``patch_a``, ``patch_b``,
+      ``patch_a_t``, ``h_bar``, ``h_mask``, plus ``h_prev [N, 3, 3]``, the estimate the pair
+      starts from); ``rejected`` counts the degenerate-rule cases of every stage by reason.
+    """
+    n = len(arrays["patch_b"])
+    out = {"patch_a": np.empty_like(arrays["patch_a"]), "patch_b": arrays["patch_b"],
+           "patch_a_t": np.empty_like(arrays["patch_a_t"]),
+           "h_bar": np.empty_like(arrays["h_bar"]), "h_mask": arrays["h_mask"],
+           "h_prev": np.empty((n, 3, 3))}
+    rejected = dict.fromkeys(REJECT_REASONS, 0)
+    for a in range(0, n, chunk):
+        b = min(a + chunk, n)
+        run = run_hierarchy(stages, arrays["context_a"][a:b], arrays["patch_b"][a:b],
+                            margin=margin, size=size)
+        for counts in run["rejected"]:
+            for reason, count in counts.items():
+                rejected[reason] += count
+        out["h_prev"][a:b] = run["h"]
+        for i, h_prev in zip(range(a, b), run["h"]):
+            pair = stage_pair(arrays["context_a"][i], arrays["h_ba"][i], h_prev, margin, size)
+            for key, value in pair.items():
+                out[key][i] = value
+    return out, rejected
 
 
 def keras_stage(model, batch_size: int = 64) -> PredictFn:

@@ -19,7 +19,10 @@ Two data sources, same losses and schedule: the TFRecords in ``data_dir`` (Tenso
 :class:`stnh_tf.data.PairStream` (NumPy/OpenCV in worker processes; any Keras backend, e.g. JAX on
 a GPU machine without TensorFlow). ``image_dir`` with ``samples_per_image=N`` and ``seed=S`` gives
 exactly the pairs ``data_prep.make_dataset --samples_per_image=N --seed=S`` writes (shuffled
-differently); ``fresh_pairs`` draws new pairs every data epoch instead.
+differently); ``fresh_pairs`` draws new pairs every data epoch instead. With ``in_memory`` the set
+is generated once (:func:`stage_pairs`), and stage k > 1 trains from the folder too: its pairs are
+made in memory from the predictions of the ``prev_stages`` models, as make_stage_dataset makes
+them.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import dataclasses
 import functools
 import importlib.util
 import json
+import logging
 import math
 import os
 import shutil
@@ -47,6 +51,8 @@ CONFIG_FILE = "config.json"
 CHECKPOINT_DIR = "checkpoint"
 CHECKPOINT_WEIGHTS = "ckpt.weights.h5"
 CHECKPOINT_STATE = "state.json"
+
+_log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass
@@ -78,13 +84,14 @@ class TrainConfig:
     val_samples: int = 1024            # validation pairs evaluated at every checkpoint (0: none)
     strategy: str = "default"          # "default" | "mirrored"
     init_from: tuple = ()              # sequence: single-stage model dirs to initialise stages
-    image_dir: str = ""                # instead of data_dir: generate stage-1 pairs on the fly
+    image_dir: str = ""                # instead of data_dir: generate pairs on the fly
     val_image_dir: str = ""            # with image_dir: validation pairs from these images
     samples_per_image: int = 3         # with image_dir: squares per image (per data epoch)
     fresh_pairs: bool = False          # with image_dir: new pairs every data epoch
     val_seed: int = 1                  # with image_dir: seed of the validation pairs
     workers: int = 0                   # with image_dir: generator processes (0: in-process)
     in_memory: bool = False            # with image_dir: generate the fixed set once, train from RAM
+    prev_stages: tuple = ()            # with image_dir, stage k > 1: model dirs of stages 1..k-1
 
     def validate(self):
         if self.model not in MODEL_KINDS:
@@ -95,9 +102,16 @@ class TrainConfig:
             raise ValueError("give exactly one of data_dir (TFRecords) and image_dir (pairs "
                              f"generated on the fly); received data_dir={self.data_dir!r}, "
                              f"image_dir={self.image_dir!r}.")
-        if self.image_dir and self.stage != 1:
-            raise ValueError("image_dir generates stage-1 pairs only; stage-k data needs the "
-                             "previous stages' predictions (data_prep.make_stage_dataset).")
+        if self.image_dir and self.stage != 1 and (len(self.prev_stages) != self.stage - 1
+                                                   or not self.in_memory or self.model != "stn"):
+            raise ValueError(f"stage {self.stage} from image_dir needs in_memory, model 'stn' and "
+                             f"the {self.stage - 1} previous stages' model dirs in prev_stages "
+                             f"(received {len(self.prev_stages)}): their predictions make the "
+                             "stage's pairs in memory. Or train on stage-k TFRecords "
+                             "(data_prep.make_stage_dataset) with data_dir.")
+        if self.prev_stages and (not self.image_dir or self.stage == 1):
+            raise ValueError("prev_stages is for stage k > 1 trained from image_dir; stage-k "
+                             "TFRecords already hold the previous stages' predictions.")
         if self.model == "sequence" and self.num_stages < 1:
             raise ValueError(f"num_stages must be >= 1; received {self.num_stages}.")
         if self.model == "sequence" and self.init_from and len(self.init_from) > self.num_stages:
@@ -118,6 +132,7 @@ class TrainConfig:
         d = dataclasses.asdict(self)
         d["stage_loss_weights"] = list(self.stage_loss_weights)
         d["init_from"] = list(self.init_from)
+        d["prev_stages"] = list(self.prev_stages)
         return d
 
     @classmethod
@@ -125,6 +140,7 @@ class TrainConfig:
         d = dict(d)
         d["stage_loss_weights"] = tuple(d.get("stage_loss_weights", ()))
         d["init_from"] = tuple(d.get("init_from", ()))
+        d["prev_stages"] = tuple(d.get("prev_stages", ()))
         return cls(**{k: v for k, v in d.items() if k in {f.name for f in dataclasses.fields(cls)}})
 
 
@@ -455,9 +471,30 @@ def training_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0)
     return ds.skip(start_step) if start_step else ds
 
 
+def stage_pairs(cfg: TrainConfig, batches) -> dict:
+    """``batches``' pairs (``stnh_tf.data.PairBatches``, epoch 0) for stage ``cfg.stage``, in
+    the compact form (:func:`stnh_tf.batches.stack_samples`), generated with ``cfg.workers``
+    processes. Stage 1: as generated; stage k > 1: re-made in memory from the predictions of
+    ``cfg.prev_stages`` (:func:`stnh_tf.hierarchy.next_stage_arrays`, the paper's offline
+    re-generation without TFRecords)."""
+    from stnh_tf import data, evaluation, hierarchy
+
+    if cfg.stage == 1:
+        return data.materialize(batches, cfg.workers)
+    arrays = data.materialize(batches, cfg.workers, context=True)
+    stages = [hierarchy.keras_stage(evaluation.load_model(d), batch_size=256)
+              for d in cfg.prev_stages]
+    pairs, rejected = hierarchy.next_stage_arrays(arrays, stages)
+    _log.info("stage-%d pairs from %d previous stages; degenerate-rule cases %s", cfg.stage,
+              len(stages), rejected)
+    pairs.pop("h_prev")
+    return pairs
+
+
 def generated_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0):
     """The endless stream of pairs generated from ``cfg.image_dir`` (mapped onto the model's
-    outputs), positioned at ``start_step`` (:class:`stnh_tf.data.PairStream`)."""
+    outputs), positioned at ``start_step`` (:class:`stnh_tf.data.PairStream`, or with
+    ``in_memory`` :class:`stnh_tf.data.ArrayStream` over :func:`stage_pairs`)."""
     from stnh_tf import data
 
     del split
@@ -466,24 +503,26 @@ def generated_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0
             raise ValueError("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
         batches = data.PairBatches(cfg.image_dir, cfg.batch_size,
                                    samples_per_image=cfg.samples_per_image, seed=cfg.seed)
-        return data.ArrayStream(data.materialize(batches, cfg.workers), batches,
-                                start_step=start_step, mapper=targets_for(cfg))
+        return data.ArrayStream(stage_pairs(cfg, batches), batches, start_step=start_step,
+                                mapper=targets_for(cfg))
     return data.PairStream(cfg.image_dir, cfg.batch_size, samples_per_image=cfg.samples_per_image,
                            seed=cfg.seed, start_step=start_step, fresh_pairs=cfg.fresh_pairs,
-                           mapper=targets_for(cfg), workers=max(cfg.workers, 1),
-                           use_multiprocessing=cfg.workers > 0,
-                           max_queue_size=max(2 * cfg.workers, 10))
+                           mapper=targets_for(cfg), workers=cfg.workers)
 
 
 def generated_validation(cfg: TrainConfig):
     """``cfg.val_samples`` fixed pairs from ``cfg.val_image_dir`` (seed ``cfg.val_seed``, three
-    per image in image order: with seed 1, make_dataset's test pairs)."""
+    per image in image order: with seed 1, make_dataset's test pairs), for stage ``cfg.stage``."""
     from stnh_tf import data
 
     per_image = 3
-    return data.PairSequence(cfg.val_image_dir, cfg.batch_size, samples_per_image=per_image,
-                             seed=cfg.val_seed, shuffle=False, drop_remainder=False,
-                             max_images=-(-cfg.val_samples // per_image), mapper=targets_for(cfg))
+    args = dict(samples_per_image=per_image, seed=cfg.val_seed, shuffle=False,
+                drop_remainder=False, max_images=-(-cfg.val_samples // per_image))
+    if cfg.stage == 1:
+        return data.PairSequence(cfg.val_image_dir, cfg.batch_size, mapper=targets_for(cfg),
+                                 **args)
+    batches = data.PairBatches(cfg.val_image_dir, cfg.batch_size, **args)
+    return data.ArraySequence(stage_pairs(cfg, batches), cfg.batch_size, mapper=targets_for(cfg))
 
 
 def _validation_batches(cfg: TrainConfig) -> int:
@@ -519,6 +558,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     prepare_model_dir(cfg, overwrite=overwrite)
     keras.utils.set_random_seed(cfg.seed)
     keras.mixed_precision.set_global_policy("mixed_bfloat16" if cfg.mixed_precision else "float32")
+    train_ds = None
     try:
         with _strategy_scope(cfg):
             model = build_model(cfg)
@@ -582,3 +622,5 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         return result
     finally:
         keras.mixed_precision.set_global_policy("float32")
+        if hasattr(train_ds, "close"):  # a PairStream's generator processes
+            train_ds.close()

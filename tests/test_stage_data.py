@@ -142,6 +142,40 @@ def test_degenerate_predictions_keep_previous_estimate_and_are_counted(stage1_da
         np.testing.assert_allclose(a2["h_bar"][k], a1["h_bar"][_by_index(a1)[i]], atol=1e-5)
 
 
+def test_in_memory_stage_pairs_equal_make_stage_dataset_records(stage1_data, tmp_path):
+    """hierarchy.next_stage_arrays (stage-k pairs without TFRecords, for training from a folder)
+    gives make_stage_dataset's stage-2 records field for field, degenerate cases included."""
+    from stnh_tf import hierarchy
+
+    a1 = data.load_arrays(stage1_data, "train")
+    idx = [int(i) for i in a1["index"][:3]]
+    override = {idx[0]: np.full((3, 3), np.nan), idx[1]: np.diag([1e-5, 1e-5, 1.0]),
+                idx[2]: geometry.translation(60, 0)}
+    oracle = Oracle(a1, override=override)
+    meta = stage_k.make_stage_dataset(2, stage1_data, str(tmp_path / "s2"), "train",
+                                      predict=oracle, log=QUIET)
+    a2 = data.load_arrays(str(tmp_path / "s2"), "train")
+    # The same stage-1 pairs generated in memory (same images, seed, protocol: make_dataset's).
+    batches = data.PairBatches("bundled", 4, samples_per_image=3, seed=0, max_images=5)
+    arrays = data.materialize(batches, workers=0, context=True)
+    pairs, rejected = hierarchy.next_stage_arrays(arrays, [oracle], chunk=7)
+    assert rejected == {k: v for k, v in meta["degenerate_predictions"].items() if k != "accepted"}
+    assert rejected == {"non_finite": 1, "singular": 1, "outside_context": rejected["outside_context"]}
+    pos = _by_index(a2)
+    assert sorted(pos) == list(range(len(pairs["h_bar"])))
+    for s in range(len(pairs["h_bar"])):
+        k = pos[s]
+        for name in ("patch_a", "patch_b"):
+            np.testing.assert_array_equal(pairs[name][s], np.rint(a2[name][k, ..., 0] * 255))
+        # Records hold H_ba in float32, the in-memory pairs the float64 original: the residual
+        # differs by an ulp, which can move a pixel of patch_a_t across one of OpenCV's 1/32-px
+        # interpolation bins, and h_bar by an ulp.
+        diff = np.abs(pairs["patch_a_t"][s] - np.rint(a2["patch_a_t"][k, ..., 0] * 255))
+        assert diff.max() <= 2 and np.mean(diff > 0) < 1e-3
+        np.testing.assert_allclose(pairs["h_bar"][s], a2["h_bar"][k], rtol=0, atol=5e-7)
+        np.testing.assert_allclose(pairs["h_prev"][s], a2["h_prev"][k], atol=1e-6)
+
+
 def test_input_must_be_previous_stage(stage1_data, tmp_path):
     a1 = data.load_arrays(stage1_data, "train")
     with pytest.raises(ValueError, match="stage-1 data; stage 3"):

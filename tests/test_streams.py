@@ -79,8 +79,10 @@ def test_fresh_pairs_draw_new_samples_from_the_documented_rng(folder):
 def test_array_stream_serves_the_pair_stream_batches(folder, workers):
     batches = data.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
     arrays = data.materialize(batches, workers=workers, chunk=5)
-    x, y, w = arrays
-    assert x["patch_a"].shape == (12, 128, 128, 1) and w["h_bar"].shape == (12,)
+    assert arrays["patch_a"].shape == (12, 128, 128) and arrays["patch_a"].dtype == np.uint8
+    assert arrays["h_bar"].shape == (12, 8) and arrays["h_mask"].shape == (12,)
+    # Row s is sample s, exactly as make_pair generates it.
+    np.testing.assert_array_equal(arrays["patch_b"][7], batches.sample(7)["patch_b"])
     stream = data.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=0, start_step=1)
     served = data.ArrayStream(arrays, batches, start_step=1)
     for i in range(7):  # epochs 0, 1 and 2
@@ -88,7 +90,38 @@ def test_array_stream_serves_the_pair_stream_batches(folder, workers):
             for key in part_s:
                 np.testing.assert_array_equal(part_a[key], part_s[key])
     with pytest.raises(ValueError, match="samples"):
-        data.ArrayStream(tuple({k: v[:5] for k, v in p.items()} for p in arrays), batches)
+        data.ArrayStream({k: v[:5] for k, v in arrays.items()}, batches)
+
+
+@pytest.mark.parametrize("fresh", [False, True])
+def test_pair_stream_workers_serve_the_in_process_batches(folder, fresh):
+    """Worker processes (own pool, look-ahead) give item for item what the stream computes in
+    this process: in order across data epochs, out of order, and after close()."""
+    kwargs = dict(samples_per_image=PER_IMAGE, seed=3, start_step=2, fresh_pairs=fresh)
+    local = data.PairStream(folder, BATCH, **kwargs)
+    remote = data.PairStream(folder, BATCH, workers=2, prefetch=3, **kwargs)
+    try:
+        for i in [0, 1, 2, 3, 4, 6, 5, 0, 7]:
+            for part_l, part_r in zip(local[i], remote[i]):
+                for key in part_l:
+                    np.testing.assert_array_equal(part_r[key], part_l[key])
+        assert remote._pool is not None and set(remote._pending) == {10, 11}  # steps 2 + 8, 2 + 9
+        state = remote.__getstate__()
+        assert state["_pool"] is None and state["_pending"] == {}
+        remote.close()
+        assert remote._pool is None
+        np.testing.assert_array_equal(remote[1][0]["patch_b"], local[1][0]["patch_b"])
+    finally:
+        remote.close()
+
+
+def test_generator_workers_import_no_deep_learning_backend(folder):
+    batches = data.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
+    with data.generator_pool(batches, 1) as pool:
+        loaded = pool.apply(eval, ("sorted({'keras', 'tensorflow', 'jax', 'torch'} & "
+                                   "set(__import__('sys').modules))",))
+        assert pool.apply(eval, ("'stnh_tf.batches' in __import__('sys').modules",))
+    assert loaded == []
 
 
 def test_config_needs_exactly_one_source():
@@ -96,8 +129,14 @@ def test_config_needs_exactly_one_source():
         training.TrainConfig(model_dir="m").validate()
     with pytest.raises(ValueError, match="exactly one"):
         training.TrainConfig(data_dir="d", image_dir="i", model_dir="m").validate()
-    with pytest.raises(ValueError, match="stage-1"):
+    with pytest.raises(ValueError, match="previous stages"):
         training.TrainConfig(image_dir="i", model_dir="m", stage=2).validate()
+    with pytest.raises(ValueError, match="in_memory"):
+        training.TrainConfig(image_dir="i", model_dir="m", stage=2, prev_stages=("s1",)).validate()
+    with pytest.raises(ValueError, match="prev_stages is for"):
+        training.TrainConfig(data_dir="d", model_dir="m", stage=2, prev_stages=("s1",)).validate()
+    training.TrainConfig(image_dir="i", model_dir="m", stage=2, prev_stages=("s1",),
+                         in_memory=True).validate()
 
 
 @pytest.mark.parametrize("in_memory", [False, True])
@@ -118,3 +157,27 @@ def test_train_from_image_folder_validates_on_make_dataset_test_pairs(folder, re
     assert val_mace == pytest.approx(evaluated["model"]["mace"], rel=1e-4)
     saved = json.loads((tmp_path / "m" / "config.json").read_text())
     assert saved["image_dir"] == folder and saved["in_memory"] is in_memory
+
+
+def test_stage2_from_image_folder_validates_on_make_stage_dataset_pairs(folder, records, tmp_path):
+    """Stage 2 trains from the folder with the stage-1 model's predictions made in memory; its
+    validation pairs are the stage-2 test records make_stage_dataset writes with that model."""
+    from data_prep import stage_k
+
+    common = dict(image_dir=folder, val_image_dir=folder, samples_per_image=PER_IMAGE,
+                  train_steps=2, warmup_steps=1, batch_size=BATCH, checkpoint_every=2,
+                  val_samples=12, learning_rate=0.01, in_memory=True)
+    s1 = training.TrainConfig(model_dir=str(tmp_path / "s1"), **common)
+    training.train(s1, printer=lambda *a: None)
+    s2 = training.TrainConfig(model_dir=str(tmp_path / "s2"), stage=2, prev_stages=(s1.model_dir,),
+                              **common)
+    result = training.train(s2, printer=lambda *a: None)
+    assert result["final_step"] == 2
+    r2 = str(tmp_path / "r2")
+    stage_k.make_stage_dataset(2, records, r2, "test", model_dir=s1.model_dir, log=lambda *a: None)
+    evaluated = evaluation.evaluate([s2.model_dir], r2, "test")
+    assert evaluated["count"] == 12
+    assert result["history"]["val_h_bar_mace"][-1] == pytest.approx(evaluated["model"]["mace"],
+                                                                    rel=1e-3)
+    saved = json.loads((tmp_path / "s2" / "config.json").read_text())
+    assert saved["stage"] == 2 and saved["prev_stages"] == [s1.model_dir]
