@@ -46,6 +46,13 @@ itself** and fills everything outside it with zeros (the same as the sequence mo
 warp); :meth:`HomographyEstimator.estimate_images` has the whole image and uses it as context,
 as the paper does.
 
+Degenerate predictions. As in evaluation and stage-data generation
+(:func:`stnh_tf.hierarchy.accept_or_reject`), a stage whose prediction makes the composed
+estimate non-finite or singular (``|det| < 1e-6``, or a patch corner mapped to ``w <= 0``) is
+skipped: the estimate so far is kept (the identity if it is the first stage), a warning is logged,
+and :attr:`HomographyEstimator.last_rejected` counts the skipped predictions of the last call by
+reason. (The context bound of the hierarchy does not apply: there is no stored context to leave.)
+
 Resizing rule of :meth:`HomographyEstimator.estimate_images`. The models were trained on 128 x 128
 crops of 320 x 240 images with corners moved by up to 32 px. Each image (any size, any aspect
 ratio; image_a and image_b need not have the same size) is converted to grayscale (ITU-R 601
@@ -64,6 +71,7 @@ width) and the central square holds texture.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 
@@ -85,6 +93,8 @@ MODEL_FILE = "model.keras"
 DEFAULT_MANIFEST = "default.json"
 DEFAULT_MODEL = "default.keras"
 KINDS = ("single", "sequence", "hierarchy")
+
+_log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------------------------
@@ -348,6 +358,8 @@ class HomographyEstimator:
         self._stages = list(stages)
         self._outputs = [_check_model(m, f"stage {k}") for k, m in enumerate(self._stages, 1)]
         self.source = source
+        self.last_rejected = {"non_finite": 0, "singular": 0}
+        """Stage predictions the last estimate skipped as degenerate, by reason."""
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -418,14 +430,28 @@ class HomographyEstimator:
         ``context``: optional list of float32 ``[h, w]`` images holding patch_a at ``origin``;
         later stages then crop their patch_a_k from the warped context, else from patch_a alone.
         """
+        from stnh_tf import hierarchy
+
         total = np.broadcast_to(np.eye(3), (len(patch_a), 3, 3)).copy()
         current = patch_a
+        rejected = {"non_finite": 0, "singular": 0}
         for k in range(self.num_stages):
             if k:
                 sources = context if context is not None else [np.ascontiguousarray(p[..., 0]) for p in patch_a]
                 org = origin if context is not None else (0, 0)
                 current = np.stack([warp_patch(src, h, org) for src, h in zip(sources, total)])[..., None]
-            total = geometry.compose(total, self._predict_stage(k, current, patch_b, batch_size))
+            h_stage = self._predict_stage(k, current, patch_b, batch_size)
+            # The hierarchy's degenerate-prediction rule without its context bound (there is no
+            # stored context to leave): a non-finite or singular composition keeps the estimate
+            # so far.
+            total, reasons = hierarchy.accept_or_reject(total, h_stage, margin=np.inf)
+            for reason in reasons:
+                if reason:
+                    rejected[reason] += 1
+        self.last_rejected = rejected
+        if any(rejected.values()):
+            _log.warning("HomographyEstimator: stage predictions skipped as degenerate: %s",
+                         rejected)
         return total
 
     def estimate(self, patch_a, patch_b, batch_size: int = 64) -> np.ndarray:

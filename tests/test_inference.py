@@ -271,6 +271,33 @@ def test_hierarchy_of_constant_stages_is_the_product(pairs, rng):
     assert np.max(np.abs(other / other[2, 2] - want / want[2, 2])) > 0.5  # order matters
 
 
+def test_degenerate_stage_predictions_are_skipped_and_counted(pairs, rng, caplog):
+    """A stage whose prediction makes the composition non-finite or singular is skipped (the
+    estimate so far kept), as in evaluation; the others compose as usual."""
+    a, b, _ = pairs
+    h1, h3 = paper_homography(rng), paper_homography(rng)
+    est = HomographyEstimator([_constant_stage(np.eye(3), f"c{k}") for k in (1, 2, 3)])
+    bad = {0: np.full((3, 3), np.nan), 1: np.diag([1e-4, 1e-4, 1.0])}  # non-finite, singular
+    outputs = {0: h1, 2: h3}
+
+    def fake_stage(k, patch_a, patch_b, batch_size):
+        h = np.repeat(outputs.get(k, np.eye(3))[None], len(patch_a), 0)
+        if k == 1:  # pair 0 non-finite, pair 1 singular, the others the identity
+            h[0], h[1] = bad[0], bad[1]
+        return h
+
+    est._predict_stage = fake_stage
+    with caplog.at_level("WARNING"):
+        got = est.estimate(a, b)
+    want = h1 @ h3
+    np.testing.assert_allclose(got, np.broadcast_to(want / want[2, 2], got.shape), atol=1e-9)
+    assert est.last_rejected == {"non_finite": 1, "singular": 1}
+    assert "degenerate" in caplog.text
+    est._predict_stage = lambda k, pa, pb, bs: np.repeat(outputs.get(k, np.eye(3))[None], len(pa), 0)
+    est.estimate(a, b)
+    assert est.last_rejected == {"non_finite": 0, "singular": 0}
+
+
 def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs):
     """estimate (patches only): stage 2 sees patch_a(H_1 p), zero outside the patch."""
     a, b, _ = pairs
