@@ -45,8 +45,10 @@ def stack_samples(samples: list, context: bool = False) -> dict:
 
 def model_batch(stacked: dict):
     """:func:`stack_samples`'s compact batch -> ``(x, y, w)`` float32 (see the module docstring)."""
-    def unit(name):
-        return (stacked[name].astype(np.float32) / np.float32(255.0))[..., None]
+    def unit(name):  # one pass, no temporaries; the same values as astype(float32) / 255
+        u8 = stacked[name][..., None]
+        return np.divide(u8, np.float32(255.0), out=np.empty(u8.shape, np.float32),
+                         dtype=np.float32)
 
     h_mask = stacked["h_mask"]
     x = {"patch_a": unit("patch_a"), "patch_b": unit("patch_b")}
