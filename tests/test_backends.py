@@ -3,8 +3,9 @@
 The suite runs under TensorFlow; the JAX side runs in one subprocess (the backend is chosen at
 Keras' import). References: OpenCV for the warp, the TensorFlow backend for the values and
 gradients (themselves checked against OpenCV and finite differences in test_layers), and models
-saved under each backend loaded under the other. Skipped, with the reason, where JAX is not
-installed (``pip install "jax[cpu]"``; the test extra installs it).
+saved under each backend loaded under the other; and ``experiments/gpu_recipe.sh`` end to end
+(two stages) with TensorFlow hidden, as on the GPU machine. Skipped, with the reason, where JAX is
+not installed (``pip install "jax[cpu]"``; the test extra installs it).
 """
 
 import importlib.util
@@ -128,3 +129,57 @@ def test_training_steps_under_jax(jax_run):
     s = jax_run["summary"]
     assert s["backend"] == "jax" and s["final_step"] == 2 and np.isfinite(s["loss"])
     assert (jax_run["work"] / "jax_run" / "checkpoint" / "ckpt.weights.h5").exists()
+
+
+HIDE_TENSORFLOW = '''
+"""Hide TensorFlow, as on a GPU machine without it: imports fail, find_spec finds nothing."""
+import importlib.abc
+import importlib.util
+import sys
+
+
+class _HideTensorFlow(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name == "tensorflow" or name.startswith("tensorflow."):
+            raise ModuleNotFoundError(f"No module named {name!r} (hidden)", name=name)
+        return None
+
+
+sys.meta_path.insert(0, _HideTensorFlow())
+_find_spec = importlib.util.find_spec
+importlib.util.find_spec = lambda name, package=None: (
+    None if name.split(".")[0] == "tensorflow" else _find_spec(name, package))
+'''
+
+
+def test_gpu_recipe_trains_two_stages_without_tensorflow(tmp_path):
+    """experiments/gpu_recipe.sh under JAX on a machine without TensorFlow: stage 1 from the
+    folder, stage 2 from pairs made with stage 1's predictions, both packed to bring back."""
+    hide = tmp_path / "hide"
+    hide.mkdir()
+    (hide / "sitecustomize.py").write_text(HIDE_TENSORFLOW)
+    images = tmp_path / "images"
+    images.mkdir()
+    for k, (_, path) in enumerate(sources.bundled_image_files()[:2]):
+        shutil.copy(path, images / f"{k}{os.path.splitext(path)[1]}")
+    out = tmp_path / "gpu"
+    env = dict(os.environ, PYTHONPATH=f"{hide}{os.pathsep}{ROOT}", JAX_PLATFORMS="cpu",
+               PYTHON=sys.executable, STAGES="2", SAMPLES_PER_IMAGE="2", WORKERS="1",
+               SKIP_LATENCY="1")
+    env.pop("KERAS_BACKEND", None)  # the script's default: jax
+    proc = subprocess.run(["bash", os.path.join(ROOT, "experiments", "gpu_recipe.sh"), str(images),
+                           str(images), str(out), "--train_steps=2", "--warmup_steps=1",
+                           "--checkpoint_every=2", "--batch_size=4", "--learning_rate=0.001"],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    assert "TensorFlow is not installed" in proc.stderr  # the hiding took effect
+    assert "stage-2 pairs from 1 previous stages" in proc.stderr
+    for k in (1, 2):
+        config = json.loads((out / f"stage{k}" / "config.json").read_text())
+        assert config["stage"] == k
+        assert config["prev_stages"] == ([str(out / "stage1")] if k == 2 else [])
+        assert json.loads((out / f"stage{k}" / "result.json").read_text())["final_step"] == 2
+        listing = subprocess.run(["tar", "-tzf", str(out / f"stage{k}.tar.gz")], check=True,
+                                 capture_output=True, text=True).stdout.split()
+        assert f"stage{k}/model.keras" in listing
+        assert not any("checkpoint" in name for name in listing)
