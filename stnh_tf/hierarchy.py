@@ -33,6 +33,9 @@ imports no deep-learning backend.
 
 from __future__ import annotations
 
+import concurrent.futures
+import os
+import threading
 from typing import Callable, Sequence
 
 import cv2
@@ -199,7 +202,8 @@ def run_hierarchy(stages: Sequence[PredictFn], context_a: np.ndarray, patch_b: n
 
 
 def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 1024,
-                      margin: int = CONTEXT_MARGIN, size: int = geometry.PATCH_SIZE):
+                      margin: int = CONTEXT_MARGIN, size: int = geometry.PATCH_SIZE,
+                      threads: int = 0):
     """Stage-``n+1`` training pairs, in memory, from stage-1 pairs and ``n`` trained stages.
 
     The in-memory counterpart of ``data_prep.make_stage_dataset`` chained ``n`` times: the stages
@@ -214,6 +218,7 @@ def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 10
         (``patch_a``, ``patch_b``, ``patch_a_t`` uint8 ``[N, S, S]``, ``h_bar``, ``h_mask``,
         ``context_a`` uint8 ``[N, S+2m, S+2m]``, ``h_ba`` ``[N, 3, 3]``).
       stages: the trained stages 1..n as :data:`PredictFn` (e.g. :func:`keras_stage`).
+      chunk: pairs per model call batch; threads: chunks processed at once (0: one per core).
     Returns:
       ``(pairs, rejected)``: ``pairs`` in the compact form (``patch_a``, ``patch_b``,
       ``patch_a_t``, ``h_bar``, ``h_mask``, plus ``h_prev [N, 3, 3]``, the estimate the pair
@@ -224,20 +229,38 @@ def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 10
            "patch_a_t": np.empty_like(arrays["patch_a_t"]),
            "h_bar": np.empty_like(arrays["h_bar"]), "h_mask": arrays["h_mask"],
            "h_prev": np.empty((n, 3, 3))}
-    rejected = dict.fromkeys(REJECT_REASONS, 0)
-    for a in range(0, n, chunk):
+    lock = threading.Lock()
+    stages = [_serialized(predict, lock) for predict in stages]
+
+    def one_chunk(a):
         b = min(a + chunk, n)
         run = run_hierarchy(stages, arrays["context_a"][a:b], arrays["patch_b"][a:b],
                             margin=margin, size=size)
-        for counts in run["rejected"]:
-            for reason, count in counts.items():
-                rejected[reason] += count
         out["h_prev"][a:b] = run["h"]
         for i, h_prev in zip(range(a, b), run["h"]):
             pair = stage_pair(arrays["context_a"][i], arrays["h_ba"][i], h_prev, margin, size)
             for key, value in pair.items():
                 out[key][i] = value
+        return run["rejected"]
+
+    # Chunks run in threads (OpenCV's warps and NumPy's large array operations release the GIL;
+    # the model calls are serialized); each chunk writes its own rows, so the result does not
+    # depend on the thread count.
+    rejected = dict.fromkeys(REJECT_REASONS, 0)
+    with concurrent.futures.ThreadPoolExecutor(threads or os.cpu_count() or 1) as pool:
+        for per_stage in pool.map(one_chunk, range(0, n, chunk)):
+            for counts in per_stage:
+                for reason, count in counts.items():
+                    rejected[reason] += count
     return out, rejected
+
+
+def _serialized(predict: PredictFn, lock) -> PredictFn:
+    def call(patch_a, patch_b):
+        with lock:
+            return predict(patch_a, patch_b)
+
+    return call
 
 
 def keras_stage(model, batch_size: int = 64) -> PredictFn:

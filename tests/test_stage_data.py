@@ -158,7 +158,10 @@ def test_in_memory_stage_pairs_equal_make_stage_dataset_records(stage1_data, tmp
     # The same stage-1 pairs generated in memory (same images, seed, protocol: make_dataset's).
     batches = data.PairBatches("bundled", 4, samples_per_image=3, seed=0, max_images=5)
     arrays = data.materialize(batches, workers=0, context=True)
-    pairs, rejected = hierarchy.next_stage_arrays(arrays, [oracle], chunk=7)
+    pairs, rejected = hierarchy.next_stage_arrays(arrays, [oracle], chunk=7, threads=3)
+    serial, _ = hierarchy.next_stage_arrays(arrays, [oracle], chunk=7, threads=1)
+    for name in pairs:  # chunks in threads write their own rows: the thread count does not matter
+        np.testing.assert_array_equal(pairs[name], serial[name])
     assert rejected == {k: v for k, v in meta["degenerate_predictions"].items() if k != "accepted"}
     assert rejected == {"non_finite": 1, "singular": 1, "outside_context": rejected["outside_context"]}
     pos = _by_index(a2)
