@@ -13,7 +13,9 @@
 # memory) generated once by the workers (--in_memory; measured 79-83 steps/s on an H100 at the
 # CPU budget), validation MACE on 300 fixed pairs of VAL_IMAGE_DIR (seed 1, three per image: the
 # pairs `data_prep.make_dataset --split=test --seed=1` writes, carried through the earlier stages
-# for stage k). Extra flags go to every stage (e.g. --train_steps=30000 --checkpoint_every=1000).
+# for stage k). Extra flags go to every stage (e.g. --train_steps=30000 --checkpoint_every=1000);
+# with STAGES=1, `--noin_memory --fresh_pairs` draws new pairs every data epoch in the workers
+# instead (later stages need the fixed in-memory set).
 # Re-running the same command resumes each unfinished stage from its checkpoint and skips the
 # finished ones, so a run can be split across calls of limited length. The script then times
 # batch-1 latency of 1/2/3 stages (OUT_DIR/latency_mixed_bfloat16.json) and packs each stage into
