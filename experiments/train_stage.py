@@ -1,6 +1,8 @@
 r"""Train one STN-Homography stage (or the HomographyNet baseline) with the paper's recipe.
 
   python -m experiments.train_stage --stage=1 --data_dir=data/coco_mini --model_dir=runs/stage1
+  python -m experiments.train_stage --stage=2 --image_dir=IMAGES --in_memory \
+      --prev_stages=runs/stage1 --model_dir=runs/stage2    # no TFRecords, any Keras backend
 
 Defaults are the paper's (SGD momentum 0.9, batch 64, lr 0 -> 0.05 over 1,000 steps then cosine
 decay over 90,000). Re-running the same command resumes from the last checkpoint.
