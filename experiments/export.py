@@ -45,7 +45,8 @@ def main(argv):
     if not report["ok"]:
         raise SystemExit(f"export: the reloaded SavedModel differs from the Keras model by "
                          f"{report['max_abs_diff']:.3g} (vs estimate: "
-                         f"{report['max_abs_diff_estimate']:.3g}); tolerance {FLAGS.tolerance:.3g}.")
+                         f"{report['max_abs_diff_estimate']:.3g}); tolerance {FLAGS.tolerance:.3g}. "
+                         f"It is left at {FLAGS.output} for inspection; re-export with --overwrite.")
 
 
 if __name__ == "__main__":

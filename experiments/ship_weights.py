@@ -5,8 +5,14 @@ r"""Copy trained stage models into the package as its shipped weights, with a mo
 
 Writes ``stnh_tf/weights/stage{k}.keras`` (weights and architecture only, no optimizer state), the
 manifest ``default.json`` naming them in order (the default of ``HomographyEstimator.load()``),
-and ``model_card.json`` with each stage's training configuration, its final step and the given
-evaluation results.
+and ``model_card.json`` with each stage's training configuration, its final step, the given
+evaluation results and the bundled check (MACE on seeded bundled pairs, which
+``tests/test_shipped_weights.py`` re-computes).
+
+  python -m experiments.ship_weights --refresh_check
+
+re-computes only the bundled check of the weights already shipped (after a change to how
+``HomographyEstimator`` computes, e.g. its default ``compute_dtype``), leaving the rest of the card.
 """
 
 from __future__ import annotations
@@ -16,9 +22,11 @@ import os
 
 from absl import app, flags
 
-flags.DEFINE_list("model_dir", None, "Trained stage model directories, in stage order.", required=True)
+flags.DEFINE_list("model_dir", None, "Trained stage model directories, in stage order.")
 flags.DEFINE_string("eval_json", None, "experiments.evaluate output to record in the card.")
 flags.DEFINE_string("weights_dir", None, "Destination (default: the package's stnh_tf/weights).")
+flags.DEFINE_bool("refresh_check", False, "Only re-compute the bundled check of the shipped "
+                  "weights in --weights_dir (no --model_dir).")
 FLAGS = flags.FLAGS
 
 
@@ -54,13 +62,15 @@ def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
     return card
 
 
-BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_image": 3}
+BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_image": 3,
+                 "compute_dtype": "float32"}
 
 
 def bundled_check(stage_paths) -> dict:
     """MACE of ``HomographyEstimator.estimate`` with the first k shipped stages, k = 1..n, on the
-    seeded bundled test pairs (:data:`BUNDLED_CHECK`): the numbers the shipped weights must keep
-    reproducing (``tests/test_shipped_weights.py``)."""
+    seeded bundled test pairs (:data:`BUNDLED_CHECK`; stages loaded with its ``compute_dtype``,
+    the estimator's default): the numbers the shipped weights must keep reproducing
+    (``tests/test_shipped_weights.py``)."""
     import tempfile
 
     import numpy as np
@@ -77,16 +87,40 @@ def bundled_check(stage_paths) -> dict:
     out = dict(BUNDLED_CHECK, count=int(len(arrays["h_ba"])),
                identity_mace=float(geometry.mean_corner_error(
                    np.broadcast_to(np.eye(3), arrays["h_ba"].shape), arrays["h_ba"])))
-    for k in range(1, len(stage_paths) + 1):
-        est = HomographyEstimator.load(stage_paths[0]) if k == 1 else HomographyEstimator(
-            [HomographyEstimator.load(p).stages[0] for p in stage_paths[:k]])
-        h = est.estimate(arrays["patch_a"], arrays["patch_b"])
+    stages = [HomographyEstimator.load(p, compute_dtype=BUNDLED_CHECK["compute_dtype"]).stages[0]
+              for p in stage_paths]
+    for k in range(1, len(stages) + 1):
+        h = HomographyEstimator(stages[:k]).estimate(arrays["patch_a"], arrays["patch_b"])
         out[f"estimate_mace_{k}_stages"] = float(geometry.mean_corner_error(h, arrays["h_ba"]))
     return out
 
 
+def refresh_check(weights_dir=None) -> dict:
+    """Re-compute ``bundled_check`` in the model card of already shipped weights."""
+    from stnh_tf import inference
+
+    weights_dir = weights_dir or inference.default_weights_dir()
+    path = os.path.join(weights_dir, "model_card.json")
+    with open(path) as f:
+        card = json.load(f)
+    card["bundled_check"] = bundled_check([os.path.join(weights_dir, s["file"])
+                                           for s in card["stages"]])
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(card, f, indent=2)
+    os.replace(tmp, path)
+    return card
+
+
 def main(argv):
     del argv
+    if FLAGS.refresh_check:
+        if FLAGS.model_dir or FLAGS.eval_json:
+            raise app.UsageError("--refresh_check takes neither --model_dir nor --eval_json.")
+        print(json.dumps({"bundled_check": refresh_check(FLAGS.weights_dir)["bundled_check"]}))
+        return
+    if not FLAGS.model_dir:
+        raise app.UsageError("--model_dir is required (or --refresh_check).")
     card = ship(FLAGS.model_dir, FLAGS.weights_dir, FLAGS.eval_json)
     print(json.dumps({"shipped": [s["file"] for s in card["stages"]]}))
 

@@ -11,8 +11,10 @@ compact form of :func:`stack_samples` (uint8 patches: what workers send back and
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import sys
 
 import numpy as np
 
@@ -225,18 +227,41 @@ def _worker_step(step: int, fresh: bool) -> dict:
     return _WORKER_BATCHES.step_batch(step, fresh)
 
 
+@contextlib.contextmanager
+def _main_not_rerun():
+    """Keep new ``forkserver``/``spawn`` children from re-running ``__main__``.
+
+    multiprocessing rebuilds the parent's main module in each child (``runpy`` of
+    ``python -m experiments.train_stage``, whose imports load Keras and its backend: ~0.7 GB a
+    worker under TensorFlow). Workers need only this module, so while children start the main
+    module names neither a spec nor a file."""
+    main = sys.modules.get("__main__")
+    if main is None:
+        yield
+        return
+    saved = {k: main.__dict__[k] for k in ("__spec__", "__file__") if k in main.__dict__}
+    main.__spec__ = None
+    main.__dict__.pop("__file__", None)
+    try:
+        yield
+    finally:
+        main.__dict__.pop("__spec__", None)
+        main.__dict__.update(saved)
+
+
 def generator_pool(batches: PairBatches, workers: int):
     """A pool of ``workers`` processes, each holding a copy of ``batches``.
 
     Processes come from a ``forkserver`` (never a fork of this process, whose backend may already
-    run threads) and import only NumPy, OpenCV and this module. Use as a context manager or
-    ``terminate()`` it."""
+    run threads) and import only NumPy, OpenCV and this module, also when the caller is a binary
+    whose ``__main__`` imports a backend. Use as a context manager or ``terminate()`` it."""
     import multiprocessing
 
     if workers < 1:
         raise ValueError(f"workers must be >= 1; received {workers}.")
-    return multiprocessing.get_context("forkserver").Pool(
-        workers, initializer=_init_worker, initargs=(batches,))
+    with _main_not_rerun():  # Pool starts all its processes before returning
+        return multiprocessing.get_context("forkserver").Pool(
+            workers, initializer=_init_worker, initargs=(batches,))
 
 
 def step_batch_async(pool, step: int, fresh: bool = False):

@@ -26,8 +26,14 @@ def error_summary(errors) -> dict:
             "count": int(errors.size)}
 
 
-def load_model(model_dir_or_file):
-    """Load a trained Keras model from a model directory (its ``model.keras``) or a file."""
+def load_model(model_dir_or_file, compute_dtype=None):
+    """Load a trained Keras model from a model directory (its ``model.keras``) or a file.
+
+    ``compute_dtype="float32"`` rebuilds a model saved with a mixed-precision policy (e.g.
+    ``mixed_bfloat16``, as the CPU-budget models were trained) so every layer computes in
+    float32, with the same weights (mixed-precision variables are float32 already); default: as
+    saved.
+    """
     import keras
 
     import stnh_tf.layers  # noqa: F401  (registers the custom layers)
@@ -39,7 +45,30 @@ def load_model(model_dir_or_file):
         path = os.path.join(path, "model.keras")
     if not os.path.exists(path):
         raise FileNotFoundError(f"no trained model at {model_dir_or_file} (looked for {path}).")
-    return keras.models.load_model(path, compile=False)
+    model = keras.models.load_model(path, compile=False)
+    return with_compute_dtype(model, compute_dtype) if compute_dtype else model
+
+
+def with_compute_dtype(model, dtype: str):
+    """``model`` with every mixed-precision layer's policy replaced by ``dtype`` (same weights);
+    ``model`` itself if no layer has a mixed policy."""
+    def rewrite(obj):
+        if isinstance(obj, dict):
+            if (obj.get("class_name") == "DTypePolicy"
+                    and str(obj.get("config", {}).get("name", "")).startswith("mixed_")):
+                return {**obj, "config": {**obj["config"], "name": dtype}}
+            return {k: rewrite(v) for k, v in obj.items()}
+        if isinstance(obj, list):
+            return [rewrite(v) for v in obj]
+        return obj
+
+    config = model.get_config()
+    new_config = rewrite(config)
+    if new_config == config:
+        return model
+    rebuilt = model.__class__.from_config(new_config)
+    rebuilt.set_weights(model.get_weights())
+    return rebuilt
 
 
 def final_h_bar_name(model) -> str:

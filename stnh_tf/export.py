@@ -17,7 +17,9 @@ Single-stage and sequence models export exactly the computation of
 geometry as the estimator's OpenCV warp of a patch); OpenCV's bilinear warp quantizes sampling
 positions to 1/32 px, so a hierarchy's SavedModel agrees with ``estimate`` only up to that
 interpolation difference, while it agrees with the same TensorFlow computation run before
-export to float32 rounding. The estimator's degenerate-prediction rule (a stage whose
+export to float32 rounding (models compute in float32 as ``HomographyEstimator.load`` rebuilds
+them by default; one kept in bfloat16 differs between eager and graph runs by bfloat16 rounding
+and fails ``verify_export``'s default tolerance). The estimator's degenerate-prediction rule (a stage whose
 prediction makes the composition non-finite or singular is skipped) is not exported: the
 SavedModel returns such a composition as it is.
 """

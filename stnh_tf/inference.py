@@ -173,6 +173,13 @@ def _numbered_stages(directory):
     return [found[k] for k in sorted(found)]
 
 
+def _default_source() -> str:
+    """The shipped weights' manifest (or single model) that ``load()`` reads."""
+    folder = default_weights_dir()
+    manifest = os.path.join(folder, DEFAULT_MANIFEST)
+    return manifest if os.path.isfile(manifest) else os.path.join(folder, DEFAULT_MODEL)
+
+
 def resolve_model_paths(path=None) -> list:
     """The stage model paths that :meth:`HomographyEstimator.load` would load (see the module
     docstring for the accepted layouts). Raises ``FileNotFoundError`` with the places looked at."""
@@ -363,10 +370,17 @@ class HomographyEstimator:
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
-    def load(cls, path=None) -> "HomographyEstimator":
+    def load(cls, path=None, compute_dtype: str | None = "float32") -> "HomographyEstimator":
         """Load a single-stage or sequence ``.keras`` model, a training run directory, or a
         hierarchy (manifest or ``stage1, stage2, ...`` directory); ``None`` loads the shipped
         default from ``stnh_tf/weights/``. See the module docstring for the layouts.
+
+        ``compute_dtype``: models trained in mixed precision (the shipped ones: mixed bfloat16)
+        are rebuilt to compute in float32 by default, so an estimate does not depend on the batch
+        size or on eager vs graph execution, and the exported SavedModel matches it (shipped
+        3-stage hierarchy: largest difference of an ``H`` entry 2.3e-5 in float32, 0.39 in
+        bfloat16); ``None`` keeps the policy they were saved with (faster on CPUs with bfloat16
+        units; ``experiments.evaluate`` scores models so).
 
         Raises ``FileNotFoundError`` if nothing is found (also when no weights are shipped) and
         ``ValueError`` if a file is not a usable model.
@@ -377,12 +391,12 @@ class HomographyEstimator:
         models = []
         for p in paths:
             try:
-                models.append(load_model(p))
+                models.append(load_model(p, compute_dtype=compute_dtype))
             except (FileNotFoundError, ValueError):
                 raise
             except Exception as e:  # a corrupt or foreign file
                 raise ValueError(f"cannot load a Keras model from {p}: {type(e).__name__}: {e}") from None
-        return cls(models, source=os.fspath(path) if path is not None else paths[0])
+        return cls(models, source=os.fspath(path) if path is not None else _default_source())
 
     # -- description --------------------------------------------------------------------------
     @property
@@ -466,8 +480,12 @@ class HomographyEstimator:
           coordinates (``[2, 2] = 1``; B = 1 for a single pair). In a hierarchy, later stages see
           patch_a warped by the earlier estimates with zeros outside the patch (no context).
         Raises:
-          ValueError: wrong rank, size, channel count or dtype, empty or different-sized batches.
+          ValueError: wrong rank, size, channel count or dtype, empty or different-sized
+            batches, ``batch_size`` < 1.
         """
+        if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
+                or batch_size < 1:
+            raise ValueError(f"batch_size must be an integer >= 1; received {batch_size!r}.")
         a = prepare_patches(patch_a, "patch_a")
         b = prepare_patches(patch_b, "patch_b")
         if len(a) != len(b):

@@ -511,36 +511,35 @@ def generated_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0
 
 
 def generated_validation(cfg: TrainConfig):
-    """``cfg.val_samples`` fixed pairs from ``cfg.val_image_dir`` (seed ``cfg.val_seed``, three
-    per image in image order: with seed 1, make_dataset's test pairs), for stage ``cfg.stage``."""
+    """The first :func:`validation_count` of the fixed pairs from ``cfg.val_image_dir`` (seed
+    ``cfg.val_seed``, three per image in image order: with seed 1, make_dataset's test pairs), for
+    stage ``cfg.stage``, made once in memory."""
     from stnh_tf import data
 
     per_image = 3
-    args = dict(samples_per_image=per_image, seed=cfg.val_seed, shuffle=False,
-                drop_remainder=False, max_images=-(-cfg.val_samples // per_image))
-    if cfg.stage == 1:
-        return data.PairSequence(cfg.val_image_dir, cfg.batch_size, mapper=targets_for(cfg),
-                                 **args)
-    batches = data.PairBatches(cfg.val_image_dir, cfg.batch_size, **args)
-    return data.ArraySequence(stage_pairs(cfg, batches), cfg.batch_size, mapper=targets_for(cfg))
+    batches = data.PairBatches(cfg.val_image_dir, cfg.batch_size, samples_per_image=per_image,
+                               seed=cfg.val_seed, shuffle=False, drop_remainder=False,
+                               max_images=-(-cfg.val_samples // per_image))
+    n = validation_count(cfg, batches.num_samples)
+    arrays = {k: v[:n] for k, v in stage_pairs(cfg, batches).items()}
+    return data.ArraySequence(arrays, cfg.batch_size, mapper=targets_for(cfg))
 
 
-def _validation_batches(cfg: TrainConfig) -> int:
-    """Validation batches per evaluation: ``val_samples`` pairs, at most the whole split."""
-    from stnh_tf import data
-
-    available = data.split_info(cfg.data_dir, cfg.val_split).get("num_samples", cfg.val_samples)
-    n = min(cfg.val_samples, int(available))
-    return max(-(-n // cfg.batch_size), 1)
+def validation_count(cfg: TrainConfig, available: int) -> int:
+    """Pairs per validation: ``cfg.val_samples``, at most the ``available`` ones."""
+    return min(int(cfg.val_samples), int(available))
 
 
 def validation_stream(cfg: TrainConfig, split: str):
-    """The first ``cfg.val_samples`` pairs of ``split`` (unshuffled, fixed), batched."""
+    """The first :func:`validation_count` pairs of ``split`` (unshuffled, fixed), batched.
+    Returns ``(dataset, batches)``."""
     from stnh_tf import data
 
-    batches = _validation_batches(cfg)
-    return data.load_split(cfg.data_dir, split, cfg.batch_size, shuffle=False, repeat=False,
-                           drop_remainder=False).take(batches)
+    available = data.split_info(cfg.data_dir, split).get("num_samples", cfg.val_samples)
+    n = validation_count(cfg, available)
+    ds = data.load_split(cfg.data_dir, split, cfg.batch_size, shuffle=False, repeat=False,
+                         drop_remainder=False)
+    return ds.unbatch().take(n).batch(cfg.batch_size), -(-n // cfg.batch_size)
 
 
 def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=None,
@@ -580,8 +579,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         else:
             mapper = targets_for(cfg)
             if cfg.val_samples and has_split(cfg.data_dir, cfg.val_split):
-                val_ds = validation_stream(cfg, cfg.val_split)
-                val_steps = _validation_batches(cfg)
+                val_ds, val_steps = validation_stream(cfg, cfg.val_split)
             if mapper is not None:
                 train_ds = train_ds.map(mapper)
                 val_ds = val_ds.map(mapper) if val_ds is not None else None

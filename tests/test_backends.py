@@ -1,11 +1,12 @@
-"""Keras backend portability: the layers, models and training under ``KERAS_BACKEND=jax``.
+"""Keras backend portability: the layers, models and training under ``KERAS_BACKEND=jax`` / ``torch``.
 
-The suite runs under TensorFlow; the JAX side runs in one subprocess (the backend is chosen at
-Keras' import). References: OpenCV for the warp, the TensorFlow backend for the values and
+The suite runs under TensorFlow; each other backend runs in one subprocess (the backend is chosen
+at Keras' import). References: OpenCV for the warp, the TensorFlow backend for the values and
 gradients (themselves checked against OpenCV and finite differences in test_layers), and models
 saved under each backend loaded under the other; and ``experiments/gpu_recipe.sh`` end to end
-(two stages) with TensorFlow hidden, as on the GPU machine. Skipped, with the reason, where JAX is
-not installed (``pip install "jax[cpu]"``; the test extra installs it).
+(two stages) with TensorFlow hidden, as on the GPU machine. A backend that is not installed is
+skipped with the reason (JAX: the test extra installs ``jax[cpu]``; PyTorch: ``pip install torch``,
+not in the test extra, whose CI would otherwise download a CUDA build).
 """
 
 import importlib.util
@@ -21,49 +22,82 @@ import pytest
 import tensorflow as tf
 
 from conftest import cv2_warp, inside_mask, norm_matrix, paper_homography, to_bar
-from stnh_tf import models, sources
+from stnh_tf import evaluation, models, sources
 from stnh_tf.layers import SpatialTransformer
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-pytestmark = pytest.mark.skipif(importlib.util.find_spec("jax") is None,
-                                reason="JAX is not installed: backend portability not tested")
 
-JAX_SCRIPT = r"""
+def _needs(module):
+    return pytest.mark.skipif(importlib.util.find_spec(module) is None,
+                              reason=f"{module} is not installed: that backend is not tested")
+
+
+BACKENDS = [pytest.param(b, marks=_needs(b)) for b in ("jax", "torch")]
+# Models saved under TensorFlow (last layers perturbed so outputs depend on the input) and run
+# under the other backend: one stage, the 2-stage sequence model (HomographyMerge), HomographyNet.
+SAVED_MODELS = ("stn", "sequence2", "homographynet")
+
+BACKEND_SCRIPT = r"""
 import json, os, sys
-os.environ["KERAS_BACKEND"] = "jax"
-import jax, keras, numpy as np
+work, backend = sys.argv[1], sys.argv[2]
+os.environ["KERAS_BACKEND"] = backend
+import keras, numpy as np
 from stnh_tf import evaluation, training
 from stnh_tf.layers import SpatialTransformer
-assert keras.backend.backend() == "jax"
-work = sys.argv[1]
+assert keras.backend.backend() == backend
 z = np.load(os.path.join(work, "inputs.npz"))
 out = {}
+
+def grad_of(f, x):
+    if backend == "jax":
+        import jax
+        return np.asarray(jax.grad(f)(x))
+    import torch
+    t = torch.tensor(x, requires_grad=True)
+    f(t).backward()
+    return t.grad.numpy()
+
 # Layer forward and the gradient of a weighted sum of the warp w.r.t. H_bar.
 stn = SpatialTransformer()
-out["warp"] = np.asarray(stn([z["images"], z["h8"]]))
-def f(h8):
-    return (stn([z["images"], h8]) * z["weights"]).sum()
-out["grad"] = np.asarray(jax.grad(f)(z["h8"]))
-# A model saved under TensorFlow, run under JAX.
-m = keras.models.load_model(os.path.join(work, "tf_model.keras"), compile=False)
-out["tf_model_under_jax"] = evaluation.compiled_forward(m)(z["a"], z["b"])
-# Two training steps under JAX from a folder of images, pairs generated on the fly.
-cfg = training.TrainConfig(image_dir=os.path.join(work, "images"), model_dir=os.path.join(work, "jax_run"),
+out["warp"] = keras.ops.convert_to_numpy(stn([z["images"], z["h8"]]))
+weights = keras.ops.convert_to_tensor(z["weights"])
+out["grad"] = grad_of(lambda h8: keras.ops.sum(stn([z["images"], h8]) * weights), z["h8"])
+# Models saved under TensorFlow, run under this backend (every h_bar output).
+for name in sys.argv[3].split(","):
+    m = keras.models.load_model(os.path.join(work, f"tf_{name}.keras"), compile=False)
+    for o in [k for k in m.output_names if k.startswith("h_bar")]:
+        out[f"tf_{name}:{o}"] = evaluation.compiled_forward(m, o)(z["a"], z["b"])
+# Two training steps from a folder of images, pairs generated on the fly.
+cfg = training.TrainConfig(image_dir=os.path.join(work, "images"),
+                           model_dir=os.path.join(work, backend + "_run"),
                            samples_per_image=2, train_steps=2, warmup_steps=1, batch_size=4,
                            checkpoint_every=2, val_samples=0, learning_rate=0.01)
 res = training.train(cfg, printer=lambda *a: None)
 m2 = keras.models.load_model(os.path.join(cfg.model_dir, "model.keras"), compile=False)
-out["jax_model_under_jax"] = evaluation.compiled_forward(m2)(z["a"], z["b"])
-np.savez(os.path.join(work, "jax_out.npz"), **out)
+out["trained"] = evaluation.compiled_forward(m2)(z["a"], z["b"])
+np.savez(os.path.join(work, backend + "_out.npz"), **out)
 print(json.dumps({"final_step": res["final_step"], "loss": res["history"]["loss"][-1],
                   "backend": keras.backend.backend()}))
 """
 
 
-@pytest.fixture(scope="module")
-def jax_run(tmp_path_factory, photo_patches):
-    work = tmp_path_factory.mktemp("backends")
+def _tf_model(name):
+    build = {"stn": models.build_stn_homography,
+             "sequence2": lambda: models.build_sequence_stn_homography(2),
+             "homographynet": models.build_homographynet}[name]
+    model = build()
+    rng = np.random.default_rng(len(name))
+    for layer in model._flatten_layers():
+        if layer.name == "fc2":  # identity-initialised: perturb so the output varies
+            layer.kernel.assign(rng.normal(0, 1e-3, layer.kernel.shape).astype(np.float32))
+    return model
+
+
+@pytest.fixture(scope="module", params=BACKENDS)
+def backend_run(request, tmp_path_factory, photo_patches):
+    backend = request.param
+    work = tmp_path_factory.mktemp(backend)
     rng = np.random.default_rng(3)
     images = np.stack(list(photo_patches.values()))[..., None].astype(np.float32)
     bars = [to_bar(paper_homography(rng)) for _ in range(len(images))]
@@ -72,63 +106,75 @@ def jax_run(tmp_path_factory, photo_patches):
     a = images[:2] / 255.0
     b = images[2:] / 255.0
     keras.utils.set_random_seed(0)
-    tf_model = models.build_stn_homography()
-    tf_model.save(work / "tf_model.keras")
+    tf_models = {name: _tf_model(name) for name in SAVED_MODELS}
+    for name, model in tf_models.items():
+        model.save(work / f"tf_{name}.keras")
     np.savez(work / "inputs.npz", images=images, h8=h8, weights=weights, a=a, b=b)
     img_dir = work / "images"
     img_dir.mkdir()
     for k, (_, path) in enumerate(sources.bundled_image_files()[:2]):
         shutil.copy(path, img_dir / f"{k}{os.path.splitext(path)[1]}")
-    env = dict(os.environ, KERAS_BACKEND="jax", JAX_PLATFORMS="cpu")
-    proc = subprocess.run([sys.executable, "-c", JAX_SCRIPT, str(work)], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=600)
+    env = dict(os.environ, KERAS_BACKEND=backend, JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", BACKEND_SCRIPT, str(work), backend,
+                           ",".join(SAVED_MODELS)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-4000:]
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
-    out = dict(np.load(work / "jax_out.npz"))
-    return {"work": work, "summary": summary, "out": out, "images": images, "h8": h8,
-            "bars": bars, "weights": weights, "a": a, "b": b, "tf_model": tf_model}
+    out = dict(np.load(work / f"{backend}_out.npz"))
+    return {"backend": backend, "work": work, "summary": summary, "out": out, "images": images,
+            "h8": h8, "bars": bars, "weights": weights, "a": a, "b": b, "tf_models": tf_models}
 
 
-def test_jax_warp_matches_opencv_and_tensorflow(jax_run):
-    warp = jax_run["out"]["warp"]
+def test_warp_matches_opencv_and_tensorflow(backend_run):
+    warp = backend_run["out"]["warp"]
     m = norm_matrix()
-    for i, h_bar in enumerate(jax_run["bars"]):
+    for i, h_bar in enumerate(backend_run["bars"]):
         h_pix = np.linalg.inv(m) @ h_bar @ m
         mask = inside_mask(h_pix)
-        ref = cv2_warp(jax_run["images"][i, ..., 0], h_pix)
+        ref = cv2_warp(backend_run["images"][i, ..., 0], h_pix)
         assert np.abs(warp[i, ..., 0] - ref)[mask].mean() < 0.5
-    tf_warp = keras.ops.convert_to_numpy(SpatialTransformer()([jax_run["images"], jax_run["h8"]]))
+    tf_warp = keras.ops.convert_to_numpy(SpatialTransformer()([backend_run["images"],
+                                                               backend_run["h8"]]))
     np.testing.assert_allclose(warp, tf_warp, atol=2e-3)
 
 
-def test_jax_gradient_matches_tensorflow(jax_run):
-    h8 = tf.Variable(jax_run["h8"])
+def test_gradient_matches_tensorflow(backend_run):
+    h8 = tf.Variable(backend_run["h8"])
     with tf.GradientTape() as tape:
-        loss = tf.reduce_sum(SpatialTransformer()([jax_run["images"], h8]) * jax_run["weights"])
+        loss = tf.reduce_sum(SpatialTransformer()([backend_run["images"], h8]) * backend_run["weights"])
     tf_grad = tape.gradient(loss, h8).numpy()
-    grad = jax_run["out"]["grad"]
+    grad = backend_run["out"]["grad"]
     assert np.abs(tf_grad).max() > 1.0  # a real, non-trivial gradient
     np.testing.assert_allclose(grad, tf_grad, rtol=2e-3, atol=1e-2 * np.abs(tf_grad).max())
 
 
-def test_weights_move_between_backends(jax_run):
-    from stnh_tf import evaluation
+@pytest.mark.parametrize("name", SAVED_MODELS)
+def test_tensorflow_models_run_the_same_under_backend(backend_run, name):
+    model = backend_run["tf_models"][name]
+    outputs = [k for k in model.output_names if k.startswith("h_bar")]
+    assert len(outputs) == (2 if name == "sequence2" else 1)
+    for o in outputs:
+        tf_out = evaluation.compiled_forward(model, o)(backend_run["a"], backend_run["b"])
+        assert np.ptp(tf_out, axis=0).max() > 1e-4  # the perturbed model depends on its input
+        np.testing.assert_allclose(backend_run["out"][f"tf_{name}:{o}"], tf_out, atol=1e-5)
 
-    # TensorFlow-saved model under JAX == under TensorFlow.
-    tf_out = evaluation.compiled_forward(jax_run["tf_model"])(jax_run["a"], jax_run["b"])
-    np.testing.assert_allclose(jax_run["out"]["tf_model_under_jax"], tf_out, atol=1e-5)
-    # JAX-trained model under TensorFlow == under JAX.
-    model = keras.models.load_model(jax_run["work"] / "jax_run" / "model.keras", compile=False)
-    back = evaluation.compiled_forward(model)(jax_run["a"], jax_run["b"])
-    np.testing.assert_allclose(back, jax_run["out"]["jax_model_under_jax"], atol=1e-5)
+
+def test_model_trained_under_backend_runs_under_tensorflow(backend_run):
+    model = keras.models.load_model(backend_run["work"] / f"{backend_run['backend']}_run"
+                                    / "model.keras", compile=False)
+    back = evaluation.compiled_forward(model)(backend_run["a"], backend_run["b"])
+    np.testing.assert_allclose(back, backend_run["out"]["trained"], atol=1e-5)
     # ... and training changed the output away from the identity initialisation.
-    assert np.abs(back).max() > 0 and not np.allclose(back, tf_out)
+    identity = np.tile(models.IDENTITY_H_BAR, (len(back), 1))
+    assert np.abs(back - identity).max() > 1e-4
 
 
-def test_training_steps_under_jax(jax_run):
-    s = jax_run["summary"]
-    assert s["backend"] == "jax" and s["final_step"] == 2 and np.isfinite(s["loss"])
-    assert (jax_run["work"] / "jax_run" / "checkpoint" / "ckpt.weights.h5").exists()
+def test_training_steps_under_backend(backend_run):
+    s = backend_run["summary"]
+    assert s["backend"] == backend_run["backend"] and s["final_step"] == 2
+    assert np.isfinite(s["loss"])
+    assert (backend_run["work"] / f"{backend_run['backend']}_run" / "checkpoint"
+            / "ckpt.weights.h5").exists()
 
 
 HIDE_TENSORFLOW = '''
@@ -152,6 +198,7 @@ importlib.util.find_spec = lambda name, package=None: (
 '''
 
 
+@_needs("jax")
 def test_gpu_recipe_trains_two_stages_without_tensorflow(tmp_path):
     """experiments/gpu_recipe.sh under JAX on a machine without TensorFlow: stage 1 from the
     folder, stage 2 from pairs made with stage 1's predictions, both packed to bring back."""

@@ -5,6 +5,8 @@ same folder."""
 import json
 import os
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -12,6 +14,7 @@ import pytest
 from data_prep import stage1
 from stnh_tf import data, evaluation, pairs, sources, training
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 N_IMAGES, PER_IMAGE, BATCH = 4, 3, 4  # 12 samples, 3 batches per data epoch
 
 
@@ -115,13 +118,40 @@ def test_pair_stream_workers_serve_the_in_process_batches(folder, fresh):
         remote.close()
 
 
-def test_generator_workers_import_no_deep_learning_backend(folder):
+LOADED_BACKENDS = "sorted({'keras', 'tensorflow', 'jax', 'torch'} & set(__import__('sys').modules))"
+
+# A binary run as ``python -m``: its imports load Keras (as experiments.train_stage's do through
+# stnh_tf.training), which multiprocessing would re-run in every worker to rebuild ``__main__``.
+BINARY = f"""
+import json, sys
+import keras
+from stnh_tf import batches
+if __name__ == "__main__":
+    b = batches.PairBatches(sys.argv[1], 4, samples_per_image=1, seed=0)
+    with batches.generator_pool(b, 1) as pool:
+        print(json.dumps([pool.apply(eval, ({LOADED_BACKENDS!r},)),
+                          pool.apply(eval, ("'stnh_tf.batches' in __import__('sys').modules",)),
+                          batches.stack_samples([b.sample(0)])["patch_b"].tolist()
+                          == pool.apply(batches._worker_samples, ((0, 1, False),))["patch_b"].tolist()]))
+    print(json.dumps(sorted({{"keras"}} & set(sys.modules))))
+"""
+
+
+def test_generator_workers_import_no_deep_learning_backend(folder, tmp_path):
     batches = data.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
     with data.generator_pool(batches, 1) as pool:
-        loaded = pool.apply(eval, ("sorted({'keras', 'tensorflow', 'jax', 'torch'} & "
-                                   "set(__import__('sys').modules))",))
+        loaded = pool.apply(eval, (LOADED_BACKENDS,))
         assert pool.apply(eval, ("'stnh_tf.batches' in __import__('sys').modules",))
     assert loaded == []
+    # The same from a binary started with ``python -m`` whose own imports load Keras.
+    (tmp_path / "fake_binary.py").write_text(BINARY)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), ROOT]))
+    proc = subprocess.run([sys.executable, "-m", "fake_binary", folder], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    worker, main = [json.loads(line) for line in proc.stdout.strip().splitlines()[-2:]]
+    assert main == ["keras"]  # the binary itself did load Keras
+    assert worker == [[], True, True]
 
 
 def test_config_needs_exactly_one_source():
@@ -157,6 +187,26 @@ def test_train_from_image_folder_validates_on_make_dataset_test_pairs(folder, re
     assert val_mace == pytest.approx(evaluated["model"]["mace"], rel=1e-4)
     saved = json.loads((tmp_path / "m" / "config.json").read_text())
     assert saved["image_dir"] == folder and saved["in_memory"] is in_memory
+
+
+@pytest.mark.parametrize("val_samples", [7, 12, 50])
+def test_both_validation_sources_serve_exactly_val_samples_same_pairs(folder, records, val_samples):
+    """From a folder or from TFRecords, validation runs on the first ``val_samples`` test pairs
+    (all 12 when more are asked for), batch by batch the same ones: a count that is a multiple
+    of neither 3 (pairs per image) nor the batch size included."""
+    common = dict(model_dir="unused", batch_size=BATCH, val_samples=val_samples)
+    generated = training.generated_validation(
+        training.TrainConfig(image_dir=folder, val_image_dir=folder, **common))
+    stored, steps = training.validation_stream(
+        training.TrainConfig(data_dir=records, **common), "test")
+    stored = list(stored.as_numpy_iterator())
+    expected = min(val_samples, 12)
+    assert steps == len(generated) == len(stored) == -(-expected // BATCH)
+    for i, (x_t, y_t, _) in enumerate(stored):
+        x_g, y_g, _ = generated[i]
+        np.testing.assert_array_equal(x_g["patch_b"], x_t["patch_b"])
+        np.testing.assert_allclose(y_g["h_bar"], y_t["h_bar"], atol=1e-6)
+    assert sum(len(b[1]["h_bar"]) for b in stored) == expected
 
 
 def test_stage2_from_image_folder_validates_on_make_stage_dataset_pairs(folder, records, tmp_path):

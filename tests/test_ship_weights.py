@@ -1,0 +1,99 @@
+"""experiments.ship_weights: the shipped files load as the hierarchy they were made from, and the
+model card's bundled check equals MACE computed here with NumPy for stages with a known output.
+
+Stage 1 outputs a chosen H whatever its input and is saved in mixed bfloat16 (as the shipped
+CPU-budget weights were trained), stage 2 outputs the identity; so the k-stage estimates are that
+H, and their MACE on the bundled pairs is a NumPy corner computation. (That the float32 rebuild
+of a mixed-precision model changes input-dependent outputs is tested in test_inference.)
+"""
+
+import json
+import os
+
+import keras
+import numpy as np
+import pytest
+
+from conftest import to_bar
+from data_prep import stage1
+from experiments import ship_weights
+from stnh_tf import data, inference, models
+
+S = 128
+
+
+def _constant_run(run_dir, h_pix, mixed):
+    if mixed:
+        keras.mixed_precision.set_global_policy("mixed_bfloat16")
+    try:
+        model = models.build_stn_homography()
+    finally:
+        keras.mixed_precision.set_global_policy("float32")
+    fc2 = model.get_layer("regression").get_layer("fc2")
+    kernel, _ = fc2.get_weights()
+    fc2.set_weights([np.zeros_like(kernel), to_bar(h_pix).ravel()[:8].astype("float32")])
+    os.makedirs(run_dir)
+    model.save(os.path.join(run_dir, "model.keras"))
+    with open(os.path.join(run_dir, "config.json"), "w") as f:
+        json.dump({"stage": 1, "mixed_precision": mixed}, f)
+    with open(os.path.join(run_dir, "result.json"), "w") as f:
+        json.dump({"final_step": 7, "history": {"loss": [1.0]}}, f)
+
+
+def _mace_numpy(h, h_true):
+    """Mean distance between the patch corners mapped by ``h`` and by each ``h_true``."""
+    c = np.array([[0, 0, 1], [S, 0, 1], [S, S, 1], [0, S, 1]], np.float64).T
+    p = h @ c
+    p = p[:2] / p[2]
+    q = np.einsum("nij,jk->nik", h_true, c)
+    q = q[:, :2] / q[:, 2:]
+    return float(np.linalg.norm(q - p[None], axis=1).mean())
+
+
+@pytest.fixture(scope="module")
+def bundled_h_ba(tmp_path_factory):
+    c = ship_weights.BUNDLED_CHECK
+    d = str(tmp_path_factory.mktemp("bundled"))
+    stage1.make_dataset(c["source"], d, c["split"], seed=c["seed"],
+                        samples_per_image=c["samples_per_image"], num_shards=1,
+                        log=lambda *a, **k: None)
+    return data.load_arrays(d, c["split"])["h_ba"].astype(np.float64)
+
+
+def test_ship_and_refresh_check(tmp_path, bundled_h_ba):
+    h = np.array([[1.05, 0.02, -3.0], [-0.03, 0.97, 4.0], [1e-4, -2e-4, 1.0]])
+    _constant_run(tmp_path / "s1", h, mixed=True)
+    _constant_run(tmp_path / "s2", np.eye(3), mixed=False)
+    out = tmp_path / "weights"
+    card = ship_weights.ship([str(tmp_path / "s1"), str(tmp_path / "s2")], str(out))
+
+    assert sorted(os.listdir(out)) == ["default.json", "model_card.json", "stage1.keras", "stage2.keras"]
+    assert [s["file"] for s in card["stages"]] == ["stage1.keras", "stage2.keras"]
+    assert card["stages"][0]["config"]["mixed_precision"] is True
+    assert card["stages"][0]["result"] == {"final_step": 7}  # history left out
+    est = inference.HomographyEstimator.load(out / "default.json")
+    assert est.num_stages == 2
+
+    check = card["bundled_check"]
+    assert check["compute_dtype"] == "float32" and check["count"] == len(bundled_h_ba) == 60
+    expected = _mace_numpy(h, bundled_h_ba)
+    assert check["identity_mace"] == pytest.approx(_mace_numpy(np.eye(3), bundled_h_ba), rel=1e-9)
+    assert _mace_numpy(h, np.eye(3)[None]) > 3.0  # the constant H is far from the identity
+    for k in (1, 2):
+        assert check[f"estimate_mace_{k}_stages"] == pytest.approx(expected, abs=1e-3)
+
+    # --refresh_check recomputes only the check, atomically, keeping the rest of the card.
+    with open(out / "model_card.json") as f:
+        stale = json.load(f)
+    stale["bundled_check"]["estimate_mace_2_stages"] = -1.0
+    stale["note"] = "kept"
+    with open(out / "model_card.json", "w") as f:
+        json.dump(stale, f)
+    refreshed = ship_weights.refresh_check(str(out))
+    assert refreshed["note"] == "kept"
+    for key, value in check.items():
+        assert refreshed["bundled_check"][key] == (
+            pytest.approx(value, rel=1e-6) if isinstance(value, float) else value)
+    with open(out / "model_card.json") as f:
+        assert json.load(f)["bundled_check"]["estimate_mace_2_stages"] == pytest.approx(expected, abs=1e-3)
+    assert not os.path.exists(out / "model_card.json.tmp")
