@@ -19,6 +19,9 @@ flags.DEFINE_string("split", "test", "Split to evaluate.")
 flags.DEFINE_list("baselines", [], "Classical baselines: identity, orb_ransac, sift_ransac, orb_default.")
 flags.DEFINE_integer("max_samples", None, "Evaluate only the first N pairs.")
 flags.DEFINE_integer("batch_size", 64, "Inference batch size.")
+flags.DEFINE_enum("compute_dtype", None, ["float32"],
+                  "Rebuild mixed-precision models to compute in this dtype (as "
+                  "HomographyEstimator.load does by default); default: as saved.")
 flags.DEFINE_string("json_out", None, "Write the JSON here instead of stdout.")
 FLAGS = flags.FLAGS
 
@@ -31,7 +34,8 @@ def main(argv):
         raise SystemExit("evaluate: give --model_dir and/or --baselines.")
     try:
         result = evaluation.evaluate(FLAGS.model_dir, FLAGS.data_dir, FLAGS.split, FLAGS.baselines,
-                                     FLAGS.max_samples, FLAGS.batch_size)
+                                     FLAGS.max_samples, FLAGS.batch_size,
+                                     FLAGS.compute_dtype)
     except (ValueError, OSError) as e:
         raise SystemExit(f"evaluate: {e}") from None
     text = json.dumps(result, indent=2, sort_keys=True)

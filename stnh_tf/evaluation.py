@@ -186,7 +186,7 @@ def evaluate_hierarchy(models, samples: dict, batch_size=64) -> dict:
 
 
 def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(),
-             max_samples=None, batch_size=64) -> dict:
+             max_samples=None, batch_size=64, compute_dtype=None) -> dict:
     """The library core of ``experiments.evaluate``.
 
     Args:
@@ -197,6 +197,8 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
       data_dir, split: the stored pairs (``stnh_tf.data``).
       baselines: names from :data:`stnh_tf.baselines.BASELINES`, evaluated on the same pairs.
       max_samples: evaluate the first N pairs only (reported as ``count``; default all).
+      compute_dtype: see :func:`load_model` (``"float32"`` scores mixed-precision models as
+        ``HomographyEstimator.load`` runs them; default: as saved).
     Returns:
       ``{"data_dir", "split", "count", "identity", "model" (if any), "baselines" (if any)}``.
     """
@@ -211,13 +213,15 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
                np.broadcast_to(np.eye(3), h_true.shape), h_true))}
     model_dirs = [d for d in (model_dirs or ()) if d]
     if len(model_dirs) == 1:
-        out["model"] = evaluate_model_on_arrays(load_model(model_dirs[0]), samples, batch_size)
+        out["model"] = evaluate_model_on_arrays(load_model(model_dirs[0], compute_dtype),
+                                                samples, batch_size)
         out["model"]["model_dir"] = model_dirs[0]
     elif len(model_dirs) > 1:
         if not np.allclose(h_prev, np.eye(3)):
             raise ValueError(f"a hierarchy is evaluated on stage-1 pairs; {data_dir} holds pairs "
                              "with earlier-stage estimates (h_prev != identity).")
-        out["model"] = evaluate_hierarchy([load_model(d) for d in model_dirs], samples, batch_size)
+        out["model"] = evaluate_hierarchy([load_model(d, compute_dtype) for d in model_dirs],
+                                          samples, batch_size)
         out["model"]["model_dirs"] = list(model_dirs)
     if baselines:
         if not np.allclose(h_prev, np.eye(3)):

@@ -231,3 +231,37 @@ def test_stage2_from_image_folder_validates_on_make_stage_dataset_pairs(folder, 
                                                                     rel=1e-3)
     saved = json.loads((tmp_path / "s2" / "config.json").read_text())
     assert saved["stage"] == 2 and saved["prev_stages"] == [s1.model_dir]
+
+
+def test_evaluate_scores_mixed_precision_models_in_float32_on_request(records, tmp_path):
+    """``evaluate(compute_dtype="float32")`` scores a model saved in mixed bfloat16 as a float32
+    build of the same weights, alone and as a 2-stage hierarchy; by default it runs as saved."""
+    import keras
+
+    from stnh_tf import models
+
+    rng = np.random.default_rng(5)
+    keras.mixed_precision.set_global_policy("mixed_bfloat16")
+    try:
+        mixed = models.build_stn_homography()
+    finally:
+        keras.mixed_precision.set_global_policy("float32")
+    fc2 = mixed.get_layer("regression").get_layer("fc2")
+    kernel, bias = fc2.get_weights()
+    fc2.set_weights([rng.normal(0, 2e-3, kernel.shape).astype(np.float32), bias])
+    reference = models.build_stn_homography()
+    reference.set_weights(mixed.get_weights())
+    for name, model in (("mixed", mixed), ("reference", reference)):
+        os.makedirs(tmp_path / name)
+        model.save(tmp_path / name / "model.keras")
+    m, r = str(tmp_path / "mixed"), str(tmp_path / "reference")
+
+    as_f32 = evaluation.evaluate([m], records, "test", compute_dtype="float32")["model"]
+    ref = evaluation.evaluate([r], records, "test")["model"]
+    assert as_f32["count"] == 12
+    assert as_f32["mace"] == pytest.approx(ref["mace"], abs=1e-5)
+    as_saved = evaluation.evaluate([m], records, "test")["model"]
+    assert as_saved["mace"] != pytest.approx(ref["mace"], abs=1e-6)  # bfloat16 rounding
+    h2 = evaluation.evaluate([m, m], records, "test", compute_dtype="float32")["model"]["stages"]
+    h2_ref = evaluation.evaluate([r, r], records, "test")["model"]["stages"]
+    assert h2["after_2_stages"]["mace"] == pytest.approx(h2_ref["after_2_stages"]["mace"], abs=1e-4)
