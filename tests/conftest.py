@@ -4,12 +4,26 @@ The normalization matrix and the OpenCV reference are written out here independe
 ``stnh_tf.geometry`` so that the tests check the library against something it did not compute.
 """
 
+import contextlib
+
 import cv2
 import numpy as np
 import pytest
 import skimage.data
 
 SIZE = 128
+
+
+@contextlib.contextmanager
+def keras_policy(name="mixed_bfloat16"):
+    """Build Keras layers under the global dtype policy ``name``; float32 again afterwards."""
+    import keras
+
+    keras.mixed_precision.set_global_policy(name)
+    try:
+        yield
+    finally:
+        keras.mixed_precision.set_global_policy("float32")
 
 
 def norm_matrix(w=SIZE, h=SIZE):

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from conftest import cv2_warp, inside_mask, norm_matrix, paper_homography, to_bar
+from conftest import cv2_warp, inside_mask, keras_policy, norm_matrix, paper_homography, to_bar
 from stnh_tf import export, geometry, inference, models
 from stnh_tf.inference import HomographyEstimator
 
@@ -516,11 +516,8 @@ def test_mixed_precision_model_estimates_and_exports_in_float32(pairs, tmp_path)
     not depend on the batch size, and the SavedModel export passes its own check (in bfloat16 the
     eager estimate and the graph differed by ~0.1 on the shipped stage 1's H entries)."""
     a, b, _ = pairs
-    keras.mixed_precision.set_global_policy("mixed_bfloat16")
-    try:
+    with keras_policy("mixed_bfloat16"):
         mixed = _random_stage(11, "stn_homography")
-    finally:
-        keras.mixed_precision.set_global_policy("float32")
     mixed.save(tmp_path / "mixed.keras")
     reference = models.build_stn_homography()
     reference.set_weights(mixed.get_weights())

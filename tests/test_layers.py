@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import tensorflow as tf
 
-from conftest import cv2_warp, inside_mask, norm_matrix, paper_homography, to_bar
+from conftest import cv2_warp, inside_mask, keras_policy, norm_matrix, paper_homography, to_bar
 from stnh_tf.layers import HomographyMerge, SpatialTransformer
 
 TOL = 0.5  # mean absolute difference, gray levels of 255
@@ -303,11 +303,8 @@ def test_merge_bad_shapes_raise(shape):
 # --------------------------------------------------------------------------------------------
 @pytest.fixture
 def mixed_bfloat16():
-    keras.mixed_precision.set_global_policy("mixed_bfloat16")
-    try:
+    with keras_policy("mixed_bfloat16"):
         yield
-    finally:
-        keras.mixed_precision.set_global_policy("float32")
 
 
 def test_stn_mixed_bfloat16_matches_opencv(mixed_bfloat16, photo_patches, rng):

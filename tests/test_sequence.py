@@ -15,7 +15,7 @@ import pytest
 import tensorflow as tf
 from keras import ops
 
-from conftest import cv2_warp, inside_mask, norm_matrix, paper_homography, to_bar
+from conftest import cv2_warp, inside_mask, keras_policy, norm_matrix, paper_homography, to_bar
 from stnh_tf import losses as losses_lib
 from stnh_tf import models, training
 from stnh_tf.layers import HomographyMerge, SpatialTransformer
@@ -300,13 +300,10 @@ def test_save_load_round_trip(tmp_path, batch):
 
 
 def test_mixed_bfloat16_keeps_float32_homographies(batch):
-    keras.mixed_precision.set_global_policy("mixed_bfloat16")
-    try:
+    with keras_policy("mixed_bfloat16"):
         model = models.SequenceSTNHomography(num_stages=2)
         _randomize_heads(model, 2, seed=9)
         out = model({"patch_a": batch["patch_a"][:1], "patch_b": batch["patch_b"][:1]}, training=False)
-    finally:
-        keras.mixed_precision.set_global_policy("float32")
     for name in ("h_bar_1", "h_bar_2", "patch_a_warp_1", "patch_a_warp_2"):
         assert keras.backend.standardize_dtype(out[name].dtype) == "float32", name
     h1, h2 = (keras.ops.convert_to_numpy(out[n]) for n in ("h_bar_1", "h_bar_2"))

@@ -10,11 +10,10 @@ of a mixed-precision model changes input-dependent outputs is tested in test_inf
 import json
 import os
 
-import keras
 import numpy as np
 import pytest
 
-from conftest import to_bar
+from conftest import keras_policy, to_bar
 from data_prep import stage1
 from experiments import ship_weights
 from stnh_tf import data, inference, models
@@ -23,12 +22,8 @@ S = 128
 
 
 def _constant_run(run_dir, h_pix, mixed):
-    if mixed:
-        keras.mixed_precision.set_global_policy("mixed_bfloat16")
-    try:
+    with keras_policy("mixed_bfloat16" if mixed else "float32"):
         model = models.build_stn_homography()
-    finally:
-        keras.mixed_precision.set_global_policy("float32")
     fc2 = model.get_layer("regression").get_layer("fc2")
     kernel, _ = fc2.get_weights()
     fc2.set_weights([np.zeros_like(kernel), to_bar(h_pix).ravel()[:8].astype("float32")])

@@ -236,16 +236,12 @@ def test_stage2_from_image_folder_validates_on_make_stage_dataset_pairs(folder, 
 def test_evaluate_scores_mixed_precision_models_in_float32_on_request(records, tmp_path):
     """``evaluate(compute_dtype="float32")`` scores a model saved in mixed bfloat16 as a float32
     build of the same weights, alone and as a 2-stage hierarchy; by default it runs as saved."""
-    import keras
-
+    from conftest import keras_policy
     from stnh_tf import models
 
     rng = np.random.default_rng(5)
-    keras.mixed_precision.set_global_policy("mixed_bfloat16")
-    try:
+    with keras_policy("mixed_bfloat16"):
         mixed = models.build_stn_homography()
-    finally:
-        keras.mixed_precision.set_global_policy("float32")
     fc2 = mixed.get_layer("regression").get_layer("fc2")
     kernel, bias = fc2.get_weights()
     fc2.set_weights([rng.normal(0, 2e-3, kernel.shape).astype(np.float32), bias])
