@@ -35,7 +35,8 @@ def define_training_flags():
     flags.DEFINE_float("dropout", _D.dropout, "Dropout after the 1024-unit layer.")
     flags.DEFINE_integer("seed", _D.seed, "Seed for initialisation, dropout and data order.")
     flags.DEFINE_integer("shuffle_buffer", _D.shuffle_buffer, "Training shuffle buffer (records).")
-    flags.DEFINE_bool("mixed_precision", _D.mixed_precision, "Keras mixed_bfloat16 policy.")
+    flags.DEFINE_bool("mixed_precision", _D.mixed_precision, "Keras mixed_bfloat16 policy (fast on "
+                      "GPUs and CPUs with AVX-512 BF16/AMX; emulated, so slow, on other CPUs).")
     flags.DEFINE_integer("checkpoint_every", _D.checkpoint_every, "Steps between checkpoints.")
     flags.DEFINE_integer("log_every", _D.log_every, "Steps between progress lines / TB points.")
     flags.DEFINE_string("val_split", _D.val_split, "Split for the validation MACE (monitoring only).")

@@ -542,6 +542,59 @@ def validation_stream(cfg: TrainConfig, split: str):
     return ds.unbatch().take(n).batch(cfg.batch_size), -(-n // cfg.batch_size)
 
 
+# CPU flags of native bfloat16 arithmetic: x86 AVX-512 BF16 and AMX, Arm BF16.
+BFLOAT16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16", "bf16"})
+
+
+def cpu_has_native_bfloat16(cpuinfo: str = "/proc/cpuinfo") -> bool | None:
+    """Whether the CPU lists a bfloat16 instruction flag (:data:`BFLOAT16_CPU_FLAGS`) in
+    ``cpuinfo`` (its ``flags`` lines on x86, ``Features`` on Arm); ``None`` if it cannot be read."""
+    try:
+        with open(cpuinfo) as f:
+            text = f.read()
+    except OSError:
+        return None
+    flags = set()
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip().lower() in ("flags", "features"):
+            flags.update(value.split())
+    return bool(flags & BFLOAT16_CPU_FLAGS) if flags else None
+
+
+def accelerator_present() -> bool:
+    """Whether the Keras backend computes on a GPU/TPU rather than the CPU."""
+    backend = keras.backend.backend()
+    if backend == "tensorflow":
+        import tensorflow as tf
+
+        return bool(tf.config.list_physical_devices("GPU") or tf.config.list_physical_devices("TPU"))
+    if backend == "jax":
+        import jax
+
+        return jax.default_backend() != "cpu"
+    if backend == "torch":
+        import torch
+
+        return bool(torch.cuda.is_available())
+    return False
+
+
+def mixed_precision_warning(cfg: TrainConfig, cpuinfo: str = "/proc/cpuinfo") -> str | None:
+    """A warning when ``cfg`` asks for mixed bfloat16 on a CPU that has no bfloat16 instructions:
+    there it is emulated and a training step is many times slower than in float32 (measured on an
+    AMD EPYC without AVX-512: BENCHMARKS.md), while the project's earlier CPU machine (AVX-512/AMX)
+    ran bfloat16 steps 3.6x faster than float32. ``None`` on an accelerator, with float32, or where
+    the CPU flags cannot be read."""
+    if not cfg.mixed_precision or accelerator_present():
+        return None
+    if cpu_has_native_bfloat16(cpuinfo) is not False:
+        return None
+    return ("mixed_precision is on, but this CPU has no bfloat16 instructions (none of "
+            f"{sorted(BFLOAT16_CPU_FLAGS)} in {cpuinfo}): bfloat16 is emulated and training is "
+            "many times slower than in float32 here; consider --nomixed_precision.")
+
+
 def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=None,
           extra_callbacks=()):
     """Train (or resume) the model described by ``cfg``. Returns a dict of final results.
@@ -550,6 +603,10 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     ``extra_callbacks`` run after the built-in ones (checkpointing comes first).
     """
     cfg.validate()
+    warning = mixed_precision_warning(cfg)
+    if warning:
+        _log.warning(warning)
+        printer(f"warning: {warning}")
     generated = bool(cfg.image_dir)
     stream_fn = stream_fn or (generated_stream if generated else training_stream)
     if not generated:
