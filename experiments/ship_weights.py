@@ -22,6 +22,8 @@ import os
 
 from absl import app, flags
 
+from data_prep.writer import atomic_write_json
+
 flags.DEFINE_list("model_dir", None, "Trained stage model directories, in stage order.")
 flags.DEFINE_string("eval_json", None, "experiments.evaluate output to record in the card.")
 flags.DEFINE_string("weights_dir", None, "Destination (default: the package's stnh_tf/weights).")
@@ -57,8 +59,7 @@ def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
         with open(eval_json) as f:
             card["evaluation"] = json.load(f)
     card["bundled_check"] = bundled_check(names)
-    with open(os.path.join(weights_dir, "model_card.json"), "w") as f:
-        json.dump(card, f, indent=2)
+    atomic_write_json(os.path.join(weights_dir, "model_card.json"), card)
     return card
 
 
@@ -105,10 +106,7 @@ def refresh_check(weights_dir=None) -> dict:
         card = json.load(f)
     card["bundled_check"] = bundled_check([os.path.join(weights_dir, s["file"])
                                            for s in card["stages"]])
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(card, f, indent=2)
-    os.replace(tmp, path)
+    atomic_write_json(path, card)
     return card
 
 
