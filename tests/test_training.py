@@ -218,22 +218,25 @@ def test_mirrored_strategy_on_two_logical_cpus(tiny_data, tmp_path):
     assert (tmp_path / "m" / "model.keras").exists()
 
 
-def test_overfits_sixteen_pairs(tmp_path_factory):
-    """The model and losses of :mod:`stnh_tf.training` drive the MACE of 16 fixed pairs far below
+def test_overfits_eight_pairs(tmp_path_factory):
+    """The model and losses of :mod:`stnh_tf.training` drive the MACE of 8 fixed pairs far below
     the identity's, and the photometric error down with it: losses, STN and gradients are wired
-    through every layer (16 different targets cannot be met by the output bias alone). Adam with
+    through every layer (8 different targets cannot be met by the output bias alone). Adam with
     full batches, because SGD at this scale needs thousands of steps (no claim about
-    generalization; the schedule itself is tested above)."""
-    d = str(tmp_path_factory.mktemp("sixteen"))
+    generalization; the schedule itself is tested above). Measured with init seeds 0/1/2 on a
+    Zen 3 CPU (fit in 10-epoch calls): MACE / identity 0.39 / 0.40 / 0.47 and L1 / initial L1
+    0.36 / 0.41 / 0.52 after 100 epochs, ~95 s; the descent is not monotone (0.67 -> 0.89 -> 0.51
+    between epochs 60 and 80 for seed 1), hence end-point thresholds with a margin."""
+    d = str(tmp_path_factory.mktemp("eight"))
     stage1.make_dataset("bundled", d, "train", seed=5, samples_per_image=2, num_shards=1,
-                        max_images=8, log=lambda *a, **k: None)
+                        max_images=4, log=lambda *a, **k: None)
     arrays = data.load_arrays(d, "train")
-    assert len(arrays["h_ba"]) == 16
+    assert len(arrays["h_ba"]) == 8
     keras.utils.set_random_seed(0)
     cfg = _cfg(d, "unused", dropout=0.0)
     model = training.build_model(cfg)
     losses, weights, _ = training.loss_spec(cfg)
-    model.compile(optimizer=keras.optimizers.Adam(1e-3), loss=losses, loss_weights=weights)
+    model.compile(optimizer=keras.optimizers.Adam(3e-4), loss=losses, loss_weights=weights)
     x = {"patch_a": arrays["patch_a"], "patch_b": arrays["patch_b"]}
     y = {"h_bar": arrays["h_bar"], "patch_a_warp": arrays["patch_a_t"]}
 
@@ -246,7 +249,7 @@ def test_overfits_sixteen_pairs(tmp_path_factory):
     mace0, l1_0 = mace_and_l1()
     identity = float(geometry.mean_corner_error(np.broadcast_to(np.eye(3), arrays["h_ba"].shape), arrays["h_ba"]))
     assert mace0 == pytest.approx(identity, rel=1e-3)  # identity-initialised output layer
-    model.fit(x, y, batch_size=16, epochs=100, verbose=0)
+    model.fit(x, y, batch_size=8, epochs=100, verbose=0)
     mace, l1 = mace_and_l1()
     assert identity > 15.0
     assert mace < 0.7 * identity, (mace, identity)
