@@ -37,6 +37,7 @@ flags.DEFINE_string("tfds_data_dir", None, "tensorflow-datasets data_dir for --s
 flags.DEFINE_string("tfds_split", None, "tfds split for coco2014 (default: train -> "
                     "train+validation, test -> test, as in the paper).")
 flags.DEFINE_integer("chunk_size", 4, "Images per task sent to a worker.")
+flags.DEFINE_bool("overwrite", False, "Regenerate a split that is already complete.")
 FLAGS = flags.FLAGS
 
 
@@ -50,7 +51,8 @@ def main(argv):
                             seed=FLAGS.seed, num_shards=FLAGS.num_shards,
                             num_workers=FLAGS.num_workers, max_images=FLAGS.max_images,
                             tfds_data_dir=FLAGS.tfds_data_dir, tfds_split=FLAGS.tfds_split,
-                            chunk_size=FLAGS.chunk_size, log=logging.info)
+                            chunk_size=FLAGS.chunk_size, log=logging.info,
+                            overwrite=FLAGS.overwrite)
     except (sources.SourceError, ValueError, OSError) as e:
         raise SystemExit(f"make_dataset: {e}") from None
 

@@ -27,6 +27,7 @@ flags.DEFINE_string("output_dir", None, "Stage-k dataset directory (created).", 
 flags.DEFINE_list("splits", ["train", "test"], "Splits to build.")
 flags.DEFINE_integer("num_shards", 0, "Shards per split; 0 = as many as the input split has.")
 flags.DEFINE_integer("num_workers", os.cpu_count() or 1, "Re-cropping processes.")
+flags.DEFINE_bool("overwrite", False, "Regenerate splits that are already complete.")
 FLAGS = flags.FLAGS
 
 
@@ -37,7 +38,8 @@ def main(argv):
         try:
             result = stage_k.make_stage_dataset(
                 FLAGS.stage, FLAGS.input_dir, FLAGS.output_dir, split, model_dir=FLAGS.model_dir,
-                num_shards=FLAGS.num_shards, num_workers=FLAGS.num_workers, log=logging.info)
+                num_shards=FLAGS.num_shards, num_workers=FLAGS.num_workers, log=logging.info,
+                overwrite=FLAGS.overwrite)
         except (ValueError, OSError) as e:
             raise SystemExit(f"make_stage_dataset: {e}") from None
         logging.info("%s: %d samples; degenerate predictions %s", split, result["num_samples"],

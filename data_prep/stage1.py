@@ -87,12 +87,13 @@ def coco2014_items(split: str, tfds_split=None, data_dir=None, max_images: int =
 def make_dataset(source: str, output_dir: str, split: str = "train", *, image_dir=None,
                  samples_per_image: int = 3, seed: int = 0, num_shards: int = 0,
                  num_workers: int = 1, max_images: int = 0, tfds_data_dir=None, tfds_split=None,
-                 chunk_size: int = 4, log=print, command=None) -> dict:
+                 chunk_size: int = 4, log=print, command=None, overwrite: bool = False) -> dict:
     """Library entry point of the binary (tests call it directly). Returns the split's metadata.
 
     Raises:
       sources.SourceError: unknown/empty source, missing folder, coco2014 unavailable.
       OSError: ``output_dir`` not writable.
+      FileExistsError: ``split`` is already complete there and ``overwrite`` is off.
     """
     protocol = pairs.Protocol(samples_per_image=samples_per_image)
     output_dir = writer.check_output_dir(output_dir)  # fail before listing a huge folder
@@ -132,4 +133,4 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
     return writer.write_sharded(
         output_dir, split, items, worker_fn, num_shards=num_shards, num_items=num_items,
         num_workers=num_workers, split_metadata=split_metadata, top_metadata={"stage": 1},
-        preskipped=preskipped, chunk_size=chunk_size, log=log)
+        preskipped=preskipped, chunk_size=chunk_size, log=log, overwrite=overwrite)

@@ -92,7 +92,8 @@ def _items(paths, predict, counts: dict):
 
 def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, *,
                        model_dir: str | None = None, predict=None, num_shards: int = 0,
-                       num_workers: int = 1, log=print, command=None) -> dict:
+                       num_workers: int = 1, log=print, command=None,
+                       overwrite: bool = False) -> dict:
     """Write the stage-``stage`` ``split`` from the stage-(k-1) data and model. Returns the split's
     metadata section (``degenerate_predictions`` counts by reason).
 
@@ -137,7 +138,7 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
         output_dir, split, _items(paths, predict, counts), stage_sample,
         num_shards=num_shards or len(paths), num_items=int(info["num_samples"]),
         num_workers=num_workers, split_metadata=split_metadata, top_metadata={"stage": stage},
-        log=log)
+        log=log, overwrite=overwrite)
     counts_dict = {k: int(counts.get(k, 0)) for k in ("accepted", *hierarchy.REJECT_REASONS)}
     writer.update_metadata(output_dir, split, {**result, "degenerate_predictions": counts_dict})
     result["degenerate_predictions"] = counts_dict

@@ -275,7 +275,7 @@ def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: 
                   num_shards: int, num_items: Optional[int] = None, num_workers: int = 1,
                   split_metadata: Optional[dict] = None, top_metadata: Optional[dict] = None,
                   preskipped: Iterable = (), chunk_size: int = 4, log: Callable = print,
-                  progress_interval_s: float = 5.0) -> dict:
+                  progress_interval_s: float = 5.0, overwrite: bool = False) -> dict:
     """Generate and write ``split`` as ``num_shards`` TFRecord shards in ``output_dir``.
 
     Args:
@@ -296,11 +296,15 @@ def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: 
         listed with the skipped items.
       chunk_size: items per task sent to a worker.
       log: progress/warning printer; progress every ``progress_interval_s`` seconds.
+      overwrite: regenerate a split that ``metadata.json`` records as complete (otherwise
+        refused before anything is touched: the shards are replaced one by one, so a regeneration
+        that stops half-way leaves neither the old split nor a new one).
     Returns:
       The split's metadata section (also written to ``metadata.json``).
     Raises:
       ValueError: no work items, bad ``num_shards``/``split``, or every item skipped.
       OSError: ``output_dir`` not writable.
+      FileExistsError: the split is complete and ``overwrite`` is off.
     """
     if not re.fullmatch(r"[A-Za-z0-9_.]+", split or ""):
         raise ValueError(f"split must be a plain name like 'train'; received {split!r}.")
@@ -311,6 +315,12 @@ def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: 
     if num_shards < 1:
         raise ValueError(f"num_shards must be >= 1; received {num_shards}.")
     output_dir = check_output_dir(output_dir)
+    existing = _read_metadata_file(output_dir).get("splits", {}).get(split, {})
+    if existing.get("status") == "complete" and not overwrite:
+        raise FileExistsError(
+            f"{output_dir} already holds a complete {split!r} split ({existing.get('num_samples')} "
+            "samples); pass --overwrite to regenerate it (it is unreadable until the new one is "
+            "finished).")
     top = {"feature_spec": features.spec_as_dict(), **(top_metadata or {})}
     update_metadata(output_dir, split, {"status": "incomplete", "started_pid": os.getpid()}, top)
     for stale in glob.glob(os.path.join(output_dir, f"{glob.escape(split)}-*.tfrecord.tmp-*")):

@@ -6,7 +6,10 @@ r"""Benchmark data generation (samples/s with 1 and 2 workers) and tf.data readi
 Generation writes to a temporary directory (removed afterwards) with the real writer
 (``data_prep.writer.write_sharded`` + the stage-1 worker); the timing includes starting the
 worker processes. Reading times ``stnh_tf.data.load_split`` (interleave, shuffle, batch, parse,
-prefetch) after a short warm-up. Prints one JSON object (machine, seed, command, results).
+prefetch) after a short warm-up. ``--resume_skip_batches=N`` also times how long a resumed
+training stream takes to deliver its first batch after skipping N batches, with the skip before
+parsing (``load_split(skip_batches=N)``, what training uses) and after it (``.skip(N)`` on the
+parsed stream). Prints one JSON object (machine, seed, command, results).
 Goals on the 2-core development machine: generation >= 1,000 samples/s, reading >= 5,000.
 """
 
@@ -34,6 +37,8 @@ flags.DEFINE_list("workers", ["1", "2"], "Worker counts to time.")
 flags.DEFINE_integer("num_shards", 8, "Shards written.")
 flags.DEFINE_integer("batch_size", 64, "Read batch size.")
 flags.DEFINE_integer("read_batches", 200, "Batches timed when reading (after 10 warm-up).")
+flags.DEFINE_integer("resume_skip_batches", 0, "Also time resuming the stream at this batch "
+                     "(0: not timed).")
 flags.DEFINE_integer("seed", 0, "Generation seed.")
 flags.DEFINE_string("json_out", None, "Also write the JSON here.")
 FLAGS = flags.FLAGS
@@ -109,6 +114,20 @@ def main(argv):
                              "samples_per_s": round(FLAGS.read_batches * FLAGS.batch_size / dt, 1),
                              "wall_s": round(dt, 3),
                              "pipeline": "load_split(shuffle=True, repeat=True), 8 shards"}
+        n = FLAGS.resume_skip_batches
+        if n > 0:
+            first = {}
+            for where in ("skip_before_parse", "skip_after_parse"):
+                t0 = time.perf_counter()
+                if where == "skip_before_parse":
+                    ds = data.load_split(read_dir, "train", FLAGS.batch_size, seed=0, skip_batches=n)
+                else:
+                    ds = data.load_split(read_dir, "train", FLAGS.batch_size, seed=0).skip(n)
+                x, _, _ = next(iter(ds))
+                float(x["patch_a"][0, 0, 0, 0])
+                first[where] = round(time.perf_counter() - t0, 3)
+            result["resume_skip"] = {"skip_batches": n, "batch_size": FLAGS.batch_size,
+                                     "seconds_to_first_batch": first}
     finally:
         shutil.rmtree(root, ignore_errors=True)
     common.emit_json(result, FLAGS.json_out)

@@ -42,7 +42,8 @@ def define_training_flags():
     flags.DEFINE_string("val_split", _D.val_split, "Split for the validation MACE (monitoring only).")
     flags.DEFINE_integer("val_samples", _D.val_samples, "Validation pairs per checkpoint (0: off).")
     flags.DEFINE_enum("strategy", _D.strategy, ["default", "mirrored"], "tf.distribute strategy.")
-    flags.DEFINE_bool("overwrite", False, "Delete and retrain a model_dir that holds a finished run.")
+    flags.DEFINE_bool("overwrite", False, "Delete and retrain a model_dir that holds a finished "
+                      "run or a run of other flags (an unfinished run of the same flags is resumed).")
 
 
 def config_from_flags(**overrides) -> TrainConfig:

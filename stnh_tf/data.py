@@ -192,14 +192,15 @@ def load_raw(data_dir: str, split: str, fields=None, verify: str = "size"):
 
 def load_split(data_dir: str, split: str, batch_size: int, shuffle: bool = True, seed: int = 0,
                repeat: bool = True, drop_remainder: bool = True, shuffle_buffer: int = 1024,
-               cycle_length: int = 8, verify: str = "size"):
+               cycle_length: int = 8, verify: str = "size", skip_batches: int = 0):
     """The training/validation stream: ``tf.data.Dataset`` of ``(x, y, w)`` batches (see module).
 
     Shards are read interleaved (``cycle_length`` at a time, deterministic), records shuffled
     with a seeded buffer (``shuffle_buffer`` serialized records, ~86 KB each), batched, parsed in
     parallel (only :data:`MODEL_FIELDS`), and prefetched. The order is a function of ``seed``
-    alone, so a resumed run can ``.skip(n)`` to the same position. With ``shuffle`` the shard
-    order is also reshuffled (seeded) every pass.
+    alone, so a resumed run starts at the same position with ``skip_batches=n``: the first ``n``
+    batches are still read and shuffled (the shuffle buffer's state depends on them) but not
+    parsed. With ``shuffle`` the shard order is also reshuffled (seeded) every pass.
 
     Raises:
       ValueError / FileNotFoundError: missing or incomplete split; fewer samples than one batch
@@ -226,6 +227,8 @@ def load_split(data_dir: str, split: str, batch_size: int, shuffle: bool = True,
     if shuffle:
         ds = ds.shuffle(shuffle_buffer, seed=seed, reshuffle_each_iteration=True)
     ds = ds.batch(batch_size, drop_remainder=drop_remainder)
+    if skip_batches:
+        ds = ds.skip(skip_batches)
     ds = ds.map(lambda r: to_model_batch(features.parse_examples(r, MODEL_FIELDS)),
                 num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
     options = tf.data.Options()

@@ -201,7 +201,7 @@ def patch_corners(size: int = PATCH_SIZE) -> np.ndarray:
 
 
 def warp_points(a_from_b, points_b):
-    """Map points of frame b into frame a: ``dehom(H_ab @ p)``.
+    """Map points of frame b into frame a: ``dehom(a_from_b @ p)`` (``a_from_b`` is ``H_ba``).
 
     Args:
       a_from_b: ``[..., 3, 3]`` homography.

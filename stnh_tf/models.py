@@ -35,7 +35,12 @@ def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.
     """The paper's regression network.
 
     8 conv 3x3 layers (64, 64, 64, 64, 128, 128, 128, 128 filters, ReLU), 2x2 stride-2 max pooling
-    after every two convolutions, global average pooling, Dense 1024 + ReLU, Dropout, Dense 8.
+    after each of the first three pairs of convolutions, global average pooling, Dense 1024 + ReLU,
+    Dropout, Dense 8 (768,904 parameters). Three pools, not four: the paper says both "a max
+    pooling layer after every two convolutions" and "the output deep features of [the] last
+    convolutional layer are followed by a global average pooling layer"; we follow the second,
+    which is also the layout of DeTone et al.'s HomographyNet that the paper's text is taken from
+    (its 3 pools end at 16x16x128). So the global average runs over 16x16 (128 -> 64 -> 32 -> 16).
 
     Args:
       batch_norm: ``"none"`` (default) is the paper's literal text and trains stably at the

@@ -49,7 +49,8 @@ MODEL_KINDS = ("stn", "sequence", "homographynet")
 FINAL_MODEL = "model.keras"
 CONFIG_FILE = "config.json"
 CHECKPOINT_DIR = "checkpoint"
-CHECKPOINT_WEIGHTS = "ckpt.weights.h5"
+CHECKPOINT_WEIGHTS = "ckpt.weights.h5"  # legacy single-file name, still read
+CHECKPOINT_WEIGHTS_PATTERN = "ckpt-{step:08d}.weights.h5"
 CHECKPOINT_STATE = "state.json"
 
 _log = logging.getLogger(__name__)
@@ -184,6 +185,10 @@ def loss_spec(cfg: TrainConfig):
                 {"h_bar": cfg.l2_weight, "patch_a_warp": cfg.l1_weight},
                 {"h_bar": [losses_lib.MeanCornerError()]})
     if cfg.model == "homographynet":
+        if (cfg.l2_weight, cfg.l1_weight) != (1.0, 1.0):
+            raise ValueError("model='homographynet' trains its 4-point offsets with one L2 loss: "
+                             "l2_weight/l1_weight do not apply (received "
+                             f"{cfg.l2_weight}, {cfg.l1_weight}); leave them at 1.")
         return ({"offsets": "mse"}, {"offsets": 1.0}, {"h_bar": [losses_lib.MeanCornerError()]})
     weights = list(cfg.stage_loss_weights) or [1.0] * cfg.num_stages
     if len(weights) != cfg.num_stages:
@@ -271,18 +276,18 @@ def _restore_seed_states(model, states):
 
 
 class AtomicCheckpoint(keras.callbacks.Callback):
-    """Saves weights + optimizer state (and dropout RNG state) at every epoch end, atomically:
-    written under a temporary name, then renamed, so a kill -9 never leaves a half checkpoint."""
+    """Saves weights + optimizer state (and dropout RNG state) at every epoch end, atomically.
+
+    The weights go to a new file per step (``ckpt-<step>.weights.h5``, written under a temporary
+    name, fsynced, renamed); ``state.json``, written the same way, names that file and is the
+    commit point; only then are older weight files removed. A kill -9 at any moment leaves
+    ``state.json`` naming a complete file of the step it records."""
 
     def __init__(self, directory, guard=None):
         super().__init__()
         self.directory = directory
         self.guard = guard
         os.makedirs(directory, exist_ok=True)
-
-    @property
-    def weights_path(self):
-        return os.path.join(self.directory, CHECKPOINT_WEIGHTS)
 
     @property
     def state_path(self):
@@ -292,20 +297,38 @@ class AtomicCheckpoint(keras.callbacks.Callback):
         if self.guard is not None and self.guard.bad_step is not None:
             return
         step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
+        name = CHECKPOINT_WEIGHTS_PATTERN.format(step=step)
         tmp = os.path.join(self.directory, f"tmp-{os.getpid()}.weights.h5")
         self.model.save_weights(tmp)
-        os.replace(tmp, self.weights_path)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, os.path.join(self.directory, name))
         _atomic_write_json(self.state_path, {"step": step, "epoch": epoch + 1, "time": time.time(),
+                                             "weights": name,
                                              "seed_states": _seed_states(self.model),
                                              "logs": {k: float(v) for k, v in (logs or {}).items()}})
+        for old in os.listdir(self.directory):  # superseded (or never committed) weight files
+            if old != name and old.endswith(".weights.h5") and not old.startswith("tmp-"):
+                os.remove(os.path.join(self.directory, old))
+
+
+def checkpoint_weights_path(directory) -> str | None:
+    """The weights file the committed ``state.json`` of ``directory`` names (None if none)."""
+    state_path = os.path.join(directory, CHECKPOINT_STATE)
+    if not os.path.exists(state_path):
+        return None
+    with open(state_path) as f:
+        name = json.load(f).get("weights", CHECKPOINT_WEIGHTS)
+    path = os.path.join(directory, name)
+    return path if os.path.exists(path) else None
 
 
 def load_checkpoint(model, directory) -> int:
     """Restore the latest checkpoint in ``directory`` into a compiled ``model``; returns its step
     (0 if there is none)."""
-    weights = os.path.join(directory, CHECKPOINT_WEIGHTS)
+    weights = checkpoint_weights_path(directory)
     state_path = os.path.join(directory, CHECKPOINT_STATE)
-    if not (os.path.exists(weights) and os.path.exists(state_path)):
+    if weights is None:
         return 0
     with open(state_path) as f:
         state = json.load(f)
@@ -363,28 +386,40 @@ class ProgressLogger(keras.callbacks.Callback):
 # ------------------------------------------------------------------------------------------------
 # The run
 # ------------------------------------------------------------------------------------------------
+def _config_diff(cfg: TrainConfig, config_path: str) -> dict:
+    """``{field: (old, new)}`` for the fields that differ from a saved run's and matter."""
+    if not os.path.exists(config_path):
+        return {}
+    with open(config_path) as f:
+        old = json.load(f)
+    new = cfg.to_json()
+    return {k: (old.get(k), new[k]) for k in new
+            if k not in _RESUME_FREE_FIELDS and old.get(k) != new[k]}
+
+
 def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False):
     """Create ``model_dir``; refuse to overwrite a finished run without ``overwrite``; refuse to
-    resume a run whose configuration differs."""
+    resume a run whose configuration differs.
+
+    ``overwrite`` deletes the directory when it holds a finished run or a run of another
+    configuration; an unfinished run of the same configuration is resumed even then, so that
+    re-running an interrupted ``--overwrite`` command continues it instead of wiping its
+    checkpoints."""
     final = os.path.join(cfg.model_dir, FINAL_MODEL)
     config_path = os.path.join(cfg.model_dir, CONFIG_FILE)
     if os.path.exists(final) and not overwrite:
         raise FileExistsError(f"{cfg.model_dir} holds a finished model ({final}); pass --overwrite "
                               "to train it again.")
-    if overwrite and os.path.isdir(cfg.model_dir):
+    if overwrite and os.path.isdir(cfg.model_dir) and (
+            os.path.exists(final) or _config_diff(cfg, config_path)):
         shutil.rmtree(cfg.model_dir)
     os.makedirs(cfg.model_dir, exist_ok=True)
     if not os.access(cfg.model_dir, os.W_OK):
         raise PermissionError(f"model_dir {cfg.model_dir} is not writable.")
-    if os.path.exists(config_path):
-        with open(config_path) as f:
-            old = json.load(f)
-        new = cfg.to_json()
-        diff = {k: (old.get(k), new[k]) for k in new
-                if k not in _RESUME_FREE_FIELDS and old.get(k) != new[k]}
-        if diff:
-            raise ValueError(f"{cfg.model_dir} holds an unfinished run with a different configuration "
-                             f"{diff} (old, new); use the same flags to resume, or --overwrite.")
+    diff = _config_diff(cfg, config_path)
+    if diff:
+        raise ValueError(f"{cfg.model_dir} holds an unfinished run with a different configuration "
+                         f"{diff} (old, new); use the same flags to resume, or --overwrite.")
     _atomic_write_json(config_path, cfg.to_json())
 
 
@@ -466,9 +501,9 @@ def training_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0)
     """
     from stnh_tf import data
 
-    ds = data.load_split(cfg.data_dir, split, cfg.batch_size, shuffle=True, seed=cfg.seed, repeat=True,
-                         shuffle_buffer=cfg.shuffle_buffer, cycle_length=64)
-    return ds.skip(start_step) if start_step else ds
+    return data.load_split(cfg.data_dir, split, cfg.batch_size, shuffle=True, seed=cfg.seed,
+                           repeat=True, shuffle_buffer=cfg.shuffle_buffer, cycle_length=64,
+                           skip_batches=start_step)
 
 
 def stage_pairs(cfg: TrainConfig, batches) -> dict:
@@ -657,15 +692,16 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
                             validation_steps=val_steps,
                             callbacks=callbacks, verbose=0)
         if guard.bad_step is not None:
-            last = os.path.join(ckpt_dir, CHECKPOINT_WEIGHTS)
+            last = checkpoint_weights_path(ckpt_dir)
             last_step = 0
-            if os.path.exists(os.path.join(ckpt_dir, CHECKPOINT_STATE)):
+            if last is not None:
                 with open(os.path.join(ckpt_dir, CHECKPOINT_STATE)) as f:
                     last_step = json.load(f)["step"]
             raise TrainingDiverged(
                 f"non-finite loss at step {guard.bad_step}; last good checkpoint: "
-                f"{last if last_step else '(none)'} (step {last_step}). Lower --learning_rate or "
-                "check the data, then resume with the same command.")
+                f"{last or '(none)'} (step {last_step}). Resuming with the same flags repeats the "
+                "same batches and diverges again: check the data, or train anew with a lower "
+                "--learning_rate (a new --model_dir, or --overwrite).")
         final_path = os.path.join(cfg.model_dir, FINAL_MODEL)
         tmp = os.path.join(cfg.model_dir, f"tmp-{os.getpid()}-{FINAL_MODEL}")
         model.save(tmp)

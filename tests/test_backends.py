@@ -174,7 +174,7 @@ def test_training_steps_under_backend(backend_run):
     assert s["backend"] == backend_run["backend"] and s["final_step"] == 2
     assert np.isfinite(s["loss"])
     assert (backend_run["work"] / f"{backend_run['backend']}_run" / "checkpoint"
-            / "ckpt.weights.h5").exists()
+            / "ckpt-00000002.weights.h5").exists()
 
 
 HIDE_TENSORFLOW = '''

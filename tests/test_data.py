@@ -209,6 +209,20 @@ def test_determinism_across_worker_counts(tmp_path):
         shards[1]["train-00000-of-00003.tfrecord"]
 
 
+def test_complete_split_is_not_regenerated_without_overwrite(tmp_path):
+    out = str(tmp_path / "d")
+    quiet = lambda *a, **k: None  # noqa: E731
+    stage1.make_dataset("bundled", out, "train", max_images=2, seed=7, num_shards=1, log=quiet)
+    before = data.load_arrays(out, "train")["patch_b"]
+    with pytest.raises(FileExistsError, match="complete 'train' split .*--overwrite"):
+        stage1.make_dataset("bundled", out, "train", max_images=2, seed=8, num_shards=1, log=quiet)
+    np.testing.assert_array_equal(data.load_arrays(out, "train")["patch_b"], before)  # untouched
+    stage1.make_dataset("bundled", out, "train", max_images=2, seed=8, num_shards=1, log=quiet,
+                        overwrite=True)
+    after = data.load_arrays(out, "train")["patch_b"]
+    assert after.shape == before.shape and not np.array_equal(after, before)
+
+
 def test_cli_smoke_two_splits_share_metadata(tmp_path):
     out = str(tmp_path / "cli")
     for split, seed in (("train", 0), ("test", 1)):
@@ -417,6 +431,10 @@ def test_load_split_structure_and_seeded_order(dataset, arrays):
     for u, v in zip(a, b):
         np.testing.assert_array_equal(u, v)
     assert any(not np.array_equal(u, v) for u, v in zip(a, c))
+    # A resumed stream starts where the uninterrupted one is after that many batches.
+    (skipped,) = [b[1]["h_bar"].numpy() for b in data.load_split(dataset, "train", 4, seed=1,
+                                                                   skip_batches=2).take(1)]
+    np.testing.assert_array_equal(skipped, a[2])
 
 
 def test_pair_sequence_matches_tfrecords(arrays):

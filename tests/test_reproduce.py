@@ -105,3 +105,11 @@ def test_reuse_refuses_a_model_of_another_budget(tiny_run, tmp_path):
         reproduce.Reproduction(other, str(tmp_path), reuse={"stage9": stage1})
     cfg = json.load(open(os.path.join(stage1, training.CONFIG_FILE)))
     assert cfg["train_steps"] == 2
+
+
+def test_paper_budget_uses_the_papers_image_counts():
+    """Section 3 of the paper: 118,000 COCO 2014 trainval and 10,000 test images, 3 pairs each."""
+    b = reproduce.BUDGETS["paper"]
+    assert (b.max_images * b.samples_per_image, b.test_max_images * b.test_samples_per_image) == (
+        354_000, 30_000)
+    assert (b.train_steps, b.warmup_steps, b.batch_size) == (91_000, 1_000, 64)

@@ -2,6 +2,7 @@
 overwrite protection, stage/dataset checks, the schedule, the semi-supervised mask, a two-device
 MirroredStrategy, and an overfitting run that proves losses, STN and gradients are wired."""
 
+import dataclasses
 import json
 import os
 import signal
@@ -72,7 +73,7 @@ def test_binary_one_step_smoke(tiny_data, tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     cfg = json.loads((model_dir / "config.json").read_text())
     assert cfg["train_steps"] == 1 and cfg["learning_rate"] == 0.05 and cfg["momentum"] == 0.9
-    assert (model_dir / "checkpoint" / "ckpt.weights.h5").exists()
+    assert (model_dir / "checkpoint" / "ckpt-00000001.weights.h5").exists()
     assert json.loads((model_dir / "checkpoint" / "state.json").read_text())["step"] == 1
     assert (model_dir / "model.keras").exists()
     assert any(p.name.startswith("events") for p in (model_dir / "logs" / "train").iterdir())
@@ -82,7 +83,10 @@ def test_binary_one_step_smoke(tiny_data, tmp_path):
     assert again.returncode != 0 and "--overwrite" in again.stderr
 
 
-def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, tmp_path):
+@pytest.mark.parametrize("where", ["after_checkpoint", "inside_checkpoint"])
+def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, tmp_path, monkeypatch, where):
+    """Interrupted after the step-4 checkpoint, or inside it (its weight file renamed into place,
+    its state.json not yet written: the previous checkpoint, step 2, must still be whole)."""
     ref = training.train(_cfg(tiny_data, tmp_path / "straight"), printer=_quiet)
     assert ref["final_step"] == 6
 
@@ -91,14 +95,32 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, tmp_path
             if epoch == 1:  # after the checkpoint at step 4
                 raise KeyboardInterrupt
 
+    write_json = training._atomic_write_json
+
+    def killed_before_state_json(path, obj):
+        if path.endswith("state.json") and obj["step"] == 4:
+            raise KeyboardInterrupt
+        write_json(path, obj)
+
     cfg = _cfg(tiny_data, tmp_path / "interrupted")
-    with pytest.raises(KeyboardInterrupt):
-        training.train(cfg, printer=_quiet, extra_callbacks=[Interrupt()])
-    state = json.loads((tmp_path / "interrupted" / "checkpoint" / "state.json").read_text())
-    assert state["step"] == 4 and not (tmp_path / "interrupted" / "model.keras").exists()
+    ckpt = tmp_path / "interrupted" / "checkpoint"
+    with monkeypatch.context() as m, pytest.raises(KeyboardInterrupt):
+        extra = [Interrupt()]
+        if where == "inside_checkpoint":
+            m.setattr(training, "_atomic_write_json", killed_before_state_json)
+            extra = []
+        training.train(cfg, printer=_quiet, extra_callbacks=extra)
+    state = json.loads((ckpt / "state.json").read_text())
+    expected = 4 if where == "after_checkpoint" else 2
+    assert state["step"] == expected and not (tmp_path / "interrupted" / "model.keras").exists()
+    names = sorted(p.name for p in ckpt.iterdir())
+    assert state["weights"] == f"ckpt-{expected:08d}.weights.h5" and state["weights"] in names
+    if where == "inside_checkpoint":  # the uncommitted step-4 file is there, and ignored
+        assert "ckpt-00000004.weights.h5" in names
     lines = []
     res = training.train(cfg, printer=lines.append)
-    assert any("resuming" in l and "step 4" in l for l in lines)
+    assert any("resuming" in l and f"step {expected}" in l for l in lines)
+    assert sorted(p.name for p in ckpt.iterdir()) == ["ckpt-00000006.weights.h5", "state.json"]
     assert res["final_step"] == 6
     a, b = _weights(tmp_path / "straight"), _weights(tmp_path / "interrupted")
     assert len(a) == len(b)
@@ -136,14 +158,49 @@ def test_kill_9_then_same_command_finishes(tiny_data, tmp_path):
     proc.wait()
     killed_at = json.loads(state.read_text())["step"]
     assert 4 <= killed_at < 40 and not (model_dir / "model.keras").exists()
-    # The checkpoint directory holds a complete checkpoint (temporary files aside).
-    assert sorted(p.name for p in state.parent.iterdir() if not p.name.startswith("tmp-")) == [
-        "ckpt.weights.h5", "state.json"]
+    # state.json names a weight file of its step that is there (a kill inside the next checkpoint
+    # may leave that one's renamed weight file beside it, uncommitted; temporary files aside).
+    committed = json.loads(state.read_text())["weights"]
+    assert committed == f"ckpt-{killed_at:08d}.weights.h5"
+    left = {p.name for p in state.parent.iterdir() if not p.name.startswith("tmp-")}
+    assert {committed, "state.json"} <= left and len(left) <= 3, left
     res = _run_binary(args)  # the very same command
     assert res.returncode == 0, res.stderr[-3000:]
     resumed_at = int(res.stderr.split(f"resuming {model_dir} from step ")[1].split()[0])
     assert resumed_at >= killed_at  # it may have written one more checkpoint before dying
     assert json.loads((model_dir / "result.json").read_text())["final_step"] == 40
+
+
+def test_overwrite_deletes_finished_or_other_runs_and_resumes_an_unfinished_one(tmp_path):
+    def run_dir(name, finished, **kw):
+        cfg = _cfg("d", tmp_path / name, **kw)
+        training.prepare_model_dir(cfg)
+        (tmp_path / name / "checkpoint").mkdir()
+        (tmp_path / name / "checkpoint" / "state.json").write_text("{}")
+        if finished:
+            (tmp_path / name / "model.keras").write_text("x")
+        return cfg
+
+    same = run_dir("unfinished", False)
+    training.prepare_model_dir(same, overwrite=True)  # re-running an interrupted --overwrite command
+    assert (tmp_path / "unfinished" / "checkpoint" / "state.json").exists()
+    other = dataclasses.replace(run_dir("other", False), learning_rate=0.5)
+    with pytest.raises(ValueError, match="learning_rate"):
+        training.prepare_model_dir(other)
+    training.prepare_model_dir(other, overwrite=True)
+    assert not (tmp_path / "other" / "checkpoint").exists()
+    assert json.loads((tmp_path / "other" / "config.json").read_text())["learning_rate"] == 0.5
+    done = run_dir("finished", True)
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        training.prepare_model_dir(done)
+    training.prepare_model_dir(done, overwrite=True)
+    assert sorted(p.name for p in (tmp_path / "finished").iterdir()) == ["config.json"]
+
+
+def test_homographynet_refuses_loss_weights_it_would_ignore():
+    assert training.loss_spec(_cfg("d", "m", model="homographynet"))[1] == {"offsets": 1.0}
+    with pytest.raises(ValueError, match="l2_weight/l1_weight do not apply"):
+        training.loss_spec(_cfg("d", "m", model="homographynet", l2_weight=10.0))
 
 
 def test_non_finite_loss_stops_with_step_and_checkpoint(tiny_data, tmp_path):
