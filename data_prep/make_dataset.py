@@ -24,7 +24,11 @@ flags.DEFINE_enum("source", "folder", stage1.SOURCES,
                   "folder: every image file below --image_dir (recursive); bundled: photographs "
                   "shipped in installed packages (no download); coco2014: tensorflow-datasets "
                   "coco/2014 (download needed).")
-flags.DEFINE_string("image_dir", None, "Image folder for --source=folder.")
+flags.DEFINE_list("image_dir", None, "Image folders for --source=folder (comma-separated; "
+                  "listed folder after folder).")
+flags.DEFINE_bool("photometric", False, "Change patch_b photometrically (brightness, contrast, "
+                  "gamma, noise; not the paper's protocol): e.g. test pairs with an exposure "
+                  "change.")
 flags.DEFINE_string("output_dir", None, "Dataset directory (created; may hold several splits).")
 flags.DEFINE_string("split", "train", "Split name, e.g. train or test.")
 flags.DEFINE_integer("samples_per_image", 3, "Random squares per image (paper: 3).")
@@ -52,7 +56,7 @@ def main(argv):
                             num_workers=FLAGS.num_workers, max_images=FLAGS.max_images,
                             tfds_data_dir=FLAGS.tfds_data_dir, tfds_split=FLAGS.tfds_split,
                             chunk_size=FLAGS.chunk_size, log=logging.info,
-                            overwrite=FLAGS.overwrite)
+                            overwrite=FLAGS.overwrite, photometric=FLAGS.photometric)
     except (sources.SourceError, ValueError, OSError) as e:
         raise SystemExit(f"make_dataset: {e}") from None
 

@@ -21,9 +21,11 @@ SOURCES = ("folder", "bundled", "coco2014")
 COCO_TFDS_SPLITS = {"train": "train+validation", "test": "test"}
 
 
-def folder_items(image_dir: str, max_images: int = 0):
-    """WorkItems (payload = path) of every image below ``image_dir``, plus unreadable dirs."""
-    listing = sources.scan_image_folder(image_dir)
+def folder_items(image_dir, max_images: int = 0):
+    """WorkItems (payload = path) of every image below ``image_dir`` (a folder, a list of folders
+    or a comma-separated string of them: :func:`sources.scan_image_folders`), plus unreadable
+    dirs."""
+    listing = sources.scan_image_folders(image_dir)
     files = listing.files[:max_images] if max_images > 0 else listing.files
     items = [writer.WorkItem(i, listing.image_id(p), p) for i, p in enumerate(files)]
     info = {"image_dir": listing.root, "num_files_listed": len(listing.files),
@@ -87,16 +89,33 @@ def coco2014_items(split: str, tfds_split=None, data_dir=None, max_images: int =
 def make_dataset(source: str, output_dir: str, split: str = "train", *, image_dir=None,
                  samples_per_image: int = 3, seed: int = 0, num_shards: int = 0,
                  num_workers: int = 1, max_images: int = 0, tfds_data_dir=None, tfds_split=None,
-                 chunk_size: int = 4, log=print, command=None, overwrite: bool = False) -> dict:
+                 chunk_size: int = 4, log=print, command=None, overwrite: bool = False,
+                 photometric: bool = False) -> dict:
     """Library entry point of the binary (tests call it directly). Returns the split's metadata.
 
+    ``photometric`` changes patch_b photometrically (:class:`stnh_tf.pairs.PhotometricChange`;
+    not the paper's protocol, recorded in the metadata's ``protocol``).
+
+    Every argument, and for the folder and bundled sources the image listing, is checked
+    before ``output_dir`` is created; a coco2014 run checks ``output_dir`` before any download.
+
     Raises:
+      ValueError: a bad split name or number (negative ``num_shards``/``max_images``,
+        ``samples_per_image``/``chunk_size`` < 1, ``seed`` < 0).
       sources.SourceError: unknown/empty source, missing folder, coco2014 unavailable.
       OSError: ``output_dir`` not writable.
       FileExistsError: ``split`` is already complete there and ``overwrite`` is off.
     """
-    protocol = pairs.Protocol(samples_per_image=samples_per_image)
-    output_dir = writer.check_output_dir(output_dir)  # fail before listing a huge folder
+    writer.check_split_name(split)
+    for name, value, low in (("num_shards", num_shards, 0), ("max_images", max_images, 0),
+                             ("samples_per_image", samples_per_image, 1),
+                             ("chunk_size", chunk_size, 1), ("seed", seed, 0)):
+        if value < low:
+            raise ValueError(f"--{name} must be >= {low}; received {value}.")
+    protocol = pairs.Protocol(samples_per_image=samples_per_image,
+                              photometric=pairs.PhotometricChange() if photometric else None)
+    if source == "coco2014":
+        output_dir = writer.check_output_dir(output_dir)  # fail before any download
     if source == "folder":
         if not image_dir:
             raise sources.SourceError("--source=folder needs --image_dir.")
@@ -116,7 +135,8 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
         extra = f" ({len(preskipped)} unreadable directories)" if preskipped else ""
         raise sources.SourceError(f"no image files found in {where}{extra}; image files end in "
                                   f"{', '.join(sources.IMAGE_EXTENSIONS)}.")
-    if num_shards <= 0:
+    output_dir = writer.check_output_dir(output_dir)
+    if num_shards == 0:
         num_shards = writer.auto_num_shards(num_items, samples_per_image)
     import cv2
     import numpy as np

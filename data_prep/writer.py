@@ -12,6 +12,8 @@ dicts hold :data:`stnh_tf.features.FEATURE_NAMES`).
   module imports (no TensorFlow for ``stnh_tf.pairs``); they build and serialize the samples. The
   parent process writes the records (TensorFlow's ``TFRecordWriter``, imported lazily here).
   ``num_workers <= 1`` runs everything in-process.
+* **One writer per split.** A run holds the split's lock (:func:`split_lock`) from start to end;
+  a second run on the same split fails at once instead of deleting the first one's files.
 * **Atomicity.** Each shard is written to ``<name>.tmp-<pid>`` and renamed when complete; the
   split's section of ``metadata.json`` is marked ``"incomplete"`` before any shard is touched and
   replaced only at the end, so a killed run never leaves a split that looks finished. A re-run
@@ -39,6 +41,7 @@ import time
 from typing import Any, Callable, Iterable, Optional
 
 from stnh_tf import features
+from stnh_tf.paths import check_output_dir  # noqa: F401  (re-exported: data_prep's callers)
 
 METADATA_FILE = "metadata.json"
 LOCK_FILE = ".metadata.lock"
@@ -139,18 +142,35 @@ def update_metadata(output_dir: str, split: str, section: Optional[dict],
         return meta
 
 
-def check_output_dir(output_dir: str) -> str:
-    """Create ``output_dir`` if needed and prove it writable; clear ``OSError`` otherwise."""
-    path = os.path.abspath(output_dir)
-    try:
-        os.makedirs(path, exist_ok=True)
-        probe = os.path.join(path, f".write-test-{os.getpid()}")
-        with open(probe, "w") as f:
-            f.write("ok")
-        os.remove(probe)
-    except OSError as e:
-        raise OSError(f"output directory {path!r} is not writable: {e.strerror or e}") from None
-    return path
+def check_split_name(split: str) -> str:
+    """``split`` if it is a plain name like ``train`` (letters, digits, ``_`` and ``.``, not
+    starting with ``.``: no ``..``), else ``ValueError``: it names files in the output folder."""
+    if not isinstance(split, str) or not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.]*", split):
+        raise ValueError(f"split must be a plain name like 'train' (letters, digits, '_' and '.', "
+                         f"not starting with '.'); received {split!r}.")
+    return split
+
+
+@contextlib.contextmanager
+def split_lock(output_dir: str, split: str):
+    """Hold ``output_dir``'s lock of ``split`` (``.{split}.lock``, ``fcntl.flock``) for one
+    writer: a second writer of the same split, in this process or another, fails at once with
+    ``FileExistsError`` instead of deleting the first one's temporary shards. The lock goes with
+    the process (nothing stale is left by a killed run)."""
+    import fcntl
+
+    path = os.path.join(output_dir, f".{split}.lock")
+    with open(path, "a") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise FileExistsError(f"another process is writing split {split!r} in {output_dir} "
+                                  f"(it holds {path}); wait for it to finish, or write to "
+                                  "another --output_dir or --split.") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -304,10 +324,10 @@ def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: 
     Raises:
       ValueError: no work items, bad ``num_shards``/``split``, or every item skipped.
       OSError: ``output_dir`` not writable.
-      FileExistsError: the split is complete and ``overwrite`` is off.
+      FileExistsError: the split is complete and ``overwrite`` is off, or another process is
+        writing it (:func:`split_lock`).
     """
-    if not re.fullmatch(r"[A-Za-z0-9_.]+", split or ""):
-        raise ValueError(f"split must be a plain name like 'train'; received {split!r}.")
+    check_split_name(split)
     if num_items is None:
         num_items = len(work_items)
     if num_items <= 0:
@@ -315,6 +335,19 @@ def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: 
     if num_shards < 1:
         raise ValueError(f"num_shards must be >= 1; received {num_shards}.")
     output_dir = check_output_dir(output_dir)
+    with split_lock(output_dir, split):
+        return _write_split(output_dir, split, work_items, worker_fn, num_shards=num_shards,
+                            num_items=num_items, num_workers=num_workers,
+                            split_metadata=split_metadata, top_metadata=top_metadata,
+                            preskipped=preskipped, chunk_size=chunk_size, log=log,
+                            progress_interval_s=progress_interval_s, overwrite=overwrite)
+
+
+def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_items, num_workers,
+                 split_metadata, top_metadata, preskipped, chunk_size, log, progress_interval_s,
+                 overwrite) -> dict:
+    """:func:`write_sharded` once its arguments are checked, holding the split's lock: no other
+    writer of the split runs, so temporary shards left in the folder are stale ones."""
     existing = _read_metadata_file(output_dir).get("splits", {}).get(split, {})
     if existing.get("status") == "complete" and not overwrite:
         raise FileExistsError(

@@ -27,7 +27,9 @@ from absl import app, flags
 
 from experiments import common
 
-flags.DEFINE_string("image_dir", None, "Folder of training images.", required=True)
+flags.DEFINE_list("image_dir", None, "Folders of training images (comma-separated).",
+                  required=True)
+flags.DEFINE_bool("photometric", False, "Photometric change of patch_b in the generated pairs.")
 flags.DEFINE_integer("workers", 2, "Generator processes.")
 flags.DEFINE_integer("samples_per_image", 100, "Pairs per image in one data epoch.")
 flags.DEFINE_integer("batch_size", 64, "Batch size.")
@@ -44,7 +46,8 @@ FLAGS = flags.FLAGS
 def _inputs(mode, batches):
     from stnh_tf import data
 
-    common_args = dict(samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed)
+    common_args = dict(samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed,
+                       photometric=FLAGS.photometric)
     if mode == "array":
         return data.ArrayStream(data.materialize(batches, FLAGS.workers), batches)
     return data.PairStream(FLAGS.image_dir, FLAGS.batch_size, fresh_pairs=mode == "fresh",
@@ -64,7 +67,7 @@ def time_fit(mode, batches):
         def on_train_batch_end(self, batch, logs=None):
             self.times.append(time.perf_counter())
 
-    cfg = training.TrainConfig(image_dir=FLAGS.image_dir, model_dir="-", seed=FLAGS.seed,
+    cfg = training.TrainConfig(image_dir=",".join(FLAGS.image_dir), model_dir="-", seed=FLAGS.seed,
                                batch_size=FLAGS.batch_size, mixed_precision=FLAGS.mixed_precision)
     keras.mixed_precision.set_global_policy("mixed_bfloat16" if FLAGS.mixed_precision else "float32")
     keras.utils.set_random_seed(FLAGS.seed)
@@ -95,15 +98,17 @@ def main(argv):
 
     __import__({"tensorflow": "tensorflow", "jax": "jax"}.get(keras.backend.backend(), "keras"))
     batches = data.PairBatches(FLAGS.image_dir, FLAGS.batch_size,
-                               samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed)
-    result = {"benchmark": "stream", "image_dir": FLAGS.image_dir, "images": len(batches.entries),
+                               samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed,
+                               photometric=FLAGS.photometric)
+    result = {"benchmark": "stream", "image_dir": FLAGS.image_dir, "photometric": FLAGS.photometric,
+              "images": len(batches.entries),
               "workers": FLAGS.workers, "samples_per_image": FLAGS.samples_per_image,
               "batch_size": FLAGS.batch_size, "seed": FLAGS.seed,
               "mixed_precision": FLAGS.mixed_precision, "machine": common.machine_info()}
     result["in_process_ms"] = common.median_ms(lambda: batches.step_batch(1, fresh=True), 10, 1)
     stream = data.PairStream(FLAGS.image_dir, FLAGS.batch_size, workers=FLAGS.workers,
                              samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed,
-                             fresh_pairs=True)
+                             fresh_pairs=True, photometric=FLAGS.photometric)
     try:
         stream[0]
         t0 = time.perf_counter()

@@ -2,6 +2,7 @@
 
 from absl import flags
 
+from stnh_tf import training
 from stnh_tf.training import TrainConfig
 
 _D = TrainConfig()
@@ -9,9 +10,13 @@ _D = TrainConfig()
 
 def define_training_flags():
     flags.DEFINE_string("data_dir", "", "TFRecord dataset directory (from data_prep).")
-    flags.DEFINE_string("image_dir", "", "Instead of --data_dir: a folder of images; pairs "
-                        "are generated on the fly (any Keras backend, e.g. KERAS_BACKEND=jax).")
-    flags.DEFINE_string("val_image_dir", "", "With --image_dir: images for the validation pairs.")
+    flags.DEFINE_list("image_dir", [], "Instead of --data_dir: folders of images (comma-separated); "
+                      "pairs are generated on the fly (any Keras backend, e.g. KERAS_BACKEND=jax).")
+    flags.DEFINE_list("val_image_dir", [], "With --image_dir: folders of images for the validation "
+                      "pairs (comma-separated).")
+    flags.DEFINE_bool("photometric", _D.photometric, "With --image_dir: independent brightness, "
+                      "contrast, gamma and noise changes of patch_b in the training pairs (not the "
+                      "paper's; the validation pairs stay unchanged).")
     flags.DEFINE_integer("samples_per_image", _D.samples_per_image,
                          "With --image_dir: squares per image per data epoch (as make_dataset).")
     flags.DEFINE_bool("fresh_pairs", _D.fresh_pairs, "With --image_dir: new pairs every data epoch "
@@ -23,12 +28,29 @@ def define_training_flags():
                       "of stages 1..k-1, whose predictions make the stage-k pairs in memory.")
     flags.DEFINE_string("model_dir", None, "Output directory (config, checkpoints, logs, model).",
                         required=True)
-    flags.DEFINE_integer("train_steps", _D.train_steps, "Total steps: warm-up + cosine decay.")
+    flags.DEFINE_integer("train_steps", _D.train_steps, "Total steps, warm-up included "
+                         "(unless given: 90,000 for the sequence model, the paper's, and for "
+                         "--model=homographynet, DeTone et al.'s).")
     flags.DEFINE_integer("warmup_steps", _D.warmup_steps, "Linear warm-up steps (0 -> learning_rate).")
     flags.DEFINE_integer("batch_size", _D.batch_size, "Global batch size.")
-    flags.DEFINE_float("learning_rate", _D.learning_rate, "Peak learning rate after warm-up.")
+    flags.DEFINE_float("learning_rate", _D.learning_rate, "Peak learning rate after warm-up "
+                       "(--model=homographynet: 0.005 unless given, DeTone et al.'s).")
+    flags.DEFINE_enum("lr_schedule", _D.lr_schedule, list(training.LR_SCHEDULES),
+                      "cosine (the paper's: warm-up, then cosine decay to 0) or step (DeTone et "
+                      "al.'s: /10 after each third of --train_steps, no warm-up; the default of "
+                      "--model=homographynet).")
     flags.DEFINE_float("momentum", _D.momentum, "SGD momentum.")
+    flags.DEFINE_enum("recipe", _D.recipe, sorted(training.RECIPES), "Preset of the recipe flags: "
+                      "paper (the paper's, default) or fast (a deviation: "
+                      + ", ".join(f"{k}={v}" for k, v in training.RECIPES["fast"].items())
+                      + "); flags given explicitly override the preset.")
+    flags.DEFINE_enum("optimizer", _D.optimizer, sorted(training.OPTIMIZERS),
+                      "sgd (paper, with --momentum), adam or adamw.")
+    flags.DEFINE_float("weight_decay", _D.weight_decay, "Decoupled weight decay (0: none).")
+    flags.DEFINE_float("clipnorm", _D.clipnorm, "Clip the global gradient norm (0: off).")
     flags.DEFINE_float("l2_weight", _D.l2_weight, "Weight of the L2 loss on H_bar.")
+    flags.DEFINE_enum("l2_reduction", _D.l2_reduction, list(training.L2_REDUCTIONS),
+                      "L2 over H_bar's 8 entries: mean (default) or sum (8 x mean).")
     flags.DEFINE_float("l1_weight", _D.l1_weight, "Weight of the L1 photometric loss.")
     flags.DEFINE_enum("batch_norm", _D.batch_norm, ["none", "conv"],
                       "none (paper's literal network, default) or BatchNorm after every conv.")
@@ -43,11 +65,20 @@ def define_training_flags():
     flags.DEFINE_integer("val_samples", _D.val_samples, "Validation pairs per checkpoint (0: off).")
     flags.DEFINE_enum("strategy", _D.strategy, ["default", "mirrored"], "tf.distribute strategy.")
     flags.DEFINE_bool("overwrite", False, "Delete and retrain a model_dir that holds a finished "
-                      "run or a run of other flags (an unfinished run of the same flags is resumed).")
+                      "run or a run of other flags (an unfinished run of the same flags is resumed). "
+                      "Only what a run wrote is deleted, and only after every flag and the data "
+                      "are checked; a folder that is not a training run is never touched.")
 
 
 def config_from_flags(**overrides) -> TrainConfig:
+    """The TrainConfig of the flags: the preset of ``--recipe`` and of the model kind in
+    ``overrides`` (:func:`stnh_tf.training.preset_fields`: e.g. DeTone's schedule for
+    ``model="homographynet"``, 90,000 steps for ``"sequence"``), then every flag given
+    explicitly, then ``overrides``."""
     f = flags.FLAGS
+    model = overrides.get("model", TrainConfig.model)
+    preset = {k: v for k, v in training.preset_fields(f.recipe, model).items()
+              if not f[k].present}
     cfg = TrainConfig(
         data_dir=f.data_dir, model_dir=f.model_dir, train_steps=f.train_steps,
         warmup_steps=f.warmup_steps, batch_size=f.batch_size, learning_rate=f.learning_rate,
@@ -55,10 +86,13 @@ def config_from_flags(**overrides) -> TrainConfig:
         batch_norm=f.batch_norm, dropout=f.dropout, seed=f.seed, shuffle_buffer=f.shuffle_buffer,
         mixed_precision=f.mixed_precision, checkpoint_every=f.checkpoint_every,
         log_every=f.log_every, val_split=f.val_split, val_samples=f.val_samples,
-        strategy=f.strategy, image_dir=f.image_dir, val_image_dir=f.val_image_dir,
-        samples_per_image=f.samples_per_image, fresh_pairs=f.fresh_pairs, workers=f.workers,
-        in_memory=f.in_memory, prev_stages=tuple(f.prev_stages))
-    for k, v in overrides.items():
+        strategy=f.strategy, image_dir=",".join(f.image_dir),
+        val_image_dir=",".join(f.val_image_dir), samples_per_image=f.samples_per_image,
+        fresh_pairs=f.fresh_pairs, workers=f.workers, in_memory=f.in_memory,
+        prev_stages=tuple(f.prev_stages), optimizer=f.optimizer, weight_decay=f.weight_decay,
+        clipnorm=f.clipnorm, l2_reduction=f.l2_reduction, photometric=f.photometric,
+        recipe=f.recipe, lr_schedule=f.lr_schedule)
+    for k, v in {**preset, **overrides}.items():
         setattr(cfg, k, v)
     return cfg
 

@@ -6,15 +6,18 @@ r"""Estimate the homography between two images and draw the alignment.
 Prints a JSON object whose ``homography`` maps image_b pixel coordinates (x, y) to image_a pixel
 coordinates (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``), and writes
 to ``--output_dir`` (default: the current directory) ``<a>__<b>_overlay.png`` and the same JSON as
-``<a>__<b>_homography.json``. The PNG has two panels: image_a with the quadrilateral where
-image_b's border lands (green), and image_b (green channel) over image_a warped onto image_b by
-the estimate (magenta): aligned regions look gray. ``--model`` takes what
+``<a>__<b>_homography.json`` (``<a>__<b>-2_...`` and so on when the folder holds the outputs of
+another pair of images with the same base names; a re-run of the same pair replaces its own).
+The PNG has two panels: image_a with the quadrilateral where image_b's border lands (green), and
+image_b (green channel) over image_a warped onto image_b by the estimate (magenta): aligned
+regions look gray. ``--model`` takes what
 ``HomographyEstimator.load`` takes (``.keras`` file, run directory, hierarchy manifest); without
 it the shipped default weights are used. Resizing rule: see ``stnh_tf.inference``.
 """
 
 import json
 import os
+import sys
 
 from absl import app, flags
 
@@ -37,6 +40,28 @@ def read_image(path, name):
         raise SystemExit(f"predict: cannot read {name} {path!r} as an image (OpenCV could not "
                          "decode it).")
     return image
+
+
+def output_stem(output_dir, inputs):
+    """``<a>__<b>`` from the base names of the two ``inputs`` (absolute paths), or ``<a>__<b>-2``,
+    ``-3``, ... when ``output_dir`` already holds the outputs of another pair with the same base
+    names (its JSON's ``input_paths`` differ): the outputs of one pair are replaced on a re-run,
+    never those of another."""
+    base = "__".join(os.path.splitext(os.path.basename(p))[0] for p in inputs)
+    for k in range(1, 10_000):
+        stem = base if k == 1 else f"{base}-{k}"
+        existing = os.path.join(output_dir, f"{stem}_homography.json")
+        if not os.path.exists(existing) and \
+                not os.path.exists(os.path.join(output_dir, f"{stem}_overlay.png")):
+            return stem
+        try:
+            with open(existing) as f:
+                if json.load(f).get("input_paths") == inputs:
+                    return stem
+        except (OSError, ValueError, AttributeError):
+            pass  # not ours to replace
+    raise SystemExit(f"predict: {output_dir} holds outputs of 9,999 pairs named {base}; choose "
+                     "another --output_dir.")
 
 
 def overlay(image_a, image_b, h_ba):
@@ -68,22 +93,33 @@ def main(argv):
     import cv2
     import numpy as np
 
-    from stnh_tf import geometry
+    from stnh_tf import geometry, paths
     from stnh_tf.inference import HomographyEstimator
 
     image_a = read_image(FLAGS.image_a, "image_a")
     image_b = read_image(FLAGS.image_b, "image_b")
     try:
+        output_dir = paths.check_output_dir(FLAGS.output_dir)
+    except OSError as e:
+        raise SystemExit(f"predict: --output_dir: {e}") from None
+    try:
         estimator = HomographyEstimator.load(FLAGS.model)
     except (FileNotFoundError, ValueError) as e:
         raise SystemExit(f"predict: {e}") from None
     h = estimator.estimate_images(image_a, image_b, channel_order="bgr")
+    info = estimator.last_info
+    implausible = bool(info["implausible"][0])
+    if implausible:
+        print(f"predict: warning: the estimate is implausible for this model (a patch corner "
+              f"moved {info['max_corner_shift_px'][0]:.1f} px at 128-px patch scale, the models "
+              f"were trained on up to 32 px; {int(info['rejected_stages'][0])} stage(s) skipped "
+              "as degenerate): the images may not overlap enough, or differ in ways the model "
+              "was not trained on.", file=sys.stderr)
     panels, quad = overlay(image_a, image_b, h)
 
-    os.makedirs(FLAGS.output_dir, exist_ok=True)
-    stem = (f"{os.path.splitext(os.path.basename(FLAGS.image_a))[0]}__"
-            f"{os.path.splitext(os.path.basename(FLAGS.image_b))[0]}")
-    png = os.path.join(FLAGS.output_dir, f"{stem}_overlay.png")
+    inputs = [os.path.realpath(FLAGS.image_a), os.path.realpath(FLAGS.image_b)]
+    stem = output_stem(output_dir, inputs)
+    png = os.path.join(output_dir, f"{stem}_overlay.png")
     if not cv2.imwrite(png, panels):
         raise SystemExit(f"predict: cannot write {png}.")
     result = {
@@ -97,8 +133,11 @@ def main(argv):
         "image_b_center_in_a": geometry.warp_points(
             h, np.array([[(image_b.shape[1] - 1) / 2, (image_b.shape[0] - 1) / 2]]))[0].tolist(),
         "overlay_png": png,
+        "input_paths": inputs,
+        "implausible": implausible,
+        "max_corner_shift_px": float(info["max_corner_shift_px"][0]),
     }
-    with open(os.path.join(FLAGS.output_dir, f"{stem}_homography.json"), "w") as f:
+    with open(os.path.join(output_dir, f"{stem}_homography.json"), "w") as f:
         json.dump(result, f, indent=2)
         f.write("\n")
     print(json.dumps(result, indent=2))

@@ -1,4 +1,5 @@
-r"""Train Sequence STN-Homography (paper section 5) end to end with the paper's recipe.
+r"""Train Sequence STN-Homography (paper section 5) end to end with the paper's recipe
+(90,000 steps in total unless --train_steps is given, the paper's "total training steps of 90000").
 
   python -m experiments.train_sequence --num_stages=2 --data_dir=data/coco_mini \
       --model_dir=runs/sequence2 [--init_from=runs/stage1,runs/stage2] [--stage_loss_weights=0.5,1]

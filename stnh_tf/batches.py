@@ -19,7 +19,8 @@ import sys
 import numpy as np
 
 from stnh_tf import pairs, sources
-from stnh_tf.sources import ImageDecodeError, SourceError, bundled_image_files, scan_image_folder
+from stnh_tf.sources import (ImageDecodeError, SourceError, bundled_image_files, scan_image_folder,
+                             scan_image_folders)
 
 _log = logging.getLogger(__name__)
 
@@ -71,7 +72,8 @@ class PairBatches:
 
     Args:
       images: ``"bundled"``; a folder (every image file below it, sorted as make_dataset does);
-        a list of paths; or a list of ``(image_id, path | encoded bytes | array)``.
+        a list of folders (:func:`sources.scan_image_folders`); a list of image paths; or a list
+        of ``(image_id, path | encoded bytes | array)``.
       batch_size: samples per batch.
       samples_per_image: squares per image (paper: 3).
       seed: as ``make_dataset --seed``.
@@ -80,12 +82,16 @@ class PairBatches:
       max_images: use only the first N images (0 = all), as ``make_dataset --max_images``.
       cache_images: decode every image once at construction (unusable ones are dropped and
         listed in ``self.skipped`` with reasons); else decode on demand (errors then raise).
+      photometric: change patch_b photometrically (:class:`pairs.PhotometricChange`, not the
+        paper's); the geometry of every sample is the same as without.
     """
 
     def __init__(self, images="bundled", batch_size: int = 64, *, samples_per_image: int = 3,
                  seed: int = 0, shuffle: bool = True, drop_remainder: bool = True,
-                 max_images: int = 0, cache_images: bool = True):
-        self.protocol = pairs.Protocol(samples_per_image=samples_per_image)
+                 max_images: int = 0, cache_images: bool = True, photometric: bool = False):
+        self.protocol = pairs.Protocol(
+            samples_per_image=samples_per_image,
+            photometric=pairs.PhotometricChange() if photometric else None)
         self.batch_size, self.seed = int(batch_size), int(seed)
         self.shuffle, self.drop_remainder = shuffle, drop_remainder
         if self.batch_size < 1:
@@ -186,6 +192,10 @@ def _image_entries(images) -> list:
         return [(i, image_id, p) for i, (image_id, p) in enumerate(bundled_image_files())]
     if isinstance(images, (str, os.PathLike)):
         listing = scan_image_folder(os.fspath(images))
+        return [(i, listing.image_id(p), p) for i, p in enumerate(listing.files)]
+    images = list(images)
+    if images and all(isinstance(x, (str, os.PathLike)) and os.path.isdir(x) for x in images):
+        listing = scan_image_folders(images)
         return [(i, listing.image_id(p), p) for i, p in enumerate(listing.files)]
     out = []
     for i, item in enumerate(images):

@@ -30,6 +30,7 @@ import keras
 import numpy as np
 
 from stnh_tf import features
+from stnh_tf.paths import inside
 from stnh_tf.batches import (PairBatches, generator_pool, materialize, model_batch,  # noqa: F401
                              numpy_model_batch, stack_samples, step_batch_async)
 from stnh_tf.sources import (ImageDecodeError, SourceError, bundled_image_files,  # noqa: F401
@@ -105,13 +106,15 @@ def shard_paths(data_dir: str, split: str, verify: str = "size") -> list:
         CRCs and record counts).
     Raises:
       ShardError: a missing, truncated or corrupted shard (naming the file).
+      ValueError: a shard's ``file`` is not a path inside ``data_dir`` (:func:`paths.inside`).
     """
     if verify not in ("none", "size", "full"):
         raise ValueError(f"verify must be 'none', 'size' or 'full'; received {verify!r}.")
     info = split_info(data_dir, split)
     paths = []
     for shard in info["shards"]:
-        path = os.path.join(data_dir, shard["file"])
+        path = inside(data_dir, shard.get("file"), f"{os.path.join(data_dir, METADATA_FILE)!r}, "
+                      f"a shard of split {split!r}")
         if verify != "none":
             if not os.path.isfile(path):
                 raise ShardError(f"shard {path!r} listed in metadata.json is missing.")
@@ -298,12 +301,14 @@ class PairSequence(keras.utils.PyDataset):
     def __init__(self, images="bundled", batch_size: int = 64, *, samples_per_image: int = 3,
                  seed: int = 0, shuffle: bool = True, drop_remainder: bool = True,
                  max_images: int = 0, cache_images: bool = True, mapper=None, workers: int = 1,
-                 use_multiprocessing: bool = False, max_queue_size: int = 10):
+                 use_multiprocessing: bool = False, max_queue_size: int = 10,
+                 photometric: bool = False):
         super().__init__(workers=workers, use_multiprocessing=use_multiprocessing,
                          max_queue_size=max_queue_size)
         self.batches = PairBatches(images, batch_size, samples_per_image=samples_per_image,
                                    seed=seed, shuffle=shuffle, drop_remainder=drop_remainder,
-                                   max_images=max_images, cache_images=cache_images)
+                                   max_images=max_images, cache_images=cache_images,
+                                   photometric=photometric)
         self.mapper = mapper
 
     def __len__(self) -> int:
@@ -382,13 +387,14 @@ class PairStream(keras.utils.PyDataset):
 
     def __init__(self, images, batch_size: int = 64, *, samples_per_image: int = 3, seed: int = 0,
                  start_step: int = 0, fresh_pairs: bool = False, mapper=None, max_images: int = 0,
-                 workers: int = 0, prefetch: int = 0):
+                 workers: int = 0, prefetch: int = 0, photometric: bool = False):
         super().__init__()
         if workers < 0 or prefetch < 0:
             raise ValueError(f"workers and prefetch must be >= 0; received {workers}, {prefetch}.")
         self.batches = PairBatches(images, batch_size, samples_per_image=samples_per_image,
                                    seed=seed, shuffle=True, drop_remainder=True,
-                                   max_images=max_images, cache_images=True)
+                                   max_images=max_images, cache_images=True,
+                                   photometric=photometric)
         self.start_step, self.fresh_pairs, self.mapper = int(start_step), bool(fresh_pairs), mapper
         self.num_workers = int(workers)
         self.prefetch = int(prefetch) or 2 * self.num_workers

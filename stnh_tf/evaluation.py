@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import time
+import zipfile
 
 import numpy as np
 
@@ -33,6 +34,9 @@ def load_model(model_dir_or_file, compute_dtype=None):
     ``mixed_bfloat16``, as the CPU-budget models were trained) so every layer computes in
     float32, with the same weights (mixed-precision variables are float32 already); default: as
     saved.
+
+    Raises ``FileNotFoundError`` if there is no such file and ``ValueError`` if a ``.keras``
+    file is not a Keras model archive.
     """
     import keras
 
@@ -45,6 +49,10 @@ def load_model(model_dir_or_file, compute_dtype=None):
         path = os.path.join(path, "model.keras")
     if not os.path.exists(path):
         raise FileNotFoundError(f"no trained model at {model_dir_or_file} (looked for {path}).")
+    if str(path).endswith(".keras") and not zipfile.is_zipfile(path):
+        # Keras itself calls such a file "File not found".
+        raise ValueError(f"{path} exists but is not a Keras model (a .keras file is a zip archive "
+                         "written by model.save).")
     model = keras.models.load_model(path, compile=False)
     return with_compute_dtype(model, compute_dtype) if compute_dtype else model
 
@@ -159,26 +167,30 @@ def evaluate_model_on_arrays(model, samples: dict, batch_size=64) -> dict:
     return summary
 
 
-def evaluate_hierarchy(models, samples: dict, batch_size=64) -> dict:
+def evaluate_hierarchy(models, samples: dict, batch_size=64, clip_to_context: bool = True) -> dict:
     """MACE after 1, 2, ..., n stages of a hierarchy of single-stage models on stage-1 pairs.
 
     Stage k sees patch_a re-cropped from the stored context warped by the estimate so far (the
-    paper's OpenCV warp between stages, :func:`stnh_tf.hierarchy.run_hierarchy`).
+    paper's OpenCV warp between stages, :func:`stnh_tf.hierarchy.run_hierarchy`), after the
+    degenerate-prediction rule; ``clip_to_context=False`` leaves out its clipping of corners onto
+    the context border (post-processing that is not the paper's; see :mod:`stnh_tf.hierarchy`).
     Returns the final summary with ``stages`` (``after_k_stages``), ``identity``, the
-    degenerate-prediction counts (``rejected``) and the time per pair.
+    degenerate-prediction counts (``rejected``), ``clip_to_context`` and the time per pair.
     """
     from stnh_tf import hierarchy
 
     h_true = np.asarray(samples["h_ba"], np.float64)
     t0 = time.perf_counter()
     run = hierarchy.run_hierarchy([hierarchy.keras_stage(m, batch_size) for m in models],
-                                  samples["context_a"], samples["patch_b"])
+                                  samples["context_a"], samples["patch_b"],
+                                  clip_to_context=clip_to_context)
     elapsed = time.perf_counter() - t0
     stages = {f"after_{k}_stages": error_summary(geometry.corner_errors(h, h_true))
               for k, h in enumerate(run["per_stage"], start=1)}
     summary = dict(stages[f"after_{len(models)}_stages"])
     summary["stages"] = stages
     summary["rejected"] = run["rejected"]
+    summary["clip_to_context"] = bool(clip_to_context)
     summary["identity"] = error_summary(geometry.corner_errors(np.broadcast_to(np.eye(3), h_true.shape),
                                                                h_true))
     summary["ms_per_pair_batched"] = 1000.0 * elapsed / len(h_true)
@@ -186,7 +198,8 @@ def evaluate_hierarchy(models, samples: dict, batch_size=64) -> dict:
 
 
 def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(),
-             max_samples=None, batch_size=64, compute_dtype=None) -> dict:
+             max_samples=None, batch_size=64, compute_dtype=None,
+             clip_to_context: bool = True) -> dict:
     """The library core of ``experiments.evaluate``.
 
     Args:
@@ -199,12 +212,26 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
       max_samples: evaluate the first N pairs only (reported as ``count``; default all).
       compute_dtype: see :func:`load_model` (``"float32"`` scores mixed-precision models as
         ``HomographyEstimator.load`` runs them; default: as saved).
+      clip_to_context: for a hierarchy, the degenerate-prediction rule's clipping of corners onto
+        the context border (:func:`evaluate_hierarchy`); ``False`` reports MACE without it.
     Returns:
       ``{"data_dir", "split", "count", "identity", "model" (if any), "baselines" (if any)}``.
+    Raises:
+      ValueError: ``batch_size`` < 1 or ``max_samples`` < 1, or ``clip_to_context=False``
+        without a hierarchy (checked before anything is read); a missing split, a model or
+        baseline that does not fit the data.
     """
     from stnh_tf import baselines as baselines_lib
     from stnh_tf import data
 
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1; received {batch_size}.")
+    if max_samples is not None and max_samples < 1:
+        raise ValueError(f"max_samples must be >= 1 (or unset: all pairs); received {max_samples}.")
+    if not clip_to_context and len([d for d in (model_dirs or ()) if d]) < 2:
+        raise ValueError("clip_to_context=False (--no_clip) changes only a hierarchy (several model "
+                         "dirs), whose degenerate-prediction rule clips corners onto the context; "
+                         "a single model or a baseline is evaluated without that rule.")
     samples = data.load_arrays(data_dir, split, max_samples=max_samples)
     h_true = np.asarray(samples["h_ba"], np.float64)
     h_prev = np.asarray(samples["h_prev"], np.float64)
@@ -221,7 +248,7 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
             raise ValueError(f"a hierarchy is evaluated on stage-1 pairs; {data_dir} holds pairs "
                              "with earlier-stage estimates (h_prev != identity).")
         out["model"] = evaluate_hierarchy([load_model(d, compute_dtype) for d in model_dirs],
-                                          samples, batch_size)
+                                          samples, batch_size, clip_to_context)
         out["model"]["model_dirs"] = list(model_dirs)
     if baselines:
         if not np.allclose(h_prev, np.eye(3)):

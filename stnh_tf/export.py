@@ -2,7 +2,9 @@
 
 The SavedModel has one serving signature (``serving_default``, also reachable as ``serve``):
 
-* inputs ``patch_a`` and ``patch_b``: ``uint8`` ``[B, 128, 128, 1]`` grayscale patches (0..255);
+* inputs ``patch_a`` and ``patch_b``: ``uint8`` ``[B, 128, 128, 1]`` grayscale patches (0..255),
+  the same ``B`` for both; checked in the graph (:func:`checked_inputs`): any other rank, size,
+  channel count or dtype raises ``InvalidArgumentError``;
 * output ``homography``: ``float32`` ``[B, 3, 3]`` pixel ``H_ba`` (maps patch_b pixel coordinates
   to patch_a pixel coordinates, ``[2, 2] = 1``; see :mod:`stnh_tf.geometry`).
 
@@ -37,6 +39,25 @@ SIGNATURE = "serving_default"
 OUTPUT = "homography"
 
 
+def checked_inputs(patch_a, patch_b):
+    """``patch_a``, ``patch_b`` after run-time checks in the graph: each of shape
+    ``[B, 128, 128, 1]`` (``tf.ensure_shape``) and the same ``B`` for both; anything else raises
+    ``InvalidArgumentError`` when the function runs. (A SavedModel signature's declared input
+    shape is not enforced when it is called, and the graph is optimized for that shape: without
+    these checks a ``[1, 128, 128]`` request aborted the serving process and a ``[1, 64, 64, 1]``
+    one returned a homography.) The dtype (uint8) is checked by the signature itself."""
+    import tensorflow as tf
+
+    s = geometry.PATCH_SIZE
+    patch_a = tf.ensure_shape(patch_a, [None, s, s, 1], name="check_patch_a")
+    patch_b = tf.ensure_shape(patch_b, [None, s, s, 1], name="check_patch_b")
+    same = tf.debugging.assert_equal(tf.shape(patch_a)[0], tf.shape(patch_b)[0],
+                                     message="patch_a and patch_b must hold the same number of "
+                                             "patches")
+    with tf.control_dependencies([same]):
+        return tf.identity(patch_a), tf.identity(patch_b)
+
+
 def serving_function(estimator):
     """A TensorFlow function ``(patch_a, patch_b) -> {"homography": [B, 3, 3] float32}`` on uint8
     ``[B, 128, 128, 1]`` patches, computing the estimator's ``H_ba`` with its Keras models."""
@@ -54,6 +75,7 @@ def serving_function(estimator):
         return ops.reshape(ops.concatenate([h8, ops.ones_like(h8[:, :1])], axis=-1), (-1, 3, 3))
 
     def serve(patch_a, patch_b):
+        patch_a, patch_b = checked_inputs(patch_a, patch_b)
         a = ops.cast(patch_a, "float32") / 255.0
         b = ops.cast(patch_b, "float32") / 255.0
         total, current = None, a

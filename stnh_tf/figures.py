@@ -1,8 +1,9 @@
 """Figures of the paper, drawn with matplotlib (Agg backend, imported lazily).
 
-* :func:`prediction_examples`: the paper's Fig. 5, image_a (the stored context around the
-  square) with patch_b's true quadrilateral in green and the predicted one in red, beside
-  patch_b.
+* :func:`prediction_examples`: the paper's Fig. 5, as the paper draws it: image_a (the stored
+  context around the square) with patch_b's true quadrilateral in green and the predicted one in
+  red, and image_b around the square (:func:`image_b_window`) with the true one (the square) in
+  green.
 * :func:`mace_bars`: the paper's Fig. 4, MACE of several methods as bars.
 * :func:`hbar_histogram`: the paper's Fig. 1, value histograms of the eight entries of H_bar.
 """
@@ -32,15 +33,58 @@ def quadrilateral(a_from_b: np.ndarray, offset: float = 0.0, size: int = geometr
     return np.concatenate([pts, pts[:1]], axis=0)
 
 
-def prediction_examples(context_a, patch_b, h_true, h_pred, path: str, titles=None,
-                        margin: int = geometry.MAX_PERTURBATION, columns: int = 4) -> str:
-    """Fig. 5: for each pair, image_a's context with the true (green) and predicted (red)
-    quadrilaterals of patch_b, and patch_b below it. Writes a PNG to ``path``; returns ``path``.
+def _as_uint8(patch) -> np.ndarray:
+    """A ``[S, S(, 1)]`` patch, uint8 (0..255) or float in [0, 1], as uint8 ``[S, S]``."""
+    patch = np.asarray(patch)
+    patch = patch.reshape(patch.shape[0], patch.shape[1])
+    if patch.dtype == np.uint8:
+        return patch
+    return np.clip(np.rint(patch.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
+
+
+def image_b_window(context_a, a_from_b, patch_b=None,
+                   margin: int = geometry.MAX_PERTURBATION) -> np.ndarray:
+    """image_b around the square, re-made from image_a's stored context: the ``S+2m`` window of
+    image_b whose centre is the square, ``out(q) = context_a(T_m @ H_ba @ T_m^-1 @ q)`` (``T_m``
+    the translation by ``(m, m)``; ``image_b(p) = image_a(H_ba @ p)`` in the patch frame),
+    bilinear, black where that point lies beyond the context. With ``patch_b`` its stored pixels
+    replace the centre (they are image_b's own).
 
     Args:
-      context_a: ``[N, S+2m, S+2m]`` uint8; patch_b: ``[N, S, S(, 1)]`` uint8 or float in [0, 1].
-      h_true, h_pred: ``[N, 3, 3]`` pixel ``H_ba`` (patch frame).
+      context_a: ``[S+2m, S+2m]`` uint8 context of image_a.
+      a_from_b: ``[3, 3]`` true pixel ``H_ba`` (patch frame, patch_b -> patch_a).
+      patch_b: optional ``[S, S(, 1)]`` uint8 or float in [0, 1].
+    Returns:
+      uint8 ``[S+2m, S+2m]``.
+    Raises:
+      ValueError: ``context_a`` is not square or ``patch_b`` does not fit its centre.
     """
+    from stnh_tf import hierarchy
+
+    context_a = np.asarray(context_a)
+    side = context_a.shape[0]
+    if context_a.ndim != 2 or context_a.shape[1] != side or side <= 2 * margin:
+        raise ValueError(f"context_a must be a square [S+2m, S+2m] image with m = {margin}; "
+                         f"received shape {context_a.shape}.")
+    h = np.asarray(a_from_b, np.float64) @ geometry.translation(-margin, -margin)
+    window = np.clip(np.rint(hierarchy.warp_crop(context_a, h, (margin, margin), side)),
+                     0, 255).astype(np.uint8)
+    if patch_b is not None:
+        pb = _as_uint8(patch_b)
+        if pb.shape != (side - 2 * margin,) * 2:
+            s = side - 2 * margin
+            raise ValueError(f"patch_b must be [{s}, {s}(, 1)] to fit the centre of a {side}-px "
+                             f"context; received shape {np.shape(patch_b)}.")
+        window[margin:side - margin, margin:side - margin] = pb
+    return window
+
+
+def prediction_figure(context_a, patch_b, h_true, h_pred, titles=None,
+                      margin: int = geometry.MAX_PERTURBATION):
+    """The matplotlib figure of :func:`prediction_examples` (2 rows x N columns of axes): row 0
+    image_a (``context_a``) with the true (green, ``lime``) and predicted (red) quadrilaterals
+    ``H_ba @ c``; row 1 image_b around the square (:func:`image_b_window`) with the true one, the
+    square itself, in green. The caller closes it."""
     plt = _pyplot()
     n = len(context_a)
     fig, axes = plt.subplots(2, n, figsize=(2.6 * n, 5.4), squeeze=False)
@@ -51,14 +95,36 @@ def prediction_examples(context_a, patch_b, h_true, h_pred, path: str, titles=No
             q = quadrilateral(h, margin)
             ax.plot(q[:, 0], q[:, 1], color=colour, linewidth=1.5)
         err = float(geometry.corner_errors(np.asarray(h_pred[i]), np.asarray(h_true[i])))
-        ax.set_title((titles[i] + "\n" if titles else "") + f"MACE {err:.1f} px", fontsize=8)
+        ax.set_title((titles[i] + "\n" if titles else "") + f"image_a, MACE {err:.1f} px",
+                     fontsize=8)
         ax.axis("off")
-        pb = np.asarray(patch_b[i]).reshape(patch_b[i].shape[0], patch_b[i].shape[1])
-        axes[1, i].imshow(pb, cmap="gray", vmin=0, vmax=1 if pb.dtype != np.uint8 else 255)
-        axes[1, i].set_title("patch_b", fontsize=8)
-        axes[1, i].axis("off")
-    fig.suptitle("image_a: true quadrilateral green, predicted red", fontsize=9)
+        ax = axes[1, i]
+        ax.imshow(image_b_window(context_a[i], h_true[i], patch_b[i], margin), cmap="gray",
+                  vmin=0, vmax=255)
+        q = quadrilateral(np.eye(3), margin)
+        ax.plot(q[:, 0], q[:, 1], color="lime", linewidth=1.5)
+        ax.set_title("image_b", fontsize=8)
+        ax.axis("off")
+    fig.suptitle("Ground truth green (image_a and image_b), prediction red (image_a)", fontsize=9)
     fig.tight_layout()
+    return fig
+
+
+def prediction_examples(context_a, patch_b, h_true, h_pred, path: str, titles=None,
+                        margin: int = geometry.MAX_PERTURBATION) -> str:
+    """Fig. 5 as the paper draws it ("the green boxes in image_a and image_b represent the ground
+    truth corresponding points, and the red boxes in image_a are our predictions"): for each
+    pair, image_a's context with the true (green) and predicted (red) quadrilaterals of patch_b,
+    and below it image_b around the square with the true box (:func:`prediction_figure`).
+    image_a and image_b are the ``S+2m`` windows the stored pairs hold, not the whole 320x240
+    images. Writes a PNG to ``path``; returns ``path``.
+
+    Args:
+      context_a: ``[N, S+2m, S+2m]`` uint8; patch_b: ``[N, S, S(, 1)]`` uint8 or float in [0, 1].
+      h_true, h_pred: ``[N, 3, 3]`` pixel ``H_ba`` (patch frame).
+    """
+    plt = _pyplot()
+    fig = prediction_figure(context_a, patch_b, h_true, h_pred, titles, margin)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

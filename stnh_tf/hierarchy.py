@@ -25,7 +25,11 @@ the composed estimate ``H = H_prev @ H_k``:
   the next stage never samples beyond the context (reason ``outside_context``; if the refit is
   itself degenerate, the identity rule applies).
 
-Each case is counted by reason.
+Each case is counted by reason. The clipping is post-processing that is not in the paper: it uses
+the protocol's knowledge that true corners move at most ``m`` pixels, and lowers hierarchy MACE
+slightly. ``clip_to_context=False`` (``experiments.evaluate --no_clip``) keeps such estimates as
+they are (still counted as ``outside_context``; the next stage then reads zeros beyond the
+context), so MACE can be reported without it.
 
 NumPy/OpenCV only; the stage models are called through a ``predict`` function so that this module
 imports no deep-learning backend.
@@ -140,15 +144,19 @@ def _clip_to_context(h: np.ndarray, margin: int, size: int) -> np.ndarray:
 
 
 def accept_or_reject(h_prev: np.ndarray, h_stage: np.ndarray, margin: int = CONTEXT_MARGIN,
-                     size: int = geometry.PATCH_SIZE):
+                     size: int = geometry.PATCH_SIZE, clip_to_context: bool = True):
     """Apply the degenerate-prediction rule to a batch.
 
     Args:
       h_prev: ``[N, 3, 3]`` composed estimate so far; h_stage: ``[N, 3, 3]`` this stage's output.
+      clip_to_context: refit estimates whose corners leave the context onto its border (default,
+        the rule used to generate stage data); ``False`` keeps them unclipped (still reported as
+        ``outside_context``).
     Returns:
-      ``(h_composed [N, 3, 3], reasons)``: ``h_prev @ h_stage`` where accepted; refitted to the
-      context where corners left it; ``h_prev`` where non-finite or singular. ``reasons`` holds
-      ``None`` or a reason from :data:`REJECT_REASONS` per sample.
+      ``(h_composed [N, 3, 3], reasons)``: ``h_prev @ h_stage`` (scaled to ``[2,2] = 1``) where
+      accepted; refitted to the context where corners left it (unless ``clip_to_context`` is
+      False); ``h_prev`` where non-finite or singular. ``reasons`` holds ``None`` or a reason
+      from :data:`REJECT_REASONS` per sample.
     """
     h_prev = np.asarray(h_prev, np.float64)
     with np.errstate(all="ignore"):
@@ -156,7 +164,7 @@ def accept_or_reject(h_prev: np.ndarray, h_stage: np.ndarray, margin: int = CONT
     out, reasons = [], []
     for prev, h in zip(h_prev, composed):
         reason = rejection_reason(h, margin, size)
-        if reason == "outside_context":
+        if reason == "outside_context" and clip_to_context:
             h = _clip_to_context(h / h[2, 2], margin, size)
             if rejection_reason(h, margin + 1e-3, size) is not None:
                 reason = "singular"
@@ -171,7 +179,7 @@ PredictFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 def run_hierarchy(stages: Sequence[PredictFn], context_a: np.ndarray, patch_b: np.ndarray,
                   h_init: np.ndarray | None = None, margin: int = CONTEXT_MARGIN,
-                  size: int = geometry.PATCH_SIZE) -> dict:
+                  size: int = geometry.PATCH_SIZE, clip_to_context: bool = True) -> dict:
     """Run ``n`` stages on a batch as the paper does (OpenCV warp of the context between stages).
 
     Args:
@@ -180,6 +188,7 @@ def run_hierarchy(stages: Sequence[PredictFn], context_a: np.ndarray, patch_b: n
       patch_b: ``[N, S, S]`` or ``[N, S, S, 1]``, uint8 (0..255) or float in [0, 1] (each input
         is scaled by its own dtype).
       h_init: ``[N, 3, 3]`` estimate to start from (identity when ``None``).
+      clip_to_context: see :func:`accept_or_reject` (``False``: no clipping onto the context).
     Returns:
       ``{"h": [N,3,3] composed H_ba after all stages, "per_stage": [n x [N,3,3]] estimate after
       each stage, "rejected": [n x {reason: count}]}``.
@@ -195,7 +204,7 @@ def run_hierarchy(stages: Sequence[PredictFn], context_a: np.ndarray, patch_b: n
     for predict in stages:
         patch_a = np.stack([crop_warped_context(c, hp, margin, size) for c, hp in zip(context_a, h)])
         h_stage = np.asarray(predict(patch_a[..., None] / scale, patch_b), np.float64)
-        h, reasons = accept_or_reject(h, h_stage, margin, size)
+        h, reasons = accept_or_reject(h, h_stage, margin, size, clip_to_context)
         per_stage.append(h.copy())
         rejected.append({r: reasons.count(r) for r in REJECT_REASONS})
     return {"h": h, "per_stage": per_stage, "rejected": rejected}

@@ -26,7 +26,8 @@ Hierarchy manifest (a JSON file; by convention ``hierarchy.json``)::
     }
 
 ``stages`` lists the stage models in order: each a ``.keras`` file or a training run directory
-holding ``model.keras``; relative paths are relative to the manifest's folder. Each stage may be a
+holding ``model.keras``, given relative to the manifest's folder and inside it (absolute paths
+and ``../`` are refused, so a manifest cannot make the loader read models from elsewhere). Each stage may be a
 single-stage or a sequence model. :func:`write_manifest` writes one. :meth:`HomographyEstimator.load`
 accepts
 
@@ -94,7 +95,22 @@ DEFAULT_MANIFEST = "default.json"
 DEFAULT_MODEL = "default.keras"
 KINDS = ("single", "sequence", "hierarchy")
 
+IMPLAUSIBLE_CORNER_SHIFT = 1.5 * geometry.MAX_PERTURBATION
+"""Corner displacement (px, 128 x 128 patch frame) beyond which an estimate is flagged as
+implausible: the models were trained on corners moved by up to 32 px."""
+
 _log = logging.getLogger(__name__)
+
+
+def corner_shift(a_from_b) -> np.ndarray:
+    """Largest displacement ``|H c - c|`` (px) of the four patch corners ``c`` under each
+    ``a_from_b`` ``[B, 3, 3]`` (patch frame); ``inf`` where a corner maps to infinity or NaN.
+    Returns float64 ``[B]``."""
+    corners = geometry.patch_corners(PATCH_SIZE)
+    with np.errstate(all="ignore"):
+        moved = geometry.warp_points(np.asarray(a_from_b, np.float64), corners)
+        shift = np.linalg.norm(moved - corners, axis=-1).max(axis=-1)
+    return np.where(np.isfinite(shift), shift, np.inf)
 
 
 # --------------------------------------------------------------------------------------------
@@ -121,15 +137,22 @@ def default_weights_dir() -> str:
 def write_manifest(path, stages, description: str = "") -> str:
     """Write a hierarchy manifest to ``path`` naming ``stages`` (model files or run directories).
 
-    Paths under the manifest's folder are stored relative to it, so the folder can be moved.
-    Returns ``path``.
+    Every stage must lie in the manifest's folder or below it (:func:`read_manifest` reads no
+    other); it is stored relative to the folder, so the folder can be moved. Returns ``path``.
+
+    Raises:
+      ValueError: no stage, or a stage outside the manifest's folder.
     """
     folder = os.path.dirname(os.path.abspath(path))
     entries = []
     for stage in stages:
         full = os.path.abspath(os.fspath(stage))
         rel = os.path.relpath(full, folder)
-        entries.append(full if rel.startswith("..") else rel.replace(os.sep, "/"))
+        if rel == os.pardir or rel.startswith(os.pardir + os.sep):
+            raise ValueError(f"stage {full} is outside the manifest's folder {folder}: a manifest "
+                             "names stages beside it or below it; write it next to the stages, "
+                             "or copy the stage models into its folder.")
+        entries.append(rel.replace(os.sep, "/"))
     if not entries:
         raise ValueError("a hierarchy manifest needs at least one stage; received none.")
     doc = {"format": MANIFEST_FORMAT, "version": MANIFEST_VERSION, "stages": entries}
@@ -142,13 +165,14 @@ def write_manifest(path, stages, description: str = "") -> str:
 
 
 def read_manifest(path) -> list:
-    """The stage model paths (absolute, in order) named by the hierarchy manifest at ``path``."""
+    """The stage model paths (absolute, in order) named by the hierarchy manifest at ``path``.
+
+    Every stage must be a relative path inside the manifest's folder (beside it or below it);
+    absolute paths and ``../`` escapes raise ``ValueError`` (:func:`stnh_tf.paths.inside`)."""
+    from stnh_tf.paths import inside, read_json
+
     path = os.fspath(path)
-    try:
-        with open(path) as f:
-            doc = json.load(f)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"hierarchy manifest {path} is not valid JSON: {e}.") from None
+    doc = read_json(path, "hierarchy manifest")
     if not isinstance(doc, dict) or doc.get("format") != MANIFEST_FORMAT:
         raise ValueError(f"{path} is not a hierarchy manifest: expected a JSON object with "
                          f"\"format\": \"{MANIFEST_FORMAT}\"; received {str(doc)[:200]}.")
@@ -160,7 +184,8 @@ def read_manifest(path) -> list:
         raise ValueError(f"hierarchy manifest {path}: \"stages\" must be a non-empty list of paths; "
                          f"received {stages!r}.")
     folder = os.path.dirname(os.path.abspath(path))
-    return [s if os.path.isabs(s) else os.path.normpath(os.path.join(folder, s)) for s in stages]
+    return [inside(folder, s, f"hierarchy manifest {path}, stage {k}")
+            for k, s in enumerate(stages, start=1)]
 
 
 def _numbered_stages(directory):
@@ -367,6 +392,12 @@ class HomographyEstimator:
         self.source = source
         self.last_rejected = {"non_finite": 0, "singular": 0}
         """Stage predictions the last estimate skipped as degenerate, by reason."""
+        self.last_info = None
+        """Per pair of the last estimate (arrays of length B): ``implausible`` (bool: a stage
+        was skipped as degenerate, or a patch corner moved more than
+        :data:`IMPLAUSIBLE_CORNER_SHIFT` px, beyond what the models were trained on),
+        ``max_corner_shift_px`` (largest corner displacement of the 128 x 128 patch estimate)
+        and ``rejected_stages`` (stages skipped as degenerate)."""
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -449,6 +480,7 @@ class HomographyEstimator:
         total = np.broadcast_to(np.eye(3), (len(patch_a), 3, 3)).copy()
         current = patch_a
         rejected = {"non_finite": 0, "singular": 0}
+        rejected_stages = np.zeros(len(patch_a), np.int64)
         for k in range(self.num_stages):
             if k:
                 sources = context if context is not None else [np.ascontiguousarray(p[..., 0]) for p in patch_a]
@@ -459,13 +491,17 @@ class HomographyEstimator:
             # stored context to leave): a non-finite or singular composition keeps the estimate
             # so far.
             total, reasons = hierarchy.accept_or_reject(total, h_stage, margin=np.inf)
-            for reason in reasons:
+            for i, reason in enumerate(reasons):
                 if reason:
                     rejected[reason] += 1
+                    rejected_stages[i] += 1
         self.last_rejected = rejected
         if any(rejected.values()):
             _log.warning("HomographyEstimator: stage predictions skipped as degenerate: %s",
                          rejected)
+        shift = corner_shift(total)
+        self.last_info = {"implausible": (rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT),
+                          "max_corner_shift_px": shift, "rejected_stages": rejected_stages}
         return total
 
     def estimate(self, patch_a, patch_b, batch_size: int = 64) -> np.ndarray:

@@ -4,7 +4,8 @@
 * :func:`build_stn_homography`: one stage, ``{"patch_a", "patch_b"} -> {"h_bar", "patch_a_warp"}``.
 * :func:`build_sequence_stn_homography` (alias :data:`SequenceSTNHomography`): n stages chained by
   :class:`HomographyMerge`.
-* :func:`build_homographynet`: DeTone et al.'s 4-point regression on the same backbone (baseline).
+* :func:`build_homographynet`: DeTone et al.'s HomographyNet as they describe it (baseline);
+  :func:`build_homographynet_gap`: the same 4-point regression on this project's backbone.
 
 Inputs are float32 patches in ``[0, 1]``, ``[B, 128, 128, 1]``. ``h_bar`` is the normalized
 ``H_ba`` (patch_b -> patch_a, the paper's ``M``; see :mod:`stnh_tf.geometry`), and
@@ -23,6 +24,7 @@ from stnh_tf.layers import HomographyMerge, SpatialTransformer
 IDENTITY_H_BAR = np.array([1, 0, 0, 0, 1, 0, 0, 0], dtype=np.float32)
 CONV_FILTERS = (64, 64, 64, 64, 128, 128, 128, 128)
 BATCH_NORM_CHOICES = ("none", "conv")
+HEAD_CHOICES = ("gap", "flatten")
 DEFAULT_BATCH_NORM = "none"
 """The paper's literal network (no BatchNorm): it trains stably at the paper's learning rate 0.05
 with the identity-initialised output layer, and a training step costs about a quarter of the
@@ -31,28 +33,45 @@ BatchNorm variant's on a CPU (README, "Batch normalization")."""
 
 def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5, dense_units: int = 1024,
                        outputs: int = 8, identity_init: bool = True, size: int = geometry.PATCH_SIZE,
-                       name: str = "regression") -> keras.Model:
-    """The paper's regression network.
+                       name: str = "regression", head: str = "gap",
+                       conv_dropout: float = 0.0) -> keras.Model:
+    """The paper's regression network (and, with ``head="flatten"``, DeTone et al.'s).
 
     8 conv 3x3 layers (64, 64, 64, 64, 128, 128, 128, 128 filters, ReLU), 2x2 stride-2 max pooling
     after each of the first three pairs of convolutions, global average pooling, Dense 1024 + ReLU,
     Dropout, Dense 8 (768,904 parameters). Three pools, not four: the paper says both "a max
     pooling layer after every two convolutions" and "the output deep features of [the] last
-    convolutional layer are followed by a global average pooling layer"; we follow the second,
-    which is also the layout of DeTone et al.'s HomographyNet that the paper's text is taken from
-    (its 3 pools end at 16x16x128). So the global average runs over 16x16 (128 -> 64 -> 32 -> 16).
+    convolutional layer are followed by a global average pooling layer"; we follow the second.
+    Three pools are also DeTone et al.'s HomographyNet layout, from which the paper's text is taken
+    (its 3 pools end at 16x16x128), but DeTone flattens that map into the 1024-unit layer where
+    the paper (and this default) averages it globally: here the global average runs over 16x16
+    (128 -> 64 -> 32 -> 16).
 
     Args:
       batch_norm: ``"none"`` (default) is the paper's literal text and trains stably at the
         paper's learning rate 0.05; ``"conv"`` puts BatchNormalization after every convolution
         (bias off), about 4x slower per step on a CPU (see README).
+      dropout: rate of the dropout after the 1024-unit layer (layer ``dropout``).
       identity_init: start the last layer at zero kernel and the identity ``H_bar`` as bias (as
         Jaderberg et al. initialise a spatial transformer's localisation net), so an untrained
         stage predicts "no motion" rather than noise.
+      head: ``"gap"`` (default): global average pooling of conv8's ``[16, 16, 128]`` map (layer
+        ``gap``, ``[B, 128]``); ``"flatten"``: the map flattened (layer ``flatten``,
+        ``[B, 32768]``), DeTone et al.'s (33.6 M parameters in ``fc1``).
+      conv_dropout: rate of a dropout after conv8's ReLU (layer ``dropout_conv``; 0: none, the
+        paper's). DeTone et al. use 0.5.
     Input ``[B, size, size, 2]`` (patch_a, patch_b); output ``[B, outputs]`` float32.
+
+    Raises:
+      ValueError: an unknown ``batch_norm`` or ``head``, or a dropout rate outside ``[0, 1)``.
     """
     if batch_norm not in BATCH_NORM_CHOICES:
         raise ValueError(f"batch_norm must be one of {BATCH_NORM_CHOICES}; received {batch_norm!r}.")
+    if head not in HEAD_CHOICES:
+        raise ValueError(f"head must be one of {HEAD_CHOICES}; received {head!r}.")
+    for label, rate in (("dropout", dropout), ("conv_dropout", conv_dropout)):
+        if not 0.0 <= rate < 1.0:
+            raise ValueError(f"{label} must be in [0, 1); received {rate}.")
     inputs = keras.Input((size, size, 2), name=f"{name}_pair")
     x = layers.Rescaling(2.0, offset=-1.0, name="to_unit_range")(inputs)  # [0,1] -> [-1,1]
     for i, filters in enumerate(CONV_FILTERS):
@@ -64,7 +83,12 @@ def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.
         x = layers.ReLU(name=f"relu{i + 1}")(x)
         if i % 2 == 1 and i < len(CONV_FILTERS) - 1:
             x = layers.MaxPooling2D(2, strides=2, name=f"pool{i // 2 + 1}")(x)
-    x = layers.GlobalAveragePooling2D(name="gap")(x)
+    if conv_dropout:
+        x = layers.Dropout(conv_dropout, name="dropout_conv")(x)
+    if head == "gap":
+        x = layers.GlobalAveragePooling2D(name="gap")(x)
+    else:
+        x = layers.Flatten(name="flatten")(x)
     x = layers.Dense(dense_units, activation="relu", kernel_initializer="he_normal", name="fc1")(x)
     x = layers.Dropout(dropout, name="dropout")(x)
     if identity_init and outputs == 8:
@@ -217,20 +241,56 @@ class OffsetsToHBar(layers.Layer):
         return {**super().get_config(), "size": self.size, "scale": self.scale}
 
 
-def build_homographynet(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5,
-                        size: int = geometry.PATCH_SIZE, name: str = "homographynet") -> keras.Model:
-    """HomographyNet (DeTone et al. 2016): the same VGG backbone regressing the 4-point offsets.
-
-    Outputs ``{"offsets": [B, 8] (pixels / 32), "h_bar": [B, 8], "patch_a_warp"}``; only the
-    ``offsets`` output is trained (L2 against the true offsets / 32), the others let it be
-    evaluated through the same path as STN-Homography.
-    """
+def _four_point_model(regressor, size: int, name: str) -> keras.Model:
+    """Wire a 4-point ``regressor`` (pair ``[B, S, S, 2]`` -> offsets / 32 ``[B, 8]``) into the
+    baseline's model: outputs ``{"offsets", "h_bar", "patch_a_warp"}`` (see
+    :func:`build_homographynet`)."""
     patch_a, patch_b = _patch_inputs(size)
-    regressor = regression_network(batch_norm=batch_norm, dropout=dropout, size=size,
-                                   identity_init=False, name="regression")
     pair = layers.Concatenate(axis=-1, name="stage1_pair")([patch_a, patch_b])
     offsets = layers.Identity(name="offsets", dtype="float32")(regressor(pair))
     h_bar = OffsetsToHBar(size=size, name="h_bar")(offsets)
     warp = SpatialTransformer(name="patch_a_warp", dtype="float32")([patch_a, h_bar])
     return keras.Model({"patch_a": patch_a, "patch_b": patch_b},
                        {"offsets": offsets, "h_bar": h_bar, "patch_a_warp": warp}, name=name)
+
+
+def build_homographynet(dropout: float = 0.5, size: int = geometry.PATCH_SIZE,
+                        name: str = "homographynet") -> keras.Model:
+    """HomographyNet as DeTone et al. (2016) describe it: the baseline of the paper's Fig. 4.
+
+    Regressor (sub-model ``regression``): 8 conv 3x3 layers (64, 64, 64, 64, 128, 128, 128, 128
+    filters), each followed by BatchNormalization (convolution bias off) and ReLU; 2x2 stride-2 max
+    pooling after conv2, conv4 and conv6 (128 -> 64 -> 32 -> 16); dropout ``dropout`` after
+    conv8; the ``[16, 16, 128]`` map flattened (32,768 values) into Dense 1024 + ReLU; dropout
+    ``dropout``; Dense 8: the four corners' offsets ``H_ba @ c - c`` (pixels, corners of
+    :func:`geometry.patch_corners`) divided by 32 (:data:`HOMOGRAPHYNET_SCALE`, the perturbation
+    range, so targets lie in ``[-1, 1]``). 34,194,568 parameters (3,072 of them BatchNorm's moving
+    statistics). As in every model here the input pair is scaled from ``[0, 1]`` to ``[-1, 1]``;
+    kernels start He-normal (convolutions, ``fc1``) and Glorot-uniform (``fc2``, bias 0): DeTone
+    et al. state neither. Trained with DeTone's schedule by default
+    (:data:`stnh_tf.training.MODEL_DEFAULTS`).
+
+    Inputs ``{"patch_a", "patch_b"}`` (``[B, S, S, 1]`` float in [0, 1]); outputs
+    ``{"offsets": [B, 8] (pixels / 32), "h_bar": [B, 8], "patch_a_warp": [B, S, S, 1]}``; only
+    ``offsets`` is trained (L2 against the true offsets / 32), the others let it be evaluated
+    through the same path as STN-Homography.
+    """
+    regressor = regression_network(batch_norm="conv", dropout=dropout, size=size,
+                                   identity_init=False, name="regression", head="flatten",
+                                   conv_dropout=dropout)
+    return _four_point_model(regressor, size, name)
+
+
+def build_homographynet_gap(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5,
+                            size: int = geometry.PATCH_SIZE,
+                            name: str = "homographynet_gap") -> keras.Model:
+    """DeTone et al.'s 4-point regression on this project's backbone (:func:`regression_network`:
+    global average pooling, BatchNorm only with ``batch_norm="conv"``, one dropout): the variant
+    that model kind ``"homographynet"`` built before it became :func:`build_homographynet`, kept
+    for comparison and for the runs trained with it.
+
+    Inputs and outputs as :func:`build_homographynet`.
+    """
+    regressor = regression_network(batch_norm=batch_norm, dropout=dropout, size=size,
+                                   identity_init=False, name="regression")
+    return _four_point_model(regressor, size, name)

@@ -23,6 +23,11 @@ For one gray ``image_a`` (``uint8 [240, 320]``) and sample parameters drawn by :
 Randomness: the parameters of image ``i`` come from ``np.random.default_rng([seed, i])`` only, so
 a sample depends on (seed, image index, image) and not on worker count or processing order. The
 global sample index is ``i * samples_per_image + k``.
+
+Optional, not the paper's: with ``Protocol(photometric=PhotometricChange())`` patch_b also gets an
+independent photometric change (gamma, contrast, brightness, Gaussian noise;
+:func:`apply_photometric`), drawn from the same generator after every geometric draw, so the
+squares, perturbations, ``h_ba``, patch_a and patch_a_t are those of the unchanged protocol.
 """
 
 from __future__ import annotations
@@ -36,6 +41,27 @@ from stnh_tf import geometry
 
 
 @dataclasses.dataclass(frozen=True)
+class PhotometricChange:
+    """Ranges of the photometric change of patch_b (a training augmentation; not the paper's).
+
+    For ``x = patch_b / 255``: ``x' = clip((x ** gamma - 0.5) * contrast + 0.5 + brightness + n)``
+    with ``gamma`` log-uniform in ``[1/gamma_max, gamma_max]``, ``contrast`` uniform in
+    ``[1 - contrast_range, 1 + contrast_range]``, ``brightness`` uniform in
+    ``[-brightness_range, brightness_range]`` and ``n`` Gaussian noise of a standard deviation
+    uniform in ``[0, noise_max]``; rounded back to uint8."""
+
+    gamma_max: float = 1.5
+    contrast_range: float = 0.3
+    brightness_range: float = 0.15
+    noise_max: float = 0.02
+
+    def __post_init__(self):
+        if not (self.gamma_max >= 1 and 0 <= self.contrast_range < 1
+                and 0 <= self.brightness_range <= 1 and 0 <= self.noise_max <= 1):
+            raise ValueError(f"photometric ranges out of bounds: {self}.")
+
+
+@dataclasses.dataclass(frozen=True)
 class Protocol:
     """Every parameter of the generation protocol (recorded in ``metadata.json``)."""
 
@@ -46,6 +72,7 @@ class Protocol:
     max_perturbation: float = float(geometry.MAX_PERTURBATION)  # corner offsets in [-rho, rho]
     samples_per_image: int = 3                     # squares drawn per image
     context_margin: int = geometry.MAX_PERTURBATION  # margin of context_a around the square
+    photometric: PhotometricChange | None = None   # change of patch_b (None: the paper's pairs)
 
     def __post_init__(self):
         if self.samples_per_image < 1:
@@ -79,6 +106,12 @@ class Protocol:
             normalization="H_bar = M H M^-1 / [2,2], M = [[2/W,0,-1],[0,2/H,-1],[0,0,1]], W=H=S",
             index="image_index * samples_per_image + k",
         )
+        if self.photometric is not None:
+            d["photometric_rule"] = (
+                "patch_b only: x = patch_b/255; x = clip((x**gamma - 0.5)*contrast + 0.5 + "
+                "brightness + sigma * N(0, 1) (float32 standard_normal)); per sample gamma = gamma_max**u(-1,1), contrast = "
+                "1 + contrast_range*u(-1,1), brightness = brightness_range*u(-1,1), sigma = "
+                "noise_max*u(0,1), noise seed = integers(2**63), drawn after all geometric draws")
         return d
 
 
@@ -90,6 +123,7 @@ class PairParams:
     x0: int
     y0: int
     offsets: np.ndarray
+    photometric: tuple | None = None  # (gamma, contrast, brightness, sigma, noise_seed) or None
 
 
 def image_rng(seed: int, image_index: int) -> np.random.Generator:
@@ -106,7 +140,31 @@ def draw_params(rng: np.random.Generator, protocol: Protocol = Protocol()) -> li
         y0 = int(rng.integers(p.border, p.image_height - p.border - p.patch_size, endpoint=True))
         offsets = rng.uniform(-p.max_perturbation, p.max_perturbation, size=(4, 2))
         out.append(PairParams(x0, y0, offsets))
+    if p.photometric is not None:  # after every geometric draw: the geometry stays the same
+        c = p.photometric
+        for k, prm in enumerate(out):
+            u = rng.uniform(-1.0, 1.0, size=3)
+            change = (float(c.gamma_max ** u[0]), float(1.0 + c.contrast_range * u[1]),
+                      float(c.brightness_range * u[2]), float(c.noise_max * rng.uniform()),
+                      int(rng.integers(2 ** 63)))
+            out[k] = dataclasses.replace(prm, photometric=change)
     return out
+
+
+def apply_photometric(patch: np.ndarray, change: tuple) -> np.ndarray:
+    """``patch`` (uint8) after the photometric change ``(gamma, contrast, brightness, sigma,
+    noise_seed)`` of :class:`PhotometricChange`; uint8, same shape. The pixel-wise part is a
+    256-entry table; the noise is ``sigma * default_rng(noise_seed).standard_normal(shape,
+    float32)``, added before rounding."""
+    gamma, contrast, brightness, sigma, noise_seed = change
+    levels = np.arange(256, dtype=np.float32) / np.float32(255.0)
+    table = ((np.power(levels, np.float32(gamma)) - 0.5) * np.float32(contrast)
+             + np.float32(0.5 + brightness)) * np.float32(255.0)
+    x = table[patch]
+    if sigma > 0:
+        noise = np.random.default_rng(noise_seed).standard_normal(patch.shape, np.float32)
+        x += noise * np.float32(sigma * 255.0)
+    return np.clip(np.rint(x), 0, 255).astype(np.uint8)
 
 
 def make_pair(image_a: np.ndarray, params: PairParams, protocol: Protocol = Protocol()) -> dict:
@@ -132,6 +190,8 @@ def make_pair(image_a: np.ndarray, params: PairParams, protocol: Protocol = Prot
     patch_b = cv2.warpPerspective(image_a, a_from_b_image @ geometry.translation(x0, y0), (s, s),
                                   flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    if params.photometric is not None:
+        patch_b = apply_photometric(patch_b, params.photometric)
     patch_a = np.ascontiguousarray(image_a[y0:y0 + s, x0:x0 + s])
     a_from_b = geometry.image_to_patch(a_from_b_image, x0, y0)
     patch_a_t = cv2.warpPerspective(patch_a, a_from_b, (s, s),

@@ -71,7 +71,8 @@ class FolderListing:
       root: absolute path of the scanned folder.
       files: absolute paths of image files, sorted by their path relative to ``root`` (POSIX
         separators), so the order (and hence every image index) is the same on every machine.
-      unreadable: ``(path, reason)`` for directories that could not be listed.
+      unreadable: ``(path, reason)`` for directories that could not be listed and for symbolic
+        links leading outside the folder (left out).
       ignored: number of files skipped because of their extension (not image files).
     """
 
@@ -79,14 +80,58 @@ class FolderListing:
     files: list
     unreadable: list
     ignored: int
+    ids: dict | None = None  # path -> id, for listings of several folders
 
     def image_id(self, path: str) -> str:
-        """The id stored with each sample: the path relative to ``root``, POSIX separators."""
+        """The id stored with each sample: the path relative to ``root``, POSIX separators (for
+        several folders: ``<k>:`` and the path relative to folder ``k``)."""
+        if self.ids is not None:
+            return self.ids[path]
         return os.path.relpath(path, self.root).replace(os.sep, "/")
+
+
+def split_folders(spec) -> list:
+    """Folders from a comma-separated string (as absl list flags take them) or a sequence.
+
+    Raises:
+      SourceError: no folder named (an empty string or list).
+    """
+    folders = spec.split(",") if isinstance(spec, str) else [os.fspath(f) for f in spec]
+    folders = [f.strip() for f in folders if f.strip()]
+    if not folders:
+        raise SourceError(f"no image folder given (received {spec!r}).")
+    return folders
+
+
+def scan_image_folders(folders) -> FolderListing:
+    """Every image file below each of ``folders`` (a list, or a comma-separated string), folder
+    after folder, each sorted as :func:`scan_image_folder` sorts. One folder gives exactly
+    :func:`scan_image_folder`'s listing; with several, ``root`` is their absolute paths joined by
+    commas and the id of an image is ``"<k>:<path relative to folder k>"``.
+
+    Raises:
+      SourceError: no folder given, or one that is not an existing directory.
+    """
+    folders = split_folders(folders)
+    listings = [scan_image_folder(f) for f in folders]
+    if len(listings) == 1:
+        return listings[0]
+    merged = FolderListing(root=",".join(x.root for x in listings), files=[], unreadable=[],
+                           ignored=sum(x.ignored for x in listings), ids={})
+    for k, listing in enumerate(listings):
+        for path in listing.files:
+            if path not in merged.ids:  # a folder given twice, or nested: list each image once
+                merged.files.append(path)
+                merged.ids[path] = f"{k}:{listing.image_id(path)}"
+        merged.unreadable.extend(listing.unreadable)
+    return merged
 
 
 def scan_image_folder(folder: str) -> FolderListing:
     """Every image file below ``folder`` (recursively; extensions in :data:`IMAGE_EXTENSIONS`).
+
+    Symbolic links to directories are not entered; a symbolic link to a file outside ``folder``
+    is left out and listed in ``unreadable`` with the reason (one inside it is listed).
 
     Raises:
       SourceError: if ``folder`` is not an existing directory.
@@ -100,13 +145,20 @@ def scan_image_folder(folder: str) -> FolderListing:
         unreadable.append((getattr(err, "filename", None) or str(err),
                            f"unreadable directory: {type(err).__name__}: {err.strerror or err}"))
 
+    real_root = os.path.realpath(root)
     for dirpath, dirnames, filenames in os.walk(root, onerror=onerror, followlinks=False):
         dirnames.sort()
         for name in filenames:
-            if name.lower().endswith(IMAGE_EXTENSIONS):
-                files.append(os.path.join(dirpath, name))
-            else:
+            if not name.lower().endswith(IMAGE_EXTENSIONS):
                 ignored += 1
+                continue
+            path = os.path.join(dirpath, name)
+            if os.path.islink(path) and os.path.commonpath(
+                    [real_root, os.path.realpath(path)]) != real_root:
+                unreadable.append((path, "symbolic link to a file outside the image folder "
+                                         f"({os.path.realpath(path)}): not followed"))
+                continue
+            files.append(path)
     listing = FolderListing(root=root, files=[], unreadable=sorted(unreadable), ignored=ignored)
     listing.files = sorted(files, key=listing.image_id)
     return listing

@@ -6,7 +6,9 @@ it on the TFRecord dataset in ``config.data_dir`` with:
 
 * SGD, momentum 0.9, batch 64; learning rate rising linearly 0 -> 0.05 over ``warmup_steps``, then
   cosine decay to 0 over the remaining ``train_steps - warmup_steps`` (Keras' ``CosineDecay`` with
-  ``warmup_target``): the paper's 1,000 + 90,000 steps by default.
+  ``warmup_target``): the paper's 1,000 + 90,000 steps by default. ``lr_schedule="step"`` is
+  DeTone et al.'s schedule instead (the learning rate divided by 10 after each third of the
+  steps), which the binaries preset for ``--model=homographynet`` (:data:`MODEL_DEFAULTS`).
 * Atomic periodic checkpoints (model + optimizer + RNG state) every ``checkpoint_every`` steps; a
   killed run restarted with the same command resumes at the last checkpoint, repositions the data
   stream at that step, and follows the same schedule to the same final step.
@@ -34,6 +36,7 @@ import importlib.util
 import json
 import logging
 import math
+import numbers
 import os
 import shutil
 import time
@@ -44,14 +47,81 @@ import numpy as np
 
 from stnh_tf import losses as losses_lib
 from stnh_tf import models
+from stnh_tf.paths import inside, read_json
 
-MODEL_KINDS = ("stn", "sequence", "homographynet")
+MODEL_KINDS = ("stn", "sequence", "homographynet", "homographynet_gap")
+# The kinds that regress DeTone et al.'s 4-point offsets (output "offsets", one L2 loss):
+# "homographynet" is DeTone's network (models.build_homographynet), "homographynet_gap" the same
+# regression on this project's backbone (models.build_homographynet_gap).
+FOUR_POINT_KINDS = ("homographynet", "homographynet_gap")
+L2_REDUCTIONS = ("mean", "sum")
+LR_SCHEDULES = ("cosine", "step")
+
+# Defaults that depend on the model kind: what ``preset_fields`` (and so the training binaries)
+# set beneath a recipe's preset and the flags given explicitly. TrainConfig's own defaults do not
+# change with the model.
+MODEL_DEFAULTS = {
+    # The paper trains its sequence model for "total training steps of 90000" (section 5),
+    # warm-up included, where each hierarchical stage trains 1,000 + 90,000.
+    "sequence": {"train_steps": 90_000},
+    # DeTone et al.'s network and recipe: BatchNorm after every convolution; SGD momentum 0.9,
+    # batch 64, learning rate 0.005 divided by 10 every 30,000 of their 90,000 iterations (the
+    # step schedule divides after every third of train_steps, whatever it is), no warm-up.
+    "homographynet": {"batch_norm": "conv", "learning_rate": 0.005, "lr_schedule": "step",
+                      "warmup_steps": 0, "train_steps": 90_000},
+}
+
+
+def _sgd(cfg, schedule, **common):
+    return keras.optimizers.SGD(learning_rate=schedule, momentum=cfg.momentum, **common)
+
+
+def _adam(cfg, schedule, **common):
+    return keras.optimizers.Adam(learning_rate=schedule, **common)
+
+
+def _adamw(cfg, schedule, **common):
+    return keras.optimizers.AdamW(learning_rate=schedule, **common)
+
+
+# The optimizers by name: ``f(cfg, schedule, weight_decay=..., global_clipnorm=...)``.
+OPTIMIZERS = {"sgd": _sgd, "adam": _adam, "adamw": _adamw}
+
+# Named presets of TrainConfig fields. "paper" is the paper's recipe (the defaults); "fast" is a
+# deviation chosen for accuracy per CPU step (BENCHMARKS.md, "A faster recipe").
+RECIPES = {
+    "paper": {},
+    "fast": {"optimizer": "adamw", "learning_rate": 1e-3, "weight_decay": 1e-4,
+             "warmup_steps": 100, "lr_schedule": "cosine"},
+}
+
+
+def preset_fields(recipe: str, model: str) -> dict:
+    """The TrainConfig fields that ``recipe`` (a key of :data:`RECIPES`) and ``model`` (a key of
+    :data:`MODEL_KINDS`) preset: :data:`MODEL_DEFAULTS` of the model, then the recipe's preset
+    over them (so ``--recipe=fast`` replaces HomographyNet's step schedule by its own). The
+    training binaries apply these to every field not given explicitly. Raises ``ValueError`` for
+    an unknown recipe or model."""
+    if recipe not in RECIPES:
+        raise ValueError(f"recipe must be one of {sorted(RECIPES)}; received {recipe!r}.")
+    if model not in MODEL_KINDS:
+        raise ValueError(f"model must be one of {MODEL_KINDS}; received {model!r}.")
+    return {**MODEL_DEFAULTS.get(model, {}), **RECIPES[recipe]}
 FINAL_MODEL = "model.keras"
 CONFIG_FILE = "config.json"
+RESULT_FILE = "result.json"
+LOGS_DIR = "logs"
+# Written into config.json with the fields: what makes a folder a training run (read_run_config).
+CONFIG_MARKER = {"format": "stnh_tf.train_config", "format_version": 1}
 CHECKPOINT_DIR = "checkpoint"
 CHECKPOINT_WEIGHTS = "ckpt.weights.h5"  # legacy single-file name, still read
 CHECKPOINT_WEIGHTS_PATTERN = "ckpt-{step:08d}.weights.h5"
 CHECKPOINT_STATE = "state.json"
+# What a run writes in model_dir besides config.json: all that --overwrite deletes (remove_run).
+RUN_ENTRIES = (FINAL_MODEL, RESULT_FILE, CHECKPOINT_DIR, LOGS_DIR)
+# The fields by which a config.json written before CONFIG_MARKER is recognised as a run's.
+_LEGACY_CONFIG_KEYS = frozenset({"model", "model_dir", "stage", "train_steps", "warmup_steps",
+                                 "batch_size", "checkpoint_every", "seed"})
 
 _log = logging.getLogger(__name__)
 
@@ -62,15 +132,24 @@ class TrainConfig:
 
     data_dir: str = ""                 # TFRecord dataset directory (train split, + val split)
     model_dir: str = ""                # output: config, checkpoints, logs, final model
-    model: str = "stn"                 # "stn" | "sequence" | "homographynet"
+    model: str = "stn"                 # "stn" | "sequence" | "homographynet" (DeTone's network)
+                                       # | "homographynet_gap" (its regression on our backbone)
     stage: int = 1                     # hierarchical stage this model is (dataset must match)
     num_stages: int = 2                # sequence model only
-    train_steps: int = 91_000          # total optimizer steps (warm-up + cosine decay)
+    train_steps: int = 91_000          # total optimizer steps (warm-up + decay); the binaries
+                                       # default to 90,000 for "sequence" and "homographynet"
+                                       # (MODEL_DEFAULTS)
     warmup_steps: int = 1_000          # linear warm-up 0 -> learning_rate
     batch_size: int = 64
     learning_rate: float = 0.05        # peak learning rate, reached after warm-up
-    momentum: float = 0.9
+    lr_schedule: str = "cosine"        # "cosine" (paper: warm-up, cosine to 0) | "step" (DeTone:
+                                       # /10 after each third of train_steps; no warm-up)
+    momentum: float = 0.9              # sgd only
+    optimizer: str = "sgd"             # "sgd" (paper) | "adam" | "adamw" (see OPTIMIZERS)
+    weight_decay: float = 0.0          # decoupled weight decay (Keras' weight_decay; 0: none)
+    clipnorm: float = 0.0              # clip the global gradient norm to this (0: no clipping)
     l2_weight: float = 1.0             # weight of the L2 loss on H_bar
+    l2_reduction: str = "mean"         # L2 over H_bar's 8 entries: "mean" | "sum" (= 8 x mean)
     l1_weight: float = 1.0             # weight of the L1 photometric loss
     stage_loss_weights: tuple = ()     # sequence only: per-stage multipliers (default all 1)
     batch_norm: str = "none"           # "none" (paper's literal text) | "conv" (BN after each conv)
@@ -93,8 +172,13 @@ class TrainConfig:
     workers: int = 0                   # with image_dir: generator processes (0: in-process)
     in_memory: bool = False            # with image_dir: generate the fixed set once, train from RAM
     prev_stages: tuple = ()            # with image_dir, stage k > 1: model dirs of stages 1..k-1
+    photometric: bool = False          # with image_dir: photometric change of patch_b (training
+                                       # pairs only; pairs.PhotometricChange); not the paper's
+    recipe: str = "paper"              # the preset these values started from (RECIPES); a record
 
     def validate(self):
+        """Raise ``ValueError`` naming the field and value for anything training cannot use:
+        every flag's range is checked here, in one place, before anything is written."""
         if self.model not in MODEL_KINDS:
             raise ValueError(f"model must be one of {MODEL_KINDS}; received {self.model!r}.")
         if not self.model_dir:
@@ -121,6 +205,18 @@ class TrainConfig:
         if self.train_steps <= 0 or self.warmup_steps < 0 or self.warmup_steps > self.train_steps:
             raise ValueError(f"need 0 <= warmup_steps <= train_steps, train_steps > 0; received "
                              f"warmup_steps={self.warmup_steps}, train_steps={self.train_steps}.")
+        for name, low in _INTEGER_MINIMUMS.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}; received {value!r}.")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1); received {self.dropout}.")
+        if not 0.0 <= self.momentum <= 1.0:
+            raise ValueError(f"momentum must be in [0, 1]; received {self.momentum}.")
+        for name in ("l2_weight", "l1_weight"):
+            value = getattr(self, name)
+            if not (value >= 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be a finite number >= 0; received {value}.")
         if self.train_steps % self.checkpoint_every:
             raise ValueError(f"train_steps ({self.train_steps}) must be a multiple of "
                              f"checkpoint_every ({self.checkpoint_every}).")
@@ -128,6 +224,44 @@ class TrainConfig:
             raise ValueError(f"strategy must be 'default' or 'mirrored'; received {self.strategy!r}.")
         if self.stage < 1:
             raise ValueError(f"stage must be >= 1; received {self.stage}.")
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"optimizer must be one of {sorted(OPTIMIZERS)}; received "
+                             f"{self.optimizer!r}.")
+        if not (self.weight_decay >= 0 and math.isfinite(self.weight_decay)):
+            raise ValueError(f"weight_decay must be a finite number >= 0; received "
+                             f"{self.weight_decay}.")
+        if not (self.clipnorm >= 0 and math.isfinite(self.clipnorm)):
+            raise ValueError(f"clipnorm must be a finite number >= 0 (0: off); received "
+                             f"{self.clipnorm}.")
+        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
+            raise ValueError(f"learning_rate must be a finite number > 0; received "
+                             f"{self.learning_rate}.")
+        if self.l2_reduction not in L2_REDUCTIONS:
+            raise ValueError(f"l2_reduction must be one of {L2_REDUCTIONS}; received "
+                             f"{self.l2_reduction!r}.")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}; received "
+                             f"{self.lr_schedule!r}.")
+        if self.lr_schedule == "step" and self.warmup_steps:
+            raise ValueError(f"lr_schedule 'step' (DeTone et al.'s) has no warm-up; received "
+                             f"warmup_steps={self.warmup_steps} (give 0, or lr_schedule 'cosine').")
+        if self.model == "homographynet" and self.batch_norm != "conv":
+            raise ValueError("model 'homographynet' is DeTone et al.'s network, with BatchNorm after "
+                             f"every convolution: batch_norm must be 'conv' (received "
+                             f"{self.batch_norm!r}); model 'homographynet_gap' is the 4-point "
+                             "regression on this project's backbone, with or without it.")
+        if self.recipe not in RECIPES:
+            raise ValueError(f"recipe must be one of {sorted(RECIPES)}; received {self.recipe!r}.")
+        for name in ("image_dir", "val_image_dir"):
+            spec = getattr(self, name)
+            if spec and not [f for f in spec.split(",") if f.strip()]:
+                raise ValueError(f"{name} names no folder (received {spec!r}); give one or "
+                                 "more comma-separated folders.")
+        if self.photometric and not self.image_dir:
+            raise ValueError("photometric changes pairs generated from image_dir; for TFRecords, "
+                             "write them with data_prep.make_dataset --photometric.")
+        if self.in_memory and self.fresh_pairs:
+            raise ValueError("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
 
     def to_json(self):
         d = dataclasses.asdict(self)
@@ -145,6 +279,11 @@ class TrainConfig:
         return cls(**{k: v for k, v in d.items() if k in {f.name for f in dataclasses.fields(cls)}})
 
 
+# The integer fields and their smallest allowed values (TrainConfig.validate).
+_INTEGER_MINIMUMS = {"checkpoint_every": 1, "batch_size": 1, "shuffle_buffer": 1, "log_every": 1,
+                     "samples_per_image": 1, "val_samples": 0, "workers": 0, "seed": 0,
+                     "val_seed": 0}
+
 # Fields that may differ between a run and its resumption without changing the result.
 _RESUME_FREE_FIELDS = {"log_every", "model_dir", "data_dir", "image_dir", "val_image_dir",
                        "workers", "in_memory"}
@@ -157,9 +296,28 @@ class TrainingDiverged(RuntimeError):
 # ------------------------------------------------------------------------------------------------
 # Pieces
 # ------------------------------------------------------------------------------------------------
+def step_boundaries(train_steps: int) -> list:
+    """The last steps (0-based) of the first and second thirds of ``train_steps``:
+    ``[T // 3 - 1, 2 T // 3 - 1]`` (``[29999, 59999]`` for DeTone et al.'s 90,000 iterations)."""
+    return [train_steps // 3 - 1, 2 * train_steps // 3 - 1]
+
+
 def learning_rate_schedule(cfg: TrainConfig):
-    """Linear warm-up from 0 to ``learning_rate`` over ``warmup_steps``, then cosine decay to 0
-    over ``train_steps - warmup_steps`` (Keras' own ``CosineDecay``)."""
+    """The learning rate as a function of the 0-based step (Keras evaluates it at
+    ``optimizer.iterations`` before each update, so update ``i`` uses ``lr(i)``).
+
+    * ``lr_schedule="cosine"`` (the paper's): linear warm-up from 0 to ``learning_rate`` over
+      ``warmup_steps``, then cosine decay to 0 over ``train_steps - warmup_steps`` (Keras' own
+      ``CosineDecay``).
+    * ``lr_schedule="step"`` (DeTone et al.'s): ``learning_rate`` for the first third of
+      ``train_steps``, a tenth of it for the second, a hundredth for the last (Keras'
+      ``PiecewiseConstantDecay`` at :func:`step_boundaries`; as Caffe's "step" policy,
+      ``lr * 0.1 ** floor(i / (T / 3))``, for ``T`` a multiple of 3). No warm-up.
+    """
+    if cfg.lr_schedule == "step":
+        lr = cfg.learning_rate
+        return keras.optimizers.schedules.PiecewiseConstantDecay(
+            step_boundaries(cfg.train_steps), [lr, lr / 10.0, lr / 100.0])
     return keras.optimizers.schedules.CosineDecay(
         initial_learning_rate=0.0 if cfg.warmup_steps else cfg.learning_rate,
         decay_steps=max(cfg.train_steps - cfg.warmup_steps, 1),
@@ -172,23 +330,33 @@ def learning_rate_schedule(cfg: TrainConfig):
 def build_model(cfg: TrainConfig) -> keras.Model:
     if cfg.model == "stn":
         return models.build_stn_homography(batch_norm=cfg.batch_norm, dropout=cfg.dropout)
-    if cfg.model == "homographynet":
-        return models.build_homographynet(batch_norm=cfg.batch_norm, dropout=cfg.dropout)
+    if cfg.model == "homographynet":  # DeTone's network: BatchNorm always, dropout twice
+        return models.build_homographynet(dropout=cfg.dropout)
+    if cfg.model == "homographynet_gap":
+        return models.build_homographynet_gap(batch_norm=cfg.batch_norm, dropout=cfg.dropout)
     return models.build_sequence_stn_homography(cfg.num_stages, batch_norm=cfg.batch_norm,
                                                 dropout=cfg.dropout)
 
 
+def l2_term_weight(cfg: TrainConfig) -> float:
+    """The loss weight of :func:`stnh_tf.losses.h_bar_l2` (a mean over H_bar's 8 entries):
+    ``l2_weight``, times 8 with ``l2_reduction="sum"`` (a sum over the 8 entries)."""
+    return cfg.l2_weight * (8.0 if cfg.l2_reduction == "sum" else 1.0)
+
+
 def loss_spec(cfg: TrainConfig):
     """(losses, loss_weights, metrics) dicts keyed by the model's output names."""
+    l2 = l2_term_weight(cfg)
     if cfg.model == "stn":
         return ({"h_bar": losses_lib.h_bar_l2, "patch_a_warp": losses_lib.photometric_l1},
-                {"h_bar": cfg.l2_weight, "patch_a_warp": cfg.l1_weight},
+                {"h_bar": l2, "patch_a_warp": cfg.l1_weight},
                 {"h_bar": [losses_lib.MeanCornerError()]})
-    if cfg.model == "homographynet":
-        if (cfg.l2_weight, cfg.l1_weight) != (1.0, 1.0):
-            raise ValueError("model='homographynet' trains its 4-point offsets with one L2 loss: "
-                             "l2_weight/l1_weight do not apply (received "
-                             f"{cfg.l2_weight}, {cfg.l1_weight}); leave them at 1.")
+    if cfg.model in FOUR_POINT_KINDS:
+        if (cfg.l2_weight, cfg.l1_weight, cfg.l2_reduction) != (1.0, 1.0, "mean"):
+            raise ValueError(f"model={cfg.model!r} trains its 4-point offsets with one L2 loss: "
+                             "l2_weight/l1_weight/l2_reduction do not apply (received "
+                             f"{cfg.l2_weight}, {cfg.l1_weight}, {cfg.l2_reduction!r}); leave "
+                             "them at 1, 1, 'mean'.")
         return ({"offsets": "mse"}, {"offsets": 1.0}, {"h_bar": [losses_lib.MeanCornerError()]})
     weights = list(cfg.stage_loss_weights) or [1.0] * cfg.num_stages
     if len(weights) != cfg.num_stages:
@@ -196,7 +364,7 @@ def loss_spec(cfg: TrainConfig):
     losses, loss_weights, metrics = {}, {}, {}
     h_names, w_names = models.sequence_output_names(cfg.num_stages)
     for k, (hn, wn) in enumerate(zip(h_names, w_names)):
-        losses[hn], loss_weights[hn] = losses_lib.h_bar_l2, cfg.l2_weight * weights[k]
+        losses[hn], loss_weights[hn] = losses_lib.h_bar_l2, l2 * weights[k]
         losses[wn], loss_weights[wn] = losses_lib.photometric_l1, cfg.l1_weight * weights[k]
         metrics[hn] = [losses_lib.MeanCornerError()]
     return losses, loss_weights, metrics
@@ -228,14 +396,25 @@ def targets_for(cfg: TrainConfig) -> Callable | None:
     mapper is picklable (generator worker processes may be spawned)."""
     if cfg.model == "stn":
         return None
-    if cfg.model == "homographynet":
+    if cfg.model in FOUR_POINT_KINDS:
         return _homographynet_targets
     return functools.partial(_sequence_targets, num_stages=cfg.num_stages)
 
 
+def build_optimizer(cfg: TrainConfig) -> keras.optimizers.Optimizer:
+    """``cfg.optimizer`` (:data:`OPTIMIZERS`) on :func:`learning_rate_schedule`, with
+    ``cfg.weight_decay`` (decoupled; Keras' ``weight_decay``) and ``cfg.clipnorm`` (Keras'
+    ``global_clipnorm``). ``optimizer="adam"`` with a weight decay equals ``"adamw"``."""
+    common = {"weight_decay": cfg.weight_decay or None,
+              "global_clipnorm": cfg.clipnorm or None}
+    if cfg.optimizer == "adamw":
+        common["weight_decay"] = cfg.weight_decay  # AdamW's own default is 0.004, not 0
+    return OPTIMIZERS[cfg.optimizer](cfg, learning_rate_schedule(cfg), **common)
+
+
 def compile_model(model, cfg: TrainConfig):
     losses, loss_weights, metrics = loss_spec(cfg)
-    optimizer = keras.optimizers.SGD(learning_rate=learning_rate_schedule(cfg), momentum=cfg.momentum)
+    optimizer = build_optimizer(cfg)
     model.compile(optimizer=optimizer, loss=losses, loss_weights=loss_weights,
                   weighted_metrics=metrics)
     return model
@@ -312,15 +491,32 @@ class AtomicCheckpoint(keras.callbacks.Callback):
                 os.remove(os.path.join(self.directory, old))
 
 
-def checkpoint_weights_path(directory) -> str | None:
-    """The weights file the committed ``state.json`` of ``directory`` names (None if none)."""
+def read_checkpoint_state(directory) -> dict | None:
+    """The committed ``state.json`` of the checkpoint folder ``directory`` (None if there is none).
+
+    Raises ``ValueError`` naming the file if it is not valid JSON, not a JSON object, or records
+    no integer ``step``."""
     state_path = os.path.join(directory, CHECKPOINT_STATE)
     if not os.path.exists(state_path):
         return None
-    with open(state_path) as f:
-        name = json.load(f).get("weights", CHECKPOINT_WEIGHTS)
-    path = os.path.join(directory, name)
-    return path if os.path.exists(path) else None
+    state = read_json(state_path, "checkpoint state")
+    if not isinstance(state, dict) or isinstance(state.get("step"), bool) \
+            or not isinstance(state.get("step"), int):
+        raise ValueError(f"checkpoint state {state_path!r} is not a checkpoint's state (a JSON "
+                         "object with an integer 'step').")
+    return state
+
+
+def checkpoint_weights_path(directory) -> str | None:
+    """The weights file the committed ``state.json`` of ``directory`` names (None if none). The
+    name must be a file inside ``directory`` (:func:`stnh_tf.paths.inside`; else
+    ``ValueError``)."""
+    state = read_checkpoint_state(directory)
+    if state is None:
+        return None
+    path = inside(directory, state.get("weights", CHECKPOINT_WEIGHTS),
+                  f"{os.path.join(directory, CHECKPOINT_STATE)!r}, its 'weights'")
+    return path if os.path.isfile(path) else None
 
 
 def load_checkpoint(model, directory) -> int:
@@ -330,8 +526,7 @@ def load_checkpoint(model, directory) -> int:
     state_path = os.path.join(directory, CHECKPOINT_STATE)
     if weights is None:
         return 0
-    with open(state_path) as f:
-        state = json.load(f)
+    state = read_checkpoint_state(directory)
     model.optimizer.build(model.trainable_variables)
     model.load_weights(weights)
     _restore_seed_states(model, state.get("seed_states", []))
@@ -386,41 +581,148 @@ class ProgressLogger(keras.callbacks.Callback):
 # ------------------------------------------------------------------------------------------------
 # The run
 # ------------------------------------------------------------------------------------------------
+def read_run_config(config_path: str) -> dict:
+    """The saved fields of the training run whose ``config.json`` is ``config_path``.
+
+    A run's ``config.json`` holds :data:`CONFIG_MARKER` (``format`` and ``format_version``) with
+    the :class:`TrainConfig` fields (:func:`prepare_model_dir` writes it); one written before the
+    marker existed is recognised by holding every field of :data:`_LEGACY_CONFIG_KEYS`.
+
+    Raises:
+      ValueError: naming the file, when it is not valid JSON, not a JSON object, or not a training
+        run's configuration (its folder is then not a run: nothing is resumed or deleted there).
+    """
+    doc = read_json(config_path, "training configuration")
+    if isinstance(doc, dict) and doc.get("format") == CONFIG_MARKER["format"]:
+        if doc.get("format_version") != CONFIG_MARKER["format_version"]:
+            raise ValueError(f"{config_path!r} has format_version {doc.get('format_version')!r}; "
+                             f"this version of stnh_tf reads version "
+                             f"{CONFIG_MARKER['format_version']}.")
+    elif not (isinstance(doc, dict) and "format" not in doc and _LEGACY_CONFIG_KEYS <= set(doc)):
+        raise ValueError(f"{config_path!r} is not the configuration of a stnh-tf training run (no "
+                         f"\"format\": \"{CONFIG_MARKER['format']}\"); its folder is neither "
+                         "resumed nor deleted, with or without --overwrite: choose another "
+                         "--model_dir, or move the folder away.")
+    return {k: v for k, v in doc.items() if k not in CONFIG_MARKER}
+
+
 def _config_diff(cfg: TrainConfig, config_path: str) -> dict:
-    """``{field: (old, new)}`` for the fields that differ from a saved run's and matter."""
+    """``{field: (old, new)}`` for the fields that differ from a saved run's and matter
+    (``ValueError`` if ``config_path`` is not a run's: :func:`read_run_config`)."""
     if not os.path.exists(config_path):
         return {}
-    with open(config_path) as f:
-        old = json.load(f)
+    old = read_run_config(config_path)
     new = cfg.to_json()
+    # A field the saved run predates had its default value then (e.g. optimizer="sgd").
+    old = {**TrainConfig().to_json(), **old}
     return {k: (old.get(k), new[k]) for k in new
             if k not in _RESUME_FREE_FIELDS and old.get(k) != new[k]}
 
 
-def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False):
-    """Create ``model_dir``; refuse to overwrite a finished run without ``overwrite``; refuse to
-    resume a run whose configuration differs.
+def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
+    """Make ``model_dir`` ready for training and write its ``config.json`` (with
+    :data:`CONFIG_MARKER`). Returns True when this starts a new run there (there was no
+    ``config.json``), False when it resumes one.
 
-    ``overwrite`` deletes the directory when it holds a finished run or a run of another
-    configuration; an unfinished run of the same configuration is resumed even then, so that
+    ``model_dir`` must be missing, empty, or a training run (its ``config.json`` is one of ours:
+    :func:`read_run_config`); any other folder is refused (``FileExistsError``/``ValueError``),
+    with or without ``overwrite``. A finished run is refused without ``overwrite``, and so is an
+    unfinished run of another configuration. ``overwrite`` deletes, from a finished run or a run
+    of another configuration, only what a run writes (:func:`remove_run`; other files in the
+    folder stay); an unfinished run of the same configuration is resumed even then, so that
     re-running an interrupted ``--overwrite`` command continues it instead of wiping its
-    checkpoints."""
+    checkpoints. :func:`train` runs every check of the flags and data (:func:`check_start`)
+    before this."""
     final = os.path.join(cfg.model_dir, FINAL_MODEL)
     config_path = os.path.join(cfg.model_dir, CONFIG_FILE)
+    if os.path.exists(cfg.model_dir) and not os.path.isdir(cfg.model_dir):
+        raise NotADirectoryError(f"model_dir {cfg.model_dir} exists and is not a folder.")
+    if os.path.isdir(cfg.model_dir) and os.listdir(cfg.model_dir) \
+            and not os.path.isfile(config_path):
+        raise FileExistsError(f"model_dir {cfg.model_dir} is not empty and holds no training run "
+                              f"(no {CONFIG_FILE}); it is not trained into or deleted, with or "
+                              "without --overwrite: choose a new or empty folder.")
+    diff = _config_diff(cfg, config_path)
     if os.path.exists(final) and not overwrite:
         raise FileExistsError(f"{cfg.model_dir} holds a finished model ({final}); pass --overwrite "
                               "to train it again.")
-    if overwrite and os.path.isdir(cfg.model_dir) and (
-            os.path.exists(final) or _config_diff(cfg, config_path)):
-        shutil.rmtree(cfg.model_dir)
+    if overwrite and (os.path.exists(final) or diff):
+        remove_run(cfg.model_dir)
+        diff = {}
     os.makedirs(cfg.model_dir, exist_ok=True)
     if not os.access(cfg.model_dir, os.W_OK):
         raise PermissionError(f"model_dir {cfg.model_dir} is not writable.")
-    diff = _config_diff(cfg, config_path)
     if diff:
         raise ValueError(f"{cfg.model_dir} holds an unfinished run with a different configuration "
                          f"{diff} (old, new); use the same flags to resume, or --overwrite.")
-    _atomic_write_json(config_path, cfg.to_json())
+    new_run = not os.path.exists(config_path)
+    _atomic_write_json(config_path, {**cfg.to_json(), **CONFIG_MARKER})
+    return new_run
+
+
+def remove_run(model_dir: str) -> None:
+    """Delete what a training run writes in ``model_dir`` (:data:`RUN_ENTRIES` and its temporary
+    files; ``config.json`` last, so that a deletion cut short still leaves a run) and nothing
+    else."""
+    names = os.listdir(model_dir)
+    temporary = sorted(n for n in names if n.startswith("tmp-") and n.endswith(FINAL_MODEL)
+                       or ".json.tmp-" in n)
+    for name in [*RUN_ENTRIES, *temporary, CONFIG_FILE]:
+        path = os.path.join(model_dir, name)
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path)
+        elif os.path.lexists(path):
+            os.remove(path)
+
+
+def _undo_new_run(model_dir: str, made_dir: bool) -> None:
+    """After a failed start of a new run: unless a checkpoint was committed (then the same
+    command resumes it), remove what the start wrote (:func:`remove_run`), and ``model_dir``
+    itself if the start created it, so that the folder is as it was and a corrected command
+    starts cleanly."""
+    if os.path.exists(os.path.join(model_dir, CHECKPOINT_DIR, CHECKPOINT_STATE)) \
+            or not os.path.isdir(model_dir):
+        return
+    remove_run(model_dir)
+    if made_dir and not os.listdir(model_dir):
+        os.rmdir(model_dir)
+
+
+def check_start(cfg: TrainConfig) -> None:
+    """Every check of ``cfg``'s flags and data that can fail before training, run by
+    :func:`train` before ``model_dir`` is touched, so that a bad flag never costs a finished run
+    under ``--overwrite`` nor leaves files behind: the fields (:meth:`TrainConfig.validate`),
+    the losses (:func:`loss_spec`), the backend's strategy; the dataset (a ``train`` split of
+    this stage holding at least one batch, its shards and the validation split's present with
+    their recorded sizes) or the image folders (at least one batch of pairs); the models that
+    ``init_from`` and ``prev_stages`` name.
+
+    Raises:
+      ValueError / OSError (``FileNotFoundError``, ``data.ShardError``): naming the flag, folder
+        or file.
+    """
+    from stnh_tf import data, sources
+
+    cfg.validate()
+    loss_spec(cfg)
+    if keras.backend.backend() != "tensorflow":
+        _strategy(cfg)
+    if cfg.image_dir:
+        data.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
+                         samples_per_image=cfg.samples_per_image, cache_images=False)
+        if cfg.val_samples and cfg.val_image_dir:
+            data.PairBatches(sources.split_folders(cfg.val_image_dir), cfg.batch_size,
+                             shuffle=False, drop_remainder=False, cache_images=False)
+    else:
+        check_dataset(cfg.data_dir, "train", cfg.stage)
+        data.load_split(cfg.data_dir, "train", cfg.batch_size, shuffle=False, repeat=False)
+        if cfg.val_samples and has_split(cfg.data_dir, cfg.val_split):
+            data.shard_paths(cfg.data_dir, cfg.val_split)
+    for d in (*cfg.init_from, *cfg.prev_stages):
+        path = os.path.join(d, FINAL_MODEL) if os.path.isdir(d) else d
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"no trained model at {d} (looked for {path}); init_from and "
+                                    "prev_stages name finished training runs.")
 
 
 def _strategy(cfg):
@@ -530,29 +832,33 @@ def generated_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0
     """The endless stream of pairs generated from ``cfg.image_dir`` (mapped onto the model's
     outputs), positioned at ``start_step`` (:class:`stnh_tf.data.PairStream`, or with
     ``in_memory`` :class:`stnh_tf.data.ArrayStream` over :func:`stage_pairs`)."""
-    from stnh_tf import data
+    from stnh_tf import data, sources
 
     del split
     if cfg.in_memory:
         if cfg.fresh_pairs:
             raise ValueError("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
-        batches = data.PairBatches(cfg.image_dir, cfg.batch_size,
-                                   samples_per_image=cfg.samples_per_image, seed=cfg.seed)
+        batches = data.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
+                                   samples_per_image=cfg.samples_per_image, seed=cfg.seed,
+                                   photometric=cfg.photometric)
         return data.ArrayStream(stage_pairs(cfg, batches), batches, start_step=start_step,
                                 mapper=targets_for(cfg))
-    return data.PairStream(cfg.image_dir, cfg.batch_size, samples_per_image=cfg.samples_per_image,
-                           seed=cfg.seed, start_step=start_step, fresh_pairs=cfg.fresh_pairs,
-                           mapper=targets_for(cfg), workers=cfg.workers)
+    return data.PairStream(sources.split_folders(cfg.image_dir), cfg.batch_size,
+                           samples_per_image=cfg.samples_per_image, seed=cfg.seed,
+                           start_step=start_step, fresh_pairs=cfg.fresh_pairs,
+                           mapper=targets_for(cfg), workers=cfg.workers,
+                           photometric=cfg.photometric)
 
 
 def generated_validation(cfg: TrainConfig):
     """The first :func:`validation_count` of the fixed pairs from ``cfg.val_image_dir`` (seed
     ``cfg.val_seed``, three per image in image order: with seed 1, make_dataset's test pairs), for
     stage ``cfg.stage``, made once in memory."""
-    from stnh_tf import data
+    from stnh_tf import data, sources
 
     per_image = 3
-    batches = data.PairBatches(cfg.val_image_dir, cfg.batch_size, samples_per_image=per_image,
+    batches = data.PairBatches(sources.split_folders(cfg.val_image_dir), cfg.batch_size,
+                               samples_per_image=per_image,
                                seed=cfg.val_seed, shuffle=False, drop_remainder=False,
                                max_images=-(-cfg.val_samples // per_image))
     n = validation_count(cfg, batches.num_samples)
@@ -630,23 +936,50 @@ def mixed_precision_warning(cfg: TrainConfig, cpuinfo: str = "/proc/cpuinfo") ->
             "many times slower than in float32 here; consider --nomixed_precision.")
 
 
+def _raise_shard_error(cfg: TrainConfig, error: BaseException) -> None:
+    """For a ``DataLossError`` met while training on ``cfg.data_dir``: raise ``data.ShardError``
+    naming the corrupted shard, found by reading the splits in use with CRC checks
+    (:func:`stnh_tf.data.verify_split`, what evaluation's reader reports). Any other error:
+    return (the caller re-raises it)."""
+    import tensorflow as tf
+
+    from stnh_tf import data
+
+    if not isinstance(error, tf.errors.DataLossError):
+        return
+    splits = ["train"]
+    if cfg.val_samples and has_split(cfg.data_dir, cfg.val_split):
+        splits.append(cfg.val_split)
+    for split in splits:
+        try:
+            data.verify_split(cfg.data_dir, split)
+        except data.ShardError as bad:
+            raise data.ShardError(f"training stopped on a corrupted record: {bad}") from None
+    raise data.ShardError(f"training stopped on a corrupted record of {cfg.data_dir} (splits "
+                          f"{splits}; every shard reads back whole now): {error}") from error
+
+
 def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=None,
           extra_callbacks=()):
     """Train (or resume) the model described by ``cfg``. Returns a dict of final results.
 
     ``stream_fn(cfg, split, start_step)`` may replace the TFRecord stream (tests, generators);
     ``extra_callbacks`` run after the built-in ones (checkpointing comes first).
+
+    Every check of the flags and data (:func:`check_start`) runs before ``model_dir`` is touched
+    (:func:`prepare_model_dir`); if a new run then fails before its first checkpoint, what it
+    wrote is removed again. A corrupted shard met while training raises ``data.ShardError``
+    naming the file.
     """
-    cfg.validate()
+    check_start(cfg)
     warning = mixed_precision_warning(cfg)
     if warning:
         _log.warning(warning)
         printer(f"warning: {warning}")
     generated = bool(cfg.image_dir)
     stream_fn = stream_fn or (generated_stream if generated else training_stream)
-    if not generated:
-        check_dataset(cfg.data_dir, "train", cfg.stage)
-    prepare_model_dir(cfg, overwrite=overwrite)
+    made_dir = not os.path.exists(cfg.model_dir)
+    new_run = prepare_model_dir(cfg, overwrite=overwrite)
     keras.utils.set_random_seed(cfg.seed)
     keras.mixed_precision.set_global_policy("mixed_bfloat16" if cfg.mixed_precision else "float32")
     train_ds = None
@@ -679,7 +1012,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         callbacks = [guard, AtomicCheckpoint(ckpt_dir, guard),
                      ProgressLogger(cfg.log_every, cfg.train_steps, printer)]
         if tensorboard_available():
-            callbacks.append(keras.callbacks.TensorBoard(os.path.join(cfg.model_dir, "logs"),
+            callbacks.append(keras.callbacks.TensorBoard(os.path.join(cfg.model_dir, LOGS_DIR),
                                                          update_freq=cfg.log_every,
                                                          write_graph=False))
         else:
@@ -687,16 +1020,18 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         callbacks.extend(extra_callbacks)
         epochs = cfg.train_steps // cfg.checkpoint_every
         t0 = time.time()
-        history = model.fit(train_ds, epochs=epochs, initial_epoch=start_step // cfg.checkpoint_every,
-                            steps_per_epoch=cfg.checkpoint_every, validation_data=val_ds,
-                            validation_steps=val_steps,
-                            callbacks=callbacks, verbose=0)
+        try:
+            history = model.fit(train_ds, epochs=epochs,
+                                initial_epoch=start_step // cfg.checkpoint_every,
+                                steps_per_epoch=cfg.checkpoint_every, validation_data=val_ds,
+                                validation_steps=val_steps, callbacks=callbacks, verbose=0)
+        except Exception as e:
+            if not generated:
+                _raise_shard_error(cfg, e)
+            raise
         if guard.bad_step is not None:
             last = checkpoint_weights_path(ckpt_dir)
-            last_step = 0
-            if last is not None:
-                with open(os.path.join(ckpt_dir, CHECKPOINT_STATE)) as f:
-                    last_step = json.load(f)["step"]
+            last_step = read_checkpoint_state(ckpt_dir)["step"] if last is not None else 0
             raise TrainingDiverged(
                 f"non-finite loss at step {guard.bad_step}; last good checkpoint: "
                 f"{last or '(none)'} (step {last_step}). Resuming with the same flags repeats the "
@@ -709,8 +1044,12 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         result = {"final_step": int(keras.ops.convert_to_numpy(model.optimizer.iterations)),
                   "wall_s_this_run": time.time() - t0,
                   "history": {k: [float(x) for x in v] for k, v in history.history.items()}}
-        _atomic_write_json(os.path.join(cfg.model_dir, "result.json"), result)
+        _atomic_write_json(os.path.join(cfg.model_dir, RESULT_FILE), result)
         return result
+    except BaseException:
+        if new_run:
+            _undo_new_run(cfg.model_dir, made_dir)
+        raise
     finally:
         keras.mixed_precision.set_global_policy("float32")
         if hasattr(train_ds, "close"):  # a PairStream's generator processes

@@ -8,6 +8,7 @@ References are written here with OpenCV/NumPy (conftest's ``to_bar``, ``cv2_warp
 import functools
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -495,3 +496,137 @@ def test_coco2014_fails_fast_without_network(tmp_path, monkeypatch):
         stage1.make_dataset("coco2014", str(tmp_path / "out"), "train",
                             tfds_data_dir=str(tmp_path / "tfds"))
     assert not (tmp_path / "out" / "metadata.json").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# Nothing lost, nothing crashes: arguments, paths read from metadata, concurrent writers
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kwargs, message", [
+    ({"num_shards": -3}, "--num_shards must be >= 0; received -3"),
+    ({"max_images": -2}, "--max_images must be >= 0; received -2"),
+    ({"split": ".."}, "split must be a plain name"),
+    ({"split": "../train"}, "split must be a plain name"),
+    ({"source": "folder", "image_dir": "MISSING"}, "does not exist"),
+    ({"source": "folder", "image_dir": "EMPTY"}, "no image files found"),
+])
+def test_make_dataset_checks_everything_before_creating_the_output_folder(tmp_path, kwargs,
+                                                                          message):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "notes.txt").write_text("no images")
+    folders = {"MISSING": str(tmp_path / "missing"), "EMPTY": str(tmp_path / "empty")}
+    kwargs = {"source": "bundled", "split": "train", "max_images": 1, **kwargs}
+    if "image_dir" in kwargs:
+        kwargs["image_dir"] = folders[kwargs["image_dir"]]
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match=re.escape(message)):  # SourceError is a ValueError
+        stage1.make_dataset(output_dir=str(out), log=lambda m: None, **kwargs)
+    assert not out.exists()
+
+
+def test_crafted_shard_path_in_metadata_is_refused(tmp_path, dataset):
+    """A metadata.json naming shards of another folder ('../' or absolute) must not make the
+    readers score that folder's pairs."""
+    other, out = tmp_path / "other", tmp_path / "copy"
+    shutil.copytree(dataset, other)
+    shutil.copytree(dataset, out)
+    meta = json.loads((out / "metadata.json").read_text())
+    for crafted in ("../other/train-00000-of-00002.tfrecord",
+                    str(other / "train-00000-of-00002.tfrecord")):
+        meta["splits"]["train"]["shards"][0]["file"] = crafted
+        (out / "metadata.json").write_text(json.dumps(meta))
+        with pytest.raises(ValueError, match="is not a path inside"):
+            data.shard_paths(str(out), "train")
+        with pytest.raises(ValueError, match="is not a path inside"):
+            data.load_arrays(str(out), "train")
+
+
+def _constant_sample(item):
+    return [{**pairs.make_pair(np.full((240, 320), 100, np.uint8),
+                               pairs.draw_params(pairs.image_rng(0, item.index))[0]),
+             "h_prev": np.eye(3), "h_mask": 1.0, "image_id": item.item_id, "index": item.index}]
+
+
+def test_concurrent_writers_of_one_split_do_not_corrupt_each_other(tmp_path):
+    """A second make_dataset on a split being written is refused at once; it used to delete the
+    first run's temporary shard, which then failed or wrote an unreadable split."""
+    import threading
+
+    out = str(tmp_path / "ds")
+    inside_second_item, release = threading.Event(), threading.Event()
+
+    def slow(item):
+        if item.index == 1:  # the first shard's temporary file is open by now
+            inside_second_item.set()
+            assert release.wait(120)
+        return _constant_sample(item)
+
+    items = [writer.WorkItem(i, f"img{i}") for i in range(4)]
+    result, errors = {}, []
+
+    def first_run():
+        try:
+            result.update(writer.write_sharded(out, "train", items, slow, num_shards=2,
+                                               chunk_size=1, top_metadata={"stage": 1},
+                                               log=lambda m: None))
+        except BaseException as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+
+    thread = threading.Thread(target=first_run)
+    thread.start()
+    try:
+        assert inside_second_item.wait(120)
+        temporary = [n for n in os.listdir(out) if ".tfrecord.tmp-" in n]
+        assert len(temporary) == 1
+        with pytest.raises(FileExistsError, match="another process is writing split 'train'"):
+            writer.write_sharded(out, "train", items, _constant_sample, num_shards=2,
+                                 top_metadata={"stage": 1}, log=lambda m: None)
+        assert os.path.exists(os.path.join(out, temporary[0]))  # not deleted by the second run
+    finally:
+        release.set()
+        thread.join(120)
+    assert not errors, errors
+    assert result["status"] == "complete" and result["num_samples"] == 4
+    assert len(data.load_arrays(out, "train", verify="full")["index"]) == 4
+    # Another split of the same folder is written meanwhile without waiting for the lock.
+    writer.write_sharded(out, "test", items[:1], _constant_sample, num_shards=1,
+                         top_metadata={"stage": 1}, log=lambda m: None)
+
+
+def test_symlinks_leading_out_of_the_image_folder_are_not_followed(tmp_path):
+    folder, elsewhere = tmp_path / "images", tmp_path / "elsewhere"
+    folder.mkdir()
+    elsewhere.mkdir()
+    photo = sources.bundled_image_files()[0][1]
+    shutil.copy(photo, folder / "real.png")
+    shutil.copy(photo, elsewhere / "secret.png")
+    os.symlink(folder / "real.png", folder / "alias.png")  # inside the folder: listed
+    os.symlink(elsewhere / "secret.png", folder / "outside.png")
+    os.symlink(elsewhere, folder / "linked_dir")  # directories behind links are not entered
+    listing = sources.scan_image_folder(str(folder))
+    assert [os.path.basename(p) for p in listing.files] == ["alias.png", "real.png"]
+    assert [os.path.basename(p) for p, _ in listing.unreadable] == ["outside.png"]
+    assert "outside the image folder" in listing.unreadable[0][1]
+
+
+def test_evaluate_json_out_folder_is_made_before_the_evaluation(dataset, tmp_path):
+    """--json_out into a missing folder used to fail after the evaluation, losing its result."""
+    out = tmp_path / "missing" / "sub" / "result.json"
+    proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", f"--data_dir={dataset}",
+                           "--split=train", "--baselines=identity", f"--json_out={out}"],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads(out.read_text())["count"] == 9
+    proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", f"--data_dir={dataset}",
+                           "--split=train", "--baselines=identity", f"--json_out={tmp_path}"],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert "is a directory" in proc.stderr
+
+
+def test_evaluate_refuses_bad_numbers_before_reading():
+    from stnh_tf import evaluation
+
+    with pytest.raises(ValueError, match="batch_size must be >= 1; received 0"):
+        evaluation.evaluate([], "no_such_dataset", batch_size=0)
+    with pytest.raises(ValueError, match="max_samples must be >= 1"):
+        evaluation.evaluate([], "no_such_dataset", max_samples=-1)

@@ -5,7 +5,7 @@ import os
 
 import numpy as np
 
-from conftest import paper_homography
+from conftest import paper_homography, photo_pairs
 from stnh_tf import figures
 
 
@@ -30,6 +30,48 @@ def test_figures_write_pngs(tmp_path, rng):
         with open(p, "rb") as f:
             assert f.read(8) == b"\x89PNG\r\n\x1a\n"
         assert os.path.getsize(p) > 5000
+
+
+def test_image_b_window_is_image_b_around_the_square(rng):
+    """Re-made from the context, the window's centre is patch_b (up to uint8 rounding), and with
+    the identity it is the context itself; a stored patch_b replaces the centre exactly."""
+    pairs = photo_pairs(rng, 4)
+    for ctx, h, pb in zip(pairs["context"], pairs["h_ba"], pairs["patch_b"]):
+        window = figures.image_b_window(ctx, h)
+        assert window.shape == (192, 192) and window.dtype == np.uint8
+        diff = np.abs(window[32:160, 32:160].astype(int) - pb.astype(int))
+        assert diff.mean() < 0.6 and diff.max() <= 1
+        np.testing.assert_array_equal(figures.image_b_window(ctx, h, pb)[32:160, 32:160], pb)
+        np.testing.assert_array_equal(
+            figures.image_b_window(ctx, h, pb[..., None] / 255.0)[32:160, 32:160], pb)
+    np.testing.assert_array_equal(figures.image_b_window(pairs["context"][0], np.eye(3)),
+                                  pairs["context"][0])
+
+
+def test_fig5_draws_truth_in_both_images_and_the_prediction_in_image_a(rng):
+    """The paper's Fig. 5: green boxes (truth) in image_a and image_b, red (prediction) in image_a."""
+    from matplotlib import colors
+
+    n = 2
+    ctx = rng.integers(0, 256, (n, 192, 192), dtype=np.uint8)
+    pb = rng.integers(0, 256, (n, 128, 128), dtype=np.uint8)
+    h_true = np.stack([paper_homography(rng) for _ in range(n)])
+    h_pred = np.stack([paper_homography(rng) for _ in range(n)])
+    fig = figures.prediction_figure(ctx, pb, h_true, h_pred)
+    try:
+        axes = np.array(fig.axes).reshape(2, n)
+        for i in range(n):
+            top = {colors.to_hex(l.get_color()): l.get_xydata() for l in axes[0, i].lines}
+            bottom = {colors.to_hex(l.get_color()): l.get_xydata() for l in axes[1, i].lines}
+            assert set(top) == {"#00ff00", "#ff0000"} and set(bottom) == {"#00ff00"}
+            np.testing.assert_allclose(top["#00ff00"], figures.quadrilateral(h_true[i], 32))
+            np.testing.assert_allclose(top["#ff0000"], figures.quadrilateral(h_pred[i], 32))
+            square = np.array([[0, 0], [128, 0], [128, 128], [0, 128], [0, 0]]) + 32.0
+            np.testing.assert_allclose(bottom["#00ff00"], square)
+            assert "image_a" in axes[0, i].get_title() and axes[1, i].get_title() == "image_b"
+    finally:
+        import matplotlib.pyplot as plt
+        plt.close(fig)
 
 
 def test_demo_runs_offline(tmp_path):

@@ -154,17 +154,52 @@ def test_mean_corner_error_known_values(rng):
     assert g.mean_corner_error(np.eye(3), g.scale_matrix(1 + s, 1 + s)) == pytest.approx(expected)
 
 
+def _sampler_pairs(n):
+    """``n`` pairs of the library's sampler: ``(h_ba [n, 3, 3], drawn corner offsets [n, 4, 2])``."""
+    from stnh_tf import pairs
+    protocol = pairs.Protocol(samples_per_image=1)
+    image = np.zeros((protocol.image_height, protocol.image_width), np.uint8)
+    params = [pairs.draw_params(pairs.image_rng(0, i), protocol)[0] for i in range(n)]
+    hs = np.stack([pairs.make_pair(image, p, protocol)["h_ba"] for p in params])
+    return hs, np.stack([p.offsets for p in params])
+
+
+def _corner_convention_error(hs, offsets):
+    """Largest distance (px) between ``dehom(H c)`` and ``c + offset`` over the conventions'
+    corners ``c`` = (0,0), (128,0), (128,128), (0,128) (CORNERS, written out here)."""
+    c = np.concatenate([CORNERS, np.ones((4, 1))], axis=1)
+    mapped = np.einsum("nij,kj->nki", hs, c)
+    return float(np.abs(mapped[..., :2] / mapped[..., 2:] - (CORNERS + offsets)).max())
+
+
+def test_sampler_and_mace_use_the_conventions_corners():
+    """The sampler's ``H_ba`` moves exactly the corners (0,0), (128,0), (128,128), (0,128) by the
+    drawn offsets, and the identity's per-pair MACE is the mean length of those offsets. A corner
+    convention off by one pixel in the sampler (a 127-px square) fails the first check by far more
+    than its tolerance, and the second too where MACE keeps the 128-px corners: the sensitivity
+    check on the same offsets shows both."""
+    hs, offsets = _sampler_pairs(500)
+    assert _corner_convention_error(hs, offsets) < 1e-6
+    np.testing.assert_allclose(g.corner_errors(np.broadcast_to(np.eye(3), hs.shape), hs),
+                               np.linalg.norm(offsets, axis=-1).mean(axis=-1), atol=1e-6)
+    # Sensitivity: homographies built on a 127-px square with the same offsets.
+    square127 = np.array([[0, 0], [127, 0], [127, 127], [0, 127]], np.float32)
+    off_by_one = np.stack([cv2.getPerspectiveTransform(square127, square127 + o.astype(np.float32))
+                           for o in offsets]).astype(np.float64)
+    assert _corner_convention_error(off_by_one, offsets) > 0.1
+    identity_127 = g.corner_errors(np.broadcast_to(np.eye(3), hs.shape), off_by_one)
+    assert np.abs(identity_127 - np.linalg.norm(offsets, axis=-1).mean(axis=-1)).max() > 0.1
+
+
 def test_identity_mace_of_the_pair_sampler_matches_its_closed_form():
     """The identity's MACE is the mean length of a corner offset drawn uniformly from the square
     [-32, 32]^2: E|d| = 32 (sqrt 2 + asinh 1) / 3 = 24.486 px. Over 4,000 pairs of the library's
     sampler (16,000 corners; sd of |d| 9.1 px, so the standard error is 0.072 px) the measured
-    value must lie within 0.3 px (~4 standard errors); a wrong perturbation range, a corner
-    convention off by a pixel or H applied in the wrong direction moves it further."""
-    from stnh_tf import pairs
-    protocol = pairs.Protocol(samples_per_image=1)
-    image = np.zeros((protocol.image_height, protocol.image_width), np.uint8)
-    hs = np.stack([pairs.make_pair(image, pairs.draw_params(pairs.image_rng(0, i), protocol)[0],
-                                   protocol)["h_ba"] for i in range(4000)])
+    value must lie within 0.3 px (~4 standard errors). That catches a wrong perturbation range
+    (32 px -> 31 px moves it by 0.77 px) or H applied in the wrong direction; it cannot catch a
+    corner convention off by one pixel (about 0.2 px here), which
+    :func:`test_sampler_and_mace_use_the_conventions_corners` checks exactly."""
+    hs, _ = _sampler_pairs(4000)
     mace = g.mean_corner_error(np.broadcast_to(np.eye(3), hs.shape), hs)
     assert mace == pytest.approx(32 * (np.sqrt(2) + np.arcsinh(1)) / 3, abs=0.3)
 

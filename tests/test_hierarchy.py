@@ -145,3 +145,54 @@ def test_inputs_are_scaled_by_their_own_dtype(pairs):
     for a, b in zip(o_u8.seen, o_mixed.seen):
         np.testing.assert_allclose(a, b, atol=1e-6)
     assert 0.2 < o_mixed.seen[1].mean() < 0.8  # patch_b in [0, 1], not divided twice
+
+
+def test_no_clip_keeps_the_composition_that_clipping_changes():
+    """A composition whose corners leave the context: the rule refits it onto the border; with
+    ``clip_to_context=False`` it is ``h_prev @ h_stage`` as predicted (still counted)."""
+    h_prev = np.stack([geometry.translation(5, 0)] * 3)
+    h_stage = np.stack([geometry.translation(40, 0), geometry.translation(2, 1),
+                        np.full((3, 3), np.nan)])
+    clipped, reasons = hierarchy.accept_or_reject(h_prev, h_stage)
+    raw, raw_reasons = hierarchy.accept_or_reject(h_prev, h_stage, clip_to_context=False)
+    assert reasons == raw_reasons == ["outside_context", None, "non_finite"]
+    np.testing.assert_allclose(raw[0], geometry.translation(45, 0), atol=1e-12)
+    np.testing.assert_allclose(clipped[0], [[115 / 128, 0, 45], [0, 1, 0], [0, 0, 1]], atol=1e-6)
+    np.testing.assert_allclose(raw[1:], clipped[1:])  # the rest of the rule is unchanged
+    np.testing.assert_allclose(raw[2], h_prev[2])
+
+
+def test_no_clip_through_the_hierarchy_and_its_evaluation(pairs, monkeypatch):
+    """Stage 1 overshoots by 45 px (outside the 32-px context), stage 2 returns a fixed matrix:
+    without clipping the estimates are exactly their products, stage 2 reads zeros beyond the
+    context, and ``evaluate_hierarchy`` scores those products."""
+    from stnh_tf import evaluation
+
+    n = len(pairs["h_ba"])
+    t45 = np.repeat(geometry.translation(45, 0)[None], n, 0)
+    second = np.repeat(geometry.translation(-3, 2)[None], n, 0)
+    o1, o2 = _Oracle(t45), _Oracle(second)
+    run = hierarchy.run_hierarchy([o1, o2], pairs["context"], pairs["patch_b"],
+                                  clip_to_context=False)
+    np.testing.assert_allclose(run["per_stage"][0], t45, atol=1e-12)
+    np.testing.assert_allclose(run["h"], t45 @ second, atol=1e-12)
+    assert run["rejected"][0]["outside_context"] == n
+    # patch_a_2(p) = patch_a(p + 45): columns with x + 45 > 160 lie beyond the context.
+    assert np.all(o2.seen[0][:, :, 116:, 0] == 0) and o2.seen[0][:, :, :100].mean() > 0.05
+    clipped = hierarchy.run_hierarchy([o1, o2], pairs["context"], pairs["patch_b"])
+    assert _mace(clipped["h"], t45 @ second) > 1.0  # clipping changes the composition here
+
+    monkeypatch.setattr(hierarchy, "keras_stage", lambda stage, batch_size=64: stage)
+    samples = {"context_a": pairs["context"], "patch_b": pairs["patch_b"], "h_ba": pairs["h_ba"]}
+    for clip, h in ((False, t45 @ second), (True, clipped["h"])):
+        result = evaluation.evaluate_hierarchy([o1, o2], samples, clip_to_context=clip)
+        assert result["clip_to_context"] is clip
+        assert result["mace"] == pytest.approx(_mace(h, pairs["h_ba"]), rel=1e-9)
+    assert result["rejected"][0]["outside_context"] == n
+
+
+def test_no_clip_needs_a_hierarchy():
+    from stnh_tf import evaluation
+
+    with pytest.raises(ValueError, match="changes only a hierarchy"):
+        evaluation.evaluate(["runs/stage1"], "no_such_data", clip_to_context=False)

@@ -8,6 +8,7 @@ last layer is set so that they output a chosen ``H_bar``.
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -195,13 +196,41 @@ def test_load_sequence_round_trip(saved, pairs):
 
 
 def test_write_manifest_round_trip(saved, tmp_path):
-    path = inference.write_manifest(tmp_path / "h.json", [saved["root"] / "single.keras",
+    path = inference.write_manifest(tmp_path / "h.json", [tmp_path / "a.keras",
                                                           tmp_path / "sub" / "x.keras"])
     doc = json.loads(open(path).read())
     assert doc["format"] == "stnh_tf.hierarchy" and doc["version"] == 1
-    assert doc["stages"] == [str(saved["root"] / "single.keras"), "sub/x.keras"]
-    assert inference.read_manifest(path) == [str(saved["root"] / "single.keras"),
+    assert doc["stages"] == ["a.keras", "sub/x.keras"]
+    assert inference.read_manifest(path) == [str(tmp_path / "a.keras"),
                                              str(tmp_path / "sub" / "x.keras")]
+    with pytest.raises(ValueError, match="outside the manifest's folder"):
+        inference.write_manifest(tmp_path / "h2.json", [saved["root"] / "single.keras"])
+    assert not (tmp_path / "h2.json").exists()
+
+
+def test_manifest_stages_must_stay_inside_its_folder(saved, tmp_path):
+    """A manifest naming stages with '../' or an absolute path is refused: it could make the
+    loader read models from anywhere."""
+    folder = tmp_path / "m"
+    folder.mkdir()
+    shutil.copy(saved["root"] / "single.keras", folder / "stage1.keras")
+    shutil.copy(saved["root"] / "single.keras", tmp_path / "single.keras")
+    for stage in ("../single.keras", str(saved["root"] / "single.keras"), "sub/../../x.keras"):
+        (folder / "h.json").write_text(json.dumps(
+            {"format": "stnh_tf.hierarchy", "version": 1, "stages": ["stage1.keras", stage]}))
+        with pytest.raises(ValueError, match="stage 2: .* is not a path inside"):
+            HomographyEstimator.load(folder / "h.json")
+    (folder / "h.json").write_bytes(b"\xff\xfe not text")
+    with pytest.raises(ValueError, match="hierarchy manifest .*h.json.* is not valid JSON"):
+        HomographyEstimator.load(folder / "h.json")
+
+
+def test_load_of_a_file_that_is_not_a_model_says_so(tmp_path):
+    (tmp_path / "notes.keras").write_text("a text file named .keras")
+    with pytest.raises(ValueError) as info:
+        HomographyEstimator.load(tmp_path / "notes.keras")
+    assert "notes.keras exists but is not a Keras model" in str(info.value)
+    assert "File not found" not in str(info.value)
 
 
 def test_load_default_weights(monkeypatch, tmp_path, identity_model_path):
@@ -296,6 +325,48 @@ def test_degenerate_stage_predictions_are_skipped_and_counted(pairs, rng, caplog
     est._predict_stage = lambda k, pa, pb, bs: np.repeat(outputs.get(k, np.eye(3))[None], len(pa), 0)
     est.estimate(a, b)
     assert est.last_rejected == {"non_finite": 0, "singular": 0}
+
+
+def test_implausible_estimates_are_flagged_per_pair(pairs):
+    """A pair whose estimate moves a patch corner beyond 1.5 x 32 px, or one with a stage skipped
+    as degenerate, is flagged in ``last_info``; an estimate within the trained range is not. The
+    corner shift is checked against OpenCV's perspectiveTransform."""
+    import cv2
+
+    from stnh_tf import inference
+
+    a, b, _ = pairs
+    n = len(a)
+    corners = np.array([[0, 0], [128, 0], [128, 128], [0, 128]], np.float64)
+    ordinary = cv2.getPerspectiveTransform(corners.astype(np.float32),
+                                           (corners + [[10, -5], [-20, 3], [30, 30], [0, -31]])
+                                           .astype(np.float32))
+    beyond = cv2.getPerspectiveTransform(corners.astype(np.float32),
+                                         (corners + [[60, 0], [0, 0], [0, 0], [0, 0]])
+                                         .astype(np.float32))
+    est = HomographyEstimator([_constant_stage(np.eye(3), f"c{k}") for k in (1, 2)])
+
+    def fake_stage(k, patch_a, patch_b, batch_size):
+        h = np.repeat((ordinary if k == 0 else np.eye(3))[None], len(patch_a), 0)
+        if k == 0:
+            h[1] = beyond
+        if k == 1:
+            h[2] = np.full((3, 3), np.nan)  # skipped as degenerate; the estimate stays ordinary
+        return h
+
+    est._predict_stage = fake_stage
+    est.estimate(a, b)
+    info = est.last_info
+    expected = np.zeros(n, bool)
+    expected[[1, 2]] = True
+    np.testing.assert_array_equal(info["implausible"], expected)
+    np.testing.assert_array_equal(info["rejected_stages"], [0, 0, 1] + [0] * (n - 3))
+    moved = cv2.perspectiveTransform(corners[None], ordinary)[0]
+    assert info["max_corner_shift_px"][0] == pytest.approx(
+        np.linalg.norm(moved - corners, axis=1).max(), abs=1e-6)
+    assert info["max_corner_shift_px"][1] == pytest.approx(60.0, abs=1e-6)
+    assert inference.IMPLAUSIBLE_CORNER_SHIFT == 48.0
+    assert info["max_corner_shift_px"][0] < 48.0
 
 
 def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs):
@@ -498,6 +569,46 @@ def test_saved_model_matches_keras_model(exported, saved, pairs):
                                   overwrite=True)
 
 
+BAD_REQUESTS_SCRIPT = r"""
+import json, sys
+import numpy as np
+import tensorflow as tf
+fn = tf.saved_model.load(sys.argv[1]).signatures["serving_default"]
+good = np.zeros((2, 128, 128, 1), np.uint8)
+requests = {"rank 3": (np.zeros((1, 128, 128), np.uint8),) * 2,
+            "64x64": (np.zeros((1, 64, 64, 1), np.uint8),) * 2,
+            "rank 5": (np.zeros((1, 1, 128, 128, 1), np.uint8),) * 2,
+            "3 channels": (np.zeros((1, 128, 128, 3), np.uint8),) * 2,
+            "float32": (good.astype(np.float32),) * 2,
+            "batch 2 vs 1": (good, good[:1])}
+out = {}
+for name, (a, b) in requests.items():
+    try:
+        fn(patch_a=tf.constant(a), patch_b=tf.constant(b))
+        out[name] = "accepted"
+    except tf.errors.InvalidArgumentError as e:
+        out[name] = "InvalidArgumentError"
+    except Exception as e:
+        out[name] = type(e).__name__
+out["good"] = list(fn(patch_a=tf.constant(good), patch_b=tf.constant(good))["homography"].shape)
+print(json.dumps(out))
+"""
+
+
+def test_saved_model_rejects_bad_requests_without_crashing(exported):
+    """serving_default checks rank, size, channels, dtype and batch in the graph: a [1, 128, 128]
+    request used to abort the whole process (SIGABRT in oneDNN), [1, 64, 64, 1] and
+    [1, 1, 128, 128, 1] returned a homography. Run in a subprocess: an abort fails this test."""
+    path, _, _ = exported
+    env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2")
+    proc = subprocess.run([sys.executable, "-c", BAD_REQUESTS_SCRIPT, str(path)],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, (proc.returncode, proc.stderr[-3000:])
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out.pop("good") == [2, 3, 3]
+    assert out == {name: "InvalidArgumentError" for name in out}, out
+
+
 def test_saved_model_hierarchy_matches_estimator(saved, pairs, tmp_path):
     a, b, _ = pairs
     est = HomographyEstimator([saved["stage1"], saved["stage2"]])
@@ -559,6 +670,18 @@ def test_predict_binary(identity_model_path, tmp_path):
     # With the identity model, image_a warped onto image_b equals image_b (gray overlay):
     blend = png[:200, 608:908].astype(np.float64)
     assert np.abs(blend[..., 1] - blend[..., 0])[4:-4, 4:-4].mean() < 3.0
+    assert result["implausible"] is False and result["max_corner_shift_px"] < 1e-6
+    assert "implausible" not in proc.stderr
+    # A model whose estimate moves a patch corner by 60 px (trained range: 32) gets a warning.
+    far = np.eye(3)
+    far[0, 2] = 60.0
+    _constant_stage(far, "far").save(tmp_path / "far.keras")
+    proc = _run("experiments.predict", f"--image_a={tmp_path / 'a.png'}",
+                f"--image_b={tmp_path / 'a.png'}", f"--model={tmp_path / 'far.keras'}",
+                f"--output_dir={tmp_path / 'far'}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads(proc.stdout)["implausible"] is True
+    assert "warning: the estimate is implausible" in proc.stderr and "60.0 px" in proc.stderr
 
     (tmp_path / "junk.png").write_text("not an image")
     for bad, what in ((tmp_path / "junk.png", "cannot read image_a"),
@@ -568,3 +691,43 @@ def test_predict_binary(identity_model_path, tmp_path):
         assert proc.returncode != 0
         assert what in proc.stderr and str(bad) in proc.stderr
         assert "Traceback" not in proc.stderr
+
+
+def test_predict_checks_its_output_dir_first(identity_model_path, tmp_path):
+    """An --output_dir that is a file, or under one, is a clear error before any work."""
+    image = tmp_path / "a.png"
+    cv2.imwrite(str(image), skimage.data.camera())
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    for out in (blocker, blocker / "sub"):
+        proc = _run("experiments.predict", f"--image_a={image}", f"--image_b={image}",
+                    f"--model={identity_model_path}", f"--output_dir={out}")
+        assert proc.returncode != 0 and "Traceback" not in proc.stderr
+        assert "predict: --output_dir: output directory" in proc.stderr and str(out) in proc.stderr
+
+
+def test_predict_outputs_of_pairs_with_the_same_names_do_not_collide(identity_model_path,
+                                                                     tmp_path):
+    """Two pairs whose images share base names used to overwrite each other's outputs in one
+    --output_dir; a re-run of the same pair still replaces its own."""
+    photos = {"one": skimage.data.camera(), "two": skimage.data.coffee()[..., ::-1]}
+    for name, photo in photos.items():
+        (tmp_path / name).mkdir()
+        cv2.imwrite(str(tmp_path / name / "a.png"), photo)
+        cv2.imwrite(str(tmp_path / name / "b.png"), photo)
+    out = tmp_path / "out"
+    results = []
+    for name in ("one", "two", "one"):
+        proc = _run("experiments.predict", f"--image_a={tmp_path / name / 'a.png'}",
+                    f"--image_b={tmp_path / name / 'b.png'}", f"--model={identity_model_path}",
+                    f"--output_dir={out}")
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        results.append(json.loads(proc.stdout))
+    assert [os.path.basename(r["overlay_png"]) for r in results] == \
+        ["a__b_overlay.png", "a__b-2_overlay.png", "a__b_overlay.png"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "a__b-2_homography.json", "a__b-2_overlay.png", "a__b_homography.json", "a__b_overlay.png"]
+    assert json.loads((out / "a__b-2_homography.json").read_text())["image_a"] == \
+        str(tmp_path / "two" / "a.png")
+    assert json.loads((out / "a__b_homography.json").read_text())["image_a"] == \
+        str(tmp_path / "one" / "a.png")

@@ -37,6 +37,72 @@ def test_untrained_network_outputs_the_identity():
                                   np.tile([1, 0, 0, 0, 1, 0, 0, 0], (3, 1)).astype(np.float32))
 
 
+def test_homographynet_is_detones_network():
+    """DeTone et al. 2016: 8 conv 3x3 (64, 64, 64, 64, 128, 128, 128, 128), BatchNorm + ReLU after
+    each, 2x2 pools after conv2/4/6, dropout 0.5 after the last conv and after fc1, the 16x16x128
+    map flattened into Dense 1024, Dense 8 offsets. Shapes and counts written out here."""
+    model = models.build_homographynet()
+    net = model.get_layer("regression")
+    names = [l.name for l in net.layers]
+    kinds = [l.__class__.__name__ for l in net.layers]
+    convs = [l for l in net.layers if kinds[names.index(l.name)] == "Conv2D"]
+    assert [l.filters for l in convs] == FILTERS and not any(l.use_bias for l in convs)
+    for k in range(1, 9):  # conv -> BatchNorm -> ReLU, in that order
+        i = names.index(f"conv{k}")
+        assert kinds[i + 1:i + 3] == ["BatchNormalization", "ReLU"], (k, kinds[i:i + 3])
+    shapes = {l.name: tuple(l.output.shape[1:]) for l in net.layers}
+    assert [shapes[f"relu{k}"] for k in (1, 2, 3, 4, 5, 6, 7, 8)] == [
+        (128, 128, 64), (128, 128, 64), (64, 64, 64), (64, 64, 64),
+        (32, 32, 128), (32, 32, 128), (16, 16, 128), (16, 16, 128)]
+    assert [shapes[f"pool{i}"] for i in (1, 2, 3)] == [(64, 64, 64), (32, 32, 64), (16, 16, 128)]
+    # relu8 -> dropout 0.5 -> flatten (16 * 16 * 128 values) -> fc1 -> dropout 0.5 -> fc2.
+    i = names.index("relu8")
+    assert names[i + 1:i + 6] == ["dropout_conv", "flatten", "fc1", "dropout", "fc2"]
+    assert net.get_layer("dropout_conv").rate == 0.5 and net.get_layer("dropout").rate == 0.5
+    assert shapes["flatten"] == (32768,) and shapes["fc1"] == (1024,) and shapes["fc2"] == (8,)
+    assert "gap" not in names
+    convs_w = 9 * (2 * 64 + 64 * 64 + 64 * 64 + 64 * 64 + 64 * 128 + 128 * 128 * 3)  # no bias
+    bn = 4 * (4 * 64 + 4 * 128)  # gamma, beta, moving mean, moving variance per channel
+    fc1 = 16 * 16 * 128 * 1024 + 1024
+    fc2 = 1024 * 8 + 8
+    assert (convs_w, bn, fc1, fc2) == (627_840, 3_072, 33_555_456, 8_200)
+    assert net.count_params() == model.count_params() == convs_w + bn + fc1 + fc2 == 34_194_568
+    # The model's outputs: offsets / 32, and the H_bar they define, as for every model kind.
+    assert sorted(model.output_names) == ["h_bar", "offsets", "patch_a_warp"]
+
+
+def test_homographynet_offsets_define_h_bar(rng):
+    """The 4-point output, scaled by 32, moves the patch corners to where h_bar maps them."""
+    from stnh_tf import geometry
+
+    model = models.build_homographynet()
+    x = {k: rng.uniform(size=(2, 128, 128, 1)).astype(np.float32) for k in ("patch_a", "patch_b")}
+    out = model.predict(x, verbose=0)
+    h = geometry.denormalize_homography(geometry.vector_to_matrix(out["h_bar"].astype(np.float64)))
+    corners = geometry.patch_corners()
+    moved = geometry.warp_points(h, corners[None]) - corners
+    np.testing.assert_allclose(moved.reshape(2, 8), 32.0 * out["offsets"], atol=2e-3)
+
+
+def test_homographynet_gap_keeps_the_previous_variant():
+    """``homographynet_gap``: the 4-point regression on the paper's backbone (global average
+    pooling, one dropout, no BatchNorm by default), 768,904 parameters."""
+    model = models.build_homographynet_gap()
+    net = model.get_layer("regression")
+    names = [l.name for l in net.layers]
+    assert "gap" in names and "flatten" not in names and "dropout_conv" not in names
+    assert not [l for l in net.layers if l.__class__.__name__ == "BatchNormalization"]
+    assert model.count_params() == _expected_params() == 768_904
+    assert sorted(model.output_names) == ["h_bar", "offsets", "patch_a_warp"]
+
+
+@pytest.mark.parametrize("field, value", [("head", "max"), ("conv_dropout", 1.0),
+                                          ("dropout", -0.1)])
+def test_regression_network_refuses_bad_options(field, value):
+    with pytest.raises(ValueError, match=field):
+        models.regression_network(**{field: value})
+
+
 @pytest.mark.parametrize("batch_norm", ["none", "conv"])
 def test_batch_norm_variant_adds_one_normalization_per_convolution(batch_norm):
     net = models.regression_network(batch_norm=batch_norm)
@@ -44,3 +110,17 @@ def test_batch_norm_variant_adds_one_normalization_per_convolution(batch_norm):
     assert len(bns) == (8 if batch_norm == "conv" else 0)
     # BatchNorm replaces each conv bias (-c) with gamma, beta, moving mean and variance (+4c).
     assert net.count_params() == _expected_params() + sum(FILTERS) * 3 * (batch_norm == "conv")
+
+
+@pytest.mark.parametrize("build", [models.build_homographynet, models.build_homographynet_gap])
+def test_homographynet_save_load_round_trip(build, tmp_path, rng):
+    import keras
+
+    model = build()
+    x = {k: rng.uniform(size=(2, 128, 128, 1)).astype(np.float32) for k in ("patch_a", "patch_b")}
+    model.save(tmp_path / "m.keras")
+    loaded = keras.models.load_model(tmp_path / "m.keras", compile=False)
+    assert loaded.count_params() == model.count_params()
+    for name in ("offsets", "h_bar"):
+        np.testing.assert_allclose(loaded.predict(x, verbose=0)[name],
+                                   model.predict(x, verbose=0)[name], atol=1e-6)

@@ -113,3 +113,14 @@ def test_paper_budget_uses_the_papers_image_counts():
     assert (b.max_images * b.samples_per_image, b.test_max_images * b.test_samples_per_image) == (
         354_000, 30_000)
     assert (b.train_steps, b.warmup_steps, b.batch_size) == (91_000, 1_000, 64)
+    # Section 5: the sequence model's "total training steps of 90000"; other budgets: as stages.
+    assert b.sequence_train_steps == 90_000
+    assert reproduce.BUDGETS["cpu"].sequence_train_steps == reproduce.BUDGETS["cpu"].train_steps
+
+
+def test_homographynet_is_detones_network_with_its_schedule(tiny_run):
+    out, result, _ = tiny_run
+    cfg = json.load(open(os.path.join(result["models"]["homographynet"], training.CONFIG_FILE)))
+    assert (cfg["model"], cfg["batch_norm"], cfg["lr_schedule"], cfg["learning_rate"],
+            cfg["warmup_steps"], cfg["train_steps"]) == (
+        "homographynet", "conv", "step", 0.005, 0, reproduce.BUDGETS["tiny"].train_steps)

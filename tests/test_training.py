@@ -5,6 +5,8 @@ MirroredStrategy, and an overfitting run that proves losses, STN and gradients a
 import dataclasses
 import json
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -199,7 +201,7 @@ def test_overwrite_deletes_finished_or_other_runs_and_resumes_an_unfinished_one(
 
 def test_homographynet_refuses_loss_weights_it_would_ignore():
     assert training.loss_spec(_cfg("d", "m", model="homographynet"))[1] == {"offsets": 1.0}
-    with pytest.raises(ValueError, match="l2_weight/l1_weight do not apply"):
+    with pytest.raises(ValueError, match="l2_weight/l1_weight/l2_reduction do not apply"):
         training.loss_spec(_cfg("d", "m", model="homographynet", l2_weight=10.0))
 
 
@@ -348,3 +350,124 @@ def test_mixed_precision_warning_only_for_emulated_bfloat16(tmp_path, monkeypatc
 
 def test_accelerator_present_agrees_with_tensorflow():
     assert training.accelerator_present() == bool(tf.config.list_physical_devices("GPU"))
+
+
+# ------------------------------------------------------------------------------------------------
+# Nothing lost, nothing crashes: --overwrite, failed starts, flags, paths read from files
+# ------------------------------------------------------------------------------------------------
+def test_overwrite_never_deletes_a_folder_that_is_not_a_run(tmp_path):
+    """A folder with someone's own config.json, notes and sources is not a training run: it is
+    refused with or without --overwrite, and survives whole."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "config.json").write_text(json.dumps({"name": "my project", "lr": 3}))
+    (mine / "notes.txt").write_text("notes")
+    (mine / "main.py").write_text("print('mine')")
+    before = sorted(p.name for p in mine.iterdir())
+    for overwrite in (False, True):
+        with pytest.raises(ValueError, match=r"config.json.* is not the configuration of a "
+                                             r"stnh-tf training run"):
+            training.prepare_model_dir(_cfg("d", mine), overwrite=overwrite)
+        assert sorted(p.name for p in mine.iterdir()) == before
+    (mine / "config.json").unlink()
+    (mine / "model.keras").write_text("someone's model")  # no config.json at all
+    with pytest.raises(FileExistsError, match="holds no training run"):
+        training.prepare_model_dir(_cfg("d", mine), overwrite=True)
+    assert (mine / "model.keras").read_text() == "someone's model"
+    # A config.json that is a list, or not JSON: an error naming the file, never a traceback.
+    for text in ("[1, 2]", "{broken"):
+        (mine / "config.json").write_text(text)
+        with pytest.raises(ValueError, match=re.escape(str(mine / "config.json"))):
+            training.prepare_model_dir(_cfg("d", mine), overwrite=True)
+        assert (mine / "notes.txt").exists()
+    # A real finished run: --overwrite deletes what the run wrote, and only that.
+    run = tmp_path / "run"
+    training.prepare_model_dir(_cfg("d", run))
+    assert json.loads((run / "config.json").read_text())["format"] == "stnh_tf.train_config"
+    (run / "model.keras").write_text("x")
+    (run / "logs").mkdir()
+    (run / "my_notes.txt").write_text("kept")
+    training.prepare_model_dir(_cfg("d", run, learning_rate=0.5), overwrite=True)
+    assert sorted(p.name for p in run.iterdir()) == ["config.json", "my_notes.txt"]
+
+
+def test_run_config_without_the_format_marker_is_still_a_run(tmp_path):
+    """config.json files written before the marker existed (runs in progress) stay resumable."""
+    cfg = _cfg("d", tmp_path)
+    (tmp_path / "config.json").write_text(json.dumps(cfg.to_json()))
+    assert training.prepare_model_dir(cfg) is False  # resumed, not a new run
+    assert json.loads((tmp_path / "config.json").read_text())["format_version"] == 1
+
+
+def test_failed_overwrite_keeps_the_finished_run(tiny_data, tmp_path):
+    """--overwrite with a flag the data cannot serve (a batch larger than the dataset) fails
+    before anything is deleted."""
+    run = tmp_path / "run"
+    training.prepare_model_dir(_cfg(tiny_data, run))
+    (run / "model.keras").write_text("finished model")
+    (run / "result.json").write_text("{}")
+    with pytest.raises(ValueError, match="fewer than one batch of 64"):
+        training.train(_cfg(tiny_data, run, batch_size=64), overwrite=True, printer=_quiet)
+    assert (run / "model.keras").read_text() == "finished model"
+    assert sorted(p.name for p in run.iterdir()) == ["config.json", "model.keras", "result.json"]
+
+
+def test_failed_start_leaves_the_folder_as_it_was(tiny_data, tmp_path):
+    """An error after config.json was written (here: the data stream fails) removes what the
+    start wrote, so the corrected command is not refused as 'a different configuration'."""
+    def broken_stream(cfg, split, start_step):
+        raise RuntimeError("stream failed")
+
+    for model_dir, existed in ((tmp_path / "new", False), (tmp_path / "empty", True)):
+        if existed:
+            model_dir.mkdir()
+        with pytest.raises(RuntimeError, match="stream failed"):
+            training.train(_cfg(tiny_data, model_dir), printer=_quiet, stream_fn=broken_stream)
+        assert model_dir.exists() == existed and not (existed and list(model_dir.iterdir()))
+        assert training.prepare_model_dir(_cfg(tiny_data, model_dir, learning_rate=0.02)) is True
+
+
+def test_corrupted_shard_during_training_names_the_file(tiny_data, tmp_path):
+    data_dir = tmp_path / "data"
+    shutil.copytree(tiny_data, data_dir)
+    shard = data_dir / "train-00001-of-00002.tfrecord"
+    blob = bytearray(shard.read_bytes())
+    blob[len(blob) // 2] ^= 0xFF  # same size, bad CRC: only reading the records finds it
+    shard.write_bytes(bytes(blob))
+    with pytest.raises(data.ShardError, match="train-00001-of-00002.tfrecord"):
+        training.train(_cfg(str(data_dir), tmp_path / "run", train_steps=2, checkpoint_every=2),
+                       printer=_quiet)
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("field, value", [
+    ("checkpoint_every", -5), ("checkpoint_every", 0), ("shuffle_buffer", 0), ("val_samples", -3),
+    ("batch_size", 0), ("log_every", 0), ("samples_per_image", 0), ("workers", -1), ("seed", -1),
+    ("val_seed", -2), ("dropout", 1.0), ("dropout", -0.1), ("momentum", 1.5),
+    ("l2_weight", float("nan")), ("l1_weight", -1.0), ("checkpoint_every", 2.0)])
+def test_bad_flag_values_are_clear_errors(field, value):
+    cfg = _cfg("d", "m", **{field: value})
+    with pytest.raises(ValueError, match=rf"^{field} must be .*received {re.escape(repr(value))}"):
+        cfg.validate()
+
+
+def test_binary_refuses_a_bad_flag_before_writing(tiny_data, tmp_path):
+    """--checkpoint_every=-5 used to exit 0 with an untrained model.keras."""
+    res = _run_binary([f"--data_dir={tiny_data}", f"--model_dir={tmp_path / 'run'}",
+                       "--train_steps=10", "--checkpoint_every=-5", "--warmup_steps=0"])
+    assert res.returncode != 0 and "Traceback" not in res.stderr
+    assert "train_stage: checkpoint_every must be an integer >= 1; received -5." in res.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_checkpoint_state_cannot_name_weights_outside_its_folder(tmp_path):
+    ckpt = tmp_path / "run" / "checkpoint"
+    ckpt.mkdir(parents=True)
+    (tmp_path / "elsewhere.weights.h5").write_text("not this run's")
+    for name in ("../../elsewhere.weights.h5", str(tmp_path / "elsewhere.weights.h5")):
+        (ckpt / "state.json").write_text(json.dumps({"step": 2, "weights": name}))
+        with pytest.raises(ValueError, match="is not a path inside"):
+            training.checkpoint_weights_path(str(ckpt))
+    (ckpt / "state.json").write_text("{not json")
+    with pytest.raises(ValueError, match="state.json"):
+        training.checkpoint_weights_path(str(ckpt))

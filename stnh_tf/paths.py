@@ -1,0 +1,74 @@
+"""Files the package reads and writes: JSON parsed with errors naming the file, paths read from
+files kept inside their folder, output folders checked before any work.
+
+Standard library only (data-generation workers and the TF-free pipelines import it).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+
+def read_json(path, what: str = "JSON file"):
+    """The parsed JSON document at ``path``.
+
+    Raises:
+      FileNotFoundError / OSError: the file cannot be opened (the message names it).
+      ValueError: not valid JSON (or not UTF-8 text); the message names ``what`` and ``path``.
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except ValueError as e:  # JSONDecodeError and UnicodeDecodeError
+        raise ValueError(f"{what} {path!r} is not valid JSON: {e}.") from None
+
+
+def inside(folder, name, what: str) -> str:
+    """``folder/name`` for a ``name`` read from a file in ``folder`` (a shard of a dataset's
+    metadata, the weights a checkpoint state names, a stage of a manifest).
+
+    ``name`` must be a non-empty relative path that stays inside ``folder`` once ``.`` and
+    ``..`` are resolved (checked lexically: symbolic links placed inside ``folder`` are followed
+    as they are). Absolute paths and ``../`` escapes raise ``ValueError`` naming ``what``.
+    """
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"{what}: expected a relative path inside {os.fspath(folder)!r}; "
+                         f"received {name!r}.")
+    norm = os.path.normpath(name)
+    if os.path.isabs(name) or norm == os.pardir or norm.startswith(os.pardir + os.sep) \
+            or norm == os.curdir:
+        raise ValueError(f"{what}: {name!r} is not a path inside {os.fspath(folder)!r} (absolute "
+                         "paths and '..' are refused).")
+    return os.path.join(os.fspath(folder), norm)
+
+
+def check_output_dir(output_dir) -> str:
+    """Create ``output_dir`` if needed and prove it writable (a probe file is written and
+    removed); returns its absolute path.
+
+    Raises:
+      OSError: it cannot be created (e.g. a file is in the way) or written; the message names it.
+    """
+    path = os.path.abspath(os.fspath(output_dir))
+    try:
+        os.makedirs(path, exist_ok=True)
+        probe = os.path.join(path, f".write-test-{os.getpid()}")
+        with open(probe, "w") as f:
+            f.write("ok")
+        os.remove(probe)
+    except OSError as e:
+        raise OSError(f"output directory {path!r} is not writable: {e.strerror or e}") from None
+    return path
+
+
+def check_output_file(path) -> str:
+    """Prepare to write the file ``path`` later: its folder is created if needed and proved
+    writable (:func:`check_output_dir`), and ``path`` itself must not be a folder. Returns the
+    absolute path. Raises ``OSError`` naming the path."""
+    path = os.path.abspath(os.fspath(path))
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"output file {path!r} is a directory.")
+    check_output_dir(os.path.dirname(path))
+    return path
