@@ -60,7 +60,6 @@ def make_inputs(batch_size: int, size: int, seed: int):
 def run_benchmark(batch_size=64, size=128, iterations=30, warmup=3, seed=0, jit_modes=(False,)):
     """Runs every measurement and returns the result dict (see module docstring)."""
     import cv2
-    import keras
     import numpy as np
     import tensorflow as tf
 

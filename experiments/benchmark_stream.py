@@ -26,6 +26,7 @@ import time
 from absl import app, flags
 
 from experiments import common
+from stnh_tf import train_config
 
 flags.DEFINE_list("image_dir", None, "Folders of training images (comma-separated).",
                   required=True)
@@ -67,8 +68,8 @@ def time_fit(mode, batches):
         def on_train_batch_end(self, batch, logs=None):
             self.times.append(time.perf_counter())
 
-    cfg = training.TrainConfig(image_dir=",".join(FLAGS.image_dir), model_dir="-", seed=FLAGS.seed,
-                               batch_size=FLAGS.batch_size, mixed_precision=FLAGS.mixed_precision)
+    cfg = train_config.TrainConfig(image_dir=",".join(FLAGS.image_dir), model_dir="-", seed=FLAGS.seed,
+                                   batch_size=FLAGS.batch_size, mixed_precision=FLAGS.mixed_precision)
     keras.mixed_precision.set_global_policy("mixed_bfloat16" if FLAGS.mixed_precision else "float32")
     keras.utils.set_random_seed(FLAGS.seed)
     t0 = time.perf_counter()

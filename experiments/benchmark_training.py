@@ -22,6 +22,7 @@ import time
 from absl import app, flags
 
 from experiments import common
+from stnh_tf import train_config
 
 flags.DEFINE_integer("batch_size", 64, "Training batch size.")
 flags.DEFINE_integer("steps", 20, "Timed training steps per configuration (median reported).")
@@ -74,7 +75,7 @@ def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
     keras.mixed_precision.set_global_policy(policy)
     keras.utils.set_random_seed(seed)
     try:
-        cfg = training.TrainConfig(data_dir="-", model_dir="-", train_steps=10_000, warmup_steps=100)
+        cfg = train_config.TrainConfig(data_dir="-", model_dir="-", train_steps=10_000, warmup_steps=100)
         model = training.build_model(cfg)
         x, y = _batch(batch_size, seed)
         if kind == "bare":

@@ -1,97 +1,82 @@
-"""Training flags shared by ``train_stage`` and ``train_sequence`` (one definition, two binaries)."""
+"""Training flags of ``train_stage`` and ``train_sequence``, generated from the fields of
+:class:`stnh_tf.train_config.TrainConfig` (name, type, default, help and choices defined once
+there), plus ``--overwrite``."""
+
+import dataclasses
 
 from absl import flags
 
-from stnh_tf import training
-from stnh_tf.training import TrainConfig
-
-_D = TrainConfig()
+from stnh_tf import train_config
+from stnh_tf.train_config import TrainConfig
 
 
-def define_training_flags():
-    flags.DEFINE_string("data_dir", "", "TFRecord dataset directory (from data_prep).")
-    flags.DEFINE_list("image_dir", [], "Instead of --data_dir: folders of images (comma-separated); "
-                      "pairs are generated on the fly (any Keras backend, e.g. KERAS_BACKEND=jax).")
-    flags.DEFINE_list("val_image_dir", [], "With --image_dir: folders of images for the validation "
-                      "pairs (comma-separated).")
-    flags.DEFINE_bool("photometric", _D.photometric, "With --image_dir: independent brightness, "
-                      "contrast, gamma and noise changes of patch_b in the training pairs (not the "
-                      "paper's; the validation pairs stay unchanged).")
-    flags.DEFINE_integer("samples_per_image", _D.samples_per_image,
-                         "With --image_dir: squares per image per data epoch (as make_dataset).")
-    flags.DEFINE_bool("fresh_pairs", _D.fresh_pairs, "With --image_dir: new pairs every data epoch "
-                      "(else the fixed set make_dataset would write, reshuffled).")
-    flags.DEFINE_integer("workers", _D.workers, "With --image_dir: pair-generator processes.")
-    flags.DEFINE_bool("in_memory", _D.in_memory, "With --image_dir (fixed pairs): generate the set "
-                      "once with the workers, then train from memory (uint8, 48 KB a pair).")
-    flags.DEFINE_list("prev_stages", [], "With --image_dir --in_memory --stage=k>1: model dirs "
-                      "of stages 1..k-1, whose predictions make the stage-k pairs in memory.")
-    flags.DEFINE_string("model_dir", None, "Output directory (config, checkpoints, logs, model).",
-                        required=True)
-    flags.DEFINE_integer("train_steps", _D.train_steps, "Total steps, warm-up included "
-                         "(unless given: 90,000 for the sequence model, the paper's, and for "
-                         "--model=homographynet, DeTone et al.'s).")
-    flags.DEFINE_integer("warmup_steps", _D.warmup_steps, "Linear warm-up steps (0 -> learning_rate).")
-    flags.DEFINE_integer("batch_size", _D.batch_size, "Global batch size.")
-    flags.DEFINE_float("learning_rate", _D.learning_rate, "Peak learning rate after warm-up "
-                       "(--model=homographynet: 0.005 unless given, DeTone et al.'s).")
-    flags.DEFINE_enum("lr_schedule", _D.lr_schedule, list(training.LR_SCHEDULES),
-                      "cosine (the paper's: warm-up, then cosine decay to 0) or step (DeTone et "
-                      "al.'s: /10 after each third of --train_steps, no warm-up; the default of "
-                      "--model=homographynet).")
-    flags.DEFINE_float("momentum", _D.momentum, "SGD momentum.")
-    flags.DEFINE_enum("recipe", _D.recipe, sorted(training.RECIPES), "Preset of the recipe flags: "
-                      "paper (the paper's, default) or fast (a deviation: "
-                      + ", ".join(f"{k}={v}" for k, v in training.RECIPES["fast"].items())
-                      + "); flags given explicitly override the preset.")
-    flags.DEFINE_enum("optimizer", _D.optimizer, sorted(training.OPTIMIZERS),
-                      "sgd (paper, with --momentum), adam or adamw.")
-    flags.DEFINE_float("weight_decay", _D.weight_decay, "Decoupled weight decay (0: none).")
-    flags.DEFINE_float("clipnorm", _D.clipnorm, "Clip the global gradient norm (0: off).")
-    flags.DEFINE_float("l2_weight", _D.l2_weight, "Weight of the L2 loss on H_bar.")
-    flags.DEFINE_enum("l2_reduction", _D.l2_reduction, list(training.L2_REDUCTIONS),
-                      "L2 over H_bar's 8 entries: mean (default) or sum (8 x mean).")
-    flags.DEFINE_float("l1_weight", _D.l1_weight, "Weight of the L1 photometric loss.")
-    flags.DEFINE_enum("batch_norm", _D.batch_norm, ["none", "conv"],
-                      "none (paper's literal network, default) or BatchNorm after every conv.")
-    flags.DEFINE_float("dropout", _D.dropout, "Dropout after the 1024-unit layer.")
-    flags.DEFINE_integer("seed", _D.seed, "Seed for initialisation, dropout and data order.")
-    flags.DEFINE_integer("shuffle_buffer", _D.shuffle_buffer, "Training shuffle buffer (records).")
-    flags.DEFINE_bool("mixed_precision", _D.mixed_precision, "Keras mixed_bfloat16 policy (fast on "
-                      "GPUs and CPUs with AVX-512 BF16/AMX; emulated, so slow, on other CPUs).")
-    flags.DEFINE_integer("checkpoint_every", _D.checkpoint_every, "Steps between checkpoints.")
-    flags.DEFINE_integer("log_every", _D.log_every, "Steps between progress lines / TB points.")
-    flags.DEFINE_string("val_split", _D.val_split, "Split for the validation MACE (monitoring only).")
-    flags.DEFINE_integer("val_samples", _D.val_samples, "Validation pairs per checkpoint (0: off).")
-    flags.DEFINE_enum("strategy", _D.strategy, ["default", "mirrored"], "tf.distribute strategy.")
+def training_fields(scope: str):
+    """The TrainConfig fields that are flags of the binary ``scope`` (``train_config.STAGE`` or
+    ``train_config.SEQUENCE``): the shared ones and the binary's own."""
+    return [f for f in dataclasses.fields(TrainConfig)
+            if f.metadata["scope"] in (train_config.SHARED, scope)]
+
+
+def _define(field, flag_values, choices=None):
+    meta, default = field.metadata, field.default
+    args = dict(name=field.name, help=meta["help"], flag_values=flag_values)
+    if meta["required"]:
+        flags.DEFINE_string(default=None, required=True, **args)
+    elif meta["comma_list"] or isinstance(default, tuple):
+        flags.DEFINE_list(default=list(default.split(",") if default else default), **args)
+    elif isinstance(default, bool):
+        flags.DEFINE_bool(default=default, **args)
+    elif isinstance(default, int):
+        flags.DEFINE_integer(default=default, **args)
+    elif isinstance(default, float):
+        flags.DEFINE_float(default=default, **args)
+    elif choices or meta["choices"]:
+        flags.DEFINE_enum(default=default, enum_values=list(choices or meta["choices"]), **args)
+    else:
+        flags.DEFINE_string(default=default, **args)
+
+
+def define_training_flags(scope: str, choices=None, flag_values=flags.FLAGS):
+    """Define a flag for every field of :func:`training_fields` (``scope``) and ``--overwrite``.
+    ``choices`` narrows enum fields for this binary (``{"model": (...)}``)."""
+    choices = choices or {}
+    for field in training_fields(scope):
+        _define(field, flag_values, choices.get(field.name))
     flags.DEFINE_bool("overwrite", False, "Delete and retrain a model_dir that holds a finished "
-                      "run or a run of other flags (an unfinished run of the same flags is resumed). "
-                      "Only what a run wrote is deleted, and only after every flag and the data "
-                      "are checked; a folder that is not a training run is never touched.")
+                      "run or a run of other flags (an unfinished run of the same flags is "
+                      "resumed). Only what a run wrote is deleted, and only after every flag and "
+                      "the data are checked; a folder that is not a training run is never "
+                      "touched.", flag_values=flag_values)
 
 
-def config_from_flags(**overrides) -> TrainConfig:
-    """The TrainConfig of the flags: the preset of ``--recipe`` and of the model kind in
-    ``overrides`` (:func:`stnh_tf.training.preset_fields`: e.g. DeTone's schedule for
-    ``model="homographynet"``, 90,000 steps for ``"sequence"``), then every flag given
-    explicitly, then ``overrides``."""
-    f = flags.FLAGS
-    model = overrides.get("model", TrainConfig.model)
-    preset = {k: v for k, v in training.preset_fields(f.recipe, model).items()
+def config_from_flags(scope: str, flag_values=flags.FLAGS, **overrides) -> TrainConfig:
+    """The TrainConfig of the parsed flags of :func:`define_training_flags` (``scope``): the
+    preset of ``--recipe`` and of the model kind (:func:`stnh_tf.train_config.preset_fields`:
+    e.g. DeTone's schedule for ``model="homographynet"``, 90,000 steps for ``"sequence"``), then
+    every flag given explicitly, then ``overrides``.
+
+    Raises:
+      ValueError: a list element that is not of its field's type (e.g. a non-float stage loss
+        weight).
+    """
+    f = flag_values
+    values = {}
+    for field in training_fields(scope):
+        value = f[field.name].value
+        if field.metadata["comma_list"]:
+            value = ",".join(value)
+        elif isinstance(field.default, tuple):
+            item = field.metadata["item"]
+            try:
+                value = tuple(item(v) for v in value)
+            except ValueError:
+                raise ValueError(f"{field.name} takes {item.__name__} values; received "
+                                 f"{value}.") from None
+        values[field.name] = value
+    cfg = TrainConfig(**values)
+    model = overrides.get("model", cfg.model)
+    preset = {k: v for k, v in train_config.preset_fields(f.recipe, model).items()
               if not f[k].present}
-    cfg = TrainConfig(
-        data_dir=f.data_dir, model_dir=f.model_dir, train_steps=f.train_steps,
-        warmup_steps=f.warmup_steps, batch_size=f.batch_size, learning_rate=f.learning_rate,
-        momentum=f.momentum, l2_weight=f.l2_weight, l1_weight=f.l1_weight,
-        batch_norm=f.batch_norm, dropout=f.dropout, seed=f.seed, shuffle_buffer=f.shuffle_buffer,
-        mixed_precision=f.mixed_precision, checkpoint_every=f.checkpoint_every,
-        log_every=f.log_every, val_split=f.val_split, val_samples=f.val_samples,
-        strategy=f.strategy, image_dir=",".join(f.image_dir),
-        val_image_dir=",".join(f.val_image_dir), samples_per_image=f.samples_per_image,
-        fresh_pairs=f.fresh_pairs, workers=f.workers, in_memory=f.in_memory,
-        prev_stages=tuple(f.prev_stages), optimizer=f.optimizer, weight_decay=f.weight_decay,
-        clipnorm=f.clipnorm, l2_reduction=f.l2_reduction, photometric=f.photometric,
-        recipe=f.recipe, lr_schedule=f.lr_schedule)
     for k, v in {**preset, **overrides}.items():
         setattr(cfg, k, v)
     return cfg

@@ -9,25 +9,23 @@ decay over 90,000); ``--model=homographynet`` defaults to DeTone et al.'s (lr 0.
 after each third of --train_steps). Re-running the same command resumes from the last checkpoint.
 """
 
-from absl import app, flags
+from absl import app
 
 from experiments import flags_common
+from stnh_tf import train_config
 
-flags_common.define_training_flags()
-flags.DEFINE_integer("stage", 1, "Hierarchical stage; the dataset's metadata must say the same.")
-flags.DEFINE_enum("model", "stn", ["stn", "homographynet", "homographynet_gap"],
-                  "Model kind: stn (the paper's stage), homographynet (DeTone et al.'s network; "
-                  "unless given: --batch_norm=conv, their recipe --lr_schedule=step "
-                  "--learning_rate=0.005 --warmup_steps=0 --train_steps=90000) or "
-                  "homographynet_gap (its 4-point "
-                  "regression on this project's backbone, the paper's recipe).")
-FLAGS = flags.FLAGS
+flags_common.define_training_flags(
+    train_config.STAGE,
+    choices={"model": [k for k in train_config.MODEL_KINDS if k != "sequence"]})
 
 
 def main(argv):
     del argv
-    flags_common.run_training(flags_common.config_from_flags(stage=FLAGS.stage, model=FLAGS.model),
-                              "train_stage")
+    try:
+        cfg = flags_common.config_from_flags(train_config.STAGE)
+    except ValueError as e:
+        raise SystemExit(f"train_stage: {e}") from None
+    flags_common.run_training(cfg, "train_stage")
 
 
 if __name__ == "__main__":

@@ -28,6 +28,8 @@ import time
 
 import numpy as np
 
+from stnh_tf import train_config
+
 # The paper's numbers (Zhou & Li 2019; the 2-stage sequence model's 2.14 px is in its section 5;
 # the 3-stage sequence latency of 13.85 ms that BENCHMARKS.md quotes is only in the journal
 # version: Zhou & Li, Applied Sciences 2019, 9(23), 5187).
@@ -164,15 +166,13 @@ class Reproduction:
 
     # -- training -------------------------------------------------------------------------------
     def config(self, name: str, **kw):
-        from stnh_tf import training
-
         b = self.budget
         base = dict(model_dir=self.model_dir(name), train_steps=b.train_steps,
                     warmup_steps=b.warmup_steps, batch_size=b.batch_size,
                     mixed_precision=b.mixed_precision, checkpoint_every=b.checkpoint_every,
                     val_samples=b.val_samples, log_every=max(b.checkpoint_every // 5, 1))
         base.update(kw)
-        return training.TrainConfig(**base)
+        return train_config.TrainConfig(**base)
 
     def train(self, name: str, cfg) -> str:
         """Train ``cfg`` unless ``cfg.model_dir`` already holds a finished model of this budget."""
@@ -259,12 +259,10 @@ class Reproduction:
 
     # -- the whole run --------------------------------------------------------------------------
     def run(self) -> dict:
-        from stnh_tf import training
-
         t0 = time.time()
         stages = self.hierarchy(3)
         d1 = self.data_dir(1)
-        detone = {**training.MODEL_DEFAULTS["homographynet"],  # at this budget's steps
+        detone = {**train_config.MODEL_DEFAULTS["homographynet"],  # at this budget's steps
                   "train_steps": self.budget.train_steps}
         hnet = self.train("homographynet", self.config("homographynet", data_dir=d1,
                                                        model="homographynet", **detone))
@@ -335,7 +333,7 @@ def check_budget(model_dir: str, cfg) -> None:
 
     saved = training.read_run_config(os.path.join(model_dir, training.CONFIG_FILE))
     # A field the saved run predates had its default value then (e.g. lr_schedule="cosine").
-    saved = {**training.TrainConfig().to_json(), **saved}
+    saved = {**train_config.TrainConfig().to_json(), **saved}
     want = cfg.to_json()
     diff = {k: (saved.get(k), want[k]) for k in _BUDGET_FIELDS if saved.get(k) != want[k]}
     if cfg.model == "sequence" and saved.get("num_stages") != cfg.num_stages:

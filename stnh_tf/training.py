@@ -8,7 +8,7 @@ it on the TFRecord dataset in ``config.data_dir`` with:
   cosine decay to 0 over the remaining ``train_steps - warmup_steps`` (Keras' ``CosineDecay`` with
   ``warmup_target``): the paper's 1,000 + 90,000 steps by default. ``lr_schedule="step"`` is
   DeTone et al.'s schedule instead (the learning rate divided by 10 after each third of the
-  steps), which the binaries preset for ``--model=homographynet`` (:data:`MODEL_DEFAULTS`).
+  steps), which the binaries preset for ``--model=homographynet`` (:data:`stnh_tf.train_config.MODEL_DEFAULTS`).
 * Atomic periodic checkpoints (model + optimizer + RNG state) every ``checkpoint_every`` steps; a
   killed run restarted with the same command resumes at the last checkpoint, repositions the data
   stream at that step, and follows the same schedule to the same final step.
@@ -30,13 +30,11 @@ them.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import functools
 import importlib.util
 import json
 import logging
 import math
-import numbers
 import os
 import shutil
 import time
@@ -48,28 +46,8 @@ import numpy as np
 from stnh_tf import losses as losses_lib
 from stnh_tf import models
 from stnh_tf.paths import inside, read_json
-
-MODEL_KINDS = ("stn", "sequence", "homographynet", "homographynet_gap")
-# The kinds that regress DeTone et al.'s 4-point offsets (output "offsets", one L2 loss):
-# "homographynet" is DeTone's network (models.build_homographynet), "homographynet_gap" the same
-# regression on this project's backbone (models.build_homographynet_gap).
-FOUR_POINT_KINDS = ("homographynet", "homographynet_gap")
-L2_REDUCTIONS = ("mean", "sum")
-LR_SCHEDULES = ("cosine", "step")
-
-# Defaults that depend on the model kind: what ``preset_fields`` (and so the training binaries)
-# set beneath a recipe's preset and the flags given explicitly. TrainConfig's own defaults do not
-# change with the model.
-MODEL_DEFAULTS = {
-    # The paper trains its sequence model for "total training steps of 90000" (section 5),
-    # warm-up included, where each hierarchical stage trains 1,000 + 90,000.
-    "sequence": {"train_steps": 90_000},
-    # DeTone et al.'s network and recipe: BatchNorm after every convolution; SGD momentum 0.9,
-    # batch 64, learning rate 0.005 divided by 10 every 30,000 of their 90,000 iterations (the
-    # step schedule divides after every third of train_steps, whatever it is), no warm-up.
-    "homographynet": {"batch_norm": "conv", "learning_rate": 0.005, "lr_schedule": "step",
-                      "warmup_steps": 0, "train_steps": 90_000},
-}
+from stnh_tf.train_config import (FOUR_POINT_KINDS, OPTIMIZER_NAMES, RESUME_FREE_FIELDS,
+                                  TrainConfig)
 
 
 def _sgd(cfg, schedule, **common):
@@ -86,27 +64,8 @@ def _adamw(cfg, schedule, **common):
 
 # The optimizers by name: ``f(cfg, schedule, weight_decay=..., global_clipnorm=...)``.
 OPTIMIZERS = {"sgd": _sgd, "adam": _adam, "adamw": _adamw}
+assert sorted(OPTIMIZERS) == sorted(OPTIMIZER_NAMES)
 
-# Named presets of TrainConfig fields. "paper" is the paper's recipe (the defaults); "fast" is a
-# deviation chosen for accuracy per CPU step (BENCHMARKS.md, "A faster recipe").
-RECIPES = {
-    "paper": {},
-    "fast": {"optimizer": "adamw", "learning_rate": 1e-3, "weight_decay": 1e-4,
-             "warmup_steps": 100, "lr_schedule": "cosine"},
-}
-
-
-def preset_fields(recipe: str, model: str) -> dict:
-    """The TrainConfig fields that ``recipe`` (a key of :data:`RECIPES`) and ``model`` (a key of
-    :data:`MODEL_KINDS`) preset: :data:`MODEL_DEFAULTS` of the model, then the recipe's preset
-    over them (so ``--recipe=fast`` replaces HomographyNet's step schedule by its own). The
-    training binaries apply these to every field not given explicitly. Raises ``ValueError`` for
-    an unknown recipe or model."""
-    if recipe not in RECIPES:
-        raise ValueError(f"recipe must be one of {sorted(RECIPES)}; received {recipe!r}.")
-    if model not in MODEL_KINDS:
-        raise ValueError(f"model must be one of {MODEL_KINDS}; received {model!r}.")
-    return {**MODEL_DEFAULTS.get(model, {}), **RECIPES[recipe]}
 FINAL_MODEL = "model.keras"
 CONFIG_FILE = "config.json"
 RESULT_FILE = "result.json"
@@ -124,169 +83,6 @@ _LEGACY_CONFIG_KEYS = frozenset({"model", "model_dir", "stage", "train_steps", "
                                  "batch_size", "checkpoint_every", "seed"})
 
 _log = logging.getLogger(__name__)
-
-
-@dataclasses.dataclass
-class TrainConfig:
-    """Everything a training run depends on (written to ``model_dir/config.json``)."""
-
-    data_dir: str = ""                 # TFRecord dataset directory (train split, + val split)
-    model_dir: str = ""                # output: config, checkpoints, logs, final model
-    model: str = "stn"                 # "stn" | "sequence" | "homographynet" (DeTone's network)
-                                       # | "homographynet_gap" (its regression on our backbone)
-    stage: int = 1                     # hierarchical stage this model is (dataset must match)
-    num_stages: int = 2                # sequence model only
-    train_steps: int = 91_000          # total optimizer steps (warm-up + decay); the binaries
-                                       # default to 90,000 for "sequence" and "homographynet"
-                                       # (MODEL_DEFAULTS)
-    warmup_steps: int = 1_000          # linear warm-up 0 -> learning_rate
-    batch_size: int = 64
-    learning_rate: float = 0.05        # peak learning rate, reached after warm-up
-    lr_schedule: str = "cosine"        # "cosine" (paper: warm-up, cosine to 0) | "step" (DeTone:
-                                       # /10 after each third of train_steps; no warm-up)
-    momentum: float = 0.9              # sgd only
-    optimizer: str = "sgd"             # "sgd" (paper) | "adam" | "adamw" (see OPTIMIZERS)
-    weight_decay: float = 0.0          # decoupled weight decay (Keras' weight_decay; 0: none)
-    clipnorm: float = 0.0              # clip the global gradient norm to this (0: no clipping)
-    l2_weight: float = 1.0             # weight of the L2 loss on H_bar
-    l2_reduction: str = "mean"         # L2 over H_bar's 8 entries: "mean" | "sum" (= 8 x mean)
-    l1_weight: float = 1.0             # weight of the L1 photometric loss
-    stage_loss_weights: tuple = ()     # sequence only: per-stage multipliers (default all 1)
-    batch_norm: str = "none"           # "none" (paper's literal text) | "conv" (BN after each conv)
-    dropout: float = 0.5
-    seed: int = 0                      # weights init, dropout and data order
-    shuffle_buffer: int = 10_000       # records in the shuffle buffer (~86 KB each; shards hold
-                                       # an image's samples together, so a large buffer matters)
-    mixed_precision: bool = False      # Keras mixed_bfloat16 policy
-    checkpoint_every: int = 500        # steps between checkpoints (= one Keras "epoch")
-    log_every: int = 50                # steps between console/TensorBoard training logs
-    val_split: str = "test"            # split used for the validation MACE (monitoring only)
-    val_samples: int = 1024            # validation pairs evaluated at every checkpoint (0: none)
-    strategy: str = "default"          # "default" | "mirrored"
-    init_from: tuple = ()              # sequence: single-stage model dirs to initialise stages
-    image_dir: str = ""                # instead of data_dir: generate pairs on the fly
-    val_image_dir: str = ""            # with image_dir: validation pairs from these images
-    samples_per_image: int = 3         # with image_dir: squares per image (per data epoch)
-    fresh_pairs: bool = False          # with image_dir: new pairs every data epoch
-    val_seed: int = 1                  # with image_dir: seed of the validation pairs
-    workers: int = 0                   # with image_dir: generator processes (0: in-process)
-    in_memory: bool = False            # with image_dir: generate the fixed set once, train from RAM
-    prev_stages: tuple = ()            # with image_dir, stage k > 1: model dirs of stages 1..k-1
-    photometric: bool = False          # with image_dir: photometric change of patch_b (training
-                                       # pairs only; pairs.PhotometricChange); not the paper's
-    recipe: str = "paper"              # the preset these values started from (RECIPES); a record
-
-    def validate(self):
-        """Raise ``ValueError`` naming the field and value for anything training cannot use:
-        every flag's range is checked here, in one place, before anything is written."""
-        if self.model not in MODEL_KINDS:
-            raise ValueError(f"model must be one of {MODEL_KINDS}; received {self.model!r}.")
-        if not self.model_dir:
-            raise ValueError("model_dir is required.")
-        if bool(self.data_dir) == bool(self.image_dir):
-            raise ValueError("give exactly one of data_dir (TFRecords) and image_dir (pairs "
-                             f"generated on the fly); received data_dir={self.data_dir!r}, "
-                             f"image_dir={self.image_dir!r}.")
-        if self.image_dir and self.stage != 1 and (len(self.prev_stages) != self.stage - 1
-                                                   or not self.in_memory or self.model != "stn"):
-            raise ValueError(f"stage {self.stage} from image_dir needs in_memory, model 'stn' and "
-                             f"the {self.stage - 1} previous stages' model dirs in prev_stages "
-                             f"(received {len(self.prev_stages)}): their predictions make the "
-                             "stage's pairs in memory. Or train on stage-k TFRecords "
-                             "(data_prep.make_stage_dataset) with data_dir.")
-        if self.prev_stages and (not self.image_dir or self.stage == 1):
-            raise ValueError("prev_stages is for stage k > 1 trained from image_dir; stage-k "
-                             "TFRecords already hold the previous stages' predictions.")
-        if self.model == "sequence" and self.num_stages < 1:
-            raise ValueError(f"num_stages must be >= 1; received {self.num_stages}.")
-        if self.model == "sequence" and self.init_from and len(self.init_from) > self.num_stages:
-            raise ValueError(f"init_from names {len(self.init_from)} models for {self.num_stages} "
-                             "stages.")
-        if self.train_steps <= 0 or self.warmup_steps < 0 or self.warmup_steps > self.train_steps:
-            raise ValueError(f"need 0 <= warmup_steps <= train_steps, train_steps > 0; received "
-                             f"warmup_steps={self.warmup_steps}, train_steps={self.train_steps}.")
-        for name, low in _INTEGER_MINIMUMS.items():
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
-                raise ValueError(f"{name} must be an integer >= {low}; received {value!r}.")
-        if not 0.0 <= self.dropout < 1.0:
-            raise ValueError(f"dropout must be in [0, 1); received {self.dropout}.")
-        if not 0.0 <= self.momentum <= 1.0:
-            raise ValueError(f"momentum must be in [0, 1]; received {self.momentum}.")
-        for name in ("l2_weight", "l1_weight"):
-            value = getattr(self, name)
-            if not (value >= 0 and math.isfinite(value)):
-                raise ValueError(f"{name} must be a finite number >= 0; received {value}.")
-        if self.train_steps % self.checkpoint_every:
-            raise ValueError(f"train_steps ({self.train_steps}) must be a multiple of "
-                             f"checkpoint_every ({self.checkpoint_every}).")
-        if self.strategy not in ("default", "mirrored"):
-            raise ValueError(f"strategy must be 'default' or 'mirrored'; received {self.strategy!r}.")
-        if self.stage < 1:
-            raise ValueError(f"stage must be >= 1; received {self.stage}.")
-        if self.optimizer not in OPTIMIZERS:
-            raise ValueError(f"optimizer must be one of {sorted(OPTIMIZERS)}; received "
-                             f"{self.optimizer!r}.")
-        if not (self.weight_decay >= 0 and math.isfinite(self.weight_decay)):
-            raise ValueError(f"weight_decay must be a finite number >= 0; received "
-                             f"{self.weight_decay}.")
-        if not (self.clipnorm >= 0 and math.isfinite(self.clipnorm)):
-            raise ValueError(f"clipnorm must be a finite number >= 0 (0: off); received "
-                             f"{self.clipnorm}.")
-        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
-            raise ValueError(f"learning_rate must be a finite number > 0; received "
-                             f"{self.learning_rate}.")
-        if self.l2_reduction not in L2_REDUCTIONS:
-            raise ValueError(f"l2_reduction must be one of {L2_REDUCTIONS}; received "
-                             f"{self.l2_reduction!r}.")
-        if self.lr_schedule not in LR_SCHEDULES:
-            raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}; received "
-                             f"{self.lr_schedule!r}.")
-        if self.lr_schedule == "step" and self.warmup_steps:
-            raise ValueError(f"lr_schedule 'step' (DeTone et al.'s) has no warm-up; received "
-                             f"warmup_steps={self.warmup_steps} (give 0, or lr_schedule 'cosine').")
-        if self.model == "homographynet" and self.batch_norm != "conv":
-            raise ValueError("model 'homographynet' is DeTone et al.'s network, with BatchNorm after "
-                             f"every convolution: batch_norm must be 'conv' (received "
-                             f"{self.batch_norm!r}); model 'homographynet_gap' is the 4-point "
-                             "regression on this project's backbone, with or without it.")
-        if self.recipe not in RECIPES:
-            raise ValueError(f"recipe must be one of {sorted(RECIPES)}; received {self.recipe!r}.")
-        for name in ("image_dir", "val_image_dir"):
-            spec = getattr(self, name)
-            if spec and not [f for f in spec.split(",") if f.strip()]:
-                raise ValueError(f"{name} names no folder (received {spec!r}); give one or "
-                                 "more comma-separated folders.")
-        if self.photometric and not self.image_dir:
-            raise ValueError("photometric changes pairs generated from image_dir; for TFRecords, "
-                             "write them with data_prep.make_dataset --photometric.")
-        if self.in_memory and self.fresh_pairs:
-            raise ValueError("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
-
-    def to_json(self):
-        d = dataclasses.asdict(self)
-        d["stage_loss_weights"] = list(self.stage_loss_weights)
-        d["init_from"] = list(self.init_from)
-        d["prev_stages"] = list(self.prev_stages)
-        return d
-
-    @classmethod
-    def from_json(cls, d):
-        d = dict(d)
-        d["stage_loss_weights"] = tuple(d.get("stage_loss_weights", ()))
-        d["init_from"] = tuple(d.get("init_from", ()))
-        d["prev_stages"] = tuple(d.get("prev_stages", ()))
-        return cls(**{k: v for k, v in d.items() if k in {f.name for f in dataclasses.fields(cls)}})
-
-
-# The integer fields and their smallest allowed values (TrainConfig.validate).
-_INTEGER_MINIMUMS = {"checkpoint_every": 1, "batch_size": 1, "shuffle_buffer": 1, "log_every": 1,
-                     "samples_per_image": 1, "val_samples": 0, "workers": 0, "seed": 0,
-                     "val_seed": 0}
-
-# Fields that may differ between a run and its resumption without changing the result.
-_RESUME_FREE_FIELDS = {"log_every", "model_dir", "data_dir", "image_dir", "val_image_dir",
-                       "workers", "in_memory"}
 
 
 class TrainingDiverged(RuntimeError):
@@ -345,22 +141,17 @@ def l2_term_weight(cfg: TrainConfig) -> float:
 
 
 def loss_spec(cfg: TrainConfig):
-    """(losses, loss_weights, metrics) dicts keyed by the model's output names."""
+    """(losses, loss_weights, metrics) dicts keyed by the model's output names. Raises
+    ``ValueError`` for loss settings the model kind cannot use (:meth:`TrainConfig.check_losses`)."""
+    cfg.check_losses()
     l2 = l2_term_weight(cfg)
     if cfg.model == "stn":
         return ({"h_bar": losses_lib.h_bar_l2, "patch_a_warp": losses_lib.photometric_l1},
                 {"h_bar": l2, "patch_a_warp": cfg.l1_weight},
                 {"h_bar": [losses_lib.MeanCornerError()]})
     if cfg.model in FOUR_POINT_KINDS:
-        if (cfg.l2_weight, cfg.l1_weight, cfg.l2_reduction) != (1.0, 1.0, "mean"):
-            raise ValueError(f"model={cfg.model!r} trains its 4-point offsets with one L2 loss: "
-                             "l2_weight/l1_weight/l2_reduction do not apply (received "
-                             f"{cfg.l2_weight}, {cfg.l1_weight}, {cfg.l2_reduction!r}); leave "
-                             "them at 1, 1, 'mean'.")
         return ({"offsets": "mse"}, {"offsets": 1.0}, {"h_bar": [losses_lib.MeanCornerError()]})
     weights = list(cfg.stage_loss_weights) or [1.0] * cfg.num_stages
-    if len(weights) != cfg.num_stages:
-        raise ValueError(f"stage_loss_weights needs {cfg.num_stages} values; received {weights}.")
     losses, loss_weights, metrics = {}, {}, {}
     h_names, w_names = models.sequence_output_names(cfg.num_stages)
     for k, (hn, wn) in enumerate(zip(h_names, w_names)):
@@ -616,7 +407,7 @@ def _config_diff(cfg: TrainConfig, config_path: str) -> dict:
     # A field the saved run predates had its default value then (e.g. optimizer="sgd").
     old = {**TrainConfig().to_json(), **old}
     return {k: (old.get(k), new[k]) for k in new
-            if k not in _RESUME_FREE_FIELDS and old.get(k) != new[k]}
+            if k not in RESUME_FREE_FIELDS and old.get(k) != new[k]}
 
 
 def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:

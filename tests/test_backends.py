@@ -43,7 +43,7 @@ import json, os, sys
 work, backend = sys.argv[1], sys.argv[2]
 os.environ["KERAS_BACKEND"] = backend
 import keras, numpy as np
-from stnh_tf import evaluation, training
+from stnh_tf import evaluation, train_config, training
 from stnh_tf.layers import SpatialTransformer
 assert keras.backend.backend() == backend
 z = np.load(os.path.join(work, "inputs.npz"))
@@ -69,10 +69,10 @@ for name in sys.argv[3].split(","):
     for o in [k for k in m.output_names if k.startswith("h_bar")]:
         out[f"tf_{name}:{o}"] = evaluation.compiled_forward(m, o)(z["a"], z["b"])
 # Two training steps from a folder of images, pairs generated on the fly.
-cfg = training.TrainConfig(image_dir=os.path.join(work, "images"),
-                           model_dir=os.path.join(work, backend + "_run"),
-                           samples_per_image=2, train_steps=2, warmup_steps=1, batch_size=4,
-                           checkpoint_every=2, val_samples=0, learning_rate=0.01)
+cfg = train_config.TrainConfig(image_dir=os.path.join(work, "images"),
+                               model_dir=os.path.join(work, backend + "_run"),
+                               samples_per_image=2, train_steps=2, warmup_steps=1, batch_size=4,
+                               checkpoint_every=2, val_samples=0, learning_rate=0.01)
 res = training.train(cfg, printer=lambda *a: None)
 m2 = keras.models.load_model(os.path.join(cfg.model_dir, "model.keras"), compile=False)
 out["trained"] = evaluation.compiled_forward(m2)(z["a"], z["b"])

@@ -9,15 +9,15 @@ import sys
 import numpy as np
 import pytest
 
-from stnh_tf import training
+from stnh_tf import train_config, training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def _step_cfg(train_steps, lr=0.005):
-    return training.TrainConfig(data_dir="d", model_dir="m", model="homographynet",
-                                batch_norm="conv", lr_schedule="step", learning_rate=lr,
-                                warmup_steps=0, train_steps=train_steps, checkpoint_every=1)
+    return train_config.TrainConfig(data_dir="d", model_dir="m", model="homographynet",
+                                    batch_norm="conv", lr_schedule="step", learning_rate=lr,
+                                    warmup_steps=0, train_steps=train_steps, checkpoint_every=1)
 
 
 def test_step_schedule_divides_by_ten_after_each_third():
@@ -42,7 +42,7 @@ def test_step_schedule_divides_by_ten_after_each_third():
 
 
 def test_cosine_stays_the_default_schedule():
-    cfg = training.TrainConfig(data_dir="d", model_dir="m", warmup_steps=0, train_steps=100)
+    cfg = train_config.TrainConfig(data_dir="d", model_dir="m", warmup_steps=0, train_steps=100)
     assert cfg.lr_schedule == "cosine"
     schedule = training.learning_rate_schedule(cfg)
     assert float(schedule(0)) == pytest.approx(0.05) and float(schedule(50)) == pytest.approx(0.025)
@@ -64,25 +64,25 @@ def test_bad_homographynet_settings_are_clear_errors(changes, message):
 def test_presets_by_model_kind_and_recipe():
     detone = {"batch_norm": "conv", "learning_rate": 0.005, "lr_schedule": "step",
               "warmup_steps": 0, "train_steps": 90_000}
-    assert training.preset_fields("paper", "homographynet") == detone
-    assert training.preset_fields("paper", "sequence") == {"train_steps": 90_000}
-    assert training.preset_fields("paper", "stn") == {}
-    assert training.preset_fields("paper", "homographynet_gap") == {}
+    assert train_config.preset_fields("paper", "homographynet") == detone
+    assert train_config.preset_fields("paper", "sequence") == {"train_steps": 90_000}
+    assert train_config.preset_fields("paper", "stn") == {}
+    assert train_config.preset_fields("paper", "homographynet_gap") == {}
     # The fast recipe replaces DeTone's schedule (its own warm-up needs the cosine schedule).
-    fast = training.preset_fields("fast", "homographynet")
+    fast = train_config.preset_fields("fast", "homographynet")
     assert fast["lr_schedule"] == "cosine" and fast["optimizer"] == "adamw"
     assert fast["batch_norm"] == "conv"
-    cfg = training.TrainConfig(data_dir="d", model_dir="m", model="homographynet", **fast)
+    cfg = train_config.TrainConfig(data_dir="d", model_dir="m", model="homographynet", **fast)
     cfg.validate()
     for recipe, model in (("turbo", "stn"), ("paper", "vgg")):
         with pytest.raises(ValueError, match="must be one of"):
-            training.preset_fields(recipe, model)
+            train_config.preset_fields(recipe, model)
 
 
 def test_model_kinds_build_their_networks():
     for cfg, params in ((_step_cfg(3), 34_194_568),
-                        (training.TrainConfig(data_dir="d", model_dir="m",
-                                              model="homographynet_gap"), 768_904)):
+                        (train_config.TrainConfig(data_dir="d", model_dir="m",
+                                                  model="homographynet_gap"), 768_904)):
         model = training.build_model(cfg)
         assert model.count_params() == params
         losses, weights, _ = training.loss_spec(cfg)
@@ -94,12 +94,13 @@ FLAGS_SCRIPT = r"""
 import json, sys
 from absl import flags
 from experiments import flags_common
-flags_common.define_training_flags()
+from stnh_tf import train_config
+flags_common.define_training_flags(train_config.STAGE)
 out = []
 for argv in json.loads(sys.argv[1]):
     flags.FLAGS.unparse_flags()
     flags.FLAGS(["binary", "--model_dir=m", *argv])
-    out.append({m: flags_common.config_from_flags(model=m).to_json()
+    out.append({m: flags_common.config_from_flags(train_config.STAGE, model=m).to_json()
                 for m in ("stn", "sequence", "homographynet")})
 print(json.dumps(out))
 """

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from data_prep import stage1
-from stnh_tf import data, evaluation, geometry, models, pairs, sources, training
+from stnh_tf import data, evaluation, models, pairs, sources, train_config, training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PHOTO = pairs.PhotometricChange()
@@ -43,22 +43,22 @@ def two_folders(tmp_path_factory):
 def test_compiled_optimizer_is_the_named_one_with_its_settings():
     base = dict(data_dir="d", model_dir="m", warmup_steps=0, train_steps=100)
     model = models.build_stn_homography()
-    training.compile_model(model, training.TrainConfig(**base))
+    training.compile_model(model, train_config.TrainConfig(**base))
     sgd = model.optimizer
     assert type(sgd) is keras.optimizers.SGD and sgd.momentum == pytest.approx(0.9)
     assert sgd.weight_decay is None and sgd.global_clipnorm is None
     assert float(sgd.learning_rate) == pytest.approx(0.05)
 
-    cfg = training.TrainConfig(**base, optimizer="adamw", learning_rate=1e-3, weight_decay=1e-4,
-                               clipnorm=2.0)
+    cfg = train_config.TrainConfig(**base, optimizer="adamw", learning_rate=1e-3, weight_decay=1e-4,
+                                   clipnorm=2.0)
     training.compile_model(model, cfg)
     adamw = model.optimizer
     assert type(adamw) is keras.optimizers.AdamW
     assert adamw.weight_decay == pytest.approx(1e-4) and adamw.global_clipnorm == pytest.approx(2.0)
     assert float(adamw.learning_rate) == pytest.approx(1e-3)
     # AdamW without a weight decay decays nothing (Keras' own default would be 0.004).
-    assert training.build_optimizer(training.TrainConfig(**base, optimizer="adamw")).weight_decay == 0
-    adam = training.build_optimizer(training.TrainConfig(**base, optimizer="adam"))
+    assert training.build_optimizer(train_config.TrainConfig(**base, optimizer="adamw")).weight_decay == 0
+    adam = training.build_optimizer(train_config.TrainConfig(**base, optimizer="adam"))
     assert type(adam) is keras.optimizers.Adam and adam.weight_decay is None
 
 
@@ -71,7 +71,7 @@ def test_clipnorm_bounds_the_update_and_weight_decay_shrinks_weights():
     for clip, wd, expected_step in ((0.0, 0.0, 0.1 * grad), (1.0, 0.0, 0.1 * grad / 5.0),
                                     (0.0, 0.5, 0.1 * grad)):
         var = keras.Variable(np.array([1.0, -2.0], np.float32))
-        opt = training.build_optimizer(training.TrainConfig(**base, clipnorm=clip, weight_decay=wd))
+        opt = training.build_optimizer(train_config.TrainConfig(**base, clipnorm=clip, weight_decay=wd))
         opt.apply_gradients([(keras.ops.convert_to_tensor(grad), var)])
         decayed = np.array([1.0, -2.0]) * (1.0 - 0.1 * wd)
         np.testing.assert_allclose(np.asarray(var), decayed - expected_step, rtol=1e-6)
@@ -92,8 +92,8 @@ def test_l2_sum_is_eight_times_the_mean_on_a_known_batch():
     l1 = np.mean(np.abs(pred["patch_a_warp"] - y["patch_a_warp"]))
     assert l2_sum == pytest.approx(8 * l2_mean, rel=1e-6)
     for reduction, expected in (("mean", l1 + l2_mean), ("sum", l1 + l2_sum)):
-        training.compile_model(model, training.TrainConfig(data_dir="d", model_dir="m",
-                                                           l2_reduction=reduction))
+        training.compile_model(model, train_config.TrainConfig(data_dir="d", model_dir="m",
+                                                               l2_reduction=reduction))
         loss = model.evaluate(x, y, verbose=0, return_dict=True)["loss"]
         assert loss == pytest.approx(expected, rel=1e-4)
 
@@ -110,14 +110,14 @@ def test_l2_sum_is_eight_times_the_mean_on_a_known_batch():
 ])
 def test_bad_recipe_values_are_clear_errors(field, value, message):
     kw = {"image_dir": "imgs"} if field != "image_dir" else {}
-    cfg = training.TrainConfig(model_dir="m", **kw, **{field: value})
+    cfg = train_config.TrainConfig(model_dir="m", **kw, **{field: value})
     with pytest.raises(ValueError, match=message):
         cfg.validate()
 
 
 def test_photometric_needs_generated_pairs():
     with pytest.raises(ValueError, match="make_dataset --photometric"):
-        training.TrainConfig(data_dir="d", model_dir="m", photometric=True).validate()
+        train_config.TrainConfig(data_dir="d", model_dir="m", photometric=True).validate()
 
 
 def _train_binary(args):
@@ -135,7 +135,7 @@ def test_binary_recipe_preset_then_explicit_flags_and_bad_values(two_folders, tm
                          "--val_samples=0", "--photometric"])
     assert res.returncode == 0, res.stderr[-3000:]
     saved = json.loads((model_dir / "config.json").read_text())
-    fast = training.RECIPES["fast"]
+    fast = train_config.RECIPES["fast"]
     assert saved["recipe"] == "fast" and saved["optimizer"] == fast["optimizer"] == "adamw"
     assert saved["weight_decay"] == fast["weight_decay"] and saved["learning_rate"] == 5e-4
     assert saved["warmup_steps"] == 0 and saved["photometric"] is True
@@ -153,7 +153,7 @@ def test_resume_with_the_new_options_matches_the_uninterrupted_run(two_folders, 
     """AdamW + clipping + L2 sum + photometric fresh pairs from two folders: interrupted after
     the step-4 checkpoint and resumed, the run ends with the uninterrupted run's weights."""
     def cfg(name):
-        return training.TrainConfig(
+        return train_config.TrainConfig(
             image_dir=",".join(two_folders), model_dir=str(tmp_path / name), optimizer="adamw",
             learning_rate=1e-3, weight_decay=1e-4, clipnorm=1.0, l2_reduction="sum",
             photometric=True, fresh_pairs=True, samples_per_image=2, batch_size=4,
@@ -179,13 +179,13 @@ def test_resume_with_the_new_options_matches_the_uninterrupted_run(two_folders, 
 
 def test_run_without_the_new_fields_resumes_as_the_paper_recipe(tmp_path):
     """A config.json written before the recipe fields existed is the paper's recipe."""
-    cfg = training.TrainConfig(data_dir="d", model_dir=str(tmp_path))
+    cfg = train_config.TrainConfig(data_dir="d", model_dir=str(tmp_path))
     legacy = {k: v for k, v in cfg.to_json().items()
               if k not in ("optimizer", "weight_decay", "clipnorm", "l2_reduction", "photometric",
                            "recipe")}
     (tmp_path / "config.json").write_text(json.dumps(legacy))
     assert training._config_diff(cfg, str(tmp_path / "config.json")) == {}
-    adam = training.TrainConfig(data_dir="d", model_dir=str(tmp_path), optimizer="adam")
+    adam = train_config.TrainConfig(data_dir="d", model_dir=str(tmp_path), optimizer="adam")
     assert training._config_diff(adam, str(tmp_path / "config.json")) == {
         "optimizer": ("sgd", "adam")}
 

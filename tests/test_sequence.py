@@ -13,11 +13,18 @@ import keras
 import numpy as np
 import pytest
 import tensorflow as tf
+from conftest import (
+    cv2_warp,
+    inside_mask,
+    keras_policy,
+    norm_matrix,
+    paper_homography,
+    to_bar,
+)
 from keras import ops
 
-from conftest import cv2_warp, inside_mask, keras_policy, norm_matrix, paper_homography, to_bar
 from stnh_tf import losses as losses_lib
-from stnh_tf import models, training
+from stnh_tf import models, train_config, training
 from stnh_tf.layers import HomographyMerge, SpatialTransformer
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -325,9 +332,9 @@ def _tiny_regressor(k):
 
 
 def test_loss_spec_and_compiled_loss_for_sequence(batch):
-    cfg = training.TrainConfig(model="sequence", num_stages=3, stage_loss_weights=(0.5, 1.0, 2.0),
-                               l2_weight=3.0, l1_weight=0.25, train_steps=10, warmup_steps=1,
-                               checkpoint_every=10)
+    cfg = train_config.TrainConfig(model="sequence", num_stages=3, stage_loss_weights=(0.5, 1.0, 2.0),
+                                   l2_weight=3.0, l1_weight=0.25, train_steps=10, warmup_steps=1,
+                                   checkpoint_every=10)
     losses, weights, metrics = training.loss_spec(cfg)
     assert set(losses) == set(weights) == {"h_bar_1", "h_bar_2", "h_bar_3",
                                            "patch_a_warp_1", "patch_a_warp_2", "patch_a_warp_3"}
@@ -336,11 +343,11 @@ def test_loss_spec_and_compiled_loss_for_sequence(batch):
     assert losses["h_bar_2"] is losses_lib.h_bar_l2
     assert losses["patch_a_warp_3"] is losses_lib.photometric_l1
     assert set(metrics) == {"h_bar_1", "h_bar_2", "h_bar_3"}
-    default = training.loss_spec(training.TrainConfig(model="sequence", num_stages=2))[1]
+    default = training.loss_spec(train_config.TrainConfig(model="sequence", num_stages=2))[1]
     assert default == {"h_bar_1": 1.0, "h_bar_2": 1.0, "patch_a_warp_1": 1.0, "patch_a_warp_2": 1.0}
     with pytest.raises(ValueError, match="3 values"):
-        training.loss_spec(training.TrainConfig(model="sequence", num_stages=3,
-                                                stage_loss_weights=(1.0, 1.0)))
+        training.loss_spec(train_config.TrainConfig(model="sequence", num_stages=3,
+                                                    stage_loss_weights=(1.0, 1.0)))
 
     # The compiled model's loss is the weighted sum computed here in NumPy.
     model = models.SequenceSTNHomography(num_stages=3, regressor_factory=_tiny_regressor)
@@ -407,8 +414,8 @@ def test_initialize_sequence_from_rejects_other_model_kinds(tmp_path):
     models.build_homographynet().save(d / training.FINAL_MODEL)
     with pytest.raises(ValueError, match="not a single-stage STN-Homography model"):
         training.initialize_sequence_from(models.SequenceSTNHomography(num_stages=2), [str(d)])
-    cfg = training.TrainConfig(data_dir="d", model_dir="m", model="sequence", num_stages=2,
-                               init_from=("a", "b", "c"))
+    cfg = train_config.TrainConfig(data_dir="d", model_dir="m", model="sequence", num_stages=2,
+                                   init_from=("a", "b", "c"))
     with pytest.raises(ValueError, match="init_from names 3 models for 2 stages"):
         cfg.validate()
 
@@ -422,5 +429,5 @@ def test_train_sequence_binary_rejects_bad_flags(tmp_path):
     res = subprocess.run(base + ["--stage_loss_weights=1,2,3", f"--init_from={tmp_path}"],
                          cwd=ROOT, capture_output=True, text=True, timeout=180)
     assert res.returncode != 0
-    assert "train_sequence: --stage_loss_weights needs 2 values" in res.stderr, res.stderr[-2000:]
+    assert "train_sequence: stage_loss_weights needs 2 values" in res.stderr, res.stderr[-2000:]
     assert not (tmp_path / "run").exists()  # nothing written before the flags are accepted

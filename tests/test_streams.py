@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from data_prep import stage1
-from stnh_tf import data, evaluation, pairs, sources, training
+from stnh_tf import data, evaluation, pairs, sources, train_config, training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 N_IMAGES, PER_IMAGE, BATCH = 4, 3, 4  # 12 samples, 3 batches per data epoch
@@ -156,17 +156,17 @@ def test_generator_workers_import_no_deep_learning_backend(folder, tmp_path):
 
 def test_config_needs_exactly_one_source():
     with pytest.raises(ValueError, match="exactly one"):
-        training.TrainConfig(model_dir="m").validate()
+        train_config.TrainConfig(model_dir="m").validate()
     with pytest.raises(ValueError, match="exactly one"):
-        training.TrainConfig(data_dir="d", image_dir="i", model_dir="m").validate()
+        train_config.TrainConfig(data_dir="d", image_dir="i", model_dir="m").validate()
     with pytest.raises(ValueError, match="previous stages"):
-        training.TrainConfig(image_dir="i", model_dir="m", stage=2).validate()
+        train_config.TrainConfig(image_dir="i", model_dir="m", stage=2).validate()
     with pytest.raises(ValueError, match="in_memory"):
-        training.TrainConfig(image_dir="i", model_dir="m", stage=2, prev_stages=("s1",)).validate()
+        train_config.TrainConfig(image_dir="i", model_dir="m", stage=2, prev_stages=("s1",)).validate()
     with pytest.raises(ValueError, match="prev_stages is for"):
-        training.TrainConfig(data_dir="d", model_dir="m", stage=2, prev_stages=("s1",)).validate()
-    training.TrainConfig(image_dir="i", model_dir="m", stage=2, prev_stages=("s1",),
-                         in_memory=True).validate()
+        train_config.TrainConfig(data_dir="d", model_dir="m", stage=2, prev_stages=("s1",)).validate()
+    train_config.TrainConfig(image_dir="i", model_dir="m", stage=2, prev_stages=("s1",),
+                             in_memory=True).validate()
 
 
 @pytest.mark.parametrize("in_memory", [False, True])
@@ -175,10 +175,10 @@ def test_train_from_image_folder_validates_on_make_dataset_test_pairs(folder, re
     """Training from a folder runs the paper's losses on generated pairs, and its validation
     pairs (seed 1, three per image) are exactly make_dataset's test split: the validation MACE
     equals the evaluation of the saved model on the TFRecords."""
-    cfg = training.TrainConfig(image_dir=folder, val_image_dir=folder, model_dir=str(tmp_path / "m"),
-                               samples_per_image=PER_IMAGE, train_steps=2, warmup_steps=1,
-                               batch_size=BATCH, checkpoint_every=2, val_samples=12,
-                               learning_rate=0.01, in_memory=in_memory)
+    cfg = train_config.TrainConfig(image_dir=folder, val_image_dir=folder, model_dir=str(tmp_path / "m"),
+                                   samples_per_image=PER_IMAGE, train_steps=2, warmup_steps=1,
+                                   batch_size=BATCH, checkpoint_every=2, val_samples=12,
+                                   learning_rate=0.01, in_memory=in_memory)
     result = training.train(cfg, printer=lambda *a: None)
     assert result["final_step"] == 2
     val_mace = result["history"]["val_h_bar_mace"][-1]
@@ -196,9 +196,9 @@ def test_both_validation_sources_serve_exactly_val_samples_same_pairs(folder, re
     of neither 3 (pairs per image) nor the batch size included."""
     common = dict(model_dir="unused", batch_size=BATCH, val_samples=val_samples)
     generated = training.generated_validation(
-        training.TrainConfig(image_dir=folder, val_image_dir=folder, **common))
+        train_config.TrainConfig(image_dir=folder, val_image_dir=folder, **common))
     stored, steps = training.validation_stream(
-        training.TrainConfig(data_dir=records, **common), "test")
+        train_config.TrainConfig(data_dir=records, **common), "test")
     stored = list(stored.as_numpy_iterator())
     expected = min(val_samples, 12)
     assert steps == len(generated) == len(stored) == -(-expected // BATCH)
@@ -217,10 +217,10 @@ def test_stage2_from_image_folder_validates_on_make_stage_dataset_pairs(folder, 
     common = dict(image_dir=folder, val_image_dir=folder, samples_per_image=PER_IMAGE,
                   train_steps=2, warmup_steps=1, batch_size=BATCH, checkpoint_every=2,
                   val_samples=12, learning_rate=0.01, in_memory=True)
-    s1 = training.TrainConfig(model_dir=str(tmp_path / "s1"), **common)
+    s1 = train_config.TrainConfig(model_dir=str(tmp_path / "s1"), **common)
     training.train(s1, printer=lambda *a: None)
-    s2 = training.TrainConfig(model_dir=str(tmp_path / "s2"), stage=2, prev_stages=(s1.model_dir,),
-                              **common)
+    s2 = train_config.TrainConfig(model_dir=str(tmp_path / "s2"), stage=2, prev_stages=(s1.model_dir,),
+                                  **common)
     result = training.train(s2, printer=lambda *a: None)
     assert result["final_step"] == 2
     r2 = str(tmp_path / "r2")
@@ -237,6 +237,7 @@ def test_evaluate_scores_mixed_precision_models_in_float32_on_request(records, t
     """``evaluate(compute_dtype="float32")`` scores a model saved in mixed bfloat16 as a float32
     build of the same weights, alone and as a 2-stage hierarchy; by default it runs as saved."""
     from conftest import keras_policy
+
     from stnh_tf import models
 
     rng = np.random.default_rng(5)

@@ -18,7 +18,7 @@ import pytest
 import tensorflow as tf
 
 from data_prep import stage1
-from stnh_tf import data, evaluation, geometry, training
+from stnh_tf import data, evaluation, geometry, train_config, training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -37,7 +37,7 @@ def _cfg(data_dir, model_dir, **kw):
     base = dict(data_dir=data_dir, model_dir=str(model_dir), train_steps=6, warmup_steps=2,
                 batch_size=4, checkpoint_every=2, log_every=1, val_samples=0, learning_rate=0.01)
     base.update(kw)
-    return training.TrainConfig(**base)
+    return train_config.TrainConfig(**base)
 
 
 def _quiet(*args, **kwargs):
@@ -55,7 +55,7 @@ def _run_binary(args, **kw):
 
 
 def test_schedule_is_warmup_then_cosine():
-    cfg = training.TrainConfig(data_dir="d", model_dir="m")
+    cfg = train_config.TrainConfig(data_dir="d", model_dir="m")
     sched = training.learning_rate_schedule(cfg)
     lr = lambda s: float(sched(s))
     assert lr(0) == pytest.approx(0.0)
@@ -259,9 +259,10 @@ import json, sys
 import tensorflow as tf
 cpu = tf.config.list_physical_devices("CPU")[0]
 tf.config.set_logical_device_configuration(cpu, [tf.config.LogicalDeviceConfiguration()] * 2)
-from stnh_tf import training
-cfg = training.TrainConfig(data_dir=sys.argv[1], model_dir=sys.argv[2], train_steps=2, warmup_steps=1,
-                           batch_size=4, checkpoint_every=2, val_samples=0, strategy="mirrored")
+from stnh_tf import train_config, training
+cfg = train_config.TrainConfig(data_dir=sys.argv[1], model_dir=sys.argv[2], train_steps=2,
+                               warmup_steps=1, batch_size=4, checkpoint_every=2, val_samples=0,
+                               strategy="mirrored")
 replicas = training._strategy(cfg).num_replicas_in_sync
 res = training.train(cfg, printer=lambda *a: None)
 print(json.dumps({"replicas": replicas, "final_step": res["final_step"]}))
@@ -336,8 +337,8 @@ def test_cpu_has_native_bfloat16_reads_cpu_flags(tmp_path, name, expected):
 def test_mixed_precision_warning_only_for_emulated_bfloat16(tmp_path, monkeypatch):
     for name, text in CPUINFO.items():
         (tmp_path / name).write_text(text)
-    mixed = training.TrainConfig(data_dir="d", model_dir="m", mixed_precision=True)
-    fp32 = training.TrainConfig(data_dir="d", model_dir="m", mixed_precision=False)
+    mixed = train_config.TrainConfig(data_dir="d", model_dir="m", mixed_precision=True)
+    fp32 = train_config.TrainConfig(data_dir="d", model_dir="m", mixed_precision=False)
     monkeypatch.setattr(training, "accelerator_present", lambda: False)
     warning = training.mixed_precision_warning(mixed, str(tmp_path / "epyc_milan"))
     assert "no bfloat16 instructions" in warning and "--nomixed_precision" in warning

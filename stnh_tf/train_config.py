@@ -1,0 +1,288 @@
+"""The configuration of a training run, defined once: :class:`TrainConfig`, its validation, and
+the named presets (recipes and model-kind defaults).
+
+Every field carries its command-line help in its metadata, and the training binaries generate
+their flags from the fields (:mod:`experiments.flags_common`), so a new field cannot be forgotten
+by a binary. Standard library only (no Keras): reading a configuration needs no backend.
+
+    >>> cfg = TrainConfig(image_dir="photos", model_dir="runs/s1", **preset_fields("fast", "stn"))
+    >>> cfg.validate()
+    >>> cfg.optimizer, cfg.learning_rate
+    ('adamw', 0.001)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+
+MODEL_KINDS = ("stn", "sequence", "homographynet", "homographynet_gap")
+# The kinds that regress DeTone et al.'s 4-point offsets (output "offsets", one L2 loss):
+# "homographynet" is DeTone's network (models.build_homographynet), "homographynet_gap" the same
+# regression on this project's backbone (models.build_homographynet_gap).
+FOUR_POINT_KINDS = ("homographynet", "homographynet_gap")
+OPTIMIZER_NAMES = ("adam", "adamw", "sgd")
+L2_REDUCTIONS = ("mean", "sum")
+LR_SCHEDULES = ("cosine", "step")
+BATCH_NORMS = ("none", "conv")
+STRATEGIES = ("default", "mirrored")
+
+# Defaults that depend on the model kind: what ``preset_fields`` (and so the training binaries)
+# set beneath a recipe's preset and the flags given explicitly. TrainConfig's own defaults do not
+# change with the model.
+MODEL_DEFAULTS = {
+    # The paper trains its sequence model for "total training steps of 90000" (section 5),
+    # warm-up included, where each hierarchical stage trains 1,000 + 90,000.
+    "sequence": {"train_steps": 90_000},
+    # DeTone et al.'s network and recipe: BatchNorm after every convolution; SGD momentum 0.9,
+    # batch 64, learning rate 0.005 divided by 10 every 30,000 of their 90,000 iterations (the
+    # step schedule divides after every third of train_steps, whatever it is), no warm-up.
+    "homographynet": {"batch_norm": "conv", "learning_rate": 0.005, "lr_schedule": "step",
+                      "warmup_steps": 0, "train_steps": 90_000},
+}
+
+# Named presets of TrainConfig fields. "paper" is the paper's recipe (the defaults); "fast" is a
+# deviation chosen for accuracy per CPU step (BENCHMARKS.md, "A faster recipe").
+RECIPES = {
+    "paper": {},
+    "fast": {"optimizer": "adamw", "learning_rate": 1e-3, "weight_decay": 1e-4,
+             "warmup_steps": 100, "lr_schedule": "cosine"},
+}
+
+# Which binaries take a field as a flag (experiments.flags_common.define_training_flags).
+SHARED, STAGE, SEQUENCE = "shared", "stage", "sequence"
+
+
+def _field(default, help: str, *, scope: str = SHARED, choices=None, comma_list: bool = False,
+           item=str, required: bool = False):
+    """A TrainConfig field with its flag: ``help`` text, the binaries that take it (``scope``),
+    ``choices`` (an enum flag), ``comma_list`` (a str field given as a list flag, stored joined
+    by commas), ``item`` (the element type of a tuple field), ``required`` (no default flag)."""
+    return dataclasses.field(default=default, metadata=dict(
+        help=help, scope=scope, choices=choices, comma_list=comma_list, item=item,
+        required=required))
+
+
+@dataclasses.dataclass
+class TrainConfig:
+    """Everything a training run depends on (written to ``model_dir/config.json``); the paper's
+    recipe by default. Field help is in each field's metadata (``--help`` of the binaries)."""
+
+    data_dir: str = _field("", "TFRecord dataset directory (from data_prep): train split, and the "
+                           "validation split.")
+    model_dir: str = _field("", "Output directory (config, checkpoints, logs, model).",
+                            required=True)
+    model: str = _field("stn", "Model kind: stn (the paper's stage), homographynet (DeTone et "
+                        "al.'s network; unless given: --batch_norm=conv, their recipe "
+                        "--lr_schedule=step --learning_rate=0.005 --warmup_steps=0 "
+                        "--train_steps=90000) or homographynet_gap (its 4-point regression on "
+                        "this project's backbone, the paper's recipe).", scope=STAGE,
+                        choices=MODEL_KINDS)
+    stage: int = _field(1, "Hierarchical stage; the dataset's metadata must say the same.",
+                        scope=STAGE)
+    num_stages: int = _field(2, "Number of sequence stages.", scope=SEQUENCE)
+    train_steps: int = _field(91_000, "Total optimizer steps, warm-up included (unless given: "
+                              "90,000 for the sequence model, the paper's, and for "
+                              "--model=homographynet, DeTone et al.'s).")
+    warmup_steps: int = _field(1_000, "Linear warm-up steps (0 -> learning_rate).")
+    batch_size: int = _field(64, "Global batch size.")
+    learning_rate: float = _field(0.05, "Peak learning rate after warm-up "
+                                  "(--model=homographynet: 0.005 unless given, DeTone et al.'s).")
+    lr_schedule: str = _field("cosine", "cosine (the paper's: warm-up, then cosine decay to 0) or "
+                              "step (DeTone et al.'s: /10 after each third of --train_steps, no "
+                              "warm-up; the default of --model=homographynet).",
+                              choices=LR_SCHEDULES)
+    momentum: float = _field(0.9, "SGD momentum (sgd only).")
+    optimizer: str = _field("sgd", "sgd (the paper's, with --momentum), adam or adamw.",
+                            choices=OPTIMIZER_NAMES)
+    weight_decay: float = _field(0.0, "Decoupled weight decay (Keras' weight_decay; 0: none).")
+    clipnorm: float = _field(0.0, "Clip the global gradient norm to this (0: off).")
+    l2_weight: float = _field(1.0, "Weight of the L2 loss on H_bar.")
+    l2_reduction: str = _field("mean", "L2 over H_bar's 8 entries: mean (default) or sum "
+                               "(8 x mean).", choices=L2_REDUCTIONS)
+    l1_weight: float = _field(1.0, "Weight of the L1 photometric loss.")
+    stage_loss_weights: tuple = _field((), "Comma list of num_stages floats multiplying each "
+                                       "sequence stage's L2 and L1 losses (default: all 1).",
+                                       scope=SEQUENCE, item=float)
+    batch_norm: str = _field("none", "none (the paper's literal network, default) or BatchNorm "
+                             "after every conv.", choices=BATCH_NORMS)
+    dropout: float = _field(0.5, "Dropout after the 1024-unit layer.")
+    seed: int = _field(0, "Seed for initialisation, dropout and data order.")
+    shuffle_buffer: int = _field(10_000, "Training shuffle buffer (records, ~86 KB each; shards "
+                                 "hold an image's samples together, so a large buffer matters).")
+    mixed_precision: bool = _field(False, "Keras mixed_bfloat16 policy (fast on GPUs and CPUs "
+                                   "with AVX-512 BF16/AMX; emulated, so slow, on other CPUs).")
+    checkpoint_every: int = _field(500, "Steps between checkpoints (one Keras epoch).")
+    log_every: int = _field(50, "Steps between progress lines / TensorBoard points.")
+    val_split: str = _field("test", "Split for the validation MACE (monitoring only).")
+    val_samples: int = _field(1024, "Validation pairs per checkpoint (0: off).")
+    strategy: str = _field("default", "tf.distribute strategy.", choices=STRATEGIES)
+    init_from: tuple = _field((), "Comma list of single-stage model dirs (each holding "
+                              "model.keras); dir k initialises sequence stage k's regression "
+                              "network (at most num_stages dirs).", scope=SEQUENCE)
+    image_dir: str = _field("", "Instead of --data_dir: folders of images (comma-separated); "
+                            "pairs are generated on the fly (any Keras backend, e.g. "
+                            "KERAS_BACKEND=jax).", comma_list=True)
+    val_image_dir: str = _field("", "With --image_dir: folders of images for the validation pairs "
+                                "(comma-separated).", comma_list=True)
+    samples_per_image: int = _field(3, "With --image_dir: squares per image per data epoch (as "
+                                    "make_dataset).")
+    fresh_pairs: bool = _field(False, "With --image_dir: new pairs every data epoch (else the "
+                               "fixed set make_dataset would write, reshuffled).")
+    val_seed: int = _field(1, "With --image_dir: seed of the validation pairs (1: make_dataset's "
+                           "test split).")
+    workers: int = _field(0, "With --image_dir: pair-generator processes (0: in-process).")
+    in_memory: bool = _field(False, "With --image_dir (fixed pairs): generate the set once with "
+                             "the workers, then train from memory (uint8, 48 KB a pair).")
+    prev_stages: tuple = _field((), "With --image_dir --in_memory --stage=k>1: model dirs of "
+                                "stages 1..k-1, whose predictions make the stage-k pairs in "
+                                "memory.")
+    photometric: bool = _field(False, "With --image_dir: independent brightness, contrast, gamma "
+                               "and noise changes of patch_b in the training pairs "
+                               "(pairs.PhotometricChange; not the paper's; the validation pairs "
+                               "stay unchanged).")
+    recipe: str = _field("paper", "Preset of the recipe flags: paper (the paper's, default) or "
+                         "fast (a deviation: " + ", ".join(f"{k}={v}" for k, v in
+                                                           RECIPES["fast"].items())
+                         + "); flags given explicitly override the preset.",
+                         choices=tuple(sorted(RECIPES)))
+
+    def validate(self):
+        """Raise ``ValueError`` naming the field and value for anything training cannot use:
+        every field's range is checked here, in one place, before anything is written."""
+        for f in dataclasses.fields(self):
+            choices = f.metadata.get("choices")
+            if choices and getattr(self, f.name) not in choices:
+                raise ValueError(f"{f.name} must be one of {sorted(choices)}; received "
+                                 f"{getattr(self, f.name)!r}.")
+        if not self.model_dir:
+            raise ValueError("model_dir is required.")
+        if bool(self.data_dir) == bool(self.image_dir):
+            raise ValueError("give exactly one of data_dir (TFRecords) and image_dir (pairs "
+                             f"generated on the fly); received data_dir={self.data_dir!r}, "
+                             f"image_dir={self.image_dir!r}.")
+        if self.image_dir and self.stage != 1 and (len(self.prev_stages) != self.stage - 1
+                                                   or not self.in_memory or self.model != "stn"):
+            raise ValueError(f"stage {self.stage} from image_dir needs in_memory, model 'stn' and "
+                             f"the {self.stage - 1} previous stages' model dirs in prev_stages "
+                             f"(received {len(self.prev_stages)}): their predictions make the "
+                             "stage's pairs in memory. Or train on stage-k TFRecords "
+                             "(data_prep.make_stage_dataset) with data_dir.")
+        if self.prev_stages and (not self.image_dir or self.stage == 1):
+            raise ValueError("prev_stages is for stage k > 1 trained from image_dir; stage-k "
+                             "TFRecords already hold the previous stages' predictions.")
+        if self.model == "sequence" and self.num_stages < 1:
+            raise ValueError(f"num_stages must be >= 1; received {self.num_stages}.")
+        if self.model == "sequence" and self.init_from and len(self.init_from) > self.num_stages:
+            raise ValueError(f"init_from names {len(self.init_from)} models for {self.num_stages} "
+                             "stages.")
+        if self.train_steps <= 0 or self.warmup_steps < 0 or self.warmup_steps > self.train_steps:
+            raise ValueError(f"need 0 <= warmup_steps <= train_steps, train_steps > 0; received "
+                             f"warmup_steps={self.warmup_steps}, train_steps={self.train_steps}.")
+        for name, low in _INTEGER_MINIMUMS.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}; received {value!r}.")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1); received {self.dropout}.")
+        if not 0.0 <= self.momentum <= 1.0:
+            raise ValueError(f"momentum must be in [0, 1]; received {self.momentum}.")
+        for name in ("l2_weight", "l1_weight"):
+            value = getattr(self, name)
+            if not (value >= 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be a finite number >= 0; received {value}.")
+        if self.train_steps % self.checkpoint_every:
+            raise ValueError(f"train_steps ({self.train_steps}) must be a multiple of "
+                             f"checkpoint_every ({self.checkpoint_every}).")
+        if self.stage < 1:
+            raise ValueError(f"stage must be >= 1; received {self.stage}.")
+        if not (self.weight_decay >= 0 and math.isfinite(self.weight_decay)):
+            raise ValueError(f"weight_decay must be a finite number >= 0; received "
+                             f"{self.weight_decay}.")
+        if not (self.clipnorm >= 0 and math.isfinite(self.clipnorm)):
+            raise ValueError(f"clipnorm must be a finite number >= 0 (0: off); received "
+                             f"{self.clipnorm}.")
+        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
+            raise ValueError(f"learning_rate must be a finite number > 0; received "
+                             f"{self.learning_rate}.")
+        if self.lr_schedule == "step" and self.warmup_steps:
+            raise ValueError(f"lr_schedule 'step' (DeTone et al.'s) has no warm-up; received "
+                             f"warmup_steps={self.warmup_steps} (give 0, or lr_schedule 'cosine').")
+        if self.model == "homographynet" and self.batch_norm != "conv":
+            raise ValueError("model 'homographynet' is DeTone et al.'s network, with BatchNorm after "
+                             f"every convolution: batch_norm must be 'conv' (received "
+                             f"{self.batch_norm!r}); model 'homographynet_gap' is the 4-point "
+                             "regression on this project's backbone, with or without it.")
+        self.check_losses()
+        for name in ("image_dir", "val_image_dir"):
+            spec = getattr(self, name)
+            if spec and not [f for f in spec.split(",") if f.strip()]:
+                raise ValueError(f"{name} names no folder (received {spec!r}); give one or "
+                                 "more comma-separated folders.")
+        if self.photometric and not self.image_dir:
+            raise ValueError("photometric changes pairs generated from image_dir; for TFRecords, "
+                             "write them with data_prep.make_dataset --photometric.")
+        if self.in_memory and self.fresh_pairs:
+            raise ValueError("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
+
+    def check_losses(self):
+        """Raise ``ValueError`` for loss settings the model kind cannot use (part of
+        :meth:`validate`; also run when the losses are built)."""
+        if self.model in FOUR_POINT_KINDS and (self.l2_weight, self.l1_weight,
+                                               self.l2_reduction) != (1.0, 1.0, "mean"):
+            raise ValueError(f"model={self.model!r} trains its 4-point offsets with one L2 loss: "
+                             "l2_weight/l1_weight/l2_reduction do not apply (received "
+                             f"{self.l2_weight}, {self.l1_weight}, {self.l2_reduction!r}); leave "
+                             "them at 1, 1, 'mean'.")
+        weights = self.stage_loss_weights
+        if weights and (self.model != "sequence" or len(weights) != self.num_stages):
+            raise ValueError(f"stage_loss_weights needs {self.num_stages} values (one per "
+                             f"sequence stage); received {list(weights)} for model "
+                             f"{self.model!r}.")
+        if any(not (isinstance(w, numbers.Real) and math.isfinite(w) and w >= 0)
+               for w in weights):
+            raise ValueError(f"stage_loss_weights must be finite and >= 0; received "
+                             f"{list(weights)}.")
+
+    def to_json(self):
+        d = dataclasses.asdict(self)
+        for f in _TUPLE_FIELDS:
+            d[f] = list(d[f])
+        return d
+
+    @classmethod
+    def from_json(cls, d):
+        names = {f.name for f in dataclasses.fields(cls)}
+        d = {k: v for k, v in d.items() if k in names}
+        for f in _TUPLE_FIELDS:
+            d[f] = tuple(d.get(f, ()))
+        return cls(**d)
+
+
+_TUPLE_FIELDS = tuple(f.name for f in dataclasses.fields(TrainConfig) if f.type == "tuple")
+
+# The integer fields and their smallest allowed values (TrainConfig.validate).
+_INTEGER_MINIMUMS = {"checkpoint_every": 1, "batch_size": 1, "shuffle_buffer": 1, "log_every": 1,
+                     "samples_per_image": 1, "val_samples": 0, "workers": 0, "seed": 0,
+                     "val_seed": 0}
+
+# Fields that may differ between a run and its resumption without changing the result.
+RESUME_FREE_FIELDS = frozenset({"log_every", "model_dir", "data_dir", "image_dir", "val_image_dir",
+                                "workers", "in_memory"})
+
+
+def preset_fields(recipe: str, model: str) -> dict:
+    """The TrainConfig fields that ``recipe`` (a key of :data:`RECIPES`) and ``model`` (a key of
+    :data:`MODEL_KINDS`) preset: :data:`MODEL_DEFAULTS` of the model, then the recipe's preset
+    over them (so ``--recipe=fast`` replaces HomographyNet's step schedule by its own). The
+    training binaries apply these to every field not given explicitly.
+
+    Raises:
+      ValueError: an unknown recipe or model.
+    """
+    if recipe not in RECIPES:
+        raise ValueError(f"recipe must be one of {sorted(RECIPES)}; received {recipe!r}.")
+    if model not in MODEL_KINDS:
+        raise ValueError(f"model must be one of {MODEL_KINDS}; received {model!r}.")
+    return {**MODEL_DEFAULTS.get(model, {}), **RECIPES[recipe]}

@@ -1,0 +1,79 @@
+"""The training binaries' flags are generated from TrainConfig's fields: every field is a flag of
+a binary, and every flag given on the command line reaches the config unchanged."""
+
+import dataclasses
+
+import pytest
+from absl import flags
+
+from experiments import flags_common
+from stnh_tf import train_config
+from stnh_tf.train_config import SEQUENCE, STAGE, TrainConfig
+
+
+def _names(scope):
+    return {f.name for f in flags_common.training_fields(scope)}
+
+
+def test_every_field_is_a_flag_of_a_binary():
+    every = {f.name for f in dataclasses.fields(TrainConfig)}
+    assert _names(STAGE) | _names(SEQUENCE) == every
+    assert {"model", "stage"} <= _names(STAGE) - _names(SEQUENCE)
+    assert {"num_stages", "init_from", "stage_loss_weights"} <= _names(SEQUENCE) - _names(STAGE)
+    assert "val_seed" in _names(STAGE) & _names(SEQUENCE)
+
+
+def _other_value(field):
+    """A command-line value different from the field's default, and the config value it gives."""
+    meta, default = field.metadata, field.default
+    if meta["required"]:
+        return "out/run", "out/run"
+    if meta["comma_list"]:
+        return "a,b", "a,b"
+    if isinstance(default, tuple):
+        return ("1.5,2", (1.5, 2.0)) if meta["item"] is float else ("p,q", ("p", "q"))
+    if isinstance(default, bool):
+        return str(not default).lower(), not default
+    if isinstance(default, int):
+        return str(default + 3), default + 3
+    if isinstance(default, float):
+        return str(default + 0.25), default + 0.25
+    if meta["choices"]:
+        other = [c for c in meta["choices"] if c != default and c != "sequence"][0]
+        return other, other
+    return f"x_{field.name}", f"x_{field.name}"
+
+
+@pytest.mark.parametrize("scope", [STAGE, SEQUENCE])
+def test_every_flag_reaches_the_config(scope):
+    flag_values = flags.FlagValues()
+    flags_common.define_training_flags(scope, flag_values=flag_values)
+    argv, expected = ["binary"], {}
+    for field in flags_common.training_fields(scope):
+        text, value = _other_value(field)
+        argv.append(f"--{field.name}={text}")
+        expected[field.name] = value
+    flag_values(argv)
+    cfg = flags_common.config_from_flags(scope, flag_values=flag_values)
+    got = {name: getattr(cfg, name) for name in expected}
+    assert got == expected
+    assert expected["recipe"] == "fast"  # every recipe field was given explicitly: none preset
+
+
+def test_defaults_are_the_configs_and_presets_fill_only_what_is_not_given():
+    flag_values = flags.FlagValues()
+    flags_common.define_training_flags(STAGE, flag_values=flag_values)
+    flag_values(["binary", "--model_dir=m", "--recipe=fast", "--learning_rate=5e-4"])
+    cfg = flags_common.config_from_flags(STAGE, flag_values=flag_values)
+    fast = train_config.RECIPES["fast"]
+    want = dataclasses.replace(TrainConfig(model_dir="m", recipe="fast"),
+                               **{**fast, "learning_rate": 5e-4})
+    assert cfg == want
+
+
+def test_a_list_value_of_the_wrong_type_is_a_clear_error():
+    flag_values = flags.FlagValues()
+    flags_common.define_training_flags(SEQUENCE, flag_values=flag_values)
+    flag_values(["binary", "--model_dir=m", "--stage_loss_weights=1,heavy"])
+    with pytest.raises(ValueError, match="stage_loss_weights takes float values"):
+        flags_common.config_from_flags(SEQUENCE, flag_values=flag_values)
