@@ -25,7 +25,6 @@ The model runs in the parent process; the re-cropping runs in the writer's worke
 from __future__ import annotations
 
 import collections
-import functools
 import os
 import shlex
 import sys
@@ -105,7 +104,7 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
       ValueError: ``stage < 2``, the input is not stage ``k-1`` data, or the split is missing.
       FileNotFoundError: no model in ``model_dir``.
     """
-    from stnh_tf import data, evaluation
+    from stnh_tf import data, runner
 
     if stage < 2:
         raise ValueError(f"stage must be >= 2 (stage 1 is data_prep.make_dataset); received {stage}.")
@@ -121,7 +120,7 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
     if (model_dir is None) == (predict is None):
         raise ValueError("give exactly one of model_dir and predict.")
     if predict is None:
-        predict = functools.partial(_predict_pixel, evaluation.compiled_forward(evaluation.load_model(model_dir)))
+        predict = runner.predictor(runner.load_model(model_dir), batch_size=READ_BATCH)
     counts = collections.Counter()
     split_metadata = {
         "source": "stage", "input_dir": os.path.abspath(input_dir),
@@ -143,9 +142,3 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
     writer.update_metadata(output_dir, split, {**result, "degenerate_predictions": counts_dict})
     result["degenerate_predictions"] = counts_dict
     return result
-
-
-def _predict_pixel(forward, patch_a, patch_b):
-    from stnh_tf import evaluation
-
-    return evaluation.h_bar_to_pixel(forward(patch_a, patch_b))

@@ -88,7 +88,7 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
     import numpy as np
 
     from data_prep import stage1
-    from stnh_tf import data, evaluation, figures, geometry, hierarchy
+    from stnh_tf import data, evaluation, figures, geometry, hierarchy, runner
 
     t_start = time.time()
     os.makedirs(output_dir, exist_ok=True)
@@ -113,7 +113,7 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
     if not models:
         printer("no shipped weights in stnh_tf/weights: showing the baselines only")
     for name, paths in models.items():
-        stages = [hierarchy.keras_stage(evaluation.load_model(p)) for p in paths]
+        stages = [runner.predictor(runner.load_model(p)) for p in paths]
         hierarchy.run_hierarchy(stages, samples["context_a"][:2], samples["patch_b"][:2])  # warm-up
         t0 = time.perf_counter()
         run = hierarchy.run_hierarchy(stages, samples["context_a"], samples["patch_b"])

@@ -33,14 +33,14 @@ FLAGS = flags.FLAGS
 
 
 def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
-    from stnh_tf import evaluation, inference
+    from stnh_tf import inference, runner
 
     weights_dir = weights_dir or inference.default_weights_dir()
     os.makedirs(weights_dir, exist_ok=True)
     card = {"stages": []}
     names = []
     for k, d in enumerate(model_dirs, start=1):
-        model = evaluation.load_model(d)  # compile=False: no optimizer state is saved
+        model = runner.load_model(d)  # compile=False: no optimizer state is saved
         name = f"stage{k}.keras"
         model.save(os.path.join(weights_dir, name))
         names.append(os.path.join(weights_dir, name))

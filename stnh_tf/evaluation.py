@@ -8,13 +8,11 @@ composed as ``h_prev @ H_k``.
 
 from __future__ import annotations
 
-import os
 import time
-import zipfile
 
 import numpy as np
 
-from stnh_tf import geometry
+from stnh_tf import geometry, runner
 
 
 def error_summary(errors) -> dict:
@@ -27,121 +25,6 @@ def error_summary(errors) -> dict:
             "count": int(errors.size)}
 
 
-def load_model(model_dir_or_file, compute_dtype=None):
-    """Load a trained Keras model from a model directory (its ``model.keras``) or a file.
-
-    ``compute_dtype="float32"`` rebuilds a model saved with a mixed-precision policy (e.g.
-    ``mixed_bfloat16``, as the CPU-budget models were trained) so every layer computes in
-    float32, with the same weights (mixed-precision variables are float32 already); default: as
-    saved.
-
-    Raises ``FileNotFoundError`` if there is no such file and ``ValueError`` if a ``.keras``
-    file is not a Keras model archive.
-    """
-    import keras
-
-    import stnh_tf.layers  # noqa: F401  (registers the custom layers)
-    import stnh_tf.losses  # noqa: F401
-    import stnh_tf.models  # noqa: F401
-
-    path = model_dir_or_file
-    if os.path.isdir(path):
-        path = os.path.join(path, "model.keras")
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"no trained model at {model_dir_or_file} (looked for {path}).")
-    if str(path).endswith(".keras") and not zipfile.is_zipfile(path):
-        # Keras itself calls such a file "File not found".
-        raise ValueError(f"{path} exists but is not a Keras model (a .keras file is a zip archive "
-                         "written by model.save).")
-    model = keras.models.load_model(path, compile=False)
-    return with_compute_dtype(model, compute_dtype) if compute_dtype else model
-
-
-def with_compute_dtype(model, dtype: str):
-    """``model`` with every mixed-precision layer's policy replaced by ``dtype`` (same weights);
-    ``model`` itself if no layer has a mixed policy."""
-    def rewrite(obj):
-        if isinstance(obj, dict):
-            if (obj.get("class_name") == "DTypePolicy"
-                    and str(obj.get("config", {}).get("name", "")).startswith("mixed_")):
-                return {**obj, "config": {**obj["config"], "name": dtype}}
-            return {k: rewrite(v) for k, v in obj.items()}
-        if isinstance(obj, list):
-            return [rewrite(v) for v in obj]
-        return obj
-
-    config = model.get_config()
-    new_config = rewrite(config)
-    if new_config == config:
-        return model
-    rebuilt = model.__class__.from_config(new_config)
-    rebuilt.set_weights(model.get_weights())
-    return rebuilt
-
-
-def final_h_bar_name(model) -> str:
-    """The output holding a model's final ``H_bar``: ``h_bar`` or the last ``h_bar_k``."""
-    names = list(model.output_names) if hasattr(model, "output_names") else []
-    seq = sorted((n for n in names if n.startswith("h_bar_")), key=lambda n: int(n.split("_")[-1]))
-    return seq[-1] if seq else "h_bar"
-
-
-def compiled_forward(model, output=None):
-    """A compiled batch-any-size forward pass ``(patch_a, patch_b) -> H_bar`` (NumPy in and out).
-
-    Under the TensorFlow backend a ``tf.function`` with an unknown batch dimension (no retracing,
-    ~5x less per-call overhead than ``model.predict`` at batch 1); under JAX a ``jax.jit`` of
-    ``model.stateless_call`` (one trace per batch size); otherwise ``predict_on_batch``.
-    ``output`` names the ``h_bar`` output (default: the model's final one).
-    """
-    import keras
-
-    name = output or final_h_bar_name(model)
-    if keras.backend.backend() == "tensorflow":
-        import tensorflow as tf
-
-        size = model.inputs[0].shape[1]
-        spec = tf.TensorSpec([None, size, size, 1], tf.float32)
-
-        @tf.function(input_signature=[spec, spec])
-        def fn(a, b):
-            return model({"patch_a": a, "patch_b": b}, training=False)[name]
-
-        return lambda a, b: np.asarray(fn(np.asarray(a, np.float32), np.asarray(b, np.float32)))
-    if keras.backend.backend() == "jax":
-        import jax
-
-        @jax.jit
-        def jfn(trainable, non_trainable, a, b):
-            out, _ = model.stateless_call(trainable, non_trainable, {"patch_a": a, "patch_b": b},
-                                          training=False)
-            return out[name]
-
-        def run(a, b):  # reads the variables at call time, so later weight changes are seen
-            return np.asarray(jfn([v.value for v in model.trainable_variables],
-                                  [v.value for v in model.non_trainable_variables],
-                                  np.asarray(a, np.float32), np.asarray(b, np.float32)))
-        return run
-    return lambda a, b: np.asarray(model.predict_on_batch({"patch_a": np.asarray(a, np.float32),
-                                                           "patch_b": np.asarray(b, np.float32)})[name])
-
-
-def predict_h_bar(model, patches_a, patches_b, batch_size=64, output=None):
-    """Run ``model`` on float ``[N, S, S, 1]`` patches in [0, 1]; returns ``[N, 8]`` ``H_bar``
-    (or a dict of every ``h_bar*`` output if ``output == "all"``)."""
-    out = model.predict({"patch_a": patches_a, "patch_b": patches_b}, batch_size=batch_size,
-                        verbose=0)
-    if output == "all":
-        return {k: np.asarray(v, np.float64) for k, v in out.items() if k.startswith("h_bar")}
-    return np.asarray(out[output or final_h_bar_name(model)], np.float64)
-
-
-def h_bar_to_pixel(h_bar, size=geometry.PATCH_SIZE):
-    """``[N, 8]`` normalized ``H_bar`` -> ``[N, 3, 3]`` pixel ``H_ba``."""
-    return geometry.denormalize_homography(geometry.vector_to_matrix(np.asarray(h_bar, np.float64)),
-                                           size, size)
-
-
 def evaluate_model_on_arrays(model, samples: dict, batch_size=64) -> dict:
     """MACE of ``model`` on a dict of stored pairs (``patch_a``, ``patch_b``, ``h_ba``, ``h_prev``).
 
@@ -151,13 +34,15 @@ def evaluate_model_on_arrays(model, samples: dict, batch_size=64) -> dict:
     """
     h_true = np.asarray(samples["h_ba"], np.float64)
     h_prev = np.asarray(samples.get("h_prev", np.broadcast_to(np.eye(3), h_true.shape)), np.float64)
+    forward = runner.batched(runner.compiled_forward(model, "all"), batch_size)
+    forward(samples["patch_a"][:1], samples["patch_b"][:1])  # compiled before the clock starts
     t0 = time.perf_counter()
-    outs = predict_h_bar(model, samples["patch_a"], samples["patch_b"], batch_size, output="all")
+    outs = forward(samples["patch_a"], samples["patch_b"])
     elapsed = time.perf_counter() - t0
-    final = final_h_bar_name(model)
+    final = runner.final_h_bar_name(model)
     result = {}
     for name, h_bar in outs.items():
-        h_est = geometry.compose(h_prev, h_bar_to_pixel(h_bar))
+        h_est = geometry.compose(h_prev, geometry.h_bar_to_pixel(h_bar))
         result[name] = error_summary(geometry.corner_errors(h_est, h_true))
     summary = dict(result[final])
     if len(outs) > 1:
@@ -181,7 +66,7 @@ def evaluate_hierarchy(models, samples: dict, batch_size=64, clip_to_context: bo
 
     h_true = np.asarray(samples["h_ba"], np.float64)
     t0 = time.perf_counter()
-    run = hierarchy.run_hierarchy([hierarchy.keras_stage(m, batch_size) for m in models],
+    run = hierarchy.run_hierarchy([runner.predictor(m, batch_size) for m in models],
                                   samples["context_a"], samples["patch_b"],
                                   clip_to_context=clip_to_context)
     elapsed = time.perf_counter() - t0
@@ -210,7 +95,7 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
       data_dir, split: the stored pairs (``stnh_tf.data``).
       baselines: names from :data:`stnh_tf.baselines.BASELINES`, evaluated on the same pairs.
       max_samples: evaluate the first N pairs only (reported as ``count``; default all).
-      compute_dtype: see :func:`load_model` (``"float32"`` scores mixed-precision models as
+      compute_dtype: see :func:`stnh_tf.runner.load_model` (``"float32"`` scores mixed-precision models as
         ``HomographyEstimator.load`` runs them; default: as saved).
       clip_to_context: for a hierarchy, the degenerate-prediction rule's clipping of corners onto
         the context border (:func:`evaluate_hierarchy`); ``False`` reports MACE without it.
@@ -240,14 +125,14 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
                np.broadcast_to(np.eye(3), h_true.shape), h_true))}
     model_dirs = [d for d in (model_dirs or ()) if d]
     if len(model_dirs) == 1:
-        out["model"] = evaluate_model_on_arrays(load_model(model_dirs[0], compute_dtype),
+        out["model"] = evaluate_model_on_arrays(runner.load_model(model_dirs[0], compute_dtype),
                                                 samples, batch_size)
         out["model"]["model_dir"] = model_dirs[0]
     elif len(model_dirs) > 1:
         if not np.allclose(h_prev, np.eye(3)):
             raise ValueError(f"a hierarchy is evaluated on stage-1 pairs; {data_dir} holds pairs "
                              "with earlier-stage estimates (h_prev != identity).")
-        out["model"] = evaluate_hierarchy([load_model(d, compute_dtype) for d in model_dirs],
+        out["model"] = evaluate_hierarchy([runner.load_model(d, compute_dtype) for d in model_dirs],
                                           samples, batch_size, clip_to_context)
         out["model"]["model_dirs"] = list(model_dirs)
     if baselines:
@@ -288,11 +173,11 @@ def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
     keras.utils.set_random_seed(seed)
     try:
         if model_dirs:
-            stage_models = [load_model(d) for d in model_dirs]
+            stage_models = [runner.load_model(d) for d in model_dirs]
         else:
             stage_models = [models.build_stn_homography() for _ in range(max_stages)]
-        stages = [hierarchy.keras_stage(m) for m in stage_models]
-        forward = compiled_forward(stage_models[0])
+        stages = [runner.predictor(m) for m in stage_models]
+        forward = runner.compiled_forward(stage_models[0])
         a = context[:, 32:160, 32:160, None].astype(np.float32) / 255.0
         b = patch_b[..., None].astype(np.float32) / 255.0
         l_m = median_ms(lambda: forward(a, b), runs, warmup)
@@ -317,7 +202,7 @@ def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
         if sequence:
             result["sequence"] = {}
             for n in range(1, max_stages + 1):
-                seq_fwd = compiled_forward(models.build_sequence_stn_homography(n))
+                seq_fwd = runner.compiled_forward(models.build_sequence_stn_homography(n))
                 result["sequence"][str(n)] = {"forward_ms": median_ms(lambda: seq_fwd(a, b), runs, warmup)}
         return result
     finally:

@@ -181,6 +181,12 @@ def matrix_to_vector(h):
     return flat[..., :8]
 
 
+def h_bar_to_pixel(h_bar, size: int = PATCH_SIZE) -> np.ndarray:
+    """A network's ``[..., 8]`` normalized ``H_bar`` -> pixel ``H_ba`` ``[..., 3, 3]`` (float64,
+    ``[2,2] = 1``) in the ``size x size`` patch frame (NumPy)."""
+    return denormalize_homography(vector_to_matrix(np.asarray(h_bar, np.float64)), size, size)
+
+
 def as_matrix(h):
     """Accept ``[..., 8]`` or ``[..., 3, 3]`` homographies and return ``[..., 3, 3]``."""
     h = _as_float_array(h)

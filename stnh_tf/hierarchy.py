@@ -226,7 +226,7 @@ def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 10
       arrays: stage-1 pairs in :func:`stnh_tf.batches.stack_samples`' compact form with context
         (``patch_a``, ``patch_b``, ``patch_a_t`` uint8 ``[N, S, S]``, ``h_bar``, ``h_mask``,
         ``context_a`` uint8 ``[N, S+2m, S+2m]``, ``h_ba`` ``[N, 3, 3]``).
-      stages: the trained stages 1..n as :data:`PredictFn` (e.g. :func:`keras_stage`).
+      stages: the trained stages 1..n as :data:`PredictFn` (e.g. :func:`stnh_tf.runner.predictor`).
       chunk: pairs per model call batch; threads: chunks processed at once (0: one per core).
     Returns:
       ``(pairs, rejected)``: ``pairs`` in the compact form (``patch_a``, ``patch_b``,
@@ -270,18 +270,3 @@ def _serialized(predict: PredictFn, lock) -> PredictFn:
             return predict(patch_a, patch_b)
 
     return call
-
-
-def keras_stage(model, batch_size: int = 64) -> PredictFn:
-    """Wrap a trained single-stage Keras model (output ``h_bar``) as a :data:`PredictFn`, run in
-    chunks of ``batch_size`` through a compiled forward pass."""
-    from stnh_tf import evaluation
-
-    forward = evaluation.compiled_forward(model)
-
-    def predict(patch_a, patch_b):
-        h_bar = np.concatenate([forward(patch_a[i:i + batch_size], patch_b[i:i + batch_size])
-                                for i in range(0, len(patch_a), batch_size)])
-        return evaluation.h_bar_to_pixel(h_bar)
-
-    return predict

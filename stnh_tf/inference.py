@@ -358,7 +358,7 @@ def _output_names(model):
 
 
 def _check_model(model, where):
-    from stnh_tf.evaluation import final_h_bar_name
+    from stnh_tf.runner import final_h_bar_name
 
     inputs = getattr(model, "inputs", None) or []
     names = {getattr(t, "name", "").split(":")[0] for t in inputs}
@@ -389,6 +389,7 @@ class HomographyEstimator:
             raise ValueError("HomographyEstimator needs at least one model; received none.")
         self._stages = list(stages)
         self._outputs = [_check_model(m, f"stage {k}") for k, m in enumerate(self._stages, 1)]
+        self._predictors = [None] * len(self._stages)
         self.source = source
         self.last_rejected = {"non_finite": 0, "singular": 0}
         """Stage predictions the last estimate skipped as degenerate, by reason."""
@@ -416,7 +417,7 @@ class HomographyEstimator:
         Raises ``FileNotFoundError`` if nothing is found (also when no weights are shipped) and
         ``ValueError`` if a file is not a usable model.
         """
-        from stnh_tf.evaluation import load_model
+        from stnh_tf.runner import load_model
 
         paths = resolve_model_paths(path)
         models = []
@@ -458,16 +459,14 @@ class HomographyEstimator:
 
     # -- estimation ---------------------------------------------------------------------------
     def _predict_stage(self, k, patch_a, patch_b, batch_size):
-        """Stage k's pixel ``H_ba`` ``[B, 3, 3]`` (float64) for float32 ``[B, S, S, 1]`` inputs."""
-        from stnh_tf.evaluation import h_bar_to_pixel
+        """Stage k's pixel ``H_ba`` ``[B, 3, 3]`` (float64) for float32 ``[B, S, S, 1]`` inputs,
+        through the stage's compiled predictor (:func:`stnh_tf.runner.predictor`, built on
+        first use and kept)."""
+        from stnh_tf import runner
 
-        model, name = self._stages[k], self._outputs[k]
-        chunks = []
-        for i in range(0, len(patch_a), batch_size):
-            out = model({"patch_a": patch_a[i:i + batch_size], "patch_b": patch_b[i:i + batch_size]},
-                        training=False)
-            chunks.append(np.asarray(out[name], np.float64))
-        return h_bar_to_pixel(np.concatenate(chunks, axis=0))
+        if self._predictors[k] is None:
+            self._predictors[k] = runner.predictor(self._stages[k], output=self._outputs[k])
+        return self._predictors[k](patch_a, patch_b, batch_size)
 
     def _estimate(self, patch_a, patch_b, context=None, origin=(0, 0), batch_size=64):
         """Composed ``H_1 @ ... @ H_n`` ``[B, 3, 3]`` for float32 ``[B, S, S, 1]`` pairs.

@@ -303,7 +303,7 @@ class Reproduction:
         return result
 
     def figures(self, fig4: dict, stages) -> dict:
-        from stnh_tf import data, evaluation, figures, hierarchy
+        from stnh_tf import data, figures, hierarchy, runner
 
         fdir = os.path.join(self.out, "figures")
         out = {}
@@ -315,7 +315,7 @@ class Reproduction:
                                         paper=PAPER_FIG4,
                                         title=f"MACE on the same test pairs, budget '{self.budget.name}'")
         samples = data.load_arrays(self.data_dir(1), "test", max_samples=64)
-        run = hierarchy.run_hierarchy([hierarchy.keras_stage(evaluation.load_model(d)) for d in stages],
+        run = hierarchy.run_hierarchy([runner.predictor(runner.load_model(d)) for d in stages],
                                       samples["context_a"], samples["patch_b"])
         n = len(samples["h_ba"])
         idx = np.linspace(0, n - 1, min(4, n)).astype(int)

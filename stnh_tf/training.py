@@ -605,13 +605,12 @@ def stage_pairs(cfg: TrainConfig, batches) -> dict:
     processes. Stage 1: as generated; stage k > 1: re-made in memory from the predictions of
     ``cfg.prev_stages`` (:func:`stnh_tf.hierarchy.next_stage_arrays`, the paper's offline
     re-generation without TFRecords)."""
-    from stnh_tf import data, evaluation, hierarchy
+    from stnh_tf import data, hierarchy, runner
 
     if cfg.stage == 1:
         return data.materialize(batches, cfg.workers)
     arrays = data.materialize(batches, cfg.workers, context=True)
-    stages = [hierarchy.keras_stage(evaluation.load_model(d), batch_size=256)
-              for d in cfg.prev_stages]
+    stages = [runner.predictor(runner.load_model(d), batch_size=256) for d in cfg.prev_stages]
     pairs, rejected = hierarchy.next_stage_arrays(arrays, stages)
     _log.info("stage-%d pairs from %d previous stages; degenerate-rule cases %s", cfg.stage,
               len(stages), rejected)

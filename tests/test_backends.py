@@ -22,7 +22,7 @@ import pytest
 import tensorflow as tf
 
 from conftest import cv2_warp, inside_mask, norm_matrix, paper_homography, to_bar
-from stnh_tf import evaluation, models, sources
+from stnh_tf import models, runner, sources
 from stnh_tf.layers import SpatialTransformer
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -43,7 +43,7 @@ import json, os, sys
 work, backend = sys.argv[1], sys.argv[2]
 os.environ["KERAS_BACKEND"] = backend
 import keras, numpy as np
-from stnh_tf import evaluation, train_config, training
+from stnh_tf import runner, train_config, training
 from stnh_tf.layers import SpatialTransformer
 assert keras.backend.backend() == backend
 z = np.load(os.path.join(work, "inputs.npz"))
@@ -67,7 +67,7 @@ out["grad"] = grad_of(lambda h8: keras.ops.sum(stn([z["images"], h8]) * weights)
 for name in sys.argv[3].split(","):
     m = keras.models.load_model(os.path.join(work, f"tf_{name}.keras"), compile=False)
     for o in [k for k in m.output_names if k.startswith("h_bar")]:
-        out[f"tf_{name}:{o}"] = evaluation.compiled_forward(m, o)(z["a"], z["b"])
+        out[f"tf_{name}:{o}"] = runner.compiled_forward(m, o)(z["a"], z["b"])
 # Two training steps from a folder of images, pairs generated on the fly.
 cfg = train_config.TrainConfig(image_dir=os.path.join(work, "images"),
                                model_dir=os.path.join(work, backend + "_run"),
@@ -75,7 +75,7 @@ cfg = train_config.TrainConfig(image_dir=os.path.join(work, "images"),
                                checkpoint_every=2, val_samples=0, learning_rate=0.01)
 res = training.train(cfg, printer=lambda *a: None)
 m2 = keras.models.load_model(os.path.join(cfg.model_dir, "model.keras"), compile=False)
-out["trained"] = evaluation.compiled_forward(m2)(z["a"], z["b"])
+out["trained"] = runner.compiled_forward(m2)(z["a"], z["b"])
 np.savez(os.path.join(work, backend + "_out.npz"), **out)
 print(json.dumps({"final_step": res["final_step"], "loss": res["history"]["loss"][-1],
                   "backend": keras.backend.backend()}))
@@ -154,7 +154,7 @@ def test_tensorflow_models_run_the_same_under_backend(backend_run, name):
     outputs = [k for k in model.output_names if k.startswith("h_bar")]
     assert len(outputs) == (2 if name == "sequence2" else 1)
     for o in outputs:
-        tf_out = evaluation.compiled_forward(model, o)(backend_run["a"], backend_run["b"])
+        tf_out = runner.compiled_forward(model, o)(backend_run["a"], backend_run["b"])
         assert np.ptp(tf_out, axis=0).max() > 1e-4  # the perturbed model depends on its input
         np.testing.assert_allclose(backend_run["out"][f"tf_{name}:{o}"], tf_out, atol=1e-5)
 
@@ -162,7 +162,7 @@ def test_tensorflow_models_run_the_same_under_backend(backend_run, name):
 def test_model_trained_under_backend_runs_under_tensorflow(backend_run):
     model = keras.models.load_model(backend_run["work"] / f"{backend_run['backend']}_run"
                                     / "model.keras", compile=False)
-    back = evaluation.compiled_forward(model)(backend_run["a"], backend_run["b"])
+    back = runner.compiled_forward(model)(backend_run["a"], backend_run["b"])
     np.testing.assert_allclose(back, backend_run["out"]["trained"], atol=1e-5)
     # ... and training changed the output away from the identity initialisation.
     identity = np.tile(models.IDENTITY_H_BAR, (len(back), 1))

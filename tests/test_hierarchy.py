@@ -166,7 +166,7 @@ def test_no_clip_through_the_hierarchy_and_its_evaluation(pairs, monkeypatch):
     """Stage 1 overshoots by 45 px (outside the 32-px context), stage 2 returns a fixed matrix:
     without clipping the estimates are exactly their products, stage 2 reads zeros beyond the
     context, and ``evaluate_hierarchy`` scores those products."""
-    from stnh_tf import evaluation
+    from stnh_tf import evaluation, runner
 
     n = len(pairs["h_ba"])
     t45 = np.repeat(geometry.translation(45, 0)[None], n, 0)
@@ -182,7 +182,7 @@ def test_no_clip_through_the_hierarchy_and_its_evaluation(pairs, monkeypatch):
     clipped = hierarchy.run_hierarchy([o1, o2], pairs["context"], pairs["patch_b"])
     assert _mace(clipped["h"], t45 @ second) > 1.0  # clipping changes the composition here
 
-    monkeypatch.setattr(hierarchy, "keras_stage", lambda stage, batch_size=64: stage)
+    monkeypatch.setattr(runner, "predictor", lambda stage, batch_size=64: stage)
     samples = {"context_a": pairs["context"], "patch_b": pairs["patch_b"], "h_ba": pairs["h_ba"]}
     for clip, h in ((False, t45 @ second), (True, clipped["h"])):
         result = evaluation.evaluate_hierarchy([o1, o2], samples, clip_to_context=clip)

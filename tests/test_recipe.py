@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from data_prep import stage1
-from stnh_tf import data, evaluation, models, pairs, sources, train_config, training
+from stnh_tf import data, models, pairs, runner, sources, train_config, training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PHOTO = pairs.PhotometricChange()
@@ -171,8 +171,8 @@ def test_resume_with_the_new_options_matches_the_uninterrupted_run(two_folders, 
     lines = []
     training.train(cfg("resumed"), printer=lines.append)
     assert any("resuming" in ln and "step 4" in ln for ln in lines)
-    straight = evaluation.load_model(str(tmp_path / "straight")).get_weights()
-    resumed = evaluation.load_model(str(tmp_path / "resumed")).get_weights()
+    straight = runner.load_model(str(tmp_path / "straight")).get_weights()
+    resumed = runner.load_model(str(tmp_path / "resumed")).get_weights()
     for a, b in zip(straight, resumed):
         np.testing.assert_array_equal(a, b)
 

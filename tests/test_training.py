@@ -18,7 +18,7 @@ import pytest
 import tensorflow as tf
 
 from data_prep import stage1
-from stnh_tf import data, evaluation, geometry, train_config, training
+from stnh_tf import data, geometry, runner, train_config, training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -45,7 +45,7 @@ def _quiet(*args, **kwargs):
 
 
 def _weights(model_dir):
-    model = evaluation.load_model(model_dir)
+    model = runner.load_model(model_dir)
     return [np.asarray(w) for w in model.get_weights()]
 
 
