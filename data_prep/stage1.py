@@ -15,7 +15,7 @@ import socket
 import sys
 
 from data_prep import writer
-from stnh_tf import pairs, sources
+from stnh_tf import pairs, paths, sources
 
 SOURCES = ("folder", "bundled", "coco2014")
 COCO_TFDS_SPLITS = {"train": "train+validation", "test": "test"}
@@ -115,7 +115,7 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
     protocol = pairs.Protocol(samples_per_image=samples_per_image,
                               photometric=pairs.PhotometricChange() if photometric else None)
     if source == "coco2014":
-        output_dir = writer.check_output_dir(output_dir)  # fail before any download
+        output_dir = paths.check_output_dir(output_dir)  # fail before any download
     if source == "folder":
         if not image_dir:
             raise sources.SourceError("--source=folder needs --image_dir.")
@@ -135,7 +135,7 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
         extra = f" ({len(preskipped)} unreadable directories)" if preskipped else ""
         raise sources.SourceError(f"no image files found in {where}{extra}; image files end in "
                                   f"{', '.join(sources.IMAGE_EXTENSIONS)}.")
-    output_dir = writer.check_output_dir(output_dir)
+    output_dir = paths.check_output_dir(output_dir)
     if num_shards == 0:
         num_shards = writer.auto_num_shards(num_items, samples_per_image)
     import cv2

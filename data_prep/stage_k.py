@@ -33,6 +33,7 @@ import numpy as np
 
 from data_prep import writer
 from stnh_tf import features, hierarchy
+from stnh_tf.paths import check_output_dir
 
 READ_BATCH = 256
 """Pairs per model call (fixed, so predictions do not depend on anything but the data)."""
@@ -116,7 +117,7 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
         raise ValueError("output_dir must differ from input_dir.")
     info = data.split_info(input_dir, split)
     paths = data.shard_paths(input_dir, split, "size")
-    output_dir = writer.check_output_dir(output_dir)
+    output_dir = check_output_dir(output_dir)
     if (model_dir is None) == (predict is None):
         raise ValueError("give exactly one of model_dir and predict.")
     if predict is None:

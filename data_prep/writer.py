@@ -41,7 +41,7 @@ import time
 from typing import Any, Callable, Iterable, Optional
 
 from stnh_tf import features
-from stnh_tf.paths import check_output_dir  # noqa: F401  (re-exported: data_prep's callers)
+from stnh_tf.paths import atomic_write_json, check_output_dir
 
 METADATA_FILE = "metadata.json"
 LOCK_FILE = ".metadata.lock"
@@ -107,17 +107,6 @@ def _read_metadata_file(output_dir: str) -> dict:
     if not isinstance(meta, dict):
         raise ValueError(f"{path} does not hold a JSON object.")
     return meta
-
-
-def atomic_write_json(path: str, obj) -> None:
-    """Write JSON to ``path`` via a temporary file, fsync and rename (never half-written)."""
-    tmp = f"{path}.tmp-{os.getpid()}"
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=2, sort_keys=True)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def update_metadata(output_dir: str, split: str, section: Optional[dict],

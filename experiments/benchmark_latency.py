@@ -29,7 +29,8 @@ flags.DEFINE_list("model_dir", [], "Stage model directories (default: untrained 
 flags.DEFINE_integer("max_stages", 3, "Measure 1..max_stages stages.")
 flags.DEFINE_integer("runs", 200, "Timed calls per measurement (median reported).")
 flags.DEFINE_integer("warmup", 20, "Untimed calls first.")
-flags.DEFINE_enum("policy", "float32", ["float32", "mixed_bfloat16"], "Dtype policy of built models.")
+flags.DEFINE_enum("policy", "float32", ["float32", "mixed_bfloat16"], "Dtype policy of built "
+                  "models (loaded models keep theirs; the JSON's policy says what ran).")
 flags.DEFINE_bool("sequence", True, "Also time sequence models with 1..max_stages stages.")
 flags.DEFINE_integer("seed", 0, "Seed of the inputs and weights.")
 flags.DEFINE_string("json_out", None, "Also write the JSON here.")

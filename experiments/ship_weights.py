@@ -22,7 +22,7 @@ import os
 
 from absl import app, flags
 
-from data_prep.writer import atomic_write_json
+from stnh_tf.paths import atomic_write_json
 
 flags.DEFINE_list("model_dir", None, "Trained stage model directories, in stage order.")
 flags.DEFINE_string("eval_json", None, "experiments.evaluate output to record in the card.")

@@ -161,7 +161,9 @@ def median_ms(fn, runs: int, warmup: int) -> float:
 
 def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", sequence=True, seed=0):
     """Table 2: batch-1 latency (ms) of 1..n hierarchical stages (``d_e``, with its terms ``l_m``
-    and ``l_w``) and of sequence models; see ``experiments.benchmark_latency``."""
+    and ``l_w``) and of sequence models; see ``experiments.benchmark_latency``. ``policy`` builds
+    the untrained models (and the sequence models); models loaded from ``model_dirs`` keep the
+    policy they were saved with, and the result's ``policy`` records what the hierarchy ran in."""
     import keras
 
     from stnh_tf import hierarchy, models
@@ -191,7 +193,11 @@ def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
             return patch
 
         l_w = median_ms(between_stages, runs, warmup)
-        result = {"l_m_ms": l_m, "l_w_ms": l_w, "l_w_over_l_m": l_w / l_m, "hierarchy": {}}
+        # The dtype the timed models compute in: loaded models keep the policy they were saved
+        # with, whatever ``policy`` says.
+        run_policy = ",".join(sorted({runner.compute_policy(m) for m in stage_models}))
+        result = {"policy": run_policy, "l_m_ms": l_m, "l_w_ms": l_w, "l_w_over_l_m": l_w / l_m,
+                  "hierarchy": {}}
         for n in range(1, len(stages) + 1):
             d_e = median_ms(lambda: hierarchy.run_hierarchy(stages[:n], context, patch_b), runs, warmup)
             result["hierarchy"][str(n)] = {"d_e_ms": d_e, "formula_ms": n * (l_m + l_w),

@@ -1,5 +1,6 @@
-"""Files the package reads and writes: JSON parsed with errors naming the file, paths read from
-files kept inside their folder, output folders checked before any work.
+"""Files the package reads and writes: JSON parsed with errors naming the file and written
+atomically, paths read from files kept inside their folder, output folders checked before any
+work.
 
 Standard library only (data-generation workers and the TF-free pipelines import it).
 """
@@ -23,6 +24,24 @@ def read_json(path, what: str = "JSON file"):
             return json.load(f)
     except ValueError as e:  # JSONDecodeError and UnicodeDecodeError
         raise ValueError(f"{what} {path!r} is not valid JSON: {e}.") from None
+
+
+def fsync_replace(tmp, path) -> None:
+    """Flush the finished file ``tmp`` to disk, then rename it to ``path`` (atomic on POSIX), so
+    ``path`` is never seen half-written, even after a crash."""
+    with open(tmp, "rb+") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def atomic_write_json(path, obj) -> None:
+    """Write ``obj`` as JSON (indented, keys sorted, NumPy scalars as floats) to ``path`` through
+    a temporary file beside it (``<path>.tmp-<pid>``), fsynced and renamed."""
+    tmp = f"{os.fspath(path)}.tmp-{os.getpid()}"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=2, sort_keys=True, default=float)
+        f.write("\n")
+    fsync_replace(tmp, path)
 
 
 def inside(folder, name, what: str) -> str:

@@ -29,6 +29,7 @@ import time
 import numpy as np
 
 from stnh_tf import train_config
+from stnh_tf.paths import atomic_write_json
 
 # The paper's numbers (Zhou & Li 2019; the 2-stage sequence model's 2.14 px is in its section 5;
 # the 3-stage sequence latency of 13.85 ms that BENCHMARKS.md quotes is only in the journal
@@ -221,7 +222,7 @@ class Reproduction:
             lines.append(f"| {l2:g} | {l1:g} | {v:.2f} | {'' if p is None else f'{p:.2f}'} |")
         with open(os.path.join(self.out, "table1.md"), "w") as f:
             f.write("\n".join(lines) + "\n")
-        _write_json(os.path.join(self.out, "table1.json"),
+        atomic_write_json(os.path.join(self.out, "table1.json"),
                     {f"{a:g},{b:g}": {"mace": v, "model_dir": rows[(a, b)],
                                       "paper": PAPER_TABLE1.get((a, b))} for (a, b), v in table.items()})
         return table
@@ -239,7 +240,7 @@ class Reproduction:
                 return json.load(f)
         result = self._timed("evaluate", lambda: evaluation.evaluate(
             list(model_dirs), self.data_dir(1), "test", list(baselines)))
-        _write_json(path, result)
+        atomic_write_json(path, result)
         return result
 
     def latency(self, stage_dirs) -> dict:
@@ -254,7 +255,7 @@ class Reproduction:
             stage_dirs, runs=self.budget.latency_runs, warmup=self.budget.latency_warmup,
             policy=policy, sequence=True))
         result["policy"] = policy
-        _write_json(path, result)
+        atomic_write_json(path, result)
         return result
 
     # -- the whole run --------------------------------------------------------------------------
@@ -296,7 +297,7 @@ class Reproduction:
                       "fig4_mace": PAPER_FIG4,
                       "table1_mace": {f"{a:g},{b:g}": v for (a, b), v in PAPER_TABLE1.items()},
                       "table2_gpu_ms": PAPER_TABLE2_GPU_MS}}
-        _write_json(os.path.join(self.out, "results.json"), result)
+        atomic_write_json(os.path.join(self.out, "results.json"), result)
         with open(os.path.join(self.out, "tables.md"), "w") as f:
             f.write(tables_markdown(result, lat))
         self.printer(f"[done] {os.path.join(self.out, 'tables.md')}")
@@ -309,7 +310,7 @@ class Reproduction:
         out = {}
         h_bar = figures.read_h_bar(self.data_dir(1), "train")
         stats = figures.hbar_histogram(h_bar, os.path.join(fdir, "fig1_hbar_histogram.png"))
-        _write_json(os.path.join(fdir, "fig1_hbar_histogram.json"), stats)
+        atomic_write_json(os.path.join(fdir, "fig1_hbar_histogram.json"), stats)
         out["fig1"] = os.path.join(fdir, "fig1_hbar_histogram.png")
         out["fig4"] = figures.mace_bars(fig4, os.path.join(fdir, "fig4_mace_bars.png"),
                                         paper=PAPER_FIG4,
@@ -403,10 +404,3 @@ def _trained_on(model_dir: str) -> str:
         return (f"pairs from `{cfg['image_dir']}` ({cfg.get('samples_per_image')} per image, "
                 f"seed {cfg.get('seed')}, {how})")
     return f"TFRecords `{cfg.get('data_dir')}`"
-
-
-def _write_json(path, obj):
-    tmp = f"{path}.tmp-{os.getpid()}"
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=2, sort_keys=True, default=float)
-    os.replace(tmp, path)

@@ -56,6 +56,27 @@ def load_model(model_dir_or_file, compute_dtype=None):
     return with_compute_dtype(model, compute_dtype) if compute_dtype else model
 
 
+def _dtype_policies(config):
+    """Every ``DTypePolicy`` config dict inside a layer or model config."""
+    if isinstance(config, dict):
+        if config.get("class_name") == "DTypePolicy":
+            yield config
+        for value in config.values():
+            yield from _dtype_policies(value)
+    elif isinstance(config, list):
+        for value in config:
+            yield from _dtype_policies(value)
+
+
+def compute_policy(model) -> str:
+    """The dtype policy ``model`` computes in: the mixed policy of its layers (nested ones
+    included) if they have one (e.g. ``"mixed_bfloat16"`` for a model trained in mixed precision,
+    whose few float32 layers aside), else ``"float32"``."""
+    names = {p.get("config", {}).get("name") for p in _dtype_policies(model.get_config())}
+    mixed = sorted(n for n in names if str(n).startswith("mixed_"))
+    return mixed[0] if mixed else "float32"
+
+
 def with_compute_dtype(model, dtype: str):
     """``model`` with every mixed-precision layer's policy replaced by ``dtype`` (same weights);
     ``model`` itself if no layer has a mixed policy."""

@@ -32,7 +32,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import importlib.util
-import json
 import logging
 import math
 import os
@@ -45,7 +44,7 @@ import numpy as np
 
 from stnh_tf import losses as losses_lib
 from stnh_tf import models
-from stnh_tf.paths import inside, read_json
+from stnh_tf.paths import atomic_write_json, fsync_replace, inside, read_json
 from stnh_tf.train_config import (FOUR_POINT_KINDS, OPTIMIZER_NAMES, RESUME_FREE_FIELDS,
                                   TrainConfig)
 
@@ -214,15 +213,6 @@ def compile_model(model, cfg: TrainConfig):
 # ------------------------------------------------------------------------------------------------
 # Callbacks
 # ------------------------------------------------------------------------------------------------
-def _atomic_write_json(path, obj):
-    tmp = f"{path}.tmp-{os.getpid()}"
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=2, sort_keys=True)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
 def _seed_variables(model):
     """The model's random-seed state variables (dropout), in model order."""
     return [v for v in model.variables if "seed_generator_state" in v.path]
@@ -270,10 +260,8 @@ class AtomicCheckpoint(keras.callbacks.Callback):
         name = CHECKPOINT_WEIGHTS_PATTERN.format(step=step)
         tmp = os.path.join(self.directory, f"tmp-{os.getpid()}.weights.h5")
         self.model.save_weights(tmp)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, os.path.join(self.directory, name))
-        _atomic_write_json(self.state_path, {"step": step, "epoch": epoch + 1, "time": time.time(),
+        fsync_replace(tmp, os.path.join(self.directory, name))
+        atomic_write_json(self.state_path, {"step": step, "epoch": epoch + 1, "time": time.time(),
                                              "weights": name,
                                              "seed_states": _seed_states(self.model),
                                              "logs": {k: float(v) for k, v in (logs or {}).items()}})
@@ -406,8 +394,14 @@ def _config_diff(cfg: TrainConfig, config_path: str) -> dict:
     new = cfg.to_json()
     # A field the saved run predates had its default value then (e.g. optimizer="sgd").
     old = {**TrainConfig().to_json(), **old}
-    return {k: (old.get(k), new[k]) for k in new
+    diff = {k: (old.get(k), new[k]) for k in new
             if k not in RESUME_FREE_FIELDS and old.get(k) != new[k]}
+    # The folders may move between a run and its resumption, but not the kind of source: TFRecords
+    # and generated pairs come in different orders.
+    kinds = tuple("data_dir" if c.get("data_dir") else "image_dir" for c in (old, new))
+    if kinds[0] != kinds[1]:
+        diff["source"] = kinds
+    return diff
 
 
 def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
@@ -447,7 +441,7 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
         raise ValueError(f"{cfg.model_dir} holds an unfinished run with a different configuration "
                          f"{diff} (old, new); use the same flags to resume, or --overwrite.")
     new_run = not os.path.exists(config_path)
-    _atomic_write_json(config_path, {**cfg.to_json(), **CONFIG_MARKER})
+    atomic_write_json(config_path, {**cfg.to_json(), **CONFIG_MARKER})
     return new_run
 
 
@@ -830,11 +824,11 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         final_path = os.path.join(cfg.model_dir, FINAL_MODEL)
         tmp = os.path.join(cfg.model_dir, f"tmp-{os.getpid()}-{FINAL_MODEL}")
         model.save(tmp)
-        os.replace(tmp, final_path)
+        fsync_replace(tmp, final_path)
         result = {"final_step": int(keras.ops.convert_to_numpy(model.optimizer.iterations)),
                   "wall_s_this_run": time.time() - t0,
                   "history": {k: [float(x) for x in v] for k, v in history.history.items()}}
-        _atomic_write_json(os.path.join(cfg.model_dir, RESULT_FILE), result)
+        atomic_write_json(os.path.join(cfg.model_dir, RESULT_FILE), result)
         return result
     except BaseException:
         if new_run:

@@ -196,3 +196,18 @@ def test_no_clip_needs_a_hierarchy():
 
     with pytest.raises(ValueError, match="changes only a hierarchy"):
         evaluation.evaluate(["runs/stage1"], "no_such_data", clip_to_context=False)
+
+
+def test_latency_records_the_policy_the_models_ran_in(tmp_path):
+    """Loaded models keep the policy they were saved with, whatever ``policy`` asks for."""
+    from conftest import keras_policy
+    from stnh_tf import evaluation, models
+
+    with keras_policy("mixed_bfloat16"):
+        models.build_stn_homography().save(tmp_path / "stage1.keras")
+    loaded = evaluation.latency([str(tmp_path / "stage1.keras")], runs=1, warmup=0,
+                                policy="float32", sequence=False)
+    assert loaded["policy"] == "mixed_bfloat16" and set(loaded["hierarchy"]) == {"1"}
+    built = evaluation.latency((), max_stages=1, runs=1, warmup=0, policy="float32",
+                               sequence=False)
+    assert built["policy"] == "float32"

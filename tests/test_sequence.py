@@ -13,16 +13,9 @@ import keras
 import numpy as np
 import pytest
 import tensorflow as tf
-from conftest import (
-    cv2_warp,
-    inside_mask,
-    keras_policy,
-    norm_matrix,
-    paper_homography,
-    to_bar,
-)
 from keras import ops
 
+from conftest import cv2_warp, inside_mask, keras_policy, norm_matrix, paper_homography, to_bar
 from stnh_tf import losses as losses_lib
 from stnh_tf import models, train_config, training
 from stnh_tf.layers import HomographyMerge, SpatialTransformer

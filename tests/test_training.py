@@ -97,7 +97,7 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, tmp_path
             if epoch == 1:  # after the checkpoint at step 4
                 raise KeyboardInterrupt
 
-    write_json = training._atomic_write_json
+    write_json = training.atomic_write_json
 
     def killed_before_state_json(path, obj):
         if path.endswith("state.json") and obj["step"] == 4:
@@ -109,7 +109,7 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, tmp_path
     with monkeypatch.context() as m, pytest.raises(KeyboardInterrupt):
         extra = [Interrupt()]
         if where == "inside_checkpoint":
-            m.setattr(training, "_atomic_write_json", killed_before_state_json)
+            m.setattr(training, "atomic_write_json", killed_before_state_json)
             extra = []
         training.train(cfg, printer=_quiet, extra_callbacks=extra)
     state = json.loads((ckpt / "state.json").read_text())
@@ -143,6 +143,16 @@ def test_resume_refuses_different_configuration(tiny_data, tmp_path):
     training.prepare_model_dir(cfg)
     with pytest.raises(ValueError, match="different configuration"):
         training.prepare_model_dir(_cfg(tiny_data, tmp_path / "run", train_steps=4))
+
+
+def test_resume_may_move_its_folders_but_not_switch_the_kind_of_source(tmp_path):
+    """TFRecords and pairs generated from images come in different orders: a run started on one
+    is not resumed on the other, while a moved folder of the same kind is fine."""
+    base = dict(model_dir=str(tmp_path / "run"), train_steps=2, warmup_steps=1, checkpoint_every=1)
+    training.prepare_model_dir(train_config.TrainConfig(data_dir="records", **base))
+    training.prepare_model_dir(train_config.TrainConfig(data_dir="moved/records", **base))
+    with pytest.raises(ValueError, match="'source': \\('data_dir', 'image_dir'\\)"):
+        training.prepare_model_dir(train_config.TrainConfig(image_dir="images", **base))
 
 
 def test_kill_9_then_same_command_finishes(tiny_data, tmp_path):
