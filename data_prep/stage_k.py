@@ -32,7 +32,7 @@ import sys
 import numpy as np
 
 from data_prep import writer
-from stnh_tf import features, hierarchy
+from stnh_tf import features, hierarchy, pixels
 from stnh_tf.paths import check_output_dir
 
 READ_BATCH = 256
@@ -69,8 +69,8 @@ def _items(paths, predict, counts: dict):
     def flush():
         nonlocal index
         decoded = [features.decode_example(r, names=("patch_a", "patch_b", "h_prev")) for r in batch]
-        patch_a = np.stack([d["patch_a"] for d in decoded])[..., None].astype(np.float32) / 255.0
-        patch_b = np.stack([d["patch_b"] for d in decoded])[..., None].astype(np.float32) / 255.0
+        patch_a = pixels.to_unit(np.stack([d["patch_a"] for d in decoded])[..., None])
+        patch_b = pixels.to_unit(np.stack([d["patch_b"] for d in decoded])[..., None])
         h_prev = np.stack([np.asarray(d["h_prev"], np.float64).reshape(3, 3) for d in decoded])
         h_stage = predict(patch_a, patch_b)
         h_new, reasons = hierarchy.accept_or_reject(h_prev, h_stage)

@@ -36,7 +36,7 @@ import time
 import cv2
 import numpy as np
 
-from stnh_tf import geometry
+from stnh_tf import geometry, pixels
 
 # --------------------------------------------------------------------------------------------
 # Settings
@@ -111,7 +111,7 @@ def _to_uint8(x, name: str) -> np.ndarray:
             hi = float(np.nanmax(x)) if x.size else 0.0
             raise ValueError(f"{name}: floating-point patches must lie in [0, 1] (uint8 for "
                              f"0..255); received values in [{lo}, {hi}] with shape {x.shape}.")
-        return np.rint(x * 255.0).astype(np.uint8)
+        return pixels.to_uint8(x)
     raise ValueError(f"{name}: patches must be uint8 or floating point in [0, 1]; received dtype "
                      f"{x.dtype} with shape {x.shape}.")
 

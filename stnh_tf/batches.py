@@ -18,7 +18,7 @@ import sys
 
 import numpy as np
 
-from stnh_tf import pairs, sources
+from stnh_tf import pairs, pixels, sources
 from stnh_tf.sources import (ImageDecodeError, SourceError, bundled_image_files, scan_image_folder,
                              scan_image_folders)
 
@@ -48,10 +48,8 @@ def stack_samples(samples: list, context: bool = False) -> dict:
 
 def model_batch(stacked: dict):
     """:func:`stack_samples`'s compact batch -> ``(x, y, w)`` float32 (see the module docstring)."""
-    def unit(name):  # one pass, no temporaries; the same values as astype(float32) / 255
-        u8 = stacked[name][..., None]
-        return np.divide(u8, np.float32(255.0), out=np.empty(u8.shape, np.float32),
-                         dtype=np.float32)
+    def unit(name):
+        return pixels.to_unit(stacked[name][..., None])
 
     h_mask = stacked["h_mask"]
     x = {"patch_a": unit("patch_a"), "patch_b": unit("patch_b")}

@@ -29,7 +29,7 @@ import time
 import keras
 import numpy as np
 
-from stnh_tf import features
+from stnh_tf import features, pixels
 from stnh_tf.paths import inside
 from stnh_tf.batches import (PairBatches, generator_pool, materialize, model_batch,  # noqa: F401
                              numpy_model_batch, stack_samples, step_batch_async)
@@ -268,7 +268,7 @@ def load_arrays(data_dir: str, split: str, max_samples=None, verify: str = "size
     n = len(out["index"]) if max_samples is None else min(max_samples, len(out["index"]))
     out = {k: v[:n] for k, v in out.items()}
     for name in ("patch_a", "patch_b", "patch_a_t"):
-        out[name] = (out[name].astype(np.float32) / 255.0)[..., None]
+        out[name] = pixels.to_unit(out[name])[..., None]
     out["h_ba"] = out["h_ba"].astype(np.float64)
     out["h_prev"] = out["h_prev"].astype(np.float64)
     out["image_id"] = np.array([s.decode("utf-8") for s in out["image_id"]], dtype=str)

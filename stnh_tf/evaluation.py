@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from stnh_tf import geometry, runner
+from stnh_tf import geometry, pixels, runner
 
 
 def error_summary(errors) -> dict:
@@ -139,8 +139,8 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
         if not np.allclose(h_prev, np.eye(3)):
             raise ValueError(f"baselines are evaluated on stage-1 pairs; {data_dir} holds pairs with "
                              "earlier-stage estimates (h_prev != identity).")
-        u8 = lambda x: np.clip(np.rint(np.asarray(x)[..., 0] * 255.0), 0, 255).astype(np.uint8)
-        pa, pb = u8(samples["patch_a"]), u8(samples["patch_b"])
+        pa = pixels.to_uint8(samples["patch_a"][..., 0])
+        pb = pixels.to_uint8(samples["patch_b"][..., 0])
         out["baselines"] = {}
         for name in baselines:
             out["baselines"][name] = baselines_lib.evaluate_baseline(name, pa, pb, h_true)
@@ -180,15 +180,15 @@ def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
             stage_models = [models.build_stn_homography() for _ in range(max_stages)]
         stages = [runner.predictor(m) for m in stage_models]
         forward = runner.compiled_forward(stage_models[0])
-        a = context[:, 32:160, 32:160, None].astype(np.float32) / 255.0
-        b = patch_b[..., None].astype(np.float32) / 255.0
+        a = pixels.to_unit(context[:, 32:160, 32:160, None])
+        b = pixels.to_unit(patch_b[..., None])
         l_m = median_ms(lambda: forward(a, b), runs, warmup)
         h_prev = np.eye(3)[None] + 0.01
         h_stage = np.eye(3)[None]
 
         def between_stages():
             patch = hierarchy.crop_warped_context(context[0], h_prev[0])
-            patch = patch[None, ..., None] / 255.0
+            patch = pixels.to_unit(patch[None, ..., None])
             hierarchy.accept_or_reject(h_prev, h_stage)
             return patch
 

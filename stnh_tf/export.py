@@ -67,12 +67,6 @@ def serving_function(estimator):
 
     stages, outputs = estimator.stages, estimator.output_names
     warp = SpatialTransformer(dtype="float32", name="hierarchy_warp")
-    m = geometry.normalization_matrix()
-    m_f32, m_inv_f32 = m.astype(np.float32), np.linalg.inv(m).astype(np.float32)
-
-    def to_matrix(h8):
-        h8 = ops.cast(h8, "float32")
-        return ops.reshape(ops.concatenate([h8, ops.ones_like(h8[:, :1])], axis=-1), (-1, 3, 3))
 
     def serve(patch_a, patch_b):
         patch_a, patch_b = checked_inputs(patch_a, patch_b)
@@ -82,11 +76,10 @@ def serving_function(estimator):
         for model, name in zip(stages, outputs):
             if total is not None:
                 current = warp([a, total])  # patch_a(H_1 ... H_{k-1} p), zero outside
-            h_bar = to_matrix(model({"patch_a": current, "patch_b": b}, training=False)[name])
-            total = h_bar if total is None else ops.matmul(total, h_bar)
-            total = total / total[:, 2:3, 2:3]
-        h = ops.matmul(ops.matmul(ops.convert_to_tensor(m_inv_f32), total), ops.convert_to_tensor(m_f32))
-        return {OUTPUT: h / h[:, 2:3, 2:3]}
+            h8 = ops.cast(model({"patch_a": current, "patch_b": b}, training=False)[name], "float32")
+            h_bar = geometry.vector_to_matrix(h8)
+            total = geometry.scale_to_unit(h_bar if total is None else ops.matmul(total, h_bar))
+        return {OUTPUT: geometry.denormalize_homography(total)}
 
     serve.tracked = list(stages)  # the warp layer holds no variables
     return serve

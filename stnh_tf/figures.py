@@ -14,7 +14,7 @@ import os
 
 import numpy as np
 
-from stnh_tf import geometry
+from stnh_tf import geometry, pixels
 
 
 def _pyplot():
@@ -39,7 +39,7 @@ def _as_uint8(patch) -> np.ndarray:
     patch = patch.reshape(patch.shape[0], patch.shape[1])
     if patch.dtype == np.uint8:
         return patch
-    return np.clip(np.rint(patch.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
+    return pixels.to_uint8(patch)
 
 
 def image_b_window(context_a, a_from_b, patch_b=None,

@@ -170,14 +170,17 @@ def vector_to_matrix(h8):
     o = _ops(h8)
     ones = o.ones_like(h8[..., :1])
     flat = o.concatenate([h8, ones], axis=-1)
-    return o.reshape(flat, tuple(o.shape(h8)[:-1]) + (3, 3))
+    lead = tuple(o.shape(h8)[:-1])
+    # A batch of one unknown size (a symbolic Keras tensor) reshapes as -1.
+    return o.reshape(flat, (-1, 3, 3) if len(lead) == 1 else lead + (3, 3))
 
 
 def matrix_to_vector(h):
     """``[..., 3, 3]`` -> ``[..., 8]``: scaled so ``H[2,2] = 1``, then the first eight entries."""
     h = scale_to_unit(h)
     o = _ops(h)
-    flat = o.reshape(h, tuple(o.shape(h)[:-2]) + (9,))
+    lead = tuple(o.shape(h)[:-2])
+    flat = o.reshape(h, (-1, 9) if len(lead) == 1 else lead + (9,))
     return flat[..., :8]
 
 

@@ -79,7 +79,7 @@ import re
 import cv2
 import numpy as np
 
-from stnh_tf import geometry
+from stnh_tf import geometry, pixels
 
 PATCH_SIZE = geometry.PATCH_SIZE
 WORK_SIZE = (geometry.IMAGE_WIDTH, geometry.IMAGE_HEIGHT)
@@ -244,7 +244,7 @@ def resolve_model_paths(path=None) -> list:
 def _to_unit_float(x, name, what):
     """uint8 (0..255) or float in [0, 1] -> float32 in [0, 1]."""
     if x.dtype == np.uint8:
-        return x.astype(np.float32) / np.float32(255.0)
+        return pixels.to_unit(x)
     if np.issubdtype(x.dtype, np.floating):
         finite = np.isfinite(x)
         if not np.all(finite) or x.min() < 0.0 or x.max() > 1.0:

@@ -17,11 +17,8 @@ _LOW_PRECISION = ("float16", "bfloat16")
 
 def _homography_matrix(h, name="homography"):
     shape = tuple(h.shape)
-    if len(shape) == 2 and shape[-1] == 8:
-        ones = ops.ones_like(h[:, :1])
-        return ops.reshape(ops.concatenate([h, ones], axis=-1), (-1, 3, 3))
-    if len(shape) == 3 and shape[-2:] == (3, 3):
-        return h
+    if (len(shape) == 2 and shape[-1] == 8) or (len(shape) == 3 and shape[-2:] == (3, 3)):
+        return geometry.as_matrix(h)
     raise ValueError(f"{name} must have shape [B, 8] or [B, 3, 3]; received shape {shape}.")
 
 
@@ -72,7 +69,8 @@ class SpatialTransformer(keras.layers.Layer):
             raise ValueError(f"images and homography batch sizes differ: {tuple(images.shape)} vs "
                              f"{tuple(h_bar.shape)}.")
         m = geometry.normalization_matrix(width, height)
-        # H_pix = inv(M) @ H_bar @ M, applied to the pixel grid of the output.
+        # H_pix = inv(M) @ H_bar @ M, applied to the pixel grid of the output; not scaled to
+        # [2,2] = 1 (geometry.denormalize_homography does), which would move the w threshold below.
         m = ops.convert_to_tensor(m.astype(dtype))
         m_inv = ops.convert_to_tensor(np.linalg.inv(geometry.normalization_matrix(width, height)).astype(dtype))
         h_pix = ops.matmul(ops.matmul(m_inv, h_bar), m)  # [B, 3, 3]
@@ -159,11 +157,8 @@ class HomographyMerge(keras.layers.Layer):
         dtype = self.compute_dtype if self.compute_dtype not in _LOW_PRECISION else "float32"
         h_prev = _homography_matrix(ops.cast(inputs[0], dtype), "h_prev")
         h_res = _homography_matrix(ops.cast(inputs[1], dtype), "h_residual")
-        merged = ops.matmul(h_prev, h_res)
-        merged = merged / merged[:, 2:3, 2:3]
-        if self.output_matrix:
-            return merged
-        return ops.reshape(merged, (-1, 9))[:, :8]
+        merged = geometry.scale_to_unit(ops.matmul(h_prev, h_res))
+        return merged if self.output_matrix else geometry.matrix_to_vector(merged)
 
     def compute_output_shape(self, input_shape):
         batch = input_shape[0][0]

@@ -30,7 +30,7 @@ import os
 import cv2
 import numpy as np
 
-from stnh_tf import geometry
+from stnh_tf import geometry, pixels
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".pgm", ".ppm", ".pbm", ".pnm", ".tif",
                     ".tiff")
@@ -239,7 +239,7 @@ def to_gray_uint8(image: np.ndarray, channel_order: str = "bgr") -> np.ndarray:
         gray = 0.299 * r + 0.587 * g + 0.114 * b
     if alpha is not None:
         gray = gray * _unit_float(alpha)
-    return np.clip(np.rint(gray * 255.0), 0, 255).astype(np.uint8)
+    return pixels.to_uint8(gray)
 
 
 def _unit_float(img: np.ndarray) -> np.ndarray:
