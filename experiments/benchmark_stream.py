@@ -58,7 +58,7 @@ def _inputs(mode, batches):
 def time_fit(mode, batches):
     import keras
 
-    from stnh_tf import training
+    from stnh_tf import model_kinds, training
 
     class Ends(keras.callbacks.Callback):
         def __init__(self):
@@ -75,7 +75,7 @@ def time_fit(mode, batches):
     t0 = time.perf_counter()
     stream = _inputs(mode, batches)
     ready_s = time.perf_counter() - t0
-    model = training.compile_model(training.build_model(cfg), cfg)
+    model = training.compile_model(model_kinds.build_model(cfg), cfg)
     ends = Ends()
     n = FLAGS.steps_per_epoch
     try:

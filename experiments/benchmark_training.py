@@ -70,13 +70,13 @@ def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
     import keras
     import tensorflow as tf
 
-    from stnh_tf import training
+    from stnh_tf import model_kinds, training
 
     keras.mixed_precision.set_global_policy(policy)
     keras.utils.set_random_seed(seed)
     try:
         cfg = train_config.TrainConfig(data_dir="-", model_dir="-", train_steps=10_000, warmup_steps=100)
-        model = training.build_model(cfg)
+        model = model_kinds.build_model(cfg)
         x, y = _batch(batch_size, seed)
         if kind == "bare":
             reg = model.get_layer("regression")

@@ -177,9 +177,9 @@ class Reproduction:
 
     def train(self, name: str, cfg) -> str:
         """Train ``cfg`` unless ``cfg.model_dir`` already holds a finished model of this budget."""
-        from stnh_tf import training
+        from stnh_tf import run_dir, training
 
-        final = os.path.join(cfg.model_dir, training.FINAL_MODEL)
+        final = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
         if os.path.exists(final):
             check_budget(cfg.model_dir, cfg)
             return cfg.model_dir
@@ -231,10 +231,10 @@ class Reproduction:
     def evaluate(self, key: str, model_dirs=(), baselines=()) -> dict:
         """``evaluation.evaluate`` on the stage-1 test pairs, cached in ``eval/{key}.json`` (kept
         while it is newer than every model it evaluated)."""
-        from stnh_tf import evaluation, training
+        from stnh_tf import evaluation, run_dir
 
         path = os.path.join(self.out, "eval", f"{key}.json")
-        finals = [os.path.join(d, training.FINAL_MODEL) for d in model_dirs]
+        finals = [os.path.join(d, run_dir.FINAL_MODEL) for d in model_dirs]
         if os.path.exists(path) and all(os.path.getmtime(f) < os.path.getmtime(path) for f in finals):
             with open(path) as f:
                 return json.load(f)
@@ -330,9 +330,9 @@ class Reproduction:
 def check_budget(model_dir: str, cfg) -> None:
     """Raise ``ValueError`` unless the finished model in ``model_dir`` was trained with ``cfg``'s
     budget (model kind, schedule, loss weights, network options)."""
-    from stnh_tf import training
+    from stnh_tf import run_dir
 
-    saved = training.read_run_config(os.path.join(model_dir, training.CONFIG_FILE))
+    saved = run_dir.read_run_config(os.path.join(model_dir, run_dir.CONFIG_FILE))
     # A field the saved run predates had its default value then (e.g. lr_schedule="cosine").
     saved = {**train_config.TrainConfig().to_json(), **saved}
     want = cfg.to_json()
@@ -393,10 +393,10 @@ def _model_dirs(models: dict):
 
 def _trained_on(model_dir: str) -> str:
     """The data source a model's recorded configuration names."""
-    from stnh_tf import training
+    from stnh_tf import run_dir
 
     try:
-        cfg = training.read_run_config(os.path.join(model_dir, training.CONFIG_FILE))
+        cfg = run_dir.read_run_config(os.path.join(model_dir, run_dir.CONFIG_FILE))
     except (OSError, ValueError):
         return "?"
     if cfg.get("image_dir"):

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from stnh_tf import train_config, training
+from stnh_tf import model_kinds, train_config, training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -83,11 +83,11 @@ def test_model_kinds_build_their_networks():
     for cfg, params in ((_step_cfg(3), 34_194_568),
                         (train_config.TrainConfig(data_dir="d", model_dir="m",
                                                   model="homographynet_gap"), 768_904)):
-        model = training.build_model(cfg)
+        model = model_kinds.build_model(cfg)
         assert model.count_params() == params
-        losses, weights, _ = training.loss_spec(cfg)
+        losses, weights, _ = model_kinds.loss_spec(cfg)
         assert losses == {"offsets": "mse"} and weights == {"offsets": 1.0}
-        assert training.targets_for(cfg) is training.targets_for(_step_cfg(3))
+        assert model_kinds.targets_for(cfg) is model_kinds.targets_for(_step_cfg(3))
 
 
 FLAGS_SCRIPT = r"""

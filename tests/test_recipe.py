@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from data_prep import stage1
-from stnh_tf import data, models, pairs, runner, sources, train_config, training
+from stnh_tf import data, models, pairs, run_dir, runner, sources, train_config, training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PHOTO = pairs.PhotometricChange()
@@ -184,9 +184,9 @@ def test_run_without_the_new_fields_resumes_as_the_paper_recipe(tmp_path):
               if k not in ("optimizer", "weight_decay", "clipnorm", "l2_reduction", "photometric",
                            "recipe")}
     (tmp_path / "config.json").write_text(json.dumps(legacy))
-    assert training._config_diff(cfg, str(tmp_path / "config.json")) == {}
+    assert run_dir._config_diff(cfg, str(tmp_path / "config.json")) == {}
     adam = train_config.TrainConfig(data_dir="d", model_dir=str(tmp_path), optimizer="adam")
-    assert training._config_diff(adam, str(tmp_path / "config.json")) == {
+    assert run_dir._config_diff(adam, str(tmp_path / "config.json")) == {
         "optimizer": ("sgd", "adam")}
 
 

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from stnh_tf import data, reproduce, training
+from stnh_tf import data, reproduce, run_dir
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -103,7 +103,7 @@ def test_reuse_refuses_a_model_of_another_budget(tiny_run, tmp_path):
         run.hierarchy(1)
     with pytest.raises(ValueError, match="unknown reuse"):
         reproduce.Reproduction(other, str(tmp_path), reuse={"stage9": stage1})
-    cfg = json.load(open(os.path.join(stage1, training.CONFIG_FILE)))
+    cfg = json.load(open(os.path.join(stage1, run_dir.CONFIG_FILE)))
     assert cfg["train_steps"] == 2
 
 
@@ -120,7 +120,7 @@ def test_paper_budget_uses_the_papers_image_counts():
 
 def test_homographynet_is_detones_network_with_its_schedule(tiny_run):
     out, result, _ = tiny_run
-    cfg = json.load(open(os.path.join(result["models"]["homographynet"], training.CONFIG_FILE)))
+    cfg = json.load(open(os.path.join(result["models"]["homographynet"], run_dir.CONFIG_FILE)))
     assert (cfg["model"], cfg["batch_norm"], cfg["lr_schedule"], cfg["learning_rate"],
             cfg["warmup_steps"], cfg["train_steps"]) == (
         "homographynet", "conv", "step", 0.005, 0, reproduce.BUDGETS["tiny"].train_steps)

@@ -17,7 +17,7 @@ from keras import ops
 
 from conftest import cv2_warp, inside_mask, keras_policy, norm_matrix, paper_homography, to_bar
 from stnh_tf import losses as losses_lib
-from stnh_tf import models, train_config, training
+from stnh_tf import model_kinds, models, run_dir, train_config, training
 from stnh_tf.layers import HomographyMerge, SpatialTransformer
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -328,7 +328,7 @@ def test_loss_spec_and_compiled_loss_for_sequence(batch):
     cfg = train_config.TrainConfig(model="sequence", num_stages=3, stage_loss_weights=(0.5, 1.0, 2.0),
                                    l2_weight=3.0, l1_weight=0.25, train_steps=10, warmup_steps=1,
                                    checkpoint_every=10)
-    losses, weights, metrics = training.loss_spec(cfg)
+    losses, weights, metrics = model_kinds.loss_spec(cfg)
     assert set(losses) == set(weights) == {"h_bar_1", "h_bar_2", "h_bar_3",
                                            "patch_a_warp_1", "patch_a_warp_2", "patch_a_warp_3"}
     assert weights == {"h_bar_1": 1.5, "h_bar_2": 3.0, "h_bar_3": 6.0,
@@ -336,10 +336,10 @@ def test_loss_spec_and_compiled_loss_for_sequence(batch):
     assert losses["h_bar_2"] is losses_lib.h_bar_l2
     assert losses["patch_a_warp_3"] is losses_lib.photometric_l1
     assert set(metrics) == {"h_bar_1", "h_bar_2", "h_bar_3"}
-    default = training.loss_spec(train_config.TrainConfig(model="sequence", num_stages=2))[1]
+    default = model_kinds.loss_spec(train_config.TrainConfig(model="sequence", num_stages=2))[1]
     assert default == {"h_bar_1": 1.0, "h_bar_2": 1.0, "patch_a_warp_1": 1.0, "patch_a_warp_2": 1.0}
     with pytest.raises(ValueError, match="3 values"):
-        training.loss_spec(train_config.TrainConfig(model="sequence", num_stages=3,
+        model_kinds.loss_spec(train_config.TrainConfig(model="sequence", num_stages=3,
                                                     stage_loss_weights=(1.0, 1.0)))
 
     # The compiled model's loss is the weighted sum computed here in NumPy.
@@ -347,7 +347,7 @@ def test_loss_spec_and_compiled_loss_for_sequence(batch):
     training.compile_model(model, cfg)
     x = {"patch_a": batch["patch_a"], "patch_b": batch["patch_b"]}
     sw = np.array([1.0, 0.0, 1.0, 1.0], np.float32)  # sample 1 has no ground-truth H
-    _, ys, ws = training.targets_for(cfg)(
+    _, ys, ws = model_kinds.targets_for(cfg)(
         x, {"h_bar": batch["h_bar8"], "patch_a_warp": batch["patch_a_t"]},
         {"h_bar": sw, "patch_a_warp": np.ones(4, np.float32)})
     out = _predict(model, x)
@@ -375,7 +375,7 @@ def test_initialize_sequence_from_single_stage_models(tmp_path, batch):
                          bias + rng.normal(scale=0.02, size=bias.shape).astype(np.float32)])
         d = tmp_path / f"stage{k}"
         d.mkdir()
-        stn.save(d / training.FINAL_MODEL)
+        stn.save(d / run_dir.FINAL_MODEL)
         dirs.append(str(d))
         singles.append(stn)
     seq = models.SequenceSTNHomography(num_stages=2)
@@ -404,7 +404,7 @@ def test_initialize_sequence_from_single_stage_models(tmp_path, batch):
 def test_initialize_sequence_from_rejects_other_model_kinds(tmp_path):
     d = tmp_path / "hnet"
     d.mkdir()
-    models.build_homographynet().save(d / training.FINAL_MODEL)
+    models.build_homographynet().save(d / run_dir.FINAL_MODEL)
     with pytest.raises(ValueError, match="not a single-stage STN-Homography model"):
         training.initialize_sequence_from(models.SequenceSTNHomography(num_stages=2), [str(d)])
     cfg = train_config.TrainConfig(data_dir="d", model_dir="m", model="sequence", num_stages=2,

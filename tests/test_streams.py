@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from data_prep import stage1
-from stnh_tf import data, evaluation, pairs, sources, train_config, training
+from stnh_tf import data, evaluation, pairs, sources, train_config, train_streams, training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 N_IMAGES, PER_IMAGE, BATCH = 4, 3, 4  # 12 samples, 3 batches per data epoch
@@ -195,9 +195,9 @@ def test_both_validation_sources_serve_exactly_val_samples_same_pairs(folder, re
     (all 12 when more are asked for), batch by batch the same ones: a count that is a multiple
     of neither 3 (pairs per image) nor the batch size included."""
     common = dict(model_dir="unused", batch_size=BATCH, val_samples=val_samples)
-    generated = training.generated_validation(
+    generated = train_streams.generated_validation(
         train_config.TrainConfig(image_dir=folder, val_image_dir=folder, **common))
-    stored, steps = training.validation_stream(
+    stored, steps = train_streams.validation_stream(
         train_config.TrainConfig(data_dir=records, **common), "test")
     stored = list(stored.as_numpy_iterator())
     expected = min(val_samples, 12)

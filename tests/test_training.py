@@ -18,7 +18,7 @@ import pytest
 import tensorflow as tf
 
 from data_prep import stage1
-from stnh_tf import data, geometry, runner, train_config, training
+from stnh_tf import data, geometry, model_kinds, run_dir, runner, train_config, training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -97,7 +97,7 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, tmp_path
             if epoch == 1:  # after the checkpoint at step 4
                 raise KeyboardInterrupt
 
-    write_json = training.atomic_write_json
+    write_json = run_dir.atomic_write_json
 
     def killed_before_state_json(path, obj):
         if path.endswith("state.json") and obj["step"] == 4:
@@ -109,7 +109,7 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, tmp_path
     with monkeypatch.context() as m, pytest.raises(KeyboardInterrupt):
         extra = [Interrupt()]
         if where == "inside_checkpoint":
-            m.setattr(training, "atomic_write_json", killed_before_state_json)
+            m.setattr(run_dir, "atomic_write_json", killed_before_state_json)
             extra = []
         training.train(cfg, printer=_quiet, extra_callbacks=extra)
     state = json.loads((ckpt / "state.json").read_text())
@@ -127,7 +127,7 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, tmp_path
     a, b = _weights(tmp_path / "straight"), _weights(tmp_path / "interrupted")
     assert len(a) == len(b)
     keras.utils.set_random_seed(0)
-    init = training.build_model(cfg).get_weights()
+    init = model_kinds.build_model(cfg).get_weights()
     moved = max(np.abs(u - w).max() for u, w in zip(a, init))
     diff = max(np.abs(u - v).max() for u, v in zip(a, b))
     # Bit-identical on the development machine; the tolerance only admits reduction-order noise.
@@ -140,19 +140,19 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, tmp_path
 
 def test_resume_refuses_different_configuration(tiny_data, tmp_path):
     cfg = _cfg(tiny_data, tmp_path / "run", train_steps=2)
-    training.prepare_model_dir(cfg)
+    run_dir.prepare_model_dir(cfg)
     with pytest.raises(ValueError, match="different configuration"):
-        training.prepare_model_dir(_cfg(tiny_data, tmp_path / "run", train_steps=4))
+        run_dir.prepare_model_dir(_cfg(tiny_data, tmp_path / "run", train_steps=4))
 
 
 def test_resume_may_move_its_folders_but_not_switch_the_kind_of_source(tmp_path):
     """TFRecords and pairs generated from images come in different orders: a run started on one
     is not resumed on the other, while a moved folder of the same kind is fine."""
     base = dict(model_dir=str(tmp_path / "run"), train_steps=2, warmup_steps=1, checkpoint_every=1)
-    training.prepare_model_dir(train_config.TrainConfig(data_dir="records", **base))
-    training.prepare_model_dir(train_config.TrainConfig(data_dir="moved/records", **base))
+    run_dir.prepare_model_dir(train_config.TrainConfig(data_dir="records", **base))
+    run_dir.prepare_model_dir(train_config.TrainConfig(data_dir="moved/records", **base))
     with pytest.raises(ValueError, match="'source': \\('data_dir', 'image_dir'\\)"):
-        training.prepare_model_dir(train_config.TrainConfig(image_dir="images", **base))
+        run_dir.prepare_model_dir(train_config.TrainConfig(image_dir="images", **base))
 
 
 def test_kill_9_then_same_command_finishes(tiny_data, tmp_path):
@@ -184,35 +184,35 @@ def test_kill_9_then_same_command_finishes(tiny_data, tmp_path):
 
 
 def test_overwrite_deletes_finished_or_other_runs_and_resumes_an_unfinished_one(tmp_path):
-    def run_dir(name, finished, **kw):
+    def make_run(name, finished, **kw):
         cfg = _cfg("d", tmp_path / name, **kw)
-        training.prepare_model_dir(cfg)
+        run_dir.prepare_model_dir(cfg)
         (tmp_path / name / "checkpoint").mkdir()
         (tmp_path / name / "checkpoint" / "state.json").write_text("{}")
         if finished:
             (tmp_path / name / "model.keras").write_text("x")
         return cfg
 
-    same = run_dir("unfinished", False)
-    training.prepare_model_dir(same, overwrite=True)  # re-running an interrupted --overwrite command
+    same = make_run("unfinished", False)
+    run_dir.prepare_model_dir(same, overwrite=True)  # re-running an interrupted --overwrite command
     assert (tmp_path / "unfinished" / "checkpoint" / "state.json").exists()
-    other = dataclasses.replace(run_dir("other", False), learning_rate=0.5)
+    other = dataclasses.replace(make_run("other", False), learning_rate=0.5)
     with pytest.raises(ValueError, match="learning_rate"):
-        training.prepare_model_dir(other)
-    training.prepare_model_dir(other, overwrite=True)
+        run_dir.prepare_model_dir(other)
+    run_dir.prepare_model_dir(other, overwrite=True)
     assert not (tmp_path / "other" / "checkpoint").exists()
     assert json.loads((tmp_path / "other" / "config.json").read_text())["learning_rate"] == 0.5
-    done = run_dir("finished", True)
+    done = make_run("finished", True)
     with pytest.raises(FileExistsError, match="--overwrite"):
-        training.prepare_model_dir(done)
-    training.prepare_model_dir(done, overwrite=True)
+        run_dir.prepare_model_dir(done)
+    run_dir.prepare_model_dir(done, overwrite=True)
     assert sorted(p.name for p in (tmp_path / "finished").iterdir()) == ["config.json"]
 
 
 def test_homographynet_refuses_loss_weights_it_would_ignore():
-    assert training.loss_spec(_cfg("d", "m", model="homographynet"))[1] == {"offsets": 1.0}
+    assert model_kinds.loss_spec(_cfg("d", "m", model="homographynet"))[1] == {"offsets": 1.0}
     with pytest.raises(ValueError, match="l2_weight/l1_weight/l2_reduction do not apply"):
-        training.loss_spec(_cfg("d", "m", model="homographynet", l2_weight=10.0))
+        model_kinds.loss_spec(_cfg("d", "m", model="homographynet", l2_weight=10.0))
 
 
 def test_non_finite_loss_stops_with_step_and_checkpoint(tiny_data, tmp_path):
@@ -238,7 +238,7 @@ def test_semi_supervised_mask_keeps_only_l1(tiny_data):
     """A sample whose ground-truth H is missing (h_mask = 0) contributes only the L1 term."""
     keras.utils.set_random_seed(0)
     cfg = _cfg(tiny_data, "unused", l2_weight=1.0, l1_weight=1.0)
-    model = training.compile_model(training.build_model(cfg), cfg)
+    model = training.compile_model(model_kinds.build_model(cfg), cfg)
     x, y, w = next(iter(data.load_split(tiny_data, "train", 4, shuffle=False)))
     out = model.predict(x, verbose=0)
     l2 = np.mean((out["h_bar"] - y["h_bar"].numpy()) ** 2, axis=-1)
@@ -269,7 +269,7 @@ import json, sys
 import tensorflow as tf
 cpu = tf.config.list_physical_devices("CPU")[0]
 tf.config.set_logical_device_configuration(cpu, [tf.config.LogicalDeviceConfiguration()] * 2)
-from stnh_tf import train_config, training
+from stnh_tf import model_kinds, run_dir, train_config, training
 cfg = train_config.TrainConfig(data_dir=sys.argv[1], model_dir=sys.argv[2], train_steps=2,
                                warmup_steps=1, batch_size=4, checkpoint_every=2, val_samples=0,
                                strategy="mirrored")
@@ -304,8 +304,8 @@ def test_overfits_eight_pairs(tmp_path_factory):
     assert len(arrays["h_ba"]) == 8
     keras.utils.set_random_seed(0)
     cfg = _cfg(d, "unused", dropout=0.0)
-    model = training.build_model(cfg)
-    losses, weights, _ = training.loss_spec(cfg)
+    model = model_kinds.build_model(cfg)
+    losses, weights, _ = model_kinds.loss_spec(cfg)
     model.compile(optimizer=keras.optimizers.Adam(3e-4), loss=losses, loss_weights=weights)
     x = {"patch_a": arrays["patch_a"], "patch_b": arrays["patch_b"]}
     y = {"h_bar": arrays["h_bar"], "patch_a_warp": arrays["patch_a_t"]}
@@ -378,27 +378,27 @@ def test_overwrite_never_deletes_a_folder_that_is_not_a_run(tmp_path):
     for overwrite in (False, True):
         with pytest.raises(ValueError, match=r"config.json.* is not the configuration of a "
                                              r"stnh-tf training run"):
-            training.prepare_model_dir(_cfg("d", mine), overwrite=overwrite)
+            run_dir.prepare_model_dir(_cfg("d", mine), overwrite=overwrite)
         assert sorted(p.name for p in mine.iterdir()) == before
     (mine / "config.json").unlink()
     (mine / "model.keras").write_text("someone's model")  # no config.json at all
     with pytest.raises(FileExistsError, match="holds no training run"):
-        training.prepare_model_dir(_cfg("d", mine), overwrite=True)
+        run_dir.prepare_model_dir(_cfg("d", mine), overwrite=True)
     assert (mine / "model.keras").read_text() == "someone's model"
     # A config.json that is a list, or not JSON: an error naming the file, never a traceback.
     for text in ("[1, 2]", "{broken"):
         (mine / "config.json").write_text(text)
         with pytest.raises(ValueError, match=re.escape(str(mine / "config.json"))):
-            training.prepare_model_dir(_cfg("d", mine), overwrite=True)
+            run_dir.prepare_model_dir(_cfg("d", mine), overwrite=True)
         assert (mine / "notes.txt").exists()
     # A real finished run: --overwrite deletes what the run wrote, and only that.
     run = tmp_path / "run"
-    training.prepare_model_dir(_cfg("d", run))
+    run_dir.prepare_model_dir(_cfg("d", run))
     assert json.loads((run / "config.json").read_text())["format"] == "stnh_tf.train_config"
     (run / "model.keras").write_text("x")
     (run / "logs").mkdir()
     (run / "my_notes.txt").write_text("kept")
-    training.prepare_model_dir(_cfg("d", run, learning_rate=0.5), overwrite=True)
+    run_dir.prepare_model_dir(_cfg("d", run, learning_rate=0.5), overwrite=True)
     assert sorted(p.name for p in run.iterdir()) == ["config.json", "my_notes.txt"]
 
 
@@ -406,7 +406,7 @@ def test_run_config_without_the_format_marker_is_still_a_run(tmp_path):
     """config.json files written before the marker existed (runs in progress) stay resumable."""
     cfg = _cfg("d", tmp_path)
     (tmp_path / "config.json").write_text(json.dumps(cfg.to_json()))
-    assert training.prepare_model_dir(cfg) is False  # resumed, not a new run
+    assert run_dir.prepare_model_dir(cfg) is False  # resumed, not a new run
     assert json.loads((tmp_path / "config.json").read_text())["format_version"] == 1
 
 
@@ -414,7 +414,7 @@ def test_failed_overwrite_keeps_the_finished_run(tiny_data, tmp_path):
     """--overwrite with a flag the data cannot serve (a batch larger than the dataset) fails
     before anything is deleted."""
     run = tmp_path / "run"
-    training.prepare_model_dir(_cfg(tiny_data, run))
+    run_dir.prepare_model_dir(_cfg(tiny_data, run))
     (run / "model.keras").write_text("finished model")
     (run / "result.json").write_text("{}")
     with pytest.raises(ValueError, match="fewer than one batch of 64"):
@@ -435,7 +435,7 @@ def test_failed_start_leaves_the_folder_as_it_was(tiny_data, tmp_path):
         with pytest.raises(RuntimeError, match="stream failed"):
             training.train(_cfg(tiny_data, model_dir), printer=_quiet, stream_fn=broken_stream)
         assert model_dir.exists() == existed and not (existed and list(model_dir.iterdir()))
-        assert training.prepare_model_dir(_cfg(tiny_data, model_dir, learning_rate=0.02)) is True
+        assert run_dir.prepare_model_dir(_cfg(tiny_data, model_dir, learning_rate=0.02)) is True
 
 
 def test_corrupted_shard_during_training_names_the_file(tiny_data, tmp_path):
@@ -478,7 +478,7 @@ def test_checkpoint_state_cannot_name_weights_outside_its_folder(tmp_path):
     for name in ("../../elsewhere.weights.h5", str(tmp_path / "elsewhere.weights.h5")):
         (ckpt / "state.json").write_text(json.dumps({"step": 2, "weights": name}))
         with pytest.raises(ValueError, match="is not a path inside"):
-            training.checkpoint_weights_path(str(ckpt))
+            run_dir.checkpoint_weights_path(str(ckpt))
     (ckpt / "state.json").write_text("{not json")
     with pytest.raises(ValueError, match="state.json"):
-        training.checkpoint_weights_path(str(ckpt))
+        run_dir.checkpoint_weights_path(str(ckpt))

@@ -1,0 +1,119 @@
+"""The model kinds a run can train, each defined once: how to build it, its losses and metrics,
+and how the dataset's targets map onto its outputs (:data:`KINDS`, keyed like
+:data:`stnh_tf.train_config.MODEL_KINDS`, which the binaries' ``--model`` flag offers).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Callable
+
+import keras
+
+from stnh_tf import losses as losses_lib
+from stnh_tf import models
+from stnh_tf.train_config import MODEL_KINDS, TrainConfig
+
+def l2_term_weight(cfg: TrainConfig) -> float:
+    """The loss weight of :func:`stnh_tf.losses.h_bar_l2` (a mean over H_bar's 8 entries):
+    ``l2_weight``, times 8 with ``l2_reduction="sum"`` (a sum over the 8 entries)."""
+    return cfg.l2_weight * (8.0 if cfg.l2_reduction == "sum" else 1.0)
+
+
+# -- stn: the paper's single stage -------------------------------------------------------------
+def _stn_losses(cfg):
+    return ({"h_bar": losses_lib.h_bar_l2, "patch_a_warp": losses_lib.photometric_l1},
+            {"h_bar": l2_term_weight(cfg), "patch_a_warp": cfg.l1_weight},
+            {"h_bar": [losses_lib.MeanCornerError()]})
+
+
+# -- sequence: stages chained by the merge layer, every stage supervised -----------------------
+def _sequence_losses(cfg):
+    l2 = l2_term_weight(cfg)
+    weights = list(cfg.stage_loss_weights) or [1.0] * cfg.num_stages
+    losses, loss_weights, metrics = {}, {}, {}
+    h_names, w_names = models.sequence_output_names(cfg.num_stages)
+    for k, (hn, wn) in enumerate(zip(h_names, w_names)):
+        losses[hn], loss_weights[hn] = losses_lib.h_bar_l2, l2 * weights[k]
+        losses[wn], loss_weights[wn] = losses_lib.photometric_l1, cfg.l1_weight * weights[k]
+        metrics[hn] = [losses_lib.MeanCornerError()]
+    return losses, loss_weights, metrics
+
+
+def _sequence_targets(x, y, w, num_stages):
+    ys, ws = {}, {}
+    for hn, wn in zip(*models.sequence_output_names(num_stages)):
+        ys[hn], ys[wn] = y["h_bar"], y["patch_a_warp"]
+        ws[hn], ws[wn] = w["h_bar"], w["patch_a_warp"]
+    return x, ys, ws
+
+
+# -- homographynet, homographynet_gap: DeTone et al.'s 4-point offsets, one L2 loss ------------
+def _four_point_losses(cfg):
+    return ({"offsets": "mse"}, {"offsets": 1.0}, {"h_bar": [losses_lib.MeanCornerError()]})
+
+
+def _homographynet_targets(x, y, w):
+    from stnh_tf import geometry
+
+    h = geometry.denormalize_homography(geometry.vector_to_matrix(y["h_bar"]))
+    offsets = keras.ops.reshape(geometry.homography_to_offsets(h), (-1, 8))
+    offsets = offsets / models.HOMOGRAPHYNET_SCALE
+    # patch_a_warp carries no loss (HomographyNet has no photometric term) but Keras matches the
+    # targets to every output.
+    return (x, {"offsets": offsets, "h_bar": y["h_bar"], "patch_a_warp": y["patch_a_warp"]},
+            {"offsets": w["h_bar"], "h_bar": w["h_bar"], "patch_a_warp": w["patch_a_warp"]})
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelKind:
+    """One model kind: ``build(cfg) -> keras.Model``; ``losses(cfg) -> (losses, loss_weights,
+    metrics)`` keyed by output names; ``targets(cfg) -> mapper | None`` from the dataset's
+    ``(x, y, sample_weight)`` (keys ``h_bar``, ``patch_a_warp``) to the model's outputs (None:
+    the dataset's keys already are the outputs; mappers are picklable, for worker processes)."""
+
+    build: Callable
+    losses: Callable
+    targets: Callable
+
+
+KINDS = {
+    "stn": ModelKind(
+        build=lambda cfg: models.build_stn_homography(batch_norm=cfg.batch_norm,
+                                                      dropout=cfg.dropout),
+        losses=_stn_losses, targets=lambda cfg: None),
+    "sequence": ModelKind(
+        build=lambda cfg: models.build_sequence_stn_homography(
+            cfg.num_stages, batch_norm=cfg.batch_norm, dropout=cfg.dropout),
+        losses=_sequence_losses,
+        targets=lambda cfg: functools.partial(_sequence_targets, num_stages=cfg.num_stages)),
+    # DeTone's network: BatchNorm always, dropout twice.
+    "homographynet": ModelKind(
+        build=lambda cfg: models.build_homographynet(dropout=cfg.dropout),
+        losses=_four_point_losses, targets=lambda cfg: _homographynet_targets),
+    "homographynet_gap": ModelKind(
+        build=lambda cfg: models.build_homographynet_gap(batch_norm=cfg.batch_norm,
+                                                         dropout=cfg.dropout),
+        losses=_four_point_losses, targets=lambda cfg: _homographynet_targets),
+}
+if tuple(KINDS) != MODEL_KINDS:
+    raise ImportError(f"model_kinds.KINDS {tuple(KINDS)} must list train_config.MODEL_KINDS "
+                      f"{MODEL_KINDS} in order.")
+
+
+def build_model(cfg: TrainConfig) -> keras.Model:
+    """The untrained model of ``cfg.model``."""
+    return KINDS[cfg.model].build(cfg)
+
+
+def loss_spec(cfg: TrainConfig):
+    """(losses, loss_weights, metrics) dicts keyed by the model's output names. Raises
+    ``ValueError`` for loss settings the model kind cannot use (:meth:`TrainConfig.check_losses`)."""
+    cfg.check_losses()
+    return KINDS[cfg.model].losses(cfg)
+
+
+def targets_for(cfg: TrainConfig) -> Callable | None:
+    """The mapper of the dataset's targets onto ``cfg.model``'s outputs (:class:`ModelKind`)."""
+    return KINDS[cfg.model].targets(cfg)

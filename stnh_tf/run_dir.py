@@ -1,0 +1,251 @@
+"""A training run's folder: the files a run writes, its atomic checkpoints, and the rules by which
+a run is started, resumed or overwritten there.
+
+Layout of ``model_dir``: ``config.json`` (the :class:`~stnh_tf.train_config.TrainConfig` with
+:data:`CONFIG_MARKER`), ``checkpoint/`` (``ckpt-<step>.weights.h5`` committed by ``state.json``),
+``logs/`` (TensorBoard), and when finished ``model.keras`` and ``result.json``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+
+import keras
+import numpy as np
+
+from stnh_tf.paths import atomic_write_json, fsync_replace, inside, read_json
+from stnh_tf.train_config import RESUME_FREE_FIELDS, TrainConfig
+
+FINAL_MODEL = "model.keras"
+CONFIG_FILE = "config.json"
+RESULT_FILE = "result.json"
+LOGS_DIR = "logs"
+# Written into config.json with the fields: what makes a folder a training run (read_run_config).
+CONFIG_MARKER = {"format": "stnh_tf.train_config", "format_version": 1}
+CHECKPOINT_DIR = "checkpoint"
+CHECKPOINT_WEIGHTS = "ckpt.weights.h5"  # legacy single-file name, still read
+CHECKPOINT_WEIGHTS_PATTERN = "ckpt-{step:08d}.weights.h5"
+CHECKPOINT_STATE = "state.json"
+# What a run writes in model_dir besides config.json: all that --overwrite deletes (remove_run).
+RUN_ENTRIES = (FINAL_MODEL, RESULT_FILE, CHECKPOINT_DIR, LOGS_DIR)
+# The fields by which a config.json written before CONFIG_MARKER is recognised as a run's.
+_LEGACY_CONFIG_KEYS = frozenset({"model", "model_dir", "stage", "train_steps", "warmup_steps",
+                                 "batch_size", "checkpoint_every", "seed"})
+
+
+def _seed_variables(model):
+    """The model's random-seed state variables (dropout), in model order."""
+    return [v for v in model.variables if "seed_generator_state" in v.path]
+
+
+def _seed_states(model):
+    # A list in model order: variable paths ("seed_generator_3/...") depend on how many seed
+    # generators the process created before, so they cannot identify the state across processes.
+    return [np.asarray(keras.ops.convert_to_numpy(v)).tolist() for v in _seed_variables(model)]
+
+
+def _restore_seed_states(model, states):
+    variables = _seed_variables(model)
+    if isinstance(states, dict):  # checkpoints written before states were kept in order
+        states = list(states.values())
+    if len(states) != len(variables):
+        raise RuntimeError(f"checkpoint holds {len(states)} random-seed states; the model has "
+                           f"{len(variables)}.")
+    for v, state in zip(variables, states):
+        v.assign(np.asarray(state, dtype=keras.backend.standardize_dtype(v.dtype)))
+
+
+class AtomicCheckpoint(keras.callbacks.Callback):
+    """Saves weights + optimizer state (and dropout RNG state) at every epoch end, atomically.
+
+    The weights go to a new file per step (``ckpt-<step>.weights.h5``, written under a temporary
+    name, fsynced, renamed); ``state.json``, written the same way, names that file and is the
+    commit point; only then are older weight files removed. A kill -9 at any moment leaves
+    ``state.json`` naming a complete file of the step it records."""
+
+    def __init__(self, directory, guard=None):
+        super().__init__()
+        self.directory = directory
+        self.guard = guard
+        os.makedirs(directory, exist_ok=True)
+
+    @property
+    def state_path(self):
+        return os.path.join(self.directory, CHECKPOINT_STATE)
+
+    def on_epoch_end(self, epoch, logs=None):
+        if self.guard is not None and self.guard.bad_step is not None:
+            return
+        step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
+        name = CHECKPOINT_WEIGHTS_PATTERN.format(step=step)
+        tmp = os.path.join(self.directory, f"tmp-{os.getpid()}.weights.h5")
+        self.model.save_weights(tmp)
+        fsync_replace(tmp, os.path.join(self.directory, name))
+        atomic_write_json(self.state_path, {"step": step, "epoch": epoch + 1, "time": time.time(),
+                                             "weights": name,
+                                             "seed_states": _seed_states(self.model),
+                                             "logs": {k: float(v) for k, v in (logs or {}).items()}})
+        for old in os.listdir(self.directory):  # superseded (or never committed) weight files
+            if old != name and old.endswith(".weights.h5") and not old.startswith("tmp-"):
+                os.remove(os.path.join(self.directory, old))
+
+
+def read_checkpoint_state(directory) -> dict | None:
+    """The committed ``state.json`` of the checkpoint folder ``directory`` (None if there is none).
+
+    Raises ``ValueError`` naming the file if it is not valid JSON, not a JSON object, or records
+    no integer ``step``."""
+    state_path = os.path.join(directory, CHECKPOINT_STATE)
+    if not os.path.exists(state_path):
+        return None
+    state = read_json(state_path, "checkpoint state")
+    if not isinstance(state, dict) or isinstance(state.get("step"), bool) \
+            or not isinstance(state.get("step"), int):
+        raise ValueError(f"checkpoint state {state_path!r} is not a checkpoint's state (a JSON "
+                         "object with an integer 'step').")
+    return state
+
+
+def checkpoint_weights_path(directory) -> str | None:
+    """The weights file the committed ``state.json`` of ``directory`` names (None if none). The
+    name must be a file inside ``directory`` (:func:`stnh_tf.paths.inside`; else
+    ``ValueError``)."""
+    state = read_checkpoint_state(directory)
+    if state is None:
+        return None
+    path = inside(directory, state.get("weights", CHECKPOINT_WEIGHTS),
+                  f"{os.path.join(directory, CHECKPOINT_STATE)!r}, its 'weights'")
+    return path if os.path.isfile(path) else None
+
+
+def load_checkpoint(model, directory) -> int:
+    """Restore the latest checkpoint in ``directory`` into a compiled ``model``; returns its step
+    (0 if there is none)."""
+    weights = checkpoint_weights_path(directory)
+    state_path = os.path.join(directory, CHECKPOINT_STATE)
+    if weights is None:
+        return 0
+    state = read_checkpoint_state(directory)
+    model.optimizer.build(model.trainable_variables)
+    model.load_weights(weights)
+    _restore_seed_states(model, state.get("seed_states", []))
+    step = int(keras.ops.convert_to_numpy(model.optimizer.iterations))
+    if step != state["step"]:
+        raise RuntimeError(f"checkpoint {weights} holds step {step} but {state_path} says "
+                           f"{state['step']}.")
+    return step
+
+
+def read_run_config(config_path: str) -> dict:
+    """The saved fields of the training run whose ``config.json`` is ``config_path``.
+
+    A run's ``config.json`` holds :data:`CONFIG_MARKER` (``format`` and ``format_version``) with
+    the :class:`TrainConfig` fields (:func:`prepare_model_dir` writes it); one written before the
+    marker existed is recognised by holding every field of :data:`_LEGACY_CONFIG_KEYS`.
+
+    Raises:
+      ValueError: naming the file, when it is not valid JSON, not a JSON object, or not a training
+        run's configuration (its folder is then not a run: nothing is resumed or deleted there).
+    """
+    doc = read_json(config_path, "training configuration")
+    if isinstance(doc, dict) and doc.get("format") == CONFIG_MARKER["format"]:
+        if doc.get("format_version") != CONFIG_MARKER["format_version"]:
+            raise ValueError(f"{config_path!r} has format_version {doc.get('format_version')!r}; "
+                             f"this version of stnh_tf reads version "
+                             f"{CONFIG_MARKER['format_version']}.")
+    elif not (isinstance(doc, dict) and "format" not in doc and _LEGACY_CONFIG_KEYS <= set(doc)):
+        raise ValueError(f"{config_path!r} is not the configuration of a stnh-tf training run (no "
+                         f"\"format\": \"{CONFIG_MARKER['format']}\"); its folder is neither "
+                         "resumed nor deleted, with or without --overwrite: choose another "
+                         "--model_dir, or move the folder away.")
+    return {k: v for k, v in doc.items() if k not in CONFIG_MARKER}
+
+
+def _config_diff(cfg: TrainConfig, config_path: str) -> dict:
+    """``{field: (old, new)}`` for the fields that differ from a saved run's and matter
+    (``ValueError`` if ``config_path`` is not a run's: :func:`read_run_config`)."""
+    if not os.path.exists(config_path):
+        return {}
+    old = read_run_config(config_path)
+    new = cfg.to_json()
+    # A field the saved run predates had its default value then (e.g. optimizer="sgd").
+    old = {**TrainConfig().to_json(), **old}
+    diff = {k: (old.get(k), new[k]) for k in new
+            if k not in RESUME_FREE_FIELDS and old.get(k) != new[k]}
+    # The folders may move between a run and its resumption, but not the kind of source: TFRecords
+    # and generated pairs come in different orders.
+    kinds = tuple("data_dir" if c.get("data_dir") else "image_dir" for c in (old, new))
+    if kinds[0] != kinds[1]:
+        diff["source"] = kinds
+    return diff
+
+
+def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
+    """Make ``model_dir`` ready for training and write its ``config.json`` (with
+    :data:`CONFIG_MARKER`). Returns True when this starts a new run there (there was no
+    ``config.json``), False when it resumes one.
+
+    ``model_dir`` must be missing, empty, or a training run (its ``config.json`` is one of ours:
+    :func:`read_run_config`); any other folder is refused (``FileExistsError``/``ValueError``),
+    with or without ``overwrite``. A finished run is refused without ``overwrite``, and so is an
+    unfinished run of another configuration. ``overwrite`` deletes, from a finished run or a run
+    of another configuration, only what a run writes (:func:`remove_run`; other files in the
+    folder stay); an unfinished run of the same configuration is resumed even then, so that
+    re-running an interrupted ``--overwrite`` command continues it instead of wiping its
+    checkpoints. :func:`train` runs every check of the flags and data (:func:`check_start`)
+    before this."""
+    final = os.path.join(cfg.model_dir, FINAL_MODEL)
+    config_path = os.path.join(cfg.model_dir, CONFIG_FILE)
+    if os.path.exists(cfg.model_dir) and not os.path.isdir(cfg.model_dir):
+        raise NotADirectoryError(f"model_dir {cfg.model_dir} exists and is not a folder.")
+    if os.path.isdir(cfg.model_dir) and os.listdir(cfg.model_dir) \
+            and not os.path.isfile(config_path):
+        raise FileExistsError(f"model_dir {cfg.model_dir} is not empty and holds no training run "
+                              f"(no {CONFIG_FILE}); it is not trained into or deleted, with or "
+                              "without --overwrite: choose a new or empty folder.")
+    diff = _config_diff(cfg, config_path)
+    if os.path.exists(final) and not overwrite:
+        raise FileExistsError(f"{cfg.model_dir} holds a finished model ({final}); pass --overwrite "
+                              "to train it again.")
+    if overwrite and (os.path.exists(final) or diff):
+        remove_run(cfg.model_dir)
+        diff = {}
+    os.makedirs(cfg.model_dir, exist_ok=True)
+    if not os.access(cfg.model_dir, os.W_OK):
+        raise PermissionError(f"model_dir {cfg.model_dir} is not writable.")
+    if diff:
+        raise ValueError(f"{cfg.model_dir} holds an unfinished run with a different configuration "
+                         f"{diff} (old, new); use the same flags to resume, or --overwrite.")
+    new_run = not os.path.exists(config_path)
+    atomic_write_json(config_path, {**cfg.to_json(), **CONFIG_MARKER})
+    return new_run
+
+
+def remove_run(model_dir: str) -> None:
+    """Delete what a training run writes in ``model_dir`` (:data:`RUN_ENTRIES` and its temporary
+    files; ``config.json`` last, so that a deletion cut short still leaves a run) and nothing
+    else."""
+    names = os.listdir(model_dir)
+    temporary = sorted(n for n in names if n.startswith("tmp-") and n.endswith(FINAL_MODEL)
+                       or ".json.tmp-" in n)
+    for name in [*RUN_ENTRIES, *temporary, CONFIG_FILE]:
+        path = os.path.join(model_dir, name)
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path)
+        elif os.path.lexists(path):
+            os.remove(path)
+
+
+def undo_new_run(model_dir: str, made_dir: bool) -> None:
+    """After a failed start of a new run: unless a checkpoint was committed (then the same
+    command resumes it), remove what the start wrote (:func:`remove_run`), and ``model_dir``
+    itself if the start created it, so that the folder is as it was and a corrected command
+    starts cleanly."""
+    if os.path.exists(os.path.join(model_dir, CHECKPOINT_DIR, CHECKPOINT_STATE)) \
+            or not os.path.isdir(model_dir):
+        return
+    remove_run(model_dir)
+    if made_dir and not os.listdir(model_dir):
+        os.rmdir(model_dir)

@@ -1,0 +1,146 @@
+"""The input streams of a training run: the seeded TFRecord stream of ``data_dir``, pairs
+generated from ``image_dir`` (streamed, or made once in memory, for stage k > 1 from the previous
+stages' predictions), and the validation pairs.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from stnh_tf import model_kinds
+from stnh_tf.train_config import TrainConfig
+
+_log = logging.getLogger(__name__)
+
+def check_dataset(data_dir: str, split: str, stage: int) -> dict:
+    """Metadata of ``data_dir`` after checking it holds ``split`` for hierarchical ``stage``.
+
+    Raises ``FileNotFoundError`` / ``ValueError`` with a message naming the directory when the
+    dataset is missing, lacks the split, or was built for another stage (a stage-k model must be
+    trained on the stage-k data that ``data_prep.make_stage_dataset`` writes).
+    """
+    from stnh_tf import data
+
+    meta = data.read_metadata(data_dir)
+    splits = meta.get("splits", {})
+    if split not in splits:
+        raise ValueError(f"dataset {data_dir} has no {split!r} split (it has {sorted(splits)}); "
+                         f"generate it with data_prep.make_dataset --split={split}.")
+    found = int(meta.get("stage", 1))
+    if found != stage:
+        hint = ("data_prep.make_dataset" if stage == 1 else
+                f"data_prep.make_stage_dataset --stage={stage}")
+        raise ValueError(f"dataset {data_dir} holds stage-{found} data but stage {stage} was asked "
+                         f"for; build the stage-{stage} data with {hint}.")
+    return meta
+
+
+def training_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0):
+    """The endless, seeded training stream positioned at ``start_step``.
+
+    The order of batches is a pure function of ``cfg.seed`` (seeded shuffle, deterministic
+    interleave), so a resumed run skips the batches it has already consumed and sees exactly the
+    batches an uninterrupted run would have seen.
+    """
+    from stnh_tf import data
+
+    return data.load_split(cfg.data_dir, split, cfg.batch_size, shuffle=True, seed=cfg.seed,
+                           repeat=True, shuffle_buffer=cfg.shuffle_buffer, cycle_length=64,
+                           skip_batches=start_step)
+
+
+def stage_pairs(cfg: TrainConfig, batches) -> dict:
+    """``batches``' pairs (``stnh_tf.data.PairBatches``, epoch 0) for stage ``cfg.stage``, in
+    the compact form (:func:`stnh_tf.batches.stack_samples`), generated with ``cfg.workers``
+    processes. Stage 1: as generated; stage k > 1: re-made in memory from the predictions of
+    ``cfg.prev_stages`` (:func:`stnh_tf.hierarchy.next_stage_arrays`, the paper's offline
+    re-generation without TFRecords)."""
+    from stnh_tf import data, hierarchy, runner
+
+    if cfg.stage == 1:
+        return data.materialize(batches, cfg.workers)
+    arrays = data.materialize(batches, cfg.workers, context=True)
+    stages = [runner.predictor(runner.load_model(d), batch_size=256) for d in cfg.prev_stages]
+    pairs, rejected = hierarchy.next_stage_arrays(arrays, stages)
+    _log.info("stage-%d pairs from %d previous stages; degenerate-rule cases %s", cfg.stage,
+              len(stages), rejected)
+    pairs.pop("h_prev")
+    return pairs
+
+
+def generated_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0):
+    """The endless stream of pairs generated from ``cfg.image_dir`` (mapped onto the model's
+    outputs), positioned at ``start_step`` (:class:`stnh_tf.data.PairStream`, or with
+    ``in_memory`` :class:`stnh_tf.data.ArrayStream` over :func:`stage_pairs`)."""
+    from stnh_tf import data, sources
+
+    del split
+    if cfg.in_memory:
+        if cfg.fresh_pairs:
+            raise ValueError("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
+        batches = data.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
+                                   samples_per_image=cfg.samples_per_image, seed=cfg.seed,
+                                   photometric=cfg.photometric)
+        return data.ArrayStream(stage_pairs(cfg, batches), batches, start_step=start_step,
+                                mapper=model_kinds.targets_for(cfg))
+    return data.PairStream(sources.split_folders(cfg.image_dir), cfg.batch_size,
+                           samples_per_image=cfg.samples_per_image, seed=cfg.seed,
+                           start_step=start_step, fresh_pairs=cfg.fresh_pairs,
+                           mapper=model_kinds.targets_for(cfg), workers=cfg.workers,
+                           photometric=cfg.photometric)
+
+
+def generated_validation(cfg: TrainConfig):
+    """The first :func:`validation_count` of the fixed pairs from ``cfg.val_image_dir`` (seed
+    ``cfg.val_seed``, three per image in image order: with seed 1, make_dataset's test pairs), for
+    stage ``cfg.stage``, made once in memory."""
+    from stnh_tf import data, sources
+
+    per_image = 3
+    batches = data.PairBatches(sources.split_folders(cfg.val_image_dir), cfg.batch_size,
+                               samples_per_image=per_image,
+                               seed=cfg.val_seed, shuffle=False, drop_remainder=False,
+                               max_images=-(-cfg.val_samples // per_image))
+    n = validation_count(cfg, batches.num_samples)
+    arrays = {k: v[:n] for k, v in stage_pairs(cfg, batches).items()}
+    return data.ArraySequence(arrays, cfg.batch_size, mapper=model_kinds.targets_for(cfg))
+
+
+def validation_count(cfg: TrainConfig, available: int) -> int:
+    """Pairs per validation: ``cfg.val_samples``, at most the ``available`` ones."""
+    return min(int(cfg.val_samples), int(available))
+
+
+def validation_stream(cfg: TrainConfig, split: str):
+    """The first :func:`validation_count` pairs of ``split`` (unshuffled, fixed), batched.
+    Returns ``(dataset, batches)``."""
+    from stnh_tf import data
+
+    available = data.split_info(cfg.data_dir, split).get("num_samples", cfg.val_samples)
+    n = validation_count(cfg, available)
+    ds = data.load_split(cfg.data_dir, split, cfg.batch_size, shuffle=False, repeat=False,
+                         drop_remainder=False)
+    return ds.unbatch().take(n).batch(cfg.batch_size), -(-n // cfg.batch_size)
+
+
+def raise_shard_error(cfg: TrainConfig, error: BaseException) -> None:
+    """For a ``DataLossError`` met while training on ``cfg.data_dir``: raise ``data.ShardError``
+    naming the corrupted shard, found by reading the splits in use with CRC checks
+    (:func:`stnh_tf.data.verify_split`, what evaluation's reader reports). Any other error:
+    return (the caller re-raises it)."""
+    import tensorflow as tf
+
+    from stnh_tf import data
+
+    if not isinstance(error, tf.errors.DataLossError):
+        return
+    splits = ["train"]
+    if cfg.val_samples and data.has_split(cfg.data_dir, cfg.val_split):
+        splits.append(cfg.val_split)
+    for split in splits:
+        try:
+            data.verify_split(cfg.data_dir, split)
+        except data.ShardError as bad:
+            raise data.ShardError(f"training stopped on a corrupted record: {bad}") from None
+    raise data.ShardError(f"training stopped on a corrupted record of {cfg.data_dir} (splits "
+                          f"{splits}; every shard reads back whole now): {error}") from error
