@@ -26,7 +26,7 @@ import time
 from absl import app, flags
 
 from experiments import common
-from stnh_tf import train_config
+from stnh_tf import batches, pair_datasets, train_config
 
 flags.DEFINE_list("image_dir", None, "Folders of training images (comma-separated).",
                   required=True)
@@ -44,18 +44,20 @@ flags.DEFINE_string("json_out", None, "Also write the JSON here.")
 FLAGS = flags.FLAGS
 
 
-def _inputs(mode, batches):
-    from stnh_tf import data
+def _inputs(mode, pair_batches):
+    from stnh_tf import batches, pair_datasets
 
     common_args = dict(samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed,
                        photometric=FLAGS.photometric)
     if mode == "array":
-        return data.ArrayStream(data.materialize(batches, FLAGS.workers), batches)
-    return data.PairStream(FLAGS.image_dir, FLAGS.batch_size, fresh_pairs=mode == "fresh",
-                           workers=FLAGS.workers, **common_args)
+        return pair_datasets.ArrayStream(batches.materialize(pair_batches, FLAGS.workers),
+                                         pair_batches)
+    return pair_datasets.PairStream(FLAGS.image_dir, FLAGS.batch_size,
+                                    fresh_pairs=mode == "fresh", workers=FLAGS.workers,
+                                    **common_args)
 
 
-def time_fit(mode, batches):
+def time_fit(mode, pair_batches):
     import keras
 
     from stnh_tf import model_kinds, training
@@ -73,7 +75,7 @@ def time_fit(mode, batches):
     keras.mixed_precision.set_global_policy("mixed_bfloat16" if FLAGS.mixed_precision else "float32")
     keras.utils.set_random_seed(FLAGS.seed)
     t0 = time.perf_counter()
-    stream = _inputs(mode, batches)
+    stream = _inputs(mode, pair_batches)
     ready_s = time.perf_counter() - t0
     model = training.compile_model(model_kinds.build_model(cfg), cfg)
     ends = Ends()
@@ -95,19 +97,19 @@ def main(argv):
     del argv
     import keras
 
-    from stnh_tf import data
 
     __import__({"tensorflow": "tensorflow", "jax": "jax"}.get(keras.backend.backend(), "keras"))
-    batches = data.PairBatches(FLAGS.image_dir, FLAGS.batch_size,
-                               samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed,
+    pair_batches = batches.PairBatches(FLAGS.image_dir, FLAGS.batch_size,
+                                       samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed,
                                photometric=FLAGS.photometric)
     result = {"benchmark": "stream", "image_dir": FLAGS.image_dir, "photometric": FLAGS.photometric,
-              "images": len(batches.entries),
+              "images": len(pair_batches.entries),
               "workers": FLAGS.workers, "samples_per_image": FLAGS.samples_per_image,
               "batch_size": FLAGS.batch_size, "seed": FLAGS.seed,
               "mixed_precision": FLAGS.mixed_precision, "machine": common.machine_info()}
-    result["in_process_ms"] = common.median_ms(lambda: batches.step_batch(1, fresh=True), 10, 1)
-    stream = data.PairStream(FLAGS.image_dir, FLAGS.batch_size, workers=FLAGS.workers,
+    result["in_process_ms"] = common.median_ms(
+        lambda: pair_batches.step_batch(1, fresh=True), 10, 1)
+    stream = pair_datasets.PairStream(FLAGS.image_dir, FLAGS.batch_size, workers=FLAGS.workers,
                              samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed,
                              fresh_pairs=True, photometric=FLAGS.photometric)
     try:
@@ -118,7 +120,7 @@ def main(argv):
         result["alone_batches_per_s"] = FLAGS.alone_batches / (time.perf_counter() - t0)
     finally:
         stream.close()
-    result["fit"] = {mode: time_fit(mode, batches) for mode in FLAGS.modes}
+    result["fit"] = {mode: time_fit(mode, pair_batches) for mode in FLAGS.modes}
     common.emit_json(result, FLAGS.json_out)
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import logging
 
-from stnh_tf import model_kinds
+from stnh_tf import batches, model_kinds, pair_datasets
 from stnh_tf.train_config import TrainConfig
 
 _log = logging.getLogger(__name__)
@@ -49,17 +49,17 @@ def training_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0)
                            skip_batches=start_step)
 
 
-def stage_pairs(cfg: TrainConfig, batches) -> dict:
-    """``batches``' pairs (``stnh_tf.data.PairBatches``, epoch 0) for stage ``cfg.stage``, in
-    the compact form (:func:`stnh_tf.batches.stack_samples`), generated with ``cfg.workers``
+def stage_pairs(cfg: TrainConfig, pair_batches) -> dict:
+    """``pair_batches``' pairs (``stnh_tf.batches.PairBatches``, epoch 0) for stage ``cfg.stage``,
+    in the compact form (:func:`stnh_tf.batches.stack_samples`), generated with ``cfg.workers``
     processes. Stage 1: as generated; stage k > 1: re-made in memory from the predictions of
     ``cfg.prev_stages`` (:func:`stnh_tf.hierarchy.next_stage_arrays`, the paper's offline
     re-generation without TFRecords)."""
-    from stnh_tf import data, hierarchy, runner
+    from stnh_tf import hierarchy, runner
 
     if cfg.stage == 1:
-        return data.materialize(batches, cfg.workers)
-    arrays = data.materialize(batches, cfg.workers, context=True)
+        return batches.materialize(pair_batches, cfg.workers)
+    arrays = batches.materialize(pair_batches, cfg.workers, context=True)
     stages = [runner.predictor(runner.load_model(d), batch_size=256) for d in cfg.prev_stages]
     pairs, rejected = hierarchy.next_stage_arrays(arrays, stages)
     _log.info("stage-%d pairs from %d previous stages; degenerate-rule cases %s", cfg.stage,
@@ -70,20 +70,20 @@ def stage_pairs(cfg: TrainConfig, batches) -> dict:
 
 def generated_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0):
     """The endless stream of pairs generated from ``cfg.image_dir`` (mapped onto the model's
-    outputs), positioned at ``start_step`` (:class:`stnh_tf.data.PairStream`, or with
-    ``in_memory`` :class:`stnh_tf.data.ArrayStream` over :func:`stage_pairs`)."""
-    from stnh_tf import data, sources
+    outputs), positioned at ``start_step`` (:class:`stnh_tf.pair_datasets.PairStream`, or with
+    ``in_memory`` :class:`stnh_tf.pair_datasets.ArrayStream` over :func:`stage_pairs`)."""
+    from stnh_tf import batches, pair_datasets, sources
 
     del split
     if cfg.in_memory:
         if cfg.fresh_pairs:
             raise ValueError("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
-        batches = data.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
+        batches = batches.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
                                    samples_per_image=cfg.samples_per_image, seed=cfg.seed,
                                    photometric=cfg.photometric)
-        return data.ArrayStream(stage_pairs(cfg, batches), batches, start_step=start_step,
+        return pair_datasets.ArrayStream(stage_pairs(cfg, batches), batches, start_step=start_step,
                                 mapper=model_kinds.targets_for(cfg))
-    return data.PairStream(sources.split_folders(cfg.image_dir), cfg.batch_size,
+    return pair_datasets.PairStream(sources.split_folders(cfg.image_dir), cfg.batch_size,
                            samples_per_image=cfg.samples_per_image, seed=cfg.seed,
                            start_step=start_step, fresh_pairs=cfg.fresh_pairs,
                            mapper=model_kinds.targets_for(cfg), workers=cfg.workers,
@@ -94,16 +94,16 @@ def generated_validation(cfg: TrainConfig):
     """The first :func:`validation_count` of the fixed pairs from ``cfg.val_image_dir`` (seed
     ``cfg.val_seed``, three per image in image order: with seed 1, make_dataset's test pairs), for
     stage ``cfg.stage``, made once in memory."""
-    from stnh_tf import data, sources
+    from stnh_tf import sources
 
     per_image = 3
-    batches = data.PairBatches(sources.split_folders(cfg.val_image_dir), cfg.batch_size,
-                               samples_per_image=per_image,
+    pair_batches = batches.PairBatches(sources.split_folders(cfg.val_image_dir), cfg.batch_size,
+                                       samples_per_image=per_image,
                                seed=cfg.val_seed, shuffle=False, drop_remainder=False,
                                max_images=-(-cfg.val_samples // per_image))
-    n = validation_count(cfg, batches.num_samples)
-    arrays = {k: v[:n] for k, v in stage_pairs(cfg, batches).items()}
-    return data.ArraySequence(arrays, cfg.batch_size, mapper=model_kinds.targets_for(cfg))
+    n = validation_count(cfg, pair_batches.num_samples)
+    arrays = {k: v[:n] for k, v in stage_pairs(cfg, pair_batches).items()}
+    return pair_datasets.ArraySequence(arrays, cfg.batch_size, mapper=model_kinds.targets_for(cfg))
 
 
 def validation_count(cfg: TrainConfig, available: int) -> int:

@@ -19,9 +19,9 @@ it on the TFRecord dataset in ``config.data_dir`` with:
 
 Two data sources, same losses and schedule: the TFRecords in ``data_dir`` (TensorFlow backend), or
 ``image_dir``: stage-1 pairs generated on the fly from a folder of images by
-:class:`stnh_tf.data.PairStream` (NumPy/OpenCV in worker processes; any Keras backend, e.g. JAX on
-a GPU machine without TensorFlow). ``image_dir`` with ``samples_per_image=N`` and ``seed=S`` gives
-exactly the pairs ``data_prep.make_dataset --samples_per_image=N --seed=S`` writes (shuffled
+:class:`stnh_tf.pair_datasets.PairStream` (NumPy/OpenCV in worker processes; any Keras backend,
+e.g. JAX on a GPU machine without TensorFlow). ``image_dir`` with ``samples_per_image=N`` and
+``seed=S`` gives exactly the pairs ``data_prep.make_dataset --samples_per_image=N --seed=S`` writes (shuffled
 differently); ``fresh_pairs`` draws new pairs every data epoch instead. With ``in_memory`` the set
 is generated once (:func:`stnh_tf.train_streams.stage_pairs`), and stage k > 1 trains from the
 folder too: its pairs are made in memory from the predictions of the ``prev_stages`` models, as
@@ -189,17 +189,17 @@ def check_start(cfg: TrainConfig) -> None:
       ValueError / OSError (``FileNotFoundError``, ``data.ShardError``): naming the flag, folder
         or file.
     """
-    from stnh_tf import data, sources
+    from stnh_tf import batches, data, sources
 
     cfg.validate()
     model_kinds.loss_spec(cfg)
     if keras.backend.backend() != "tensorflow":
         _strategy(cfg)
     if cfg.image_dir:
-        data.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
+        batches.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
                          samples_per_image=cfg.samples_per_image, cache_images=False)
         if cfg.val_samples and cfg.val_image_dir:
-            data.PairBatches(sources.split_folders(cfg.val_image_dir), cfg.batch_size,
+            batches.PairBatches(sources.split_folders(cfg.val_image_dir), cfg.batch_size,
                              shuffle=False, drop_remainder=False, cache_images=False)
     else:
         train_streams.check_dataset(cfg.data_dir, "train", cfg.stage)

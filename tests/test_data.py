@@ -20,7 +20,7 @@ from PIL import Image
 
 from conftest import cv2_warp, inside_mask, to_bar
 from data_prep import stage1, writer
-from stnh_tf import data, features, pairs, sources
+from stnh_tf import data, features, pair_datasets, pairs, sources
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CORNERS = np.array([[0, 0], [128, 0], [128, 128], [0, 128]], np.float64)
@@ -439,7 +439,7 @@ def test_load_split_structure_and_seeded_order(dataset, arrays):
 
 
 def test_pair_sequence_matches_tfrecords(arrays):
-    seq = data.PairSequence("bundled", 3, seed=7, shuffle=False, max_images=3)
+    seq = pair_datasets.PairSequence("bundled", 3, seed=7, shuffle=False, max_images=3)
     assert len(seq) == 3
     x, y, w = seq[1]
     assert set(x) == {"patch_a", "patch_b"} and set(y) == {"h_bar", "patch_a_warp"}
@@ -450,8 +450,8 @@ def test_pair_sequence_matches_tfrecords(arrays):
     np.testing.assert_array_equal(y["patch_a_warp"], arrays["patch_a_t"][3:6])
     np.testing.assert_array_equal(y["h_bar"], arrays["h_bar"][3:6])
     np.testing.assert_array_equal(w["h_bar"], np.ones(3, np.float32))
-    shuffled = data.PairSequence("bundled", 3, seed=7, shuffle=True, max_images=3)
-    again = data.PairSequence("bundled", 3, seed=7, shuffle=True, max_images=3)
+    shuffled = pair_datasets.PairSequence("bundled", 3, seed=7, shuffle=True, max_images=3)
+    again = pair_datasets.PairSequence("bundled", 3, seed=7, shuffle=True, max_images=3)
     np.testing.assert_array_equal(shuffled[2][0]["patch_b"], again[2][0]["patch_b"])
     got = np.concatenate([shuffled[i][1]["h_bar"] for i in range(3)])
     assert sorted(map(tuple, got)) == sorted(map(tuple, arrays["h_bar"]))
@@ -466,8 +466,8 @@ def test_pair_generator_imports_no_tensorflow():
         "class PyDataset:\n"
         "    def __init__(self, workers=1, use_multiprocessing=False, max_queue_size=10): pass\n"
         "k.utils.PyDataset = PyDataset; sys.modules['keras'] = k\n"
-        "from stnh_tf import data\n"
-        "x, y, w = data.PairSequence('bundled', 2, max_images=1)[0]\n"
+        "from stnh_tf import data, pair_datasets\n"
+        "x, y, w = pair_datasets.PairSequence('bundled', 2, max_images=1)[0]\n"
         "assert x['patch_a'].shape == (2, 128, 128, 1)\n"
         "from data_prep import writer, stage1\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('tensorflow', 'jax')))\n")

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from data_prep import stage1
-from stnh_tf import data, models, pairs, run_dir, runner, sources, train_config, training
+from stnh_tf import batches, data, models, pairs, run_dir, runner, sources, train_config, training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PHOTO = pairs.PhotometricChange()
@@ -80,7 +80,7 @@ def test_clipnorm_bounds_the_update_and_weight_decay_shrinks_weights():
 def test_l2_sum_is_eight_times_the_mean_on_a_known_batch():
     """The compiled total loss is l1 + l2_mean (paper default) or l1 + 8 * l2_mean, with both
     terms recomputed in NumPy from the model's predictions."""
-    x, y, _ = data.PairBatches("bundled", 8, samples_per_image=4, max_images=2, seed=3).batch(0)
+    x, y, _ = batches.PairBatches("bundled", 8, samples_per_image=4, max_images=2, seed=3).batch(0)
     model = models.build_stn_homography()
     fc2 = model.get_layer("regression").get_layer("fc2")
     kernel, bias = fc2.get_weights()
@@ -276,7 +276,7 @@ def test_make_dataset_and_generated_batches_give_the_same_photometric_pairs(two_
                                                "brightness_range": 0.15, "noise_max": 0.02}
     assert data.read_metadata(plain)["splits"]["test"]["protocol"]["photometric"] is None
     stored, stored_plain = data.load_arrays(out, "test"), data.load_arrays(plain, "test")
-    generated = data.PairBatches(two_folders, 12, seed=1, shuffle=False,
+    generated = batches.PairBatches(two_folders, 12, seed=1, shuffle=False,
                                  photometric=True).batch(0)
     np.testing.assert_array_equal(generated[0]["patch_b"], stored["patch_b"])
     np.testing.assert_array_equal(stored["h_bar"], stored_plain["h_bar"])
@@ -299,9 +299,9 @@ def test_several_folders_are_listed_folder_after_folder(two_folders):
         + [f"1:{os.path.basename(p)}" for p in second.files])
     # The same folder twice lists its images once.
     assert sources.scan_image_folders(two_folders[:1] * 2).files == one.files
-    batches = data.PairBatches(two_folders, 4, samples_per_image=3)
-    assert batches.num_samples == 12
-    assert [e[1] for e in batches.entries] == [both.image_id(p) for p in both.files]
+    pair_batches = batches.PairBatches(two_folders, 4, samples_per_image=3)
+    assert pair_batches.num_samples == 12
+    assert [e[1] for e in pair_batches.entries] == [both.image_id(p) for p in both.files]
     for spec in ("", ",", [], " , "):
         with pytest.raises(sources.SourceError, match="no image folder"):
             sources.split_folders(spec)

@@ -12,7 +12,7 @@ import pytest
 
 from conftest import norm_matrix
 from data_prep import stage1, stage_k
-from stnh_tf import data, geometry
+from stnh_tf import batches, data, geometry
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 QUIET = lambda *a, **k: None
@@ -156,8 +156,8 @@ def test_in_memory_stage_pairs_equal_make_stage_dataset_records(stage1_data, tmp
                                       predict=oracle, log=QUIET)
     a2 = data.load_arrays(str(tmp_path / "s2"), "train")
     # The same stage-1 pairs generated in memory (same images, seed, protocol: make_dataset's).
-    batches = data.PairBatches("bundled", 4, samples_per_image=3, seed=0, max_images=5)
-    arrays = data.materialize(batches, workers=0, context=True)
+    pair_batches = batches.PairBatches("bundled", 4, samples_per_image=3, seed=0, max_images=5)
+    arrays = batches.materialize(pair_batches, workers=0, context=True)
     pairs, rejected = hierarchy.next_stage_arrays(arrays, [oracle], chunk=7, threads=3)
     serial, _ = hierarchy.next_stage_arrays(arrays, [oracle], chunk=7, threads=1)
     for name in pairs:  # chunks in threads write their own rows: the thread count does not matter

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from data_prep import stage1
-from stnh_tf import data, evaluation, pairs, sources, train_config, train_streams, training
+from stnh_tf import (batches, data, evaluation, pair_datasets, pairs, sources, train_config,
+                     train_streams, training)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 N_IMAGES, PER_IMAGE, BATCH = 4, 3, 4  # 12 samples, 3 batches per data epoch
@@ -45,13 +46,14 @@ def _rows(a):
 
 
 def test_pair_stream_epoch0_is_make_dataset_set_and_resume_positions(folder, records):
-    stream = data.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
+    stream = pair_datasets.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
     stored = data.load_arrays(records, "train")
     epoch0 = np.concatenate([_h(stream[i]) for i in range(3)])
     assert _rows(epoch0) == _rows(stored["h_bar"])
     # Items of a stream started at step s are items s, s+1, ... of a stream started at 0,
     # across the data-epoch boundary (3 batches an epoch).
-    resumed = data.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=0, start_step=2)
+    resumed = pair_datasets.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=0,
+                                       start_step=2)
     for i in range(4):
         np.testing.assert_array_equal(resumed[i][0]["patch_b"], stream[2 + i][0]["patch_b"])
     # Without fresh_pairs a later epoch repeats the same pairs in a new order.
@@ -61,7 +63,8 @@ def test_pair_stream_epoch0_is_make_dataset_set_and_resume_positions(folder, rec
 
 
 def test_fresh_pairs_draw_new_samples_from_the_documented_rng(folder):
-    stream = data.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=5, fresh_pairs=True)
+    stream = pair_datasets.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=5,
+                                      fresh_pairs=True)
     b = stream.batches
     epoch0 = np.concatenate([_h(stream[i]) for i in range(3)])
     epoch1 = np.concatenate([_h(stream[i]) for i in range(3, 6)])
@@ -80,20 +83,21 @@ def test_fresh_pairs_draw_new_samples_from_the_documented_rng(folder):
 
 @pytest.mark.parametrize("workers", [0, 2])
 def test_array_stream_serves_the_pair_stream_batches(folder, workers):
-    batches = data.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
-    arrays = data.materialize(batches, workers=workers, chunk=5)
+    pair_batches = batches.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
+    arrays = batches.materialize(pair_batches, workers=workers, chunk=5)
     assert arrays["patch_a"].shape == (12, 128, 128) and arrays["patch_a"].dtype == np.uint8
     assert arrays["h_bar"].shape == (12, 8) and arrays["h_mask"].shape == (12,)
     # Row s is sample s, exactly as make_pair generates it.
-    np.testing.assert_array_equal(arrays["patch_b"][7], batches.sample(7)["patch_b"])
-    stream = data.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=0, start_step=1)
-    served = data.ArrayStream(arrays, batches, start_step=1)
+    np.testing.assert_array_equal(arrays["patch_b"][7], pair_batches.sample(7)["patch_b"])
+    stream = pair_datasets.PairStream(folder, BATCH, samples_per_image=PER_IMAGE, seed=0,
+                                      start_step=1)
+    served = pair_datasets.ArrayStream(arrays, pair_batches, start_step=1)
     for i in range(7):  # epochs 0, 1 and 2
         for part_s, part_a in zip(stream[i], served[i]):
             for key in part_s:
                 np.testing.assert_array_equal(part_a[key], part_s[key])
     with pytest.raises(ValueError, match="samples"):
-        data.ArrayStream({k: v[:5] for k, v in arrays.items()}, batches)
+        pair_datasets.ArrayStream({k: v[:5] for k, v in arrays.items()}, pair_batches)
 
 
 @pytest.mark.parametrize("fresh", [False, True])
@@ -101,8 +105,8 @@ def test_pair_stream_workers_serve_the_in_process_batches(folder, fresh):
     """Worker processes (own pool, look-ahead) give item for item what the stream computes in
     this process: in order across data epochs, out of order, and after close()."""
     kwargs = dict(samples_per_image=PER_IMAGE, seed=3, start_step=2, fresh_pairs=fresh)
-    local = data.PairStream(folder, BATCH, **kwargs)
-    remote = data.PairStream(folder, BATCH, workers=2, prefetch=3, **kwargs)
+    local = pair_datasets.PairStream(folder, BATCH, **kwargs)
+    remote = pair_datasets.PairStream(folder, BATCH, workers=2, prefetch=3, **kwargs)
     try:
         for i in [0, 1, 2, 3, 4, 6, 5, 0, 7]:
             for part_l, part_r in zip(local[i], remote[i]):
@@ -138,8 +142,8 @@ if __name__ == "__main__":
 
 
 def test_generator_workers_import_no_deep_learning_backend(folder, tmp_path):
-    batches = data.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
-    with data.generator_pool(batches, 1) as pool:
+    pair_batches = batches.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
+    with batches.generator_pool(pair_batches, 1) as pool:
         loaded = pool.apply(eval, (LOADED_BACKENDS,))
         assert pool.apply(eval, ("'stnh_tf.batches' in __import__('sys').modules",))
     assert loaded == []
