@@ -41,7 +41,7 @@ import time
 from typing import Any, Callable, Iterable, Optional
 
 from stnh_tf import features
-from stnh_tf.paths import atomic_write_json, check_output_dir
+from stnh_tf.paths import atomic_write_json, check_output_dir, read_json
 
 METADATA_FILE = "metadata.json"
 LOCK_FILE = ".metadata.lock"
@@ -96,14 +96,14 @@ def _metadata_lock(output_dir: str):
 
 
 def _read_metadata_file(output_dir: str) -> dict:
+    """The ``metadata.json`` being written in ``output_dir`` ({} before the first split)."""
     path = os.path.join(output_dir, METADATA_FILE)
     if not os.path.exists(path):
         return {}
     try:
-        with open(path) as f:
-            meta = json.load(f)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{path} exists but is not valid JSON ({e}); move it away.") from None
+        meta = read_json(path, "dataset metadata")
+    except ValueError as e:
+        raise ValueError(f"{e} Move it away.") from None
     if not isinstance(meta, dict):
         raise ValueError(f"{path} does not hold a JSON object.")
     return meta

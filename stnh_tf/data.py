@@ -21,14 +21,13 @@ served to ``model.fit`` by :mod:`stnh_tf.pair_datasets`.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 
 import numpy as np
 
 from stnh_tf import features, pixels
-from stnh_tf.paths import inside
+from stnh_tf.paths import inside, read_json
 
 METADATA_FILE = "metadata.json"
 MODEL_FIELDS = ("patch_a", "patch_b", "patch_a_t", "h_bar", "h_mask")
@@ -55,11 +54,7 @@ def read_metadata(data_dir: str) -> dict:
     if not os.path.isfile(path):
         raise FileNotFoundError(f"no dataset metadata at {path!r}; generate the dataset with "
                                 "python -m data_prep.make_dataset --output_dir=...")
-    try:
-        with open(path) as f:
-            meta = json.load(f)
-    except ValueError as e:
-        raise ValueError(f"{path!r} is not valid JSON: {e}") from None
+    meta = read_json(path, "dataset metadata")
     if not isinstance(meta, dict) or not isinstance(meta.get("splits"), dict):
         raise ValueError(f"{path!r} is not a stnh-tf dataset metadata file (no 'splits' object).")
     return meta
