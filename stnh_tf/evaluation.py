@@ -159,11 +159,13 @@ def median_ms(fn, runs: int, warmup: int) -> float:
     return 1e3 * float(np.median(times))
 
 
-def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", sequence=True, seed=0):
+def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", sequence=True,
+            seed=0, compute_dtype=None):
     """Table 2: batch-1 latency (ms) of 1..n hierarchical stages (``d_e``, with its terms ``l_m``
     and ``l_w``) and of sequence models; see ``experiments.benchmark_latency``. ``policy`` builds
     the untrained models (and the sequence models); models loaded from ``model_dirs`` keep the
-    policy they were saved with, and the result's ``policy`` records what the hierarchy ran in."""
+    policy they were saved with unless ``compute_dtype`` (:func:`stnh_tf.runner.load_model`),
+    and the result's ``policy`` records what the hierarchy ran in."""
     import keras
 
     from stnh_tf import hierarchy, models
@@ -175,7 +177,7 @@ def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
     keras.utils.set_random_seed(seed)
     try:
         if model_dirs:
-            stage_models = [runner.load_model(d) for d in model_dirs]
+            stage_models = [runner.load_model(d, compute_dtype) for d in model_dirs]
         else:
             stage_models = [models.build_stn_homography() for _ in range(max_stages)]
         stages = [runner.predictor(m) for m in stage_models]

@@ -651,6 +651,21 @@ def test_mixed_precision_model_estimates_and_exports_in_float32(pairs, tmp_path)
         est.estimate(a, b, batch_size=0)
 
 
+def test_benchmark_estimator_binary(identity_model_path, tmp_path):
+    """One-step smoke test: the estimator and the latency benchmark time the same model."""
+    out = tmp_path / "bench.json"
+    res = subprocess.run([sys.executable, "-m", "experiments.benchmark_estimator",
+                          f"--model={identity_model_path}", "--runs=1", "--warmup=0",
+                          "--large_batch=2", f"--json_out={out}"],
+                         cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    result = json.loads(out.read_text())
+    assert result["stages"] == 1 and result["policy"] == "float32"
+    assert result["estimate_batch1_ms"] > 0 and result["benchmark_d_e_ms"] > 0
+    assert result["ratio"] == pytest.approx(result["estimate_batch1_ms"]
+                                            / result["benchmark_d_e_ms"])
+
+
 def test_predict_binary(identity_model_path, tmp_path):
     image_a = skimage.data.coffee()  # 600 x 400 RGB
     image_b = cv2.resize(image_a, (300, 200), interpolation=cv2.INTER_AREA)

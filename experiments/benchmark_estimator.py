@@ -1,0 +1,61 @@
+r"""The estimator against the latency benchmark: ``HomographyEstimator.estimate`` (batch 1 and a
+large batch) beside :func:`stnh_tf.evaluation.latency`'s end-to-end hierarchy time ``d_e`` for
+the same models in the same precision.
+
+  python -m experiments.benchmark_estimator --runs=30 --json_out=/tmp/estimator.json
+  python -m experiments.benchmark_estimator --compute_dtype=as_saved   # bfloat16 as shipped
+
+Both run the shipped default (or ``--model``) on random uint8 patches (seeded): the estimator's
+later stages warp the patch itself, the benchmark's warp a 192 x 192 context; both do one OpenCV
+warp per pair between stages. Medians over ``--runs`` calls after ``--warmup``. Prints one JSON
+object.
+"""
+
+from __future__ import annotations
+
+from absl import app, flags
+
+from experiments import common
+
+flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
+flags.DEFINE_enum("compute_dtype", "float32", ["float32", "as_saved"],
+                  "float32 (the estimator's default) or the policy the models were saved with.")
+flags.DEFINE_integer("runs", 30, "Timed calls per measurement (median reported).")
+flags.DEFINE_integer("warmup", 5, "Untimed calls first.")
+flags.DEFINE_integer("large_batch", 256, "Pairs per call of the large-batch measurement.")
+flags.DEFINE_integer("seed", 0, "Seed of the inputs.")
+flags.DEFINE_string("json_out", None, "Also write the JSON here.")
+FLAGS = flags.FLAGS
+
+
+def main(argv):
+    del argv
+    import numpy as np
+    import tensorflow as tf  # noqa: F401  (loaded first, so machine_info reports it)
+
+    from stnh_tf import evaluation, inference, runner
+
+    dtype = None if FLAGS.compute_dtype == "as_saved" else "float32"
+    estimator = inference.HomographyEstimator.load(FLAGS.model, compute_dtype=dtype)
+    rng = np.random.default_rng(FLAGS.seed)
+    n = FLAGS.large_batch
+    a, b = (rng.integers(0, 256, (n, 128, 128), dtype=np.uint8) for _ in range(2))
+    one = evaluation.median_ms(lambda: estimator.estimate(a[0], b[0]), FLAGS.runs, FLAGS.warmup)
+    many = evaluation.median_ms(lambda: estimator.estimate(a, b, batch_size=n),
+                                max(FLAGS.runs // 10, 3), 1)
+    stages = inference.resolve_model_paths(FLAGS.model)
+    bench = evaluation.latency(stages, max_stages=len(stages), runs=FLAGS.runs,
+                               warmup=FLAGS.warmup, sequence=False, seed=FLAGS.seed,
+                               compute_dtype=dtype)
+    d_e = bench["hierarchy"][str(len(stages))]["d_e_ms"]
+    result = {"benchmark": "estimator_vs_latency", "model": estimator.source,
+              "stages": len(stages), "policy": runner.compute_policy(estimator.stages[0]),
+              "runs": FLAGS.runs, "seed": FLAGS.seed,
+              "estimate_batch1_ms": one, "benchmark_d_e_ms": d_e, "ratio": one / d_e,
+              f"estimate_batch{n}_ms_per_pair": many / n,
+              "benchmark_l_m_ms": bench["l_m_ms"], "machine": common.machine_info()}
+    common.emit_json(result, FLAGS.json_out)
+
+
+if __name__ == "__main__":
+    app.run(main)
