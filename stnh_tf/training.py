@@ -62,7 +62,9 @@ def _adamw(cfg, schedule, **common):
 
 # The optimizers by name: ``f(cfg, schedule, weight_decay=..., global_clipnorm=...)``.
 OPTIMIZERS = {"sgd": _sgd, "adam": _adam, "adamw": _adamw}
-assert sorted(OPTIMIZERS) == sorted(OPTIMIZER_NAMES)
+if sorted(OPTIMIZERS) != sorted(OPTIMIZER_NAMES):
+    raise ImportError(f"training.OPTIMIZERS {sorted(OPTIMIZERS)} must match "
+                      f"train_config.OPTIMIZER_NAMES {sorted(OPTIMIZER_NAMES)}.")
 
 
 _log = logging.getLogger(__name__)
