@@ -23,6 +23,41 @@ def _homography_matrix(h, name="homography"):
 
 
 @keras.saving.register_keras_serializable(package="stnh_tf")
+class PatchStandardization(keras.layers.Layer):
+    """Each image channel to zero mean and unit variance: ``(x - mean) / sqrt(var + epsilon)``
+    over its ``h x w`` pixels, so a brightness offset or contrast gain of one patch of a pair
+    does not reach the network.
+
+    Input ``[B, h, w, C]``; output the same shape, float32 (statistics are computed in float32
+    whatever the policy). A constant channel maps to zeros.
+
+    >>> x = np.stack([np.linspace(0, 1, 16), 0.5 + 0.2 * np.linspace(0, 1, 16)], -1)
+    >>> y = PatchStandardization()(x.reshape(1, 4, 4, 2).astype("float32"))
+    >>> bool(np.allclose(y[..., 0], y[..., 1], atol=1e-2))
+    True
+    """
+
+    def __init__(self, epsilon: float = 1e-4, **kwargs):
+        kwargs.setdefault("dtype", "float32")
+        super().__init__(**kwargs)
+        if not epsilon > 0:
+            raise ValueError(f"epsilon must be > 0; received {epsilon}.")
+        self.epsilon = float(epsilon)
+
+    def call(self, images):
+        images = ops.cast(images, "float32")
+        mean = ops.mean(images, axis=(1, 2), keepdims=True)
+        var = ops.mean(ops.square(images - mean), axis=(1, 2), keepdims=True)
+        return (images - mean) * ops.rsqrt(var + self.epsilon)
+
+    def compute_output_shape(self, input_shape):
+        return input_shape
+
+    def get_config(self):
+        return {**super().get_config(), "epsilon": self.epsilon}
+
+
+@keras.saving.register_keras_serializable(package="stnh_tf")
 class SpatialTransformer(keras.layers.Layer):
     """Differentiable projective warp driven by the normalized homography ``H_bar``.
 

@@ -81,11 +81,13 @@ class ModelKind:
 KINDS = {
     "stn": ModelKind(
         build=lambda cfg: models.build_stn_homography(batch_norm=cfg.batch_norm,
-                                                      dropout=cfg.dropout),
+                                                      dropout=cfg.dropout,
+                                                      input_norm=cfg.input_norm),
         losses=_stn_losses, targets=lambda cfg: None),
     "sequence": ModelKind(
         build=lambda cfg: models.build_sequence_stn_homography(
-            cfg.num_stages, batch_norm=cfg.batch_norm, dropout=cfg.dropout),
+            cfg.num_stages, batch_norm=cfg.batch_norm, dropout=cfg.dropout,
+            input_norm=cfg.input_norm),
         losses=_sequence_losses,
         targets=lambda cfg: functools.partial(_sequence_targets, num_stages=cfg.num_stages)),
     # DeTone's network: BatchNorm always, dropout twice.

@@ -19,12 +19,13 @@ import numpy as np
 from keras import layers, ops
 
 from stnh_tf import geometry
-from stnh_tf.layers import HomographyMerge, SpatialTransformer
+from stnh_tf.layers import HomographyMerge, PatchStandardization, SpatialTransformer
 
 IDENTITY_H_BAR = np.array([1, 0, 0, 0, 1, 0, 0, 0], dtype=np.float32)
 CONV_FILTERS = (64, 64, 64, 64, 128, 128, 128, 128)
 BATCH_NORM_CHOICES = ("none", "conv")
 HEAD_CHOICES = ("gap", "flatten")
+INPUT_NORM_CHOICES = ("unit", "patch")
 DEFAULT_BATCH_NORM = "none"
 """The paper's literal network (no BatchNorm): it trains stably at the paper's learning rate 0.05
 with the identity-initialised output layer, and a training step costs about a quarter of the
@@ -34,7 +35,7 @@ BatchNorm variant's on a CPU (README, "Batch normalization")."""
 def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5, dense_units: int = 1024,
                        outputs: int = 8, identity_init: bool = True, size: int = geometry.PATCH_SIZE,
                        name: str = "regression", head: str = "gap",
-                       conv_dropout: float = 0.0) -> keras.Model:
+                       conv_dropout: float = 0.0, input_norm: str = "unit") -> keras.Model:
     """The paper's regression network (and, with ``head="flatten"``, DeTone et al.'s).
 
     8 conv 3x3 layers (64, 64, 64, 64, 128, 128, 128, 128 filters, ReLU), 2x2 stride-2 max pooling
@@ -60,20 +61,31 @@ def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.
         ``[B, 32768]``), DeTone et al.'s (33.6 M parameters in ``fc1``).
       conv_dropout: rate of a dropout after conv8's ReLU (layer ``dropout_conv``; 0: none, the
         paper's). DeTone et al. use 0.5.
+      input_norm: ``"unit"`` (default): the pair scaled from ``[0, 1]`` to ``[-1, 1]`` (layer
+        ``to_unit_range``); ``"patch"``: each patch standardized to zero mean and unit variance
+        (:class:`PatchStandardization`, layer ``patch_standardization``), a deviation from the
+        paper that makes the input blind to a brightness or contrast change between the patches.
     Input ``[B, size, size, 2]`` (patch_a, patch_b); output ``[B, outputs]`` float32.
 
     Raises:
-      ValueError: an unknown ``batch_norm`` or ``head``, or a dropout rate outside ``[0, 1)``.
+      ValueError: an unknown ``batch_norm``, ``head`` or ``input_norm``, or a dropout rate
+        outside ``[0, 1)``.
     """
     if batch_norm not in BATCH_NORM_CHOICES:
         raise ValueError(f"batch_norm must be one of {BATCH_NORM_CHOICES}; received {batch_norm!r}.")
     if head not in HEAD_CHOICES:
         raise ValueError(f"head must be one of {HEAD_CHOICES}; received {head!r}.")
+    if input_norm not in INPUT_NORM_CHOICES:
+        raise ValueError(f"input_norm must be one of {INPUT_NORM_CHOICES}; received "
+                         f"{input_norm!r}.")
     for label, rate in (("dropout", dropout), ("conv_dropout", conv_dropout)):
         if not 0.0 <= rate < 1.0:
             raise ValueError(f"{label} must be in [0, 1); received {rate}.")
     inputs = keras.Input((size, size, 2), name=f"{name}_pair")
-    x = layers.Rescaling(2.0, offset=-1.0, name="to_unit_range")(inputs)  # [0,1] -> [-1,1]
+    if input_norm == "patch":
+        x = PatchStandardization(name="patch_standardization")(inputs)
+    else:
+        x = layers.Rescaling(2.0, offset=-1.0, name="to_unit_range")(inputs)  # [0,1] -> [-1,1]
     for i, filters in enumerate(CONV_FILTERS):
         use_bn = batch_norm == "conv"
         x = layers.Conv2D(filters, 3, padding="same", use_bias=not use_bn,
@@ -112,15 +124,18 @@ def _stage(patch_a_in, patch_b, regressor, stage_name):
 
 
 def build_stn_homography(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5,
-                         size: int = geometry.PATCH_SIZE, name: str = "stn_homography") -> keras.Model:
+                         size: int = geometry.PATCH_SIZE, name: str = "stn_homography",
+                         input_norm: str = "unit") -> keras.Model:
     """Single STN-Homography stage.
 
     Inputs ``{"patch_a", "patch_b"}`` (``[B, S, S, 1]`` float in [0, 1]); outputs
     ``{"h_bar": [B, 8] float32, "patch_a_warp": [B, S, S, 1]}`` where ``patch_a_warp`` is patch_a
-    warped by the predicted ``H_ba`` (sampled at ``H_ba @ p``).
+    warped by the predicted ``H_ba`` (sampled at ``H_ba @ p``). ``batch_norm``, ``dropout`` and
+    ``input_norm`` are :func:`regression_network`'s.
     """
     patch_a, patch_b = _patch_inputs(size)
-    regressor = regression_network(batch_norm=batch_norm, dropout=dropout, size=size)
+    regressor = regression_network(batch_norm=batch_norm, dropout=dropout, size=size,
+                                   input_norm=input_norm)
     h_bar = _stage(patch_a, patch_b, regressor, "stage1")
     h_bar = layers.Identity(name="h_bar", dtype="float32")(h_bar)
     warp = SpatialTransformer(name="patch_a_warp", dtype="float32")([patch_a, h_bar])
@@ -179,7 +194,7 @@ def sequence_stages(patch_a, patch_b, num_stages: int, regress) -> dict:
 def build_sequence_stn_homography(num_stages: int = 2, batch_norm: str = DEFAULT_BATCH_NORM,
                                   dropout: float = 0.5, size: int = geometry.PATCH_SIZE,
                                   name: str | None = None,
-                                  regressor_factory=None) -> keras.Model:
+                                  regressor_factory=None, input_norm: str = "unit") -> keras.Model:
     """Sequence STN-Homography (paper section 5), trained end to end. Also :data:`SequenceSTNHomography`.
 
     Stage 1 regresses ``H_1`` from (patch_a, patch_b); stage k regresses ``H_k'`` from
@@ -195,13 +210,13 @@ def build_sequence_stn_homography(num_stages: int = 2, batch_norm: str = DEFAULT
     Args:
       regressor_factory: optional ``factory(k) -> layer`` mapping the pair ``[B, S, S, 2]`` to
         ``[B, 8]`` (e.g. a small network in tests); default :func:`regression_network` named
-        ``regression_k`` with ``batch_norm`` and ``dropout``.
+        ``regression_k`` with ``batch_norm``, ``dropout`` and ``input_norm``.
     """
     num_stages = _check_num_stages(num_stages)
     if regressor_factory is None:
         def regressor_factory(k):
             return regression_network(batch_norm=batch_norm, dropout=dropout, size=size,
-                                      name=f"regression_{k}")
+                                      name=f"regression_{k}", input_norm=input_norm)
     regressors = {k: regressor_factory(k) for k in range(1, num_stages + 1)}
     patch_a, patch_b = _patch_inputs(size)
     outputs = sequence_stages(patch_a, patch_b, num_stages,

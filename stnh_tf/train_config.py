@@ -26,6 +26,7 @@ OPTIMIZER_NAMES = ("adam", "adamw", "sgd")
 L2_REDUCTIONS = ("mean", "sum")
 LR_SCHEDULES = ("cosine", "step")
 BATCH_NORMS = ("none", "conv")
+INPUT_NORMS = ("unit", "patch")
 STRATEGIES = ("default", "mirrored")
 
 # Defaults that depend on the model kind: what ``preset_fields`` (and so the training binaries)
@@ -107,6 +108,10 @@ class TrainConfig:
                                        scope=SEQUENCE, item=float)
     batch_norm: str = _field("none", "none (the paper's literal network, default) or BatchNorm "
                              "after every conv.", choices=BATCH_NORMS)
+    input_norm: str = _field("unit", "The regressor's input: unit (the pair scaled to [-1, 1], "
+                             "default) or patch (each patch standardized to zero mean, unit "
+                             "variance: blind to brightness/contrast; a deviation; stn and "
+                             "sequence models).", choices=INPUT_NORMS)
     dropout: float = _field(0.5, "Dropout after the 1024-unit layer.")
     seed: int = _field(0, "Seed for initialisation, dropout and data order.")
     shuffle_buffer: int = _field(10_000, "Training shuffle buffer (records, ~86 KB each; shards "
@@ -214,6 +219,9 @@ class TrainConfig:
                              f"every convolution: batch_norm must be 'conv' (received "
                              f"{self.batch_norm!r}); model 'homographynet_gap' is the 4-point "
                              "regression on this project's backbone, with or without it.")
+        if self.model in FOUR_POINT_KINDS and self.input_norm != "unit":
+            raise ValueError(f"model={self.model!r} scales its input to [-1, 1]: input_norm must "
+                             f"be 'unit' (received {self.input_norm!r}).")
         self.check_losses()
         for name in ("image_dir", "val_image_dir"):
             spec = getattr(self, name)
