@@ -124,3 +124,40 @@ def test_homographynet_save_load_round_trip(build, tmp_path, rng):
     for name in ("offsets", "h_bar"):
         np.testing.assert_allclose(loaded.predict(x, verbose=0)[name],
                                    model.predict(x, verbose=0)[name], atol=1e-6)
+
+
+def test_patch_standardization_matches_numpy_and_ignores_gain_and_offset(rng):
+    from stnh_tf.layers import PatchStandardization
+
+    x = rng.uniform(size=(3, 16, 16, 2)).astype(np.float32)
+    x[2, ..., 1] = 0.4  # a constant channel maps to zeros
+    mean = x.mean(axis=(1, 2), keepdims=True)
+    expected = (x - mean) / np.sqrt(((x - mean) ** 2).mean(axis=(1, 2), keepdims=True) + 1e-4)
+    got = np.asarray(PatchStandardization()(x))
+    np.testing.assert_allclose(got, expected, atol=1e-5)
+    np.testing.assert_allclose(got[2, ..., 1], 0.0, atol=1e-3)  # float32 mean round-off x 100
+    # The regressor with input_norm="patch" gives the same H_bar when patch_b changes by a gain
+    # and an offset (a contrast and brightness change), up to epsilon's share of the variance
+    # (1e-4 of about 0.013 here); with "unit" it does not.
+    pair = rng.uniform(0.2, 0.6, size=(2, 128, 128, 2)).astype(np.float32)
+    changed = pair.copy()
+    changed[..., 1] = 1.5 * pair[..., 1] - 0.1
+    for norm, same in (("patch", True), ("unit", False)):
+        net = models.regression_network(input_norm=norm, identity_init=False)
+        a, b = np.asarray(net(pair)), np.asarray(net(changed))
+        relative = np.abs(a - b).max() / np.abs(a).max()
+        assert (relative < 0.01) == same and (relative > 0.05) != same, (norm, relative)
+
+
+def test_input_norm_is_saved_and_refused_when_unknown(tmp_path, rng):
+    import keras
+
+    with pytest.raises(ValueError, match="input_norm"):
+        models.regression_network(input_norm="batch")
+    model = models.build_sequence_stn_homography(2, input_norm="patch")
+    assert model.get_layer("regression_2").get_layer("patch_standardization")
+    x = {k: rng.uniform(size=(2, 128, 128, 1)).astype(np.float32) for k in ("patch_a", "patch_b")}
+    model.save(tmp_path / "m.keras")
+    loaded = keras.models.load_model(tmp_path / "m.keras", compile=False)
+    np.testing.assert_allclose(loaded.predict(x, verbose=0)["h_bar_2"],
+                               model.predict(x, verbose=0)["h_bar_2"], atol=1e-6)

@@ -107,11 +107,19 @@ def test_l2_sum_is_eight_times_the_mean_on_a_known_batch():
     ("l2_reduction", "max", "l2_reduction must be one of"),
     ("recipe", "turbo", "recipe must be one of"),
     ("image_dir", " , ", "image_dir names no folder"),
+    ("input_norm", "batch", "input_norm must be one of"),
 ])
 def test_bad_recipe_values_are_clear_errors(field, value, message):
     kw = {"image_dir": "imgs"} if field != "image_dir" else {}
     cfg = train_config.TrainConfig(model_dir="m", **kw, **{field: value})
     with pytest.raises(ValueError, match=message):
+        cfg.validate()
+
+
+def test_four_point_models_keep_their_input_scaling():
+    cfg = train_config.TrainConfig(image_dir="imgs", model_dir="m", model="homographynet_gap",
+                                   input_norm="patch")
+    with pytest.raises(ValueError, match="input_norm must be 'unit'"):
         cfg.validate()
 
 
