@@ -22,7 +22,7 @@
 # OUT_DIR/stageK.tar.gz (model, config, result, logs; no checkpoint) to bring back; evaluate them
 # with `python -m experiments.evaluate --model_dir=OUT/stage1,OUT/stage2 --data_dir=...`.
 # Needs: python3 with jax (CUDA), keras>=3, opencv-python-headless, numpy, absl-py, h5py.
-# README "Training on a GPU with the JAX backend" gives the full procedure.
+# docs/gpu.md ("Training on a GPU machine with the JAX backend") gives the full procedure.
 set -euo pipefail
 if [ $# -lt 3 ]; then
   echo "usage: $0 IMAGE_DIR VAL_IMAGE_DIR OUT_DIR [train_stage flags...]" >&2

@@ -1,7 +1,7 @@
 r"""Justify the settings of the classical baselines (ORB/SIFT + RANSAC) on paper-protocol pairs.
 
 Generates ``--num_pairs`` synthetic pairs (DeTone et al. protocol, as in
-``docs``/``conventions.md``) from the photographs in ``--image_dir`` (or, without it, from
+``docs/conventions.md``) from the photographs in ``--image_dir`` (or, without it, from
 scikit-image's bundled photographs), evaluates identity, the registered baselines and a small grid
 of ORB and SIFT settings around them, and prints one JSON object (MACE, median, p90, p99, failure
 rate, ms per pair for each).

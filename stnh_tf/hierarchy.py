@@ -1,7 +1,7 @@
 """Hierarchical STN-Homography (paper section 4): stages run one after another with an OpenCV warp
 between them, each refining the composed estimate of the ones before.
 
-Conventions (see :mod:`stnh_tf.geometry` and ``conventions.md`` section 3):
+Conventions (see :mod:`stnh_tf.geometry` and ``docs/conventions.md``):
 
 * Every homography here is a **pixel** ``H_ba`` in the patch frame (patch_b -> patch_a).
 * ``context_a`` is the ``(S + 2m) x (S + 2m)`` crop of image_a around the square (``m = 32``),

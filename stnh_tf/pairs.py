@@ -1,7 +1,7 @@
 """The paper's pair-generation protocol (DeTone et al. 2016; Zhou & Li 2019, "Dataset").
 
 No TensorFlow or Keras import: data-generation workers and ``PairSequence`` use this module.
-Conventions are :mod:`stnh_tf.geometry`'s (see ``design/conventions.md``).
+Conventions are :mod:`stnh_tf.geometry`'s (see ``docs/conventions.md``).
 
 For one gray ``image_a`` (``uint8 [240, 320]``) and sample parameters drawn by :func:`draw_params`:
 
