@@ -29,7 +29,7 @@ INPUT_NORM_CHOICES = ("unit", "patch")
 DEFAULT_BATCH_NORM = "none"
 """The paper's literal network (no BatchNorm): it trains stably at the paper's learning rate 0.05
 with the identity-initialised output layer, and a training step costs about a quarter of the
-BatchNorm variant's on a CPU (README, "Batch normalization")."""
+BatchNorm variant's on a CPU (docs/training.md, "Batch normalization")."""
 
 
 def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5, dense_units: int = 1024,
@@ -51,7 +51,7 @@ def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.
     Args:
       batch_norm: ``"none"`` (default) is the paper's literal text and trains stably at the
         paper's learning rate 0.05; ``"conv"`` puts BatchNormalization after every convolution
-        (bias off), about 4x slower per step on a CPU (see README).
+        (bias off), about 4x slower per step on a CPU (see docs/training.md).
       dropout: rate of the dropout after the 1024-unit layer (layer ``dropout``).
       identity_init: start the last layer at zero kernel and the identity ``H_bar`` as bias (as
         Jaderberg et al. initialise a spatial transformer's localisation net), so an untrained
