@@ -48,8 +48,12 @@ MODEL_DEFAULTS = {
 RECIPES = {
     "paper": {},
     "fast": {"optimizer": "adamw", "learning_rate": 1e-3, "weight_decay": 1e-4,
-             "warmup_steps": 100, "lr_schedule": "cosine"},
+             "warmup_steps": 100, "lr_schedule": "cosine", "l2_reduction": "sum",
+             "input_norm": "patch"},
 }
+# Recipe fields that only the STN kinds use: a preset leaves them out for the 4-point kinds
+# (one L2 loss on offsets, input scaled to [-1, 1]).
+STN_ONLY_FIELDS = ("l2_reduction", "input_norm")
 
 # Which binaries take a field as a flag (experiments.flags_common.define_training_flags).
 SHARED, STAGE, SEQUENCE = "shared", "stage", "sequence"
@@ -283,8 +287,9 @@ RESUME_FREE_FIELDS = frozenset({"log_every", "model_dir", "data_dir", "image_dir
 def preset_fields(recipe: str, model: str) -> dict:
     """The TrainConfig fields that ``recipe`` (a key of :data:`RECIPES`) and ``model`` (a key of
     :data:`MODEL_KINDS`) preset: :data:`MODEL_DEFAULTS` of the model, then the recipe's preset
-    over them (so ``--recipe=fast`` replaces HomographyNet's step schedule by its own). The
-    training binaries apply these to every field not given explicitly.
+    over them (so ``--recipe=fast`` replaces HomographyNet's step schedule by its own), less
+    :data:`STN_ONLY_FIELDS` for the 4-point kinds. The training binaries apply these to every
+    field not given explicitly.
 
     Raises:
       ValueError: an unknown recipe or model.
@@ -293,4 +298,6 @@ def preset_fields(recipe: str, model: str) -> dict:
         raise ValueError(f"recipe must be one of {sorted(RECIPES)}; received {recipe!r}.")
     if model not in MODEL_KINDS:
         raise ValueError(f"model must be one of {MODEL_KINDS}; received {model!r}.")
-    return {**MODEL_DEFAULTS.get(model, {}), **RECIPES[recipe]}
+    recipe_fields = {k: v for k, v in RECIPES[recipe].items()
+                     if model not in FOUR_POINT_KINDS or k not in STN_ONLY_FIELDS}
+    return {**MODEL_DEFAULTS.get(model, {}), **recipe_fields}

@@ -72,6 +72,11 @@ def test_presets_by_model_kind_and_recipe():
     fast = train_config.preset_fields("fast", "homographynet")
     assert fast["lr_schedule"] == "cosine" and fast["optimizer"] == "adamw"
     assert fast["batch_norm"] == "conv"
+    # ... and leaves out what only the STN kinds use (their L2 sum, per-patch input).
+    assert not set(train_config.STN_ONLY_FIELDS) & set(fast)
+    stn = train_config.preset_fields("fast", "stn")
+    assert stn == train_config.RECIPES["fast"]
+    assert (stn["l2_reduction"], stn["input_norm"]) == ("sum", "patch")
     cfg = train_config.TrainConfig(data_dir="d", model_dir="m", model="homographynet", **fast)
     cfg.validate()
     for recipe, model in (("turbo", "stn"), ("paper", "vgg")):
