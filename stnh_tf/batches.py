@@ -144,8 +144,8 @@ class PairBatches:
 
     def _params(self, pos: int, epoch: int) -> list:
         """The ``samples_per_image`` parameter draws of image ``pos`` in ``epoch``, memoized for
-        the current epoch (drawing all of them for every sample cost O(samples_per_image) a
-        sample: 19 ms a batch of 64 at 100 per image)."""
+        the current epoch (drawing them all for every sample costs O(samples_per_image) a
+        sample)."""
         if self._params_epoch != epoch:
             self._params_cache, self._params_epoch = {}, epoch
         params = self._params_cache.get(pos)
@@ -213,8 +213,8 @@ _WORKER_BATCHES = None
 def _init_worker(batches: PairBatches):
     """Pool initializer: keep this process's copy of ``batches`` (sent once per worker, not per
     task) and run OpenCV single-threaded, so N workers do not each start one OpenCV thread per
-    core (on a 16-core host one process generated a batch in 130 ms with 1 thread and 137 ms
-    with 16: the workers gain nothing from OpenCV's threads)."""
+    core (the workers gain nothing from OpenCV's threads: BENCHMARKS.md, "CPU-budget
+    single-stage models trained on the H100")."""
     global _WORKER_BATCHES
     import cv2
 

@@ -296,10 +296,9 @@ def accelerator_present() -> bool:
 
 def mixed_precision_warning(cfg: TrainConfig, cpuinfo: str = "/proc/cpuinfo") -> str | None:
     """A warning when ``cfg`` asks for mixed bfloat16 on a CPU that has no bfloat16 instructions:
-    there it is emulated and a training step is many times slower than in float32 (measured on an
-    AMD EPYC without AVX-512: BENCHMARKS.md), while the project's earlier CPU machine (AVX-512/AMX)
-    ran bfloat16 steps 3.6x faster than float32. ``None`` on an accelerator, with float32, or where
-    the CPU flags cannot be read."""
+    there it is emulated and a training step is many times slower than in float32 (BENCHMARKS.md,
+    "The same benchmark on a CPU without bfloat16 instructions"). ``None`` on an accelerator,
+    with float32, or where the CPU flags cannot be read."""
     if not cfg.mixed_precision or accelerator_present():
         return None
     if cpu_has_native_bfloat16(cpuinfo) is not False:
