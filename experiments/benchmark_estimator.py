@@ -33,7 +33,7 @@ def main(argv):
     import numpy as np
     import tensorflow as tf  # noqa: F401  (loaded first, so machine_info reports it)
 
-    from stnh_tf import evaluation, inference, runner
+    from stnh_tf import evaluation, inference, model_files, runner
 
     dtype = None if FLAGS.compute_dtype == "as_saved" else "float32"
     estimator = inference.HomographyEstimator.load(FLAGS.model, compute_dtype=dtype)
@@ -43,7 +43,7 @@ def main(argv):
     one = evaluation.median_ms(lambda: estimator.estimate(a[0], b[0]), FLAGS.runs, FLAGS.warmup)
     many = evaluation.median_ms(lambda: estimator.estimate(a, b, batch_size=n),
                                 max(FLAGS.runs // 10, 3), 1)
-    stages = inference.resolve_model_paths(FLAGS.model)
+    stages = model_files.resolve_model_paths(FLAGS.model)
     bench = evaluation.latency(stages, max_stages=len(stages), runs=FLAGS.runs,
                                warmup=FLAGS.warmup, sequence=False, seed=FLAGS.seed,
                                compute_dtype=dtype)

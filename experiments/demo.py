@@ -27,8 +27,6 @@ flags.DEFINE_integer("samples_per_image", 3, "Pairs per bundled photograph.")
 flags.DEFINE_integer("examples", 4, "Pairs drawn in the figure.")
 FLAGS = flags.FLAGS
 
-BASELINES = ("identity", "orb_ransac", "sift_ransac")
-
 
 def self_check(seed: int = 0, num_pairs: int = 8) -> dict:
     """Normalization, four-point round trip and the STN against OpenCV on a bundled photograph."""
@@ -69,15 +67,15 @@ def self_check(seed: int = 0, num_pairs: int = 8) -> dict:
 
 def shipped_models() -> dict:
     """``{name: [stage model paths]}`` of the weights shipped in ``stnh_tf/weights``."""
-    from stnh_tf import inference
+    from stnh_tf import model_files
 
-    d = inference.default_weights_dir()
+    d = model_files.default_weights_dir()
     found = {}
     if os.path.exists(os.path.join(d, "stage1.keras")):
         found["STN-Homography, 1 stage"] = [os.path.join(d, "stage1.keras")]
     manifest = os.path.join(d, "default.json")
     if os.path.exists(manifest):
-        stages = inference.read_manifest(manifest)
+        stages = model_files.read_manifest(manifest)
         if len(stages) > 1:
             found[f"STN-Homography, {len(stages)}-stage hierarchy"] = stages
     return found
@@ -89,6 +87,7 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
 
     from data_prep import stage1
     from stnh_tf import data, evaluation, figures, geometry, hierarchy, runner
+    from stnh_tf.baselines import FIGURE_BASELINES
 
     t_start = time.time()
     os.makedirs(output_dir, exist_ok=True)
@@ -102,10 +101,10 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
     samples = data.load_arrays(data_dir, "test")
     n = len(samples["h_ba"])
     rows = {}
-    base = evaluation.evaluate((), data_dir, "test", BASELINES)
-    for name in BASELINES:
+    base = evaluation.evaluate((), data_dir, "test", tuple(FIGURE_BASELINES))
+    for name, label in FIGURE_BASELINES.items():
         r = base["baselines"][name]
-        rows[{"identity": "identity", "orb_ransac": "ORB + RANSAC", "sift_ransac": "SIFT + RANSAC"}[name]] = {
+        rows[label] = {
             "mace": r["mace"], "median": r["median"], "failure_rate": r["failure_rate"],
             "ms_per_pair": r["ms_per_pair"]}
     predictions = {}

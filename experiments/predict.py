@@ -12,7 +12,7 @@ The PNG has two panels: image_a with the quadrilateral where image_b's border la
 image_b (green channel) over image_a warped onto image_b by the estimate (magenta): aligned
 regions look gray. ``--model`` takes what
 ``HomographyEstimator.load`` takes (``.keras`` file, run directory, hierarchy manifest); without
-it the shipped default weights are used. Resizing rule: see ``stnh_tf.inference``.
+it the shipped default weights are used. Resizing rule: see ``stnh_tf.image_input``.
 """
 
 import json

@@ -33,9 +33,9 @@ FLAGS = flags.FLAGS
 
 
 def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
-    from stnh_tf import inference, runner
+    from stnh_tf import model_files, runner
 
-    weights_dir = weights_dir or inference.default_weights_dir()
+    weights_dir = weights_dir or model_files.default_weights_dir()
     os.makedirs(weights_dir, exist_ok=True)
     card = {"stages": []}
     names = []
@@ -53,8 +53,8 @@ def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
                 entry[extra[:-5]] = ({k: v for k, v in doc.items() if k != "history"}
                                      if extra == "result.json" else doc)
         card["stages"].append(entry)
-    inference.write_manifest(os.path.join(weights_dir, "default.json"), names,
-                             description=f"{len(names)}-stage hierarchy shipped with stnh-tf")
+    model_files.write_manifest(os.path.join(weights_dir, "default.json"), names,
+                               description=f"{len(names)}-stage hierarchy shipped with stnh-tf")
     if eval_json:
         with open(eval_json) as f:
             card["evaluation"] = json.load(f)
@@ -98,9 +98,9 @@ def bundled_check(stage_paths) -> dict:
 
 def refresh_check(weights_dir=None) -> dict:
     """Re-compute ``bundled_check`` in the model card of already shipped weights."""
-    from stnh_tf import inference
+    from stnh_tf import model_files
 
-    weights_dir = weights_dir or inference.default_weights_dir()
+    weights_dir = weights_dir or model_files.default_weights_dir()
     path = os.path.join(weights_dir, "model_card.json")
     with open(path) as f:
         card = json.load(f)

@@ -355,6 +355,10 @@ BASELINES = {
 }
 """Name -> constructor (keyword settings override the defaults)."""
 
+FIGURE_BASELINES = {"identity": "Identity", "orb_ransac": "ORB + RANSAC", "sift_ransac": "SIFT + RANSAC"}
+"""The baselines that the reproduction's Fig. 4 and the demo report, in order: name in
+:data:`BASELINES` -> display name (their key in ``results.json`` and their label)."""
+
 
 def make_baseline(name: str, **settings):
     """Instantiate a registered baseline by name."""

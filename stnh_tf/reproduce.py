@@ -41,9 +41,6 @@ PAPER_FIG4 = {"HomographyNet": 9.2, "STN-Homography 1 stage": 5.83,
               "STN-Homography 2 stages": 2.6, "STN-Homography 3 stages": 1.57,
               "Sequence 2 stages": 2.14}
 ABLATION_WEIGHTS = tuple(PAPER_TABLE1)
-BASELINES = ("identity", "orb_ransac", "sift_ransac")
-BASELINE_NAMES = {"identity": "Identity", "orb_ransac": "ORB + RANSAC",
-                  "sift_ransac": "SIFT + RANSAC"}
 # Configuration fields a reused model must share with the budget.
 _BUDGET_FIELDS = ("model", "stage", "train_steps", "warmup_steps", "batch_size", "learning_rate",
                   "lr_schedule", "momentum", "l2_weight", "l1_weight", "batch_norm", "dropout")
@@ -260,6 +257,8 @@ class Reproduction:
 
     # -- the whole run --------------------------------------------------------------------------
     def run(self) -> dict:
+        from stnh_tf.baselines import FIGURE_BASELINES
+
         t0 = time.time()
         stages = self.hierarchy(3)
         d1 = self.data_dir(1)
@@ -272,8 +271,8 @@ class Reproduction:
                                                   train_steps=self.budget.sequence_train_steps))
         rows = self.ablation(self.ablation_weights)
         self.printer("[evaluate] baselines, HomographyNet, hierarchy, sequence, ablation rows")
-        base = self.evaluate("baselines", baselines=BASELINES)
-        fig4 = {BASELINE_NAMES[k]: base["baselines"][k]["mace"] for k in BASELINES}
+        base = self.evaluate("baselines", baselines=tuple(FIGURE_BASELINES))
+        fig4 = {label: base["baselines"][k]["mace"] for k, label in FIGURE_BASELINES.items()}
         fig4["HomographyNet"] = self.evaluate("homographynet", [hnet])["model"]["mace"]
         hier = self.evaluate("hierarchy", stages)["model"]
         for k in range(1, len(stages) + 1):

@@ -82,14 +82,14 @@ def test_demo_runs_offline(tmp_path):
                            printer=lines.append)
     assert result["conventions"]["ok"]
     methods = result["methods"]
-    assert {"identity", "ORB + RANSAC", "SIFT + RANSAC"} <= set(methods)
+    assert {"Identity", "ORB + RANSAC", "SIFT + RANSAC"} <= set(methods)
     # Identity on the paper's protocol: 24.49 px in expectation (corners moved uniformly in [-32, 32]).
-    assert 18 < methods["identity"]["mace"] < 31
+    assert 18 < methods["Identity"]["mace"] < 31
     for name, r in methods.items():
         assert np.isfinite(r["mace"]) and r["ms_per_pair"] >= 0
     shipped = demo.shipped_models()
     for name in shipped:  # every shipped model is evaluated and beats the identity
-        assert methods[name]["mace"] < methods["identity"]["mace"]
+        assert methods[name]["mace"] < methods["Identity"]["mace"]
     if shipped:
         assert os.path.exists(result["figure"])
     saved = json.loads((tmp_path / "out" / "results.json").read_text())

@@ -19,7 +19,7 @@ import pytest
 import skimage.data
 
 from conftest import cv2_warp, inside_mask, keras_policy, norm_matrix, paper_homography, to_bar
-from stnh_tf import export, geometry, inference, models
+from stnh_tf import export, geometry, image_input, model_files, models
 from stnh_tf.inference import HomographyEstimator
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -177,8 +177,8 @@ def test_load_numbered_stage_directory(saved, pairs, tmp_path):
     os.makedirs(tmp_path / "stage1")
     saved["stage1"].save(tmp_path / "stage1" / "model.keras")
     saved["stage2"].save(tmp_path / "stage2.keras")
-    assert inference.resolve_model_paths(tmp_path) == [str(tmp_path / "stage1"),
-                                                      str(tmp_path / "stage2.keras")]
+    assert model_files.resolve_model_paths(tmp_path) == [str(tmp_path / "stage1"),
+                                                        str(tmp_path / "stage2.keras")]
     a, b, _ = pairs
     ref, _ = _hierarchy_reference(saved["stage1"], saved["stage2"], a[:2], b[:2])
     np.testing.assert_allclose(HomographyEstimator.load(tmp_path).estimate(a[:2], b[:2]), ref,
@@ -196,15 +196,15 @@ def test_load_sequence_round_trip(saved, pairs):
 
 
 def test_write_manifest_round_trip(saved, tmp_path):
-    path = inference.write_manifest(tmp_path / "h.json", [tmp_path / "a.keras",
-                                                          tmp_path / "sub" / "x.keras"])
+    path = model_files.write_manifest(tmp_path / "h.json", [tmp_path / "a.keras",
+                                                            tmp_path / "sub" / "x.keras"])
     doc = json.loads(open(path).read())
     assert doc["format"] == "stnh_tf.hierarchy" and doc["version"] == 1
     assert doc["stages"] == ["a.keras", "sub/x.keras"]
-    assert inference.read_manifest(path) == [str(tmp_path / "a.keras"),
-                                             str(tmp_path / "sub" / "x.keras")]
+    assert model_files.read_manifest(path) == [str(tmp_path / "a.keras"),
+                                               str(tmp_path / "sub" / "x.keras")]
     with pytest.raises(ValueError, match="outside the manifest's folder"):
-        inference.write_manifest(tmp_path / "h2.json", [saved["root"] / "single.keras"])
+        model_files.write_manifest(tmp_path / "h2.json", [saved["root"] / "single.keras"])
     assert not (tmp_path / "h2.json").exists()
 
 
@@ -234,12 +234,12 @@ def test_load_of_a_file_that_is_not_a_model_says_so(tmp_path):
 
 
 def test_load_default_weights(monkeypatch, tmp_path, identity_model_path):
-    monkeypatch.setattr(inference, "default_weights_dir", lambda: str(tmp_path))
+    monkeypatch.setattr(model_files, "default_weights_dir", lambda: str(tmp_path))
     with pytest.raises(FileNotFoundError, match="no shipped weights"):
         HomographyEstimator.load()
     os.link(identity_model_path, tmp_path / "default.keras")
     assert HomographyEstimator.load().kind == "single"
-    inference.write_manifest(tmp_path / "default.json", [tmp_path / "default.keras"] * 2)
+    model_files.write_manifest(tmp_path / "default.json", [tmp_path / "default.keras"] * 2)
     assert HomographyEstimator.load().kind == "hierarchy"  # the manifest wins
 
 
@@ -430,13 +430,13 @@ def test_estimate_images_pure_rescaling(identity_model_path):
 def test_prepare_image_gray_conversion():
     rgb = skimage.data.astronaut()[:50, :60]
     ref = (rgb.astype(np.float64) @ [0.299, 0.587, 0.114]) / 255  # ITU-R 601 luma
-    np.testing.assert_allclose(inference.prepare_image(rgb), ref, atol=2e-3)
-    np.testing.assert_allclose(inference.prepare_image(rgb[..., ::-1].copy(), channel_order="bgr"),
+    np.testing.assert_allclose(image_input.prepare_image(rgb), ref, atol=2e-3)
+    np.testing.assert_allclose(image_input.prepare_image(rgb[..., ::-1].copy(), channel_order="bgr"),
                                ref, atol=2e-3)
     alpha = np.random.default_rng(0).integers(0, 256, rgb.shape[:2], dtype=np.uint8)
     rgba = np.concatenate([rgb, alpha[..., None]], axis=-1)
-    np.testing.assert_allclose(inference.prepare_image(rgba), ref * alpha / 255, atol=2e-3)
-    np.testing.assert_allclose(inference.prepare_image(rgb[..., :1] / 255.0), rgb[..., 0] / 255,
+    np.testing.assert_allclose(image_input.prepare_image(rgba), ref * alpha / 255, atol=2e-3)
+    np.testing.assert_allclose(image_input.prepare_image(rgb[..., :1] / 255.0), rgb[..., 0] / 255,
                                atol=1e-6)
 
 

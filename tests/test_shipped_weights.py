@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from data_prep import stage1
-from stnh_tf import data, geometry, inference
+from stnh_tf import data, geometry, inference, model_files
 
-WEIGHTS = inference.default_weights_dir()
+WEIGHTS = model_files.default_weights_dir()
 CARD = os.path.join(WEIGHTS, "model_card.json")
 pytestmark = pytest.mark.skipif(not os.path.exists(CARD), reason="no weights shipped in stnh_tf/weights")
 

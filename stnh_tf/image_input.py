@@ -1,0 +1,164 @@
+"""What :class:`stnh_tf.inference.HomographyEstimator` accepts: patches and images checked and
+converted to the models' input, and the resizing rule of ``estimate_images`` with its maps
+between pixel frames.
+
+Resizing rule of :meth:`~stnh_tf.inference.HomographyEstimator.estimate_images`. The models were
+trained on 128 x 128 crops of 320 x 240 images with corners moved by up to 32 px. Each image (any
+size, any aspect ratio; image_a and image_b need not have the same size) is converted to
+grayscale (ITU-R 601 luma; an alpha channel is composited onto black), resized to 320 x 240
+(aspect ratio not preserved; ``cv2.INTER_AREA`` when both sides shrink, else
+``cv2.INTER_LINEAR``: the training data's rule), and the central 128 x 128 square (top-left
+corner ``(96, 56)``) of each is the patch pair. The patch estimate is mapped back with
+``H_img = inv(S_a) @ T @ H_patch @ inv(T) @ S_b`` where ``T`` is the translation by ``(96, 56)``
+and ``S_x`` maps pixels of image x to pixels of its 320 x 240 version. With pixel centres at
+integer coordinates a resize by ``s`` maps ``x -> s (x + 0.5) - 0.5`` (exactly what
+``cv2.resize`` does), so ``S_x`` has that half-pixel offset. The result is meaningful when, in
+the 320 x 240 frame, the motion between the images is of the size the model was trained on
+(corners of the central square moving by up to about 32 px, i.e. 10% of the width) and the
+central square holds texture.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from stnh_tf import geometry, pixels
+
+PATCH_SIZE = geometry.PATCH_SIZE
+WORK_SIZE = (geometry.IMAGE_WIDTH, geometry.IMAGE_HEIGHT)
+"""``(width, height)`` every image is resized to by ``estimate_images``."""
+PATCH_ORIGIN = ((WORK_SIZE[0] - PATCH_SIZE) // 2, (WORK_SIZE[1] - PATCH_SIZE) // 2)
+"""Top-left corner ``(x0, y0) = (96, 56)`` of the central patch in the 320 x 240 frame."""
+
+
+# --------------------------------------------------------------------------------------------
+# Input checking
+# --------------------------------------------------------------------------------------------
+def _to_unit_float(x, name, what):
+    """uint8 (0..255) or float in [0, 1] -> float32 in [0, 1]."""
+    if x.dtype == np.uint8:
+        return pixels.to_unit(x)
+    if np.issubdtype(x.dtype, np.floating):
+        finite = np.isfinite(x)
+        if not np.all(finite) or x.min() < 0.0 or x.max() > 1.0:
+            seen = (f"values in [{x[finite].min()}, {x[finite].max()}]" if finite.any() else
+                    "no finite values")
+            if not finite.all():
+                seen += f" and {int(x.size - finite.sum())} NaN/inf"
+            raise ValueError(f"{name}: floating-point {what} must lie in [0, 1] (use uint8 for "
+                             f"0..255); received {seen} with shape {x.shape}.")
+        return x.astype(np.float32)
+    raise ValueError(f"{name}: {what} must be uint8 (0..255) or floating point in [0, 1]; "
+                     f"received dtype {x.dtype} with shape {x.shape}.")
+
+
+def _as_array(x, name):
+    if x is None:
+        raise ValueError(f"{name} is None; expected an image array.")
+    try:
+        arr = np.asarray(x)
+    except Exception as e:  # ragged nested lists and the like
+        raise ValueError(f"{name} is not an array ({type(x).__name__}): {e}") from None
+    if arr.dtype == object or arr.dtype.kind in "USV":
+        raise ValueError(f"{name} is not a numeric image array; received dtype {arr.dtype} with "
+                         f"shape {arr.shape}.")
+    return arr
+
+
+def prepare_patches(x, name="patch") -> np.ndarray:
+    """Patches ``[S, S]``, ``[S, S, 1]``, ``[B, S, S]`` or ``[B, S, S, 1]`` (S = 128; uint8 0..255
+    or float in [0, 1]) -> float32 ``[B, S, S, 1]`` in [0, 1]. Anything else raises ``ValueError``."""
+    s = PATCH_SIZE
+    arr = _as_array(x, name)
+    shape = tuple(arr.shape)
+    if len(shape) == 2:
+        core = shape
+        batch = (1,) + shape
+    elif len(shape) == 3 and shape[:2] == (s, s) and shape[2] in (1, 3, 4):
+        if shape[2] != 1:
+            raise ValueError(f"{name} must be grayscale ([{s}, {s}] or [{s}, {s}, 1]); received "
+                             f"shape {shape} (convert colour images to gray first).")
+        core = shape[:2]
+        batch = (1,) + core
+    elif len(shape) == 3:
+        core = shape[1:]
+        batch = shape
+    elif len(shape) == 4 and shape[-1] == 1:
+        core = shape[1:3]
+        batch = shape[:3]
+    else:
+        raise ValueError(f"{name} must have shape [{s}, {s}], [{s}, {s}, 1], [B, {s}, {s}] or "
+                         f"[B, {s}, {s}, 1]; received shape {shape}.")
+    if core != (s, s):
+        raise ValueError(f"{name} must be {s}x{s} patches ([{s}, {s}], [{s}, {s}, 1], [B, {s}, {s}] "
+                         f"or [B, {s}, {s}, 1]); received shape {shape}.")
+    if batch[0] == 0:
+        raise ValueError(f"{name} is an empty batch; received shape {shape}.")
+    return _to_unit_float(arr, name, "patches").reshape(batch + (1,))
+
+
+def prepare_image(x, name="image", channel_order: str = "rgb") -> np.ndarray:
+    """One image ``[H, W]`` or ``[H, W, C]`` (C = 1, 3 or 4; uint8 or float in [0, 1]) ->
+    grayscale float32 ``[H, W]`` in [0, 1]. Colour is ``channel_order`` ("rgb" as NumPy/scikit-image
+    read it, "bgr" as OpenCV does)."""
+    if channel_order not in ("rgb", "bgr"):
+        raise ValueError(f"channel_order must be 'rgb' or 'bgr'; received {channel_order!r}.")
+    arr = _as_array(x, name)
+    shape = tuple(arr.shape)
+    if not (len(shape) == 2 or (len(shape) == 3 and shape[2] in (1, 3, 4))):
+        raise ValueError(f"{name} must be one image [H, W] or [H, W, C] with C in (1, 3, 4); "
+                         f"received shape {shape}.")
+    if shape[0] == 0 or shape[1] == 0:
+        raise ValueError(f"{name} is empty; received shape {shape}.")
+    img = _to_unit_float(arr, name, "images")
+    if img.ndim == 3:
+        alpha = img[..., 3] if img.shape[2] == 4 else None
+        if img.shape[2] == 1:
+            img = img[..., 0]
+        else:
+            code = cv2.COLOR_RGB2GRAY if channel_order == "rgb" else cv2.COLOR_BGR2GRAY
+            img = cv2.cvtColor(np.ascontiguousarray(img[..., :3]), code)
+        if alpha is not None:
+            img = img * alpha  # composited onto black, as the training data does
+    return np.ascontiguousarray(img, dtype=np.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# Frames
+# --------------------------------------------------------------------------------------------
+def resize_matrix(src_size, dst_size) -> np.ndarray:
+    """``[3, 3]`` float64 map from pixels of an image of ``src_size = (w, h)`` to pixels of its
+    resized version of ``dst_size = (w', h')`` (``cv2.resize`` geometry, pixel centres at integer
+    coordinates): ``x' = s_x (x + 0.5) - 0.5`` with ``s_x = w' / w`` (same for y)."""
+    sx, sy = dst_size[0] / src_size[0], dst_size[1] / src_size[1]
+    return np.array([[sx, 0.0, 0.5 * sx - 0.5],
+                     [0.0, sy, 0.5 * sy - 0.5],
+                     [0.0, 0.0, 1.0]], dtype=np.float64)
+
+
+def resize_to_work_size(gray: np.ndarray) -> np.ndarray:
+    """Grayscale ``[h, w]`` -> ``[240, 320]`` as the training data was made (``cv2.INTER_AREA``
+    when both sides shrink, else ``cv2.INTER_LINEAR``; both keep the geometry of
+    :func:`resize_matrix`)."""
+    h, w = gray.shape[:2]
+    if (w, h) == WORK_SIZE:
+        return np.ascontiguousarray(gray)
+    interp = cv2.INTER_AREA if (w >= WORK_SIZE[0] and h >= WORK_SIZE[1]) else cv2.INTER_LINEAR
+    return cv2.resize(gray, WORK_SIZE, interpolation=interp)
+
+
+def central_patch(work: np.ndarray) -> np.ndarray:
+    """The central 128 x 128 square (at :data:`PATCH_ORIGIN`) of a ``[240, 320]`` image, as a
+    batch of one ``[1, 128, 128, 1]``."""
+    (x0, y0), s = PATCH_ORIGIN, PATCH_SIZE
+    return np.ascontiguousarray(work[None, y0:y0 + s, x0:x0 + s, None])
+
+
+def patch_to_image_frames(h_patch, size_a, size_b) -> np.ndarray:
+    """``H_img = inv(S_a) @ T @ H_patch @ inv(T) @ S_b`` (scaled so ``[2, 2] = 1``): the central
+    patches' ``H_ba`` ``[3, 3]`` in the pixel frames of the original images of ``size_a`` and
+    ``size_b`` (``(w, h)`` each; see the module docstring)."""
+    h_work = geometry.patch_to_image(h_patch, *PATCH_ORIGIN)
+    s_a, s_b = resize_matrix(size_a, WORK_SIZE), resize_matrix(size_b, WORK_SIZE)
+    return geometry.scale_to_unit(np.linalg.inv(s_a) @ h_work @ s_b)

@@ -1,0 +1,158 @@
+"""Where the models :meth:`stnh_tf.inference.HomographyEstimator.load` reads are: hierarchy
+manifests, the accepted layouts on disk, and the shipped default in ``stnh_tf/weights/``.
+
+Hierarchy manifest (a JSON file; by convention ``hierarchy.json``)::
+
+    {
+      "format": "stnh_tf.hierarchy",
+      "version": 1,
+      "stages": ["stage1/model.keras", "stage2", "stage3.keras"],
+      "description": "optional free text"
+    }
+
+``stages`` lists the stage models in order: each a ``.keras`` file or a training run directory
+holding ``model.keras``, given relative to the manifest's folder and inside it (absolute paths
+and ``../`` are refused, so a manifest cannot make the loader read models from elsewhere). Each stage may be a
+single-stage or a sequence model. :func:`write_manifest` writes one. :func:`resolve_model_paths`
+(and so :meth:`~stnh_tf.inference.HomographyEstimator.load`) accepts
+
+* a ``.keras`` file;
+* a ``.json`` manifest;
+* a directory holding ``model.keras`` (a training run: single or sequence model);
+* a directory holding ``hierarchy.json`` (the manifest);
+* a directory holding stage models named ``stage1``, ``stage2``, ... (sub-directories holding
+  ``model.keras``, or files ``stage1.keras``, ...), taken as a hierarchy in numeric order;
+* nothing: the shipped default in the package folder ``stnh_tf/weights/``: ``default.json`` (a
+  manifest) if present, else ``default.keras``.
+
+Standard library only: nothing here loads a model.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+
+from stnh_tf.paths import inside, read_json
+
+MANIFEST_FORMAT = "stnh_tf.hierarchy"
+MANIFEST_VERSION = 1
+MANIFEST_FILE = "hierarchy.json"
+MODEL_FILE = "model.keras"
+DEFAULT_MANIFEST = "default.json"
+DEFAULT_MODEL = "default.keras"
+
+
+def default_weights_dir() -> str:
+    """The package folder ``stnh_tf/weights`` (may not exist before weights are shipped)."""
+    return os.path.join(os.path.dirname(os.path.abspath(__file__)), "weights")
+
+
+def default_source() -> str:
+    """The shipped weights' manifest (or single model) that ``load()`` reads."""
+    folder = default_weights_dir()
+    manifest = os.path.join(folder, DEFAULT_MANIFEST)
+    return manifest if os.path.isfile(manifest) else os.path.join(folder, DEFAULT_MODEL)
+
+
+# --------------------------------------------------------------------------------------------
+# Manifests
+# --------------------------------------------------------------------------------------------
+def write_manifest(path, stages, description: str = "") -> str:
+    """Write a hierarchy manifest to ``path`` naming ``stages`` (model files or run directories).
+
+    Every stage must lie in the manifest's folder or below it (:func:`read_manifest` reads no
+    other); it is stored relative to the folder, so the folder can be moved. Returns ``path``.
+
+    Raises:
+      ValueError: no stage, or a stage outside the manifest's folder.
+    """
+    folder = os.path.dirname(os.path.abspath(path))
+    entries = []
+    for stage in stages:
+        full = os.path.abspath(os.fspath(stage))
+        rel = os.path.relpath(full, folder)
+        if rel == os.pardir or rel.startswith(os.pardir + os.sep):
+            raise ValueError(f"stage {full} is outside the manifest's folder {folder}: a manifest "
+                             "names stages beside it or below it; write it next to the stages, "
+                             "or copy the stage models into its folder.")
+        entries.append(rel.replace(os.sep, "/"))
+    if not entries:
+        raise ValueError("a hierarchy manifest needs at least one stage; received none.")
+    doc = {"format": MANIFEST_FORMAT, "version": MANIFEST_VERSION, "stages": entries}
+    if description:
+        doc["description"] = description
+    with open(path, "w") as f:
+        json.dump(doc, f, indent=2)
+        f.write("\n")
+    return os.fspath(path)
+
+
+def read_manifest(path) -> list:
+    """The stage model paths (absolute, in order) named by the hierarchy manifest at ``path``.
+
+    Every stage must be a relative path inside the manifest's folder (beside it or below it);
+    absolute paths and ``../`` escapes raise ``ValueError`` (:func:`stnh_tf.paths.inside`)."""
+    path = os.fspath(path)
+    doc = read_json(path, "hierarchy manifest")
+    if not isinstance(doc, dict) or doc.get("format") != MANIFEST_FORMAT:
+        raise ValueError(f"{path} is not a hierarchy manifest: expected a JSON object with "
+                         f"\"format\": \"{MANIFEST_FORMAT}\"; received {str(doc)[:200]}.")
+    if doc.get("version") != MANIFEST_VERSION:
+        raise ValueError(f"hierarchy manifest {path} has version {doc.get('version')!r}; this "
+                         f"version of stnh_tf reads version {MANIFEST_VERSION}.")
+    stages = doc.get("stages")
+    if not isinstance(stages, list) or not stages or not all(isinstance(s, str) and s for s in stages):
+        raise ValueError(f"hierarchy manifest {path}: \"stages\" must be a non-empty list of paths; "
+                         f"received {stages!r}.")
+    folder = os.path.dirname(os.path.abspath(path))
+    return [inside(folder, s, f"hierarchy manifest {path}, stage {k}")
+            for k, s in enumerate(stages, start=1)]
+
+
+# --------------------------------------------------------------------------------------------
+# Layouts
+# --------------------------------------------------------------------------------------------
+def _numbered_stages(directory):
+    """``stage1``, ``stage2``, ... (directories or ``.keras`` files) in ``directory``, in order."""
+    found = {}
+    for name in os.listdir(directory):
+        m = re.fullmatch(r"stage(\d+)(\.keras)?", name)
+        if m:
+            found.setdefault(int(m.group(1)), os.path.join(directory, name))
+    return [found[k] for k in sorted(found)]
+
+
+def resolve_model_paths(path=None) -> list:
+    """The stage model paths that :meth:`~stnh_tf.inference.HomographyEstimator.load` would load
+    (see the module docstring for the accepted layouts). Raises ``FileNotFoundError`` with the
+    places looked at."""
+    if path is None:
+        folder = default_weights_dir()
+        manifest, model = os.path.join(folder, DEFAULT_MANIFEST), os.path.join(folder, DEFAULT_MODEL)
+        if os.path.isfile(manifest):
+            return read_manifest(manifest)
+        if os.path.isfile(model):
+            return [model]
+        raise FileNotFoundError(
+            f"no shipped weights: this copy of stnh_tf has neither {manifest} nor {model}. Pass "
+            "the path of a trained model (.keras file, run directory or hierarchy manifest) instead.")
+    path = os.fspath(path)
+    if os.path.isdir(path):
+        for candidate in (MODEL_FILE, MANIFEST_FILE):
+            if os.path.isfile(os.path.join(path, candidate)):
+                break
+        else:
+            stages = _numbered_stages(path)
+            if stages:
+                return stages
+            raise FileNotFoundError(
+                f"{path} holds no model: expected {MODEL_FILE}, {MANIFEST_FILE} or stage1, "
+                "stage2, ... models.")
+        path = os.path.join(path, candidate)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"no model at {path}.")
+    if path.endswith(".json"):
+        return read_manifest(path)
+    return [path]
