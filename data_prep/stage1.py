@@ -14,7 +14,7 @@ import shlex
 import socket
 import sys
 
-from data_prep import writer
+from data_prep import metadata, writer
 from stnh_tf import pairs, paths, sources
 
 SOURCES = ("folder", "bundled", "coco2014")
@@ -106,7 +106,7 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
       OSError: ``output_dir`` not writable.
       FileExistsError: ``split`` is already complete there and ``overwrite`` is off.
     """
-    writer.check_split_name(split)
+    metadata.check_split_name(split)
     for name, value, low in (("num_shards", num_shards, 0), ("max_images", max_images, 0),
                              ("samples_per_image", samples_per_image, 1),
                              ("chunk_size", chunk_size, 1), ("seed", seed, 0)):

@@ -19,7 +19,7 @@
 
 The model runs in the parent process; the re-cropping runs in the writer's worker processes
 (NumPy/OpenCV only). Sharding, atomic writes, metadata and progress are those of
-:mod:`data_prep.writer`, shared with the stage-1 generator.
+:mod:`data_prep.writer` and :mod:`data_prep.metadata`, shared with the stage-1 generator.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import sys
 
 import numpy as np
 
-from data_prep import writer
+from data_prep import metadata, writer
 from stnh_tf import features, hierarchy, pixels
 from stnh_tf.paths import check_output_dir
 
@@ -140,6 +140,6 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
         num_workers=num_workers, split_metadata=split_metadata, top_metadata={"stage": stage},
         log=log, overwrite=overwrite)
     counts_dict = {k: int(counts.get(k, 0)) for k in ("accepted", *hierarchy.REJECT_REASONS)}
-    writer.update_metadata(output_dir, split, {**result, "degenerate_predictions": counts_dict})
+    metadata.update_metadata(output_dir, split, {**result, "degenerate_predictions": counts_dict})
     result["degenerate_predictions"] = counts_dict
     return result

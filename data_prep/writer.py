@@ -12,8 +12,9 @@ dicts hold :data:`stnh_tf.features.FEATURE_NAMES`).
   module imports (no TensorFlow for ``stnh_tf.pairs``); they build and serialize the samples. The
   parent process writes the records (TensorFlow's ``TFRecordWriter``, imported lazily here).
   ``num_workers <= 1`` runs everything in-process.
-* **One writer per split.** A run holds the split's lock (:func:`split_lock`) from start to end;
-  a second run on the same split fails at once instead of deleting the first one's files.
+* **One writer per split.** A run holds the split's lock (:func:`data_prep.metadata.split_lock`)
+  from start to end; a second run on the same split fails at once instead of deleting the first
+  one's files.
 * **Atomicity.** Each shard is written to ``<name>.tmp-<pid>`` and renamed when complete; the
   split's section of ``metadata.json`` is marked ``"incomplete"`` before any shard is touched and
   replaced only at the end, so a killed run never leaves a split that looks finished. A re-run
@@ -23,7 +24,7 @@ dicts hold :data:`stnh_tf.features.FEATURE_NAMES`).
   reason in the split's ``skipped`` list (and logged); it never stops the run.
 * **metadata.json** (``{"stage": ..., "feature_spec": ..., "splits": {split: {...}}}``) is
   read-modify-written under a file lock and replaced atomically, so separate commands can write
-  ``train`` and ``test`` into one directory.
+  ``train`` and ``test`` into one directory (:mod:`data_prep.metadata`).
 """
 
 from __future__ import annotations
@@ -32,7 +33,6 @@ import collections
 import contextlib
 import dataclasses
 import glob
-import json
 import math
 import multiprocessing
 import os
@@ -40,11 +40,10 @@ import re
 import time
 from typing import Any, Callable, Iterable, Optional
 
+from data_prep.metadata import check_split_name, read_metadata_file, split_lock, update_metadata
 from stnh_tf import features
-from stnh_tf.paths import atomic_write_json, check_output_dir, read_json
+from stnh_tf.paths import check_output_dir
 
-METADATA_FILE = "metadata.json"
-LOCK_FILE = ".metadata.lock"
 TARGET_SHARD_BYTES = 128 * 2 ** 20
 BYTES_PER_SAMPLE_ESTIMATE = 86_600  # stage-1 record, measured (see docs/data.md)
 
@@ -78,88 +77,6 @@ def auto_num_shards(num_items: int, samples_per_item: int,
     """Shards of about 128 MiB, and at least ``min(8, num_items)`` for interleaved reading."""
     by_size = math.ceil(num_items * samples_per_item * bytes_per_sample / TARGET_SHARD_BYTES)
     return max(1, by_size, min(8, num_items))
-
-
-# ------------------------------------------------------------------------------------------------
-# metadata.json
-# ------------------------------------------------------------------------------------------------
-@contextlib.contextmanager
-def _metadata_lock(output_dir: str):
-    import fcntl
-
-    with open(os.path.join(output_dir, LOCK_FILE), "a") as f:
-        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
-
-
-def _read_metadata_file(output_dir: str) -> dict:
-    """The ``metadata.json`` being written in ``output_dir`` ({} before the first split)."""
-    path = os.path.join(output_dir, METADATA_FILE)
-    if not os.path.exists(path):
-        return {}
-    try:
-        meta = read_json(path, "dataset metadata")
-    except ValueError as e:
-        raise ValueError(f"{e} Move it away.") from None
-    if not isinstance(meta, dict):
-        raise ValueError(f"{path} does not hold a JSON object.")
-    return meta
-
-
-def update_metadata(output_dir: str, split: str, section: Optional[dict],
-                    top: Optional[dict] = None) -> dict:
-    """Merge ``top`` into metadata.json and set ``splits[split] = section`` (locked, atomic).
-
-    Raises:
-      ValueError: ``top`` contradicts a value already there (e.g. another ``stage``).
-    """
-    with _metadata_lock(output_dir):
-        meta = _read_metadata_file(output_dir)
-        for key, value in (top or {}).items():
-            if key in meta and meta[key] != value and key in ("stage", "feature_spec"):
-                raise ValueError(f"{os.path.join(output_dir, METADATA_FILE)} has {key}="
-                                 f"{json.dumps(meta[key])[:200]}, this run has "
-                                 f"{json.dumps(value)[:200]}; write to another --output_dir.")
-            meta[key] = value
-        meta.setdefault("splits", {})
-        if section is not None:
-            meta["splits"][split] = section
-        atomic_write_json(os.path.join(output_dir, METADATA_FILE), meta)
-        return meta
-
-
-def check_split_name(split: str) -> str:
-    """``split`` if it is a plain name like ``train`` (letters, digits, ``_`` and ``.``, not
-    starting with ``.``: no ``..``), else ``ValueError``: it names files in the output folder."""
-    if not isinstance(split, str) or not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.]*", split):
-        raise ValueError(f"split must be a plain name like 'train' (letters, digits, '_' and '.', "
-                         f"not starting with '.'); received {split!r}.")
-    return split
-
-
-@contextlib.contextmanager
-def split_lock(output_dir: str, split: str):
-    """Hold ``output_dir``'s lock of ``split`` (``.{split}.lock``, ``fcntl.flock``) for one
-    writer: a second writer of the same split, in this process or another, fails at once with
-    ``FileExistsError`` instead of deleting the first one's temporary shards. The lock goes with
-    the process (nothing stale is left by a killed run)."""
-    import fcntl
-
-    path = os.path.join(output_dir, f".{split}.lock")
-    with open(path, "a") as f:
-        try:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise FileExistsError(f"another process is writing split {split!r} in {output_dir} "
-                                  f"(it holds {path}); wait for it to finish, or write to "
-                                  "another --output_dir or --split.") from None
-        try:
-            yield
-        finally:
-            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -314,7 +231,7 @@ def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: 
       ValueError: no work items, bad ``num_shards``/``split``, or every item skipped.
       OSError: ``output_dir`` not writable.
       FileExistsError: the split is complete and ``overwrite`` is off, or another process is
-        writing it (:func:`split_lock`).
+        writing it (:func:`data_prep.metadata.split_lock`).
     """
     check_split_name(split)
     if num_items is None:
@@ -337,7 +254,7 @@ def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_it
                  overwrite) -> dict:
     """:func:`write_sharded` once its arguments are checked, holding the split's lock: no other
     writer of the split runs, so temporary shards left in the folder are stale ones."""
-    existing = _read_metadata_file(output_dir).get("splits", {}).get(split, {})
+    existing = read_metadata_file(output_dir).get("splits", {}).get(split, {})
     if existing.get("status") == "complete" and not overwrite:
         raise FileExistsError(
             f"{output_dir} already holds a complete {split!r} split ({existing.get('num_samples')} "

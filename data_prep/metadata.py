@@ -1,0 +1,102 @@
+"""``metadata.json`` of a dataset being written, and the locks of its writers.
+
+* **metadata.json** (``{"stage": ..., "feature_spec": ..., "splits": {split: {...}}}``) is
+  read-modify-written under a file lock (``.metadata.lock``) and replaced atomically, so separate
+  commands can write ``train`` and ``test`` into one directory (:func:`update_metadata`).
+* **One writer per split.** :func:`split_lock` holds the split's lock (``.{split}.lock``) for one
+  writer; a second writer of the same split fails at once.
+
+The readers' side is :mod:`stnh_tf.data`. Standard library only (with :mod:`stnh_tf.paths`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+from typing import Optional
+
+from stnh_tf.paths import atomic_write_json, read_json
+
+METADATA_FILE = "metadata.json"
+LOCK_FILE = ".metadata.lock"
+
+
+@contextlib.contextmanager
+def _metadata_lock(output_dir: str):
+    import fcntl
+
+    with open(os.path.join(output_dir, LOCK_FILE), "a") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def read_metadata_file(output_dir: str) -> dict:
+    """The ``metadata.json`` being written in ``output_dir`` ({} before the first split)."""
+    path = os.path.join(output_dir, METADATA_FILE)
+    if not os.path.exists(path):
+        return {}
+    try:
+        meta = read_json(path, "dataset metadata")
+    except ValueError as e:
+        raise ValueError(f"{e} Move it away.") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path} does not hold a JSON object.")
+    return meta
+
+
+def update_metadata(output_dir: str, split: str, section: Optional[dict],
+                    top: Optional[dict] = None) -> dict:
+    """Merge ``top`` into metadata.json and set ``splits[split] = section`` (locked, atomic).
+
+    Raises:
+      ValueError: ``top`` contradicts a value already there (e.g. another ``stage``).
+    """
+    with _metadata_lock(output_dir):
+        meta = read_metadata_file(output_dir)
+        for key, value in (top or {}).items():
+            if key in meta and meta[key] != value and key in ("stage", "feature_spec"):
+                raise ValueError(f"{os.path.join(output_dir, METADATA_FILE)} has {key}="
+                                 f"{json.dumps(meta[key])[:200]}, this run has "
+                                 f"{json.dumps(value)[:200]}; write to another --output_dir.")
+            meta[key] = value
+        meta.setdefault("splits", {})
+        if section is not None:
+            meta["splits"][split] = section
+        atomic_write_json(os.path.join(output_dir, METADATA_FILE), meta)
+        return meta
+
+
+def check_split_name(split: str) -> str:
+    """``split`` if it is a plain name like ``train`` (letters, digits, ``_`` and ``.``, not
+    starting with ``.``: no ``..``), else ``ValueError``: it names files in the output folder."""
+    if not isinstance(split, str) or not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.]*", split):
+        raise ValueError(f"split must be a plain name like 'train' (letters, digits, '_' and '.', "
+                         f"not starting with '.'); received {split!r}.")
+    return split
+
+
+@contextlib.contextmanager
+def split_lock(output_dir: str, split: str):
+    """Hold ``output_dir``'s lock of ``split`` (``.{split}.lock``, ``fcntl.flock``) for one
+    writer: a second writer of the same split, in this process or another, fails at once with
+    ``FileExistsError`` instead of deleting the first one's temporary shards. The lock goes with
+    the process (nothing stale is left by a killed run)."""
+    import fcntl
+
+    path = os.path.join(output_dir, f".{split}.lock")
+    with open(path, "a") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise FileExistsError(f"another process is writing split {split!r} in {output_dir} "
+                                  f"(it holds {path}); wait for it to finish, or write to "
+                                  "another --output_dir or --split.") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
