@@ -15,16 +15,16 @@ batch ``[B, 128, 128]`` / ``[B, 128, 128, 1]``, either ``uint8`` (0..255) or flo
 When estimation fails (too few keypoints or matches, too few RANSAC inliers, ``findHomography``
 returning ``None``, a non-finite or degenerate matrix: a corner mapped behind the camera, a
 non-convex or folded corner quadrilateral, an area change beyond ``max_area_ratio``) the
-estimator returns the identity with ``ok = False``; on this protocol identity scores 24.49 px
-MACE in expectation.
+estimator returns the identity with ``ok = False`` (its expected MACE on this protocol:
+``docs/conventions.md``).
 
 Settings (:data:`ORB_SETTINGS`, :data:`SIFT_SETTINGS`) were chosen with
-``python -m experiments.tune_baselines --image_dir=../shared/data/coco_mini/train --num_pairs=300
---seed=0`` on 300 paper-protocol pairs from the 219 coco_mini **train** photographs (never the
-test photographs the baselines are reported on); the numbers are in the docstrings of the dicts. OpenCV's ORB defaults
-(:data:`ORB_DEFAULT_SETTINGS`: ``edgeThreshold = patchSize = 31``, 500 features, 8 levels) leave
-only the central ~66 px of a 128 px patch for keypoints and are far worse; they are kept as a
-registered baseline (``orb_default``) so that the gap stays visible.
+``experiments.tune_baselines`` on paper-protocol pairs from the coco_mini **train** photographs,
+never the test photographs the baselines are reported on (command and scores: BENCHMARKS.md,
+"Baseline settings: the tuning pairs"). OpenCV's ORB defaults (:data:`ORB_DEFAULT_SETTINGS`:
+``edgeThreshold = patchSize = 31``, 500 features, 8 levels) leave only the central ~66 px of a
+128 px patch for keypoints and are far worse; they are kept as a registered baseline
+(``orb_default``) so that the gap stays visible.
 
 RANSAC in OpenCV seeds its own generator on every call, so estimates are deterministic.
 """
@@ -65,9 +65,7 @@ ORB_SETTINGS = {
     "ratio": None,           # no Lowe ratio test ...
     "cross_check": True,     # ... but mutual nearest neighbours
 }
-"""Tuned ORB + RANSAC. On the tuning pairs (coco_mini train, 300 pairs, seed 0): MACE 1.35 px,
-median 0.90, no failures; with a ratio test at 0.85 instead of cross-checking 1.76 px; OpenCV's
-defaults (``orb_default``) 15.7 px with 15% failures."""
+"""Tuned ORB + RANSAC (BENCHMARKS.md, "Baseline settings: the tuning pairs")."""
 
 ORB_DEFAULT_SETTINGS = {
     **_COMMON,
@@ -87,8 +85,7 @@ SIFT_SETTINGS = {
     "sigma": 1.6,
     "ratio": 0.8,
 }
-"""Tuned SIFT + RANSAC. On the tuning pairs (coco_mini train, 300 pairs, seed 0): MACE 0.76 px,
-median 0.44, no failures; at contrastThreshold 0.02 1.29 px, at OpenCV's 0.04 2.16 px."""
+"""Tuned SIFT + RANSAC (BENCHMARKS.md, "Baseline settings: the tuning pairs")."""
 
 
 def _check_keys(settings: dict, allowed: dict, cls_name: str):
@@ -119,10 +116,7 @@ def _to_uint8(x, name: str) -> np.ndarray:
 def _as_batch(x, name: str, size: int = geometry.PATCH_SIZE) -> np.ndarray:
     """``[B, S, S]`` or ``[B, S, S, 1]`` -> uint8 ``[B, S, S]``."""
     shape = tuple(np.shape(x))
-    if len(shape) == 4 and shape[-1] == 1:
-        shape3 = shape[:3]
-    else:
-        shape3 = shape
+    shape3 = shape[:3] if (len(shape) == 4 and shape[-1] == 1) else shape
     if len(shape3) != 3 or shape3[1:] != (size, size):
         raise ValueError(f"{name} must have shape [B, {size}, {size}] or [B, {size}, {size}, 1]; "
                          f"received shape {shape}.")
