@@ -2,7 +2,7 @@ r"""`make demo`, the main job: the shipped models against the classical baseline
 
   python -m experiments.demo [--output_dir=demo_output] [--seed=0]
 
-1. checks the geometry conventions against OpenCV (:func:`self_check`);
+1. checks the geometry conventions against OpenCV (:func:`stnh_tf.demo.self_check`);
 2. generates a seeded test set from the photographs bundled with scikit-image and matplotlib
    (the paper's protocol; no download);
 3. evaluates identity, ORB + RANSAC, SIFT + RANSAC and the shipped models (``stnh_tf/weights``:
@@ -14,12 +14,11 @@ r"""`make demo`, the main job: the shipped models against the classical baseline
 
 from __future__ import annotations
 
-import json
-import os
 import sys
-import time
 
 from absl import app, flags
+
+from stnh_tf import demo
 
 flags.DEFINE_string("output_dir", "demo_output", "Where the test set, results.json and the PNG go.")
 flags.DEFINE_integer("seed", 0, "Seed of the test pairs.")
@@ -28,123 +27,9 @@ flags.DEFINE_integer("examples", 4, "Pairs drawn in the figure.")
 FLAGS = flags.FLAGS
 
 
-def self_check(seed: int = 0, num_pairs: int = 8) -> dict:
-    """Normalization, four-point round trip and the STN against OpenCV on a bundled photograph."""
-    import cv2
-    import keras
-    import numpy as np
-    import skimage.data
-
-    from stnh_tf import geometry
-    from stnh_tf.layers import SpatialTransformer
-
-    rng = np.random.default_rng(seed)
-    gray = cv2.resize(cv2.cvtColor(skimage.data.astronaut(), cv2.COLOR_RGB2GRAY), (320, 240))
-    patch = gray[50:178, 120:248].astype(np.float32)
-    corners = geometry.patch_corners().astype(np.float32)
-    h_pix = np.stack([cv2.getPerspectiveTransform(
-        corners, corners + rng.uniform(-32, 32, (4, 2)).astype(np.float32)) for _ in range(num_pairs)])
-    m = geometry.normalization_matrix()
-    h_bar = geometry.normalize_homography(h_pix)
-    ref_bar = m @ h_pix @ np.linalg.inv(m)
-    ref_bar /= ref_bar[:, 2:3, 2:3]
-    out = keras.ops.convert_to_numpy(SpatialTransformer()(
-        [np.repeat(patch[None, ..., None], num_pairs, 0), geometry.matrix_to_vector(h_bar).astype(np.float32)]))
-    stn_diff = max(float(np.abs(out[i, ..., 0] - cv2.warpPerspective(
-        patch, h_pix[i], (128, 128), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)).mean())
-        for i in range(num_pairs))
-    result = {
-        "normalize_max_abs_error": float(np.abs(h_bar - ref_bar).max()),
-        "four_point_round_trip_max_abs_error": float(np.abs(
-            geometry.offsets_to_homography(geometry.homography_to_offsets(h_pix)) - h_pix).max()),
-        "stn_vs_opencv_mean_abs_gray_levels": stn_diff,
-    }
-    result["ok"] = bool(result["normalize_max_abs_error"] < 1e-9
-                        and result["four_point_round_trip_max_abs_error"] < 1e-4
-                        and stn_diff < 0.5)
-    return result
-
-
-def shipped_models() -> dict:
-    """``{name: [stage model paths]}`` of the weights shipped in ``stnh_tf/weights``."""
-    from stnh_tf import model_files
-
-    d = model_files.default_weights_dir()
-    found = {}
-    if os.path.exists(os.path.join(d, "stage1.keras")):
-        found["STN-Homography, 1 stage"] = [os.path.join(d, "stage1.keras")]
-    manifest = os.path.join(d, "default.json")
-    if os.path.exists(manifest):
-        stages = model_files.read_manifest(manifest)
-        if len(stages) > 1:
-            found[f"STN-Homography, {len(stages)}-stage hierarchy"] = stages
-    return found
-
-
-def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, examples: int = 4,
-             printer=print) -> dict:
-    import numpy as np
-
-    from data_prep import stage1
-    from stnh_tf import data, evaluation, figures, geometry, hierarchy, runner
-    from stnh_tf.baselines import FIGURE_BASELINES
-
-    t_start = time.time()
-    os.makedirs(output_dir, exist_ok=True)
-    check = self_check(seed)
-    printer(f"conventions vs OpenCV: {'ok' if check['ok'] else 'FAILED'} "
-            f"(STN mean abs diff {check['stn_vs_opencv_mean_abs_gray_levels']:.3f} gray levels)")
-    data_dir = os.path.join(output_dir, "bundled_test")
-    if not data.has_split(data_dir, "test"):
-        stage1.make_dataset("bundled", data_dir, "test", seed=seed, samples_per_image=samples_per_image,
-                            num_shards=1, num_workers=1, log=lambda *a, **k: None)
-    samples = data.load_arrays(data_dir, "test")
-    n = len(samples["h_ba"])
-    rows = {}
-    base = evaluation.evaluate((), data_dir, "test", tuple(FIGURE_BASELINES))
-    for name, label in FIGURE_BASELINES.items():
-        r = base["baselines"][name]
-        rows[label] = {
-            "mace": r["mace"], "median": r["median"], "failure_rate": r["failure_rate"],
-            "ms_per_pair": r["ms_per_pair"]}
-    predictions = {}
-    models = shipped_models()
-    if not models:
-        printer("no shipped weights in stnh_tf/weights: showing the baselines only")
-    for name, paths in models.items():
-        stages = [runner.predictor(runner.load_model(p)) for p in paths]
-        hierarchy.run_hierarchy(stages, samples["context_a"][:2], samples["patch_b"][:2])  # warm-up
-        t0 = time.perf_counter()
-        run = hierarchy.run_hierarchy(stages, samples["context_a"], samples["patch_b"])
-        ms = 1e3 * (time.perf_counter() - t0) / n
-        errors = geometry.corner_errors(run["h"], samples["h_ba"])
-        rows[name] = {"mace": float(errors.mean()), "median": float(np.median(errors)),
-                      "failure_rate": None, "ms_per_pair": ms}
-        predictions[name] = run["h"]
-    printer(f"\n{n} test pairs from {len(set(samples['image_id']))} bundled photographs (seed {seed}):")
-    printer(f"{'method':<36} {'MACE px':>8} {'median':>8} {'fails':>6} {'ms/pair':>8}")
-    for name, r in rows.items():
-        fails = "-" if r["failure_rate"] is None else f"{100 * r['failure_rate']:.0f}%"
-        printer(f"{name:<36} {r['mace']:8.2f} {r['median']:8.2f} {fails:>6} {r['ms_per_pair']:8.2f}")
-    png = None
-    if predictions:
-        best = min(predictions, key=lambda k: rows[k]["mace"])
-        idx = np.linspace(0, n - 1, min(examples, n)).astype(int)
-        png = figures.prediction_examples(
-            samples["context_a"][idx], samples["patch_b"][idx], samples["h_ba"][idx],
-            predictions[best][idx], os.path.join(output_dir, "prediction_examples.png"),
-            titles=[str(samples["image_id"][i]) for i in idx])
-        printer(f"\nFig. 5-style examples ({best}): {png}")
-    result = {"conventions": check, "num_pairs": n, "seed": seed, "methods": rows, "figure": png,
-              "wall_s": time.time() - t_start}
-    with open(os.path.join(output_dir, "results.json"), "w") as f:
-        json.dump(result, f, indent=2)
-    return result
-
-
 def main(argv):
     del argv
-    result = run_demo(FLAGS.output_dir, FLAGS.seed, FLAGS.samples_per_image, FLAGS.examples)
+    result = demo.run_demo(FLAGS.output_dir, FLAGS.seed, FLAGS.samples_per_image, FLAGS.examples)
     if not result["conventions"]["ok"]:
         sys.exit("demo: a convention check failed (see results.json).")
 

@@ -75,7 +75,7 @@ def test_fig5_draws_truth_in_both_images_and_the_prediction_in_image_a(rng):
 
 
 def test_demo_runs_offline(tmp_path):
-    from experiments import demo
+    from stnh_tf import demo
 
     lines = []
     result = demo.run_demo(str(tmp_path / "out"), seed=0, samples_per_image=1, examples=2,
