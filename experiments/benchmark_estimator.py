@@ -16,6 +16,7 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
+from stnh_tf import benchmarks
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
 flags.DEFINE_enum("compute_dtype", "float32", ["float32", "as_saved"],
@@ -53,7 +54,7 @@ def main(argv):
               "runs": FLAGS.runs, "seed": FLAGS.seed,
               "estimate_batch1_ms": one, "benchmark_d_e_ms": d_e, "ratio": one / d_e,
               f"estimate_batch{n}_ms_per_pair": many / n,
-              "benchmark_l_m_ms": bench["l_m_ms"], "machine": common.machine_info()}
+              "benchmark_l_m_ms": bench["l_m_ms"], "machine": benchmarks.machine_info()}
     common.emit_json(result, FLAGS.json_out)
 
 

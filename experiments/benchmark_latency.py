@@ -24,6 +24,7 @@ import os
 from absl import app, flags
 
 from experiments import common
+from stnh_tf import benchmarks
 
 flags.DEFINE_list("model_dir", [], "Stage model directories (default: untrained models).")
 flags.DEFINE_integer("max_stages", 3, "Measure 1..max_stages stages.")
@@ -56,7 +57,7 @@ def main(argv):
     result = {"benchmark": "latency_batch1", "policy": FLAGS.policy, "runs": FLAGS.runs,
               "seed": FLAGS.seed, "model_dirs": FLAGS.model_dir or "untrained",
               "paper_gpu_ms": {"1": 4.87, "2": 11.46, "3": 17.85},
-              "machine": common.machine_info()}
+              "machine": benchmarks.machine_info()}
     result.update(measure(FLAGS.model_dir, FLAGS.max_stages, FLAGS.runs, FLAGS.warmup, FLAGS.policy,
                           FLAGS.sequence, FLAGS.seed))
     result["machine"]["load_average_at_end"] = os.getloadavg()

@@ -20,13 +20,10 @@ Prints one JSON object.
 
 from __future__ import annotations
 
-import statistics
-import time
-
 from absl import app, flags
 
 from experiments import common
-from stnh_tf import batches, pair_datasets, train_config
+from stnh_tf import benchmarks
 
 flags.DEFINE_list("image_dir", None, "Folders of training images (comma-separated).",
                   required=True)
@@ -44,83 +41,12 @@ flags.DEFINE_string("json_out", None, "Also write the JSON here.")
 FLAGS = flags.FLAGS
 
 
-def _inputs(mode, pair_batches):
-    from stnh_tf import batches, pair_datasets
-
-    common_args = dict(samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed,
-                       photometric=FLAGS.photometric)
-    if mode == "array":
-        return pair_datasets.ArrayStream(batches.materialize(pair_batches, FLAGS.workers),
-                                         pair_batches)
-    return pair_datasets.PairStream(FLAGS.image_dir, FLAGS.batch_size,
-                                    fresh_pairs=mode == "fresh", workers=FLAGS.workers,
-                                    **common_args)
-
-
-def time_fit(mode, pair_batches):
-    import keras
-
-    from stnh_tf import model_kinds, training
-
-    class Ends(keras.callbacks.Callback):
-        def __init__(self):
-            super().__init__()
-            self.times = []
-
-        def on_train_batch_end(self, batch, logs=None):
-            self.times.append(time.perf_counter())
-
-    cfg = train_config.TrainConfig(image_dir=",".join(FLAGS.image_dir), model_dir="-", seed=FLAGS.seed,
-                                   batch_size=FLAGS.batch_size, mixed_precision=FLAGS.mixed_precision)
-    keras.mixed_precision.set_global_policy("mixed_bfloat16" if FLAGS.mixed_precision else "float32")
-    keras.utils.set_random_seed(FLAGS.seed)
-    t0 = time.perf_counter()
-    stream = _inputs(mode, pair_batches)
-    ready_s = time.perf_counter() - t0
-    model = training.compile_model(model_kinds.build_model(cfg), cfg)
-    ends = Ends()
-    n = FLAGS.steps_per_epoch
-    try:
-        model.fit(stream, epochs=FLAGS.epochs + 1, steps_per_epoch=n, callbacks=[ends], verbose=0)
-    finally:
-        if hasattr(stream, "close"):
-            stream.close()
-        keras.mixed_precision.set_global_policy("float32")
-    timed = ends.times[n - 1:]  # from the end of the untimed epoch
-    gaps = [b - a for a, b in zip(timed, timed[1:])]
-    return {"steps_per_s": len(gaps) / (timed[-1] - timed[0]),
-            "step_ms_median": 1e3 * statistics.median(gaps), "step_ms_max": 1e3 * max(gaps),
-            "input_ready_s": ready_s}
-
-
 def main(argv):
     del argv
-    import keras
-
-
-    __import__({"tensorflow": "tensorflow", "jax": "jax"}.get(keras.backend.backend(), "keras"))
-    pair_batches = batches.PairBatches(FLAGS.image_dir, FLAGS.batch_size,
-                                       samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed,
-                               photometric=FLAGS.photometric)
-    result = {"benchmark": "stream", "image_dir": FLAGS.image_dir, "photometric": FLAGS.photometric,
-              "images": len(pair_batches.entries),
-              "workers": FLAGS.workers, "samples_per_image": FLAGS.samples_per_image,
-              "batch_size": FLAGS.batch_size, "seed": FLAGS.seed,
-              "mixed_precision": FLAGS.mixed_precision, "machine": common.machine_info()}
-    result["in_process_ms"] = common.median_ms(
-        lambda: pair_batches.step_batch(1, fresh=True), 10, 1)
-    stream = pair_datasets.PairStream(FLAGS.image_dir, FLAGS.batch_size, workers=FLAGS.workers,
-                             samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed,
-                             fresh_pairs=True, photometric=FLAGS.photometric)
-    try:
-        stream[0]
-        t0 = time.perf_counter()
-        for i in range(1, FLAGS.alone_batches + 1):
-            stream[i]
-        result["alone_batches_per_s"] = FLAGS.alone_batches / (time.perf_counter() - t0)
-    finally:
-        stream.close()
-    result["fit"] = {mode: time_fit(mode, pair_batches) for mode in FLAGS.modes}
+    result = benchmarks.stream_benchmark(
+        FLAGS.image_dir, FLAGS.workers, FLAGS.samples_per_image, FLAGS.batch_size,
+        FLAGS.alone_batches, FLAGS.modes, FLAGS.steps_per_epoch, FLAGS.epochs,
+        FLAGS.mixed_precision, FLAGS.seed, FLAGS.photometric)
     common.emit_json(result, FLAGS.json_out)
 
 

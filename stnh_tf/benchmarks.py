@@ -1,0 +1,367 @@
+"""Benchmarks of the model side, library core of the ``experiments.benchmark_*`` binaries (each
+binary's docstring says what it measures and how to run it), and the description of the machine
+that every benchmark's JSON carries (:func:`machine_info`).
+
+* :func:`training_benchmark`: training-step time of STN-Homography beside the bare regression
+  network, and batch-1 inference latency (``experiments.benchmark_training``);
+* :func:`stn_benchmark`: the SpatialTransformer's forward and forward+backward time against
+  ``cv2.warpPerspective`` (``experiments.benchmark_layers``);
+* :func:`stream_benchmark`: pair generation alone and inside ``model.fit``
+  (``experiments.benchmark_stream``).
+
+Each returns the binary's JSON object as a dict. Deep-learning libraries are imported lazily.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+
+
+def git_commit() -> str | None:
+    """Short commit of the checkout the code runs from (``+dirty`` if modified), or ``None``."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, check=True,
+                                capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               check=True, capture_output=True, text=True).stdout.strip()
+        return commit + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def machine_info() -> dict:
+    """CPU model and count, load average, library versions and visible GPUs (for benchmark JSON).
+
+    Imports nothing heavy that is not already imported (TensorFlow and Keras are reported only if
+    the caller loaded them)."""
+    model = platform.processor()
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), model)
+    except OSError:
+        pass
+    import cv2
+    import numpy as np
+
+    info = {"platform": platform.platform(), "cpu": model or None, "cpu_count": os.cpu_count(),
+            "python": platform.python_version(), "numpy": np.__version__, "opencv": cv2.__version__,
+            "git_commit": git_commit(), "command": " ".join([os.path.basename(sys.executable)] + sys.argv)}
+    if hasattr(os, "getloadavg"):
+        info["loadavg_at_start"] = [round(x, 2) for x in os.getloadavg()]
+    if "tensorflow" in sys.modules:
+        tf = sys.modules["tensorflow"]
+        info["tensorflow"] = tf.__version__
+        info["gpus"] = [d.name for d in tf.config.list_physical_devices("GPU")]
+    if "jax" in sys.modules:
+        jax = sys.modules["jax"]
+        info["jax"] = jax.__version__
+        info["jax_devices"] = [str(d.device_kind) for d in jax.devices()]
+    if "keras" in sys.modules:
+        keras = sys.modules["keras"]
+        info["keras"] = keras.__version__
+        info["keras_backend"] = keras.backend.backend()
+    return info
+
+
+# ------------------------------------------------------------------------------------------------
+# Training step and batch-1 inference latency
+# ------------------------------------------------------------------------------------------------
+def _random_batch(batch_size, seed):
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    x = {"patch_a": rng.uniform(0, 1, (batch_size, 128, 128, 1)).astype("float32"),
+         "patch_b": rng.uniform(0, 1, (batch_size, 128, 128, 1)).astype("float32")}
+    h_bar = np.tile(np.array([1, 0, 0, 0, 1, 0, 0, 0], "float32"), (batch_size, 1))
+    h_bar += rng.normal(0, 0.1, h_bar.shape).astype("float32")
+    y = {"h_bar": h_bar, "patch_a_warp": x["patch_a"]}
+    return x, y
+
+
+class _StepTimer:
+    def __init__(self):
+        import keras
+
+        class Timer(keras.callbacks.Callback):
+            def __init__(s):
+                super().__init__()
+                s.times, s._t = [], None
+
+            def on_train_batch_begin(s, batch, logs=None):
+                s._t = time.perf_counter()
+
+            def on_train_batch_end(s, batch, logs=None):
+                s.times.append(time.perf_counter() - s._t)
+
+        self.cb = Timer()
+
+
+def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
+    """Median seconds per training step of ``kind`` ("stn" or "bare")."""
+    import keras
+    import tensorflow as tf
+
+    from stnh_tf import model_kinds, train_config, training
+
+    keras.mixed_precision.set_global_policy(policy)
+    keras.utils.set_random_seed(seed)
+    try:
+        cfg = train_config.TrainConfig(data_dir="-", model_dir="-", train_steps=10_000, warmup_steps=100)
+        model = model_kinds.build_model(cfg)
+        x, y = _random_batch(batch_size, seed)
+        if kind == "bare":
+            reg = model.get_layer("regression")
+            model = reg
+            x = tf.concat([x["patch_a"], x["patch_b"]], axis=-1)
+            y = y["h_bar"]
+            from stnh_tf import losses
+
+            model.compile(optimizer=keras.optimizers.SGD(training.learning_rate_schedule(cfg), momentum=0.9),
+                          loss=losses.h_bar_l2, jit_compile=jit)
+        else:
+            training.compile_model(model, cfg)
+            model.jit_compile = jit
+        ds = tf.data.Dataset.from_tensors((x, y)).repeat()
+        timer = _StepTimer().cb
+        model.fit(ds, steps_per_epoch=warmup + steps, epochs=1, verbose=0, callbacks=[timer])
+        return statistics.median(timer.times[warmup:])
+    finally:
+        keras.mixed_precision.set_global_policy("float32")
+
+
+def time_latency(runs, seed):
+    """Median ms of one batch-1 forward pass of the full model (float32, inference mode)."""
+    import keras
+    import numpy as np
+    import tensorflow as tf
+
+    from stnh_tf import models
+
+    keras.utils.set_random_seed(seed)
+    model = models.build_stn_homography()
+    x, _ = _random_batch(1, seed)
+    fn = tf.function(lambda a, b: model({"patch_a": a, "patch_b": b}, training=False)["h_bar"])
+    a, b = tf.constant(x["patch_a"]), tf.constant(x["patch_b"])
+    for _ in range(20):
+        fn(a, b).numpy()
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        fn(a, b).numpy()
+        times.append(time.perf_counter() - t0)
+    return {"median_ms": 1e3 * statistics.median(times), "p90_ms": 1e3 * float(np.percentile(times, 90)),
+            "runs": runs}
+
+
+def training_benchmark(batch_size=64, steps=20, warmup=3, policies=("float32", "mixed_bfloat16"),
+                       jit=False, latency_runs=200, seed=0) -> dict:
+    """Training-step seconds of the full model (``stn``) and the bare regression network with the
+    L2 loss (``bare``) per policy (and ``jit_compile`` when ``jit``), then batch-1 latency."""
+    import tensorflow as tf  # noqa: F401  (loaded first, so machine_info reports it)
+
+    result = {"benchmark": "training_step", "batch_size": batch_size, "steps": steps,
+              "seed": seed,
+              "machine": machine_info(),
+              "train_step_s": {}}
+    for policy in policies:
+        for jit_compile in ([False, True] if jit else [False]):
+            key = policy + ("_jit" if jit_compile else "")
+            stn = time_training("stn", policy, jit_compile, batch_size, steps, warmup, seed)
+            bare = time_training("bare", policy, jit_compile, batch_size, steps, warmup, seed)
+            result["train_step_s"][key] = {
+                "stn_homography": stn, "bare_regression": bare,
+                "stn_and_losses_share": (stn - bare) / stn,
+                "samples_per_s": batch_size / stn}
+    result["inference_batch1"] = time_latency(latency_runs, seed)
+    result["machine"]["load_average_at_end"] = os.getloadavg()
+    return result
+
+
+# ------------------------------------------------------------------------------------------------
+# The SpatialTransformer against OpenCV
+# ------------------------------------------------------------------------------------------------
+def stn_inputs(batch_size: int, size: int, seed: int):
+    """Grayscale photograph patches ``[B, S, S, 1]`` (float32, 0..255) and ``H_bar`` ``[B, 8]``."""
+    import cv2
+    import numpy as np
+    import skimage.data
+
+    from stnh_tf import geometry
+
+    rng = np.random.default_rng(seed)
+    photos = [skimage.data.camera(), skimage.data.astronaut(), skimage.data.coffee(),
+              skimage.data.chelsea(), skimage.data.rocket()]
+    photos = [cv2.resize(p if p.ndim == 2 else cv2.cvtColor(p, cv2.COLOR_RGB2GRAY), (320, 240))
+              for p in photos]
+    patches, h_bars, h_pix = [], [], []
+    rho = 32.0 * size / 128.0
+    for i in range(batch_size):
+        photo = photos[i % len(photos)]
+        y0 = rng.integers(0, photo.shape[0] - size + 1)
+        x0 = rng.integers(0, photo.shape[1] - size + 1)
+        patches.append(photo[y0:y0 + size, x0:x0 + size])
+        h = geometry.offsets_to_homography(rng.uniform(-rho, rho, size=(4, 2)), size)
+        h_pix.append(h)
+        h_bars.append(geometry.matrix_to_vector(geometry.normalize_homography(h, size, size)))
+    images = np.stack(patches).astype(np.float32)[..., None]
+    return images, np.stack(h_bars).astype(np.float32), np.stack(h_pix)
+
+
+def stn_benchmark(batch_size=64, size=128, iterations=30, warmup=3, seed=0, jit_modes=(False,)):
+    """Runs every measurement of ``experiments.benchmark_layers`` and returns the result dict."""
+    import cv2
+    import numpy as np
+    import tensorflow as tf
+
+    from stnh_tf.evaluation import median_ms
+    from stnh_tf.layers import SpatialTransformer
+
+    images_np, h_np, h_pix = stn_inputs(batch_size, size, seed)
+    images, h_bar = tf.constant(images_np), tf.constant(h_np)
+    weights = tf.constant(np.random.default_rng(seed + 1).normal(
+        size=images_np.shape).astype(np.float32))
+    layer = SpatialTransformer()
+
+    result = {
+        "benchmark": "stn_layers",
+        "batch_size": batch_size, "size": size, "channels": 1,
+        "iterations": iterations, "warmup": warmup, "seed": seed,
+        "machine": machine_info(),
+        "stn": {},
+    }
+
+    for jit in jit_modes:
+        @tf.function(jit_compile=jit)
+        def forward(img, h):
+            return layer([img, h])
+
+        @tf.function(jit_compile=jit)
+        def forward_backward(img, h):
+            with tf.GradientTape() as tape:
+                tape.watch([img, h])
+                loss = tf.reduce_sum(layer([img, h]) * weights)
+            return tape.gradient(loss, [img, h])
+
+        key = "jit" if jit else "no_jit"
+        result["stn"][key] = {
+            "forward_ms": median_ms(lambda: forward(images, h_bar).numpy(), iterations, warmup),
+            "forward_backward_ms": median_ms(
+                lambda: [g.numpy() for g in forward_backward(images, h_bar)], iterations, warmup),
+        }
+        # Sanity: the timed function computes the OpenCV warp (mean |diff| on this batch).
+        out = forward(images, h_bar).numpy()
+        ref = np.stack([cv2.warpPerspective(images_np[i, ..., 0], h_pix[i], (size, size),
+                                            flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+                        for i in range(batch_size)])
+        result["stn"][key]["mean_abs_diff_vs_cv2_all_pixels"] = float(np.abs(out[..., 0] - ref).mean())
+
+    def cv2_loop():
+        for i in range(batch_size):
+            cv2.warpPerspective(images_np[i, ..., 0], h_pix[i], (size, size),
+                                flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+
+    result["cv2_loop_forward_ms"] = median_ms(cv2_loop, iterations, warmup)
+    if "jit" in result["stn"] and "no_jit" in result["stn"]:
+        nj, j = result["stn"]["no_jit"], result["stn"]["jit"]
+        result["jit_speedup"] = {
+            "forward": nj["forward_ms"] / j["forward_ms"],
+            "forward_backward": nj["forward_backward_ms"] / j["forward_backward_ms"],
+        }
+    return result
+
+
+# ------------------------------------------------------------------------------------------------
+# Pair generation alone and inside model.fit
+# ------------------------------------------------------------------------------------------------
+def _fit_inputs(mode, pair_batches, image_dir, batch_size, workers, samples_per_image, seed,
+                photometric):
+    from stnh_tf import batches, pair_datasets
+
+    common_args = dict(samples_per_image=samples_per_image, seed=seed, photometric=photometric)
+    if mode == "array":
+        return pair_datasets.ArrayStream(batches.materialize(pair_batches, workers), pair_batches)
+    return pair_datasets.PairStream(image_dir, batch_size, fresh_pairs=mode == "fresh",
+                                    workers=workers, **common_args)
+
+
+def time_fit(mode, pair_batches, image_dir, batch_size=64, workers=2, samples_per_image=100,
+             steps_per_epoch=50, epochs=3, mixed_precision=True, seed=0, photometric=False) -> dict:
+    """Steps per second of ``model.fit`` fed by ``mode`` (``array``, ``stream`` or ``fresh``)
+    over ``epochs`` epochs after an untimed one, and the median and longest step."""
+    import keras
+
+    from stnh_tf import model_kinds, train_config, training
+
+    class Ends(keras.callbacks.Callback):
+        def __init__(self):
+            super().__init__()
+            self.times = []
+
+        def on_train_batch_end(self, batch, logs=None):
+            self.times.append(time.perf_counter())
+
+    cfg = train_config.TrainConfig(image_dir=",".join(image_dir), model_dir="-", seed=seed,
+                                   batch_size=batch_size, mixed_precision=mixed_precision)
+    keras.mixed_precision.set_global_policy("mixed_bfloat16" if mixed_precision else "float32")
+    keras.utils.set_random_seed(seed)
+    t0 = time.perf_counter()
+    stream = _fit_inputs(mode, pair_batches, image_dir, batch_size, workers, samples_per_image,
+                         seed, photometric)
+    ready_s = time.perf_counter() - t0
+    model = training.compile_model(model_kinds.build_model(cfg), cfg)
+    ends = Ends()
+    n = steps_per_epoch
+    try:
+        model.fit(stream, epochs=epochs + 1, steps_per_epoch=n, callbacks=[ends], verbose=0)
+    finally:
+        if hasattr(stream, "close"):
+            stream.close()
+        keras.mixed_precision.set_global_policy("float32")
+    timed = ends.times[n - 1:]  # from the end of the untimed epoch
+    gaps = [b - a for a, b in zip(timed, timed[1:])]
+    return {"steps_per_s": len(gaps) / (timed[-1] - timed[0]),
+            "step_ms_median": 1e3 * statistics.median(gaps), "step_ms_max": 1e3 * max(gaps),
+            "input_ready_s": ready_s}
+
+
+def stream_benchmark(image_dir, workers=2, samples_per_image=100, batch_size=64,
+                     alone_batches=100, modes=("array", "stream", "fresh"), steps_per_epoch=50,
+                     epochs=3, mixed_precision=True, seed=0, photometric=False) -> dict:
+    """Runs every measurement of ``experiments.benchmark_stream`` (``image_dir``: a list of
+    folders) on the current Keras backend and returns the result dict."""
+    import keras
+
+    from stnh_tf import batches, pair_datasets
+    from stnh_tf.evaluation import median_ms
+
+    __import__({"tensorflow": "tensorflow", "jax": "jax"}.get(keras.backend.backend(), "keras"))
+    pair_batches = batches.PairBatches(image_dir, batch_size, samples_per_image=samples_per_image,
+                                       seed=seed, photometric=photometric)
+    result = {"benchmark": "stream", "image_dir": image_dir, "photometric": photometric,
+              "images": len(pair_batches.entries),
+              "workers": workers, "samples_per_image": samples_per_image,
+              "batch_size": batch_size, "seed": seed,
+              "mixed_precision": mixed_precision, "machine": machine_info()}
+    result["in_process_ms"] = median_ms(lambda: pair_batches.step_batch(1, fresh=True), 10, 1)
+    stream = pair_datasets.PairStream(image_dir, batch_size, workers=workers,
+                                      samples_per_image=samples_per_image, seed=seed,
+                                      fresh_pairs=True, photometric=photometric)
+    try:
+        stream[0]
+        t0 = time.perf_counter()
+        for i in range(1, alone_batches + 1):
+            stream[i]
+        result["alone_batches_per_s"] = alone_batches / (time.perf_counter() - t0)
+    finally:
+        stream.close()
+    result["fit"] = {mode: time_fit(mode, pair_batches, image_dir, batch_size, workers,
+                                    samples_per_image, steps_per_epoch, epochs, mixed_precision,
+                                    seed, photometric)
+                     for mode in modes}
+    return result
