@@ -15,17 +15,9 @@ Goals on the 2-core development machine: generation >= 1,000 samples/s, reading 
 
 from __future__ import annotations
 
-import functools
-import hashlib
-import os
-import shlex
-import shutil
-import sys
-import tempfile
-import time
-
 from absl import app, flags
 
+from data_prep import benchmark
 from experiments import common
 
 flags.DEFINE_enum("source", "bundled", ["bundled", "folder"], "Image source.")
@@ -44,92 +36,12 @@ flags.DEFINE_string("json_out", None, "Also write the JSON here.")
 FLAGS = flags.FLAGS
 
 
-def _items(source, image_dir, max_images, repeat, samples_per_image=3):
-    from data_prep import stage1, writer
-
-    if source == "folder":
-        base, _, _ = stage1.folder_items(image_dir, max_images)
-    else:
-        base, _, _ = stage1.bundled_items(max_images)
-    if repeat <= 0:
-        repeat = max(1, -(-1500 // (len(base) * samples_per_image)))
-    items = [writer.WorkItem(r * len(base) + it.index, f"{it.item_id}#{r}", it.payload)
-             for r in range(repeat) for it in base]
-    return items, repeat
-
-
 def main(argv):
     del argv
-    from data_prep import writer
-    from stnh_tf import pairs, sources
-
-    sources.quiet_opencv()
-    items, repeat = _items(FLAGS.source, FLAGS.image_dir, FLAGS.max_images, FLAGS.repeat)
-    worker_fn = functools.partial(pairs.generate_item_samples, seed=FLAGS.seed,
-                                  protocol=pairs.Protocol())
-    result = {
-        "benchmark": "data generation and tf.data reading",
-        "command": " ".join(shlex.quote(a) for a in getattr(sys, "orig_argv", sys.argv)),
-        "machine": common.machine_info(), "seed": FLAGS.seed, "source": FLAGS.source,
-        "image_dir": FLAGS.image_dir, "num_images": len(items) // repeat, "repeat": repeat,
-        "num_items": len(items), "generation": [],
-    }
-    import tensorflow as tf  # imported up front so its start-up is not in the timings
-
-    result["machine"]["tensorflow"] = tf.__version__
-    root = tempfile.mkdtemp(prefix="stnh-bench-")
-    digests = {}
-    try:
-        for w in [int(x) for x in FLAGS.workers]:
-            out = os.path.join(root, f"w{w}")
-            t0 = time.perf_counter()
-            sec = writer.write_sharded(out, "train", items, worker_fn, num_shards=FLAGS.num_shards,
-                                       num_workers=w, top_metadata={"stage": 1},
-                                       log=lambda m: None)
-            wall = time.perf_counter() - t0
-            h = hashlib.sha256()
-            for s in sec["shards"]:
-                with open(os.path.join(out, s["file"]), "rb") as f:
-                    h.update(f.read())
-            digests[w] = h.hexdigest()
-            result["generation"].append({
-                "num_workers": w, "num_samples": sec["num_samples"],
-                "samples_per_s": round(sec["num_samples"] / wall, 1), "wall_s": round(wall, 3),
-                "bytes_per_sample": sec["bytes_per_sample"]})
-        result["shards_identical_across_worker_counts"] = len(set(digests.values())) == 1
-
-        from stnh_tf import data
-
-        read_dir = os.path.join(root, f"w{int(FLAGS.workers[0])}")
-        ds = data.load_split(read_dir, "train", FLAGS.batch_size, shuffle=True, seed=0)
-        it = iter(ds)
-        for _ in range(10):
-            next(it)
-        t0 = time.perf_counter()
-        for _ in range(FLAGS.read_batches):
-            x, y, w = next(it)
-        float(x["patch_a"][0, 0, 0, 0])  # make sure the last batch is materialized
-        dt = time.perf_counter() - t0
-        result["reading"] = {"batch_size": FLAGS.batch_size, "batches": FLAGS.read_batches,
-                             "samples_per_s": round(FLAGS.read_batches * FLAGS.batch_size / dt, 1),
-                             "wall_s": round(dt, 3),
-                             "pipeline": "load_split(shuffle=True, repeat=True), 8 shards"}
-        n = FLAGS.resume_skip_batches
-        if n > 0:
-            first = {}
-            for where in ("skip_before_parse", "skip_after_parse"):
-                t0 = time.perf_counter()
-                if where == "skip_before_parse":
-                    ds = data.load_split(read_dir, "train", FLAGS.batch_size, seed=0, skip_batches=n)
-                else:
-                    ds = data.load_split(read_dir, "train", FLAGS.batch_size, seed=0).skip(n)
-                x, _, _ = next(iter(ds))
-                float(x["patch_a"][0, 0, 0, 0])
-                first[where] = round(time.perf_counter() - t0, 3)
-            result["resume_skip"] = {"skip_batches": n, "batch_size": FLAGS.batch_size,
-                                     "seconds_to_first_batch": first}
-    finally:
-        shutil.rmtree(root, ignore_errors=True)
+    result = benchmark.data_benchmark(
+        FLAGS.source, FLAGS.image_dir, FLAGS.max_images, FLAGS.repeat, FLAGS.workers,
+        FLAGS.num_shards, FLAGS.batch_size, FLAGS.read_batches, FLAGS.resume_skip_batches,
+        FLAGS.seed)
     common.emit_json(result, FLAGS.json_out)
 
 
