@@ -209,6 +209,18 @@ def make_pair(image_a: np.ndarray, params: PairParams, protocol: Protocol = Prot
     }
 
 
+
+def make_pair_arrays(images, num_pairs: int, seed: int):
+    """``num_pairs`` pairs made in memory: uint8 ``patches_a``, ``patches_b`` ``[N, 128, 128]`` and
+    pixel ``H_ba`` ``[N, 3, 3]`` (patch_b -> patch_a). Image ``i % len(images)`` is used for pair
+    ``i``; one seeded generator draws them all (one square per draw)."""
+    rng = np.random.default_rng(seed)
+    one = Protocol(samples_per_image=1)
+    samples = [make_pair(images[i % len(images)], draw_params(rng, one)[0], one)
+               for i in range(num_pairs)]
+    return (np.stack([s["patch_a"] for s in samples]), np.stack([s["patch_b"] for s in samples]),
+            np.stack([s["h_ba"] for s in samples]))
+
 def make_image_samples(image_a: np.ndarray, seed: int, image_index: int, image_id: str,
                        protocol: Protocol = Protocol()) -> list:
     """Every stage-1 sample of one image, as dicts ready for ``features.serialize_example``.

@@ -203,6 +203,26 @@ def bundled_images() -> list:
     return [(i, load_gray_320x240(p)) for i, p in bundled_image_files()]
 
 
+def load_gray_images(image_dir=None) -> list:
+    """uint8 ``[240, 320]`` grayscale images (:func:`load_gray_320x240`): every image file below
+    ``image_dir`` (sorted; unreadable files skipped) or, without it, the bundled photographs.
+
+    Raises:
+      ValueError: no readable image in ``image_dir``.
+    """
+    if not image_dir:
+        return [img for _, img in bundled_images()]
+    images = []
+    for path in list_image_files(image_dir):
+        try:
+            images.append(load_gray_320x240(path))
+        except (ImageDecodeError, OSError):
+            pass
+    if not images:
+        raise ValueError(f"no readable images in {image_dir}.")
+    return images
+
+
 # ------------------------------------------------------------------------------------------------
 # Decoding
 # ------------------------------------------------------------------------------------------------
