@@ -18,11 +18,10 @@ re-computes only the bundled check of the weights already shipped (after a chang
 from __future__ import annotations
 
 import json
-import os
 
 from absl import app, flags
 
-from stnh_tf.paths import atomic_write_json
+from stnh_tf import shipped_weights
 
 flags.DEFINE_list("model_dir", None, "Trained stage model directories, in stage order.")
 flags.DEFINE_string("eval_json", None, "experiments.evaluate output to record in the card.")
@@ -32,94 +31,17 @@ flags.DEFINE_bool("refresh_check", False, "Only re-compute the bundled check of 
 FLAGS = flags.FLAGS
 
 
-def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
-    from stnh_tf import model_files, runner
-
-    weights_dir = weights_dir or model_files.default_weights_dir()
-    os.makedirs(weights_dir, exist_ok=True)
-    card = {"stages": []}
-    names = []
-    for k, d in enumerate(model_dirs, start=1):
-        model = runner.load_model(d)  # compile=False: no optimizer state is saved
-        name = f"stage{k}.keras"
-        model.save(os.path.join(weights_dir, name))
-        names.append(os.path.join(weights_dir, name))
-        entry = {"file": name, "source": os.path.abspath(d)}
-        for extra in ("config.json", "result.json"):
-            path = os.path.join(d, extra)
-            if os.path.exists(path):
-                with open(path) as f:
-                    doc = json.load(f)
-                entry[extra[:-5]] = ({k: v for k, v in doc.items() if k != "history"}
-                                     if extra == "result.json" else doc)
-        card["stages"].append(entry)
-    model_files.write_manifest(os.path.join(weights_dir, "default.json"), names,
-                               description=f"{len(names)}-stage hierarchy shipped with stnh-tf")
-    if eval_json:
-        with open(eval_json) as f:
-            card["evaluation"] = json.load(f)
-    card["bundled_check"] = bundled_check(names)
-    atomic_write_json(os.path.join(weights_dir, "model_card.json"), card)
-    return card
-
-
-BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_image": 3,
-                 "compute_dtype": "float32"}
-
-
-def bundled_check(stage_paths) -> dict:
-    """MACE of ``HomographyEstimator.estimate`` with the first k shipped stages, k = 1..n, on the
-    seeded bundled test pairs (:data:`BUNDLED_CHECK`; stages loaded with its ``compute_dtype``,
-    the estimator's default): the numbers the shipped weights must keep reproducing
-    (``tests/test_shipped_weights.py``)."""
-    import tempfile
-
-    import numpy as np
-
-    from data_prep import stage1
-    from stnh_tf import data, geometry
-    from stnh_tf.inference import HomographyEstimator
-
-    with tempfile.TemporaryDirectory() as tmp:
-        stage1.make_dataset("bundled", tmp, "test", seed=BUNDLED_CHECK["seed"],
-                            samples_per_image=BUNDLED_CHECK["samples_per_image"], num_shards=1,
-                            log=lambda *a, **k: None)
-        arrays = data.load_arrays(tmp, "test")
-    out = dict(BUNDLED_CHECK, count=int(len(arrays["h_ba"])),
-               identity_mace=float(geometry.mean_corner_error(
-                   np.broadcast_to(np.eye(3), arrays["h_ba"].shape), arrays["h_ba"])))
-    stages = [HomographyEstimator.load(p, compute_dtype=BUNDLED_CHECK["compute_dtype"]).stages[0]
-              for p in stage_paths]
-    for k in range(1, len(stages) + 1):
-        h = HomographyEstimator(stages[:k]).estimate(arrays["patch_a"], arrays["patch_b"])
-        out[f"estimate_mace_{k}_stages"] = float(geometry.mean_corner_error(h, arrays["h_ba"]))
-    return out
-
-
-def refresh_check(weights_dir=None) -> dict:
-    """Re-compute ``bundled_check`` in the model card of already shipped weights."""
-    from stnh_tf import model_files
-
-    weights_dir = weights_dir or model_files.default_weights_dir()
-    path = os.path.join(weights_dir, "model_card.json")
-    with open(path) as f:
-        card = json.load(f)
-    card["bundled_check"] = bundled_check([os.path.join(weights_dir, s["file"])
-                                           for s in card["stages"]])
-    atomic_write_json(path, card)
-    return card
-
-
 def main(argv):
     del argv
     if FLAGS.refresh_check:
         if FLAGS.model_dir or FLAGS.eval_json:
             raise app.UsageError("--refresh_check takes neither --model_dir nor --eval_json.")
-        print(json.dumps({"bundled_check": refresh_check(FLAGS.weights_dir)["bundled_check"]}))
+        card = shipped_weights.refresh_check(FLAGS.weights_dir)
+        print(json.dumps({"bundled_check": card["bundled_check"]}))
         return
     if not FLAGS.model_dir:
         raise app.UsageError("--model_dir is required (or --refresh_check).")
-    card = ship(FLAGS.model_dir, FLAGS.weights_dir, FLAGS.eval_json)
+    card = shipped_weights.ship(FLAGS.model_dir, FLAGS.weights_dir, FLAGS.eval_json)
     print(json.dumps({"shipped": [s["file"] for s in card["stages"]]}))
 
 

@@ -15,7 +15,7 @@ import pytest
 
 from conftest import keras_policy, to_bar
 from data_prep import stage1
-from experiments import ship_weights
+from stnh_tf import shipped_weights
 from stnh_tf import data, inference, models
 
 S = 128
@@ -47,7 +47,7 @@ def _mace_numpy(h, h_true):
 
 @pytest.fixture(scope="module")
 def bundled_h_ba(tmp_path_factory):
-    c = ship_weights.BUNDLED_CHECK
+    c = shipped_weights.BUNDLED_CHECK
     d = str(tmp_path_factory.mktemp("bundled"))
     stage1.make_dataset(c["source"], d, c["split"], seed=c["seed"],
                         samples_per_image=c["samples_per_image"], num_shards=1,
@@ -60,7 +60,7 @@ def test_ship_and_refresh_check(tmp_path, bundled_h_ba):
     _constant_run(tmp_path / "s1", h, mixed=True)
     _constant_run(tmp_path / "s2", np.eye(3), mixed=False)
     out = tmp_path / "weights"
-    card = ship_weights.ship([str(tmp_path / "s1"), str(tmp_path / "s2")], str(out))
+    card = shipped_weights.ship([str(tmp_path / "s1"), str(tmp_path / "s2")], str(out))
 
     assert sorted(os.listdir(out)) == ["default.json", "model_card.json", "stage1.keras", "stage2.keras"]
     assert [s["file"] for s in card["stages"]] == ["stage1.keras", "stage2.keras"]
@@ -84,7 +84,7 @@ def test_ship_and_refresh_check(tmp_path, bundled_h_ba):
     stale["note"] = "kept"
     with open(out / "model_card.json", "w") as f:
         json.dump(stale, f)
-    refreshed = ship_weights.refresh_check(str(out))
+    refreshed = shipped_weights.refresh_check(str(out))
     assert refreshed["note"] == "kept"
     for key, value in check.items():
         assert refreshed["bundled_check"][key] == (

@@ -1,0 +1,95 @@
+"""Trained stage models copied into the package as its shipped weights, with a model card
+(library core of ``experiments.ship_weights``, whose docstring lists the files written).
+
+:func:`ship` writes ``stage{k}.keras`` (weights and architecture only), the manifest
+``default.json`` and ``model_card.json``; :func:`bundled_check` is the card's check that
+``tests/test_shipped_weights.py`` re-computes, and :func:`refresh_check` re-records it for
+weights already shipped.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+from stnh_tf.paths import atomic_write_json
+
+
+def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
+    """Copy the trained stages ``model_dirs`` (in order) into ``weights_dir`` (default: the
+    package's ``stnh_tf/weights``) with the manifest and the model card; returns the card."""
+    from stnh_tf import model_files, runner
+
+    weights_dir = weights_dir or model_files.default_weights_dir()
+    os.makedirs(weights_dir, exist_ok=True)
+    card = {"stages": []}
+    names = []
+    for k, d in enumerate(model_dirs, start=1):
+        model = runner.load_model(d)  # compile=False: no optimizer state is saved
+        name = f"stage{k}.keras"
+        model.save(os.path.join(weights_dir, name))
+        names.append(os.path.join(weights_dir, name))
+        entry = {"file": name, "source": os.path.abspath(d)}
+        for extra in ("config.json", "result.json"):
+            path = os.path.join(d, extra)
+            if os.path.exists(path):
+                with open(path) as f:
+                    doc = json.load(f)
+                entry[extra[:-5]] = ({k: v for k, v in doc.items() if k != "history"}
+                                     if extra == "result.json" else doc)
+        card["stages"].append(entry)
+    model_files.write_manifest(os.path.join(weights_dir, "default.json"), names,
+                               description=f"{len(names)}-stage hierarchy shipped with stnh-tf")
+    if eval_json:
+        with open(eval_json) as f:
+            card["evaluation"] = json.load(f)
+    card["bundled_check"] = bundled_check(names)
+    atomic_write_json(os.path.join(weights_dir, "model_card.json"), card)
+    return card
+
+
+BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_image": 3,
+                 "compute_dtype": "float32"}
+
+
+def bundled_check(stage_paths) -> dict:
+    """MACE of ``HomographyEstimator.estimate`` with the first k shipped stages, k = 1..n, on the
+    seeded bundled test pairs (:data:`BUNDLED_CHECK`; stages loaded with its ``compute_dtype``,
+    the estimator's default): the numbers the shipped weights must keep reproducing
+    (``tests/test_shipped_weights.py``)."""
+    import tempfile
+
+    import numpy as np
+
+    from data_prep import stage1
+    from stnh_tf import data, geometry
+    from stnh_tf.inference import HomographyEstimator
+
+    with tempfile.TemporaryDirectory() as tmp:
+        stage1.make_dataset("bundled", tmp, "test", seed=BUNDLED_CHECK["seed"],
+                            samples_per_image=BUNDLED_CHECK["samples_per_image"], num_shards=1,
+                            log=lambda *a, **k: None)
+        arrays = data.load_arrays(tmp, "test")
+    out = dict(BUNDLED_CHECK, count=int(len(arrays["h_ba"])),
+               identity_mace=float(geometry.mean_corner_error(
+                   np.broadcast_to(np.eye(3), arrays["h_ba"].shape), arrays["h_ba"])))
+    stages = [HomographyEstimator.load(p, compute_dtype=BUNDLED_CHECK["compute_dtype"]).stages[0]
+              for p in stage_paths]
+    for k in range(1, len(stages) + 1):
+        h = HomographyEstimator(stages[:k]).estimate(arrays["patch_a"], arrays["patch_b"])
+        out[f"estimate_mace_{k}_stages"] = float(geometry.mean_corner_error(h, arrays["h_ba"]))
+    return out
+
+
+def refresh_check(weights_dir=None) -> dict:
+    """Re-compute ``bundled_check`` in the model card of already shipped weights."""
+    from stnh_tf import model_files
+
+    weights_dir = weights_dir or model_files.default_weights_dir()
+    path = os.path.join(weights_dir, "model_card.json")
+    with open(path) as f:
+        card = json.load(f)
+    card["bundled_check"] = bundled_check([os.path.join(weights_dir, s["file"])
+                                           for s in card["stages"]])
+    atomic_write_json(path, card)
+    return card
