@@ -17,9 +17,9 @@ import os
 import re
 from typing import Optional
 
+from stnh_tf.data import METADATA_FILE
 from stnh_tf.paths import atomic_write_json, read_json
 
-METADATA_FILE = "metadata.json"
 LOCK_FILE = ".metadata.lock"
 
 
