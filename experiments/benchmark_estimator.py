@@ -31,30 +31,10 @@ FLAGS = flags.FLAGS
 
 def main(argv):
     del argv
-    import numpy as np
     import tensorflow as tf  # noqa: F401  (loaded first, so machine_info reports it)
 
-    from stnh_tf import evaluation, inference, model_files, runner
-
-    dtype = None if FLAGS.compute_dtype == "as_saved" else "float32"
-    estimator = inference.HomographyEstimator.load(FLAGS.model, compute_dtype=dtype)
-    rng = np.random.default_rng(FLAGS.seed)
-    n = FLAGS.large_batch
-    a, b = (rng.integers(0, 256, (n, 128, 128), dtype=np.uint8) for _ in range(2))
-    one = evaluation.median_ms(lambda: estimator.estimate(a[0], b[0]), FLAGS.runs, FLAGS.warmup)
-    many = evaluation.median_ms(lambda: estimator.estimate(a, b, batch_size=n),
-                                max(FLAGS.runs // 10, 3), 1)
-    stages = model_files.resolve_model_paths(FLAGS.model)
-    bench = evaluation.latency(stages, max_stages=len(stages), runs=FLAGS.runs,
-                               warmup=FLAGS.warmup, sequence=False, seed=FLAGS.seed,
-                               compute_dtype=dtype)
-    d_e = bench["hierarchy"][str(len(stages))]["d_e_ms"]
-    result = {"benchmark": "estimator_vs_latency", "model": estimator.source,
-              "stages": len(stages), "policy": runner.compute_policy(estimator.stages[0]),
-              "runs": FLAGS.runs, "seed": FLAGS.seed,
-              "estimate_batch1_ms": one, "benchmark_d_e_ms": d_e, "ratio": one / d_e,
-              f"estimate_batch{n}_ms_per_pair": many / n,
-              "benchmark_l_m_ms": bench["l_m_ms"], "machine": benchmarks.machine_info()}
+    result = benchmarks.estimator_benchmark(FLAGS.model, FLAGS.compute_dtype, FLAGS.runs,
+                                            FLAGS.warmup, FLAGS.large_batch, FLAGS.seed)
     common.emit_json(result, FLAGS.json_out)
 
 
