@@ -113,8 +113,9 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         warn(f"the estimate is implausible for this model (a patch corner "
              f"moved {info['max_corner_shift_px'][0]:.1f} px at 128-px patch scale, the models "
              f"were trained on up to 32 px; {int(info['rejected_stages'][0])} stage(s) skipped "
-             "as degenerate): the images may not overlap enough, or differ in ways the model "
-             "was not trained on.")
+             f"as degenerate; image_a warped onto image_b correlates "
+             f"{info['alignment_ncc'][0]:.2f} with it at the central patch): the images may not "
+             "overlap enough, or differ in ways the model was not trained on.")
     panels, quad = overlay(image_a, image_b, h)
 
     inputs = [os.path.realpath(image_a_path), os.path.realpath(image_b_path)]
@@ -136,6 +137,8 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         "input_paths": inputs,
         "implausible": implausible,
         "max_corner_shift_px": float(info["max_corner_shift_px"][0]),
+        "alignment_ncc": (float(info["alignment_ncc"][0])
+                          if np.isfinite(info["alignment_ncc"][0]) else None),
     }
     with open(os.path.join(output_dir, f"{stem}_homography.json"), "w") as f:
         json.dump(result, f, indent=2)

@@ -33,6 +33,11 @@ estimate non-finite or singular (``|det| < 1e-6``, or a patch corner mapped to `
 skipped: the estimate so far is kept (the identity if it is the first stage), a warning is logged,
 and :attr:`HomographyEstimator.last_rejected` counts the skipped predictions of the last call by
 reason. (The context bound of the hierarchy does not apply: there is no stored context to leave.)
+
+Implausible estimates. :attr:`HomographyEstimator.last_info` flags, per pair, an estimate that
+moves a patch corner beyond the trained range, needed a skipped stage, or leaves patch_a warped
+onto patch_b poorly correlated with it (:func:`alignment_ncc`): the images may not overlap, or
+differ in ways the model was not trained on.
 """
 
 from __future__ import annotations
@@ -53,6 +58,14 @@ IMPLAUSIBLE_CORNER_SHIFT = 1.5 * geometry.MAX_PERTURBATION
 """Corner displacement (px, 128 x 128 patch frame) beyond which an estimate is flagged as
 implausible: the models were trained on corners moved by up to 32 px."""
 
+MIN_ALIGNMENT_NCC = 0.15
+"""Normalized cross-correlation between patch_b and patch_a warped by the estimate below which the
+estimate is flagged as implausible: it does not explain the pair (:func:`alignment_ncc`)."""
+
+MIN_OVERLAP = 0.25
+"""Fraction of patch_b's pixels whose estimated position must lie inside patch_a's source for
+:func:`alignment_ncc` to be defined."""
+
 _log = logging.getLogger(__name__)
 
 
@@ -65,6 +78,39 @@ def corner_shift(a_from_b) -> np.ndarray:
         moved = geometry.warp_points(np.asarray(a_from_b, np.float64), corners)
         shift = np.linalg.norm(moved - corners, axis=-1).max(axis=-1)
     return np.where(np.isfinite(shift), shift, np.inf)
+
+
+def alignment_ncc(source_a, patch_b, a_from_b, origin=(0, 0)) -> float:
+    """Normalized cross-correlation between ``patch_b`` and patch_a warped onto it by ``a_from_b``,
+    over the pixels whose position ``a_from_b @ p`` lies inside ``source_a``.
+
+    Args:
+      source_a: ``[h, w]`` image holding patch_a with its top-left corner at ``origin`` (the patch
+        itself with ``(0, 0)``, or the image it was cut from as context).
+      patch_b: ``[S, S]`` (any real scale; NCC ignores gain and offset).
+      a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame.
+    Returns:
+      NCC in [-1, 1]: 1 for a perfect alignment up to gain and offset, about 0 for unrelated
+      content; NaN where fewer than :data:`MIN_OVERLAP` of the pixels overlap or either side is
+      constant there.
+
+    >>> p = np.random.default_rng(0).random((128, 128))
+    >>> round(alignment_ncc(p, 2 * p + 1, np.eye(3)), 6)
+    1.0
+    """
+    from stnh_tf import hierarchy
+
+    size = np.shape(patch_b)[0]
+    warped = hierarchy.warp_crop(source_a, a_from_b, origin, size).astype(np.float64)
+    inside = hierarchy.warp_crop(np.ones(np.shape(source_a), np.float32), a_from_b, origin,
+                                 size) > 0.999
+    if inside.mean() < MIN_OVERLAP:
+        return float("nan")
+    x = warped[inside] - warped[inside].mean()
+    y = np.asarray(patch_b, np.float64)[inside]
+    y = y - y.mean()
+    norm = np.sqrt((x * x).sum() * (y * y).sum())
+    return float((x * y).sum() / norm) if norm > 1e-12 else float("nan")
 
 
 # --------------------------------------------------------------------------------------------
@@ -113,10 +159,13 @@ class HomographyEstimator:
         """Stage predictions the last estimate skipped as degenerate, by reason."""
         self.last_info = None
         """Per pair of the last estimate (arrays of length B): ``implausible`` (bool: a stage
-        was skipped as degenerate, or a patch corner moved more than
-        :data:`IMPLAUSIBLE_CORNER_SHIFT` px, beyond what the models were trained on),
-        ``max_corner_shift_px`` (largest corner displacement of the 128 x 128 patch estimate)
-        and ``rejected_stages`` (stages skipped as degenerate)."""
+        was skipped as degenerate, a patch corner moved more than
+        :data:`IMPLAUSIBLE_CORNER_SHIFT` px, beyond what the models were trained on, or the
+        estimate does not explain the pair: ``alignment_ncc`` below :data:`MIN_ALIGNMENT_NCC` or
+        undefined), ``max_corner_shift_px`` (largest corner displacement of the 128 x 128 patch
+        estimate), ``rejected_stages`` (stages skipped as degenerate) and ``alignment_ncc``
+        (:func:`alignment_ncc` of patch_b and patch_a warped by the estimate, read from the
+        image context in ``estimate_images``)."""
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -198,10 +247,11 @@ class HomographyEstimator:
         current = patch_a
         rejected = {"non_finite": 0, "singular": 0}
         rejected_stages = np.zeros(len(patch_a), np.int64)
+        sources = (context if context is not None
+                   else [np.ascontiguousarray(p[..., 0]) for p in patch_a])
+        org = origin if context is not None else (0, 0)
         for k in range(self.num_stages):
             if k:
-                sources = context if context is not None else [np.ascontiguousarray(p[..., 0]) for p in patch_a]
-                org = origin if context is not None else (0, 0)
                 current = np.stack([hierarchy.warp_crop(src, h, org, PATCH_SIZE)
                                     for src, h in zip(sources, total)])[..., None]
             h_stage = self._predict_stage(k, current, patch_b, batch_size)
@@ -218,8 +268,12 @@ class HomographyEstimator:
             _log.warning("HomographyEstimator: stage predictions skipped as degenerate: %s",
                          rejected)
         shift = corner_shift(total)
-        self.last_info = {"implausible": (rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT),
-                          "max_corner_shift_px": shift, "rejected_stages": rejected_stages}
+        ncc = np.array([alignment_ncc(src, b[..., 0], h, org) if np.isfinite(s) else np.nan
+                        for src, b, h, s in zip(sources, patch_b, total, shift)])
+        self.last_info = {"implausible": ((rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT)
+                                          | ~(ncc >= MIN_ALIGNMENT_NCC)),
+                          "max_corner_shift_px": shift, "rejected_stages": rejected_stages,
+                          "alignment_ncc": ncc}
         return total
 
     def estimate(self, patch_a, patch_b, batch_size: int = 64) -> np.ndarray:

@@ -52,32 +52,57 @@ BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_i
                  "compute_dtype": "float32"}
 
 
-def bundled_check(stage_paths) -> dict:
-    """MACE of ``HomographyEstimator.estimate`` with the first k shipped stages, k = 1..n, on the
-    seeded bundled test pairs (:data:`BUNDLED_CHECK`; stages loaded with its ``compute_dtype``,
-    the estimator's default): the numbers the shipped weights must keep reproducing
-    (``tests/test_shipped_weights.py``)."""
+def bundled_pairs(photometric: bool = False) -> dict:
+    """The seeded bundled test pairs of :data:`BUNDLED_CHECK` as arrays
+    (:func:`stnh_tf.data.load_arrays`); ``photometric`` changes each patch_b in brightness,
+    contrast and gamma (:class:`stnh_tf.pairs.PhotometricChange`) on top of its homography."""
     import tempfile
 
-    import numpy as np
-
     from data_prep import stage1
-    from stnh_tf import data, geometry
-    from stnh_tf.inference import HomographyEstimator
+    from stnh_tf import data
 
     with tempfile.TemporaryDirectory() as tmp:
-        stage1.make_dataset("bundled", tmp, "test", seed=BUNDLED_CHECK["seed"],
+        stage1.make_dataset(BUNDLED_CHECK["source"], tmp, BUNDLED_CHECK["split"],
+                            seed=BUNDLED_CHECK["seed"],
                             samples_per_image=BUNDLED_CHECK["samples_per_image"], num_shards=1,
-                            log=lambda *a, **k: None)
-        arrays = data.load_arrays(tmp, "test")
-    out = dict(BUNDLED_CHECK, count=int(len(arrays["h_ba"])),
-               identity_mace=float(geometry.mean_corner_error(
-                   np.broadcast_to(np.eye(3), arrays["h_ba"].shape), arrays["h_ba"])))
+                            log=lambda *a, **k: None, photometric=photometric)
+        return data.load_arrays(tmp, BUNDLED_CHECK["split"])
+
+
+def bundled_check(stage_paths) -> dict:
+    """What ``HomographyEstimator.estimate`` gives with the first k shipped stages, k = 1..n, on
+    the seeded bundled test pairs (:data:`BUNDLED_CHECK`; stages loaded with its
+    ``compute_dtype``, the estimator's default): the numbers the shipped weights must keep
+    reproducing (``tests/test_shipped_weights.py``).
+
+    Keys: ``count``, ``identity_mace``, ``estimate_mace_{k}_stages`` and ``implausible_{k}_stages``
+    (pairs flagged in ``last_info``) on the plain pairs; the same with the prefix ``photometric_``
+    on the pairs with a photometric change (:func:`bundled_pairs`), plus
+    ``photometric_worse_than_identity_{k}_stages``, the pairs whose corner error exceeds the
+    identity's."""
+    import numpy as np
+
+    from stnh_tf import geometry
+    from stnh_tf.inference import HomographyEstimator
+
     stages = [HomographyEstimator.load(p, compute_dtype=BUNDLED_CHECK["compute_dtype"]).stages[0]
               for p in stage_paths]
-    for k in range(1, len(stages) + 1):
-        h = HomographyEstimator(stages[:k]).estimate(arrays["patch_a"], arrays["patch_b"])
-        out[f"estimate_mace_{k}_stages"] = float(geometry.mean_corner_error(h, arrays["h_ba"]))
+    out = dict(BUNDLED_CHECK)
+    for prefix, photometric in (("", False), ("photometric_", True)):
+        arrays = bundled_pairs(photometric)
+        identity = geometry.corner_errors(np.broadcast_to(np.eye(3), arrays["h_ba"].shape),
+                                          arrays["h_ba"])
+        if not prefix:
+            out["count"] = int(len(identity))
+        out[f"{prefix}identity_mace"] = float(identity.mean())
+        for k in range(1, len(stages) + 1):
+            estimator = HomographyEstimator(stages[:k])
+            errors = geometry.corner_errors(estimator.estimate(arrays["patch_a"], arrays["patch_b"]),
+                                            arrays["h_ba"])
+            out[f"{prefix}estimate_mace_{k}_stages"] = float(errors.mean())
+            out[f"{prefix}implausible_{k}_stages"] = int(estimator.last_info["implausible"].sum())
+            if prefix:
+                out[f"{prefix}worse_than_identity_{k}_stages"] = int((errors > identity).sum())
     return out
 
 

@@ -12,6 +12,7 @@ from stnh_tf.train_config import TrainConfig
 
 _log = logging.getLogger(__name__)
 
+
 def check_dataset(data_dir: str, split: str, stage: int) -> dict:
     """Metadata of ``data_dir`` after checking it holds ``split`` for hierarchical ``stage``.
 
@@ -72,22 +73,22 @@ def generated_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0
     """The endless stream of pairs generated from ``cfg.image_dir`` (mapped onto the model's
     outputs), positioned at ``start_step`` (:class:`stnh_tf.pair_datasets.PairStream`, or with
     ``in_memory`` :class:`stnh_tf.pair_datasets.ArrayStream` over :func:`stage_pairs`)."""
-    from stnh_tf import batches, pair_datasets, sources
+    from stnh_tf import sources
 
     del split
     if cfg.in_memory:
         if cfg.fresh_pairs:
             raise ValueError("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
-        batches = batches.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
-                                   samples_per_image=cfg.samples_per_image, seed=cfg.seed,
-                                   photometric=cfg.photometric)
-        return pair_datasets.ArrayStream(stage_pairs(cfg, batches), batches, start_step=start_step,
-                                mapper=model_kinds.targets_for(cfg))
+        pair_batches = batches.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
+                                           samples_per_image=cfg.samples_per_image, seed=cfg.seed,
+                                           photometric=cfg.photometric)
+        return pair_datasets.ArrayStream(stage_pairs(cfg, pair_batches), pair_batches,
+                                         start_step=start_step, mapper=model_kinds.targets_for(cfg))
     return pair_datasets.PairStream(sources.split_folders(cfg.image_dir), cfg.batch_size,
                            samples_per_image=cfg.samples_per_image, seed=cfg.seed,
-                           start_step=start_step, fresh_pairs=cfg.fresh_pairs,
-                           mapper=model_kinds.targets_for(cfg), workers=cfg.workers,
-                           photometric=cfg.photometric)
+                                    start_step=start_step, fresh_pairs=cfg.fresh_pairs,
+                                    mapper=model_kinds.targets_for(cfg), workers=cfg.workers,
+                                    photometric=cfg.photometric)
 
 
 def generated_validation(cfg: TrainConfig):
@@ -98,9 +99,9 @@ def generated_validation(cfg: TrainConfig):
 
     per_image = 3
     pair_batches = batches.PairBatches(sources.split_folders(cfg.val_image_dir), cfg.batch_size,
-                                       samples_per_image=per_image,
-                               seed=cfg.val_seed, shuffle=False, drop_remainder=False,
-                               max_images=-(-cfg.val_samples // per_image))
+                                       samples_per_image=per_image, seed=cfg.val_seed,
+                                       shuffle=False, drop_remainder=False,
+                                       max_images=-(-cfg.val_samples // per_image))
     n = validation_count(cfg, pair_batches.num_samples)
     arrays = {k: v[:n] for k, v in stage_pairs(cfg, pair_batches).items()}
     return pair_datasets.ArraySequence(arrays, cfg.batch_size, mapper=model_kinds.targets_for(cfg))

@@ -327,46 +327,90 @@ def test_degenerate_stage_predictions_are_skipped_and_counted(pairs, rng, caplog
     assert est.last_rejected == {"non_finite": 0, "singular": 0}
 
 
+def _ncc_reference(a, b, h):
+    """NCC of b and a warped by h (OpenCV) over the pixels whose bilinear neighbourhood lies in a."""
+    mask = inside_mask(h)
+    x = cv2_warp(a.astype(np.float64), h)[mask]
+    y = b.astype(np.float64)[mask]
+    x, y = x - x.mean(), y - y.mean()
+    return float((x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum()))
+
+
+def test_alignment_ncc_against_numpy(pairs):
+    from stnh_tf import inference
+
+    a, b, hs = pairs
+    for k in range(len(a)):
+        ncc = inference.alignment_ncc(a[k, ..., 0], b[k, ..., 0], hs[k])
+        assert ncc == pytest.approx(_ncc_reference(a[k, ..., 0], b[k, ..., 0], hs[k]), abs=1e-6)
+        assert ncc > 0.95  # true H: aligned up to uint8 rounding
+        # gain and offset of patch_b do not change it
+        assert inference.alignment_ncc(a[k, ..., 0], 0.5 * b[k, ..., 0] + 40.0, hs[k]) == \
+            pytest.approx(ncc, abs=1e-9)
+    # unrelated content
+    assert abs(inference.alignment_ncc(a[0, ..., 0], a[1, ..., 0], hs[1])) < 0.3
+    # a translation leaving 20% of patch_b inside patch_a: undefined
+    shift = np.array([[1.0, 0, 102.4], [0, 1, 0], [0, 0, 1]])
+    assert np.isnan(inference.alignment_ncc(a[0, ..., 0], b[0, ..., 0], shift))
+    # with a context holding patch_a at (50, 50), every warped pixel is defined: the NCC over
+    # the whole patch of the OpenCV warp of the context
+    context = np.random.default_rng(3).uniform(0, 255, (240, 320)).astype(np.float32)
+    context[50:178, 50:178] = a[0, ..., 0]
+    t = np.array([[1.0, 0, 50], [0, 1, 50], [0, 0, 1]])
+    for h in (hs[0], shift):
+        x = cv2.warpPerspective(context, t @ h, (S, S), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+        x = x.astype(np.float64).ravel() - x.mean()
+        y = b[0, ..., 0].astype(np.float64).ravel() - b[0].mean()
+        assert inference.alignment_ncc(context, b[0, ..., 0], h, (50, 50)) == pytest.approx(
+            float((x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum())), abs=1e-6)
+
+
 def test_implausible_estimates_are_flagged_per_pair(pairs):
-    """A pair whose estimate moves a patch corner beyond 1.5 x 32 px, or one with a stage skipped
-    as degenerate, is flagged in ``last_info``; an estimate within the trained range is not. The
-    corner shift is checked against OpenCV's perspectiveTransform."""
+    """A pair whose estimate moves a patch corner beyond 1.5 x 32 px, one with a stage skipped as
+    degenerate, and one whose estimate leaves patch_a warped onto patch_b uncorrelated with it
+    (patch_b from another photograph) are flagged in ``last_info``; the true H of an ordinary pair is
+    not. The corner shift is checked against OpenCV's perspectiveTransform, the NCC against a
+    NumPy reference."""
     import cv2
 
     from stnh_tf import inference
 
-    a, b, _ = pairs
+    a, b, hs = pairs
     n = len(a)
+    assert n == 4
+    b = b.copy()
+    b[3] = a[0]  # another photograph: unrelated to patch_a of pair 3
     corners = np.array([[0, 0], [128, 0], [128, 128], [0, 128]], np.float64)
-    ordinary = cv2.getPerspectiveTransform(corners.astype(np.float32),
-                                           (corners + [[10, -5], [-20, 3], [30, 30], [0, -31]])
-                                           .astype(np.float32))
     beyond = cv2.getPerspectiveTransform(corners.astype(np.float32),
                                          (corners + [[60, 0], [0, 0], [0, 0], [0, 0]])
                                          .astype(np.float32))
     est = HomographyEstimator([_constant_stage(np.eye(3), f"c{k}") for k in (1, 2)])
 
     def fake_stage(k, patch_a, patch_b, batch_size):
-        h = np.repeat((ordinary if k == 0 else np.eye(3))[None], len(patch_a), 0)
+        h = hs.copy() if k == 0 else np.repeat(np.eye(3)[None], len(patch_a), 0)
         if k == 0:
             h[1] = beyond
         if k == 1:
-            h[2] = np.full((3, 3), np.nan)  # skipped as degenerate; the estimate stays ordinary
+            h[2] = np.full((3, 3), np.nan)  # skipped as degenerate; the estimate stays the true H
         return h
 
     est._predict_stage = fake_stage
     est.estimate(a, b)
     info = est.last_info
-    expected = np.zeros(n, bool)
-    expected[[1, 2]] = True
-    np.testing.assert_array_equal(info["implausible"], expected)
-    np.testing.assert_array_equal(info["rejected_stages"], [0, 0, 1] + [0] * (n - 3))
-    moved = cv2.perspectiveTransform(corners[None], ordinary)[0]
+    np.testing.assert_array_equal(info["implausible"], [False, True, True, True])
+    np.testing.assert_array_equal(info["rejected_stages"], [0, 0, 1, 0])
+    moved = cv2.perspectiveTransform(corners[None], hs[0])[0]
     assert info["max_corner_shift_px"][0] == pytest.approx(
         np.linalg.norm(moved - corners, axis=1).max(), abs=1e-6)
     assert info["max_corner_shift_px"][1] == pytest.approx(60.0, abs=1e-6)
     assert inference.IMPLAUSIBLE_CORNER_SHIFT == 48.0
-    assert info["max_corner_shift_px"][0] < 48.0
+    assert info["max_corner_shift_px"][[0, 2, 3]].max() < 48.0
+    for k in (0, 2, 3):
+        # (OpenCV quantizes warp positions to 1/32 px: border pixels may differ from the mask)
+        assert info["alignment_ncc"][k] == pytest.approx(
+            _ncc_reference(a[k, ..., 0], b[k, ..., 0], hs[k]), abs=1e-3)
+    assert info["alignment_ncc"][[0, 2]].min() > 0.95
+    assert info["alignment_ncc"][3] < inference.MIN_ALIGNMENT_NCC
 
 
 def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs):

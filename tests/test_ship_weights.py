@@ -1,5 +1,6 @@
 """experiments.ship_weights: the shipped files load as the hierarchy they were made from, and the
-model card's bundled check equals MACE computed here with NumPy for stages with a known output.
+model card's bundled check (plain and photometric pairs) equals MACE computed here with NumPy for
+stages with a known output.
 
 Stage 1 outputs a chosen H whatever its input and is saved in mixed bfloat16 (as the shipped
 CPU-budget weights were trained), stage 2 outputs the identity; so the k-stage estimates are that
@@ -76,6 +77,18 @@ def test_ship_and_refresh_check(tmp_path, bundled_h_ba):
     assert _mace_numpy(h, np.eye(3)[None]) > 3.0  # the constant H is far from the identity
     for k in (1, 2):
         assert check[f"estimate_mace_{k}_stages"] == pytest.approx(expected, abs=1e-3)
+        assert check[f"implausible_{k}_stages"] == 0  # the constant H moves corners < 48 px
+
+    # The photometric pairs: the same check on patch_b changed in brightness, contrast, gamma.
+    h_photo = shipped_weights.bundled_pairs(photometric=True)["h_ba"].astype(np.float64)
+    per_pair = [_mace_numpy(h, h_true[None]) for h_true in h_photo]
+    per_pair_identity = [_mace_numpy(np.eye(3), h_true[None]) for h_true in h_photo]
+    assert check["photometric_identity_mace"] == pytest.approx(np.mean(per_pair_identity), rel=1e-9)
+    for k in (1, 2):
+        assert check[f"photometric_estimate_mace_{k}_stages"] == pytest.approx(np.mean(per_pair),
+                                                                               abs=1e-3)
+        assert check[f"photometric_worse_than_identity_{k}_stages"] == int(
+            np.sum(np.array(per_pair) > np.array(per_pair_identity)))
 
     # --refresh_check recomputes only the check, atomically, keeping the rest of the card.
     with open(out / "model_card.json") as f:
