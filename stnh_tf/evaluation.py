@@ -215,3 +215,56 @@ def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
         return result
     finally:
         keras.mixed_precision.set_global_policy("float32")
+
+
+IMPLAUSIBILITY_CASES = ("ordinary", "other_photograph", "rotated_180", "moved_80px")
+
+
+def implausibility_check(model=None, data_dir=None, split="test", compute_dtype="float32",
+                         batch_size=64, photometric=False) -> dict:
+    """How often :attr:`~stnh_tf.inference.HomographyEstimator.last_info` flags the estimates of
+    ``HomographyEstimator.estimate`` on stored pairs and on pairs made from them that the models
+    were not trained on (:data:`IMPLAUSIBILITY_CASES`):
+
+    * ``ordinary``: the pairs as stored (true corners moved by up to 32 px);
+    * ``other_photograph``: patch_b of the pair half the dataset away (another photograph);
+    * ``rotated_180``: patch_b rotated by 180 degrees;
+    * ``moved_80px``: patch_b is patch_a translated by 80 px in x and y (wrapped around).
+
+    Args:
+      model: what ``HomographyEstimator.load`` takes (``None``: the shipped weights).
+      data_dir, split: stage-1 pairs (``stnh_tf.data``); ``None``: the seeded bundled test pairs
+        of the model card (:func:`stnh_tf.shipped_weights.bundled_pairs`, with ``photometric``).
+    Returns:
+      ``{case: {"count", "flagged" (fraction), "alignment_ncc_median"}}``; ``ordinary`` also has
+      ``mace``, ``mace_flagged`` and ``mace_kept`` (NaN where no pair falls in it).
+    """
+    from stnh_tf import data, shipped_weights
+    from stnh_tf.inference import HomographyEstimator
+
+    if data_dir is None:
+        samples = shipped_weights.bundled_pairs(photometric)
+    elif photometric:
+        raise ValueError("photometric applies to the bundled pairs; a data_dir's pairs are used "
+                         "as stored (write them with make_dataset --photometric).")
+    else:
+        samples = data.load_arrays(data_dir, split)
+    a, b = samples["patch_a"], samples["patch_b"]
+    patches_b = {"ordinary": b, "other_photograph": np.roll(b, len(b) // 2, axis=0),
+                 "rotated_180": b[:, ::-1, ::-1], "moved_80px": np.roll(a, (80, 80), axis=(1, 2))}
+    estimator = HomographyEstimator.load(model, compute_dtype=compute_dtype)
+    out = {"model": estimator.source, "data_dir": data_dir, "split": split,
+           "photometric": photometric}
+    for case in IMPLAUSIBILITY_CASES:
+        h = estimator.estimate(a, patches_b[case], batch_size=batch_size)
+        flagged = estimator.last_info["implausible"]
+        ncc = estimator.last_info["alignment_ncc"]
+        out[case] = {"count": int(len(h)), "flagged": float(flagged.mean()),
+                     "alignment_ncc_median": float(np.nanmedian(ncc))}
+        if case == "ordinary":
+            errors = geometry.corner_errors(h, np.asarray(samples["h_ba"], np.float64))
+            out[case].update(
+                mace=float(errors.mean()),
+                mace_flagged=float(errors[flagged].mean()) if flagged.any() else float("nan"),
+                mace_kept=float(errors[~flagged].mean()) if not flagged.all() else float("nan"))
+    return out

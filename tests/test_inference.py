@@ -790,3 +790,32 @@ def test_predict_outputs_of_pairs_with_the_same_names_do_not_collide(identity_mo
         str(tmp_path / "two" / "a.png")
     assert json.loads((out / "a__b_homography.json").read_text())["image_a"] == \
         str(tmp_path / "one" / "a.png")
+
+
+def test_implausibility_check_with_the_identity_model(identity_model_path):
+    """``evaluation.implausibility_check`` on the bundled pairs with the identity model: the
+    ordinary MACE is the identity's and every case's flagged fraction is the fraction of pairs
+    whose plain NumPy NCC of patch_a and that case's patch_b is below the threshold."""
+    from stnh_tf import evaluation, inference, shipped_weights
+
+    result = evaluation.implausibility_check(identity_model_path)
+    arrays = shipped_weights.bundled_pairs()
+    a = arrays["patch_a"][..., 0].astype(np.float64)
+    b = arrays["patch_b"][..., 0].astype(np.float64)
+    cases = {"ordinary": b, "other_photograph": np.roll(b, len(b) // 2, axis=0),
+             "rotated_180": b[:, ::-1, ::-1], "moved_80px": np.roll(a, (80, 80), axis=(1, 2))}
+
+    def ncc(x, y):
+        x, y = x - x.mean(), y - y.mean()
+        return (x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum())
+
+    for case, patches_b in cases.items():
+        expected = np.mean([ncc(x, y) < inference.MIN_ALIGNMENT_NCC for x, y in zip(a, patches_b)])
+        assert result[case]["count"] == len(a) == 60
+        assert result[case]["flagged"] == pytest.approx(expected, abs=1e-9), case
+    assert result["moved_80px"]["flagged"] > 0.5
+    corners = np.array([[0, 0, 1], [128, 0, 1], [128, 128, 1], [0, 128, 1]], np.float64).T
+    moved = np.einsum("nij,jk->nik", arrays["h_ba"].astype(np.float64), corners)
+    moved = moved[:, :2] / moved[:, 2:]
+    identity_mace = np.linalg.norm(moved - corners[None, :2], axis=1).mean()
+    assert result["ordinary"]["mace"] == pytest.approx(identity_mace, rel=1e-9)

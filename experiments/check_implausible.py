@@ -1,0 +1,36 @@
+r"""How often the estimator flags its estimates as implausible, on ordinary pairs and on pairs it
+was not trained on (another photograph, patch_b rotated 180 degrees, motion of 80 px).
+
+  python -m experiments.check_implausible                      # shipped weights, bundled pairs
+  python -m experiments.check_implausible --model=runs/stage1 --data_dir=data/coco_mini
+
+Prints one JSON object (:func:`stnh_tf.evaluation.implausibility_check`).
+"""
+
+from __future__ import annotations
+
+from absl import app, flags
+
+from experiments import common
+from stnh_tf import evaluation
+
+flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
+flags.DEFINE_string("data_dir", None, "Stage-1 pairs (default: the model card's bundled pairs).")
+flags.DEFINE_string("split", "test", "Split of --data_dir.")
+flags.DEFINE_bool("photometric", False, "Bundled pairs with a photometric change of patch_b.")
+flags.DEFINE_string("json_out", None, "Also write the JSON here.")
+FLAGS = flags.FLAGS
+
+
+def main(argv):
+    del argv
+    try:
+        result = evaluation.implausibility_check(FLAGS.model, FLAGS.data_dir, FLAGS.split,
+                                                 photometric=FLAGS.photometric)
+    except (ValueError, OSError) as e:
+        raise SystemExit(f"check_implausible: {e}") from None
+    common.emit_json(result, FLAGS.json_out)
+
+
+if __name__ == "__main__":
+    app.run(main)
