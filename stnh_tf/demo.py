@@ -48,19 +48,27 @@ def self_check(seed: int = 0, num_pairs: int = 8) -> dict:
     return result
 
 
+FAST_WEIGHTS = "fast"
+"""Folder under ``stnh_tf/weights`` of the fast recipe's weights (not yet the default)."""
+
+
 def shipped_models() -> dict:
-    """``{name: [stage model paths]}`` of the weights shipped in ``stnh_tf/weights``."""
+    """``{name: [stage model paths]}`` of the weights shipped in ``stnh_tf/weights``: the default
+    (its first stage, and all its stages if several) and the fast recipe's weights in ``fast``
+    (likewise)."""
     from stnh_tf import model_files
 
     d = model_files.default_weights_dir()
     found = {}
-    if os.path.exists(os.path.join(d, "stage1.keras")):
-        found["STN-Homography, 1 stage"] = [os.path.join(d, "stage1.keras")]
-    manifest = os.path.join(d, "default.json")
-    if os.path.exists(manifest):
-        stages = model_files.read_manifest(manifest)
+    for label, folder in (("shipped default", None),
+                          ("fast recipe", os.path.join(d, FAST_WEIGHTS))):
+        try:
+            stages = model_files.resolve_model_paths(folder)
+        except FileNotFoundError:
+            continue
+        found[f"{label}, 1 stage"] = stages[:1]
         if len(stages) > 1:
-            found[f"STN-Homography, {len(stages)}-stage hierarchy"] = stages
+            found[f"{label}, {len(stages)} stages"] = stages
     return found
 
 

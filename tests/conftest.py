@@ -117,3 +117,15 @@ def color_patch():
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+def ncc_reference(a, b, h_pix):
+    """NCC of b and a warped by h_pix (OpenCV) over the pixels whose bilinear neighbourhood lies in
+    a; NaN if fewer than a quarter of them do."""
+    mask = inside_mask(h_pix)
+    if mask.mean() < 0.25:
+        return float("nan")
+    x = cv2_warp(a.astype(np.float64), h_pix)[mask]
+    y = b.astype(np.float64)[mask]
+    x, y = x - x.mean(), y - y.mean()
+    return float((x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum()))

@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 import skimage.data
 
-from conftest import cv2_warp, inside_mask, keras_policy, norm_matrix, paper_homography, to_bar
+from conftest import (cv2_warp, inside_mask, keras_policy, ncc_reference, norm_matrix,
+                      paper_homography, to_bar)
 from stnh_tf import export, geometry, image_input, model_files, models
 from stnh_tf.inference import HomographyEstimator
 
@@ -327,22 +328,13 @@ def test_degenerate_stage_predictions_are_skipped_and_counted(pairs, rng, caplog
     assert est.last_rejected == {"non_finite": 0, "singular": 0}
 
 
-def _ncc_reference(a, b, h):
-    """NCC of b and a warped by h (OpenCV) over the pixels whose bilinear neighbourhood lies in a."""
-    mask = inside_mask(h)
-    x = cv2_warp(a.astype(np.float64), h)[mask]
-    y = b.astype(np.float64)[mask]
-    x, y = x - x.mean(), y - y.mean()
-    return float((x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum()))
-
-
 def test_alignment_ncc_against_numpy(pairs):
     from stnh_tf import inference
 
     a, b, hs = pairs
     for k in range(len(a)):
         ncc = inference.alignment_ncc(a[k, ..., 0], b[k, ..., 0], hs[k])
-        assert ncc == pytest.approx(_ncc_reference(a[k, ..., 0], b[k, ..., 0], hs[k]), abs=1e-6)
+        assert ncc == pytest.approx(ncc_reference(a[k, ..., 0], b[k, ..., 0], hs[k]), abs=1e-6)
         assert ncc > 0.95  # true H: aligned up to uint8 rounding
         # gain and offset of patch_b do not change it
         assert inference.alignment_ncc(a[k, ..., 0], 0.5 * b[k, ..., 0] + 40.0, hs[k]) == \
@@ -408,7 +400,7 @@ def test_implausible_estimates_are_flagged_per_pair(pairs):
     for k in (0, 2, 3):
         # (OpenCV quantizes warp positions to 1/32 px: border pixels may differ from the mask)
         assert info["alignment_ncc"][k] == pytest.approx(
-            _ncc_reference(a[k, ..., 0], b[k, ..., 0], hs[k]), abs=1e-3)
+            ncc_reference(a[k, ..., 0], b[k, ..., 0], hs[k]), abs=1e-3)
     assert info["alignment_ncc"][[0, 2]].min() > 0.95
     assert info["alignment_ncc"][3] < inference.MIN_ALIGNMENT_NCC
 

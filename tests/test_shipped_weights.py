@@ -1,5 +1,8 @@
-"""The weights shipped in stnh_tf/weights load without a network and reproduce the numbers their
-model card records on the seeded bundled test pairs (a regression guard for the files)."""
+"""The weights shipped in stnh_tf/weights (the default: the paper recipe's CPU-budget hierarchy;
+and the fast recipe's stage 1 in stnh_tf/weights/fast) load without a network and reproduce the
+numbers their model cards record on the seeded bundled test pairs (a regression guard for the
+files); the fast weights beat the identity on pairs with a photometric change; the implausibility
+flag follows the corner shift and the alignment of the estimate."""
 
 import json
 import os
@@ -7,23 +10,26 @@ import os
 import numpy as np
 import pytest
 
-from data_prep import stage1
-from stnh_tf import data, geometry, inference, model_files
+from conftest import ncc_reference
+from stnh_tf import geometry, inference, model_files, shipped_weights
 
 WEIGHTS = model_files.default_weights_dir()
+SHIPPED = {"default": WEIGHTS, "fast": os.path.join(WEIGHTS, "fast")}
 CARD = os.path.join(WEIGHTS, "model_card.json")
 pytestmark = pytest.mark.skipif(not os.path.exists(CARD), reason="no weights shipped in stnh_tf/weights")
 
 
-@pytest.fixture(scope="module")
-def card_and_pairs(tmp_path_factory):
-    with open(CARD) as f:
+def _card(folder):
+    with open(os.path.join(folder, "model_card.json")) as f:
         card = json.load(f)
     check = card["bundled_check"]
-    d = str(tmp_path_factory.mktemp("bundled"))
-    stage1.make_dataset(check["source"], d, check["split"], seed=check["seed"],
-                        samples_per_image=check["samples_per_image"], num_shards=1, log=lambda *a, **k: None)
-    return card, data.load_arrays(d, check["split"])
+    assert {k: check[k] for k in shipped_weights.BUNDLED_CHECK} == shipped_weights.BUNDLED_CHECK
+    return card
+
+
+@pytest.fixture(scope="module")
+def card_and_pairs():
+    return _card(WEIGHTS), shipped_weights.bundled_pairs()
 
 
 def test_default_load_is_the_shipped_hierarchy(card_and_pairs):
@@ -32,22 +38,75 @@ def test_default_load_is_the_shipped_hierarchy(card_and_pairs):
     assert est.num_stages == len(card["stages"])
     for s in card["stages"]:
         assert os.path.getsize(os.path.join(WEIGHTS, s["file"])) < 20 * 2 ** 20
+    fast = inference.HomographyEstimator.load(SHIPPED["fast"])
+    assert fast.num_stages == len(_card(SHIPPED["fast"])["stages"])
 
 
-def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs):
-    card, arrays = card_and_pairs
-    check = card["bundled_check"]
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs, name):
+    _, arrays = card_and_pairs
+    folder = SHIPPED[name]
+    check = _card(folder)["bundled_check"]
     assert check["count"] == len(arrays["h_ba"])
-    identity = float(geometry.mean_corner_error(np.broadcast_to(np.eye(3), arrays["h_ba"].shape), arrays["h_ba"]))
+    identity = float(geometry.mean_corner_error(np.broadcast_to(np.eye(3), arrays["h_ba"].shape),
+                                                arrays["h_ba"]))
     assert identity == pytest.approx(check["identity_mace"], rel=1e-6)
     # The card records the precision its numbers were computed in (None: as the models were saved).
     dtype = check.get("compute_dtype")
-    stages = [inference.HomographyEstimator.load(os.path.join(WEIGHTS, s["file"]),
+    stages = [inference.HomographyEstimator.load(os.path.join(folder, s["file"]),
                                                  compute_dtype=dtype).stages[0]
-              for s in card["stages"]]
+              for s in _card(folder)["stages"]]
     for k in range(1, len(stages) + 1):
         h = inference.HomographyEstimator(stages[:k]).estimate(arrays["patch_a"], arrays["patch_b"])
         assert h.shape == (len(arrays["h_ba"]), 3, 3)
         mace = float(geometry.mean_corner_error(h, arrays["h_ba"]))
         assert mace == pytest.approx(check[f"estimate_mace_{k}_stages"], rel=1e-3, abs=1e-3)
         assert mace < identity
+
+
+@pytest.fixture(scope="module")
+def fast_estimator_float32():
+    return inference.HomographyEstimator.load(SHIPPED["fast"], compute_dtype="float32")
+
+
+def test_fast_weights_beat_the_identity_under_a_photometric_change(card_and_pairs,
+                                                               fast_estimator_float32):
+    """Bundled pairs whose patch_b also differs in brightness, contrast and gamma (true corner
+    motion within the trained +-32 px): the fast weights' MACE is below the identity's and equals
+    their card's record."""
+    check = _card(SHIPPED["fast"])["bundled_check"]
+    arrays = shipped_weights.bundled_pairs(photometric=True)
+    identity = geometry.corner_errors(np.broadcast_to(np.eye(3), arrays["h_ba"].shape), arrays["h_ba"])
+    assert float(identity.mean()) == pytest.approx(check["photometric_identity_mace"], rel=1e-6)
+    h = fast_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"])
+    errors = geometry.corner_errors(h, arrays["h_ba"])
+    n = fast_estimator_float32.num_stages
+    assert float(errors.mean()) == pytest.approx(check[f"photometric_estimate_mace_{n}_stages"],
+                                                 rel=1e-3, abs=1e-3)
+    assert float(errors.mean()) < 0.75 * float(identity.mean())
+    assert int((errors > identity).sum()) == check[f"photometric_worse_than_identity_{n}_stages"]
+
+
+def test_implausibility_flag_follows_the_corner_shift_and_alignment(card_and_pairs,
+                                                                   fast_estimator_float32):
+    """On the bundled pairs at most 20% of the estimates are flagged; on pairs whose patch_b is
+    patch_a moved by 80 px (beyond the trained +-32 px, content wrapped around) at least half are.
+    Every flag equals the rule recomputed here: the largest corner displacement (NumPy) beyond
+    48 px, or the NCC of patch_b and the warped patch_a (OpenCV and NumPy) below 0.15."""
+    _, arrays = card_and_pairs
+    est = fast_estimator_float32
+    corners = geometry.patch_corners(128)
+    a = arrays["patch_a"]
+    fractions = {}
+    for case, b in (("ordinary", arrays["patch_b"]), ("moved_80px", np.roll(a, (80, 80), (1, 2)))):
+        h = est.estimate(a, b)
+        info = est.last_info
+        shift = np.linalg.norm(geometry.warp_points(h, corners) - corners, axis=-1).max(axis=-1)
+        np.testing.assert_allclose(info["max_corner_shift_px"], shift, rtol=1e-9)
+        ncc = np.array([ncc_reference(x[..., 0], y[..., 0], hh) for x, y, hh in zip(a, b, h)])
+        # (OpenCV quantizes warp positions to 1/32 px: border pixels may differ from the mask)
+        np.testing.assert_allclose(info["alignment_ncc"], ncc, atol=1e-3)
+        np.testing.assert_array_equal(info["implausible"],
+                                      (shift > 48.0) | ~(info["alignment_ncc"] >= 0.15))
+        fractions[case] = info["implausible"].mean()
+    assert fractions["ordinary"] <= 0.2 and fractions["moved_80px"] >= 0.5, fractions
