@@ -15,9 +15,8 @@ import numpy as np
 import pytest
 
 from conftest import keras_policy, ncc_reference, to_bar
-from data_prep import stage1
 from stnh_tf import shipped_weights
-from stnh_tf import data, inference, models
+from stnh_tf import inference, models
 
 S = 128
 
@@ -47,16 +46,12 @@ def _mace_numpy(h, h_true):
 
 
 @pytest.fixture(scope="module")
-def bundled_h_ba(tmp_path_factory):
-    c = shipped_weights.BUNDLED_CHECK
-    d = str(tmp_path_factory.mktemp("bundled"))
-    stage1.make_dataset(c["source"], d, c["split"], seed=c["seed"],
-                        samples_per_image=c["samples_per_image"], num_shards=1,
-                        log=lambda *a, **k: None)
-    return data.load_arrays(d, c["split"])["h_ba"].astype(np.float64)
+def bundled():
+    return shipped_weights.bundled_pairs()
 
 
-def test_ship_and_refresh_check(tmp_path, bundled_h_ba):
+def test_ship_and_refresh_check(tmp_path, bundled):
+    bundled_h_ba = bundled["h_ba"].astype(np.float64)
     h = np.array([[1.05, 0.02, -3.0], [-0.03, 0.97, 4.0], [1e-4, -2e-4, 1.0]])
     _constant_run(tmp_path / "s1", h, mixed=True)
     _constant_run(tmp_path / "s2", np.eye(3), mixed=False)
@@ -73,9 +68,8 @@ def test_ship_and_refresh_check(tmp_path, bundled_h_ba):
     check = card["bundled_check"]
     assert check["compute_dtype"] == "float32" and check["count"] == len(bundled_h_ba) == 60
     expected = _mace_numpy(h, bundled_h_ba)
-    plain = shipped_weights.bundled_pairs()
     expected_flags = sum(ncc_reference(a[..., 0], b[..., 0], h) < 0.15
-                         for a, b in zip(plain["patch_a"], plain["patch_b"]))
+                         for a, b in zip(bundled["patch_a"], bundled["patch_b"]))
     assert check["identity_mace"] == pytest.approx(_mace_numpy(np.eye(3), bundled_h_ba), rel=1e-9)
     assert _mace_numpy(h, np.eye(3)[None]) > 3.0  # the constant H is far from the identity
     for k in (1, 2):
