@@ -5,7 +5,8 @@ r"""The paper's Table 1: single-stage STN-Homography trained with five (L2, L1) 
 
 Rows (1,1), (1,10), (1,0.1), (10,1), (0.1,1) by default (--weights=l2:l1,...), each trained at the
 budget's schedule (--steps overrides it for the ablation only; say so next to the table) and
-evaluated on the same stage-1 test pairs. Resumable: finished rows are kept, an interrupted row
+evaluated on the same stage-1 test pairs; the (1,1) and (10,1) rows with the budget's number of
+seeds (mean and range). Resumable: finished rows are kept, an interrupted row
 resumes from its checkpoint. Writes OUTPUT_DIR/table1.md and table1.json. Shares its data and
 models with experiments.reproduce (same OUTPUT_DIR, same --reuse).
 """
@@ -42,8 +43,10 @@ def main(argv):
         table = run.table1(run.ablation(run.ablation_weights))
     except (ValueError, OSError) as e:
         raise SystemExit(f"loss_weight_ablation: {e}") from None
-    for (l2, l1), mace in table.items():
-        print(f"l2={l2:g} l1={l1:g}: MACE {mace:.2f} px (paper {reproduce.PAPER_TABLE1.get((l2, l1))})")
+    for (l2, l1), maces in table.items():
+        seeds = f" (seeds: {', '.join(f'{m:.2f}' for m in maces)})" if len(maces) > 1 else ""
+        print(f"l2={l2:g} l1={l1:g}: MACE {sum(maces) / len(maces):.2f} px{seeds} "
+              f"(paper {reproduce.PAPER_TABLE1.get((l2, l1))})")
 
 
 if __name__ == "__main__":

@@ -8,7 +8,9 @@ re-run with the same command):
 2. hierarchy: stage 1, stage-2 data, stage 2, stage-3 data, stage 3;
 3. HomographyNet (DeTone et al.'s network with their step schedule, scaled to the budget's
    steps) and the 2-stage sequence model on the stage-1 data;
-4. Table 1: the loss-weight ablation (the (1, 1) row is stage 1 itself);
+4. Table 1: the loss-weight ablation (the (1, 1) row is stage 1 itself); the rows of
+   ``SPREAD_ROWS`` are trained with ``table1_seeds`` seeds (0, 1, ...) and reported as the mean
+   and range, the other rows with seed 0;
 5. evaluation of everything on the same test pairs (plus identity, ORB and SIFT + RANSAC);
 6. Table 2: batch-1 latency of 1/2/3 stages;
 7. figures (Fig. 1 histogram, Fig. 4 bars, Fig. 5 examples) and ``tables.md`` / ``results.json``
@@ -41,8 +43,10 @@ PAPER_FIG4 = {"HomographyNet": 9.2, "STN-Homography 1 stage": 5.83,
               "STN-Homography 2 stages": 2.6, "STN-Homography 3 stages": 1.57,
               "Sequence 2 stages": 2.14}
 ABLATION_WEIGHTS = tuple(PAPER_TABLE1)
+# Table 1 rows trained with several seeds: the paper's claim (10:1 beats 1:1) compares these two.
+SPREAD_ROWS = ((1.0, 1.0), (10.0, 1.0))
 # Configuration fields a reused model must share with the budget.
-_BUDGET_FIELDS = ("model", "stage", "train_steps", "warmup_steps", "batch_size", "learning_rate",
+_BUDGET_FIELDS = ("model", "stage", "seed", "train_steps", "warmup_steps", "batch_size", "learning_rate",
                   "lr_schedule", "momentum", "l2_weight", "l1_weight", "batch_norm", "dropout")
 
 
@@ -66,6 +70,7 @@ class Budget:
     latency_warmup: int = 20
     num_workers: int = 1             # data-generation processes
     sequence_steps: int = 0          # the sequence model's total steps; 0: as train_steps
+    table1_seeds: int = 1            # seeds of the SPREAD_ROWS of Table 1
 
     @property
     def ablation_train_steps(self) -> int:
@@ -85,15 +90,21 @@ BUDGETS = {
     # The 2-core CPU budget of BENCHMARKS.md: 4.4% of the paper's steps, mixed bfloat16,
     # 100 pairs per image (coco_mini has 219 training images; 3 per image would be memorized).
     "cpu": Budget("cpu", 4_000, 100, samples_per_image=100, mixed_precision=True,
-                  checkpoint_every=500, val_samples=300, num_workers=2),
+                  checkpoint_every=500, val_samples=300, num_workers=2, table1_seeds=3),
     # A smoke budget for tests: a few steps of every model.
     "tiny": Budget("tiny", 2, 1, samples_per_image=2, batch_size=4, checkpoint_every=2,
-                   val_samples=4, max_images=4, latency_runs=3, latency_warmup=1),
+                   val_samples=4, max_images=4, latency_runs=3, latency_warmup=1,
+                   table1_seeds=2),
 }
 
 
-def ablation_name(l2: float, l1: float) -> str:
-    return f"ablation_l2-{l2:g}_l1-{l1:g}"
+def ablation_name(l2: float, l1: float, seed: int = 0) -> str:
+    return f"ablation_l2-{l2:g}_l1-{l1:g}" + (f"_seed{seed}" if seed else "")
+
+
+def table1_seeds(budget: Budget, l2: float, l1: float) -> range:
+    """The seeds Table 1's ``(l2, l1)`` row is trained with at ``budget``."""
+    return range(budget.table1_seeds if (l2, l1) in SPREAD_ROWS else 1)
 
 
 class Reproduction:
@@ -108,7 +119,8 @@ class Reproduction:
         self.ablation_weights = tuple((float(a), float(b)) for a, b in ablation_weights)
         unknown = set(self.reuse) - {"data_stage1", "data_stage2", "data_stage3", "stage1",
                                      "stage2", "stage3", "homographynet", "sequence2",
-                                     *(ablation_name(*w) for w in self.ablation_weights)}
+                                     *(ablation_name(*w, seed) for w in self.ablation_weights
+                                       for seed in table1_seeds(budget, *w))}
         if unknown:
             raise ValueError(f"unknown reuse names {sorted(unknown)}.")
         self.timings = {}
@@ -192,36 +204,41 @@ class Reproduction:
         return dirs
 
     def ablation(self, weights=ABLATION_WEIGHTS) -> dict:
-        """Table 1 rows ``{(l2, l1): model_dir}``; (1, 1) at the ablation budget is stage 1."""
+        """Table 1 rows ``{(l2, l1): [model_dir per seed]}`` (seeds: :func:`table1_seeds`); the
+        (1, 1) row's seed 0 at the ablation budget is stage 1."""
         rows = {}
         d = self.stage1_data()
         steps = self.budget.ablation_train_steps
         for l2, l1 in weights:
-            same_as_stage1 = (l2, l1) == (1.0, 1.0) and steps == self.budget.train_steps
-            name = "stage1" if same_as_stage1 else ablation_name(l2, l1)
-            cfg = self.config(name, data_dir=d, l2_weight=l2, l1_weight=l1, train_steps=steps,
-                              warmup_steps=min(self.budget.warmup_steps, steps))
-            rows[(l2, l1)] = self.train(name, cfg)
+            rows[(l2, l1)] = []
+            for seed in table1_seeds(self.budget, l2, l1):
+                same_as_stage1 = (l2, l1, seed) == (1.0, 1.0, 0) and steps == self.budget.train_steps
+                name = "stage1" if same_as_stage1 else ablation_name(l2, l1, seed)
+                cfg = self.config(name, data_dir=d, l2_weight=l2, l1_weight=l1, train_steps=steps,
+                                  warmup_steps=min(self.budget.warmup_steps, steps), seed=seed)
+                rows[(l2, l1)].append(self.train(name, cfg))
         return rows
 
     def table1(self, rows: dict) -> dict:
-        """Evaluate the ablation rows; writes ``table1.md``; returns ``{(l2, l1): MACE}``."""
+        """Evaluate the ablation rows (:meth:`ablation`'s result); writes ``table1.md`` and
+        ``table1.json``; returns ``{(l2, l1): [MACE per seed]}``."""
         table = {}
-        for (l2, l1), d in rows.items():
-            key = "stage1_alone" if d == self.model_dir("stage1") else ablation_name(l2, l1)
-            table[(l2, l1)] = self.evaluate(key, [d])["model"]["mace"]
+        for (l2, l1), dirs in rows.items():
+            table[(l2, l1)] = [self.evaluate("stage1_alone" if d == self.model_dir("stage1")
+                                             else ablation_name(l2, l1, seed), [d])["model"]["mace"]
+                               for seed, d in enumerate(dirs)]
         steps = self.budget.ablation_train_steps
         lines = [f"# Table 1: loss weights, single stage, {steps} steps per row (budget "
-                 f"'{self.budget.name}')", "", "| L2 weight | L1 weight | MACE (px), ours | paper |",
-                 "| ---: | ---: | ---: | ---: |"]
-        for (l2, l1), v in table.items():
-            p = PAPER_TABLE1.get((l2, l1))
-            lines.append(f"| {l2:g} | {l1:g} | {v:.2f} | {'' if p is None else f'{p:.2f}'} |")
+                 f"'{self.budget.name}')", "", TABLE1_HEADER, "| ---: | ---: | ---: | ---: | ---: |"]
+        lines += [table1_line(f"{l2:g}", f"{l1:g}", v, PAPER_TABLE1.get((l2, l1)))
+                  for (l2, l1), v in table.items()]
         with open(os.path.join(self.out, "table1.md"), "w") as f:
             f.write("\n".join(lines) + "\n")
-        atomic_write_json(os.path.join(self.out, "table1.json"),
-                    {f"{a:g},{b:g}": {"mace": v, "model_dir": rows[(a, b)],
-                                      "paper": PAPER_TABLE1.get((a, b))} for (a, b), v in table.items()})
+        atomic_write_json(os.path.join(self.out, "table1.json"), {
+            f"{a:g},{b:g}": {"mace": float(np.mean(v)), "mace_per_seed": v,
+                             "seeds": list(range(len(v))), "model_dir": rows[(a, b)][0],
+                             "model_dirs": rows[(a, b)], "paper": PAPER_TABLE1.get((a, b))}
+            for (a, b), v in table.items()})
         return table
 
     # -- evaluation -----------------------------------------------------------------------------
@@ -285,12 +302,14 @@ class Reproduction:
         self.printer("[figures]")
         figs = self.figures(fig4, stages)
         result = {"budget": dataclasses.asdict(self.budget), "fig4_mace": fig4,
-                  "table1_mace": {f"{l2:g},{l1:g}": v for (l2, l1), v in table1.items()},
+                  "table1_mace": {f"{l2:g},{l1:g}": float(np.mean(v)) for (l2, l1), v in table1.items()},
+                  "table1_mace_per_seed": {f"{l2:g},{l1:g}": v for (l2, l1), v in table1.items()},
                   "table2_latency_ms": {k: v["d_e_ms"] for k, v in lat["hierarchy"].items()},
                   "sequence_latency_ms": {k: v["forward_ms"] for k, v in lat.get("sequence", {}).items()},
                   "test_pairs": base["count"], "models": {"stages": stages, "homographynet": hnet,
                                                           "sequence2": seq,
-                                                          "ablation": {f"{a:g},{b:g}": d for (a, b), d in rows.items()}},
+                                                          "ablation": {f"{a:g},{b:g}": d[0] for (a, b), d in rows.items()},
+                                                          "ablation_seeds": {f"{a:g},{b:g}": d for (a, b), d in rows.items()}},
                   "figures": figs, "wall_s_this_run": time.time() - t0,
                   "timings_this_run_s": self.timings, "paper": {
                       "fig4_mace": PAPER_FIG4,
@@ -358,10 +377,10 @@ def tables_markdown(result: dict, latency: dict) -> str:
         lines.append(f"| {name} | {v:.2f} | {'' if p is None else f'{p:.2f}'} |")
     steps = b["ablation_steps"] or b["train_steps"]
     lines += ["", f"## Table 1: loss weights, single stage ({steps} steps per row)", "",
-              "| L2 weight | L1 weight | MACE (px), ours | paper |", "| ---: | ---: | ---: | ---: |"]
-    for key, v in result["table1_mace"].items():
-        l2, l1 = key.split(",")
-        lines.append(f"| {l2} | {l1} | {v:.2f} | {paper['table1_mace'].get(key, float('nan')):.2f} |")
+              TABLE1_HEADER, "| ---: | ---: | ---: | ---: | ---: |"]
+    per_seed = result.get("table1_mace_per_seed") or {k: [v] for k, v in result["table1_mace"].items()}
+    for key, v in per_seed.items():
+        lines.append(table1_line(*key.split(","), v, paper["table1_mace"].get(key)))
     lines += ["", f"## Table 2: batch-1 latency ({latency.get('policy', '')}; paper: a GPU)", "",
               "| stages | d_e (ms), ours | formula (l_m + l_w) n | paper GPU (ms) |",
               "| ---: | ---: | ---: | ---: |"]
@@ -380,14 +399,27 @@ def tables_markdown(result: dict, latency: dict) -> str:
     return "\n".join(lines)
 
 
+TABLE1_HEADER = "| L2 weight | L1 weight | MACE (px), ours | seeds: range | paper |"
+
+
+def table1_line(l2: str, l1: str, maces, paper) -> str:
+    """One Table 1 row: the mean over seeds, and the range when there are several."""
+    spread = (f"{len(maces)} seeds: {min(maces):.2f}-{max(maces):.2f}" if len(maces) > 1
+              else "1 seed")
+    return (f"| {l2} | {l1} | {float(np.mean(maces)):.2f} | {spread} | "
+            f"{'' if paper is None else f'{paper:.2f}'} |")
+
+
 def _model_dirs(models: dict):
     for k, d in enumerate(models["stages"], start=1):
         yield f"stage {k}", d
     yield "HomographyNet", models["homographynet"]
     yield "sequence, 2 stages", models["sequence2"]
-    for key, d in models["ablation"].items():
-        if d not in models["stages"]:
-            yield f"ablation L2:L1 = {key.replace(',', ':')}", d
+    seeds = models.get("ablation_seeds") or {k: [d] for k, d in models["ablation"].items()}
+    for key, dirs in seeds.items():
+        for seed, d in enumerate(dirs):
+            if d not in models["stages"]:
+                yield f"ablation L2:L1 = {key.replace(',', ':')}{f', seed {seed}' if seed else ''}", d
 
 
 def _trained_on(model_dir: str) -> str:
