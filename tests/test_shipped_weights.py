@@ -1,5 +1,5 @@
 """The weights shipped in stnh_tf/weights (the default: the paper recipe's CPU-budget hierarchy;
-and the fast recipe's stage 1 in stnh_tf/weights/fast) load without a network and reproduce the
+and the fast recipe's 2-stage hierarchy in stnh_tf/weights/fast) load without a network and reproduce the
 numbers their model cards record on the seeded bundled test pairs (a regression guard for the
 files); the fast weights beat the identity on pairs with a photometric change; the implausibility
 flag follows the corner shift and the alignment of the estimate."""
@@ -104,8 +104,9 @@ def test_implausibility_flag_follows_the_corner_shift_and_alignment(card_and_pai
         shift = np.linalg.norm(geometry.warp_points(h, corners) - corners, axis=-1).max(axis=-1)
         np.testing.assert_allclose(info["max_corner_shift_px"], shift, rtol=1e-9)
         ncc = np.array([ncc_reference(x[..., 0], y[..., 0], hh) for x, y, hh in zip(a, b, h)])
-        # (OpenCV quantizes warp positions to 1/32 px: border pixels may differ from the mask)
-        np.testing.assert_allclose(info["alignment_ncc"], ncc, atol=1e-3)
+        # (OpenCV quantizes warp positions to 1/32 px and border pixels may differ from the
+        # mask: up to 1.0e-3 apart on the fast 2-stage estimates)
+        np.testing.assert_allclose(info["alignment_ncc"], ncc, atol=3e-3)
         np.testing.assert_array_equal(info["implausible"],
                                       (shift > 48.0) | ~(info["alignment_ncc"] >= 0.15))
         fractions[case] = info["implausible"].mean()
