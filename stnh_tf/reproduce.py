@@ -229,7 +229,7 @@ class Reproduction:
                                for seed, d in enumerate(dirs)]
         steps = self.budget.ablation_train_steps
         lines = [f"# Table 1: loss weights, single stage, {steps} steps per row (budget "
-                 f"'{self.budget.name}')", "", TABLE1_HEADER, "| ---: | ---: | ---: | ---: | ---: |"]
+                 f"'{self.budget.name}')", "", *TABLE1_HEAD]
         lines += [table1_line(f"{l2:g}", f"{l1:g}", v, PAPER_TABLE1.get((l2, l1)))
                   for (l2, l1), v in table.items()]
         with open(os.path.join(self.out, "table1.md"), "w") as f:
@@ -377,9 +377,8 @@ def tables_markdown(result: dict, latency: dict) -> str:
         lines.append(f"| {name} | {v:.2f} | {'' if p is None else f'{p:.2f}'} |")
     steps = b["ablation_steps"] or b["train_steps"]
     lines += ["", f"## Table 1: loss weights, single stage ({steps} steps per row)", "",
-              TABLE1_HEADER, "| ---: | ---: | ---: | ---: | ---: |"]
-    per_seed = result.get("table1_mace_per_seed") or {k: [v] for k, v in result["table1_mace"].items()}
-    for key, v in per_seed.items():
+              *TABLE1_HEAD]
+    for key, v in result["table1_mace_per_seed"].items():
         lines.append(table1_line(*key.split(","), v, paper["table1_mace"].get(key)))
     lines += ["", f"## Table 2: batch-1 latency ({latency.get('policy', '')}; paper: a GPU)", "",
               "| stages | d_e (ms), ours | formula (l_m + l_w) n | paper GPU (ms) |",
@@ -399,7 +398,8 @@ def tables_markdown(result: dict, latency: dict) -> str:
     return "\n".join(lines)
 
 
-TABLE1_HEADER = "| L2 weight | L1 weight | MACE (px), ours | seeds: range | paper |"
+TABLE1_HEAD = ["| L2 weight | L1 weight | MACE (px), ours | seeds: range | paper |",
+               "| ---: | ---: | ---: | ---: | ---: |"]
 
 
 def table1_line(l2: str, l1: str, maces, paper) -> str:
@@ -415,8 +415,7 @@ def _model_dirs(models: dict):
         yield f"stage {k}", d
     yield "HomographyNet", models["homographynet"]
     yield "sequence, 2 stages", models["sequence2"]
-    seeds = models.get("ablation_seeds") or {k: [d] for k, d in models["ablation"].items()}
-    for key, dirs in seeds.items():
+    for key, dirs in models["ablation_seeds"].items():
         for seed, d in enumerate(dirs):
             if d not in models["stages"]:
                 yield f"ablation L2:L1 = {key.replace(',', ':')}{f', seed {seed}' if seed else ''}", d
