@@ -48,20 +48,21 @@ def self_check(seed: int = 0, num_pairs: int = 8) -> dict:
     return result
 
 
-FAST_WEIGHTS = "fast"
-"""Folder under ``stnh_tf/weights`` of the fast recipe's weights (not yet the default)."""
+PAPER_RECIPE_WEIGHTS = "paper_recipe"
+"""Folder under ``stnh_tf/weights`` of the paper recipe's CPU-budget weights (the default before
+the fast recipe's hierarchy)."""
 
 
 def shipped_models() -> dict:
     """``{name: [stage model paths]}`` of the weights shipped in ``stnh_tf/weights``: the default
-    (its first stage, and all its stages if several) and the fast recipe's weights in ``fast``
-    (likewise)."""
+    (its first stage, and all its stages if several) and the paper recipe's weights in
+    ``paper_recipe`` (likewise)."""
     from stnh_tf import model_files
 
     d = model_files.default_weights_dir()
     found = {}
     for label, folder in (("shipped default", None),
-                          ("fast recipe", os.path.join(d, FAST_WEIGHTS))):
+                          ("paper recipe", os.path.join(d, PAPER_RECIPE_WEIGHTS))):
         try:
             stages = model_files.resolve_model_paths(folder)
         except FileNotFoundError:
