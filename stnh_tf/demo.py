@@ -48,11 +48,6 @@ def self_check(seed: int = 0, num_pairs: int = 8) -> dict:
     return result
 
 
-PAPER_RECIPE_WEIGHTS = "paper_recipe"
-"""Folder under ``stnh_tf/weights`` of the paper recipe's CPU-budget weights (the default before
-the fast recipe's hierarchy)."""
-
-
 def shipped_models() -> dict:
     """``{name: [stage model paths]}`` of the weights shipped in ``stnh_tf/weights``: the default
     (its first stage, and all its stages if several) and the paper recipe's weights in
@@ -62,7 +57,7 @@ def shipped_models() -> dict:
     d = model_files.default_weights_dir()
     found = {}
     for label, folder in (("shipped default", None),
-                          ("paper recipe", os.path.join(d, PAPER_RECIPE_WEIGHTS))):
+                          ("paper recipe", os.path.join(d, model_files.PAPER_RECIPE_WEIGHTS))):
         try:
             stages = model_files.resolve_model_paths(folder)
         except FileNotFoundError:

@@ -177,8 +177,8 @@ class HomographyEstimator:
         ``compute_dtype``: models trained in mixed precision (the shipped ones: mixed bfloat16)
         are rebuilt to compute in float32 by default, so an estimate does not depend on the batch
         size or on eager vs graph execution, and the exported SavedModel matches it (see
-        docs/estimate.md); ``None`` keeps the policy they were saved with (faster on CPUs with bfloat16
-        units; ``experiments.evaluate`` scores models so).
+        docs/estimate.md); ``None`` keeps the policy they were saved with (faster on CPUs with
+        bfloat16 units; ``experiments.evaluate`` scores models so).
 
         Raises ``FileNotFoundError`` if nothing is found (also when no weights are shipped) and
         ``ValueError`` if a file is not a usable model.

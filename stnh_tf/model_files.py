@@ -42,6 +42,9 @@ MANIFEST_FILE = "hierarchy.json"
 MODEL_FILE = "model.keras"
 DEFAULT_MANIFEST = "default.json"
 DEFAULT_MODEL = "default.keras"
+PAPER_RECIPE_WEIGHTS = "paper_recipe"
+"""Folder under :func:`default_weights_dir` of the paper recipe's CPU-budget hierarchy (the default
+before the fast recipe's)."""
 
 
 def default_weights_dir() -> str:
