@@ -10,7 +10,8 @@ on the same seeded test pairs, batch-1 latency (Table 2) and the figures (Fig. 1
 whatever is already complete; writes OUTPUT_DIR/tables.md (the paper's numbers beside ours),
 results.json and figures/. Models trained elsewhere at the same budget are used in place with
 --reuse=stage1=runs/cpu/stage1,homographynet=...; their recorded configuration must match the
-budget. See stnh_tf/reproduce.py for the steps and budgets.
+budget. --train_only=homographynet trains that part alone (resumable) and stops, to spread the
+training over several sessions. See stnh_tf/reproduce.py for the steps and budgets.
 """
 
 from absl import app, flags
@@ -25,6 +26,9 @@ flags.DEFINE_string("test_image_dir", "", "Test images (--source=folder).")
 flags.DEFINE_list("reuse", [], "name=dir pairs of finished models / datasets to use in place "
                   "(stage1, stage2, stage3, homographynet, sequence2, ablation_l2-10_l1-1, ..., "
                   "data_stage1, data_stage2, data_stage3).")
+flags.DEFINE_list("train_only", [], "Train only these parts (hierarchy, homographynet, sequence2, "
+                  "table1) and stop before evaluation, tables and figures: a long reproduction "
+                  "spread over sessions, one part at a time.")
 FLAGS = flags.FLAGS
 
 
@@ -44,7 +48,15 @@ def main(argv):
         run = reproduce.Reproduction(reproduce.BUDGETS[FLAGS.budget], FLAGS.output_dir,
                                      image_dir=FLAGS.image_dir, test_image_dir=FLAGS.test_image_dir,
                                      source=FLAGS.source, reuse=parse_reuse(FLAGS.reuse))
-        run.run()
+        parts = {"hierarchy": run.hierarchy, "homographynet": run.homographynet,
+                 "sequence2": run.sequence2, "table1": lambda: run.ablation(run.ablation_weights)}
+        unknown = sorted(set(FLAGS.train_only) - set(parts))
+        if unknown:
+            raise ValueError(f"--train_only names must be among {sorted(parts)}; received {unknown}.")
+        for name in FLAGS.train_only:
+            parts[name]()
+        if not FLAGS.train_only:
+            run.run()
     except (ValueError, OSError) as e:
         raise SystemExit(f"reproduce: {e}") from None
 

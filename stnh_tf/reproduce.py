@@ -203,6 +203,20 @@ class Reproduction:
             dirs.append(self.train(f"stage{k}", self.config(f"stage{k}", data_dir=d, stage=k)))
         return dirs
 
+    def homographynet(self) -> str:
+        """DeTone et al.'s network with their step schedule at this budget's steps, on the
+        stage-1 pairs; returns its model dir."""
+        detone = {**train_config.MODEL_DEFAULTS["homographynet"],
+                  "train_steps": self.budget.train_steps}
+        return self.train("homographynet", self.config("homographynet", data_dir=self.stage1_data(),
+                                                       model="homographynet", **detone))
+
+    def sequence2(self) -> str:
+        """The 2-stage sequence model trained end to end on the stage-1 pairs; returns its dir."""
+        return self.train("sequence2", self.config("sequence2", data_dir=self.stage1_data(),
+                                                   model="sequence", num_stages=2,
+                                                   train_steps=self.budget.sequence_train_steps))
+
     def ablation(self, weights=ABLATION_WEIGHTS) -> dict:
         """Table 1 rows ``{(l2, l1): [model_dir per seed]}`` (seeds: :func:`table1_seeds`); the
         (1, 1) row's seed 0 at the ablation budget is stage 1."""
@@ -278,14 +292,8 @@ class Reproduction:
 
         t0 = time.time()
         stages = self.hierarchy(3)
-        d1 = self.data_dir(1)
-        detone = {**train_config.MODEL_DEFAULTS["homographynet"],  # at this budget's steps
-                  "train_steps": self.budget.train_steps}
-        hnet = self.train("homographynet", self.config("homographynet", data_dir=d1,
-                                                       model="homographynet", **detone))
-        seq = self.train("sequence2", self.config("sequence2", data_dir=d1, model="sequence",
-                                                  num_stages=2,
-                                                  train_steps=self.budget.sequence_train_steps))
+        hnet = self.homographynet()
+        seq = self.sequence2()
         rows = self.ablation(self.ablation_weights)
         self.printer("[evaluate] baselines, HomographyNet, hierarchy, sequence, ablation rows")
         base = self.evaluate("baselines", baselines=tuple(FIGURE_BASELINES))
