@@ -137,3 +137,18 @@ def test_homographynet_is_detones_network_with_its_schedule(tiny_run):
     assert (cfg["model"], cfg["batch_norm"], cfg["lr_schedule"], cfg["learning_rate"],
             cfg["warmup_steps"], cfg["train_steps"]) == (
         "homographynet", "conv", "step", 0.005, 0, reproduce.BUDGETS["tiny"].train_steps)
+
+
+def test_train_only_trains_that_part_and_stops(tiny_run, tmp_path):
+    out, _, _ = tiny_run
+    cmd = [sys.executable, "-m", "experiments.reproduce", "--budget=tiny", "--source=bundled",
+           f"--output_dir={tmp_path}", f"--reuse=data_stage1={os.path.join(out, 'data', 'stage1')}"]
+    res = subprocess.run(cmd + ["--train_only=homographynet"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert os.listdir(tmp_path / "models") == ["homographynet"]
+    assert os.path.exists(tmp_path / "models" / "homographynet" / run_dir.FINAL_MODEL)
+    assert not os.path.exists(tmp_path / "tables.md")
+    res = subprocess.run(cmd + ["--train_only=homographynet,stage7"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode != 0 and "['stage7']" in res.stderr
