@@ -163,7 +163,9 @@ class HomographyEstimator:
         :data:`IMPLAUSIBLE_CORNER_SHIFT` px, beyond what the models were trained on, or the
         estimate does not explain the pair: ``alignment_ncc`` below :data:`MIN_ALIGNMENT_NCC` or
         undefined), ``max_corner_shift_px`` (largest corner displacement of the 128 x 128 patch
-        estimate), ``rejected_stages`` (stages skipped as degenerate) and ``alignment_ncc``
+        estimate), ``rejected_stages`` (stages skipped as degenerate), ``gated_stages`` (later
+        stages whose update ``estimate`` did not keep because it lowered the alignment; see its
+        ``gate_stages``) and ``alignment_ncc``
         (:func:`alignment_ncc` of patch_b and patch_a warped by the estimate, read from the
         image context in ``estimate_images``)."""
 
@@ -234,11 +236,14 @@ class HomographyEstimator:
             self._predictors[k] = runner.predictor(self._stages[k], output=self._outputs[k])
         return self._predictors[k](patch_a, patch_b, batch_size)
 
-    def _estimate(self, patch_a, patch_b, context=None, origin=(0, 0), batch_size=64):
+    def _estimate(self, patch_a, patch_b, context=None, origin=(0, 0), batch_size=64,
+                  gate_stages=False):
         """Composed ``H_1 @ ... @ H_n`` ``[B, 3, 3]`` for float32 ``[B, S, S, 1]`` pairs.
 
         ``context``: optional list of float32 ``[h, w]`` images holding patch_a at ``origin``;
         later stages then crop their patch_a_k from the warped context, else from patch_a alone.
+        ``gate_stages``: keep a later stage's update of a pair only where it does not lower
+        :func:`alignment_ncc` (an undefined NCC counts as the lowest).
         """
         from stnh_tf import hierarchy
 
@@ -246,9 +251,16 @@ class HomographyEstimator:
         current = patch_a
         rejected = {"non_finite": 0, "singular": 0}
         rejected_stages = np.zeros(len(patch_a), np.int64)
+        gated_stages = np.zeros(len(patch_a), np.int64)
         sources = (context if context is not None
                    else [np.ascontiguousarray(p[..., 0]) for p in patch_a])
         org = origin if context is not None else (0, 0)
+
+        def nccs(a_from_b):  # NaN (undefined) ranks below every defined NCC
+            return np.nan_to_num([alignment_ncc(src, b[..., 0], h, org)
+                                  for src, b, h in zip(sources, patch_b, a_from_b)], nan=-np.inf)
+
+        ncc_total = None  # alignment of the estimate so far, while gating
         for k in range(self.num_stages):
             if k:
                 current = np.stack([hierarchy.warp_crop(src, h, org, PATCH_SIZE)
@@ -257,11 +269,21 @@ class HomographyEstimator:
             # The hierarchy's degenerate-prediction rule without its context bound (there is no
             # stored context to leave): a non-finite or singular composition keeps the estimate
             # so far.
-            total, reasons = hierarchy.accept_or_reject(total, h_stage, margin=np.inf)
+            proposed, reasons = hierarchy.accept_or_reject(total, h_stage, margin=np.inf)
             for i, reason in enumerate(reasons):
                 if reason:
                     rejected[reason] += 1
                     rejected_stages[i] += 1
+            if gate_stages and k:
+                ncc_proposed = nccs(proposed)
+                lowered = ncc_proposed < ncc_total
+                gated_stages += lowered
+                total = np.where(lowered[:, None, None], total, proposed)
+                ncc_total = np.where(lowered, ncc_total, ncc_proposed)
+            else:
+                total = proposed
+            if gate_stages and k == 0 and self.num_stages > 1:
+                ncc_total = nccs(total)
         self.last_rejected = rejected
         if any(rejected.values()):
             _log.warning("HomographyEstimator: stage predictions skipped as degenerate: %s",
@@ -272,16 +294,21 @@ class HomographyEstimator:
         self.last_info = {"implausible": ((rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT)
                                           | ~(ncc >= MIN_ALIGNMENT_NCC)),
                           "max_corner_shift_px": shift, "rejected_stages": rejected_stages,
-                          "alignment_ncc": ncc}
+                          "gated_stages": gated_stages, "alignment_ncc": ncc}
         return total
 
-    def estimate(self, patch_a, patch_b, batch_size: int = 64) -> np.ndarray:
+    def estimate(self, patch_a, patch_b, batch_size: int = 64,
+                 gate_stages: bool = True) -> np.ndarray:
         """Pixel homography between 128 x 128 grayscale patches.
 
         Args:
           patch_a, patch_b: one pair (``[128, 128]`` or ``[128, 128, 1]``) or a batch
             (``[B, 128, 128]`` or ``[B, 128, 128, 1]``), uint8 (0..255) or float in [0, 1].
           batch_size: pairs per model call.
+          gate_stages: in a hierarchy, keep a later stage's update of a pair only where it does
+            not lower the :func:`alignment_ncc` of patch_b and the warped patch_a (a deviation
+            from the paper for bare patches: later stages are trained with image context and can
+            misread the zero fill, see docs/estimate.md); ``False`` composes every stage.
         Returns:
           float64 ``[B, 3, 3]`` ``H_ba``, mapping patch_b pixel coordinates to patch_a pixel
           coordinates (``[2, 2] = 1``; B = 1 for a single pair). In a hierarchy, later stages see
@@ -298,7 +325,7 @@ class HomographyEstimator:
         if len(a) != len(b):
             raise ValueError(f"patch_a and patch_b must hold the same number of patches; received "
                              f"shapes {np.shape(patch_a)} and {np.shape(patch_b)}.")
-        return self._estimate(a, b, batch_size=batch_size)
+        return self._estimate(a, b, batch_size=batch_size, gate_stages=bool(gate_stages))
 
     def estimate_images(self, image_a, image_b, channel_order: str = "rgb") -> np.ndarray:
         """Homography between two images of any size and colour, in their own pixel frames.

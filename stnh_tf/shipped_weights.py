@@ -79,7 +79,8 @@ def bundled_check(stage_paths) -> dict:
     (pairs flagged in ``last_info``) on the plain pairs; the same with the prefix ``photometric_``
     on the pairs with a photometric change (:func:`bundled_pairs`), plus
     ``photometric_worse_than_identity_{k}_stages``, the pairs whose corner error exceeds the
-    identity's."""
+    identity's; ``[photometric_]ungated_estimate_mace_{k}_stages`` (k > 1): the same without the
+    estimator's stage gate (``gate_stages=False``)."""
     import numpy as np
 
     from stnh_tf import geometry
@@ -103,6 +104,10 @@ def bundled_check(stage_paths) -> dict:
             out[f"{prefix}implausible_{k}_stages"] = int(estimator.last_info["implausible"].sum())
             if prefix:
                 out[f"{prefix}worse_than_identity_{k}_stages"] = int((errors > identity).sum())
+            if k > 1:
+                ungated = geometry.corner_errors(estimator.estimate(
+                    arrays["patch_a"], arrays["patch_b"], gate_stages=False), arrays["h_ba"])
+                out[f"{prefix}ungated_estimate_mace_{k}_stages"] = float(ungated.mean())
     return out
 
 

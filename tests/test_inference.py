@@ -170,7 +170,7 @@ def test_load_hierarchy_manifest_round_trip(saved, pairs):
     for path in (saved["root"] / "hier" / "hierarchy.json", saved["root"] / "hier"):
         est = HomographyEstimator.load(path)
         assert (est.kind, est.num_stages) == ("hierarchy", 2)
-        np.testing.assert_allclose(est.estimate(a, b), ref, rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(est.estimate(a, b, gate_stages=False), ref, rtol=1e-5, atol=1e-4)
 
 
 def test_load_numbered_stage_directory(saved, pairs, tmp_path):
@@ -182,8 +182,9 @@ def test_load_numbered_stage_directory(saved, pairs, tmp_path):
                                                         str(tmp_path / "stage2.keras")]
     a, b, _ = pairs
     ref, _ = _hierarchy_reference(saved["stage1"], saved["stage2"], a[:2], b[:2])
-    np.testing.assert_allclose(HomographyEstimator.load(tmp_path).estimate(a[:2], b[:2]), ref,
-                               rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(HomographyEstimator.load(tmp_path).estimate(a[:2], b[:2],
+                                                                           gate_stages=False),
+                               ref, rtol=1e-5, atol=1e-4)
 
 
 def test_load_sequence_round_trip(saved, pairs):
@@ -294,7 +295,7 @@ def test_hierarchy_of_constant_stages_is_the_product(pairs, rng):
     h1, h2 = paper_homography(rng), paper_homography(rng)
     est = HomographyEstimator([_constant_stage(h1, "c1"), _constant_stage(h2, "c2")])
     assert est.kind == "hierarchy"
-    got = est.estimate(a, b)
+    got = est.estimate(a, b, gate_stages=False)
     want = h1 @ h2
     np.testing.assert_allclose(got, np.broadcast_to(want / want[2, 2], got.shape), atol=1e-4)
     other = h2 @ h1
@@ -318,7 +319,7 @@ def test_degenerate_stage_predictions_are_skipped_and_counted(pairs, rng, caplog
 
     est._predict_stage = fake_stage
     with caplog.at_level("WARNING"):
-        got = est.estimate(a, b)
+        got = est.estimate(a, b, gate_stages=False)
     want = h1 @ h3
     np.testing.assert_allclose(got, np.broadcast_to(want / want[2, 2], got.shape), atol=1e-9)
     assert est.last_rejected == {"non_finite": 1, "singular": 1}
@@ -405,13 +406,49 @@ def test_implausible_estimates_are_flagged_per_pair(pairs):
     assert info["alignment_ncc"][3] < inference.MIN_ALIGNMENT_NCC
 
 
+def test_stage_gate_keeps_later_updates_that_do_not_lower_the_alignment(pairs):
+    """estimate's gate (the default): a later stage's update is kept where the NCC of patch_b and
+    the warped patch_a (NumPy reference) does not drop, dropped where it does; stage 1 is always
+    kept; gate_stages=False composes every stage."""
+    a, b, hs = pairs
+    off = geometry.translation(6.0, -5.0)
+    # per pair: stage 1, 2, 3 predictions
+    plans = [(hs[0], off, np.eye(3)),                  # stage 2 moves a true estimate away
+             (hs[1] @ np.linalg.inv(off), off, off),   # stage 2 corrects stage 1, stage 3 errs
+             (hs[2] @ off, np.linalg.inv(off), np.eye(3)),
+             (np.eye(3), hs[3], np.eye(3))]            # stage 1 sees nothing, stage 2 finds it
+    est = HomographyEstimator([_constant_stage(np.eye(3), f"c{k}") for k in (1, 2, 3)])
+    est._predict_stage = lambda k, pa, pb, bs: np.stack([p[k] for p in plans])
+    got = est.estimate(a, b)
+    for i, plan in enumerate(plans):
+        total, gated = plan[0], 0
+        for h in plan[1:]:
+            before = ncc_reference(a[i, ..., 0], b[i, ..., 0], total)
+            after = ncc_reference(a[i, ..., 0], b[i, ..., 0], total @ h)
+            if not np.allclose(h, np.eye(3)):
+                assert abs(after - before) > 0.05  # no near tie the two NCCs could rank apart
+            if after >= before:
+                total = total @ h
+            else:
+                gated += 1
+        np.testing.assert_allclose(got[i], total / total[2, 2], atol=1e-9)
+        np.testing.assert_allclose(total / total[2, 2], hs[i] / hs[i, 2, 2], atol=1e-9)
+        assert est.last_info["gated_stages"][i] == gated
+    np.testing.assert_array_equal(est.last_info["gated_stages"], [1, 1, 0, 0])
+    plain = est.estimate(a, b, gate_stages=False)
+    for i, plan in enumerate(plans):
+        want = plan[0] @ plan[1] @ plan[2]
+        np.testing.assert_allclose(plain[i], want / want[2, 2], atol=1e-9)
+    np.testing.assert_array_equal(est.last_info["gated_stages"], [0, 0, 0, 0])
+
+
 def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs):
     """estimate (patches only): stage 2 sees patch_a(H_1 p), zero outside the patch."""
     a, b, _ = pairs
     h1 = geometry.translation(20.0, -12.0) @ np.diag([1.1, 0.95, 1.0])
     gain = 0.8
     est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
-    got = est.estimate(a, b)
+    got = est.estimate(a, b, gate_stages=False)
     for i in range(len(a)):
         seen = cv2_warp(a[i, ..., 0].astype(np.float32) / 255, h1)
         want = h1 @ _spy_expected_h(np.eye(3), gain, seen)

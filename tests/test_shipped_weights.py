@@ -57,11 +57,16 @@ def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs, name):
                                                  compute_dtype=dtype).stages[0]
               for s in _card(folder)["stages"]]
     for k in range(1, len(stages) + 1):
-        h = inference.HomographyEstimator(stages[:k]).estimate(arrays["patch_a"], arrays["patch_b"])
+        est = inference.HomographyEstimator(stages[:k])
+        h = est.estimate(arrays["patch_a"], arrays["patch_b"])
         assert h.shape == (len(arrays["h_ba"]), 3, 3)
         mace = float(geometry.mean_corner_error(h, arrays["h_ba"]))
         assert mace == pytest.approx(check[f"estimate_mace_{k}_stages"], rel=1e-3, abs=1e-3)
         assert mace < identity
+        if k > 1:
+            h = est.estimate(arrays["patch_a"], arrays["patch_b"], gate_stages=False)
+            assert float(geometry.mean_corner_error(h, arrays["h_ba"])) == pytest.approx(
+                check[f"ungated_estimate_mace_{k}_stages"], rel=1e-3, abs=1e-3)
 
 
 @pytest.fixture(scope="module")
