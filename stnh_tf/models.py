@@ -33,7 +33,7 @@ BatchNorm variant's on a CPU (docs/training.md, "Batch normalization")."""
 
 
 def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5, dense_units: int = 1024,
-                       outputs: int = 8, identity_init: bool = True, size: int = geometry.PATCH_SIZE,
+                       outputs: int = 8, last_init: str = "identity", size: int = geometry.PATCH_SIZE,
                        name: str = "regression", head: str = "gap",
                        conv_dropout: float = 0.0, input_norm: str = "unit") -> keras.Model:
     """The paper's regression network (and, with ``head="flatten"``, DeTone et al.'s).
@@ -53,9 +53,11 @@ def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.
         paper's learning rate 0.05; ``"conv"`` puts BatchNormalization after every convolution
         (bias off), about 4x slower per step on a CPU (see docs/training.md).
       dropout: rate of the dropout after the 1024-unit layer (layer ``dropout``).
-      identity_init: start the last layer at zero kernel and the identity ``H_bar`` as bias (as
-        Jaderberg et al. initialise a spatial transformer's localisation net), so an untrained
-        stage predicts "no motion" rather than noise.
+      last_init: how the last layer starts: ``"identity"`` (default): zero kernel and the
+        identity ``H_bar`` as bias (as Jaderberg et al. initialise a spatial transformer's
+        localisation net), so an untrained stage predicts "no motion" rather than noise;
+        ``"zeros"``: zero kernel and bias (4-point offsets of no motion); ``"glorot"``:
+        Glorot-uniform kernel, zero bias.
       head: ``"gap"`` (default): global average pooling of conv8's ``[16, 16, 128]`` map (layer
         ``gap``, ``[B, 128]``); ``"flatten"``: the map flattened (layer ``flatten``,
         ``[B, 32768]``), DeTone et al.'s (33.6 M parameters in ``fc1``).
@@ -68,8 +70,8 @@ def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.
     Input ``[B, size, size, 2]`` (patch_a, patch_b); output ``[B, outputs]`` float32.
 
     Raises:
-      ValueError: an unknown ``batch_norm``, ``head`` or ``input_norm``, or a dropout rate
-        outside ``[0, 1)``.
+      ValueError: an unknown ``batch_norm``, ``head``, ``input_norm`` or ``last_init``, or a
+        dropout rate outside ``[0, 1)``.
     """
     if batch_norm not in BATCH_NORM_CHOICES:
         raise ValueError(f"batch_norm must be one of {BATCH_NORM_CHOICES}; received {batch_norm!r}.")
@@ -81,6 +83,9 @@ def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.
     for label, rate in (("dropout", dropout), ("conv_dropout", conv_dropout)):
         if not 0.0 <= rate < 1.0:
             raise ValueError(f"{label} must be in [0, 1); received {rate}.")
+    if last_init not in ("identity", "zeros", "glorot") or (last_init == "identity" and outputs != 8):
+        raise ValueError(f"last_init must be 'identity' (8 outputs), 'zeros' or 'glorot'; received "
+                         f"{last_init!r} with {outputs} outputs.")
     inputs = keras.Input((size, size, 2), name=f"{name}_pair")
     if input_norm == "patch":
         x = PatchStandardization(name="patch_standardization")(inputs)
@@ -103,10 +108,9 @@ def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.
         x = layers.Flatten(name="flatten")(x)
     x = layers.Dense(dense_units, activation="relu", kernel_initializer="he_normal", name="fc1")(x)
     x = layers.Dropout(dropout, name="dropout")(x)
-    if identity_init and outputs == 8:
-        kernel_init, bias_init = "zeros", keras.initializers.Constant(IDENTITY_H_BAR.tolist())
-    else:
-        kernel_init, bias_init = "glorot_uniform", "zeros"
+    kernel_init, bias_init = {
+        "identity": ("zeros", keras.initializers.Constant(IDENTITY_H_BAR.tolist())),
+        "zeros": ("zeros", "zeros"), "glorot": ("glorot_uniform", "zeros")}[last_init]
     out = layers.Dense(outputs, kernel_initializer=kernel_init, bias_initializer=bias_init,
                        dtype="float32", name="fc2")(x)
     return keras.Model(inputs, out, name=name)
@@ -281,8 +285,9 @@ def build_homographynet(dropout: float = 0.5, size: int = geometry.PATCH_SIZE,
     :func:`geometry.patch_corners`) divided by 32 (:data:`HOMOGRAPHYNET_SCALE`, the perturbation
     range, so targets lie in ``[-1, 1]``). 34,194,568 parameters (3,072 of them BatchNorm's moving
     statistics). As in every model here the input pair is scaled from ``[0, 1]`` to ``[-1, 1]``;
-    kernels start He-normal (convolutions, ``fc1``) and Glorot-uniform (``fc2``, bias 0): DeTone
-    et al. state neither. Trained with DeTone's schedule by default
+    kernels start He-normal (convolutions, ``fc1``) and ``fc2`` at zero kernel and bias, so an
+    untrained network predicts no motion (DeTone et al. state no initialisation; with a
+    Glorot-uniform ``fc2`` it collapsed to predicting the mean offsets, see docs/training.md). Trained with DeTone's schedule by default
     (:data:`stnh_tf.train_config.MODEL_DEFAULTS`).
 
     Inputs ``{"patch_a", "patch_b"}`` (``[B, S, S, 1]`` float in [0, 1]); outputs
@@ -291,7 +296,7 @@ def build_homographynet(dropout: float = 0.5, size: int = geometry.PATCH_SIZE,
     through the same path as STN-Homography.
     """
     regressor = regression_network(batch_norm="conv", dropout=dropout, size=size,
-                                   identity_init=False, name="regression", head="flatten",
+                                   last_init="zeros", name="regression", head="flatten",
                                    conv_dropout=dropout)
     return _four_point_model(regressor, size, name)
 
@@ -307,5 +312,5 @@ def build_homographynet_gap(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float
     Inputs and outputs as :func:`build_homographynet`.
     """
     regressor = regression_network(batch_norm=batch_norm, dropout=dropout, size=size,
-                                   identity_init=False, name="regression")
+                                   last_init="glorot", name="regression")
     return _four_point_model(regressor, size, name)

@@ -71,13 +71,40 @@ def test_homographynet_is_detones_network():
     assert sorted(model.output_names) == ["h_bar", "offsets", "patch_a_warp"]
 
 
-def test_homographynet_offsets_define_h_bar(rng):
-    """The 4-point output, scaled by 32, moves the patch corners to where h_bar maps them."""
+def _random_last_layer(model, rng, scale=0.01):
+    """fc2 (zero at the start for DeTone's network) set to random values: outputs that depend on
+    the input."""
+    fc2 = model.get_layer("regression").get_layer("fc2")
+    kernel, bias = fc2.get_weights()
+    fc2.set_weights([rng.normal(0, scale, kernel.shape).astype(np.float32),
+                     rng.normal(0, 0.1, bias.shape).astype(np.float32)])
+
+
+def test_untrained_homographynet_predicts_no_motion(rng):
+    """DeTone's network starts at zero offsets (fc2 zero kernel and bias: DeTone et al. state no
+    initialisation; a Glorot-uniform fc2 collapsed to the mean offsets) and the identity H_bar."""
     from stnh_tf import geometry
 
     model = models.build_homographynet()
     x = {k: rng.uniform(size=(2, 128, 128, 1)).astype(np.float32) for k in ("patch_a", "patch_b")}
     out = model.predict(x, verbose=0)
+    np.testing.assert_array_equal(out["offsets"], 0.0)
+    np.testing.assert_allclose(
+        geometry.denormalize_homography(geometry.vector_to_matrix(out["h_bar"].astype(np.float64))),
+        np.broadcast_to(np.eye(3), (2, 3, 3)), atol=1e-6)
+    with pytest.raises(ValueError, match="last_init"):
+        models.regression_network(last_init="ones")
+
+
+def test_homographynet_offsets_define_h_bar(rng):
+    """The 4-point output, scaled by 32, moves the patch corners to where h_bar maps them."""
+    from stnh_tf import geometry
+
+    model = models.build_homographynet()
+    _random_last_layer(model, rng)
+    x = {k: rng.uniform(size=(2, 128, 128, 1)).astype(np.float32) for k in ("patch_a", "patch_b")}
+    out = model.predict(x, verbose=0)
+    assert np.abs(out["offsets"]).max() > 0.05  # a real comparison
     h = geometry.denormalize_homography(geometry.vector_to_matrix(out["h_bar"].astype(np.float64)))
     corners = geometry.patch_corners()
     moved = geometry.warp_points(h, corners[None]) - corners
@@ -117,7 +144,9 @@ def test_homographynet_save_load_round_trip(build, tmp_path, rng):
     import keras
 
     model = build()
+    _random_last_layer(model, rng)
     x = {k: rng.uniform(size=(2, 128, 128, 1)).astype(np.float32) for k in ("patch_a", "patch_b")}
+    assert np.ptp(model.predict(x, verbose=0)["offsets"], axis=0).max() > 1e-3  # input-dependent
     model.save(tmp_path / "m.keras")
     loaded = keras.models.load_model(tmp_path / "m.keras", compile=False)
     assert loaded.count_params() == model.count_params()
@@ -143,7 +172,7 @@ def test_patch_standardization_matches_numpy_and_ignores_gain_and_offset(rng):
     changed = pair.copy()
     changed[..., 1] = 1.5 * pair[..., 1] - 0.1
     for norm, same in (("patch", True), ("unit", False)):
-        net = models.regression_network(input_norm=norm, identity_init=False)
+        net = models.regression_network(input_norm=norm, last_init="glorot")
         a, b = np.asarray(net(pair)), np.asarray(net(changed))
         relative = np.abs(a - b).max() / np.abs(a).max()
         assert (relative < 0.01) == same and (relative > 0.05) != same, (norm, relative)
