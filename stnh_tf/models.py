@@ -287,8 +287,8 @@ def build_homographynet(dropout: float = 0.5, size: int = geometry.PATCH_SIZE,
     statistics). As in every model here the input pair is scaled from ``[0, 1]`` to ``[-1, 1]``;
     kernels start He-normal (convolutions, ``fc1``) and ``fc2`` at zero kernel and bias, so an
     untrained network predicts no motion (DeTone et al. state no initialisation; with a
-    Glorot-uniform ``fc2`` it collapsed to predicting the mean offsets, see docs/training.md). Trained with DeTone's schedule by default
-    (:data:`stnh_tf.train_config.MODEL_DEFAULTS`).
+    Glorot-uniform ``fc2`` it collapsed to predicting the mean offsets, see docs/training.md).
+    Trained with DeTone's schedule by default (:data:`stnh_tf.train_config.MODEL_DEFAULTS`).
 
     Inputs ``{"patch_a", "patch_b"}`` (``[B, S, S, 1]`` float in [0, 1]); outputs
     ``{"offsets": [B, 8] (pixels / 32), "h_bar": [B, 8], "patch_a_warp": [B, S, S, 1]}``; only
