@@ -172,10 +172,10 @@ def verify_export(path, estimator, patch_a=None, patch_b=None, tolerance: float 
     Returns a dict with ``max_abs_diff`` (SavedModel vs the same TensorFlow computation run on the
     in-memory Keras models), ``max_abs_diff_estimate`` (SavedModel vs
     :meth:`HomographyEstimator.estimate` without its stage gate), ``tolerance`` and ``ok``.
-    ``ok`` requires ``max_abs_diff <= tolerance``, and for single-stage and sequence models (where both compute
-    the same thing) also ``max_abs_diff_estimate <= tolerance``; for a hierarchy the latter
-    measures OpenCV-vs-TensorFlow interpolation and is reported only. Differences are on the
-    entries of the pixel ``H_ba``.
+    ``ok`` requires ``max_abs_diff <= tolerance``, and for single-stage and sequence models
+    (where both compute the same thing) also ``max_abs_diff_estimate <= tolerance``; for a
+    hierarchy the latter measures OpenCV-vs-TensorFlow interpolation and is reported only.
+    Differences are on the entries of the pixel ``H_ba``.
     """
     import tensorflow as tf
 
