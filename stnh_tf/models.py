@@ -286,8 +286,8 @@ def build_homographynet(dropout: float = 0.5, size: int = geometry.PATCH_SIZE,
     range, so targets lie in ``[-1, 1]``). 34,194,568 parameters (3,072 of them BatchNorm's moving
     statistics). As in every model here the input pair is scaled from ``[0, 1]`` to ``[-1, 1]``;
     kernels start He-normal (convolutions, ``fc1``) and ``fc2`` at zero kernel and bias, so an
-    untrained network predicts no motion (DeTone et al. state no initialisation; with a
-    Glorot-uniform ``fc2`` it collapsed to predicting the mean offsets, see docs/training.md).
+    untrained network predicts no motion (DeTone et al. state no initialisation; why this one:
+    docs/training.md).
     Trained with DeTone's schedule by default (:data:`stnh_tf.train_config.MODEL_DEFAULTS`).
 
     Inputs ``{"patch_a", "patch_b"}`` (``[B, S, S, 1]`` float in [0, 1]); outputs

@@ -81,8 +81,8 @@ def _random_last_layer(model, rng, scale=0.01):
 
 
 def test_untrained_homographynet_predicts_no_motion(rng):
-    """DeTone's network starts at zero offsets (fc2 zero kernel and bias: DeTone et al. state no
-    initialisation; a Glorot-uniform fc2 collapsed to the mean offsets) and the identity H_bar."""
+    """DeTone's network starts at zero offsets (fc2 zero kernel and bias) and the identity
+    H_bar."""
     from stnh_tf import geometry
 
     model = models.build_homographynet()
