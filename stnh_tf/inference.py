@@ -289,8 +289,11 @@ class HomographyEstimator:
             _log.warning("HomographyEstimator: stage predictions skipped as degenerate: %s",
                          rejected)
         shift = corner_shift(total)
-        ncc = np.array([alignment_ncc(src, b[..., 0], h, org) if np.isfinite(s) else np.nan
-                        for src, b, h, s in zip(sources, patch_b, total, shift)])
+        if ncc_total is not None:  # the gate already measured the final estimate's alignment
+            ncc = np.where(np.isfinite(ncc_total) & np.isfinite(shift), ncc_total, np.nan)
+        else:
+            ncc = np.array([alignment_ncc(src, b[..., 0], h, org) if np.isfinite(s) else np.nan
+                            for src, b, h, s in zip(sources, patch_b, total, shift)])
         self.last_info = {"implausible": ((rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT)
                                           | ~(ncc >= MIN_ALIGNMENT_NCC)),
                           "max_corner_shift_px": shift, "rejected_stages": rejected_stages,
