@@ -15,8 +15,9 @@ It is self-contained TensorFlow (no stnh_tf or OpenCV needed to serve it)::
 
 Single-stage and sequence models export exactly the computation of
 :meth:`HomographyEstimator.estimate`. A hierarchy exports its stages chained by the package's
-:class:`~stnh_tf.layers.SpatialTransformer` (the warp of the patch itself, zero outside, the same
-geometry as the estimator's OpenCV warp of a patch); OpenCV's bilinear warp quantizes sampling
+:class:`~stnh_tf.layers.SpatialTransformer` (the warp of the patch itself, filled beyond it as
+``estimate`` fills by default, :data:`stnh_tf.inference.PATCH_FILL`: the same geometry as the
+estimator's OpenCV warp of a patch); OpenCV's bilinear warp quantizes sampling
 positions to 1/32 px, so a hierarchy's SavedModel agrees with ``estimate`` only up to that
 interpolation difference, while it agrees with the same TensorFlow computation run before
 export to float32 rounding (models compute in float32 as ``HomographyEstimator.load`` rebuilds
@@ -65,10 +66,11 @@ def serving_function(estimator):
     ``[B, 128, 128, 1]`` patches, computing the estimator's ``H_ba`` with its Keras models."""
     from keras import ops
 
+    from stnh_tf.inference import PATCH_FILL
     from stnh_tf.layers import SpatialTransformer
 
     stages, outputs = estimator.stages, estimator.output_names
-    warp = SpatialTransformer(dtype="float32", name="hierarchy_warp")
+    warp = SpatialTransformer(fill=PATCH_FILL, dtype="float32", name="hierarchy_warp")
 
     def serve(patch_a, patch_b):
         patch_a, patch_b = checked_inputs(patch_a, patch_b)
@@ -77,7 +79,7 @@ def serving_function(estimator):
         total, current = None, a
         for model, name in zip(stages, outputs):
             if total is not None:
-                current = warp([a, total])  # patch_a(H_1 ... H_{k-1} p), zero outside
+                current = warp([a, total])  # patch_a(H_1 ... H_{k-1} p), mirrored outside
             h8 = ops.cast(model({"patch_a": current, "patch_b": b}, training=False)[name], "float32")
             h_bar = geometry.vector_to_matrix(h8)
             total = geometry.scale_to_unit(h_bar if total is None else ops.matmul(total, h_bar))

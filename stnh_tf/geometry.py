@@ -38,6 +38,17 @@ IMAGE_HEIGHT = 240
 """Size every source image is resized to before sampling (the paper's 320x240)."""
 MAX_PERTURBATION = 32
 """Largest corner perturbation (pixels) and the width of the excluded image border."""
+FILLS = ("zeros", "reflect")
+"""What a warp samples where ``H @ p`` falls outside its source image: ``"zeros"`` (OpenCV's
+``BORDER_CONSTANT`` 0; the paper's spatial transformer) or ``"reflect"`` (the source mirrored
+about its first and last pixels, OpenCV's ``BORDER_REFLECT_101``)."""
+
+
+def check_fill(fill: str) -> str:
+    """``fill`` if it is one of :data:`FILLS`, else ``ValueError``."""
+    if fill not in FILLS:
+        raise ValueError(f"fill must be one of {FILLS}; received {fill!r}.")
+    return fill
 
 
 # --------------------------------------------------------------------------------------------

@@ -54,9 +54,11 @@ REJECT_REASONS = ("non_finite", "singular", "outside_context")
 
 
 def warp_crop(source: np.ndarray, a_from_b: np.ndarray, origin=(0, 0),
-              size: int = geometry.PATCH_SIZE) -> np.ndarray:
+              size: int = geometry.PATCH_SIZE, fill: str = "zeros") -> np.ndarray:
     """``out(p) = source(T @ H @ p)`` on the ``size x size`` grid, ``T`` the translation by
-    ``origin`` (where the patch's top-left corner lies in ``source``): bilinear, zero outside.
+    ``origin`` (where the patch's top-left corner lies in ``source``): bilinear, zero outside
+    ``source`` (``fill="zeros"``) or ``source`` mirrored about its border pixels
+    (``fill="reflect"``, :data:`stnh_tf.geometry.FILLS`).
 
     The one inter-stage warp of the hierarchy: with ``source`` the stored context and
     ``origin = (m, m)`` it re-crops ``patch_a_k``; with the whole image and the square's corner it
@@ -69,10 +71,12 @@ def warp_crop(source: np.ndarray, a_from_b: np.ndarray, origin=(0, 0),
     Returns:
       ``[size, size]`` float32, same value range as ``source``.
     """
+    border = {"zeros": cv2.BORDER_CONSTANT, "reflect": cv2.BORDER_REFLECT_101}[
+        geometry.check_fill(fill)]
     h = geometry.translation(*origin) @ np.asarray(a_from_b, np.float64)
     return cv2.warpPerspective(np.asarray(source, np.float32), h, (size, size),
                                flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                               borderMode=border, borderValue=0)
 
 
 def crop_warped_context(context_a: np.ndarray, h_prev: np.ndarray, margin: int = CONTEXT_MARGIN,

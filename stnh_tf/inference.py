@@ -23,9 +23,11 @@ rule of :meth:`HomographyEstimator.estimate_images`: :mod:`stnh_tf.image_input`.
 Context in the hierarchy. The paper warps the whole image_a between stages and crops patch_a_k
 from it, so pixels that the warp brings into the patch come from real image content.
 :meth:`HomographyEstimator.estimate` only receives 128 x 128 patches, so it warps **the patch
-itself** and fills everything outside it with zeros (the same as the sequence model's internal
-warp); :meth:`HomographyEstimator.estimate_images` has the whole image and uses it as context,
-as the paper does.
+itself** and, by default, fills what lies outside it with the patch mirrored about its border
+(``fill="reflect"``, a deviation: the stages were trained on real content there, which a mirror
+image resembles more than the zeros of the sequence model's internal warp, ``fill="zeros"``);
+:meth:`HomographyEstimator.estimate_images` has the whole image and uses it as context, as the
+paper does.
 
 Degenerate predictions. As in evaluation and stage-data generation
 (:func:`stnh_tf.hierarchy.accept_or_reject`), a stage whose prediction makes the composed
@@ -53,6 +55,10 @@ from stnh_tf.image_input import (PATCH_ORIGIN, PATCH_SIZE, central_patch, patch_
 from stnh_tf.model_files import default_source, resolve_model_paths
 
 KINDS = ("single", "sequence", "hierarchy")
+
+PATCH_FILL = "reflect"
+"""How :meth:`HomographyEstimator.estimate` fills patch_a beyond the patch for a hierarchy's later
+stages by default (:data:`stnh_tf.geometry.FILLS`); the exported SavedModel does the same."""
 
 IMPLAUSIBLE_CORNER_SHIFT = 1.5 * geometry.MAX_PERTURBATION
 """Corner displacement (px, 128 x 128 patch frame) beyond which an estimate is flagged as
@@ -237,11 +243,12 @@ class HomographyEstimator:
         return self._predictors[k](patch_a, patch_b, batch_size)
 
     def _estimate(self, patch_a, patch_b, context=None, origin=(0, 0), batch_size=64,
-                  gate_stages=False):
+                  gate_stages=False, fill="zeros"):
         """Composed ``H_1 @ ... @ H_n`` ``[B, 3, 3]`` for float32 ``[B, S, S, 1]`` pairs.
 
         ``context``: optional list of float32 ``[h, w]`` images holding patch_a at ``origin``;
         later stages then crop their patch_a_k from the warped context, else from patch_a alone.
+        ``fill``: what later stages see beyond the source (:func:`stnh_tf.hierarchy.warp_crop`).
         ``gate_stages``: keep a later stage's update of a pair only where it does not lower
         :func:`alignment_ncc` (an undefined NCC counts as the lowest).
         """
@@ -263,7 +270,7 @@ class HomographyEstimator:
         ncc_total = None  # alignment of the estimate so far, while gating
         for k in range(self.num_stages):
             if k:
-                current = np.stack([hierarchy.warp_crop(src, h, org, PATCH_SIZE)
+                current = np.stack([hierarchy.warp_crop(src, h, org, PATCH_SIZE, fill)
                                     for src, h in zip(sources, total)])[..., None]
             h_stage = self._predict_stage(k, current, patch_b, batch_size)
             # The hierarchy's degenerate-prediction rule without its context bound (there is no
@@ -301,7 +308,7 @@ class HomographyEstimator:
         return total
 
     def estimate(self, patch_a, patch_b, batch_size: int = 64,
-                 gate_stages: bool = True) -> np.ndarray:
+                 gate_stages: bool = True, fill: str = PATCH_FILL) -> np.ndarray:
         """Pixel homography between 128 x 128 grayscale patches.
 
         Args:
@@ -311,24 +318,30 @@ class HomographyEstimator:
           gate_stages: in a hierarchy, keep a later stage's update of a pair only where it does
             not lower the :func:`alignment_ncc` of patch_b and the warped patch_a (a deviation
             from the paper for bare patches: later stages are trained with image context and can
-            misread the zero fill, see docs/estimate.md); ``False`` composes every stage.
+            misread what lies beyond the patch, see docs/estimate.md); ``False`` composes every
+            stage.
+          fill: in a hierarchy, what later stages see of patch_a beyond the patch once warped by
+            the earlier estimates (there is no context): ``"reflect"`` (default, a deviation from
+            the paper: the patch mirrored about its border) or ``"zeros"``
+            (:data:`stnh_tf.geometry.FILLS`).
         Returns:
           float64 ``[B, 3, 3]`` ``H_ba``, mapping patch_b pixel coordinates to patch_a pixel
-          coordinates (``[2, 2] = 1``; B = 1 for a single pair). In a hierarchy, later stages see
-          patch_a warped by the earlier estimates with zeros outside the patch (no context).
+          coordinates (``[2, 2] = 1``; B = 1 for a single pair).
         Raises:
           ValueError: wrong rank, size, channel count or dtype, empty or different-sized
-            batches, ``batch_size`` < 1.
+            batches, ``batch_size`` < 1, an unknown ``fill``.
         """
         if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
                 or batch_size < 1:
             raise ValueError(f"batch_size must be an integer >= 1; received {batch_size!r}.")
+        fill = geometry.check_fill(fill)
         a = prepare_patches(patch_a, "patch_a")
         b = prepare_patches(patch_b, "patch_b")
         if len(a) != len(b):
             raise ValueError(f"patch_a and patch_b must hold the same number of patches; received "
                              f"shapes {np.shape(patch_a)} and {np.shape(patch_b)}.")
-        return self._estimate(a, b, batch_size=batch_size, gate_stages=bool(gate_stages))
+        return self._estimate(a, b, batch_size=batch_size, gate_stages=bool(gate_stages),
+                              fill=fill)
 
     def estimate_images(self, image_a, image_b, channel_order: str = "rgb") -> np.ndarray:
         """Homography between two images of any size and colour, in their own pixel frames.

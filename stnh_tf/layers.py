@@ -71,17 +71,23 @@ class SpatialTransformer(keras.layers.Layer):
     Returns ``[B, h, w, C]`` with ``out(p) = images(H_ba @ p)``, ``H_ba = inv(M) @ H_bar @ M``,
     sampled bilinearly, zero outside the input: the same warp as
     ``cv2.warpPerspective(image, H_ba, (w, h), flags=WARP_INVERSE_MAP | INTER_LINEAR)``.
+    ``fill="reflect"`` samples the input mirrored about its border pixels outside it instead
+    (``borderMode=cv2.BORDER_REFLECT_101``; see :data:`stnh_tf.geometry.FILLS`).
     Gradients flow to both the image and the homography (TensorFlow's built-in projective
     transform gives none to the transform). Coordinates are computed in at least float32 even
     under a mixed-precision policy.
     """
 
-    def __init__(self, **kwargs):
+    def __init__(self, fill: str = "zeros", **kwargs):
         # No input autocast: under a mixed policy Keras would round the homography to the
         # compute dtype (bfloat16) before call(); call() casts to the coordinate dtype itself.
         kwargs.setdefault("autocast", False)
         super().__init__(**kwargs)
+        self.fill = geometry.check_fill(fill)
         self.supports_masking = False
+
+    def get_config(self):
+        return {**super().get_config(), "fill": self.fill}
 
     def _coord_dtype(self):
         dtype = self.compute_dtype
@@ -120,12 +126,26 @@ class SpatialTransformer(keras.layers.Layer):
         w = ops.where(ops.abs(w) < 1e-6, 1e-6, w)
         x = src[:, 0] / w
         y = src[:, 1] / w
+        if self.fill == "reflect":
+            x, y = _reflect_101(x, width), _reflect_101(y, height)
         values = _bilinear_sample(ops.cast(images, dtype), x, y)  # [B, N, C]
         out = ops.reshape(values, (-1, height, width, channels))
         return ops.cast(out, self.compute_dtype)
 
     def compute_output_shape(self, input_shape):
         return tuple(input_shape[0])
+
+
+def _reflect_101(x, size: int):
+    """Pixel coordinates ``x`` mirrored into ``[0, size - 1]`` about the first and last pixel
+    centres (period ``2 (size - 1)``; non-finite -> 0). Bilinear sampling at the mirrored
+    coordinate equals OpenCV's ``BORDER_REFLECT_101``, which mirrors the neighbour indices: the
+    linear interpolant of the mirrored pixels is the mirror image of the interpolant."""
+    if size == 1:
+        return ops.zeros_like(x)
+    last = float(size - 1)
+    x = ops.where(ops.isfinite(x), x, 0.0)
+    return last - ops.abs(ops.mod(x, 2.0 * last) - last)
 
 
 def _bilinear_sample(images, x, y):

@@ -49,7 +49,7 @@ def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
 
 
 BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_image": 3,
-                 "compute_dtype": "float32"}
+                 "compute_dtype": "float32", "fill": "reflect"}
 
 
 def bundled_pairs(photometric: bool = False) -> dict:
@@ -72,8 +72,8 @@ def bundled_pairs(photometric: bool = False) -> dict:
 def bundled_check(stage_paths) -> dict:
     """What ``HomographyEstimator.estimate`` gives with the first k shipped stages, k = 1..n, on
     the seeded bundled test pairs (:data:`BUNDLED_CHECK`; stages loaded with its
-    ``compute_dtype``, the estimator's default): the numbers the shipped weights must keep
-    reproducing (``tests/test_shipped_weights.py``).
+    ``compute_dtype``, the estimator's default, and estimated with its ``fill``): the numbers the
+    shipped weights must keep reproducing (``tests/test_shipped_weights.py``).
 
     Keys: ``count``, ``identity_mace``, ``estimate_mace_{k}_stages`` and ``implausible_{k}_stages``
     (pairs flagged in ``last_info``) on the plain pairs; the same with the prefix ``photometric_``
@@ -98,15 +98,17 @@ def bundled_check(stage_paths) -> dict:
         out[f"{prefix}identity_mace"] = float(identity.mean())
         for k in range(1, len(stages) + 1):
             estimator = HomographyEstimator(stages[:k])
-            errors = geometry.corner_errors(estimator.estimate(arrays["patch_a"], arrays["patch_b"]),
-                                            arrays["h_ba"])
+            fill = BUNDLED_CHECK["fill"]
+            errors = geometry.corner_errors(
+                estimator.estimate(arrays["patch_a"], arrays["patch_b"], fill=fill), arrays["h_ba"])
             out[f"{prefix}estimate_mace_{k}_stages"] = float(errors.mean())
             out[f"{prefix}implausible_{k}_stages"] = int(estimator.last_info["implausible"].sum())
             if prefix:
                 out[f"{prefix}worse_than_identity_{k}_stages"] = int((errors > identity).sum())
             if k > 1:
                 ungated = geometry.corner_errors(estimator.estimate(
-                    arrays["patch_a"], arrays["patch_b"], gate_stages=False), arrays["h_ba"])
+                    arrays["patch_a"], arrays["patch_b"], gate_stages=False, fill=fill),
+                    arrays["h_ba"])
                 out[f"{prefix}ungated_estimate_mace_{k}_stages"] = float(ungated.mean())
     return out
 

@@ -45,12 +45,13 @@ def to_bar(h_pix, size=SIZE):
     return hb / hb[2, 2]
 
 
-def cv2_warp(image, h_pix):
-    """OpenCV reference: out(p) = image(H @ p), bilinear, zero border. image [h, w] or [h, w, C]."""
+def cv2_warp(image, h_pix, border=cv2.BORDER_CONSTANT):
+    """OpenCV reference: out(p) = image(H @ p), bilinear, zero border (or ``border``, e.g.
+    cv2.BORDER_REFLECT_101). image [h, w] or [h, w, C]."""
     h, w = image.shape[:2]
     return cv2.warpPerspective(image.astype(np.float32), h_pix, (w, h),
                                flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                               borderMode=border, borderValue=0)
 
 
 def inside_mask(h_pix, h=SIZE, w=SIZE):

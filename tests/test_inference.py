@@ -144,10 +144,12 @@ def identity_model_path(tmp_path_factory):
 # --------------------------------------------------------------------------------------------
 # load: round trips of every kind
 # --------------------------------------------------------------------------------------------
-def _hierarchy_reference(stage1, stage2, a_u8, b_u8):
+def _hierarchy_reference(stage1, stage2, a_u8, b_u8, border=cv2.BORDER_REFLECT_101):
+    """Stage 2 on patch_a warped by stage 1 (OpenCV, mirrored beyond the patch as estimate's
+    default fill="reflect"; cv2.BORDER_CONSTANT for fill="zeros")."""
     a, b = a_u8.astype(np.float32) / 255.0, b_u8.astype(np.float32) / 255.0
     h1 = _direct(stage1, a, b)
-    a2 = np.stack([cv2_warp(p[..., 0], h) for p, h in zip(a, h1)])[..., None]  # zero outside
+    a2 = np.stack([cv2_warp(p[..., 0], h, border) for p, h in zip(a, h1)])[..., None]
     h2 = _direct(stage2, a2, b)
     return _unit(h1 @ h2), h1
 
@@ -171,6 +173,12 @@ def test_load_hierarchy_manifest_round_trip(saved, pairs):
         est = HomographyEstimator.load(path)
         assert (est.kind, est.num_stages) == ("hierarchy", 2)
         np.testing.assert_allclose(est.estimate(a, b, gate_stages=False), ref, rtol=1e-5, atol=1e-4)
+    zeros, _ = _hierarchy_reference(saved["stage1"], saved["stage2"], a, b, cv2.BORDER_CONSTANT)
+    assert np.max(geometry.corner_errors(zeros, ref)) > 0.01  # the fill reaches stage 2
+    np.testing.assert_allclose(est.estimate(a, b, gate_stages=False, fill="zeros"), zeros,
+                               rtol=1e-5, atol=1e-4)
+    with pytest.raises(ValueError, match="fill must be one of"):
+        est.estimate(a, b, fill="edge")
 
 
 def test_load_numbered_stage_directory(saved, pairs, tmp_path):
@@ -442,15 +450,18 @@ def test_stage_gate_keeps_later_updates_that_do_not_lower_the_alignment(pairs):
     np.testing.assert_array_equal(est.last_info["gated_stages"], [0, 0, 0, 0])
 
 
-def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs):
-    """estimate (patches only): stage 2 sees patch_a(H_1 p), zero outside the patch."""
+@pytest.mark.parametrize("fill, border", [("reflect", cv2.BORDER_REFLECT_101),
+                                          ("zeros", cv2.BORDER_CONSTANT)])
+def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs, fill, border):
+    """estimate (patches only): stage 2 sees patch_a(H_1 p), mirrored about the patch border
+    outside it (the default fill) or zero there."""
     a, b, _ = pairs
     h1 = geometry.translation(20.0, -12.0) @ np.diag([1.1, 0.95, 1.0])
     gain = 0.8
     est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
-    got = est.estimate(a, b, gate_stages=False)
+    got = est.estimate(a, b, gate_stages=False, fill=fill)
     for i in range(len(a)):
-        seen = cv2_warp(a[i, ..., 0].astype(np.float32) / 255, h1)
+        seen = cv2_warp(a[i, ..., 0].astype(np.float32) / 255, h1, border)
         want = h1 @ _spy_expected_h(np.eye(3), gain, seen)
         np.testing.assert_allclose(got[i], want / want[2, 2], atol=1e-4)
 

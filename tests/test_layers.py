@@ -52,6 +52,28 @@ def test_stn_matches_opencv_batched_photographs(photo_patches, rng):
     assert np.abs(out[0, ..., 0] - wrong)[inside_mask(_from_bar(bars[0]))].mean() > 5.0
 
 
+def test_stn_reflect_fill_matches_opencv_reflect_101(photo_patches, rng):
+    """fill="reflect" samples the patch mirrored about its border pixels, as OpenCV's
+    BORDER_REFLECT_101 does, everywhere (also far outside); the zero fill differs there."""
+    patches = list(photo_patches.values())
+    bars = [to_bar(paper_homography(rng)) for _ in patches]
+    bars.append(to_bar(np.array([[1.6, 0.2, -90.0], [-0.1, 1.5, -70.0], [0.0, 0.0, 1.0]])))
+    patches.append(patches[0])  # a zoom out: much of the output lies beyond the patch
+    imgs = np.stack(patches)[..., None]
+    out = _stn(imgs, np.stack(bars).astype(np.float32), fill="reflect")
+    for i, h_bar in enumerate(bars):
+        h_pix = _from_bar(h_bar)
+        ref = cv2_warp(imgs[i, ..., 0], h_pix, cv2.BORDER_REFLECT_101)
+        outside = ~inside_mask(h_pix)
+        assert outside.mean() > 0.02
+        diff = np.abs(out[i, ..., 0].astype(np.float64) - ref)
+        assert diff.mean() < TOL and diff.max() < 4.0, (diff.mean(), diff.max())
+        assert np.abs(cv2_warp(imgs[i, ..., 0], h_pix) - ref)[outside].mean() > 10.0
+    assert SpatialTransformer(fill="reflect").get_config()["fill"] == "reflect"
+    with pytest.raises(ValueError, match="fill must be one of"):
+        SpatialTransformer(fill="edge")
+
+
 def test_stn_single_sample_and_matrix_input(photo_patches, rng):
     patch = photo_patches["camera"]
     h_bar = to_bar(paper_homography(rng))
@@ -254,12 +276,13 @@ def test_save_load_round_trip(tmp_path, photo_patches, rng):
     h2 = keras.Input((8,), name="h2")
     merged = HomographyMerge(name="merge")([h, h2])
     merged_m = HomographyMerge(output_matrix=True, name="merge_m")([h, h2])
-    warped = SpatialTransformer(name="stn")([image, merged])
+    warped = SpatialTransformer(fill="reflect", name="stn")([image, merged])
     model = keras.Model([image, h, h2], [warped, merged_m])
     path = tmp_path / "m.keras"
     model.save(path)
     loaded = keras.models.load_model(path)
     assert isinstance(loaded.get_layer("stn"), SpatialTransformer)
+    assert loaded.get_layer("stn").fill == "reflect"
     assert isinstance(loaded.get_layer("merge"), HomographyMerge)
     assert loaded.get_layer("merge_m").output_matrix is True
     assert loaded.get_layer("merge").output_matrix is False

@@ -58,13 +58,14 @@ def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs, name):
               for s in _card(folder)["stages"]]
     for k in range(1, len(stages) + 1):
         est = inference.HomographyEstimator(stages[:k])
-        h = est.estimate(arrays["patch_a"], arrays["patch_b"])
+        h = est.estimate(arrays["patch_a"], arrays["patch_b"], fill=check["fill"])
         assert h.shape == (len(arrays["h_ba"]), 3, 3)
         mace = float(geometry.mean_corner_error(h, arrays["h_ba"]))
         assert mace == pytest.approx(check[f"estimate_mace_{k}_stages"], rel=1e-3, abs=1e-3)
         assert mace < identity
         if k > 1:
-            h = est.estimate(arrays["patch_a"], arrays["patch_b"], gate_stages=False)
+            h = est.estimate(arrays["patch_a"], arrays["patch_b"], gate_stages=False,
+                             fill=check["fill"])
             assert float(geometry.mean_corner_error(h, arrays["h_ba"])) == pytest.approx(
                 check[f"ungated_estimate_mace_{k}_stages"], rel=1e-3, abs=1e-3)
 
@@ -83,7 +84,7 @@ def test_default_weights_beat_the_identity_under_a_photometric_change(card_and_p
     arrays = shipped_weights.bundled_pairs(photometric=True)
     identity = geometry.corner_errors(np.broadcast_to(np.eye(3), arrays["h_ba"].shape), arrays["h_ba"])
     assert float(identity.mean()) == pytest.approx(check["photometric_identity_mace"], rel=1e-6)
-    h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"])
+    h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"], fill=check["fill"])
     errors = geometry.corner_errors(h, arrays["h_ba"])
     n = default_estimator_float32.num_stages
     assert float(errors.mean()) == pytest.approx(check[f"photometric_estimate_mace_{n}_stages"],
