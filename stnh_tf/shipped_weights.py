@@ -88,7 +88,7 @@ def bundled_check(stage_paths) -> dict:
 
     stages = [HomographyEstimator.load(p, compute_dtype=BUNDLED_CHECK["compute_dtype"]).stages[0]
               for p in stage_paths]
-    out = dict(BUNDLED_CHECK)
+    out, fill = dict(BUNDLED_CHECK), BUNDLED_CHECK["fill"]
     for prefix, photometric in (("", False), ("photometric_", True)):
         arrays = bundled_pairs(photometric)
         identity = geometry.corner_errors(np.broadcast_to(np.eye(3), arrays["h_ba"].shape),
@@ -98,7 +98,6 @@ def bundled_check(stage_paths) -> dict:
         out[f"{prefix}identity_mace"] = float(identity.mean())
         for k in range(1, len(stages) + 1):
             estimator = HomographyEstimator(stages[:k])
-            fill = BUNDLED_CHECK["fill"]
             errors = geometry.corner_errors(
                 estimator.estimate(arrays["patch_a"], arrays["patch_b"], fill=fill), arrays["h_ba"])
             out[f"{prefix}estimate_mace_{k}_stages"] = float(errors.mean())
