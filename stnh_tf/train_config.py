@@ -127,9 +127,11 @@ class TrainConfig:
     val_split: str = _field("test", "Split for the validation MACE (monitoring only).")
     val_samples: int = _field(1024, "Validation pairs per checkpoint (0: off).")
     strategy: str = _field("default", "tf.distribute strategy.", choices=STRATEGIES)
-    init_from: tuple = _field((), "Comma list of single-stage model dirs (each holding "
-                              "model.keras); dir k initialises sequence stage k's regression "
-                              "network (at most num_stages dirs).", scope=SEQUENCE)
+    init_from: tuple = _field((), "Comma list of finished train_stage --model=stn runs (dirs "
+                              "holding model.keras, or .keras files), applied on a fresh start only: train_stage "
+                              "takes one, whose regression network initialises the stage "
+                              "(training on under a new schedule); train_sequence takes at most "
+                              "num_stages, dir k initialising stage k.")
     image_dir: str = _field("", "Instead of --data_dir: folders of images (comma-separated); "
                             "pairs are generated on the fly (any Keras backend, e.g. "
                             "KERAS_BACKEND=jax).", comma_list=True)
@@ -183,6 +185,10 @@ class TrainConfig:
                              "TFRecords already hold the previous stages' predictions.")
         if self.model == "sequence" and self.num_stages < 1:
             raise ValueError(f"num_stages must be >= 1; received {self.num_stages}.")
+        if self.model != "sequence" and self.init_from and (len(self.init_from) != 1
+                                                            or self.model != "stn"):
+            raise ValueError(f"init_from of a single stage takes one stn run and model 'stn'; "
+                             f"received {len(self.init_from)} dirs, model {self.model!r}.")
         if self.model == "sequence" and self.init_from and len(self.init_from) > self.num_stages:
             raise ValueError(f"init_from names {len(self.init_from)} models for {self.num_stages} "
                              "stages.")

@@ -43,7 +43,7 @@ import time
 
 import keras
 
-from stnh_tf import model_kinds, run_dir, train_streams
+from stnh_tf import model_kinds, run_dir, runner, train_streams
 from stnh_tf.paths import atomic_write_json, fsync_replace
 from stnh_tf.train_config import OPTIMIZER_NAMES, TrainConfig
 
@@ -239,16 +239,34 @@ def tensorboard_available() -> bool:
     return importlib.util.find_spec("tensorflow") is not None
 
 
-def initialize_sequence_from(model, stage_dirs):
-    """Copy the regression weights of trained single-stage models into a sequence model's stages."""
+def initialize_from(model, stage_dirs):
+    """Copy the regression weights of trained single-stage STN models (``stage_dirs``: model dirs
+    holding ``model.keras``, or ``.keras`` files) into ``model``: a sequence model's ``regression_k`` from dir k, or a
+    single stage's ``regression`` from its one dir.
+
+    Raises:
+      ValueError: a dir holds another model kind, a single stage is given other than one dir, or
+        the regression networks differ in their layers (batch_norm, input_norm).
+    """
+    single = "regression" in [layer.name for layer in model.layers]
+    if single and len(stage_dirs) != 1:
+        raise ValueError(f"a single stage is initialised from one model dir; received "
+                         f"{len(stage_dirs)}.")
     for k, d in enumerate(stage_dirs, start=1):
-        src = keras.models.load_model(os.path.join(d, run_dir.FINAL_MODEL), compile=False)
+        src = runner.load_model(d)
         if sorted(src.output_names) != ["h_bar", "patch_a_warp"]:
             raise ValueError(f"{d} is not a single-stage STN-Homography model (its outputs are "
                              f"{sorted(src.output_names)}); init_from takes train_stage "
                              "--model=stn runs.")
         regression = src.get_layer("regression")
-        model.get_layer(f"regression_{k}").set_weights(regression.get_weights())
+        target = model.get_layer("regression" if single else f"regression_{k}")
+        src_layers, dst_layers = ([layer.name for layer in net.layers
+                                   if not isinstance(layer, keras.layers.InputLayer)]
+                                  for net in (regression, target))
+        if src_layers != dst_layers:
+            raise ValueError(f"{d}'s regression network has layers {src_layers}, this model's "
+                             f"{dst_layers}: init_from needs the same batch_norm and input_norm.")
+        target.set_weights(regression.get_weights())
 
 
 # ------------------------------------------------------------------------------------------------
@@ -342,7 +360,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             ckpt_dir = os.path.join(cfg.model_dir, run_dir.CHECKPOINT_DIR)
             start_step = run_dir.load_checkpoint(model, ckpt_dir)
             if start_step == 0 and cfg.init_from:
-                initialize_sequence_from(model, cfg.init_from)
+                initialize_from(model, cfg.init_from)
         if start_step:
             printer(f"resuming {cfg.model_dir} from step {start_step}")
         if start_step >= cfg.train_steps:

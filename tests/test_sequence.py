@@ -363,7 +363,7 @@ def test_loss_spec_and_compiled_loss_for_sequence(batch):
     assert got["h_bar_3_mace"] == pytest.approx((mace * sw).sum() / sw.sum(), rel=1e-3)
 
 
-def test_initialize_sequence_from_single_stage_models(tmp_path, batch):
+def test_initialize_from_single_stage_models(tmp_path, batch):
     keras.utils.set_random_seed(8)
     dirs, singles = [], []
     for k in (1, 2):
@@ -380,7 +380,7 @@ def test_initialize_sequence_from_single_stage_models(tmp_path, batch):
         singles.append(stn)
     seq = models.SequenceSTNHomography(num_stages=2)
     before = [w.copy() for w in seq.get_layer("regression_1").get_weights()]
-    training.initialize_sequence_from(seq, dirs)
+    training.initialize_from(seq, dirs)
     for k in (1, 2):
         src = singles[k - 1].get_layer("regression").get_weights()
         dst = seq.get_layer(f"regression_{k}").get_weights()
@@ -401,12 +401,12 @@ def test_initialize_sequence_from_single_stage_models(tmp_path, batch):
     assert np.abs(s2["h_bar"] - models.IDENTITY_H_BAR).max() > 1e-2
 
 
-def test_initialize_sequence_from_rejects_other_model_kinds(tmp_path):
+def test_initialize_from_rejects_other_model_kinds(tmp_path):
     d = tmp_path / "hnet"
     d.mkdir()
     models.build_homographynet().save(d / run_dir.FINAL_MODEL)
     with pytest.raises(ValueError, match="not a single-stage STN-Homography model"):
-        training.initialize_sequence_from(models.SequenceSTNHomography(num_stages=2), [str(d)])
+        training.initialize_from(models.SequenceSTNHomography(num_stages=2), [str(d)])
     cfg = train_config.TrainConfig(data_dir="d", model_dir="m", model="sequence", num_stages=2,
                                    init_from=("a", "b", "c"))
     with pytest.raises(ValueError, match="init_from names 3 models for 2 stages"):

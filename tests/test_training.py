@@ -138,6 +138,44 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, tmp_path
     assert diff <= 1e-4 * moved, (diff, moved)
 
 
+def test_init_from_starts_a_stage_from_a_trained_one(tiny_data, tmp_path):
+    """--init_from (a .keras file or a run dir) sets the stage's regression weights before the
+    first step: with a learning rate of 1e-12 the trained model keeps the source's weights, which
+    differ from a fresh initialisation; it applies to a fresh start only."""
+    keras.utils.set_random_seed(3)
+    src = model_kinds.build_model(_cfg(tiny_data, tmp_path / "x"))
+    rng = np.random.default_rng(4)
+    src.set_weights([w + rng.normal(scale=0.01, size=w.shape).astype(np.float32)
+                     for w in src.get_weights()])
+    src_file = str(tmp_path / "source.keras")
+    src.save(src_file)
+    fresh = model_kinds.build_model(_cfg(tiny_data, tmp_path / "x")).get_weights()
+    for name, init in (("file", src_file), ("dir", None)):
+        if init is None:  # the same weights as a finished run's dir
+            os.makedirs(tmp_path / "src_run")
+            shutil.copy(src_file, tmp_path / "src_run" / run_dir.FINAL_MODEL)
+            init = str(tmp_path / "src_run")
+        cfg = _cfg(tiny_data, tmp_path / name, init_from=(init,), learning_rate=1e-12,
+                   warmup_steps=0, train_steps=2, dropout=0.0)
+        training.train(cfg, printer=_quiet)
+        got = _weights(cfg.model_dir)
+        assert len(got) == len(fresh)
+        for g, s, f in zip(got, src.get_weights(), fresh):
+            np.testing.assert_allclose(g, s, atol=1e-6)
+        assert max(np.abs(s - f).max() for s, f in zip(src.get_weights(), fresh)) > 5e-3
+
+
+def test_init_from_rejects_a_stage_of_another_build(tiny_data, tmp_path):
+    other = model_kinds.build_model(_cfg(tiny_data, tmp_path / "x", input_norm="patch"))
+    other.save(tmp_path / "patch_norm.keras")
+    cfg = _cfg(tiny_data, tmp_path / "run", init_from=(str(tmp_path / "patch_norm.keras"),))
+    with pytest.raises(ValueError, match="same batch_norm and input_norm"):
+        training.train(cfg, printer=_quiet)
+    for bad in (dict(init_from=("a", "b")), dict(init_from=("a",), model="homographynet")):
+        with pytest.raises(ValueError, match="init_from of a single stage takes one stn run"):
+            _cfg(tiny_data, tmp_path / "run2", **bad).validate()
+
+
 def test_resume_refuses_different_configuration(tiny_data, tmp_path):
     cfg = _cfg(tiny_data, tmp_path / "run", train_steps=2)
     run_dir.prepare_model_dir(cfg)
