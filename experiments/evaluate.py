@@ -7,8 +7,9 @@ r"""Evaluate models, hierarchies and classical baselines on stored test pairs (M
 One model directory: its final estimate (every stage's for a sequence model). Several: a
 hierarchy, reported after 1, 2, ..., n stages; --no_clip reports it without the clipping of
 predicted corners onto the context border (post-processing that is not the paper's). Prints JSON
-(mean/median/p90/p99 MACE, the identity baseline on the same pairs, the number of pairs), or
-writes it to --json_out.
+(mean/median/p90/p99 MACE, the identity baseline on the same pairs, the number of pairs; for the
+model, also the pairs it estimates worse than the identity, ``worse_than_identity``), or writes it
+to --json_out.
 """
 
 import json

@@ -15,14 +15,19 @@ import numpy as np
 from stnh_tf import geometry, pixels, runner
 
 
-def error_summary(errors) -> dict:
-    """Mean (MACE), median, 90th and 99th percentile and count of per-pair corner errors (px)."""
+def error_summary(errors, identity_errors=None) -> dict:
+    """Mean (MACE), median, 90th and 99th percentile and count of per-pair corner errors (px);
+    given the same pairs' ``identity_errors``, also ``worse_than_identity``: the pairs whose error
+    exceeds the identity's."""
     errors = np.asarray(errors, dtype=np.float64)
     if errors.size == 0:
         raise ValueError("no pairs to evaluate.")
-    return {"mace": float(errors.mean()), "median": float(np.median(errors)),
-            "p90": float(np.percentile(errors, 90)), "p99": float(np.percentile(errors, 99)),
-            "count": int(errors.size)}
+    out = {"mace": float(errors.mean()), "median": float(np.median(errors)),
+           "p90": float(np.percentile(errors, 90)), "p99": float(np.percentile(errors, 99)),
+           "count": int(errors.size)}
+    if identity_errors is not None:
+        out["worse_than_identity"] = int((errors > np.asarray(identity_errors)).sum())
+    return out
 
 
 def evaluate_model_on_arrays(model, samples: dict, batch_size=64) -> dict:
@@ -40,14 +45,15 @@ def evaluate_model_on_arrays(model, samples: dict, batch_size=64) -> dict:
     outs = forward(samples["patch_a"], samples["patch_b"])
     elapsed = time.perf_counter() - t0
     final = runner.final_h_bar_name(model)
+    identity = geometry.corner_errors(h_prev, h_true)
     result = {}
     for name, h_bar in outs.items():
         h_est = geometry.compose(h_prev, geometry.h_bar_to_pixel(h_bar))
-        result[name] = error_summary(geometry.corner_errors(h_est, h_true))
+        result[name] = error_summary(geometry.corner_errors(h_est, h_true), identity)
     summary = dict(result[final])
     if len(outs) > 1:
         summary["stages"] = {k: v for k, v in sorted(result.items())}
-    summary["identity"] = error_summary(geometry.corner_errors(h_prev, h_true))
+    summary["identity"] = error_summary(identity)
     summary["ms_per_pair_batched"] = 1000.0 * elapsed / len(h_true)
     return summary
 
@@ -70,14 +76,14 @@ def evaluate_hierarchy(models, samples: dict, batch_size=64, clip_to_context: bo
                                   samples["context_a"], samples["patch_b"],
                                   clip_to_context=clip_to_context)
     elapsed = time.perf_counter() - t0
-    stages = {f"after_{k}_stages": error_summary(geometry.corner_errors(h, h_true))
+    identity = geometry.corner_errors(np.broadcast_to(np.eye(3), h_true.shape), h_true)
+    stages = {f"after_{k}_stages": error_summary(geometry.corner_errors(h, h_true), identity)
               for k, h in enumerate(run["per_stage"], start=1)}
     summary = dict(stages[f"after_{len(models)}_stages"])
     summary["stages"] = stages
     summary["rejected"] = run["rejected"]
     summary["clip_to_context"] = bool(clip_to_context)
-    summary["identity"] = error_summary(geometry.corner_errors(np.broadcast_to(np.eye(3), h_true.shape),
-                                                               h_true))
+    summary["identity"] = error_summary(identity)
     summary["ms_per_pair_batched"] = 1000.0 * elapsed / len(h_true)
     return summary
 

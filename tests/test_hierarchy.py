@@ -188,7 +188,21 @@ def test_no_clip_through_the_hierarchy_and_its_evaluation(pairs, monkeypatch):
         result = evaluation.evaluate_hierarchy([o1, o2], samples, clip_to_context=clip)
         assert result["clip_to_context"] is clip
         assert result["mace"] == pytest.approx(_mace(h, pairs["h_ba"]), rel=1e-9)
+        worse = (geometry.corner_errors(h, pairs["h_ba"])
+                 > geometry.corner_errors(np.broadcast_to(np.eye(3), h.shape), pairs["h_ba"]))
+        assert result["worse_than_identity"] == int(worse.sum())
+        assert result["stages"]["after_2_stages"]["worse_than_identity"] == int(worse.sum())
+    assert 0 < result["worse_than_identity"] <= n
     assert result["rejected"][0]["outside_context"] == n
+
+
+def test_error_summary_counts_pairs_worse_than_the_identity():
+    from stnh_tf import evaluation
+
+    got = evaluation.error_summary([1.0, 5.0, 3.0, 0.5], identity_errors=[2.0, 2.0, 3.0, 0.4])
+    assert got["worse_than_identity"] == 2  # 5 > 2 and 0.5 > 0.4; a tie is not worse
+    assert got["mace"] == pytest.approx(2.375) and got["count"] == 4
+    assert "worse_than_identity" not in evaluation.error_summary([1.0])
 
 
 def test_no_clip_needs_a_hierarchy():
