@@ -241,8 +241,8 @@ def tensorboard_available() -> bool:
 
 def initialize_from(model, stage_dirs):
     """Copy the regression weights of trained single-stage STN models (``stage_dirs``: model dirs
-    holding ``model.keras``, or ``.keras`` files) into ``model``: a sequence model's ``regression_k`` from dir k, or a
-    single stage's ``regression`` from its one dir.
+    holding ``model.keras``, or ``.keras`` files) into ``model``: a sequence model's
+    ``regression_k`` from dir k, or a single stage's ``regression`` from its one dir.
 
     Raises:
       ValueError: a dir holds another model kind, a single stage is given other than one dir, or
