@@ -128,8 +128,9 @@ class TrainConfig:
     val_samples: int = _field(1024, "Validation pairs per checkpoint (0: off).")
     strategy: str = _field("default", "tf.distribute strategy.", choices=STRATEGIES)
     init_from: tuple = _field((), "Comma list of finished train_stage --model=stn runs (dirs "
-                              "holding model.keras, or .keras files), applied on a fresh start only: train_stage "
-                              "takes one, whose regression network initialises the stage "
+                              "holding model.keras, or .keras files), applied on a fresh start "
+                              "only: train_stage takes one, whose regression network initialises "
+                              "the stage "
                               "(training on under a new schedule); train_sequence takes at most "
                               "num_stages, dir k initialising stage k.")
     image_dir: str = _field("", "Instead of --data_dir: folders of images (comma-separated); "
