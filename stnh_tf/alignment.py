@@ -109,7 +109,10 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
     h = estimator.estimate_images(image_a, image_b, channel_order="bgr")
     info = estimator.last_info
     implausible = bool(info["implausible"][0])
-    if implausible:
+    if implausible and info["flat"][0]:
+        warn("the central patch of image_a or image_b is flat (nothing to align): the estimate "
+             "is the identity, flagged implausible.")
+    elif implausible:
         warn(f"the estimate is implausible for this model (a patch corner "
              f"moved {info['max_corner_shift_px'][0]:.1f} px at 128-px patch scale, the models "
              f"were trained on up to 32 px; {int(info['rejected_stages'][0])} stage(s) skipped "
@@ -136,6 +139,7 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         "overlay_png": png,
         "input_paths": inputs,
         "implausible": implausible,
+        "flat": bool(info["flat"][0]),
         "max_corner_shift_px": float(info["max_corner_shift_px"][0]),
         "alignment_ncc": (float(info["alignment_ncc"][0])
                           if np.isfinite(info["alignment_ncc"][0]) else None),

@@ -68,6 +68,11 @@ MIN_ALIGNMENT_NCC = 0.15
 """Normalized cross-correlation between patch_b and patch_a warped by the estimate below which the
 estimate is flagged as implausible: it does not explain the pair (:func:`alignment_ncc`)."""
 
+MIN_PATCH_STD = 0.5 / 255
+"""Standard deviation of a patch's intensities (on the [0, 1] scale) below which it is flat: it
+holds nothing to align (e.g. a dark patch an exposure change clipped to black), so the estimate of
+its pair is the identity, flagged as implausible."""
+
 MIN_OVERLAP = 0.25
 """Fraction of patch_b's pixels whose estimated position must lie inside patch_a's source for
 :func:`alignment_ncc` to be defined."""
@@ -171,9 +176,11 @@ class HomographyEstimator:
         undefined), ``max_corner_shift_px`` (largest corner displacement of the 128 x 128 patch
         estimate), ``rejected_stages`` (stages skipped as degenerate), ``gated_stages`` (later
         stages whose update ``estimate`` did not keep because it lowered the alignment; see its
-        ``gate_stages``) and ``alignment_ncc``
+        ``gate_stages``), ``alignment_ncc``
         (:func:`alignment_ncc` of patch_b and patch_a warped by the estimate, read from the
-        image context in ``estimate_images``)."""
+        image context in ``estimate_images``; NaN for a flat pair) and ``flat`` (patch_a or
+        patch_b varies less than :data:`MIN_PATCH_STD`: the estimate is the identity and
+        flagged implausible)."""
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -295,16 +302,23 @@ class HomographyEstimator:
         if any(rejected.values()):
             _log.warning("HomographyEstimator: stage predictions skipped as degenerate: %s",
                          rejected)
+        flat = ((patch_a.std(axis=(1, 2, 3)) < MIN_PATCH_STD)
+                | (patch_b.std(axis=(1, 2, 3)) < MIN_PATCH_STD))
+        if flat.any():
+            _log.warning("HomographyEstimator: %d pair(s) with a flat patch (nothing to align): "
+                         "estimate set to the identity", int(flat.sum()))
+            total[flat] = np.eye(3)
         shift = corner_shift(total)
         if ncc_total is not None:  # the gate already measured the final estimate's alignment
-            ncc = np.where(np.isfinite(ncc_total) & np.isfinite(shift), ncc_total, np.nan)
+            ncc = np.where(np.isfinite(ncc_total) & np.isfinite(shift) & ~flat, ncc_total, np.nan)
         else:
-            ncc = np.array([alignment_ncc(src, b[..., 0], h, org) if np.isfinite(s) else np.nan
-                            for src, b, h, s in zip(sources, patch_b, total, shift)])
+            ncc = np.array([alignment_ncc(src, b[..., 0], h, org) if np.isfinite(s) and not f
+                            else np.nan
+                            for src, b, h, s, f in zip(sources, patch_b, total, shift, flat)])
         self.last_info = {"implausible": ((rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT)
-                                          | ~(ncc >= MIN_ALIGNMENT_NCC)),
+                                          | ~(ncc >= MIN_ALIGNMENT_NCC) | flat),
                           "max_corner_shift_px": shift, "rejected_stages": rejected_stages,
-                          "gated_stages": gated_stages, "alignment_ncc": ncc}
+                          "gated_stages": gated_stages, "alignment_ncc": ncc, "flat": flat}
         return total
 
     def estimate(self, patch_a, patch_b, batch_size: int = 64,

@@ -414,6 +414,51 @@ def test_implausible_estimates_are_flagged_per_pair(pairs):
     assert info["alignment_ncc"][3] < inference.MIN_ALIGNMENT_NCC
 
 
+def test_flat_patch_gives_the_flagged_identity(pairs, identity_model_path, tmp_path):
+    """A pair with a flat patch (intensity std below MIN_PATCH_STD, NumPy reference: a patch_b an
+    exposure change clipped to black, a patch_a with one grey level on 10% of its pixels) gets the
+    identity, flagged implausible with an undefined NCC, whatever the stages predict; the other
+    pairs keep the stages' estimate. estimate_images and the predict CLI's library call do the
+    same for a black image_b."""
+    from stnh_tf import alignment, inference
+
+    a, b, hs = pairs
+    a, b = a.copy(), b.copy()
+    b[1] = 0
+    a[2] = 100
+    a[2].reshape(-1)[::10] = 101
+    std = lambda p: (p.astype(np.float64) / 255).std()  # noqa: E731
+    assert std(b[1]) < inference.MIN_PATCH_STD and std(a[2]) < inference.MIN_PATCH_STD
+    assert min(min(std(a[i]), std(b[i])) for i in (0, 3)) > 10 * inference.MIN_PATCH_STD
+    est = HomographyEstimator([_constant_stage(np.eye(3), f"c{k}") for k in (1, 2)])
+    est._predict_stage = lambda k, pa, pb, bs: hs.copy() if k == 0 else np.repeat(
+        np.eye(3)[None], len(pa), 0)
+    got = est.estimate(a, b)
+    info = est.last_info
+    np.testing.assert_array_equal(info["flat"], [False, True, True, False])
+    np.testing.assert_array_equal(info["implausible"], [False, True, True, False])
+    for i in (1, 2):
+        np.testing.assert_allclose(got[i], np.eye(3), atol=1e-12)
+        assert np.isnan(info["alignment_ncc"][i]) and info["max_corner_shift_px"][i] < 1e-9
+    for i in (0, 3):
+        np.testing.assert_allclose(got[i], hs[i] / hs[i, 2, 2], atol=1e-9)
+        assert info["alignment_ncc"][i] > 0.95
+
+    image = cv2.resize(np.squeeze(pairs[0][0]), (320, 240))
+    h = est.estimate_images(image, np.zeros_like(image))
+    np.testing.assert_allclose(h, np.eye(3), atol=1e-12)
+    assert est.last_info["flat"][0] and est.last_info["implausible"][0]
+    cv2.imwrite(str(tmp_path / "a.png"), image)
+    cv2.imwrite(str(tmp_path / "black.png"), np.zeros_like(image))
+    warnings = []
+    result = alignment.align_image_files(str(tmp_path / "a.png"), str(tmp_path / "black.png"),
+                                         model=identity_model_path,
+                                         output_dir=str(tmp_path / "out"), warn=warnings.append)
+    assert result["implausible"] is True and result["flat"] is True
+    assert result["alignment_ncc"] is None
+    assert len(warnings) == 1 and "flat" in warnings[0]
+
+
 def test_stage_gate_keeps_later_updates_that_do_not_lower_the_alignment(pairs):
     """estimate's gate (the default): a later stage's update is kept where the NCC of patch_b and
     the warped patch_a (NumPy reference) does not drop, dropped where it does; stage 1 is always
