@@ -26,7 +26,8 @@ and fails ``verify_export``'s default tolerance). The estimator's degenerate-pre
 prediction makes the composition non-finite or singular is skipped) is not exported: the
 SavedModel returns such a composition as it is; nor is ``estimate``'s stage gate (a later stage's
 update kept only where it does not lower the alignment NCC): a hierarchy's SavedModel composes
-every stage, as ``estimate(..., gate_stages=False)`` does.
+every stage, as ``estimate(..., gate_stages=False)`` does; nor is the flat-patch rule (the
+identity for a pair with a flat patch, ``inference.MIN_PATCH_STD``).
 """
 
 from __future__ import annotations
