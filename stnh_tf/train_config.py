@@ -130,9 +130,8 @@ class TrainConfig:
     init_from: tuple = _field((), "Comma list of finished train_stage --model=stn runs (dirs "
                               "holding model.keras, or .keras files), applied on a fresh start "
                               "only: train_stage takes one, whose regression network initialises "
-                              "the stage "
-                              "(training on under a new schedule); train_sequence takes at most "
-                              "num_stages, dir k initialising stage k.")
+                              "the stage (training on under a new schedule); train_sequence takes "
+                              "at most num_stages, dir k initialising stage k.")
     image_dir: str = _field("", "Instead of --data_dir: folders of images (comma-separated); "
                             "pairs are generated on the fly (any Keras backend, e.g. "
                             "KERAS_BACKEND=jax).", comma_list=True)
