@@ -364,16 +364,18 @@ def test_overfits_eight_pairs(tmp_path_factory):
     assert l1 < 0.85 * l1_0, (l1, l1_0)
 
 
-CPUINFO = {  # abridged /proc/cpuinfo of three CPUs (two logical CPUs each where x86)
+CPUINFO = {  # abridged /proc/cpuinfo of four CPUs (two logical CPUs each where x86)
     "epyc_milan": "processor\t: 0\nvendor_id\t: AuthenticAMD\nflags\t\t: fpu sse2 avx avx2 fma f16c\n\n"
                   "processor\t: 1\nvendor_id\t: AuthenticAMD\nflags\t\t: fpu sse2 avx avx2 fma f16c\n",
     "sapphire_rapids": "processor\t: 0\nflags\t\t: avx2 avx512f avx512_bf16 amx_bf16 amx_tile\n",
+    "xeon_no_amx": "processor\t: 0\nflags\t\t: avx2 avx512f avx512_bf16 avx512_fp16\n",
     "neoverse_v1": "processor\t: 0\nFeatures\t: fp asimd sve bf16 i8mm\nCPU implementer\t: 0x41\n",
     "no_flags": "processor\t: 0\nmodel name\t: something\n",
 }
 
 
 @pytest.mark.parametrize("name, expected", [("epyc_milan", False), ("sapphire_rapids", True),
+                                            ("xeon_no_amx", True),
                                             ("neoverse_v1", True), ("no_flags", None)])
 def test_cpu_has_native_bfloat16_reads_cpu_flags(tmp_path, name, expected):
     path = tmp_path / name
@@ -382,7 +384,7 @@ def test_cpu_has_native_bfloat16_reads_cpu_flags(tmp_path, name, expected):
     assert training.cpu_has_native_bfloat16(str(tmp_path / "missing")) is None
 
 
-def test_mixed_precision_warning_only_for_emulated_bfloat16(tmp_path, monkeypatch):
+def test_mixed_precision_warning_for_emulated_bfloat16_and_no_amx(tmp_path, monkeypatch):
     for name, text in CPUINFO.items():
         (tmp_path / name).write_text(text)
     mixed = train_config.TrainConfig(data_dir="d", model_dir="m", mixed_precision=True)
@@ -391,6 +393,9 @@ def test_mixed_precision_warning_only_for_emulated_bfloat16(tmp_path, monkeypatc
     warning = training.mixed_precision_warning(mixed, str(tmp_path / "epyc_milan"))
     assert "no bfloat16 instructions" in warning and "--nomixed_precision" in warning
     assert training.mixed_precision_warning(fp32, str(tmp_path / "epyc_milan")) is None
+    warning = training.mixed_precision_warning(mixed, str(tmp_path / "xeon_no_amx"))
+    assert "no AMX" in warning and "benchmark_training" in warning
+    assert training.mixed_precision_warning(fp32, str(tmp_path / "xeon_no_amx")) is None
     for name in ("sapphire_rapids", "neoverse_v1", "no_flags"):
         assert training.mixed_precision_warning(mixed, str(tmp_path / name)) is None
     monkeypatch.setattr(training, "accelerator_present", lambda: True)
