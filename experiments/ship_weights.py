@@ -9,6 +9,13 @@ and ``model_card.json`` with each stage's training configuration, its final step
 evaluation results and the bundled check (MACE on seeded bundled pairs, which
 ``tests/test_shipped_weights.py`` re-computes).
 
+  python -m experiments.ship_weights --replace_stage=2 --model_dir=runs/cpu/stage2_more \
+      --init_from_previous --eval_json=runs/cpu/eval_hierarchy.json
+
+replaces one stage of the weights already shipped (same file name, the other stages' files and
+card entries kept; with ``--init_from_previous`` the replaced stage's entry is kept as the new
+entry's ``init_from_run``) and re-computes the bundled check.
+
   python -m experiments.ship_weights --refresh_check
 
 re-computes only the bundled check of the weights already shipped (after a change to how
@@ -26,6 +33,10 @@ from stnh_tf import shipped_weights
 flags.DEFINE_list("model_dir", None, "Trained stage model directories, in stage order.")
 flags.DEFINE_string("eval_json", None, "experiments.evaluate output to record in the card.")
 flags.DEFINE_string("weights_dir", None, "Destination (default: the package's stnh_tf/weights).")
+flags.DEFINE_integer("replace_stage", None, "Replace only this stage (1-based) of the weights "
+                     "already shipped by the single run in --model_dir.")
+flags.DEFINE_bool("init_from_previous", False, "With --replace_stage: the run was initialised "
+                  "from the stage it replaces; keep that stage's card entry as init_from_run.")
 flags.DEFINE_bool("refresh_check", False, "Only re-compute the bundled check of the shipped "
                   "weights in --weights_dir (no --model_dir).")
 FLAGS = flags.FLAGS
@@ -41,6 +52,16 @@ def main(argv):
         return
     if not FLAGS.model_dir:
         raise app.UsageError("--model_dir is required (or --refresh_check).")
+    if FLAGS.replace_stage is not None:
+        if len(FLAGS.model_dir) != 1:
+            raise app.UsageError("--replace_stage takes exactly one --model_dir.")
+        card = shipped_weights.replace_stage(FLAGS.replace_stage, FLAGS.model_dir[0],
+                                             FLAGS.weights_dir, FLAGS.eval_json,
+                                             FLAGS.init_from_previous)
+        print(json.dumps({"replaced": card["stages"][FLAGS.replace_stage - 1]["file"]}))
+        return
+    if FLAGS.init_from_previous:
+        raise app.UsageError("--init_from_previous goes with --replace_stage.")
     card = shipped_weights.ship(FLAGS.model_dir, FLAGS.weights_dir, FLAGS.eval_json)
     print(json.dumps({"shipped": [s["file"] for s in card["stages"]]}))
 

@@ -2,7 +2,8 @@
 (library core of ``experiments.ship_weights``, whose docstring lists the files written).
 
 :func:`ship` writes ``stage{k}.keras`` (weights and architecture only), the manifest
-``default.json`` and ``model_card.json``; :func:`bundled_check` is the card's check that
+``default.json`` and ``model_card.json``; :func:`replace_stage` swaps one stage of weights already
+shipped; :func:`bundled_check` is the card's check that
 ``tests/test_shipped_weights.py`` re-computes, and :func:`refresh_check` re-records it for
 weights already shipped.
 """
@@ -18,26 +19,15 @@ from stnh_tf.paths import atomic_write_json
 def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
     """Copy the trained stages ``model_dirs`` (in order) into ``weights_dir`` (default: the
     package's ``stnh_tf/weights``) with the manifest and the model card; returns the card."""
-    from stnh_tf import model_files, runner
+    from stnh_tf import model_files
 
     weights_dir = weights_dir or model_files.default_weights_dir()
     os.makedirs(weights_dir, exist_ok=True)
     card = {"stages": []}
     names = []
     for k, d in enumerate(model_dirs, start=1):
-        model = runner.load_model(d)  # compile=False: no optimizer state is saved
-        name = f"stage{k}.keras"
-        model.save(os.path.join(weights_dir, name))
-        names.append(os.path.join(weights_dir, name))
-        entry = {"file": name, "source": os.path.abspath(d)}
-        for extra in ("config.json", "result.json"):
-            path = os.path.join(d, extra)
-            if os.path.exists(path):
-                with open(path) as f:
-                    doc = json.load(f)
-                entry[extra[:-5]] = ({k: v for k, v in doc.items() if k != "history"}
-                                     if extra == "result.json" else doc)
-        card["stages"].append(entry)
+        card["stages"].append(_copy_stage(d, weights_dir, f"stage{k}.keras"))
+        names.append(os.path.join(weights_dir, card["stages"][-1]["file"]))
     model_files.write_manifest(os.path.join(weights_dir, "default.json"), names,
                                description=f"{len(names)}-stage hierarchy shipped with stnh-tf")
     if eval_json:
@@ -45,6 +35,61 @@ def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
             card["evaluation"] = json.load(f)
     card["bundled_check"] = bundled_check(names)
     atomic_write_json(os.path.join(weights_dir, "model_card.json"), card)
+    return card
+
+
+def _copy_stage(model_dir, weights_dir, name) -> dict:
+    """Save run ``model_dir``'s model as ``weights_dir/name``; returns its card entry (file,
+    source, the run's config and result without the history)."""
+    from stnh_tf import runner
+
+    runner.load_model(model_dir).save(os.path.join(weights_dir, name))  # no optimizer state
+    entry = {"file": name, "source": os.path.abspath(model_dir)}
+    for extra in ("config.json", "result.json"):
+        path = os.path.join(model_dir, extra)
+        if os.path.exists(path):
+            with open(path) as f:
+                doc = json.load(f)
+            entry[extra[:-5]] = ({key: v for key, v in doc.items() if key != "history"}
+                                 if extra == "result.json" else doc)
+    return entry
+
+
+def replace_stage(stage: int, model_dir, weights_dir=None, eval_json=None,
+                  init_from_previous: bool = False) -> dict:
+    """Replace stage ``stage`` (1-based) of already shipped weights by the trained run
+    ``model_dir``, keeping the other stages' files and card entries; returns the card.
+
+    The card's entry for the stage is rebuilt from the run; with ``init_from_previous`` (the run
+    was initialised from the stage it replaces) the replaced entry is kept in it as
+    ``init_from_run``, so the card records the whole chain of runs. ``eval_json`` (if given)
+    replaces the card's ``evaluation``; the bundled check is re-computed.
+
+    Raises:
+      FileNotFoundError: no model card in ``weights_dir``.
+      ValueError: ``stage`` is not one of the shipped stages.
+    """
+    from stnh_tf import model_files
+
+    weights_dir = weights_dir or model_files.default_weights_dir()
+    path = os.path.join(weights_dir, "model_card.json")
+    with open(path) as f:
+        card = json.load(f)
+    if isinstance(stage, bool) or not 1 <= int(stage) <= len(card["stages"]):
+        raise ValueError(f"stage must be one of 1..{len(card['stages'])} (the shipped stages); "
+                         f"received {stage!r}.")
+    stage = int(stage)
+    previous = card["stages"][stage - 1]
+    entry = _copy_stage(model_dir, weights_dir, previous["file"])  # the manifest's name stays
+    if init_from_previous:
+        entry["init_from_run"] = previous
+    card["stages"][stage - 1] = entry
+    if eval_json:
+        with open(eval_json) as f:
+            card["evaluation"] = json.load(f)
+    card["bundled_check"] = bundled_check([os.path.join(weights_dir, s["file"])
+                                           for s in card["stages"]])
+    atomic_write_json(path, card)
     return card
 
 

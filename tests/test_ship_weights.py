@@ -50,7 +50,7 @@ def bundled():
     return shipped_weights.bundled_pairs()
 
 
-def test_ship_and_refresh_check(tmp_path, bundled):
+def test_ship_refresh_check_and_replace_stage(tmp_path, bundled):
     bundled_h_ba = bundled["h_ba"].astype(np.float64)
     h = np.array([[1.05, 0.02, -3.0], [-0.03, 0.97, 4.0], [1e-4, -2e-4, 1.0]])
     _constant_run(tmp_path / "s1", h, mixed=True)
@@ -103,3 +103,30 @@ def test_ship_and_refresh_check(tmp_path, bundled):
     with open(out / "model_card.json") as f:
         assert json.load(f)["bundled_check"]["estimate_mace_2_stages"] == pytest.approx(expected, abs=1e-3)
     assert not os.path.exists(out / "model_card.json.tmp")
+
+    # --replace_stage=2: a new stage 2 (a constant H2) in place of the identity; stage 1's file
+    # and card entry stay, the replaced entry becomes the new one's init_from_run, the manifest
+    # still names stage1.keras and stage2.keras, and the check follows the new stage.
+    h2 = np.array([[0.98, -0.01, 2.0], [0.02, 1.03, -1.5], [-1e-4, 1e-4, 1.0]])
+    _constant_run(tmp_path / "s2b", h2, mixed=False)
+    before = refreshed
+    replaced = shipped_weights.replace_stage(2, str(tmp_path / "s2b"), str(out),
+                                             init_from_previous=True)
+    assert replaced["stages"][0] == before["stages"][0]
+    assert replaced["stages"][1]["source"] == str(tmp_path / "s2b")
+    assert replaced["stages"][1]["init_from_run"] == before["stages"][1]
+    assert replaced["note"] == "kept"
+    assert sorted(os.listdir(out)) == ["default.json", "model_card.json", "stage1.keras", "stage2.keras"]
+    new_check = replaced["bundled_check"]
+    assert new_check["estimate_mace_1_stages"] == pytest.approx(expected, abs=1e-3)
+    composed = h @ h2  # later stages compose on the right: H_1 @ H_2
+    assert new_check["ungated_estimate_mace_2_stages"] == pytest.approx(
+        _mace_numpy(composed / composed[2, 2], bundled_h_ba), abs=1e-3)
+    est = inference.HomographyEstimator.load(out / "default.json")
+    np.testing.assert_allclose(est.estimate(bundled["patch_a"][:2], bundled["patch_b"][:2],
+                                            gate_stages=False)[0], composed / composed[2, 2],
+                               atol=1e-3)
+    with open(out / "model_card.json") as f:
+        assert json.load(f) == replaced
+    with pytest.raises(ValueError, match="1..2"):
+        shipped_weights.replace_stage(3, str(tmp_path / "s2b"), str(out))
