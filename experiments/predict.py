@@ -1,7 +1,7 @@
 r"""Estimate the homography between two images and draw the alignment.
 
   python -m experiments.predict --image_a=a.jpg --image_b=b.jpg [--model=runs/stage1] \
-      [--output_dir=out]
+      [--output_dir=out] [--refine=ecc]
 
 Prints a JSON object whose ``homography`` maps image_b pixel coordinates (x, y) to image_a pixel
 coordinates (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``), and writes
@@ -21,6 +21,7 @@ import sys
 from absl import app, flags
 
 from stnh_tf import alignment
+from stnh_tf.inference import REFINES
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("image_a", None, "Path of image_a (the reference image).", required=True)
@@ -28,6 +29,8 @@ flags.DEFINE_string("image_b", None, "Path of image_b (the image mapped into ima
 flags.DEFINE_string("model", None, "Model: .keras file, run directory or hierarchy manifest "
                     "(default: the weights shipped in stnh_tf/weights).")
 flags.DEFINE_string("output_dir", ".", "Folder for the overlay PNG and the JSON (created if missing).")
+flags.DEFINE_enum("refine", "none", list(REFINES), "After the network: none (the paper) or ecc "
+                  "(OpenCV's ECC alignment started from the estimate, a deviation).")
 
 
 def main(argv):
@@ -35,7 +38,8 @@ def main(argv):
     try:
         result = alignment.align_image_files(
             FLAGS.image_a, FLAGS.image_b, FLAGS.model, FLAGS.output_dir,
-            warn=lambda message: print(f"predict: warning: {message}", file=sys.stderr))
+            warn=lambda message: print(f"predict: warning: {message}", file=sys.stderr),
+            refine=FLAGS.refine)
     except alignment.AlignmentError as e:
         raise SystemExit(f"predict: {e}") from None
     print(json.dumps(result, indent=2))

@@ -79,9 +79,11 @@ def _warn_stderr(message):
     print(f"warning: {message}", file=sys.stderr)
 
 
-def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", warn=_warn_stderr):
+def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", warn=_warn_stderr,
+                      refine="none"):
     """Estimate ``H_ba`` between two image files with ``model`` (what
-    ``HomographyEstimator.load`` takes; ``None``: the shipped weights), write
+    ``HomographyEstimator.load`` takes; ``None``: the shipped weights; ``refine``: as in
+    ``HomographyEstimator.estimate_images``), write
     ``<a>__<b>_overlay.png`` and ``<a>__<b>_homography.json`` into ``output_dir`` (created if
     missing; :func:`output_stem`) and return the JSON's content. ``warn`` receives the warning
     of an implausible estimate.
@@ -106,7 +108,7 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         estimator = HomographyEstimator.load(model)
     except (FileNotFoundError, ValueError) as e:
         raise AlignmentError(str(e)) from None
-    h = estimator.estimate_images(image_a, image_b, channel_order="bgr")
+    h = estimator.estimate_images(image_a, image_b, channel_order="bgr", refine=refine)
     info = estimator.last_info
     implausible = bool(info["implausible"][0])
     if implausible and info["flat"][0]:
@@ -140,6 +142,7 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         "input_paths": inputs,
         "implausible": implausible,
         "flat": bool(info["flat"][0]),
+        "refine": refine, "refined": bool(info["refined"][0]),
         "max_corner_shift_px": float(info["max_corner_shift_px"][0]),
         "alignment_ncc": (float(info["alignment_ncc"][0])
                           if np.isfinite(info["alignment_ncc"][0]) else None),

@@ -227,7 +227,7 @@ IMPLAUSIBILITY_CASES = ("ordinary", "other_photograph", "rotated_180", "moved_80
 
 
 def implausibility_check(model=None, data_dir=None, split="test", compute_dtype="float32",
-                         batch_size=64, photometric=False) -> dict:
+                         batch_size=64, photometric=False, refine="none") -> dict:
     """How often :attr:`~stnh_tf.inference.HomographyEstimator.last_info` flags the estimates of
     ``HomographyEstimator.estimate`` on stored pairs and on pairs made from them that the models
     were not trained on (:data:`IMPLAUSIBILITY_CASES`):
@@ -241,9 +241,12 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
       model: what ``HomographyEstimator.load`` takes (``None``: the shipped weights).
       data_dir, split: stage-1 pairs (``stnh_tf.data``); ``None``: the seeded bundled test pairs
         of the model card (:func:`stnh_tf.shipped_weights.bundled_pairs`, with ``photometric``).
+      refine: ``estimate``'s ``refine`` (:data:`stnh_tf.inference.REFINES`).
     Returns:
-      ``{case: {"count", "flagged" (fraction), "alignment_ncc_median"}}``; ``ordinary`` also has
-      ``mace``, ``mace_flagged`` and ``mace_kept`` (NaN where no pair falls in it).
+      ``{case: {"count", "flagged" (fraction), "refined" (fraction), "alignment_ncc_median"}}``;
+      ``ordinary`` also has ``mace``, ``mace_median``, ``mace_flagged`` and ``mace_kept`` (NaN
+      where no pair falls in it) and ``worse_than_identity`` (pairs whose corner error exceeds
+      the identity's).
     """
     from stnh_tf import data, shipped_weights
     from stnh_tf.inference import HomographyEstimator
@@ -260,17 +263,21 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
                  "rotated_180": b[:, ::-1, ::-1], "moved_80px": np.roll(a, (80, 80), axis=(1, 2))}
     estimator = HomographyEstimator.load(model, compute_dtype=compute_dtype)
     out = {"model": estimator.source, "data_dir": data_dir, "split": split,
-           "photometric": photometric}
+           "photometric": photometric, "refine": refine}
     for case in IMPLAUSIBILITY_CASES:
-        h = estimator.estimate(a, patches_b[case], batch_size=batch_size)
+        h = estimator.estimate(a, patches_b[case], batch_size=batch_size, refine=refine)
         flagged = estimator.last_info["implausible"]
         ncc = estimator.last_info["alignment_ncc"]
         out[case] = {"count": int(len(h)), "flagged": float(flagged.mean()),
+                     "refined": float(estimator.last_info["refined"].mean()),
                      "alignment_ncc_median": float(np.nanmedian(ncc))}
         if case == "ordinary":
-            errors = geometry.corner_errors(h, np.asarray(samples["h_ba"], np.float64))
+            h_true = np.asarray(samples["h_ba"], np.float64)
+            errors = geometry.corner_errors(h, h_true)
+            identity = geometry.corner_errors(np.broadcast_to(np.eye(3), h_true.shape), h_true)
             out[case].update(
-                mace=float(errors.mean()),
+                mace=float(errors.mean()), mace_median=float(np.median(errors)),
+                worse_than_identity=int((errors > identity).sum()),
                 mace_flagged=float(errors[flagged].mean()) if flagged.any() else float("nan"),
                 mace_kept=float(errors[~flagged].mean()) if not flagged.all() else float("nan"))
     return out

@@ -36,6 +36,11 @@ skipped: the estimate so far is kept (the identity if it is the first stage), a 
 and :attr:`HomographyEstimator.last_rejected` counts the skipped predictions of the last call by
 reason. (The context bound of the hierarchy does not apply: there is no stored context to leave.)
 
+Refinement (opt-in, a deviation from the paper). ``refine="ecc"`` polishes the network's estimate
+with OpenCV's ECC image alignment (:func:`ecc_refine`, ``cv2.findTransformECC``, invariant to gain
+and offset), started from it; a refinement that fails to converge or moves the patch corners by
+more than :data:`MAX_REFINE_MOVE` px on average is dropped for the network's estimate.
+
 Implausible estimates. :attr:`HomographyEstimator.last_info` flags, per pair, an estimate that
 moves a patch corner beyond the trained range, needed a skipped stage, or leaves patch_a warped
 onto patch_b poorly correlated with it (:func:`alignment_ncc`): the images may not overlap, or
@@ -47,6 +52,7 @@ from __future__ import annotations
 import logging
 import os
 
+import cv2
 import numpy as np
 
 from stnh_tf import geometry
@@ -76,6 +82,20 @@ its pair is the identity, flagged as implausible."""
 MIN_OVERLAP = 0.25
 """Fraction of patch_b's pixels whose estimated position must lie inside patch_a's source for
 :func:`alignment_ncc` to be defined."""
+
+REFINES = ("none", "ecc")
+"""What :meth:`HomographyEstimator.estimate` does after the network: ``"none"`` (the paper) or
+``"ecc"`` (:func:`ecc_refine`)."""
+
+MAX_REFINE_MOVE = 16.0
+"""Mean corner distance (px, 128 x 128 patch frame) between the network's estimate and its ECC
+refinement beyond which the refinement is taken to have diverged and is dropped."""
+
+ECC_CRITERIA = (50, 1e-5)
+"""``cv2.findTransformECC``'s iteration limit and convergence threshold in :func:`ecc_refine`."""
+
+ECC_GAUSSIAN = 1
+"""``cv2.findTransformECC``'s Gaussian pre-filter size in :func:`ecc_refine` (1: none)."""
 
 _log = logging.getLogger(__name__)
 
@@ -122,6 +142,46 @@ def alignment_ncc(source_a, patch_b, a_from_b, origin=(0, 0)) -> float:
     y = y - y.mean()
     norm = np.sqrt((x * x).sum() * (y * y).sum())
     return float((x * y).sum() / norm) if norm > 1e-12 else float("nan")
+
+
+def ecc_refine(source_a, patch_b, a_from_b, origin=(0, 0)):
+    """``a_from_b`` refined by OpenCV's ECC alignment (``cv2.findTransformECC``,
+    ``MOTION_HOMOGRAPHY``, :data:`ECC_CRITERIA`, :data:`ECC_GAUSSIAN`), started from it: the
+    homography maximising the correlation of ``patch_b`` and patch_a warped onto it, over the
+    pixels that land inside ``source_a``.
+
+    Args:
+      source_a: ``[h, w]`` image holding patch_a with its top-left corner at ``origin`` (the patch
+        itself with ``(0, 0)``, or the image it was cut from as context).
+      patch_b: ``[S, S]`` (any real scale: ECC ignores gain and offset).
+      a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame, the starting point.
+    Returns:
+      float64 ``[3, 3]`` refined ``H_ba`` in the patch frame (``[2, 2] = 1``), or ``None`` where
+      ECC does not converge (OpenCV raises) or gives a non-finite matrix.
+
+    >>> p = cv2.GaussianBlur(np.random.default_rng(0).random((128, 128), np.float32), (0, 0), 2)
+    >>> b = cv2.warpPerspective(p, geometry.translation(1.5, -1.0), (128, 128),
+    ...                         flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    >>> np.round(ecc_refine(p, b, np.eye(3))[:2, 2], 1)
+    array([ 1.5, -1. ])
+    """
+    source_from_patch = geometry.translation(*origin)
+    start = source_from_patch @ np.asarray(a_from_b, np.float64)
+    if not np.all(np.isfinite(start)) or abs(start[2, 2]) < 1e-12:
+        return None
+    iterations, eps = ECC_CRITERIA
+    try:
+        _, warp = cv2.findTransformECC(
+            np.asarray(patch_b, np.float32), np.asarray(source_a, np.float32),
+            (start / start[2, 2]).astype(np.float32), cv2.MOTION_HOMOGRAPHY,
+            (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, eps), None,
+            ECC_GAUSSIAN)
+    except cv2.error:
+        return None
+    refined = np.linalg.inv(source_from_patch) @ warp.astype(np.float64)
+    if not np.all(np.isfinite(refined)) or abs(refined[2, 2]) < 1e-12:
+        return None
+    return refined / refined[2, 2]
 
 
 # --------------------------------------------------------------------------------------------
@@ -180,7 +240,8 @@ class HomographyEstimator:
         (:func:`alignment_ncc` of patch_b and patch_a warped by the estimate, read from the
         image context in ``estimate_images``; NaN for a flat pair) and ``flat`` (patch_a or
         patch_b varies less than :data:`MIN_PATCH_STD`: the estimate is the identity and
-        flagged implausible)."""
+        flagged implausible) and ``refined`` (the estimate is the ECC refinement of
+        ``refine="ecc"``; False where it was not asked for, failed or was dropped)."""
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -250,7 +311,7 @@ class HomographyEstimator:
         return self._predictors[k](patch_a, patch_b, batch_size)
 
     def _estimate(self, patch_a, patch_b, context=None, origin=(0, 0), batch_size=64,
-                  gate_stages=False, fill="zeros"):
+                  gate_stages=False, fill="zeros", refine="none"):
         """Composed ``H_1 @ ... @ H_n`` ``[B, 3, 3]`` for float32 ``[B, S, S, 1]`` pairs.
 
         ``context``: optional list of float32 ``[h, w]`` images holding patch_a at ``origin``;
@@ -258,9 +319,12 @@ class HomographyEstimator:
         ``fill``: what later stages see beyond the source (:func:`stnh_tf.hierarchy.warp_crop`).
         ``gate_stages``: keep a later stage's update of a pair only where it does not lower
         :func:`alignment_ncc` (an undefined NCC counts as the lowest).
+        ``refine``: one of :data:`REFINES`, applied to the final estimate.
         """
         from stnh_tf import hierarchy
 
+        if refine not in REFINES:
+            raise ValueError(f"refine must be one of {REFINES}; received {refine!r}.")
         total = np.broadcast_to(np.eye(3), (len(patch_a), 3, 3)).copy()
         current = patch_a
         rejected = {"non_finite": 0, "singular": 0}
@@ -308,6 +372,14 @@ class HomographyEstimator:
             _log.warning("HomographyEstimator: %d pair(s) with a flat patch (nothing to align): "
                          "estimate set to the identity", int(flat.sum()))
             total[flat] = np.eye(3)
+        refined = np.zeros(len(total), bool)
+        if refine == "ecc":
+            for i in np.flatnonzero(~flat & np.isfinite(total).all(axis=(1, 2))):
+                h = ecc_refine(sources[i], patch_b[i, ..., 0], total[i], org)
+                if h is not None and float(geometry.corner_errors(
+                        h[None], total[i][None])[0]) <= MAX_REFINE_MOVE:
+                    total[i], refined[i] = h, True
+            ncc_total = None  # the alignment is measured again below, on the refined estimates
         shift = corner_shift(total)
         if ncc_total is not None:  # the gate already measured the final estimate's alignment
             ncc = np.where(np.isfinite(ncc_total) & np.isfinite(shift) & ~flat, ncc_total, np.nan)
@@ -318,11 +390,13 @@ class HomographyEstimator:
         self.last_info = {"implausible": ((rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT)
                                           | ~(ncc >= MIN_ALIGNMENT_NCC) | flat),
                           "max_corner_shift_px": shift, "rejected_stages": rejected_stages,
-                          "gated_stages": gated_stages, "alignment_ncc": ncc, "flat": flat}
+                          "gated_stages": gated_stages, "alignment_ncc": ncc, "flat": flat,
+                          "refined": refined}
         return total
 
     def estimate(self, patch_a, patch_b, batch_size: int = 64,
-                 gate_stages: bool = True, fill: str = PATCH_FILL) -> np.ndarray:
+                 gate_stages: bool = True, fill: str = PATCH_FILL,
+                 refine: str = "none") -> np.ndarray:
         """Pixel homography between 128 x 128 grayscale patches.
 
         Args:
@@ -338,12 +412,16 @@ class HomographyEstimator:
             the earlier estimates (there is no context): ``"reflect"`` (default, a deviation from
             the paper: the patch mirrored about its border) or ``"zeros"``
             (:data:`stnh_tf.geometry.FILLS`).
+          refine: ``"none"`` (default) or ``"ecc"``: polish each estimate with OpenCV's ECC
+            alignment started from it (:func:`ecc_refine`, a deviation from the paper; dropped
+            where it fails or moves the corners by more than :data:`MAX_REFINE_MOVE` px;
+            ``last_info["refined"]`` says where it was kept).
         Returns:
           float64 ``[B, 3, 3]`` ``H_ba``, mapping patch_b pixel coordinates to patch_a pixel
           coordinates (``[2, 2] = 1``; B = 1 for a single pair).
         Raises:
           ValueError: wrong rank, size, channel count or dtype, empty or different-sized
-            batches, ``batch_size`` < 1, an unknown ``fill``.
+            batches, ``batch_size`` < 1, an unknown ``fill`` or ``refine``.
         """
         if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
                 or batch_size < 1:
@@ -355,9 +433,10 @@ class HomographyEstimator:
             raise ValueError(f"patch_a and patch_b must hold the same number of patches; received "
                              f"shapes {np.shape(patch_a)} and {np.shape(patch_b)}.")
         return self._estimate(a, b, batch_size=batch_size, gate_stages=bool(gate_stages),
-                              fill=fill)
+                              fill=fill, refine=refine)
 
-    def estimate_images(self, image_a, image_b, channel_order: str = "rgb") -> np.ndarray:
+    def estimate_images(self, image_a, image_b, channel_order: str = "rgb",
+                        refine: str = "none") -> np.ndarray:
         """Homography between two images of any size and colour, in their own pixel frames.
 
         Each image is made grayscale and resized to 320 x 240; the central 128 x 128 squares are
@@ -368,6 +447,8 @@ class HomographyEstimator:
           image_a, image_b: ``[H, W]`` or ``[H, W, C]`` (C = 1, 3, 4), uint8 or float in [0, 1];
             the two may differ in size.
           channel_order: "rgb" (NumPy/scikit-image) or "bgr" (``cv2.imread``).
+          refine: ``"none"`` (default) or ``"ecc"`` (as in :meth:`estimate`, aligning patch_b
+            with the 320 x 240 image_a).
         Returns:
           float64 ``[3, 3]`` ``H_ba`` mapping image_b pixel coordinates to image_a pixel
           coordinates (``[2, 2] = 1``).
@@ -376,6 +457,6 @@ class HomographyEstimator:
         gray_b = prepare_image(image_b, "image_b", channel_order)
         work_a, work_b = resize_to_work_size(gray_a), resize_to_work_size(gray_b)
         h_patch = self._estimate(central_patch(work_a), central_patch(work_b), context=[work_a],
-                                 origin=PATCH_ORIGIN)[0]
+                                 origin=PATCH_ORIGIN, refine=refine)[0]
         return patch_to_image_frames(h_patch, (gray_a.shape[1], gray_a.shape[0]),
                                      (gray_b.shape[1], gray_b.shape[0]))

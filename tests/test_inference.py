@@ -495,6 +495,60 @@ def test_stage_gate_keeps_later_updates_that_do_not_lower_the_alignment(pairs):
     np.testing.assert_array_equal(est.last_info["gated_stages"], [0, 0, 0, 0])
 
 
+def test_ecc_refinement_recovers_the_true_homography(pairs, monkeypatch):
+    """refine="ecc" started from estimates 3-5 px off the true H (known from the OpenCV warp that
+    made each pair) lands within 0.5 px of it (the pairs are rounded to uint8), also when patch_b's gain and offset change;
+    refine="none" returns the start unchanged; a refinement moving the corners by more than
+    MAX_REFINE_MOVE is dropped for the start; an unknown refine is an error."""
+    from stnh_tf import inference
+
+    a, b, hs = pairs
+    off = geometry.translation(3.0, -2.0) @ np.array([[1.02, 0.01, 0], [-0.01, 0.99, 0], [0, 0, 1]])
+    starts = np.stack([h @ off for h in hs])
+    est = HomographyEstimator([_constant_stage(np.eye(3))])
+    est._predict_stage = lambda k, pa, pb, bs: starts.copy()
+    start_error = geometry.corner_errors(starts, hs)
+    assert start_error.min() > 3.0
+    b_exposed = np.clip(np.rint(0.7 * b.astype(np.float64) + 40), 0, 255).astype(np.uint8)
+    for patch_b in (b, b_exposed):
+        got = est.estimate(a, patch_b, refine="ecc")
+        assert geometry.corner_errors(got, hs).max() < 0.5
+        assert est.last_info["refined"].all()
+        # the flags follow the refined estimate: its NCC (NumPy reference) is near 1
+        for i in range(len(a)):
+            assert est.last_info["alignment_ncc"][i] == pytest.approx(
+                ncc_reference(a[i, ..., 0], patch_b[i, ..., 0], got[i]), abs=1e-3)
+        assert not est.last_info["implausible"].any()
+    np.testing.assert_allclose(est.estimate(a, b), starts / starts[:, 2:, 2:], atol=1e-12)
+    assert not est.last_info["refined"].any()
+    monkeypatch.setattr(inference, "MAX_REFINE_MOVE", 1.0)
+    np.testing.assert_allclose(est.estimate(a, b, refine="ecc"), starts / starts[:, 2:, 2:],
+                               atol=1e-12)
+    assert not est.last_info["refined"].any()
+    with pytest.raises(ValueError, match="refine must be one of"):
+        est.estimate(a, b, refine="sift")
+
+
+def test_estimate_images_ecc_refinement_uses_the_whole_image(rng):
+    """estimate_images(refine="ecc") with a stage that always predicts the identity: image_b is
+    camera() warped by a known H (about 12 px at the image corners); the refined estimate's corner
+    error in image_a's 512 x 512 frame, extrapolated from the central 128 x 128 square of the
+    320 x 240 work image, is below 1.5 px."""
+    image = skimage.data.camera()
+    h_true = np.array([[1.0, 0.03, 10.0], [-0.02, 1.0, -8.0], [0.0, 0.0, 1.0]])
+    image_b = cv2.warpPerspective(image, h_true, (512, 512), flags=cv2.WARP_INVERSE_MAP)
+    corners = np.array([[0, 0], [511, 0], [511, 511], [0, 511]], np.float64)[None]
+
+    def corner_error(h):
+        return float(np.linalg.norm(geometry.warp_points(h[None], corners)
+                                    - geometry.warp_points(h_true[None], corners), axis=-1).mean())
+
+    est = HomographyEstimator([_constant_stage(np.eye(3))])
+    assert corner_error(est.estimate_images(image, image_b)) > 10.0
+    assert corner_error(est.estimate_images(image, image_b, refine="ecc")) < 1.5
+    assert est.last_info["refined"][0]
+
+
 @pytest.mark.parametrize("fill, border", [("reflect", cv2.BORDER_REFLECT_101),
                                           ("zeros", cv2.BORDER_CONSTANT)])
 def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs, fill, border):
@@ -816,6 +870,7 @@ def test_predict_binary(identity_model_path, tmp_path):
     assert np.abs(blend[..., 1] - blend[..., 0])[4:-4, 4:-4].mean() < 3.0
     assert result["implausible"] is False and result["max_corner_shift_px"] < 1e-6
     assert "implausible" not in proc.stderr
+    assert result["refine"] == "none" and result["refined"] is False
     # A model whose estimate moves a patch corner by 60 px (trained range: 32) gets a warning.
     far = np.eye(3)
     far[0, 2] = 60.0
@@ -902,5 +957,8 @@ def test_implausibility_check_with_the_identity_model(identity_model_path):
     corners = np.array([[0, 0, 1], [128, 0, 1], [128, 128, 1], [0, 128, 1]], np.float64).T
     moved = np.einsum("nij,jk->nik", arrays["h_ba"].astype(np.float64), corners)
     moved = moved[:, :2] / moved[:, 2:]
-    identity_mace = np.linalg.norm(moved - corners[None, :2], axis=1).mean()
-    assert result["ordinary"]["mace"] == pytest.approx(identity_mace, rel=1e-9)
+    identity_errors = np.linalg.norm(moved - corners[None, :2], axis=1).mean(axis=1)
+    assert result["ordinary"]["mace"] == pytest.approx(identity_errors.mean(), rel=1e-9)
+    assert result["ordinary"]["mace_median"] == pytest.approx(np.median(identity_errors), rel=1e-9)
+    assert result["ordinary"]["worse_than_identity"] == 0  # the identity itself
+    assert result["refine"] == "none" and result["ordinary"]["refined"] == 0.0
