@@ -243,7 +243,8 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
         of the model card (:func:`stnh_tf.shipped_weights.bundled_pairs`, with ``photometric``).
       refine: ``estimate``'s ``refine`` (:data:`stnh_tf.inference.REFINES`).
     Returns:
-      ``{case: {"count", "flagged" (fraction), "refined" (fraction), "alignment_ncc_median"}}``;
+      ``{case: {"count", "flagged" (fraction), "refined" (fraction), "alignment_ncc_median",
+      "ms_per_pair" (wall time of the batched ``estimate`` call)}}``;
       ``ordinary`` also has ``mace``, ``mace_median``, ``mace_flagged`` and ``mace_kept`` (NaN
       where no pair falls in it) and ``worse_than_identity`` (pairs whose corner error exceeds
       the identity's).
@@ -265,11 +266,14 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
     out = {"model": estimator.source, "data_dir": data_dir, "split": split,
            "photometric": photometric, "refine": refine}
     for case in IMPLAUSIBILITY_CASES:
+        start = time.perf_counter()
         h = estimator.estimate(a, patches_b[case], batch_size=batch_size, refine=refine)
+        seconds = time.perf_counter() - start
         flagged = estimator.last_info["implausible"]
         ncc = estimator.last_info["alignment_ncc"]
         out[case] = {"count": int(len(h)), "flagged": float(flagged.mean()),
                      "refined": float(estimator.last_info["refined"].mean()),
+                     "ms_per_pair": 1e3 * seconds / len(h),
                      "alignment_ncc_median": float(np.nanmedian(ncc))}
         if case == "ordinary":
             h_true = np.asarray(samples["h_ba"], np.float64)
