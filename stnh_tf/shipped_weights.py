@@ -33,9 +33,7 @@ def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
     if eval_json:
         with open(eval_json) as f:
             card["evaluation"] = json.load(f)
-    card["bundled_check"] = bundled_check(names)
-    atomic_write_json(os.path.join(weights_dir, "model_card.json"), card)
-    return card
+    return _write_rechecked(weights_dir, card)
 
 
 def _copy_stage(model_dir, weights_dir, name) -> dict:
@@ -69,12 +67,7 @@ def replace_stage(stage: int, model_dir, weights_dir=None, eval_json=None,
       FileNotFoundError: no model card in ``weights_dir``.
       ValueError: ``stage`` is not one of the shipped stages.
     """
-    from stnh_tf import model_files
-
-    weights_dir = weights_dir or model_files.default_weights_dir()
-    path = os.path.join(weights_dir, "model_card.json")
-    with open(path) as f:
-        card = json.load(f)
+    weights_dir, card = _shipped_card(weights_dir)
     if isinstance(stage, bool) or not 1 <= int(stage) <= len(card["stages"]):
         raise ValueError(f"stage must be one of 1..{len(card['stages'])} (the shipped stages); "
                          f"received {stage!r}.")
@@ -87,10 +80,7 @@ def replace_stage(stage: int, model_dir, weights_dir=None, eval_json=None,
     if eval_json:
         with open(eval_json) as f:
             card["evaluation"] = json.load(f)
-    card["bundled_check"] = bundled_check([os.path.join(weights_dir, s["file"])
-                                           for s in card["stages"]])
-    atomic_write_json(path, card)
-    return card
+    return _write_rechecked(weights_dir, card)
 
 
 BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_image": 3,
@@ -159,13 +149,21 @@ def bundled_check(stage_paths) -> dict:
 
 def refresh_check(weights_dir=None) -> dict:
     """Re-compute ``bundled_check`` in the model card of already shipped weights."""
+    return _write_rechecked(*_shipped_card(weights_dir))
+
+
+def _shipped_card(weights_dir=None):
+    """``(weights_dir, card)`` of already shipped weights (default: the package's)."""
     from stnh_tf import model_files
 
     weights_dir = weights_dir or model_files.default_weights_dir()
-    path = os.path.join(weights_dir, "model_card.json")
-    with open(path) as f:
-        card = json.load(f)
+    with open(os.path.join(weights_dir, "model_card.json")) as f:
+        return weights_dir, json.load(f)
+
+
+def _write_rechecked(weights_dir, card) -> dict:
+    """Write ``card`` into ``weights_dir`` (atomically) with its bundled check re-computed."""
     card["bundled_check"] = bundled_check([os.path.join(weights_dir, s["file"])
                                            for s in card["stages"]])
-    atomic_write_json(path, card)
+    atomic_write_json(os.path.join(weights_dir, "model_card.json"), card)
     return card
