@@ -70,9 +70,10 @@ IMPLAUSIBLE_CORNER_SHIFT = 1.5 * geometry.MAX_PERTURBATION
 """Corner displacement (px, 128 x 128 patch frame) beyond which an estimate is flagged as
 implausible: the models were trained on corners moved by up to 32 px."""
 
-MIN_ALIGNMENT_NCC = 0.15
+MIN_ALIGNMENT_NCC = 0.7
 """Normalized cross-correlation between patch_b and patch_a warped by the estimate below which the
-estimate is flagged as implausible: it does not explain the pair (:func:`alignment_ncc`)."""
+estimate is flagged as implausible: it does not explain the pair (:func:`alignment_ncc`; how the
+value was chosen: BENCHMARKS.md, "The alignment threshold re-chosen for the shipped default")."""
 
 MIN_PATCH_STD = 0.5 / 255
 """Standard deviation of a patch's intensities (on the [0, 1] scale) below which it is flat: it

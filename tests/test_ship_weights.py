@@ -68,7 +68,7 @@ def test_ship_refresh_check_and_replace_stage(tmp_path, bundled):
     check = card["bundled_check"]
     assert check["compute_dtype"] == "float32" and check["count"] == len(bundled_h_ba) == 60
     expected = _mace_numpy(h, bundled_h_ba)
-    expected_flags = sum(ncc_reference(a[..., 0], b[..., 0], h) < 0.15
+    expected_flags = sum(ncc_reference(a[..., 0], b[..., 0], h) < 0.7
                          for a, b in zip(bundled["patch_a"], bundled["patch_b"]))
     assert check["identity_mace"] == pytest.approx(_mace_numpy(np.eye(3), bundled_h_ba), rel=1e-9)
     assert _mace_numpy(h, np.eye(3)[None]) > 3.0  # the constant H is far from the identity
