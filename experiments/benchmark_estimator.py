@@ -17,6 +17,7 @@ from absl import app, flags
 
 from experiments import common
 from stnh_tf import benchmarks
+from stnh_tf.inference import TTAS
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
 flags.DEFINE_enum("compute_dtype", "float32", ["float32", "as_saved"],
@@ -25,6 +26,7 @@ flags.DEFINE_integer("runs", 30, "Timed calls per measurement (median reported).
 flags.DEFINE_integer("warmup", 5, "Untimed calls first.")
 flags.DEFINE_integer("large_batch", 256, "Pairs per call of the large-batch measurement.")
 flags.DEFINE_integer("seed", 0, "Seed of the inputs.")
+flags.DEFINE_enum("tta", "none", list(TTAS), "estimate's test-time augmentation.")
 flags.DEFINE_string("json_out", None, "Also write the JSON here.")
 FLAGS = flags.FLAGS
 
@@ -34,7 +36,8 @@ def main(argv):
     import tensorflow as tf  # noqa: F401  (loaded first, so machine_info reports it)
 
     result = benchmarks.estimator_benchmark(FLAGS.model, FLAGS.compute_dtype, FLAGS.runs,
-                                            FLAGS.warmup, FLAGS.large_batch, FLAGS.seed)
+                                            FLAGS.warmup, FLAGS.large_batch, FLAGS.seed,
+                                            FLAGS.tta)
     common.emit_json(result, FLAGS.json_out)
 
 

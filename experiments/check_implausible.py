@@ -4,6 +4,7 @@ was not trained on (another photograph, patch_b rotated 180 degrees, motion of 8
   python -m experiments.check_implausible                      # shipped weights, bundled pairs
   python -m experiments.check_implausible --model=runs/stage1 --data_dir=data/coco_mini
   python -m experiments.check_implausible --refine=ecc          # the estimates ECC-refined
+  python -m experiments.check_implausible --tta=dihedral        # test-time augmentation
 
 Prints one JSON object (:func:`stnh_tf.evaluation.implausibility_check`).
 """
@@ -14,13 +15,14 @@ from absl import app, flags
 
 from experiments import common
 from stnh_tf import evaluation
-from stnh_tf.inference import REFINES
+from stnh_tf.inference import REFINES, TTAS
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
 flags.DEFINE_string("data_dir", None, "Stage-1 pairs (default: the model card's bundled pairs).")
 flags.DEFINE_string("split", "test", "Split of --data_dir.")
 flags.DEFINE_bool("photometric", False, "Bundled pairs with a photometric change of patch_b.")
 flags.DEFINE_enum("refine", "none", list(REFINES), "estimate's refine: none or ecc.")
+flags.DEFINE_enum("tta", "none", list(TTAS), "estimate's test-time augmentation.")
 flags.DEFINE_string("json_out", None, "Also write the JSON here.")
 FLAGS = flags.FLAGS
 
@@ -30,7 +32,7 @@ def main(argv):
     try:
         result = evaluation.implausibility_check(FLAGS.model, FLAGS.data_dir, FLAGS.split,
                                                  photometric=FLAGS.photometric,
-                                                 refine=FLAGS.refine)
+                                                 refine=FLAGS.refine, tta=FLAGS.tta)
     except (ValueError, OSError) as e:
         raise SystemExit(f"check_implausible: {e}") from None
     common.emit_json(result, FLAGS.json_out)

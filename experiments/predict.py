@@ -1,7 +1,7 @@
 r"""Estimate the homography between two images and draw the alignment.
 
   python -m experiments.predict --image_a=a.jpg --image_b=b.jpg [--model=runs/stage1] \
-      [--output_dir=out] [--refine=ecc]
+      [--output_dir=out] [--refine=ecc] [--tta=dihedral]
 
 Prints a JSON object whose ``homography`` maps image_b pixel coordinates (x, y) to image_a pixel
 coordinates (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``), and writes
@@ -21,7 +21,7 @@ import sys
 from absl import app, flags
 
 from stnh_tf import alignment
-from stnh_tf.inference import REFINES
+from stnh_tf.inference import REFINES, TTAS
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("image_a", None, "Path of image_a (the reference image).", required=True)
@@ -31,6 +31,9 @@ flags.DEFINE_string("model", None, "Model: .keras file, run directory or hierarc
 flags.DEFINE_string("output_dir", ".", "Folder for the overlay PNG and the JSON (created if missing).")
 flags.DEFINE_enum("refine", "none", list(REFINES), "After the network: none (the paper) or ecc "
                   "(OpenCV's ECC alignment started from the estimate, a deviation).")
+flags.DEFINE_enum("tta", "none", list(TTAS), "Test-time augmentation: none (the paper), flips "
+                  "or dihedral (also estimate the images mirrored and rotated, keep the best "
+                  "aligned estimate; a deviation).")
 
 
 def main(argv):
@@ -39,7 +42,7 @@ def main(argv):
         result = alignment.align_image_files(
             FLAGS.image_a, FLAGS.image_b, FLAGS.model, FLAGS.output_dir,
             warn=lambda message: print(f"predict: warning: {message}", file=sys.stderr),
-            refine=FLAGS.refine)
+            refine=FLAGS.refine, tta=FLAGS.tta)
     except alignment.AlignmentError as e:
         raise SystemExit(f"predict: {e}") from None
     print(json.dumps(result, indent=2))

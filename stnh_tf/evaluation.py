@@ -227,7 +227,8 @@ IMPLAUSIBILITY_CASES = ("ordinary", "other_photograph", "rotated_180", "moved_80
 
 
 def implausibility_check(model=None, data_dir=None, split="test", compute_dtype="float32",
-                         batch_size=64, photometric=False, refine="none") -> dict:
+                         batch_size=64, photometric=False, refine="none",
+                         tta="none") -> dict:
     """How often :attr:`~stnh_tf.inference.HomographyEstimator.last_info` flags the estimates of
     ``HomographyEstimator.estimate`` on stored pairs and on pairs made from them that the models
     were not trained on (:data:`IMPLAUSIBILITY_CASES`):
@@ -242,6 +243,7 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
       data_dir, split: stage-1 pairs (``stnh_tf.data``); ``None``: the seeded bundled test pairs
         of the model card (:func:`stnh_tf.shipped_weights.bundled_pairs`, with ``photometric``).
       refine: ``estimate``'s ``refine`` (:data:`stnh_tf.inference.REFINES`).
+      tta: ``estimate``'s ``tta`` (:data:`stnh_tf.inference.TTAS`).
     Returns:
       ``{case: {"count", "flagged" (fraction), "refined" (fraction), "alignment_ncc_median",
       "ms_per_pair" (wall time of the batched ``estimate`` call)}}``;
@@ -264,10 +266,12 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
                  "rotated_180": b[:, ::-1, ::-1], "moved_80px": np.roll(a, (80, 80), axis=(1, 2))}
     estimator = HomographyEstimator.load(model, compute_dtype=compute_dtype)
     out = {"model": estimator.source, "data_dir": data_dir, "split": split,
-           "photometric": photometric, "refine": refine}
+           "photometric": photometric, "refine": refine,
+           "tta": tta}
     for case in IMPLAUSIBILITY_CASES:
         start = time.perf_counter()
-        h = estimator.estimate(a, patches_b[case], batch_size=batch_size, refine=refine)
+        h = estimator.estimate(a, patches_b[case], batch_size=batch_size, refine=refine,
+                               tta=tta)
         seconds = time.perf_counter() - start
         flagged = estimator.last_info["implausible"]
         ncc = estimator.last_info["alignment_ncc"]

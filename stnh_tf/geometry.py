@@ -319,6 +319,69 @@ def patch_to_image(h_patch, x0, y0):
     return scale_to_unit(translation(x0, y0) @ np.asarray(h_patch, np.float64) @ translation(-x0, -y0))
 
 
+DIHEDRAL = {"identity": "", "flip_x": "h", "flip_y": "v", "rotate_180": "hv",
+            "transpose": "t", "rotate_90_cw": "th", "rotate_90_ccw": "tv", "anti_transpose": "thv"}
+"""The eight symmetries of a rectangle's pixel grid (:func:`dihedral_image`), by name: the steps
+applied in order, ``t`` transpose (swap rows and columns), ``h`` mirror left-right, ``v`` mirror
+top-bottom."""
+
+
+def _check_dihedral(name: str) -> str:
+    if name not in DIHEDRAL:
+        raise ValueError(f"dihedral name must be one of {tuple(DIHEDRAL)}; received {name!r}.")
+    return DIHEDRAL[name]
+
+
+def dihedral_image(image, name: str, axes=(0, 1)) -> np.ndarray:
+    """``image`` transposed and/or mirrored as :data:`DIHEDRAL` ``[name]`` says (NumPy).
+
+    Args:
+      image: array whose rows and columns are ``axes`` (``(0, 1)`` for ``[h, w]``, ``(1, 2)`` for
+        a batch ``[B, h, w, C]``).
+      name: a key of :data:`DIHEDRAL`.
+    Returns:
+      The transformed array (a view; ``rows`` and ``columns`` swapped by a transpose); pixel ``p``
+      of the input lands at ``dihedral_matrix(name, w, h) @ p``.
+    Raises:
+      ValueError: an unknown ``name``.
+
+    >>> dihedral_image(np.arange(6).reshape(2, 3), "rotate_90_cw").tolist()
+    [[3, 0], [4, 1], [5, 2]]
+    """
+    rows, cols = axes
+    out = np.asarray(image)
+    for step in _check_dihedral(name):
+        if step == "t":
+            out = np.swapaxes(out, rows, cols)
+        else:
+            out = np.flip(out, cols if step == "h" else rows)
+    return out
+
+
+def dihedral_matrix(name: str, width: int, height: int) -> np.ndarray:
+    """``[3, 3]`` float64 map from pixel ``(x, y)`` of a ``height x width`` image to the same
+    pixel's position in ``dihedral_image(image, name)`` (pixel centres at integers).
+
+    A homography ``a_from_b`` between two such images becomes ``G @ a_from_b @ inv(G)`` between
+    their transformed copies, with ``G = dihedral_matrix(name, width, height)``.
+
+    Raises:
+      ValueError: an unknown ``name``.
+
+    >>> dihedral_matrix("flip_x", 128, 128) @ [0, 5, 1]
+    array([127.,   5.,   1.])
+    """
+    out, (w, h) = np.eye(3), (float(width), float(height))
+    for step in _check_dihedral(name):
+        if step == "t":
+            out, (w, h) = np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, 1]]) @ out, (h, w)
+        elif step == "h":
+            out = np.array([[-1.0, 0, w - 1], [0, 1, 0], [0, 0, 1]]) @ out
+        else:
+            out = np.array([[1.0, 0, 0], [0, -1, h - 1], [0, 0, 1]]) @ out
+    return out
+
+
 def scale_matrix(sx, sy) -> np.ndarray:
     """``[3, 3]`` float64 scaling ``(x, y) -> (sx x, sy y)``."""
     return np.diag([float(sx), float(sy), 1.0])

@@ -88,6 +88,13 @@ REFINES = ("none", "ecc")
 """What :meth:`HomographyEstimator.estimate` does after the network: ``"none"`` (the paper) or
 ``"ecc"`` (:func:`ecc_refine`)."""
 
+TTAS = {"none": ("identity",),
+        "flips": ("identity", "flip_x", "flip_y", "rotate_180"),
+        "dihedral": tuple(geometry.DIHEDRAL)}
+"""Test-time augmentation of :meth:`HomographyEstimator.estimate` by name (a deviation from the
+paper): the symmetries (:data:`stnh_tf.geometry.DIHEDRAL`) the stages also run on; ``"none"``
+(the paper) runs them once."""
+
 MAX_REFINE_MOVE = 16.0
 """Mean corner distance (px, 128 x 128 patch frame) between the network's estimate and its ECC
 refinement beyond which the refinement is taken to have diverged and is dropped."""
@@ -185,6 +192,13 @@ def ecc_refine(source_a, patch_b, a_from_b, origin=(0, 0)):
     return refined / refined[2, 2]
 
 
+def _nccs(sources, patches_b, a_from_b, origin):
+    """:func:`alignment_ncc` of each pair ``[B]``, NaN (undefined) as ``-inf`` so that it ranks
+    below every defined NCC."""
+    return np.nan_to_num([alignment_ncc(src, b[..., 0], h, origin)
+                          for src, b, h in zip(sources, patches_b, a_from_b)], nan=-np.inf)
+
+
 # --------------------------------------------------------------------------------------------
 # The estimator
 # --------------------------------------------------------------------------------------------
@@ -241,8 +255,10 @@ class HomographyEstimator:
         (:func:`alignment_ncc` of patch_b and patch_a warped by the estimate, read from the
         image context in ``estimate_images``; NaN for a flat pair) and ``flat`` (patch_a or
         patch_b varies less than :data:`MIN_PATCH_STD`: the estimate is the identity and
-        flagged implausible) and ``refined`` (the estimate is the ECC refinement of
-        ``refine="ecc"``; False where it was not asked for, failed or was dropped)."""
+        flagged implausible), ``refined`` (the estimate is the ECC refinement of
+        ``refine="ecc"``; False where it was not asked for, failed or was dropped) and
+        ``tta_choice`` (the name of the symmetry whose estimate was kept, ``"identity"`` without
+        ``tta``; ``rejected_stages`` and ``gated_stages`` are that estimate's)."""
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -311,38 +327,21 @@ class HomographyEstimator:
             self._predictors[k] = runner.predictor(self._stages[k], output=self._outputs[k])
         return self._predictors[k](patch_a, patch_b, batch_size)
 
-    def _estimate(self, patch_a, patch_b, context=None, origin=(0, 0), batch_size=64,
-                  gate_stages=False, fill="zeros", refine="none"):
-        """Composed ``H_1 @ ... @ H_n`` ``[B, 3, 3]`` for float32 ``[B, S, S, 1]`` pairs.
-
-        ``context``: optional list of float32 ``[h, w]`` images holding patch_a at ``origin``;
-        later stages then crop their patch_a_k from the warped context, else from patch_a alone.
-        ``fill``: what later stages see beyond the source (:func:`stnh_tf.hierarchy.warp_crop`).
-        ``gate_stages``: keep a later stage's update of a pair only where it does not lower
-        :func:`alignment_ncc` (an undefined NCC counts as the lowest).
-        ``refine``: one of :data:`REFINES`, applied to the final estimate.
-        """
+    def _run_stages(self, patch_a, patch_b, sources, origin, batch_size, gate_stages, fill):
+        """The stages on one set of pairs: ``(total, rejected, gated_stages, ncc_total)`` with
+        ``rejected`` the per-pair count ``[B]`` of skipped predictions by reason and
+        ``ncc_total`` the gate's alignment of ``total`` (``None`` where nothing was gated)."""
         from stnh_tf import hierarchy
 
-        if refine not in REFINES:
-            raise ValueError(f"refine must be one of {REFINES}; received {refine!r}.")
         total = np.broadcast_to(np.eye(3), (len(patch_a), 3, 3)).copy()
         current = patch_a
-        rejected = {"non_finite": 0, "singular": 0}
-        rejected_stages = np.zeros(len(patch_a), np.int64)
+        rejected = {"non_finite": np.zeros(len(patch_a), np.int64),
+                    "singular": np.zeros(len(patch_a), np.int64)}
         gated_stages = np.zeros(len(patch_a), np.int64)
-        sources = (context if context is not None
-                   else [np.ascontiguousarray(p[..., 0]) for p in patch_a])
-        org = origin if context is not None else (0, 0)
-
-        def nccs(a_from_b):  # NaN (undefined) ranks below every defined NCC
-            return np.nan_to_num([alignment_ncc(src, b[..., 0], h, org)
-                                  for src, b, h in zip(sources, patch_b, a_from_b)], nan=-np.inf)
-
         ncc_total = None  # alignment of the estimate so far, while gating
         for k in range(self.num_stages):
             if k:
-                current = np.stack([hierarchy.warp_crop(src, h, org, PATCH_SIZE, fill)
+                current = np.stack([hierarchy.warp_crop(src, h, origin, PATCH_SIZE, fill)
                                     for src, h in zip(sources, total)])[..., None]
             h_stage = self._predict_stage(k, current, patch_b, batch_size)
             # The hierarchy's degenerate-prediction rule without its context bound (there is no
@@ -351,10 +350,9 @@ class HomographyEstimator:
             proposed, reasons = hierarchy.accept_or_reject(total, h_stage, margin=np.inf)
             for i, reason in enumerate(reasons):
                 if reason:
-                    rejected[reason] += 1
-                    rejected_stages[i] += 1
+                    rejected[reason][i] += 1
             if gate_stages and k:
-                ncc_proposed = nccs(proposed)
+                ncc_proposed = _nccs(sources, patch_b, proposed, origin)
                 lowered = ncc_proposed < ncc_total
                 gated_stages += lowered
                 total = np.where(lowered[:, None, None], total, proposed)
@@ -362,7 +360,60 @@ class HomographyEstimator:
             else:
                 total = proposed
             if gate_stages and k == 0 and self.num_stages > 1:
-                ncc_total = nccs(total)
+                ncc_total = _nccs(sources, patch_b, total, origin)
+        return total, rejected, gated_stages, ncc_total
+
+    def _estimate(self, patch_a, patch_b, context=None, origin=(0, 0), batch_size=64,
+                  gate_stages=False, fill="zeros", refine="none", tta="none"):
+        """Composed ``H_1 @ ... @ H_n`` ``[B, 3, 3]`` for float32 ``[B, S, S, 1]`` pairs.
+
+        ``context``: optional list of float32 ``[h, w]`` images holding patch_a at ``origin``;
+        later stages then crop their patch_a_k from the warped context, else from patch_a alone.
+        ``fill``: what later stages see beyond the source (:func:`stnh_tf.hierarchy.warp_crop`).
+        ``gate_stages``: keep a later stage's update of a pair only where it does not lower
+        :func:`alignment_ncc` (an undefined NCC counts as the lowest).
+        ``refine``: one of :data:`REFINES`, applied to the final estimate.
+        ``tta``: a key of :data:`TTAS`: the stages also run on the pairs (and contexts) transformed
+        by each of its symmetries, and each pair keeps the estimate, mapped back, whose
+        :func:`alignment_ncc` is highest (the first listed on a tie).
+        """
+        if refine not in REFINES:
+            raise ValueError(f"refine must be one of {REFINES}; received {refine!r}.")
+        if tta not in TTAS:
+            raise ValueError(f"tta must be one of {tuple(TTAS)}; received {tta!r}.")
+        sources = (context if context is not None
+                   else [np.ascontiguousarray(p[..., 0]) for p in patch_a])
+        org = origin if context is not None else (0, 0)
+        if len(TTAS[tta]) > 1 and len({np.shape(src) for src in sources}) > 1:
+            raise ValueError("tta needs contexts of one size.")
+        chosen = None
+        for j, name in enumerate(TTAS[tta]):
+            # Pixel p of the patch (source) lands at g_patch @ p (g_source @ p) once transformed.
+            g_patch = geometry.dihedral_matrix(name, PATCH_SIZE, PATCH_SIZE)
+            t_sources = [np.ascontiguousarray(geometry.dihedral_image(src, name))
+                         for src in sources]
+            g_source = geometry.dihedral_matrix(name, sources[0].shape[1], sources[0].shape[0])
+            t_org = (g_source @ [org[0], org[1], 1.0] - g_patch @ [0.0, 0.0, 1.0])[:2]
+            t_total, t_rejected, t_gated, t_ncc = self._run_stages(
+                np.ascontiguousarray(geometry.dihedral_image(patch_a, name, axes=(1, 2))),
+                np.ascontiguousarray(geometry.dihedral_image(patch_b, name, axes=(1, 2))),
+                t_sources, tuple(t_org), batch_size, gate_stages, fill)
+            run = {"total": geometry.scale_to_unit(np.linalg.inv(g_patch) @ t_total @ g_patch),
+                   "gated": t_gated, "choice": np.full(len(patch_a), j), **{
+                       f"rejected_{r}": v for r, v in t_rejected.items()}}
+            if len(TTAS[tta]) == 1:
+                run["ncc"] = t_ncc
+            else:  # the same alignment as measured in the transformed frame (NaN ranks lowest)
+                run["ncc"] = _nccs(sources, patch_b, run["total"], org)
+            if chosen is None:
+                chosen = run
+            else:
+                better = run["ncc"] > chosen["ncc"]
+                chosen = {key: np.where(better.reshape((-1,) + (1,) * (value.ndim - 1)),
+                                        value, chosen[key]) for key, value in run.items()}
+        total, gated_stages, ncc_total = chosen["total"], chosen["gated"], chosen["ncc"]
+        rejected = {r: int(chosen[f"rejected_{r}"].sum()) for r in ("non_finite", "singular")}
+        rejected_stages = chosen["rejected_non_finite"] + chosen["rejected_singular"]
         self.last_rejected = rejected
         if any(rejected.values()):
             _log.warning("HomographyEstimator: stage predictions skipped as degenerate: %s",
@@ -392,12 +443,13 @@ class HomographyEstimator:
                                           | ~(ncc >= MIN_ALIGNMENT_NCC) | flat),
                           "max_corner_shift_px": shift, "rejected_stages": rejected_stages,
                           "gated_stages": gated_stages, "alignment_ncc": ncc, "flat": flat,
-                          "refined": refined}
+                          "refined": refined,
+                          "tta_choice": np.array(TTAS[tta])[chosen["choice"]]}
         return total
 
     def estimate(self, patch_a, patch_b, batch_size: int = 64,
                  gate_stages: bool = True, fill: str = PATCH_FILL,
-                 refine: str = "none") -> np.ndarray:
+                 refine: str = "none", tta: str = "none") -> np.ndarray:
         """Pixel homography between 128 x 128 grayscale patches.
 
         Args:
@@ -417,12 +469,17 @@ class HomographyEstimator:
             alignment started from it (:func:`ecc_refine`, a deviation from the paper; dropped
             where it fails or moves the corners by more than :data:`MAX_REFINE_MOVE` px;
             ``last_info["refined"]`` says where it was kept).
+          tta: ``"none"`` (default, the paper), ``"flips"`` or ``"dihedral"``
+            (:data:`TTAS`, a deviation from the paper): also estimate each pair mirrored (and
+            rotated), map each estimate back, and keep the one that aligns the pair best
+            (highest :func:`alignment_ncc`; ``last_info["tta_choice"]`` names it). Costs 4 or 8
+            network passes per stage; ``refine`` then polishes the kept estimate.
         Returns:
           float64 ``[B, 3, 3]`` ``H_ba``, mapping patch_b pixel coordinates to patch_a pixel
           coordinates (``[2, 2] = 1``; B = 1 for a single pair).
         Raises:
           ValueError: wrong rank, size, channel count or dtype, empty or different-sized
-            batches, ``batch_size`` < 1, an unknown ``fill`` or ``refine``.
+            batches, ``batch_size`` < 1, an unknown ``fill``, ``refine`` or ``tta``.
         """
         if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
                 or batch_size < 1:
@@ -434,10 +491,10 @@ class HomographyEstimator:
             raise ValueError(f"patch_a and patch_b must hold the same number of patches; received "
                              f"shapes {np.shape(patch_a)} and {np.shape(patch_b)}.")
         return self._estimate(a, b, batch_size=batch_size, gate_stages=bool(gate_stages),
-                              fill=fill, refine=refine)
+                              fill=fill, refine=refine, tta=tta)
 
     def estimate_images(self, image_a, image_b, channel_order: str = "rgb",
-                        refine: str = "none") -> np.ndarray:
+                        refine: str = "none", tta: str = "none") -> np.ndarray:
         """Homography between two images of any size and colour, in their own pixel frames.
 
         Each image is made grayscale and resized to 320 x 240; the central 128 x 128 squares are
@@ -450,6 +507,7 @@ class HomographyEstimator:
           channel_order: "rgb" (NumPy/scikit-image) or "bgr" (``cv2.imread``).
           refine: ``"none"`` (default) or ``"ecc"`` (as in :meth:`estimate`, aligning patch_b
             with the 320 x 240 image_a).
+          tta: as in :meth:`estimate` (image_a mirrored and rotated with its patch).
         Returns:
           float64 ``[3, 3]`` ``H_ba`` mapping image_b pixel coordinates to image_a pixel
           coordinates (``[2, 2] = 1``).
@@ -458,6 +516,6 @@ class HomographyEstimator:
         gray_b = prepare_image(image_b, "image_b", channel_order)
         work_a, work_b = resize_to_work_size(gray_a), resize_to_work_size(gray_b)
         h_patch = self._estimate(central_patch(work_a), central_patch(work_b), context=[work_a],
-                                 origin=PATCH_ORIGIN, refine=refine)[0]
+                                 origin=PATCH_ORIGIN, refine=refine, tta=tta)[0]
         return patch_to_image_frames(h_patch, (gray_a.shape[1], gray_a.shape[0]),
                                      (gray_b.shape[1], gray_b.shape[0]))

@@ -84,7 +84,7 @@ def replace_stage(stage: int, model_dir, weights_dir=None, eval_json=None,
 
 
 BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_image": 3,
-                 "compute_dtype": "float32", "fill": "reflect"}
+                 "compute_dtype": "float32", "fill": "reflect", "tta": "dihedral"}
 
 
 def bundled_pairs(photometric: bool = False) -> dict:
@@ -115,7 +115,9 @@ def bundled_check(stage_paths) -> dict:
     on the pairs with a photometric change (:func:`bundled_pairs`), plus
     ``photometric_worse_than_identity_{k}_stages``, the pairs whose corner error exceeds the
     identity's; ``[photometric_]ungated_estimate_mace_{k}_stages`` (k > 1): the same without the
-    estimator's stage gate (``gate_stages=False``)."""
+    estimator's stage gate (``gate_stages=False``); ``[photometric_]tta_estimate_mace_{n}_stages``
+    (and ``photometric_tta_worse_than_identity_{n}_stages``), all n stages with
+    ``tta=BUNDLED_CHECK["tta"]``."""
     import numpy as np
 
     from stnh_tf import geometry
@@ -144,6 +146,14 @@ def bundled_check(stage_paths) -> dict:
                     arrays["patch_a"], arrays["patch_b"], gate_stages=False, fill=fill),
                     arrays["h_ba"])
                 out[f"{prefix}ungated_estimate_mace_{k}_stages"] = float(ungated.mean())
+            if k == len(stages):
+                errors = geometry.corner_errors(estimator.estimate(
+                    arrays["patch_a"], arrays["patch_b"], fill=fill, tta=BUNDLED_CHECK["tta"]),
+                    arrays["h_ba"])
+                out[f"{prefix}tta_estimate_mace_{k}_stages"] = float(errors.mean())
+                if prefix:
+                    out[f"{prefix}tta_worse_than_identity_{k}_stages"] = int(
+                        (errors > identity).sum())
     return out
 
 

@@ -130,6 +130,42 @@ def test_image_patch_frames(rng):
     np.testing.assert_allclose(g.image_to_patch(t, 10, 20), t, atol=1e-12)
 
 
+# OpenCV's own flips and rotations: the independent reference for dihedral_image.
+_OPENCV_DIHEDRAL = {
+    "identity": lambda x: x, "flip_x": lambda x: cv2.flip(x, 1), "flip_y": lambda x: cv2.flip(x, 0),
+    "rotate_180": lambda x: cv2.rotate(x, cv2.ROTATE_180), "transpose": cv2.transpose,
+    "rotate_90_cw": lambda x: cv2.rotate(x, cv2.ROTATE_90_CLOCKWISE),
+    "rotate_90_ccw": lambda x: cv2.rotate(x, cv2.ROTATE_90_COUNTERCLOCKWISE),
+    "anti_transpose": lambda x: cv2.rotate(cv2.transpose(x), cv2.ROTATE_180)}
+
+
+@pytest.mark.parametrize("name", sorted(_OPENCV_DIHEDRAL))
+def test_dihedral_image_and_matrix_against_opencv(rng, name):
+    """dihedral_image equals OpenCV's flip/rotate/transpose (also on a batch), its matrix sends
+    each pixel where the image moved it, and a homography conjugated by it warps (OpenCV) the
+    transformed image_a onto the transformed image_b."""
+    image = rng.random((5, 7)).astype(np.float32)
+    want = _OPENCV_DIHEDRAL[name](image)
+    np.testing.assert_array_equal(g.dihedral_image(image, name), want)
+    batch = np.stack([image, 2 * image])[..., None]
+    np.testing.assert_array_equal(g.dihedral_image(batch, name, axes=(1, 2))[1, ..., 0], 2 * want)
+    gm = g.dihedral_matrix(name, 7, 5)
+    ys, xs = np.mgrid[0:5, 0:7]
+    moved = gm @ np.stack([xs.ravel(), ys.ravel(), np.ones(35)])
+    np.testing.assert_array_equal(want[moved[1].astype(int), moved[0].astype(int)], image.ravel())
+    # conjugation: b = a warped by H  =>  D(b) = D(a) warped by G H inv(G)
+    a = cv2.GaussianBlur(rng.random((96, 128)).astype(np.float32), (0, 0), 2)
+    h = g.translation(6.0, -4.0) @ np.array([[1.05, 0.04, 0], [-0.03, 0.97, 0], [2e-4, -1e-4, 1]])
+    b = cv2.warpPerspective(a, h, (128, 96), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    gm = g.dihedral_matrix(name, 128, 96)
+    ta, tb = (_OPENCV_DIHEDRAL[name](x) for x in (a, b))
+    warped = cv2.warpPerspective(ta, gm @ h @ np.linalg.inv(gm), ta.shape[::-1],
+                                 flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    np.testing.assert_allclose(warped[20:-20, 20:-20], tb[20:-20, 20:-20], atol=1e-3)
+    with pytest.raises(ValueError, match="dihedral name"):
+        g.dihedral_matrix("rotate_45", 7, 5)
+
+
 def test_compose_equals_numpy_product(rng):
     a, b, c = _random_hs(rng, 3) * np.array([2.0, 0.5, 3.0])[:, None, None]
     ref = a @ b @ c

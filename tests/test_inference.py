@@ -529,6 +529,76 @@ def test_ecc_refinement_recovers_the_true_homography(pairs, monkeypatch):
         est.estimate(a, b, refine="sift")
 
 
+# The symmetries of a 128 x 128 patch written out (pixel centres at integers, c = 127): pixel
+# (x, y) of the patch lands at G @ (x, y, 1) once the patch is transformed.
+_C = S - 1.0
+_PATCH_SYMMETRIES = {
+    "identity": np.eye(3),
+    "flip_x": np.array([[-1, 0, _C], [0, 1, 0], [0, 0, 1]]),
+    "flip_y": np.array([[1, 0, 0], [0, -1, _C], [0, 0, 1]]),
+    "rotate_90_cw": np.array([[0, -1, _C], [1, 0, 0], [0, 0, 1]]),
+    "anti_transpose": np.array([[0, -1, _C], [-1, 0, _C], [0, 0, 1]])}
+
+
+def test_tta_keeps_the_estimate_that_aligns_the_pair_best(pairs):
+    """A stage that always predicts H_c estimates inv(G) @ H_c @ G on the pair transformed by G;
+    pair i is made (OpenCV warp) with that homography for a different G, so tta="dihedral" must
+    return it exactly and name G; tta="none" returns H_c; "flips" cannot reach the rotations; the
+    flags' NCC is the kept estimate's (NumPy reference); an unknown tta is an error."""
+    a, _, _ = pairs
+    h_c = geometry.translation(7.0, -4.0) @ np.array([[1.03, 0.02, 0], [-0.02, 0.98, 0],
+                                                      [1e-4, 2e-4, 1]])
+    names = ["rotate_90_cw", "identity", "flip_y", "anti_transpose"]
+    want = np.stack([np.linalg.inv(_PATCH_SYMMETRIES[n]) @ h_c @ _PATCH_SYMMETRIES[n]
+                     for n in names])
+    want /= want[:, 2:, 2:]
+    b = np.stack([np.clip(np.rint(cv2_warp(x[..., 0], h)), 0, 255).astype(np.uint8)
+                  for x, h in zip(a, want)])[..., None]
+    est = HomographyEstimator([_constant_stage(h_c, "c")])
+    got = est.estimate(a, b, tta="dihedral")
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)  # H_c passes through float32
+    assert est.last_info["tta_choice"].tolist() == names
+    ncc = [ncc_reference(x[..., 0], y[..., 0], h) for x, y, h in zip(a, b, got)]
+    np.testing.assert_allclose(est.last_info["alignment_ncc"], ncc, atol=3e-3)
+    assert min(ncc) > 0.99
+    np.testing.assert_allclose(est.estimate(a, b), np.broadcast_to(h_c / h_c[2, 2], (4, 3, 3)),
+                               rtol=1e-5, atol=1e-5)
+    assert est.last_info["tta_choice"].tolist() == ["identity"] * 4
+    got = est.estimate(a, b, tta="flips")
+    assert est.last_info["tta_choice"][0] in ("identity", "flip_x", "flip_y", "rotate_180")
+    assert geometry.corner_errors(got[:1], want[:1])[0] > 1.0
+    np.testing.assert_allclose(got[1:3], want[1:3], rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="tta must be one of"):
+        est.estimate(a, b, tta="rotations")
+
+
+def test_estimate_images_tta_transforms_the_image_context():
+    """tta with image context: stage 2 (a spy whose output reveals the mean of the patch_a it
+    sees) of the pair rotated by 90 degrees must see the crop of the rotated, warped 320 x 240
+    image_a, i.e. (a pixel permutation) the crop of image_a warped by the estimate so far mapped
+    back (OpenCV reference); image_b is made so that this hypothesis aligns exactly."""
+    image = cv2.resize(skimage.data.camera().astype(np.float32) / 255, (320, 240),
+                       interpolation=cv2.INTER_AREA)
+    h1, gain = geometry.translation(-30.0, 20.0), 0.8
+    g = _PATCH_SYMMETRIES["rotate_90_cw"]
+    t = geometry.translation(96, 56)
+    h1_back = np.linalg.inv(g) @ h1 @ g
+    warped = cv2.warpPerspective(image, t @ h1_back @ np.linalg.inv(t), (320, 240),
+                                 flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    seen = warped[56:56 + S, 96:96 + S]
+    h_patch = np.linalg.inv(g) @ h1 @ _spy_expected_h(np.eye(3), gain, seen) @ g
+    h_image = t @ h_patch @ np.linalg.inv(t)
+    image_b = cv2.warpPerspective(image, h_image, (320, 240),
+                                  flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
+    got = est.estimate_images(image, image_b, tta="dihedral")
+    assert est.last_info["tta_choice"][0] == "rotate_90_cw"
+    np.testing.assert_allclose(got, h_image / h_image[2, 2], rtol=1e-5, atol=1e-4)
+    # the spy's reading matters: the crop without context would give another estimate
+    zero_filled = cv2_warp(image[56:56 + S, 96:96 + S], h1_back)
+    assert abs(seen.mean() - zero_filled.mean()) > 0.02
+
+
 def test_estimate_images_ecc_refinement_uses_the_whole_image(rng):
     """estimate_images(refine="ecc") with a stage that always predicts the identity: image_b is
     camera() warped by a known H (about 12 px at the image corners); the refined estimate's corner

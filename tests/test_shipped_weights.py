@@ -96,6 +96,20 @@ def test_default_weights_beat_the_identity_under_a_photometric_change(card_and_p
     assert int((errors > identity).sum()) == check[f"photometric_worse_than_identity_{n}_stages"]
 
 
+def test_default_weights_test_time_augmentation_beats_the_plain_estimate(card_and_pairs,
+                                                                        default_estimator_float32):
+    """estimate(tta=...) of the card (each pair also estimated mirrored and rotated, the best
+    aligned estimate kept) reproduces the card's MACE and is well below the plain estimate's."""
+    card, arrays = card_and_pairs
+    check = card["bundled_check"]
+    n = default_estimator_float32.num_stages
+    h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"], fill=check["fill"],
+                                           tta=check["tta"])
+    mace = float(geometry.mean_corner_error(h, arrays["h_ba"]))
+    assert mace == pytest.approx(check[f"tta_estimate_mace_{n}_stages"], rel=1e-3, abs=1e-3)
+    assert mace < 0.8 * check[f"estimate_mace_{n}_stages"]
+
+
 def test_implausibility_flag_follows_the_corner_shift_and_alignment(card_and_pairs,
                                                                    default_estimator_float32):
     """On the bundled pairs (bare patches) at most a quarter of the estimates are flagged, and
