@@ -41,6 +41,12 @@ with OpenCV's ECC image alignment (:func:`ecc_refine`, ``cv2.findTransformECC``,
 and offset), started from it; a refinement that fails to converge or moves the patch corners by
 more than :data:`MAX_REFINE_MOVE` px on average is dropped for the network's estimate.
 
+Test-time augmentation (opt-in, a deviation from the paper). ``tta="flips"`` or ``"dihedral"``
+(:data:`TTAS`) also runs the stages on each pair mirrored and rotated
+(:func:`stnh_tf.geometry.dihedral_image`), maps each estimate back to the pair's frame
+(``inv(G) @ H' @ G``, :func:`stnh_tf.geometry.dihedral_matrix`) and keeps, per pair, the one with
+the highest :func:`alignment_ncc`.
+
 Implausible estimates. :attr:`HomographyEstimator.last_info` flags, per pair, an estimate that
 moves a patch corner beyond the trained range, needed a skipped stage, or leaves patch_a warped
 onto patch_b poorly correlated with it (:func:`alignment_ncc`): the images may not overlap, or
