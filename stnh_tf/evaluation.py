@@ -266,8 +266,7 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
                  "rotated_180": b[:, ::-1, ::-1], "moved_80px": np.roll(a, (80, 80), axis=(1, 2))}
     estimator = HomographyEstimator.load(model, compute_dtype=compute_dtype)
     out = {"model": estimator.source, "data_dir": data_dir, "split": split,
-           "photometric": photometric, "refine": refine,
-           "tta": tta}
+           "photometric": photometric, "refine": refine, "tta": tta}
     for case in IMPLAUSIBILITY_CASES:
         start = time.perf_counter()
         h = estimator.estimate(a, patches_b[case], batch_size=batch_size, refine=refine,
