@@ -5,6 +5,7 @@ was not trained on (another photograph, patch_b rotated 180 degrees, motion of 8
   python -m experiments.check_implausible --model=runs/stage1 --data_dir=data/coco_mini
   python -m experiments.check_implausible --refine=ecc          # the estimates ECC-refined
   python -m experiments.check_implausible --tta=dihedral        # test-time augmentation
+  python -m experiments.check_implausible --retry_tta=dihedral  # ... of the flagged pairs only
 
 Prints one JSON object (:func:`stnh_tf.evaluation.implausibility_check`).
 """
@@ -23,6 +24,7 @@ flags.DEFINE_string("split", "test", "Split of --data_dir.")
 flags.DEFINE_bool("photometric", False, "Bundled pairs with a photometric change of patch_b.")
 flags.DEFINE_enum("refine", "none", list(REFINES), "estimate's refine: none or ecc.")
 flags.DEFINE_enum("tta", "none", list(TTAS), "estimate's test-time augmentation.")
+flags.DEFINE_enum("retry_tta", "none", list(TTAS), "estimate's retry of flagged pairs.")
 flags.DEFINE_string("json_out", None, "Also write the JSON here.")
 FLAGS = flags.FLAGS
 
@@ -32,7 +34,8 @@ def main(argv):
     try:
         result = evaluation.implausibility_check(FLAGS.model, FLAGS.data_dir, FLAGS.split,
                                                  photometric=FLAGS.photometric,
-                                                 refine=FLAGS.refine, tta=FLAGS.tta)
+                                                 refine=FLAGS.refine, tta=FLAGS.tta,
+                                                 retry_tta=FLAGS.retry_tta)
     except (ValueError, OSError) as e:
         raise SystemExit(f"check_implausible: {e}") from None
     common.emit_json(result, FLAGS.json_out)

@@ -1,7 +1,7 @@
 r"""Estimate the homography between two images and draw the alignment.
 
   python -m experiments.predict --image_a=a.jpg --image_b=b.jpg [--model=runs/stage1] \
-      [--output_dir=out] [--refine=ecc] [--tta=dihedral]
+      [--output_dir=out] [--refine=ecc] [--tta=dihedral | --retry_tta=dihedral]
 
 Prints a JSON object whose ``homography`` maps image_b pixel coordinates (x, y) to image_a pixel
 coordinates (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``), and writes
@@ -34,6 +34,9 @@ flags.DEFINE_enum("refine", "none", list(REFINES), "After the network: none (the
 flags.DEFINE_enum("tta", "none", list(TTAS), "Test-time augmentation: none (the paper), flips "
                   "or dihedral (also estimate the images mirrored and rotated, keep the best "
                   "aligned estimate; a deviation).")
+flags.DEFINE_enum("retry_tta", "none", list(TTAS), "Estimate again with this test-time "
+                  "augmentation only if the estimate is flagged implausible: none (the paper), "
+                  "flips or dihedral (a deviation).")
 
 
 def main(argv):
@@ -42,7 +45,7 @@ def main(argv):
         result = alignment.align_image_files(
             FLAGS.image_a, FLAGS.image_b, FLAGS.model, FLAGS.output_dir,
             warn=lambda message: print(f"predict: warning: {message}", file=sys.stderr),
-            refine=FLAGS.refine, tta=FLAGS.tta)
+            refine=FLAGS.refine, tta=FLAGS.tta, retry_tta=FLAGS.retry_tta)
     except alignment.AlignmentError as e:
         raise SystemExit(f"predict: {e}") from None
     print(json.dumps(result, indent=2))

@@ -80,10 +80,10 @@ def _warn_stderr(message):
 
 
 def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", warn=_warn_stderr,
-                      refine="none", tta="none"):
+                      refine="none", tta="none", retry_tta="none"):
     """Estimate ``H_ba`` between two image files with ``model`` (what
-    ``HomographyEstimator.load`` takes; ``None``: the shipped weights; ``refine`` and ``tta``: as
-    in ``HomographyEstimator.estimate_images``), write
+    ``HomographyEstimator.load`` takes; ``None``: the shipped weights; ``refine``, ``tta`` and
+    ``retry_tta``: as in ``HomographyEstimator.estimate_images``), write
     ``<a>__<b>_overlay.png`` and ``<a>__<b>_homography.json`` into ``output_dir`` (created if
     missing; :func:`output_stem`) and return the JSON's content. ``warn`` receives the warning
     of an implausible estimate.
@@ -109,7 +109,7 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
     except (FileNotFoundError, ValueError) as e:
         raise AlignmentError(str(e)) from None
     h = estimator.estimate_images(image_a, image_b, channel_order="bgr", refine=refine,
-                                  tta=tta)
+                                  tta=tta, retry_tta=retry_tta)
     info = estimator.last_info
     implausible = bool(info["implausible"][0])
     if implausible and info["flat"][0]:
@@ -145,6 +145,7 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         "flat": bool(info["flat"][0]),
         "refine": refine, "refined": bool(info["refined"][0]),
         "tta": tta, "tta_choice": str(info["tta_choice"][0]),
+        "retry_tta": retry_tta, "retried": bool(info["retried"][0]),
         "max_corner_shift_px": float(info["max_corner_shift_px"][0]),
         "alignment_ncc": (float(info["alignment_ncc"][0])
                           if np.isfinite(info["alignment_ncc"][0]) else None),

@@ -228,7 +228,7 @@ IMPLAUSIBILITY_CASES = ("ordinary", "other_photograph", "rotated_180", "moved_80
 
 def implausibility_check(model=None, data_dir=None, split="test", compute_dtype="float32",
                          batch_size=64, photometric=False, refine="none",
-                         tta="none") -> dict:
+                         tta="none", retry_tta="none") -> dict:
     """How often :attr:`~stnh_tf.inference.HomographyEstimator.last_info` flags the estimates of
     ``HomographyEstimator.estimate`` on stored pairs and on pairs made from them that the models
     were not trained on (:data:`IMPLAUSIBILITY_CASES`):
@@ -244,8 +244,10 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
         of the model card (:func:`stnh_tf.shipped_weights.bundled_pairs`, with ``photometric``).
       refine: ``estimate``'s ``refine`` (:data:`stnh_tf.inference.REFINES`).
       tta: ``estimate``'s ``tta`` (:data:`stnh_tf.inference.TTAS`).
+      retry_tta: ``estimate``'s ``retry_tta`` (:data:`stnh_tf.inference.TTAS`).
     Returns:
-      ``{case: {"count", "flagged" (fraction), "refined" (fraction), "alignment_ncc_median",
+      ``{case: {"count", "flagged" (fraction), "refined" (fraction), "retried" (fraction),
+      "alignment_ncc_median",
       "ms_per_pair" (wall time of the batched ``estimate`` call)}}``;
       ``ordinary`` also has ``mace``, ``mace_median``, ``mace_flagged`` and ``mace_kept`` (NaN
       where no pair falls in it) and ``worse_than_identity`` (pairs whose corner error exceeds
@@ -266,16 +268,17 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
                  "rotated_180": b[:, ::-1, ::-1], "moved_80px": np.roll(a, (80, 80), axis=(1, 2))}
     estimator = HomographyEstimator.load(model, compute_dtype=compute_dtype)
     out = {"model": estimator.source, "data_dir": data_dir, "split": split,
-           "photometric": photometric, "refine": refine, "tta": tta}
+           "photometric": photometric, "refine": refine, "tta": tta, "retry_tta": retry_tta}
     for case in IMPLAUSIBILITY_CASES:
         start = time.perf_counter()
         h = estimator.estimate(a, patches_b[case], batch_size=batch_size, refine=refine,
-                               tta=tta)
+                               tta=tta, retry_tta=retry_tta)
         seconds = time.perf_counter() - start
         flagged = estimator.last_info["implausible"]
         ncc = estimator.last_info["alignment_ncc"]
         out[case] = {"count": int(len(h)), "flagged": float(flagged.mean()),
                      "refined": float(estimator.last_info["refined"].mean()),
+                     "retried": float(estimator.last_info["retried"].mean()),
                      "ms_per_pair": 1e3 * seconds / len(h),
                      "alignment_ncc_median": float(np.nanmedian(ncc))}
         if case == "ordinary":

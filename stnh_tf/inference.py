@@ -45,7 +45,9 @@ Test-time augmentation (opt-in, a deviation from the paper). ``tta="flips"`` or 
 (:data:`TTAS`) also runs the stages on each pair mirrored and rotated
 (:func:`stnh_tf.geometry.dihedral_image`), maps each estimate back to the pair's frame
 (``inv(G) @ H' @ G``, :func:`stnh_tf.geometry.dihedral_matrix`) and keeps, per pair, the one with
-the highest :func:`alignment_ncc`.
+the highest :func:`alignment_ncc`. ``retry_tta`` (opt-in) spends that augmentation on the pairs
+whose estimate is flagged implausible (below) only: each is estimated again with
+``tta=retry_tta`` and keeps that estimate.
 
 Implausible estimates. :attr:`HomographyEstimator.last_info` flags, per pair, an estimate that
 moves a patch corner beyond the trained range, needed a skipped stage, or leaves patch_a warped
@@ -264,7 +266,9 @@ class HomographyEstimator:
         flagged implausible), ``refined`` (the estimate is the ECC refinement of
         ``refine="ecc"``; False where it was not asked for, failed or was dropped) and
         ``tta_choice`` (the name of the symmetry whose estimate was kept, ``"identity"`` without
-        ``tta``; ``rejected_stages`` and ``gated_stages`` are that estimate's)."""
+        ``tta``; ``rejected_stages`` and ``gated_stages`` are that estimate's) and ``retried``
+        (the pair was estimated again with ``retry_tta``; every other entry is then the
+        retry's)."""
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -370,8 +374,43 @@ class HomographyEstimator:
         return total, rejected, gated_stages, ncc_total
 
     def _estimate(self, patch_a, patch_b, context=None, origin=(0, 0), batch_size=64,
-                  gate_stages=False, fill="zeros", refine="none", tta="none"):
-        """Composed ``H_1 @ ... @ H_n`` ``[B, 3, 3]`` for float32 ``[B, S, S, 1]`` pairs.
+                  gate_stages=False, fill="zeros", refine="none", tta="none", retry_tta="none"):
+        """Composed ``H_1 @ ... @ H_n`` ``[B, 3, 3]`` for float32 ``[B, S, S, 1]`` pairs
+        (:meth:`_estimate_once`); where that estimate is flagged implausible (and the pair is not
+        flat), the pair is estimated again with ``tta=retry_tta`` and keeps that estimate, if
+        ``retry_tta`` runs more symmetries than ``tta``. Sets :attr:`last_info` (with
+        ``retried``) and :attr:`last_rejected`."""
+        if retry_tta not in TTAS:
+            raise ValueError(f"retry_tta must be one of {tuple(TTAS)}; received {retry_tta!r}.")
+        total, info, rejected = self._estimate_once(patch_a, patch_b, context, origin, batch_size,
+                                                    gate_stages, fill, refine, tta)
+        info["retried"] = np.zeros(len(total), bool)
+        retry = (np.flatnonzero(info["implausible"] & ~info["flat"])
+                 if set(TTAS[retry_tta]) > set(TTAS[tta]) else [])
+        if len(retry):
+            r_total, r_info, r_rejected = self._estimate_once(
+                patch_a[retry], patch_b[retry],
+                None if context is None else [context[i] for i in retry], origin, batch_size,
+                gate_stages, fill, refine, retry_tta)
+            r_info["retried"] = np.ones(len(retry), bool)
+            total[retry] = r_total
+            for key, value in r_info.items():  # (result_type: tta_choice names may be longer)
+                info[key] = info[key].astype(np.result_type(info[key], value))
+                info[key][retry] = value
+            for reason, counts in r_rejected.items():
+                rejected[reason][retry] = counts
+        self.last_info = info
+        self.last_rejected = {reason: int(counts.sum()) for reason, counts in rejected.items()}
+        if any(self.last_rejected.values()):
+            _log.warning("HomographyEstimator: stage predictions skipped as degenerate: %s",
+                         self.last_rejected)
+        return total
+
+    def _estimate_once(self, patch_a, patch_b, context, origin, batch_size, gate_stages, fill,
+                       refine, tta):
+        """Composed ``H_1 @ ... @ H_n`` ``[B, 3, 3]`` for float32 ``[B, S, S, 1]`` pairs, with
+        the per-pair :attr:`last_info` entries (but ``retried``) and the per-pair counts ``[B]``
+        of skipped stage predictions by reason: ``(total, info, rejected)``.
 
         ``context``: optional list of float32 ``[h, w]`` images holding patch_a at ``origin``;
         later stages then crop their patch_a_k from the warped context, else from patch_a alone.
@@ -418,12 +457,8 @@ class HomographyEstimator:
                 chosen = {key: np.where(better.reshape((-1,) + (1,) * (value.ndim - 1)),
                                         value, chosen[key]) for key, value in run.items()}
         total, gated_stages, ncc_total = chosen["total"], chosen["gated"], chosen["ncc"]
-        rejected = {r: int(chosen[f"rejected_{r}"].sum()) for r in ("non_finite", "singular")}
+        rejected = {r: chosen[f"rejected_{r}"] for r in ("non_finite", "singular")}
         rejected_stages = chosen["rejected_non_finite"] + chosen["rejected_singular"]
-        self.last_rejected = rejected
-        if any(rejected.values()):
-            _log.warning("HomographyEstimator: stage predictions skipped as degenerate: %s",
-                         rejected)
         flat = ((patch_a.std(axis=(1, 2, 3)) < MIN_PATCH_STD)
                 | (patch_b.std(axis=(1, 2, 3)) < MIN_PATCH_STD))
         if flat.any():
@@ -445,17 +480,17 @@ class HomographyEstimator:
             ncc = np.array([alignment_ncc(src, b[..., 0], h, org) if np.isfinite(s) and not f
                             else np.nan
                             for src, b, h, s, f in zip(sources, patch_b, total, shift, flat)])
-        self.last_info = {"implausible": ((rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT)
-                                          | ~(ncc >= MIN_ALIGNMENT_NCC) | flat),
-                          "max_corner_shift_px": shift, "rejected_stages": rejected_stages,
-                          "gated_stages": gated_stages, "alignment_ncc": ncc, "flat": flat,
-                          "refined": refined,
-                          "tta_choice": np.array(TTAS[tta])[chosen["choice"]]}
-        return total
+        info = {"implausible": ((rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT)
+                                | ~(ncc >= MIN_ALIGNMENT_NCC) | flat),
+                "max_corner_shift_px": shift, "rejected_stages": rejected_stages,
+                "gated_stages": gated_stages, "alignment_ncc": ncc, "flat": flat,
+                "refined": refined, "tta_choice": np.array(TTAS[tta])[chosen["choice"]]}
+        return total, info, rejected
 
     def estimate(self, patch_a, patch_b, batch_size: int = 64,
                  gate_stages: bool = True, fill: str = PATCH_FILL,
-                 refine: str = "none", tta: str = "none") -> np.ndarray:
+                 refine: str = "none", tta: str = "none",
+                 retry_tta: str = "none") -> np.ndarray:
         """Pixel homography between 128 x 128 grayscale patches.
 
         Args:
@@ -480,12 +515,18 @@ class HomographyEstimator:
             rotated), map each estimate back, and keep the one that aligns the pair best
             (highest :func:`alignment_ncc`; ``last_info["tta_choice"]`` names it). Costs 4 or 8
             network passes per stage; ``refine`` then polishes the kept estimate.
+          retry_tta: ``"none"`` (default) or a key of :data:`TTAS` with more symmetries than
+            ``tta`` (a deviation from the paper): a pair whose estimate is flagged implausible
+            (``last_info["implausible"]``, not a flat pair) is estimated again with
+            ``tta=retry_tta`` and keeps that estimate and its flags (``last_info["retried"]``);
+            the extra network passes are spent on the flagged pairs only.
         Returns:
           float64 ``[B, 3, 3]`` ``H_ba``, mapping patch_b pixel coordinates to patch_a pixel
           coordinates (``[2, 2] = 1``; B = 1 for a single pair).
         Raises:
           ValueError: wrong rank, size, channel count or dtype, empty or different-sized
-            batches, ``batch_size`` < 1, an unknown ``fill``, ``refine`` or ``tta``.
+            batches, ``batch_size`` < 1, an unknown ``fill``, ``refine``, ``tta`` or
+            ``retry_tta``.
         """
         if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
                 or batch_size < 1:
@@ -497,10 +538,11 @@ class HomographyEstimator:
             raise ValueError(f"patch_a and patch_b must hold the same number of patches; received "
                              f"shapes {np.shape(patch_a)} and {np.shape(patch_b)}.")
         return self._estimate(a, b, batch_size=batch_size, gate_stages=bool(gate_stages),
-                              fill=fill, refine=refine, tta=tta)
+                              fill=fill, refine=refine, tta=tta, retry_tta=retry_tta)
 
     def estimate_images(self, image_a, image_b, channel_order: str = "rgb",
-                        refine: str = "none", tta: str = "none") -> np.ndarray:
+                        refine: str = "none", tta: str = "none",
+                        retry_tta: str = "none") -> np.ndarray:
         """Homography between two images of any size and colour, in their own pixel frames.
 
         Each image is made grayscale and resized to 320 x 240; the central 128 x 128 squares are
@@ -514,6 +556,7 @@ class HomographyEstimator:
           refine: ``"none"`` (default) or ``"ecc"`` (as in :meth:`estimate`, aligning patch_b
             with the 320 x 240 image_a).
           tta: as in :meth:`estimate` (image_a mirrored and rotated with its patch).
+          retry_tta: as in :meth:`estimate`.
         Returns:
           float64 ``[3, 3]`` ``H_ba`` mapping image_b pixel coordinates to image_a pixel
           coordinates (``[2, 2] = 1``).
@@ -522,6 +565,7 @@ class HomographyEstimator:
         gray_b = prepare_image(image_b, "image_b", channel_order)
         work_a, work_b = resize_to_work_size(gray_a), resize_to_work_size(gray_b)
         h_patch = self._estimate(central_patch(work_a), central_patch(work_b), context=[work_a],
-                                 origin=PATCH_ORIGIN, refine=refine, tta=tta)[0]
+                                 origin=PATCH_ORIGIN, refine=refine, tta=tta,
+                                 retry_tta=retry_tta)[0]
         return patch_to_image_frames(h_patch, (gray_a.shape[1], gray_a.shape[0]),
                                      (gray_b.shape[1], gray_b.shape[0]))

@@ -536,8 +536,24 @@ _PATCH_SYMMETRIES = {
     "identity": np.eye(3),
     "flip_x": np.array([[-1, 0, _C], [0, 1, 0], [0, 0, 1]]),
     "flip_y": np.array([[1, 0, 0], [0, -1, _C], [0, 0, 1]]),
+    "rotate_180": np.array([[-1, 0, _C], [0, -1, _C], [0, 0, 1]]),
     "rotate_90_cw": np.array([[0, -1, _C], [1, 0, 0], [0, 0, 1]]),
     "anti_transpose": np.array([[0, -1, _C], [-1, 0, _C], [0, 0, 1]])}
+
+
+def _symmetry_pairs(pairs, names):
+    """The photographs' patches a, and b made (OpenCV warp) from pair i's a with
+    inv(G_i) @ H_c @ G_i for G_i = the symmetry names[i]: what a stage that always predicts H_c
+    estimates on pair i transformed by G_i. Returns (a, b, those homographies, H_c)."""
+    a, _, _ = pairs
+    h_c = geometry.translation(7.0, -4.0) @ np.array([[1.03, 0.02, 0], [-0.02, 0.98, 0],
+                                                      [1e-4, 2e-4, 1]])
+    want = np.stack([np.linalg.inv(_PATCH_SYMMETRIES[n]) @ h_c @ _PATCH_SYMMETRIES[n]
+                     for n in names])
+    want /= want[:, 2:, 2:]
+    b = np.stack([np.clip(np.rint(cv2_warp(x[..., 0], h)), 0, 255).astype(np.uint8)
+                  for x, h in zip(a, want)])[..., None]
+    return a, b, want, h_c
 
 
 def test_tta_keeps_the_estimate_that_aligns_the_pair_best(pairs):
@@ -545,15 +561,8 @@ def test_tta_keeps_the_estimate_that_aligns_the_pair_best(pairs):
     pair i is made (OpenCV warp) with that homography for a different G, so tta="dihedral" must
     return it exactly and name G; tta="none" returns H_c; "flips" cannot reach the rotations; the
     flags' NCC is the kept estimate's (NumPy reference); an unknown tta is an error."""
-    a, _, _ = pairs
-    h_c = geometry.translation(7.0, -4.0) @ np.array([[1.03, 0.02, 0], [-0.02, 0.98, 0],
-                                                      [1e-4, 2e-4, 1]])
     names = ["rotate_90_cw", "identity", "flip_y", "anti_transpose"]
-    want = np.stack([np.linalg.inv(_PATCH_SYMMETRIES[n]) @ h_c @ _PATCH_SYMMETRIES[n]
-                     for n in names])
-    want /= want[:, 2:, 2:]
-    b = np.stack([np.clip(np.rint(cv2_warp(x[..., 0], h)), 0, 255).astype(np.uint8)
-                  for x, h in zip(a, want)])[..., None]
+    a, b, want, h_c = _symmetry_pairs(pairs, names)
     est = HomographyEstimator([_constant_stage(h_c, "c")])
     got = est.estimate(a, b, tta="dihedral")
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)  # H_c passes through float32
@@ -570,6 +579,52 @@ def test_tta_keeps_the_estimate_that_aligns_the_pair_best(pairs):
     np.testing.assert_allclose(got[1:3], want[1:3], rtol=1e-5, atol=1e-5)
     with pytest.raises(ValueError, match="tta must be one of"):
         est.estimate(a, b, tta="rotations")
+
+
+def test_flagged_estimates_are_retried_with_test_time_augmentation(pairs):
+    """estimate(retry_tta="dihedral") on pairs made as in the tta test: the constant stage aligns
+    one of them, the plain estimate flags the other three as implausible; each flagged pair gets
+    the estimate and every last_info entry of tta="dihedral" (its true H, the OpenCV warp that made
+    it), the other keeps the plain estimate's. With a second stage whose predictions are all
+    skipped as degenerate (every pair flagged and retried), last_rejected counts the kept
+    estimates' skips (one per pair), not those of both passes. A retry_tta that runs no more
+    symmetries than tta does nothing; an unknown one is an error."""
+    names = ["rotate_90_cw", "identity", "flip_y", "rotate_180"]
+    a, b, want, h_c = _symmetry_pairs(pairs, names)
+    est = HomographyEstimator([_constant_stage(h_c, "c")])
+    plain = est.estimate(a, b)
+    plain_info = est.last_info
+    flagged = np.array([True, False, True, True])
+    np.testing.assert_array_equal(plain_info["implausible"], flagged)
+    assert not plain_info["retried"].any()
+    full = est.estimate(a, b, tta="dihedral")
+    full_info = est.last_info
+    np.testing.assert_allclose(full, want, rtol=1e-5, atol=1e-5)  # H_c passes through float32
+    got = est.estimate(a, b, retry_tta="dihedral")
+    info = est.last_info
+    np.testing.assert_array_equal(info["retried"], flagged)
+    np.testing.assert_allclose(got[flagged], full[flagged], atol=1e-12)
+    np.testing.assert_allclose(got[~flagged], plain[~flagged], atol=1e-12)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+    assert info["tta_choice"].tolist() == names
+    for key in plain_info:
+        if key != "retried":
+            np.testing.assert_array_equal(info[key][flagged], full_info[key][flagged], key)
+            np.testing.assert_array_equal(info[key][~flagged], plain_info[key][~flagged], key)
+    assert not info["implausible"].any()
+    est.estimate(a, b, tta="dihedral", retry_tta="flips")
+    assert not est.last_info["retried"].any()
+    with pytest.raises(ValueError, match="retry_tta must be one of"):
+        est.estimate(a, b, retry_tta="rotations")
+
+    two = HomographyEstimator([_constant_stage(h_c, "c1"), _constant_stage(np.eye(3), "c2")])
+    predict = two._predict_stage
+    two._predict_stage = lambda k, pa, pb, bs: (predict(k, pa, pb, bs) if k == 0
+                                                else np.full((len(pa), 3, 3), np.nan))
+    two.estimate(a, b, retry_tta="dihedral")
+    assert two.last_info["retried"].all() and two.last_info["implausible"].all()
+    np.testing.assert_array_equal(two.last_info["rejected_stages"], [1, 1, 1, 1])
+    assert two.last_rejected == {"non_finite": 4, "singular": 0}
 
 
 def test_estimate_images_tta_transforms_the_image_context():
@@ -941,15 +996,19 @@ def test_predict_binary(identity_model_path, tmp_path):
     assert result["implausible"] is False and result["max_corner_shift_px"] < 1e-6
     assert "implausible" not in proc.stderr
     assert result["refine"] == "none" and result["refined"] is False
-    # A model whose estimate moves a patch corner by 60 px (trained range: 32) gets a warning.
+    assert result["retry_tta"] == "none" and result["retried"] is False
+    # A model whose estimate moves a patch corner by 60 px (trained range: 32) gets a warning;
+    # with --retry_tta it is estimated again (each symmetry's estimate moves a corner 60 px too).
     far = np.eye(3)
     far[0, 2] = 60.0
     _constant_stage(far, "far").save(tmp_path / "far.keras")
     proc = _run("experiments.predict", f"--image_a={tmp_path / 'a.png'}",
                 f"--image_b={tmp_path / 'a.png'}", f"--model={tmp_path / 'far.keras'}",
-                f"--output_dir={tmp_path / 'far'}")
+                f"--output_dir={tmp_path / 'far'}", "--retry_tta=flips")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert json.loads(proc.stdout)["implausible"] is True
+    result = json.loads(proc.stdout)
+    assert result["implausible"] is True and result["retried"] is True
+    assert result["retry_tta"] == "flips"
     assert "warning: the estimate is implausible" in proc.stderr and "60.0 px" in proc.stderr
 
     (tmp_path / "junk.png").write_text("not an image")
@@ -1032,3 +1091,4 @@ def test_implausibility_check_with_the_identity_model(identity_model_path):
     assert result["ordinary"]["mace_median"] == pytest.approx(np.median(identity_errors), rel=1e-9)
     assert result["ordinary"]["worse_than_identity"] == 0  # the identity itself
     assert result["refine"] == "none" and result["ordinary"]["refined"] == 0.0
+    assert result["retry_tta"] == "none" and result["ordinary"]["retried"] == 0.0
