@@ -631,7 +631,8 @@ def test_estimate_images_tta_transforms_the_image_context():
     """tta with image context: stage 2 (a spy whose output reveals the mean of the patch_a it
     sees) of the pair rotated by 90 degrees must see the crop of the rotated, warped 320 x 240
     image_a, i.e. (a pixel permutation) the crop of image_a warped by the estimate so far mapped
-    back (OpenCV reference); image_b is made so that this hypothesis aligns exactly."""
+    back (OpenCV reference); image_b is made so that this hypothesis aligns exactly. The plain
+    estimate is flagged, and retry_tta="dihedral" gives the same as tta="dihedral"."""
     image = cv2.resize(skimage.data.camera().astype(np.float32) / 255, (320, 240),
                        interpolation=cv2.INTER_AREA)
     h1, gain = geometry.translation(-30.0, 20.0), 0.8
@@ -649,6 +650,12 @@ def test_estimate_images_tta_transforms_the_image_context():
     got = est.estimate_images(image, image_b, tta="dihedral")
     assert est.last_info["tta_choice"][0] == "rotate_90_cw"
     np.testing.assert_allclose(got, h_image / h_image[2, 2], rtol=1e-5, atol=1e-4)
+    # the plain estimate is flagged; retry_tta re-runs the pair with its context the same way
+    est.estimate_images(image, image_b)
+    assert est.last_info["implausible"][0] and not est.last_info["retried"][0]
+    np.testing.assert_allclose(est.estimate_images(image, image_b, retry_tta="dihedral"), got,
+                               atol=1e-12)
+    assert est.last_info["retried"][0] and est.last_info["tta_choice"][0] == "rotate_90_cw"
     # the spy's reading matters: the crop without context would give another estimate
     zero_filled = cv2_warp(image[56:56 + S, 96:96 + S], h1_back)
     assert abs(seen.mean() - zero_filled.mean()) > 0.02
