@@ -519,7 +519,8 @@ class HomographyEstimator:
             ``tta`` (a deviation from the paper): a pair whose estimate is flagged implausible
             (``last_info["implausible"]``, not a flat pair) is estimated again with
             ``tta=retry_tta`` and keeps that estimate and its flags (``last_info["retried"]``);
-            the extra network passes are spent on the flagged pairs only.
+            the extra network passes are spent on the flagged pairs only. One with no more
+            symmetries than ``tta`` does nothing.
         Returns:
           float64 ``[B, 3, 3]`` ``H_ba``, mapping patch_b pixel coordinates to patch_a pixel
           coordinates (``[2, 2] = 1``; B = 1 for a single pair).
