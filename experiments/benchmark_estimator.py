@@ -17,7 +17,7 @@ from absl import app, flags
 
 from experiments import common
 from stnh_tf import benchmarks
-from stnh_tf.inference import TTAS
+from stnh_tf.inference import SEARCHES, TTAS
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
 flags.DEFINE_enum("compute_dtype", "float32", ["float32", "as_saved"],
@@ -27,6 +27,8 @@ flags.DEFINE_integer("warmup", 5, "Untimed calls first.")
 flags.DEFINE_integer("large_batch", 256, "Pairs per call of the large-batch measurement.")
 flags.DEFINE_integer("seed", 0, "Seed of the inputs.")
 flags.DEFINE_enum("tta", "none", list(TTAS), "estimate's test-time augmentation.")
+flags.DEFINE_enum("search", "none", list(SEARCHES), "estimate's search (none: the network; ecc "
+                  "searches every pair of the random patches, its worst case).")
 flags.DEFINE_string("json_out", None, "Also write the JSON here.")
 FLAGS = flags.FLAGS
 
@@ -37,7 +39,7 @@ def main(argv):
 
     result = benchmarks.estimator_benchmark(FLAGS.model, FLAGS.compute_dtype, FLAGS.runs,
                                             FLAGS.warmup, FLAGS.large_batch, FLAGS.seed,
-                                            FLAGS.tta)
+                                            FLAGS.tta, FLAGS.search)
     common.emit_json(result, FLAGS.json_out)
 
 

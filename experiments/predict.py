@@ -1,7 +1,7 @@
 r"""Estimate the homography between two images and draw the alignment.
 
   python -m experiments.predict --image_a=a.jpg --image_b=b.jpg [--model=runs/stage1] \
-      [--output_dir=out] [--refine=ecc] [--tta=dihedral | --retry_tta=dihedral]
+      [--output_dir=out] [--refine=ecc] [--tta=dihedral | --retry_tta=dihedral] [--search=none]
 
 Prints a JSON object whose ``homography`` maps image_b pixel coordinates (x, y) to image_a pixel
 coordinates (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``), and writes
@@ -21,7 +21,7 @@ import sys
 from absl import app, flags
 
 from stnh_tf import alignment
-from stnh_tf.inference import REFINES, TTAS
+from stnh_tf.inference import REFINES, SEARCH, SEARCHES, TTAS
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("image_a", None, "Path of image_a (the reference image).", required=True)
@@ -37,6 +37,9 @@ flags.DEFINE_enum("tta", "none", list(TTAS), "Test-time augmentation: none (the 
 flags.DEFINE_enum("retry_tta", "none", list(TTAS), "Estimate again with this test-time "
                   "augmentation only if the estimate is flagged implausible: none (the paper), "
                   "flips or dihedral (a deviation).")
+flags.DEFINE_enum("search", SEARCH, list(SEARCHES), "Where the estimate aligns the images poorly: "
+                  "ecc (start OpenCV's ECC alignment from the best translations of it, keep a "
+                  "near-perfect result; a deviation) or none (the network's estimate).")
 
 
 def main(argv):
@@ -45,7 +48,7 @@ def main(argv):
         result = alignment.align_image_files(
             FLAGS.image_a, FLAGS.image_b, FLAGS.model, FLAGS.output_dir,
             warn=lambda message: print(f"predict: warning: {message}", file=sys.stderr),
-            refine=FLAGS.refine, tta=FLAGS.tta, retry_tta=FLAGS.retry_tta)
+            refine=FLAGS.refine, tta=FLAGS.tta, retry_tta=FLAGS.retry_tta, search=FLAGS.search)
     except alignment.AlignmentError as e:
         raise SystemExit(f"predict: {e}") from None
     print(json.dumps(result, indent=2))

@@ -80,10 +80,11 @@ def _warn_stderr(message):
 
 
 def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", warn=_warn_stderr,
-                      refine="none", tta="none", retry_tta="none"):
+                      refine="none", tta="none", retry_tta="none", search=None):
     """Estimate ``H_ba`` between two image files with ``model`` (what
-    ``HomographyEstimator.load`` takes; ``None``: the shipped weights; ``refine``, ``tta`` and
-    ``retry_tta``: as in ``HomographyEstimator.estimate_images``), write
+    ``HomographyEstimator.load`` takes; ``None``: the shipped weights; ``refine``, ``tta``,
+    ``retry_tta`` and ``search``: as in ``HomographyEstimator.estimate_images``, ``search=None``
+    its default), write
     ``<a>__<b>_overlay.png`` and ``<a>__<b>_homography.json`` into ``output_dir`` (created if
     missing; :func:`output_stem`) and return the JSON's content. ``warn`` receives the warning
     of an implausible estimate.
@@ -96,8 +97,9 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
     import numpy as np
 
     from stnh_tf import geometry, paths
-    from stnh_tf.inference import HomographyEstimator
+    from stnh_tf.inference import SEARCH, HomographyEstimator
 
+    search = SEARCH if search is None else search
     image_a = read_image(image_a_path, "image_a")
     image_b = read_image(image_b_path, "image_b")
     try:
@@ -109,7 +111,7 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
     except (FileNotFoundError, ValueError) as e:
         raise AlignmentError(str(e)) from None
     h = estimator.estimate_images(image_a, image_b, channel_order="bgr", refine=refine,
-                                  tta=tta, retry_tta=retry_tta)
+                                  tta=tta, retry_tta=retry_tta, search=search)
     info = estimator.last_info
     implausible = bool(info["implausible"][0])
     if implausible and info["flat"][0]:
@@ -146,6 +148,8 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         "refine": refine, "refined": bool(info["refined"][0]),
         "tta": tta, "tta_choice": str(info["tta_choice"][0]),
         "retry_tta": retry_tta, "retried": bool(info["retried"][0]),
+        "search": search, "searched": bool(info["searched"][0]),
+        "search_found": bool(info["search_found"][0]),
         "max_corner_shift_px": float(info["max_corner_shift_px"][0]),
         "alignment_ncc": (float(info["alignment_ncc"][0])
                           if np.isfinite(info["alignment_ncc"][0]) else None),

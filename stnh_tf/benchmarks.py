@@ -370,10 +370,12 @@ def stream_benchmark(image_dir, workers=2, samples_per_image=100, batch_size=64,
 
 
 def estimator_benchmark(model=None, compute_dtype="float32", runs=30, warmup=5, large_batch=256,
-                        seed=0, tta="none"):
+                        seed=0, tta="none", search="none"):
     """``estimate`` at batch 1 and ``large_batch`` on seeded random uint8 patches, beside
     :func:`stnh_tf.evaluation.latency`'s ``d_e`` for the same models; ``compute_dtype``
-    ``"float32"`` or ``"as_saved"``; ``tta``: ``estimate``'s test-time augmentation."""
+    ``"float32"`` or ``"as_saved"``; ``tta``: ``estimate``'s test-time augmentation; ``search``:
+    its search (``"none"``, the network, by default: random patches do not align, so ``"ecc"``
+    searches every pair, the search's worst case)."""
     import numpy as np
 
     from stnh_tf import evaluation, inference, model_files, runner
@@ -383,8 +385,10 @@ def estimator_benchmark(model=None, compute_dtype="float32", runs=30, warmup=5, 
     rng = np.random.default_rng(seed)
     n = large_batch
     a, b = (rng.integers(0, 256, (n, 128, 128), dtype=np.uint8) for _ in range(2))
-    one = evaluation.median_ms(lambda: estimator.estimate(a[0], b[0], tta=tta), runs, warmup)
-    many = evaluation.median_ms(lambda: estimator.estimate(a, b, batch_size=n, tta=tta),
+    one = evaluation.median_ms(lambda: estimator.estimate(a[0], b[0], tta=tta, search=search),
+                               runs, warmup)
+    many = evaluation.median_ms(lambda: estimator.estimate(a, b, batch_size=n, tta=tta,
+                                                           search=search),
                                 max(runs // 10, 3), 1)
     stages = model_files.resolve_model_paths(model)
     bench = evaluation.latency(stages, max_stages=len(stages), runs=runs, warmup=warmup,
@@ -392,7 +396,7 @@ def estimator_benchmark(model=None, compute_dtype="float32", runs=30, warmup=5, 
     d_e = bench["hierarchy"][str(len(stages))]["d_e_ms"]
     return {"benchmark": "estimator_vs_latency", "model": estimator.source,
             "stages": len(stages), "policy": runner.compute_policy(estimator.stages[0]),
-            "runs": runs, "seed": seed, "tta": tta,
+            "runs": runs, "seed": seed, "tta": tta, "search": search,
             "estimate_batch1_ms": one, "benchmark_d_e_ms": d_e, "ratio": one / d_e,
             f"estimate_batch{n}_ms_per_pair": many / n,
             "benchmark_l_m_ms": bench["l_m_ms"], "machine": machine_info()}

@@ -228,7 +228,7 @@ IMPLAUSIBILITY_CASES = ("ordinary", "other_photograph", "rotated_180", "moved_80
 
 def implausibility_check(model=None, data_dir=None, split="test", compute_dtype="float32",
                          batch_size=64, photometric=False, refine="none",
-                         tta="none", retry_tta="none") -> dict:
+                         tta="none", retry_tta="none", search=None) -> dict:
     """How often :attr:`~stnh_tf.inference.HomographyEstimator.last_info` flags the estimates of
     ``HomographyEstimator.estimate`` on stored pairs and on pairs made from them that the models
     were not trained on (:data:`IMPLAUSIBILITY_CASES`):
@@ -245,8 +245,11 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
       refine: ``estimate``'s ``refine`` (:data:`stnh_tf.inference.REFINES`).
       tta: ``estimate``'s ``tta`` (:data:`stnh_tf.inference.TTAS`).
       retry_tta: ``estimate``'s ``retry_tta`` (:data:`stnh_tf.inference.TTAS`).
+      search: ``estimate``'s ``search`` (:data:`stnh_tf.inference.SEARCHES`; ``None``: its
+        default).
     Returns:
       ``{case: {"count", "flagged" (fraction), "refined" (fraction), "retried" (fraction),
+      "searched" (fraction), "search_found" (fraction),
       "alignment_ncc_median",
       "ms_per_pair" (wall time of the batched ``estimate`` call)}}``;
       ``ordinary`` also has ``mace``, ``mace_median``, ``mace_flagged`` and ``mace_kept`` (NaN
@@ -254,8 +257,9 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
       the identity's).
     """
     from stnh_tf import data, shipped_weights
-    from stnh_tf.inference import HomographyEstimator
+    from stnh_tf.inference import SEARCH, HomographyEstimator
 
+    search = SEARCH if search is None else search
     if data_dir is None:
         samples = shipped_weights.bundled_pairs(photometric)
     elif photometric:
@@ -268,17 +272,20 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
                  "rotated_180": b[:, ::-1, ::-1], "moved_80px": np.roll(a, (80, 80), axis=(1, 2))}
     estimator = HomographyEstimator.load(model, compute_dtype=compute_dtype)
     out = {"model": estimator.source, "data_dir": data_dir, "split": split,
-           "photometric": photometric, "refine": refine, "tta": tta, "retry_tta": retry_tta}
+           "photometric": photometric, "refine": refine, "tta": tta, "retry_tta": retry_tta,
+           "search": search}
     for case in IMPLAUSIBILITY_CASES:
         start = time.perf_counter()
         h = estimator.estimate(a, patches_b[case], batch_size=batch_size, refine=refine,
-                               tta=tta, retry_tta=retry_tta)
+                               tta=tta, retry_tta=retry_tta, search=search)
         seconds = time.perf_counter() - start
         flagged = estimator.last_info["implausible"]
         ncc = estimator.last_info["alignment_ncc"]
         out[case] = {"count": int(len(h)), "flagged": float(flagged.mean()),
                      "refined": float(estimator.last_info["refined"].mean()),
                      "retried": float(estimator.last_info["retried"].mean()),
+                     "searched": float(estimator.last_info["searched"].mean()),
+                     "search_found": float(estimator.last_info["search_found"].mean()),
                      "ms_per_pair": 1e3 * seconds / len(h),
                      "alignment_ncc_median": float(np.nanmedian(ncc))}
         if case == "ordinary":

@@ -49,6 +49,13 @@ the highest :func:`alignment_ncc`. ``retry_tta`` (opt-in) spends that augmentati
 whose estimate is flagged implausible (below) only: each is estimated again with
 ``tta=retry_tta`` and keeps that estimate.
 
+Search of poorly aligned estimates (default, a deviation from the paper). ``search="ecc"``: where
+an estimate aligns its pair poorly (:func:`alignment_ncc` below :data:`SEARCH_BELOW_NCC`) or is
+flagged implausible, :func:`search_translations` scores translations of it by normalized
+cross-correlation and starts ECC from the best; a result aligning the pair at :data:`VERIFIED_NCC`
+or better replaces the estimate, which is kept otherwise. ``search="none"``: the network's
+estimate (what the exported SavedModel computes).
+
 Implausible estimates. :attr:`HomographyEstimator.last_info` flags, per pair, an estimate that
 moves a patch corner beyond the trained range, needed a skipped stage, or leaves patch_a warped
 onto patch_b poorly correlated with it (:func:`alignment_ncc`): the images may not overlap, or
@@ -112,6 +119,30 @@ ECC_CRITERIA = (50, 1e-5)
 
 ECC_GAUSSIAN = 1
 """``cv2.findTransformECC``'s Gaussian pre-filter size in :func:`ecc_refine` (1: none)."""
+
+SEARCHES = ("none", "ecc")
+"""What :meth:`HomographyEstimator.estimate` does with a pair its estimate aligns poorly
+(:data:`SEARCH_BELOW_NCC`): ``"ecc"`` tries :func:`search_translations`; ``"none"`` keeps the
+network's estimate."""
+
+SEARCH = "ecc"
+"""The default of :meth:`HomographyEstimator.estimate`'s ``search`` (a deviation from the paper)."""
+
+SEARCH_BELOW_NCC = 0.9
+""":func:`alignment_ncc` of an estimate below which ``search="ecc"`` searches its pair (as it does
+every pair flagged implausible); how the value was chosen: BENCHMARKS.md, "The search of poorly
+aligned estimates"."""
+
+VERIFIED_NCC = 0.95
+""":func:`alignment_ncc` a result of :func:`search_translations` must reach to replace an
+estimate."""
+
+SEARCH_TEMPLATE = 64
+"""Side (px) of patch_b's central square that :func:`search_translations` slides over the warped
+patch_a: translations of up to ``(128 - 64) / 2 = 32`` px, the trained range, are scored."""
+
+SEARCH_PEAKS = 8
+"""At most this many translation peaks are started from by :func:`search_translations`."""
 
 _log = logging.getLogger(__name__)
 
@@ -200,6 +231,55 @@ def ecc_refine(source_a, patch_b, a_from_b, origin=(0, 0)):
     return refined / refined[2, 2]
 
 
+def search_translations(source_a, patch_b, a_from_b, origin=(0, 0)):
+    """A homography near ``a_from_b`` that aligns the pair almost perfectly, or ``None``.
+
+    Patch_a is warped onto patch_b by ``a_from_b`` (mirror fill beyond ``source_a``), the central
+    :data:`SEARCH_TEMPLATE` square of ``patch_b`` is slid over it (``cv2.matchTemplate``,
+    ``TM_CCOEFF_NORMED``), and from the translations ``d`` at its :data:`SEARCH_PEAKS` highest
+    local peaks (best first) :func:`ecc_refine` is started at ``a_from_b @ T(d)``; the first
+    refinement whose :func:`alignment_ncc` reaches :data:`VERIFIED_NCC` is returned. It finds the
+    estimate that a network put one period off on a repetitive texture (a brick wall), or a few px
+    off under an exposure change.
+
+    Args:
+      source_a: ``[h, w]`` image holding patch_a with its top-left corner at ``origin`` (the patch
+        itself with ``(0, 0)``, or the image it was cut from as context).
+      patch_b: ``[S, S]`` (any real scale).
+      a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame, the estimate searched around.
+    Returns:
+      ``(h, ncc)``: float64 ``[3, 3]`` ``H_ba`` in the patch frame (``[2, 2] = 1``) and its
+      :func:`alignment_ncc`; ``None`` where no refinement reaches :data:`VERIFIED_NCC`.
+
+    >>> p = cv2.GaussianBlur(np.random.default_rng(0).random((128, 128), np.float32), (0, 0), 2)
+    >>> b = cv2.warpPerspective(p, geometry.translation(9.0, -6.0), (128, 128),
+    ...                         flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    >>> h, ncc = search_translations(p, b, np.eye(3))
+    >>> np.round(h[:2, 2], 1), ncc > 0.95
+    (array([ 9., -6.]), True)
+    """
+    from stnh_tf import hierarchy
+
+    size = np.shape(patch_b)[0]
+    margin = (size - SEARCH_TEMPLATE) // 2
+    b = np.asarray(patch_b, np.float32)
+    warped = hierarchy.warp_crop(source_a, a_from_b, origin, size, fill="reflect")
+    scores = cv2.matchTemplate(warped, b[margin:margin + SEARCH_TEMPLATE,
+                                         margin:margin + SEARCH_TEMPLATE], cv2.TM_CCOEFF_NORMED)
+    scores = np.nan_to_num(scores, nan=-1.0)
+    ys, xs = np.nonzero(scores >= cv2.dilate(scores, np.ones((5, 5), np.uint8)))
+    for k in np.argsort(-scores[ys, xs], kind="stable")[:SEARCH_PEAKS]:
+        start = np.asarray(a_from_b, np.float64) @ geometry.translation(xs[k] - margin,
+                                                                         ys[k] - margin)
+        h = ecc_refine(source_a, b, start, origin)
+        if h is None or not np.isfinite(corner_shift(h[None])[0]):
+            continue
+        ncc = alignment_ncc(source_a, b, h, origin)
+        if ncc >= VERIFIED_NCC:
+            return h, ncc
+    return None
+
+
 def _nccs(sources, patches_b, a_from_b, origin):
     """:func:`alignment_ncc` of each pair ``[B]``, NaN (undefined) as ``-inf`` so that it ranks
     below every defined NCC."""
@@ -263,7 +343,9 @@ class HomographyEstimator:
         (:func:`alignment_ncc` of patch_b and patch_a warped by the estimate, read from the
         image context in ``estimate_images``; NaN for a flat pair) and ``flat`` (patch_a or
         patch_b varies less than :data:`MIN_PATCH_STD`: the estimate is the identity and
-        flagged implausible), ``refined`` (the estimate is the ECC refinement of
+        flagged implausible), ``searched`` (``search`` searched the pair: its estimate aligned
+        it below :data:`SEARCH_BELOW_NCC` or was implausible), ``search_found`` (the estimate is
+        :func:`search_translations`' result), ``refined`` (the estimate is the ECC refinement of
         ``refine="ecc"``; False where it was not asked for, failed or was dropped) and
         ``tta_choice`` (the name of the symmetry whose estimate was kept, ``"identity"`` without
         ``tta``; ``rejected_stages`` and ``gated_stages`` are that estimate's) and ``retried``
@@ -374,7 +456,8 @@ class HomographyEstimator:
         return total, rejected, gated_stages, ncc_total
 
     def _estimate(self, patch_a, patch_b, context=None, origin=(0, 0), batch_size=64,
-                  gate_stages=False, fill="zeros", refine="none", tta="none", retry_tta="none"):
+                  gate_stages=False, fill="zeros", refine="none", tta="none", retry_tta="none",
+                  search=SEARCH):
         """Composed ``H_1 @ ... @ H_n`` ``[B, 3, 3]`` for float32 ``[B, S, S, 1]`` pairs
         (:meth:`_estimate_once`); where that estimate is flagged implausible (and the pair is not
         flat), the pair is estimated again with ``tta=retry_tta`` and keeps that estimate, if
@@ -383,7 +466,7 @@ class HomographyEstimator:
         if retry_tta not in TTAS:
             raise ValueError(f"retry_tta must be one of {tuple(TTAS)}; received {retry_tta!r}.")
         total, info, rejected = self._estimate_once(patch_a, patch_b, context, origin, batch_size,
-                                                    gate_stages, fill, refine, tta)
+                                                    gate_stages, fill, refine, tta, search)
         info["retried"] = np.zeros(len(total), bool)
         retry = (np.flatnonzero(info["implausible"] & ~info["flat"])
                  if set(TTAS[retry_tta]) > set(TTAS[tta]) else [])
@@ -391,7 +474,7 @@ class HomographyEstimator:
             r_total, r_info, r_rejected = self._estimate_once(
                 patch_a[retry], patch_b[retry],
                 None if context is None else [context[i] for i in retry], origin, batch_size,
-                gate_stages, fill, refine, retry_tta)
+                gate_stages, fill, refine, retry_tta, search)
             r_info["retried"] = np.ones(len(retry), bool)
             total[retry] = r_total
             for key, value in r_info.items():  # (result_type: tta_choice names may be longer)
@@ -407,7 +490,7 @@ class HomographyEstimator:
         return total
 
     def _estimate_once(self, patch_a, patch_b, context, origin, batch_size, gate_stages, fill,
-                       refine, tta):
+                       refine, tta, search):
         """Composed ``H_1 @ ... @ H_n`` ``[B, 3, 3]`` for float32 ``[B, S, S, 1]`` pairs, with
         the per-pair :attr:`last_info` entries (but ``retried``) and the per-pair counts ``[B]``
         of skipped stage predictions by reason: ``(total, info, rejected)``.
@@ -417,6 +500,9 @@ class HomographyEstimator:
         ``fill``: what later stages see beyond the source (:func:`stnh_tf.hierarchy.warp_crop`).
         ``gate_stages``: keep a later stage's update of a pair only where it does not lower
         :func:`alignment_ncc` (an undefined NCC counts as the lowest).
+        ``search``: one of :data:`SEARCHES`: ``"ecc"`` replaces the estimate of a pair it aligns
+        poorly (below :data:`SEARCH_BELOW_NCC`, or implausible; not flat) by
+        :func:`search_translations`' result where there is one.
         ``refine``: one of :data:`REFINES`, applied to the final estimate.
         ``tta``: a key of :data:`TTAS`: the stages also run on the pairs (and contexts) transformed
         by each of its symmetries, and each pair keeps the estimate, mapped back, whose
@@ -424,6 +510,8 @@ class HomographyEstimator:
         """
         if refine not in REFINES:
             raise ValueError(f"refine must be one of {REFINES}; received {refine!r}.")
+        if search not in SEARCHES:
+            raise ValueError(f"search must be one of {SEARCHES}; received {search!r}.")
         if tta not in TTAS:
             raise ValueError(f"tta must be one of {tuple(TTAS)}; received {tta!r}.")
         sources = (context if context is not None
@@ -465,32 +553,44 @@ class HomographyEstimator:
             _log.warning("HomographyEstimator: %d pair(s) with a flat patch (nothing to align): "
                          "estimate set to the identity", int(flat.sum()))
             total[flat] = np.eye(3)
-        refined = np.zeros(len(total), bool)
-        if refine == "ecc":
-            for i in np.flatnonzero(~flat & np.isfinite(total).all(axis=(1, 2))):
-                h = ecc_refine(sources[i], patch_b[i, ..., 0], total[i], org)
-                if h is not None and float(geometry.corner_errors(
-                        h[None], total[i][None])[0]) <= MAX_REFINE_MOVE:
-                    total[i], refined[i] = h, True
-            ncc_total = None  # the alignment is measured again below, on the refined estimates
         shift = corner_shift(total)
-        if ncc_total is not None:  # the gate already measured the final estimate's alignment
+        if ncc_total is not None:  # the gate already measured the estimate's alignment
             ncc = np.where(np.isfinite(ncc_total) & np.isfinite(shift) & ~flat, ncc_total, np.nan)
         else:
             ncc = np.array([alignment_ncc(src, b[..., 0], h, org) if np.isfinite(s) and not f
                             else np.nan
                             for src, b, h, s, f in zip(sources, patch_b, total, shift, flat)])
+        searched, found = np.zeros(len(total), bool), np.zeros(len(total), bool)
+        if search == "ecc":
+            searched = (~flat & np.isfinite(shift)
+                        & ((rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT)
+                           | ~(ncc >= SEARCH_BELOW_NCC)))
+            for i in np.flatnonzero(searched):
+                result = search_translations(sources[i], patch_b[i, ..., 0], total[i], org)
+                if result is not None:
+                    (total[i], ncc[i]), found[i] = result, True
+        refined = np.zeros(len(total), bool)
+        if refine == "ecc":  # (a found estimate is an ECC optimum already)
+            for i in np.flatnonzero(~flat & ~found & np.isfinite(total).all(axis=(1, 2))):
+                h = ecc_refine(sources[i], patch_b[i, ..., 0], total[i], org)
+                if h is not None and float(geometry.corner_errors(
+                        h[None], total[i][None])[0]) <= MAX_REFINE_MOVE:
+                    total[i], refined[i] = h, True
+                    ncc[i] = alignment_ncc(sources[i], patch_b[i, ..., 0], h, org)
+        shift = corner_shift(total)
+        ncc = np.where(np.isfinite(shift) & ~flat, ncc, np.nan)
         info = {"implausible": ((rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT)
                                 | ~(ncc >= MIN_ALIGNMENT_NCC) | flat),
                 "max_corner_shift_px": shift, "rejected_stages": rejected_stages,
                 "gated_stages": gated_stages, "alignment_ncc": ncc, "flat": flat,
+                "searched": searched, "search_found": found,
                 "refined": refined, "tta_choice": np.array(TTAS[tta])[chosen["choice"]]}
         return total, info, rejected
 
     def estimate(self, patch_a, patch_b, batch_size: int = 64,
                  gate_stages: bool = True, fill: str = PATCH_FILL,
                  refine: str = "none", tta: str = "none",
-                 retry_tta: str = "none") -> np.ndarray:
+                 retry_tta: str = "none", search: str = SEARCH) -> np.ndarray:
         """Pixel homography between 128 x 128 grayscale patches.
 
         Args:
@@ -521,13 +621,20 @@ class HomographyEstimator:
             ``tta=retry_tta`` and keeps that estimate and its flags (``last_info["retried"]``);
             the extra network passes are spent on the flagged pairs only. One with no more
             symmetries than ``tta`` does nothing.
+          search: ``"ecc"`` (default, a deviation from the paper) or ``"none"``
+            (:data:`SEARCHES`): a pair whose estimate aligns it poorly (:func:`alignment_ncc`
+            below :data:`SEARCH_BELOW_NCC`) or is flagged implausible gets the result of
+            :func:`search_translations` (ECC started from the best translations of the estimate)
+            where one aligns it at :data:`VERIFIED_NCC` or better, and keeps the network's
+            estimate elsewhere (``last_info["searched"]``, ``["search_found"]``). ``"none"``:
+            the network's estimate only.
         Returns:
           float64 ``[B, 3, 3]`` ``H_ba``, mapping patch_b pixel coordinates to patch_a pixel
           coordinates (``[2, 2] = 1``; B = 1 for a single pair).
         Raises:
           ValueError: wrong rank, size, channel count or dtype, empty or different-sized
-            batches, ``batch_size`` < 1, an unknown ``fill``, ``refine``, ``tta`` or
-            ``retry_tta``.
+            batches, ``batch_size`` < 1, an unknown ``fill``, ``refine``, ``tta``,
+            ``retry_tta`` or ``search``.
         """
         if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
                 or batch_size < 1:
@@ -539,11 +646,12 @@ class HomographyEstimator:
             raise ValueError(f"patch_a and patch_b must hold the same number of patches; received "
                              f"shapes {np.shape(patch_a)} and {np.shape(patch_b)}.")
         return self._estimate(a, b, batch_size=batch_size, gate_stages=bool(gate_stages),
-                              fill=fill, refine=refine, tta=tta, retry_tta=retry_tta)
+                              fill=fill, refine=refine, tta=tta, retry_tta=retry_tta,
+                              search=search)
 
     def estimate_images(self, image_a, image_b, channel_order: str = "rgb",
                         refine: str = "none", tta: str = "none",
-                        retry_tta: str = "none") -> np.ndarray:
+                        retry_tta: str = "none", search: str = SEARCH) -> np.ndarray:
         """Homography between two images of any size and colour, in their own pixel frames.
 
         Each image is made grayscale and resized to 320 x 240; the central 128 x 128 squares are
@@ -558,6 +666,7 @@ class HomographyEstimator:
             with the 320 x 240 image_a).
           tta: as in :meth:`estimate` (image_a mirrored and rotated with its patch).
           retry_tta: as in :meth:`estimate`.
+          search: as in :meth:`estimate` (aligning patch_b with the 320 x 240 image_a).
         Returns:
           float64 ``[3, 3]`` ``H_ba`` mapping image_b pixel coordinates to image_a pixel
           coordinates (``[2, 2] = 1``).
@@ -567,6 +676,6 @@ class HomographyEstimator:
         work_a, work_b = resize_to_work_size(gray_a), resize_to_work_size(gray_b)
         h_patch = self._estimate(central_patch(work_a), central_patch(work_b), context=[work_a],
                                  origin=PATCH_ORIGIN, refine=refine, tta=tta,
-                                 retry_tta=retry_tta)[0]
+                                 retry_tta=retry_tta, search=search)[0]
         return patch_to_image_frames(h_patch, (gray_a.shape[1], gray_a.shape[0]),
                                      (gray_b.shape[1], gray_b.shape[0]))

@@ -84,7 +84,7 @@ def replace_stage(stage: int, model_dir, weights_dir=None, eval_json=None,
 
 
 BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_image": 3,
-                 "compute_dtype": "float32", "fill": "reflect", "tta": "dihedral"}
+                 "compute_dtype": "float32", "fill": "reflect", "tta": "dihedral", "search": "ecc"}
 
 
 def bundled_pairs(photometric: bool = False) -> dict:
@@ -117,7 +117,10 @@ def bundled_check(stage_paths) -> dict:
     identity's; ``[photometric_]ungated_estimate_mace_{k}_stages`` (k > 1): the same without the
     estimator's stage gate (``gate_stages=False``); ``[photometric_]tta_estimate_mace_{n}_stages``
     (and ``photometric_tta_worse_than_identity_{n}_stages``), all n stages with
-    ``tta=BUNDLED_CHECK["tta"]``."""
+    ``tta=BUNDLED_CHECK["tta"]``; ``[photometric_]unsearched_estimate_mace_{n}_stages`` (and
+    ``photometric_unsearched_worse_than_identity_{n}_stages``), all n stages with
+    ``search="none"``, the network's estimates. Every other estimate uses
+    ``search=BUNDLED_CHECK["search"]``."""
     import numpy as np
 
     from stnh_tf import geometry
@@ -125,7 +128,7 @@ def bundled_check(stage_paths) -> dict:
 
     stages = [HomographyEstimator.load(p, compute_dtype=BUNDLED_CHECK["compute_dtype"]).stages[0]
               for p in stage_paths]
-    out, fill = dict(BUNDLED_CHECK), BUNDLED_CHECK["fill"]
+    out, fill, search = dict(BUNDLED_CHECK), BUNDLED_CHECK["fill"], BUNDLED_CHECK["search"]
     for prefix, photometric in (("", False), ("photometric_", True)):
         arrays = bundled_pairs(photometric)
         identity = geometry.corner_errors(np.broadcast_to(np.eye(3), arrays["h_ba"].shape),
@@ -135,25 +138,27 @@ def bundled_check(stage_paths) -> dict:
         out[f"{prefix}identity_mace"] = float(identity.mean())
         for k in range(1, len(stages) + 1):
             estimator = HomographyEstimator(stages[:k])
-            errors = geometry.corner_errors(
-                estimator.estimate(arrays["patch_a"], arrays["patch_b"], fill=fill), arrays["h_ba"])
+            errors = geometry.corner_errors(estimator.estimate(
+                arrays["patch_a"], arrays["patch_b"], fill=fill, search=search), arrays["h_ba"])
             out[f"{prefix}estimate_mace_{k}_stages"] = float(errors.mean())
             out[f"{prefix}implausible_{k}_stages"] = int(estimator.last_info["implausible"].sum())
             if prefix:
                 out[f"{prefix}worse_than_identity_{k}_stages"] = int((errors > identity).sum())
             if k > 1:
                 ungated = geometry.corner_errors(estimator.estimate(
-                    arrays["patch_a"], arrays["patch_b"], gate_stages=False, fill=fill),
-                    arrays["h_ba"])
+                    arrays["patch_a"], arrays["patch_b"], gate_stages=False, fill=fill,
+                    search=search), arrays["h_ba"])
                 out[f"{prefix}ungated_estimate_mace_{k}_stages"] = float(ungated.mean())
             if k == len(stages):
-                errors = geometry.corner_errors(estimator.estimate(
-                    arrays["patch_a"], arrays["patch_b"], fill=fill, tta=BUNDLED_CHECK["tta"]),
-                    arrays["h_ba"])
-                out[f"{prefix}tta_estimate_mace_{k}_stages"] = float(errors.mean())
-                if prefix:
-                    out[f"{prefix}tta_worse_than_identity_{k}_stages"] = int(
-                        (errors > identity).sum())
+                for name, options in (("tta", {"tta": BUNDLED_CHECK["tta"], "search": search}),
+                                      ("unsearched", {"search": "none"})):
+                    errors = geometry.corner_errors(estimator.estimate(
+                        arrays["patch_a"], arrays["patch_b"], fill=fill, **options),
+                        arrays["h_ba"])
+                    out[f"{prefix}{name}_estimate_mace_{k}_stages"] = float(errors.mean())
+                    if prefix:
+                        out[f"{prefix}{name}_worse_than_identity_{k}_stages"] = int(
+                            (errors > identity).sum())
     return out
 
 

@@ -161,7 +161,7 @@ def test_load_single_stage_round_trip(saved, pairs):
     for path in (saved["root"] / "single.keras", saved["root"] / "run"):
         est = HomographyEstimator.load(path)
         assert (est.kind, est.num_stages) == ("single", 1)
-        h = est.estimate(a, b)
+        h = est.estimate(a, b, search="none")
         np.testing.assert_allclose(h, ref, rtol=1e-5, atol=1e-4)
 
 
@@ -172,13 +172,13 @@ def test_load_hierarchy_manifest_round_trip(saved, pairs):
     for path in (saved["root"] / "hier" / "hierarchy.json", saved["root"] / "hier"):
         est = HomographyEstimator.load(path)
         assert (est.kind, est.num_stages) == ("hierarchy", 2)
-        np.testing.assert_allclose(est.estimate(a, b, gate_stages=False), ref, rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(est.estimate(a, b, gate_stages=False, search="none"), ref, rtol=1e-5, atol=1e-4)
     zeros, _ = _hierarchy_reference(saved["stage1"], saved["stage2"], a, b, cv2.BORDER_CONSTANT)
     assert np.max(geometry.corner_errors(zeros, ref)) > 0.01  # the fill reaches stage 2
-    np.testing.assert_allclose(est.estimate(a, b, gate_stages=False, fill="zeros"), zeros,
+    np.testing.assert_allclose(est.estimate(a, b, gate_stages=False, fill="zeros", search="none"), zeros,
                                rtol=1e-5, atol=1e-4)
     with pytest.raises(ValueError, match="fill must be one of"):
-        est.estimate(a, b, fill="edge")
+        est.estimate(a, b, fill="edge", search="none")
 
 
 def test_load_numbered_stage_directory(saved, pairs, tmp_path):
@@ -191,7 +191,7 @@ def test_load_numbered_stage_directory(saved, pairs, tmp_path):
     a, b, _ = pairs
     ref, _ = _hierarchy_reference(saved["stage1"], saved["stage2"], a[:2], b[:2])
     np.testing.assert_allclose(HomographyEstimator.load(tmp_path).estimate(a[:2], b[:2],
-                                                                           gate_stages=False),
+                                                                           gate_stages=False, search="none"),
                                ref, rtol=1e-5, atol=1e-4)
 
 
@@ -202,7 +202,7 @@ def test_load_sequence_round_trip(saved, pairs):
     af, bf = a.astype(np.float32) / 255, b.astype(np.float32) / 255
     ref = _direct(saved["seq"], af, bf, "h_bar_2")
     assert np.max(geometry.corner_errors(ref, _direct(saved["seq"], af, bf, "h_bar_1"))) > 0.5
-    np.testing.assert_allclose(est.estimate(a, b), ref, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(est.estimate(a, b, search="none"), ref, rtol=1e-5, atol=1e-4)
 
 
 def test_write_manifest_round_trip(saved, tmp_path):
@@ -303,7 +303,7 @@ def test_hierarchy_of_constant_stages_is_the_product(pairs, rng):
     h1, h2 = paper_homography(rng), paper_homography(rng)
     est = HomographyEstimator([_constant_stage(h1, "c1"), _constant_stage(h2, "c2")])
     assert est.kind == "hierarchy"
-    got = est.estimate(a, b, gate_stages=False)
+    got = est.estimate(a, b, gate_stages=False, search="none")
     want = h1 @ h2
     np.testing.assert_allclose(got, np.broadcast_to(want / want[2, 2], got.shape), atol=1e-4)
     other = h2 @ h1
@@ -327,13 +327,13 @@ def test_degenerate_stage_predictions_are_skipped_and_counted(pairs, rng, caplog
 
     est._predict_stage = fake_stage
     with caplog.at_level("WARNING"):
-        got = est.estimate(a, b, gate_stages=False)
+        got = est.estimate(a, b, gate_stages=False, search="none")
     want = h1 @ h3
     np.testing.assert_allclose(got, np.broadcast_to(want / want[2, 2], got.shape), atol=1e-9)
     assert est.last_rejected == {"non_finite": 1, "singular": 1}
     assert "degenerate" in caplog.text
     est._predict_stage = lambda k, pa, pb, bs: np.repeat(outputs.get(k, np.eye(3))[None], len(pa), 0)
-    est.estimate(a, b)
+    est.estimate(a, b, search="none")
     assert est.last_rejected == {"non_finite": 0, "singular": 0}
 
 
@@ -396,7 +396,7 @@ def test_implausible_estimates_are_flagged_per_pair(pairs):
         return h
 
     est._predict_stage = fake_stage
-    est.estimate(a, b)
+    est.estimate(a, b, search="none")
     info = est.last_info
     np.testing.assert_array_equal(info["implausible"], [False, True, True, True])
     np.testing.assert_array_equal(info["rejected_stages"], [0, 0, 1, 0])
@@ -472,7 +472,7 @@ def test_stage_gate_keeps_later_updates_that_do_not_lower_the_alignment(pairs):
              (np.eye(3), hs[3], np.eye(3))]            # stage 1 sees nothing, stage 2 finds it
     est = HomographyEstimator([_constant_stage(np.eye(3), f"c{k}") for k in (1, 2, 3)])
     est._predict_stage = lambda k, pa, pb, bs: np.stack([p[k] for p in plans])
-    got = est.estimate(a, b)
+    got = est.estimate(a, b, search="none")
     for i, plan in enumerate(plans):
         total, gated = plan[0], 0
         for h in plan[1:]:
@@ -488,7 +488,7 @@ def test_stage_gate_keeps_later_updates_that_do_not_lower_the_alignment(pairs):
         np.testing.assert_allclose(total / total[2, 2], hs[i] / hs[i, 2, 2], atol=1e-9)
         assert est.last_info["gated_stages"][i] == gated
     np.testing.assert_array_equal(est.last_info["gated_stages"], [1, 1, 0, 0])
-    plain = est.estimate(a, b, gate_stages=False)
+    plain = est.estimate(a, b, gate_stages=False, search="none")
     for i, plan in enumerate(plans):
         want = plan[0] @ plan[1] @ plan[2]
         np.testing.assert_allclose(plain[i], want / want[2, 2], atol=1e-9)
@@ -511,7 +511,7 @@ def test_ecc_refinement_recovers_the_true_homography(pairs, monkeypatch):
     assert start_error.min() > 3.0
     b_exposed = np.clip(np.rint(0.7 * b.astype(np.float64) + 40), 0, 255).astype(np.uint8)
     for patch_b in (b, b_exposed):
-        got = est.estimate(a, patch_b, refine="ecc")
+        got = est.estimate(a, patch_b, refine="ecc", search="none")
         assert geometry.corner_errors(got, hs).max() < 0.5
         assert est.last_info["refined"].all()
         # the flags follow the refined estimate: its NCC (NumPy reference) is near 1
@@ -519,14 +519,14 @@ def test_ecc_refinement_recovers_the_true_homography(pairs, monkeypatch):
             assert est.last_info["alignment_ncc"][i] == pytest.approx(
                 ncc_reference(a[i, ..., 0], patch_b[i, ..., 0], got[i]), abs=1e-3)
         assert not est.last_info["implausible"].any()
-    np.testing.assert_allclose(est.estimate(a, b), starts / starts[:, 2:, 2:], atol=1e-12)
+    np.testing.assert_allclose(est.estimate(a, b, search="none"), starts / starts[:, 2:, 2:], atol=1e-12)
     assert not est.last_info["refined"].any()
     monkeypatch.setattr(inference, "MAX_REFINE_MOVE", 1.0)
-    np.testing.assert_allclose(est.estimate(a, b, refine="ecc"), starts / starts[:, 2:, 2:],
+    np.testing.assert_allclose(est.estimate(a, b, refine="ecc", search="none"), starts / starts[:, 2:, 2:],
                                atol=1e-12)
     assert not est.last_info["refined"].any()
     with pytest.raises(ValueError, match="refine must be one of"):
-        est.estimate(a, b, refine="sift")
+        est.estimate(a, b, refine="sift", search="none")
 
 
 # The symmetries of a 128 x 128 patch written out (pixel centres at integers, c = 127): pixel
@@ -564,21 +564,21 @@ def test_tta_keeps_the_estimate_that_aligns_the_pair_best(pairs):
     names = ["rotate_90_cw", "identity", "flip_y", "anti_transpose"]
     a, b, want, h_c = _symmetry_pairs(pairs, names)
     est = HomographyEstimator([_constant_stage(h_c, "c")])
-    got = est.estimate(a, b, tta="dihedral")
+    got = est.estimate(a, b, tta="dihedral", search="none")
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)  # H_c passes through float32
     assert est.last_info["tta_choice"].tolist() == names
     ncc = [ncc_reference(x[..., 0], y[..., 0], h) for x, y, h in zip(a, b, got)]
     np.testing.assert_allclose(est.last_info["alignment_ncc"], ncc, atol=3e-3)
     assert min(ncc) > 0.99
-    np.testing.assert_allclose(est.estimate(a, b), np.broadcast_to(h_c / h_c[2, 2], (4, 3, 3)),
+    np.testing.assert_allclose(est.estimate(a, b, search="none"), np.broadcast_to(h_c / h_c[2, 2], (4, 3, 3)),
                                rtol=1e-5, atol=1e-5)
     assert est.last_info["tta_choice"].tolist() == ["identity"] * 4
-    got = est.estimate(a, b, tta="flips")
+    got = est.estimate(a, b, tta="flips", search="none")
     assert est.last_info["tta_choice"][0] in ("identity", "flip_x", "flip_y", "rotate_180")
     assert geometry.corner_errors(got[:1], want[:1])[0] > 1.0
     np.testing.assert_allclose(got[1:3], want[1:3], rtol=1e-5, atol=1e-5)
     with pytest.raises(ValueError, match="tta must be one of"):
-        est.estimate(a, b, tta="rotations")
+        est.estimate(a, b, tta="rotations", search="none")
 
 
 def test_flagged_estimates_are_retried_with_test_time_augmentation(pairs):
@@ -592,15 +592,15 @@ def test_flagged_estimates_are_retried_with_test_time_augmentation(pairs):
     names = ["rotate_90_cw", "identity", "flip_y", "rotate_180"]
     a, b, want, h_c = _symmetry_pairs(pairs, names)
     est = HomographyEstimator([_constant_stage(h_c, "c")])
-    plain = est.estimate(a, b)
+    plain = est.estimate(a, b, search="none")
     plain_info = est.last_info
     flagged = np.array([True, False, True, True])
     np.testing.assert_array_equal(plain_info["implausible"], flagged)
     assert not plain_info["retried"].any()
-    full = est.estimate(a, b, tta="dihedral")
+    full = est.estimate(a, b, tta="dihedral", search="none")
     full_info = est.last_info
     np.testing.assert_allclose(full, want, rtol=1e-5, atol=1e-5)  # H_c passes through float32
-    got = est.estimate(a, b, retry_tta="dihedral")
+    got = est.estimate(a, b, retry_tta="dihedral", search="none")
     info = est.last_info
     np.testing.assert_array_equal(info["retried"], flagged)
     np.testing.assert_allclose(got[flagged], full[flagged], atol=1e-12)
@@ -612,19 +612,74 @@ def test_flagged_estimates_are_retried_with_test_time_augmentation(pairs):
             np.testing.assert_array_equal(info[key][flagged], full_info[key][flagged], key)
             np.testing.assert_array_equal(info[key][~flagged], plain_info[key][~flagged], key)
     assert not info["implausible"].any()
-    est.estimate(a, b, tta="dihedral", retry_tta="flips")
+    est.estimate(a, b, tta="dihedral", retry_tta="flips", search="none")
     assert not est.last_info["retried"].any()
     with pytest.raises(ValueError, match="retry_tta must be one of"):
-        est.estimate(a, b, retry_tta="rotations")
+        est.estimate(a, b, retry_tta="rotations", search="none")
 
     two = HomographyEstimator([_constant_stage(h_c, "c1"), _constant_stage(np.eye(3), "c2")])
     predict = two._predict_stage
     two._predict_stage = lambda k, pa, pb, bs: (predict(k, pa, pb, bs) if k == 0
                                                 else np.full((len(pa), 3, 3), np.nan))
-    two.estimate(a, b, retry_tta="dihedral")
+    two.estimate(a, b, retry_tta="dihedral", search="none")
     assert two.last_info["retried"].all() and two.last_info["implausible"].all()
     np.testing.assert_array_equal(two.last_info["rejected_stages"], [1, 1, 1, 1])
     assert two.last_rejected == {"non_finite": 4, "singular": 0}
+
+
+def _wall_pair(rng, a_from_b):
+    """A texture whose columns repeat every 20 px (a brick wall's), made unique by noise, and
+    patch_b made from it by OpenCV: ``b(p) = a(a_from_b @ p)`` (uint8)."""
+    cell = rng.random((S, 20))
+    wall = np.tile(cell, (1, S // 20 + 1))[:, :S]
+    a = cv2.GaussianBlur(wall + 0.6 * rng.random(wall.shape), (0, 0), 1.5)
+    a = np.rint(255 * (a - a.min()) / (a.max() - a.min())).astype(np.uint8)
+    return a, cv2.warpPerspective(a, a_from_b, (S, S), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+
+
+def test_search_finds_the_alignment_a_network_put_a_period_off(pairs, rng, monkeypatch):
+    """search="ecc" (the default): a pair whose estimate is one 20-px period of a repeating
+    texture off the true H (known from the OpenCV warp that made it) gets, from the search, an
+    estimate within 0.5 px of it, with its NCC (NumPy reference); a pair the network aligns well
+    is not searched, and one with patch_b from another texture is searched without result: both
+    keep the network's estimate. search="none" returns the network's estimates; with a verified
+    NCC no alignment can reach, nothing is replaced."""
+    from stnh_tf import inference
+
+    a_s, b_s, hs = pairs
+    h_wall = geometry.translation(6.0, -4.0) @ np.array([[1.03, 0.02, 0], [-0.01, 0.98, 0],
+                                                        [1e-4, -5e-5, 1]])
+    wall_a, wall_b = _wall_pair(rng, h_wall)
+    a = np.stack([wall_a, a_s[0, ..., 0], a_s[1, ..., 0]])
+    b = np.stack([wall_b, b_s[0, ..., 0], b_s[0, ..., 0]])  # pair 2: patch_b of another texture
+    starts = np.stack([h_wall @ geometry.translation(20.0, 0.0), hs[0], np.eye(3)])
+    est = HomographyEstimator([_constant_stage(np.eye(3))])
+    est._predict_stage = lambda k, pa, pb, bs: starts.copy()
+
+    network = est.estimate(a, b, search="none")
+    np.testing.assert_allclose(network, starts / starts[:, 2:, 2:], atol=1e-12)
+    assert est.last_info["alignment_ncc"][0] < inference.SEARCH_BELOW_NCC
+    assert not est.last_info["searched"].any() and not est.last_info["search_found"].any()
+    assert geometry.corner_errors(network[:1], h_wall[None])[0] > 15.0
+
+    got = est.estimate(a, b)
+    info = est.last_info
+    assert geometry.corner_errors(got[:1], h_wall[None])[0] < 0.5
+    np.testing.assert_allclose(got[1:], network[1:], atol=1e-12)
+    np.testing.assert_array_equal(info["searched"], [True, False, True])
+    np.testing.assert_array_equal(info["search_found"], [True, False, False])
+    np.testing.assert_array_equal(info["implausible"], [False, False, True])
+    assert info["alignment_ncc"][0] >= inference.VERIFIED_NCC
+    assert info["alignment_ncc"][0] == pytest.approx(
+        ncc_reference(a[0] / 255.0, b[0] / 255.0, got[0]), abs=1e-3)
+
+    monkeypatch.setattr(inference, "VERIFIED_NCC", 1.01)
+    assert inference.search_translations(a[0] / 255.0, b[0] / 255.0, starts[0]) is None
+    np.testing.assert_allclose(est.estimate(a, b), network, atol=1e-12)
+    np.testing.assert_array_equal(est.last_info["searched"], [True, False, True])
+    assert not est.last_info["search_found"].any()
+    with pytest.raises(ValueError, match="search must be one of"):
+        est.estimate(a, b, search="sift")
 
 
 def test_estimate_images_tta_transforms_the_image_context():
@@ -647,13 +702,13 @@ def test_estimate_images_tta_transforms_the_image_context():
     image_b = cv2.warpPerspective(image, h_image, (320, 240),
                                   flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
     est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
-    got = est.estimate_images(image, image_b, tta="dihedral")
+    got = est.estimate_images(image, image_b, tta="dihedral", search="none")
     assert est.last_info["tta_choice"][0] == "rotate_90_cw"
     np.testing.assert_allclose(got, h_image / h_image[2, 2], rtol=1e-5, atol=1e-4)
     # the plain estimate is flagged; retry_tta re-runs the pair with its context the same way
-    est.estimate_images(image, image_b)
+    est.estimate_images(image, image_b, search="none")
     assert est.last_info["implausible"][0] and not est.last_info["retried"][0]
-    np.testing.assert_allclose(est.estimate_images(image, image_b, retry_tta="dihedral"), got,
+    np.testing.assert_allclose(est.estimate_images(image, image_b, retry_tta="dihedral", search="none"), got,
                                atol=1e-12)
     assert est.last_info["retried"][0] and est.last_info["tta_choice"][0] == "rotate_90_cw"
     # the spy's reading matters: the crop without context would give another estimate
@@ -676,8 +731,8 @@ def test_estimate_images_ecc_refinement_uses_the_whole_image(rng):
                                     - geometry.warp_points(h_true[None], corners), axis=-1).mean())
 
     est = HomographyEstimator([_constant_stage(np.eye(3))])
-    assert corner_error(est.estimate_images(image, image_b)) > 10.0
-    assert corner_error(est.estimate_images(image, image_b, refine="ecc")) < 1.5
+    assert corner_error(est.estimate_images(image, image_b, search="none")) > 10.0
+    assert corner_error(est.estimate_images(image, image_b, refine="ecc", search="none")) < 1.5
     assert est.last_info["refined"][0]
 
 
@@ -690,7 +745,7 @@ def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs, fill, bo
     h1 = geometry.translation(20.0, -12.0) @ np.diag([1.1, 0.95, 1.0])
     gain = 0.8
     est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
-    got = est.estimate(a, b, gate_stages=False, fill=fill)
+    got = est.estimate(a, b, gate_stages=False, fill=fill, search="none")
     for i in range(len(a)):
         seen = cv2_warp(a[i, ..., 0].astype(np.float32) / 255, h1, border)
         want = h1 @ _spy_expected_h(np.eye(3), gain, seen)
@@ -700,16 +755,16 @@ def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs, fill, bo
 def test_uint8_and_float_inputs_agree(saved, pairs):
     a, b, _ = pairs
     est = HomographyEstimator([saved["single"]])
-    h_u8 = est.estimate(a, b)
-    h_f32 = est.estimate(a.astype(np.float32) / 255, b.astype(np.float32) / 255)
-    h_f64 = est.estimate(a / 255.0, b / 255.0)
+    h_u8 = est.estimate(a, b, search="none")
+    h_f32 = est.estimate(a.astype(np.float32) / 255, b.astype(np.float32) / 255, search="none")
+    h_f64 = est.estimate(a / 255.0, b / 255.0, search="none")
     np.testing.assert_allclose(h_f32, h_u8, rtol=0, atol=1e-9)
     np.testing.assert_allclose(h_f64, h_u8, rtol=1e-6, atol=1e-5)
     # Every accepted layout of the same pair gives the same answer.
     for pa, pb in ((a[1, ..., 0], b[1, ..., 0]), (a[1], b[1]), (a[1:2, ..., 0], b[1:2, ..., 0])):
-        np.testing.assert_allclose(est.estimate(pa, pb), h_u8[1:2], rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(est.estimate(pa, pb, search="none"), h_u8[1:2], rtol=1e-5, atol=1e-4)
     # Chunking does not change the answer.
-    np.testing.assert_allclose(est.estimate(a, b, batch_size=3), h_u8, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(est.estimate(a, b, batch_size=3, search="none"), h_u8, rtol=1e-5, atol=1e-4)
 
 
 # --------------------------------------------------------------------------------------------
@@ -773,7 +828,7 @@ def test_estimate_images_hierarchy_uses_image_context():
     h1 = geometry.translation(-30.0, 20.0)  # brings 30 px of image beyond the patch border in
     gain = 0.8
     est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
-    got = est.estimate_images(image, image)  # same size: S_a = S_b = 320 x 240 resize
+    got = est.estimate_images(image, image, search="none")  # same size: S_a = S_b = 320 x 240 resize
     work = cv2.resize(image.astype(np.float32) / 255, (320, 240), interpolation=cv2.INTER_AREA)
     t = geometry.translation(96, 56)
     full = cv2.warpPerspective(work, t @ h1 @ np.linalg.inv(t), (320, 240),
@@ -951,19 +1006,19 @@ def test_mixed_precision_model_estimates_and_exports_in_float32(pairs, tmp_path)
 
     est = HomographyEstimator.load(tmp_path / "mixed.keras")
     assert {layer.dtype_policy.name for layer in est.stages[0]._flatten_layers()} == {"float32"}
-    got = est.estimate(a, b)
+    got = est.estimate(a, b, search="none")
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(est.estimate(a, b, batch_size=1), got, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(est.estimate(a, b, batch_size=1, search="none"), got, rtol=1e-5, atol=1e-5)
     assert np.max(geometry.corner_errors(got, np.broadcast_to(np.eye(3), got.shape))) > 0.1
 
     kept = HomographyEstimator.load(tmp_path / "mixed.keras", compute_dtype=None)
     assert "mixed_bfloat16" in {layer.dtype_policy.name for layer in kept.stages[0]._flatten_layers()}
-    assert np.max(geometry.corner_errors(kept.estimate(a, b), ref)) < 0.5  # bfloat16 rounding only
+    assert np.max(geometry.corner_errors(kept.estimate(a, b, search="none"), ref)) < 0.5  # bfloat16 rounding only
 
     report = export.verify_export(export.export_saved_model(est, tmp_path / "exported"), est, a, b)
     assert report["ok"] and report["max_abs_diff"] < 1e-3 and report["max_abs_diff_estimate"] < 1e-3
     with pytest.raises(ValueError, match="batch_size"):
-        est.estimate(a, b, batch_size=0)
+        est.estimate(a, b, batch_size=0, search="none")
 
 
 def test_benchmark_estimator_binary(identity_model_path, tmp_path):
@@ -1074,7 +1129,7 @@ def test_implausibility_check_with_the_identity_model(identity_model_path):
     whose plain NumPy NCC of patch_a and that case's patch_b is below the threshold."""
     from stnh_tf import evaluation, inference, shipped_weights
 
-    result = evaluation.implausibility_check(identity_model_path)
+    result = evaluation.implausibility_check(identity_model_path, search="none")
     arrays = shipped_weights.bundled_pairs()
     a = arrays["patch_a"][..., 0].astype(np.float64)
     b = arrays["patch_b"][..., 0].astype(np.float64)
@@ -1099,3 +1154,4 @@ def test_implausibility_check_with_the_identity_model(identity_model_path):
     assert result["ordinary"]["worse_than_identity"] == 0  # the identity itself
     assert result["refine"] == "none" and result["ordinary"]["refined"] == 0.0
     assert result["retry_tta"] == "none" and result["ordinary"]["retried"] == 0.0
+    assert result["search"] == "none" and result["ordinary"]["searched"] == 0.0

@@ -50,7 +50,10 @@ def bundled():
     return shipped_weights.bundled_pairs()
 
 
-def test_ship_refresh_check_and_replace_stage(tmp_path, bundled):
+def test_ship_refresh_check_and_replace_stage(tmp_path, bundled, monkeypatch):
+    # the card's check of the network's estimates (the search would move the constant stages'
+    # estimates); the check records that setting
+    monkeypatch.setitem(shipped_weights.BUNDLED_CHECK, "search", "none")
     bundled_h_ba = bundled["h_ba"].astype(np.float64)
     h = np.array([[1.05, 0.02, -3.0], [-0.03, 0.97, 4.0], [1e-4, -2e-4, 1.0]])
     _constant_run(tmp_path / "s1", h, mixed=True)
@@ -67,6 +70,7 @@ def test_ship_refresh_check_and_replace_stage(tmp_path, bundled):
 
     check = card["bundled_check"]
     assert check["compute_dtype"] == "float32" and check["count"] == len(bundled_h_ba) == 60
+    assert check["search"] == "none"
     expected = _mace_numpy(h, bundled_h_ba)
     expected_flags = sum(ncc_reference(a[..., 0], b[..., 0], h) < 0.7
                          for a, b in zip(bundled["patch_a"], bundled["patch_b"]))
@@ -76,6 +80,7 @@ def test_ship_refresh_check_and_replace_stage(tmp_path, bundled):
         assert check[f"estimate_mace_{k}_stages"] == pytest.approx(expected, abs=1e-3)
         # the constant H moves corners < 48 px: flagged are the pairs it leaves poorly aligned
         assert check[f"implausible_{k}_stages"] == expected_flags
+    assert check["unsearched_estimate_mace_2_stages"] == pytest.approx(expected, abs=1e-3)
 
     # The photometric pairs: the same check on patch_b changed in brightness, contrast, gamma.
     h_photo = shipped_weights.bundled_pairs(photometric=True)["h_ba"].astype(np.float64)
@@ -124,7 +129,8 @@ def test_ship_refresh_check_and_replace_stage(tmp_path, bundled):
         _mace_numpy(composed / composed[2, 2], bundled_h_ba), abs=1e-3)
     est = inference.HomographyEstimator.load(out / "default.json")
     np.testing.assert_allclose(est.estimate(bundled["patch_a"][:2], bundled["patch_b"][:2],
-                                            gate_stages=False)[0], composed / composed[2, 2],
+                                            gate_stages=False, search="none")[0],
+                               composed / composed[2, 2],
                                atol=1e-3)
     with open(out / "model_card.json") as f:
         assert json.load(f) == replaced
