@@ -172,10 +172,12 @@ def test_load_hierarchy_manifest_round_trip(saved, pairs):
     for path in (saved["root"] / "hier" / "hierarchy.json", saved["root"] / "hier"):
         est = HomographyEstimator.load(path)
         assert (est.kind, est.num_stages) == ("hierarchy", 2)
-        np.testing.assert_allclose(est.estimate(a, b, gate_stages=False, search="none"), ref, rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(est.estimate(a, b, gate_stages=False, search="none"),
+                                   ref, rtol=1e-5, atol=1e-4)
     zeros, _ = _hierarchy_reference(saved["stage1"], saved["stage2"], a, b, cv2.BORDER_CONSTANT)
     assert np.max(geometry.corner_errors(zeros, ref)) > 0.01  # the fill reaches stage 2
-    np.testing.assert_allclose(est.estimate(a, b, gate_stages=False, fill="zeros", search="none"), zeros,
+    np.testing.assert_allclose(est.estimate(a, b, gate_stages=False, fill="zeros", search="none"),
+                               zeros,
                                rtol=1e-5, atol=1e-4)
     with pytest.raises(ValueError, match="fill must be one of"):
         est.estimate(a, b, fill="edge", search="none")
@@ -519,10 +521,12 @@ def test_ecc_refinement_recovers_the_true_homography(pairs, monkeypatch):
             assert est.last_info["alignment_ncc"][i] == pytest.approx(
                 ncc_reference(a[i, ..., 0], patch_b[i, ..., 0], got[i]), abs=1e-3)
         assert not est.last_info["implausible"].any()
-    np.testing.assert_allclose(est.estimate(a, b, search="none"), starts / starts[:, 2:, 2:], atol=1e-12)
+    np.testing.assert_allclose(est.estimate(a, b, search="none"),
+                               starts / starts[:, 2:, 2:], atol=1e-12)
     assert not est.last_info["refined"].any()
     monkeypatch.setattr(inference, "MAX_REFINE_MOVE", 1.0)
-    np.testing.assert_allclose(est.estimate(a, b, refine="ecc", search="none"), starts / starts[:, 2:, 2:],
+    np.testing.assert_allclose(est.estimate(a, b, refine="ecc", search="none"),
+                               starts / starts[:, 2:, 2:],
                                atol=1e-12)
     assert not est.last_info["refined"].any()
     with pytest.raises(ValueError, match="refine must be one of"):
@@ -570,7 +574,8 @@ def test_tta_keeps_the_estimate_that_aligns_the_pair_best(pairs):
     ncc = [ncc_reference(x[..., 0], y[..., 0], h) for x, y, h in zip(a, b, got)]
     np.testing.assert_allclose(est.last_info["alignment_ncc"], ncc, atol=3e-3)
     assert min(ncc) > 0.99
-    np.testing.assert_allclose(est.estimate(a, b, search="none"), np.broadcast_to(h_c / h_c[2, 2], (4, 3, 3)),
+    np.testing.assert_allclose(est.estimate(a, b, search="none"),
+                               np.broadcast_to(h_c / h_c[2, 2], (4, 3, 3)),
                                rtol=1e-5, atol=1e-5)
     assert est.last_info["tta_choice"].tolist() == ["identity"] * 4
     got = est.estimate(a, b, tta="flips", search="none")
@@ -708,7 +713,8 @@ def test_estimate_images_tta_transforms_the_image_context():
     # the plain estimate is flagged; retry_tta re-runs the pair with its context the same way
     est.estimate_images(image, image_b, search="none")
     assert est.last_info["implausible"][0] and not est.last_info["retried"][0]
-    np.testing.assert_allclose(est.estimate_images(image, image_b, retry_tta="dihedral", search="none"), got,
+    np.testing.assert_allclose(est.estimate_images(image, image_b, retry_tta="dihedral", search="none"),
+                               got,
                                atol=1e-12)
     assert est.last_info["retried"][0] and est.last_info["tta_choice"][0] == "rotate_90_cw"
     # the spy's reading matters: the crop without context would give another estimate
@@ -762,9 +768,11 @@ def test_uint8_and_float_inputs_agree(saved, pairs):
     np.testing.assert_allclose(h_f64, h_u8, rtol=1e-6, atol=1e-5)
     # Every accepted layout of the same pair gives the same answer.
     for pa, pb in ((a[1, ..., 0], b[1, ..., 0]), (a[1], b[1]), (a[1:2, ..., 0], b[1:2, ..., 0])):
-        np.testing.assert_allclose(est.estimate(pa, pb, search="none"), h_u8[1:2], rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(est.estimate(pa, pb, search="none"),
+                                   h_u8[1:2], rtol=1e-5, atol=1e-4)
     # Chunking does not change the answer.
-    np.testing.assert_allclose(est.estimate(a, b, batch_size=3, search="none"), h_u8, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(est.estimate(a, b, batch_size=3, search="none"),
+                               h_u8, rtol=1e-5, atol=1e-4)
 
 
 # --------------------------------------------------------------------------------------------
@@ -828,7 +836,8 @@ def test_estimate_images_hierarchy_uses_image_context():
     h1 = geometry.translation(-30.0, 20.0)  # brings 30 px of image beyond the patch border in
     gain = 0.8
     est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
-    got = est.estimate_images(image, image, search="none")  # same size: S_a = S_b = 320 x 240 resize
+    # same size: S_a = S_b = 320 x 240 resize
+    got = est.estimate_images(image, image, search="none")
     work = cv2.resize(image.astype(np.float32) / 255, (320, 240), interpolation=cv2.INTER_AREA)
     t = geometry.translation(96, 56)
     full = cv2.warpPerspective(work, t @ h1 @ np.linalg.inv(t), (320, 240),
@@ -1008,12 +1017,14 @@ def test_mixed_precision_model_estimates_and_exports_in_float32(pairs, tmp_path)
     assert {layer.dtype_policy.name for layer in est.stages[0]._flatten_layers()} == {"float32"}
     got = est.estimate(a, b, search="none")
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(est.estimate(a, b, batch_size=1, search="none"), got, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(est.estimate(a, b, batch_size=1, search="none"),
+                               got, rtol=1e-5, atol=1e-5)
     assert np.max(geometry.corner_errors(got, np.broadcast_to(np.eye(3), got.shape))) > 0.1
 
     kept = HomographyEstimator.load(tmp_path / "mixed.keras", compute_dtype=None)
     assert "mixed_bfloat16" in {layer.dtype_policy.name for layer in kept.stages[0]._flatten_layers()}
-    assert np.max(geometry.corner_errors(kept.estimate(a, b, search="none"), ref)) < 0.5  # bfloat16 rounding only
+    assert np.max(geometry.corner_errors(kept.estimate(a, b, search="none"),
+                  ref)) < 0.5  # bfloat16 rounding only
 
     report = export.verify_export(export.export_saved_model(est, tmp_path / "exported"), est, a, b)
     assert report["ok"] and report["max_abs_diff"] < 1e-3 and report["max_abs_diff_estimate"] < 1e-3
