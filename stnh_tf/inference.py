@@ -144,6 +144,10 @@ patch_a: translations of up to ``(128 - 64) / 2 = 32`` px, the trained range, ar
 SEARCH_PEAKS = 8
 """At most this many translation peaks are started from by :func:`search_translations`."""
 
+SEARCH_ECC_ITERATIONS = 100
+"""``cv2.findTransformECC``'s iteration limit in :func:`search_translations` (a start there can be
+farther from the optimum than :func:`ecc_refine`'s default :data:`ECC_CRITERIA` allows for)."""
+
 _log = logging.getLogger(__name__)
 
 
@@ -191,7 +195,7 @@ def alignment_ncc(source_a, patch_b, a_from_b, origin=(0, 0)) -> float:
     return float((x * y).sum() / norm) if norm > 1e-12 else float("nan")
 
 
-def ecc_refine(source_a, patch_b, a_from_b, origin=(0, 0)):
+def ecc_refine(source_a, patch_b, a_from_b, origin=(0, 0), iterations=None):
     """``a_from_b`` refined by OpenCV's ECC alignment (``cv2.findTransformECC``,
     ``MOTION_HOMOGRAPHY``, :data:`ECC_CRITERIA`, :data:`ECC_GAUSSIAN`), started from it: the
     homography maximising the correlation of ``patch_b`` and patch_a warped onto it, over the
@@ -202,6 +206,7 @@ def ecc_refine(source_a, patch_b, a_from_b, origin=(0, 0)):
         itself with ``(0, 0)``, or the image it was cut from as context).
       patch_b: ``[S, S]`` (any real scale: ECC ignores gain and offset).
       a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame, the starting point.
+      iterations: iteration limit (``None``: :data:`ECC_CRITERIA`'s).
     Returns:
       float64 ``[3, 3]`` refined ``H_ba`` in the patch frame (``[2, 2] = 1``), or ``None`` where
       ECC does not converge (OpenCV raises) or gives a non-finite matrix.
@@ -216,7 +221,8 @@ def ecc_refine(source_a, patch_b, a_from_b, origin=(0, 0)):
     start = source_from_patch @ np.asarray(a_from_b, np.float64)
     if not np.all(np.isfinite(start)) or abs(start[2, 2]) < 1e-12:
         return None
-    iterations, eps = ECC_CRITERIA
+    limit, eps = ECC_CRITERIA
+    iterations = limit if iterations is None else iterations
     try:
         _, warp = cv2.findTransformECC(
             np.asarray(patch_b, np.float32), np.asarray(source_a, np.float32),
@@ -237,10 +243,10 @@ def search_translations(source_a, patch_b, a_from_b, origin=(0, 0)):
     Patch_a is warped onto patch_b by ``a_from_b`` (mirror fill beyond ``source_a``), the central
     :data:`SEARCH_TEMPLATE` square of ``patch_b`` is slid over it (``cv2.matchTemplate``,
     ``TM_CCOEFF_NORMED``), and from the translations ``d`` at its :data:`SEARCH_PEAKS` highest
-    local peaks (best first) :func:`ecc_refine` is started at ``a_from_b @ T(d)``; the first
-    refinement whose :func:`alignment_ncc` reaches :data:`VERIFIED_NCC` is returned. It finds the
-    estimate that a network put one period off on a repetitive texture (a brick wall), or a few px
-    off under an exposure change.
+    local peaks (best first) :func:`ecc_refine` is started at ``a_from_b @ T(d)`` (at most
+    :data:`SEARCH_ECC_ITERATIONS` iterations); the first refinement whose :func:`alignment_ncc`
+    reaches :data:`VERIFIED_NCC` is returned. It finds the estimate that a network put one period
+    off on a repetitive texture (a brick wall), or a few px off under an exposure change.
 
     Args:
       source_a: ``[h, w]`` image holding patch_a with its top-left corner at ``origin`` (the patch
@@ -271,7 +277,7 @@ def search_translations(source_a, patch_b, a_from_b, origin=(0, 0)):
     for k in np.argsort(-scores[ys, xs], kind="stable")[:SEARCH_PEAKS]:
         start = np.asarray(a_from_b, np.float64) @ geometry.translation(xs[k] - margin,
                                                                          ys[k] - margin)
-        h = ecc_refine(source_a, b, start, origin)
+        h = ecc_refine(source_a, b, start, origin, SEARCH_ECC_ITERATIONS)
         if h is None or not np.isfinite(corner_shift(h[None])[0]):
             continue
         ncc = alignment_ncc(source_a, b, h, origin)
