@@ -352,7 +352,8 @@ class HomographyEstimator:
         flagged implausible), ``searched`` (``search`` searched the pair: its estimate aligned
         it below :data:`SEARCH_BELOW_NCC` or was implausible), ``search_found`` (the estimate is
         :func:`search_translations`' result), ``refined`` (the estimate is the ECC refinement of
-        ``refine="ecc"``; False where it was not asked for, failed or was dropped) and
+        ``refine="ecc"``; False where it was not asked for, failed or was dropped, or where the
+        search replaced the estimate) and
         ``tta_choice`` (the name of the symmetry whose estimate was kept, ``"identity"`` without
         ``tta``; ``rejected_stages`` and ``gated_stages`` are that estimate's) and ``retried``
         (the pair was estimated again with ``retry_tta``; every other entry is then the
