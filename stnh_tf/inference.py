@@ -286,6 +286,14 @@ def search_translations(source_a, patch_b, a_from_b, origin=(0, 0)):
     return None
 
 
+def _beyond_rule(rejected_stages, shift, ncc, min_ncc):
+    """Per pair ``[B]``: a stage was skipped, a corner moved beyond
+    :data:`IMPLAUSIBLE_CORNER_SHIFT`, or the alignment NCC is below ``min_ncc`` or undefined (the
+    implausibility rule with ``MIN_ALIGNMENT_NCC``, the search's trigger with
+    ``SEARCH_BELOW_NCC``)."""
+    return (rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT) | ~(ncc >= min_ncc)
+
+
 def _nccs(sources, patches_b, a_from_b, origin):
     """:func:`alignment_ncc` of each pair ``[B]``, NaN (undefined) as ``-inf`` so that it ranks
     below every defined NCC."""
@@ -570,8 +578,7 @@ class HomographyEstimator:
         searched, found = np.zeros(len(total), bool), np.zeros(len(total), bool)
         if search == "ecc":
             searched = (~flat & np.isfinite(shift)
-                        & ((rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT)
-                           | ~(ncc >= SEARCH_BELOW_NCC)))
+                        & _beyond_rule(rejected_stages, shift, ncc, SEARCH_BELOW_NCC))
             for i in np.flatnonzero(searched):
                 result = search_translations(sources[i], patch_b[i, ..., 0], total[i], org)
                 if result is not None:
@@ -586,8 +593,7 @@ class HomographyEstimator:
                     ncc[i] = alignment_ncc(sources[i], patch_b[i, ..., 0], h, org)
         shift = corner_shift(total)
         ncc = np.where(np.isfinite(shift) & ~flat, ncc, np.nan)
-        info = {"implausible": ((rejected_stages > 0) | (shift > IMPLAUSIBLE_CORNER_SHIFT)
-                                | ~(ncc >= MIN_ALIGNMENT_NCC) | flat),
+        info = {"implausible": _beyond_rule(rejected_stages, shift, ncc, MIN_ALIGNMENT_NCC) | flat,
                 "max_corner_shift_px": shift, "rejected_stages": rejected_stages,
                 "gated_stages": gated_stages, "alignment_ncc": ncc, "flat": flat,
                 "searched": searched, "search_found": found,
