@@ -52,8 +52,9 @@ whose estimate is flagged implausible (below) only: each is estimated again with
 Search of poorly aligned estimates (default, a deviation from the paper). ``search="ecc"``: where
 an estimate aligns its pair poorly (:func:`alignment_ncc` below :data:`SEARCH_BELOW_NCC`) or is
 flagged implausible, :func:`search_translations` scores translations of it by normalized
-cross-correlation and starts ECC from the best; a result aligning the pair at :data:`VERIFIED_NCC`
-or better replaces the estimate, which is kept otherwise. ``search="none"``: the network's
+cross-correlation and starts coarse-to-fine ECC from each of the best; the best-aligned result at
+:data:`VERIFIED_NCC` or better replaces the estimate, which is kept otherwise. It gives the same
+result on OpenCV's optimized and unoptimized paths (the per-CPU kernels). ``search="none"``: the network's
 estimate (what the exported SavedModel computes).
 
 Implausible estimates. :attr:`HomographyEstimator.last_info` flags, per pair, an estimate that
@@ -142,11 +143,14 @@ SEARCH_TEMPLATE = 64
 patch_a: translations of up to ``(128 - 64) / 2 = 32`` px, the trained range, are scored."""
 
 SEARCH_PEAKS = 8
-"""At most this many translation peaks are started from by :func:`search_translations`."""
+"""Translation peaks :func:`search_translations` starts ECC from (all of them, best result kept)."""
+
+SEARCH_COARSE_ITERATIONS = (100, 50)
+"""Iteration limits of the float64 ECC on the 32 x 32 and 64 x 64 pyramid levels of
+:func:`search_translations` (:func:`stnh_tf.ecc.coarse_to_fine_ecc`)."""
 
 SEARCH_ECC_ITERATIONS = 100
-"""``cv2.findTransformECC``'s iteration limit in :func:`search_translations` (a start there can be
-farther from the optimum than :func:`ecc_refine`'s default :data:`ECC_CRITERIA` allows for)."""
+"""``cv2.findTransformECC``'s iteration limit at full resolution in :func:`search_translations`."""
 
 _log = logging.getLogger(__name__)
 
@@ -217,21 +221,15 @@ def ecc_refine(source_a, patch_b, a_from_b, origin=(0, 0), iterations=None):
     >>> np.round(ecc_refine(p, b, np.eye(3))[:2, 2], 1)
     array([ 1.5, -1. ])
     """
+    from stnh_tf import ecc
+
     source_from_patch = geometry.translation(*origin)
-    start = source_from_patch @ np.asarray(a_from_b, np.float64)
-    if not np.all(np.isfinite(start)) or abs(start[2, 2]) < 1e-12:
-        return None
     limit, eps = ECC_CRITERIA
-    iterations = limit if iterations is None else iterations
-    try:
-        _, warp = cv2.findTransformECC(
-            np.asarray(patch_b, np.float32), np.asarray(source_a, np.float32),
-            (start / start[2, 2]).astype(np.float32), cv2.MOTION_HOMOGRAPHY,
-            (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, eps), None,
-            ECC_GAUSSIAN)
-    except cv2.error:
+    warp = ecc.opencv_ecc(source_a, patch_b, source_from_patch @ np.asarray(a_from_b, np.float64),
+                          limit if iterations is None else iterations, eps, ECC_GAUSSIAN)
+    if warp is None:
         return None
-    refined = np.linalg.inv(source_from_patch) @ warp.astype(np.float64)
+    refined = np.linalg.inv(source_from_patch) @ warp
     if not np.all(np.isfinite(refined)) or abs(refined[2, 2]) < 1e-12:
         return None
     return refined / refined[2, 2]
@@ -243,10 +241,12 @@ def search_translations(source_a, patch_b, a_from_b, origin=(0, 0)):
     Patch_a is warped onto patch_b by ``a_from_b`` (mirror fill beyond ``source_a``), the central
     :data:`SEARCH_TEMPLATE` square of ``patch_b`` is slid over it (``cv2.matchTemplate``,
     ``TM_CCOEFF_NORMED``), and from the translations ``d`` at its :data:`SEARCH_PEAKS` highest
-    local peaks (best first) :func:`ecc_refine` is started at ``a_from_b @ T(d)`` (at most
-    :data:`SEARCH_ECC_ITERATIONS` iterations); the first refinement whose :func:`alignment_ncc`
-    reaches :data:`VERIFIED_NCC` is returned. It finds the estimate that a network put one period
-    off on a repetitive texture (a brick wall), or a few px off under an exposure change.
+    local peaks coarse-to-fine ECC (:func:`stnh_tf.ecc.coarse_to_fine_ecc`,
+    :data:`SEARCH_COARSE_ITERATIONS`, :data:`SEARCH_ECC_ITERATIONS`) is started at
+    ``a_from_b @ T(d)``. Of the results whose :func:`alignment_ncc` reaches :data:`VERIFIED_NCC`,
+    the highest is returned (the better-ranked peak on a tie). It finds the estimate that a network
+    put one period off on a repetitive texture (a brick wall), or a few px off under an exposure
+    change; the same result on every CPU (BENCHMARKS.md, "Same answer on every machine").
 
     Args:
       source_a: ``[h, w]`` image holding patch_a with its top-left corner at ``origin`` (the patch
@@ -255,7 +255,7 @@ def search_translations(source_a, patch_b, a_from_b, origin=(0, 0)):
       a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame, the estimate searched around.
     Returns:
       ``(h, ncc)``: float64 ``[3, 3]`` ``H_ba`` in the patch frame (``[2, 2] = 1``) and its
-      :func:`alignment_ncc`; ``None`` where no refinement reaches :data:`VERIFIED_NCC`.
+      :func:`alignment_ncc`; ``None`` where no result reaches :data:`VERIFIED_NCC`.
 
     >>> p = cv2.GaussianBlur(np.random.default_rng(0).random((128, 128), np.float32), (0, 0), 2)
     >>> b = cv2.warpPerspective(p, geometry.translation(9.0, -6.0), (128, 128),
@@ -264,7 +264,7 @@ def search_translations(source_a, patch_b, a_from_b, origin=(0, 0)):
     >>> np.round(h[:2, 2], 1), ncc > 0.95
     (array([ 9., -6.]), True)
     """
-    from stnh_tf import hierarchy
+    from stnh_tf import ecc, hierarchy
 
     size = np.shape(patch_b)[0]
     margin = (size - SEARCH_TEMPLATE) // 2
@@ -274,16 +274,22 @@ def search_translations(source_a, patch_b, a_from_b, origin=(0, 0)):
                                          margin:margin + SEARCH_TEMPLATE], cv2.TM_CCOEFF_NORMED)
     scores = np.nan_to_num(scores, nan=-1.0)
     ys, xs = np.nonzero(scores >= cv2.dilate(scores, np.ones((5, 5), np.uint8)))
+    source_from_patch = geometry.translation(*origin)
+    best = None
     for k in np.argsort(-scores[ys, xs], kind="stable")[:SEARCH_PEAKS]:
         start = np.asarray(a_from_b, np.float64) @ geometry.translation(xs[k] - margin,
                                                                          ys[k] - margin)
-        h = ecc_refine(source_a, b, start, origin, SEARCH_ECC_ITERATIONS)
-        if h is None or not np.isfinite(corner_shift(h[None])[0]):
+        h = ecc.coarse_to_fine_ecc(source_a, b, source_from_patch @ start,
+                                   SEARCH_COARSE_ITERATIONS, SEARCH_ECC_ITERATIONS)
+        if h is None:
+            continue
+        h = geometry.scale_to_unit(np.linalg.inv(source_from_patch) @ h)
+        if not np.isfinite(corner_shift(h[None])[0]):
             continue
         ncc = alignment_ncc(source_a, b, h, origin)
-        if ncc >= VERIFIED_NCC:
-            return h, ncc
-    return None
+        if ncc >= VERIFIED_NCC and (best is None or ncc > best[1]):
+            best = (h, ncc)
+    return best
 
 
 def _beyond_rule(rejected_stages, shift, ncc, min_ncc):

@@ -1,0 +1,157 @@
+"""ECC image alignment (Evangelidis & Psarakis, 2008) of a homography, coarse to fine, in float64.
+
+The search of poorly aligned estimates (:func:`stnh_tf.inference.search_translations`) starts ECC
+several pixels from the optimum. There, ``cv2.findTransformECC`` alone is not reproducible across
+machines: it warps with bilinear weights quantized to 1/32 px, so its objective is piecewise
+constant, and where it stops depends on OpenCV's per-CPU kernels (BENCHMARKS.md, "Same answer on
+every machine"). :func:`coarse_to_fine_ecc` therefore aligns on a Gaussian pyramid with
+:func:`ecc_homography` (the same update as OpenCV's, with exact float64 bilinear sampling) at the
+coarse levels and finishes with ``cv2.findTransformECC`` at full resolution, started within a
+fraction of a pixel of the optimum.
+
+Frames: ``source_from_template`` maps template pixel coordinates ``(x, y)`` to source pixel
+coordinates (``template(p) ~ source(H @ p)``), pixel centres at integer coordinates as in OpenCV;
+this is ``cv2.findTransformECC``'s ``warpMatrix`` with ``templateImage=template`` and
+``inputImage=source``. NumPy, SciPy and OpenCV only.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+MIN_INSIDE = 0.25
+"""Fraction of the template's pixels that must map inside the source for an ECC iteration."""
+
+
+def _homography_update(dp: np.ndarray) -> np.ndarray:
+    """The 8 parameters ``[h00, h01, h02, h10, h11, h12, h20, h21]`` as a ``[3, 3]`` increment."""
+    return np.array([[dp[0], dp[1], dp[2]], [dp[3], dp[4], dp[5]], [dp[6], dp[7], 0.0]])
+
+
+def ecc_homography(source, template, source_from_template, iterations: int = 100,
+                   eps: float = 1e-6):
+    """ECC maximisation of the correlation of ``template`` and ``source`` warped onto it, in float64
+    with exact bilinear sampling (``scipy.ndimage.map_coordinates``, order 1).
+
+    The update is ``cv2.findTransformECC``'s (forward additive, ``MOTION_HOMOGRAPHY``, Sobel
+    gradients, no pre-filter), run on the template pixels whose position lies inside the source;
+    it stops after ``iterations`` or when the correlation changes by less than ``eps``.
+
+    Args:
+      source: ``[h, w]`` image.
+      template: ``[t, s]`` image (any real scale: ECC ignores gain and offset).
+      source_from_template: ``[3, 3]`` start (template pixel -> source pixel).
+    Returns:
+      ``(H, rho)``: float64 ``[3, 3]`` ``source_from_template`` (``[2, 2] = 1``) and the zero-mean
+      normalized correlation at its last evaluation; ``None`` where fewer than
+      :data:`MIN_INSIDE` of the template's pixels map inside the source, the images are
+      uncorrelated (ECC's step would minimise the correlation) or the update is singular.
+
+    >>> src = cv2.GaussianBlur(np.random.default_rng(0).random((64, 64)), (0, 0), 3)
+    >>> tpl = ndimage.shift(src, (-1.0, -2.5), order=1, mode="nearest")  # tpl(p) = src(p + d)
+    >>> h, rho = ecc_homography(src, tpl, np.eye(3))
+    >>> np.round(h[:2, 2], 2), rho > 0.999
+    (array([2.5, 1. ]), True)
+    """
+    src = np.asarray(source, np.float64)
+    tpl = np.asarray(template, np.float64)
+    gradients = (cv2.Sobel(src, cv2.CV_64F, 1, 0, ksize=3) / 8.0,
+                 cv2.Sobel(src, cv2.CV_64F, 0, 1, ksize=3) / 8.0)
+    ys, xs = np.mgrid[0:tpl.shape[0], 0:tpl.shape[1]].astype(np.float64)
+    xs, ys, tpl = xs.ravel(), ys.ravel(), tpl.ravel()
+    h = np.asarray(source_from_template, np.float64)
+    h = h / h[2, 2]
+    rho = previous = -np.inf
+    for _ in range(iterations):
+        w = h[2, 0] * xs + h[2, 1] * ys + 1.0
+        with np.errstate(all="ignore"):
+            u = (h[0, 0] * xs + h[0, 1] * ys + h[0, 2]) / w
+            v = (h[1, 0] * xs + h[1, 1] * ys + h[1, 2]) / w
+        inside = ((w > 1e-6) & (u >= 0) & (u <= src.shape[1] - 1) & (v >= 0)
+                  & (v <= src.shape[0] - 1))
+        if inside.mean() < MIN_INSIDE:
+            return None
+        x, y, u, v, w = xs[inside], ys[inside], u[inside], v[inside], w[inside]
+        warped, gx, gy = (ndimage.map_coordinates(img, [v, u], order=1) for img in (src, *gradients))
+        # d warped / d parameters, chain rule through the projective division
+        gw = -(gx * u + gy * v)
+        jac = np.stack([gx * x, gx * y, gx, gy * x, gy * y, gy, gw * x, gw * y], axis=1) / w[:, None]
+        jac -= jac.mean(axis=0)
+        warped -= warped.mean()
+        t = tpl[inside] - tpl[inside].mean()
+        warped_norm, t_norm = np.linalg.norm(warped), np.linalg.norm(t)
+        if warped_norm < 1e-12 or t_norm < 1e-12:
+            return None
+        rho = float(warped @ t / (warped_norm * t_norm))
+        if abs(rho - previous) < eps:
+            break
+        previous = rho
+        try:
+            inv_hessian = np.linalg.inv(jac.T @ jac)
+        except np.linalg.LinAlgError:
+            return None
+        warped_proj, t_proj = jac.T @ warped, jac.T @ t
+        numerator = warped_norm ** 2 - warped_proj @ inv_hessian @ warped_proj
+        denominator = warped @ t - t_proj @ inv_hessian @ warped_proj
+        if denominator <= 0:
+            return None
+        step = inv_hessian @ (jac.T @ (numerator / denominator * t - warped))
+        h = h + _homography_update(step)
+    if not np.all(np.isfinite(h)) or abs(h[2, 2]) < 1e-12:
+        return None
+    return h / h[2, 2], rho
+
+
+def opencv_ecc(source, template, source_from_template, iterations: int, eps: float,
+               gaussian: int = 1):
+    """``cv2.findTransformECC`` (``MOTION_HOMOGRAPHY``) of float32 images from the start
+    ``source_from_template``: float64 ``[3, 3]`` (``[2, 2] = 1``), or ``None`` where OpenCV does
+    not converge or the result is not finite."""
+    start = np.asarray(source_from_template, np.float64)
+    if not np.all(np.isfinite(start)) or abs(start[2, 2]) < 1e-12:
+        return None
+    try:
+        _, warp = cv2.findTransformECC(
+            np.asarray(template, np.float32), np.asarray(source, np.float32),
+            (start / start[2, 2]).astype(np.float32), cv2.MOTION_HOMOGRAPHY,
+            (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, eps), None, gaussian)
+    except cv2.error:
+        return None
+    warp = warp.astype(np.float64)
+    if not np.all(np.isfinite(warp)) or abs(warp[2, 2]) < 1e-12:
+        return None
+    return warp / warp[2, 2]
+
+
+def coarse_to_fine_ecc(source, template, source_from_template, coarse_iterations=(100, 50),
+                       fine_iterations: int = 100, eps: float = 1e-6, fine_eps: float = 1e-5):
+    """ECC on a Gaussian pyramid: :func:`ecc_homography` on ``len(coarse_iterations)`` levels
+    halved by ``cv2.pyrDown`` (coarsest first, that many iterations each), then
+    :func:`opencv_ecc` at full resolution.
+
+    A coarse level that fails leaves the estimate as it was for the next level. Pixel ``j`` of a
+    level is pixel ``2 j`` of the one below (``cv2.pyrDown``), so level ``L`` aligns
+    ``S H S^-1`` with ``S = diag(2^-L, 2^-L, 1)``.
+
+    Args:
+      source, template, source_from_template: as in :func:`ecc_homography`.
+    Returns:
+      float64 ``[3, 3]`` ``source_from_template`` (``[2, 2] = 1``), or ``None`` where the
+      full-resolution ECC does not converge.
+    """
+    sources = [np.asarray(source, np.float64)]
+    templates = [np.asarray(template, np.float64)]
+    for _ in coarse_iterations:
+        sources.append(cv2.pyrDown(sources[-1]))
+        templates.append(cv2.pyrDown(templates[-1]))
+    h = np.asarray(source_from_template, np.float64)
+    for level, iterations in zip(range(len(coarse_iterations), 0, -1), coarse_iterations):
+        scale = np.diag([0.5 ** level, 0.5 ** level, 1.0])
+        result = ecc_homography(sources[level], templates[level],
+                                scale @ h @ np.linalg.inv(scale), iterations, eps)
+        if result is not None:
+            h = np.linalg.inv(scale) @ result[0] @ scale
+            h = h / h[2, 2]
+    return opencv_ecc(source, template, h, fine_iterations, fine_eps)
