@@ -42,8 +42,32 @@ def test_default_load_is_the_shipped_hierarchy(card_and_pairs):
     assert paper.num_stages == len(_card(SHIPPED["paper_recipe"])["stages"])
 
 
-@pytest.mark.parametrize("name", sorted(SHIPPED))
-def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs, name):
+CARD_TOLERANCE_PX = 0.01
+"""How far (px) a MACE of the 60 card pairs may be from the card's record. Measured
+(``experiments.benchmark_search_stability``, BENCHMARKS.md "Same answer on every machine"): the
+default's 1-3 stage MACEs differ by at most 0.001 px between OpenCV's optimized and unoptimized
+paths, the network alone by 0.001 px between CPUs; one pair whose search ends at another optimum
+moves the MACE by 0.1 px or more (6 px / 60 pairs), so 0.01 px still catches it."""
+
+
+@pytest.fixture(params=[pytest.param(True, id="opencv_optimized"),
+                        pytest.param(False, id="opencv_unoptimized", marks=pytest.mark.slow)])
+def opencv_path(request):
+    """OpenCV's per-CPU SIMD kernels (the default) or its portable code path: two machines'
+    numerics on one machine."""
+    import cv2
+
+    before = cv2.useOptimized()
+    cv2.setUseOptimized(request.param)
+    yield request.param
+    cv2.setUseOptimized(before)
+
+
+@pytest.mark.parametrize("name", [pytest.param(name, marks=[pytest.mark.slow] * (name != "default"))
+                                  for name in sorted(SHIPPED)])
+def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs, name, opencv_path):
+    """Regression guard: the card's numbers, on both OpenCV paths, within
+    :data:`CARD_TOLERANCE_PX`."""
     _, arrays = card_and_pairs
     folder = SHIPPED[name]
     check = _card(folder)["bundled_check"]
@@ -62,7 +86,7 @@ def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs, name):
                          search=check["search"])
         assert h.shape == (len(arrays["h_ba"]), 3, 3)
         mace = float(geometry.mean_corner_error(h, arrays["h_ba"]))
-        assert mace == pytest.approx(check[f"estimate_mace_{k}_stages"], rel=1e-3, abs=1e-3)
+        assert mace == pytest.approx(check[f"estimate_mace_{k}_stages"], abs=CARD_TOLERANCE_PX)
         assert mace < identity
         # the implausibility rule of today's code gives the card's count (a changed threshold
         # without `ship_weights --refresh_check` fails here)
@@ -71,12 +95,32 @@ def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs, name):
             h = est.estimate(arrays["patch_a"], arrays["patch_b"], gate_stages=False,
                              fill=check["fill"], search=check["search"])
             assert float(geometry.mean_corner_error(h, arrays["h_ba"])) == pytest.approx(
-                check[f"ungated_estimate_mace_{k}_stages"], rel=1e-3, abs=1e-3)
+                check[f"ungated_estimate_mace_{k}_stages"], abs=CARD_TOLERANCE_PX)
 
 
 @pytest.fixture(scope="module")
 def default_estimator_float32():
     return inference.HomographyEstimator.load(compute_dtype="float32")
+
+
+@pytest.mark.parametrize("photometric", [False, True], ids=["plain", "photometric"])
+def test_default_estimate_beats_sift_ransac_and_is_never_worse_than_the_identity(
+        default_estimator_float32, photometric):
+    """Independent of the card: on its 60 bundled pairs the default estimate's MACE is below
+    SIFT + RANSAC's on the same pairs (measured 2.08 against 2.50 px, photometric 2.44 against
+    4.58), and no pair ends farther from the truth than the identity."""
+    from stnh_tf import baselines
+
+    arrays = shipped_weights.bundled_pairs(photometric=photometric)
+    errors = geometry.corner_errors(default_estimator_float32.estimate(arrays["patch_a"],
+                                                                       arrays["patch_b"]),
+                                    arrays["h_ba"])
+    sift = baselines.evaluate_baseline("sift_ransac", arrays["patch_a"], arrays["patch_b"],
+                                       arrays["h_ba"])
+    assert float(errors.mean()) < sift["mace"]
+    identity = geometry.corner_errors(np.broadcast_to(np.eye(3), arrays["h_ba"].shape),
+                                      arrays["h_ba"])
+    assert (errors <= identity).all()
 
 
 def test_default_weights_beat_the_identity_under_a_photometric_change(card_and_pairs,
@@ -93,7 +137,7 @@ def test_default_weights_beat_the_identity_under_a_photometric_change(card_and_p
     errors = geometry.corner_errors(h, arrays["h_ba"])
     n = default_estimator_float32.num_stages
     assert float(errors.mean()) == pytest.approx(check[f"photometric_estimate_mace_{n}_stages"],
-                                                 rel=1e-3, abs=1e-3)
+                                                 abs=CARD_TOLERANCE_PX)
     assert float(errors.mean()) < 0.75 * float(identity.mean())
     assert int((errors > identity).sum()) == check[f"photometric_worse_than_identity_{n}_stages"]
     assert (errors <= identity).all()  # issue 17: never worse than the identity
@@ -103,11 +147,12 @@ def test_default_weights_beat_the_identity_under_a_photometric_change(card_and_p
                                            search="none")
     errors = geometry.corner_errors(h, arrays["h_ba"])
     assert float(errors.mean()) == pytest.approx(
-        check[f"photometric_unsearched_estimate_mace_{n}_stages"], rel=1e-3, abs=1e-3)
+        check[f"photometric_unsearched_estimate_mace_{n}_stages"], abs=CARD_TOLERANCE_PX)
     assert int((errors > identity).sum()) == check[
         f"photometric_unsearched_worse_than_identity_{n}_stages"]
 
 
+@pytest.mark.slow
 def test_default_weights_test_time_augmentation_beats_the_plain_estimate(card_and_pairs,
                                                                         default_estimator_float32):
     """estimate(tta=...) of the card (each pair also estimated mirrored and rotated, the best
@@ -118,10 +163,11 @@ def test_default_weights_test_time_augmentation_beats_the_plain_estimate(card_an
     h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"], fill=check["fill"],
                                            tta=check["tta"], search=check["search"])
     mace = float(geometry.mean_corner_error(h, arrays["h_ba"]))
-    assert mace == pytest.approx(check[f"tta_estimate_mace_{n}_stages"], rel=1e-3, abs=1e-3)
+    assert mace == pytest.approx(check[f"tta_estimate_mace_{n}_stages"], abs=CARD_TOLERANCE_PX)
     assert mace < check[f"estimate_mace_{n}_stages"]
 
 
+@pytest.mark.slow
 def test_implausibility_flag_follows_the_corner_shift_and_alignment(card_and_pairs,
                                                                    default_estimator_float32):
     """On the bundled pairs (bare patches) at most a quarter of the estimates are flagged, and
