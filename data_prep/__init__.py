@@ -1,0 +1,7 @@
+"""Dataset generation (``python -m data_prep.<name>``). Importing the package first quiets
+TensorFlow's start-up log in those binaries (:mod:`stnh_tf.startup`; ``STNH_VERBOSE=1`` shows
+it)."""
+
+from stnh_tf import startup as _startup
+
+_startup.quiet_binary_startup()

@@ -100,8 +100,15 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
     models = shipped_models()
     if not models:
         printer("no shipped weights in stnh_tf/weights: showing the baselines only")
+    predictors = {}  # one per file: stage 1, shared by two rows, is loaded and traced once
+
+    def predictor(path):
+        if path not in predictors:
+            predictors[path] = runner.predictor(runner.load_model(path))
+        return predictors[path]
+
     for name, paths in models.items():
-        stages = [runner.predictor(runner.load_model(p)) for p in paths]
+        stages = [predictor(p) for p in paths]
         hierarchy.run_hierarchy(stages, samples["context_a"][:2], samples["patch_b"][:2])  # warm-up
         t0 = time.perf_counter()
         run = hierarchy.run_hierarchy(stages, samples["context_a"], samples["patch_b"])
