@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: test demo venv clean
+.PHONY: test test-all demo venv clean
 
 venv: $(STAMP)
 
@@ -15,8 +15,15 @@ $(STAMP): setup.cfg pyproject.toml
 	$(PY) -m pip install --quiet -e ".[test]"
 	touch $(STAMP)
 
+# The fast suite: every module's contract, without the tests marked slow.
 test: $(STAMP)
+	$(PY) -m pytest -q -m "not slow" tests
+
+# Everything, the slow end-to-end runs included (what CI runs); then the shipped weights' card
+# checks again with OpenCV's AVX-512 kernels off (its AVX2 ones, as on CPUs without AVX-512).
+test-all: $(STAMP)
 	$(PY) -m pytest -q tests
+	OPENCV_CPU_DISABLE=AVX512-SKX $(PY) -m pytest -q tests/test_shipped_weights.py -k reproduce
 
 demo: $(STAMP)
 	$(PY) -m experiments.demo

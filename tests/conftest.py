@@ -26,6 +26,30 @@ def keras_policy(name="mixed_bfloat16"):
         keras.mixed_precision.set_global_policy("float32")
 
 
+NARROW_FILTERS = (4, 4, 4, 4, 8, 8, 8, 8)
+"""Convolution widths of the narrow network: 1/16 of the paper's (64, ..., 128), every layer kept."""
+
+
+@contextlib.contextmanager
+def narrow_network():
+    """Build the regression network with :data:`NARROW_FILTERS` (same layers, pooling, head and
+    last layer; about 1/250 of a forward pass's work) for tests of wiring only: loading, saving,
+    the estimator's and the card's bookkeeping, training plumbing. The paper's widths are
+    tested in test_models; the full network's training in test_training's slow tests."""
+    from stnh_tf import models
+
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(models, "CONV_FILTERS", NARROW_FILTERS)
+        yield
+
+
+@pytest.fixture
+def narrow():
+    """:func:`narrow_network` for one test."""
+    with narrow_network():
+        yield
+
+
 def norm_matrix(w=SIZE, h=SIZE):
     """The paper's M, written independently of stnh_tf.geometry."""
     return np.array([[2.0 / w, 0.0, -1.0], [0.0, 2.0 / h, -1.0], [0.0, 0.0, 1.0]])

@@ -1,6 +1,8 @@
 """Classical baselines (ORB/SIFT + RANSAC): direction, accuracy on real photographs, failure
 fallback and bad input. Pairs are made here with OpenCV from scikit-image's photographs."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -48,8 +50,15 @@ def test_identity_baseline_scores_the_identity(rng):
 
 @pytest.mark.parametrize("shape", [(128, 128, 3), (2, 64, 64), (2, 128, 128, 2)])
 def test_bad_shapes_raise(shape):
-    with pytest.raises(ValueError, match=str(shape[-1])):
+    """The error names the argument, the shapes it takes and the whole shape received."""
+    message = (f"patches_a must have shape [B, 128, 128] or [B, 128, 128, 1]; received shape "
+               f"{shape}.")
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
         baselines.make_baseline("orb_ransac").estimate_batch(np.zeros(shape, np.uint8), np.zeros(shape, np.uint8))
+    good = np.zeros((2, 128, 128), np.uint8)
+    with pytest.raises(ValueError, match=re.escape(f"patches_b must have shape [B, 128, 128] or "
+                                                   f"[B, 128, 128, 1]; received shape {shape}.")):
+        baselines.make_baseline("sift_ransac").estimate_batch(good, np.zeros(shape, np.uint8))
 
 
 def test_unknown_baseline_raises():

@@ -3,7 +3,8 @@
 References are computed here with NumPy/OpenCV (conftest's ``norm_matrix``, ``cv2_warp``), from
 the Keras models called directly; models are fresh builds whose weights are perturbed so that
 their output depends on the input (a lost weight would change the numbers), or models whose
-last layer is set so that they output a chosen ``H_bar``.
+last layer is set so that they output a chosen ``H_bar`` (conftest's narrow network: their
+width does not reach the output).
 """
 
 import json
@@ -18,8 +19,8 @@ import numpy as np
 import pytest
 import skimage.data
 
-from conftest import (cv2_warp, inside_mask, keras_policy, ncc_reference, norm_matrix,
-                      paper_homography, to_bar)
+from conftest import (cv2_warp, inside_mask, keras_policy, narrow_network, ncc_reference,
+                      norm_matrix, paper_homography, to_bar)
 from stnh_tf import export, geometry, image_input, model_files, models
 from stnh_tf.inference import HomographyEstimator
 
@@ -31,29 +32,48 @@ S = 128
 # Helpers (independent references)
 # --------------------------------------------------------------------------------------------
 def _randomize(regressor, seed):
-    """Perturb BatchNorm statistics and the last layer so outputs depend on every weight."""
+    """Perturb every layer with weights so that the outputs depend on each of them (a weight lost
+    on the way changes the numbers): the convolutions' and fc1's biases (zero at the start) get
+    small random values and their kernels a random gain, BatchNorm layers (batch_norm="conv"
+    builds only) random statistics, and fc2 (zero kernel at the start) a random kernel. Asserts
+    that each of those layers changed."""
     rng = np.random.default_rng(seed)
+    changed = []
     for layer in regressor.layers:
-        if layer.name.startswith("bn"):
-            gamma, beta, mean, var = layer.get_weights()
-            layer.set_weights([rng.uniform(0.8, 1.2, gamma.shape).astype("float32"),
-                               rng.normal(0, 0.1, beta.shape).astype("float32"),
-                               rng.normal(0, 0.1, mean.shape).astype("float32"),
-                               rng.uniform(0.5, 1.5, var.shape).astype("float32")])
-    fc2 = regressor.get_layer("fc2")
-    kernel, bias = fc2.get_weights()
-    fc2.set_weights([rng.normal(0, 2e-3, kernel.shape).astype("float32"), bias])
+        before = layer.get_weights()
+        if not before:
+            continue
+        if isinstance(layer, keras.layers.BatchNormalization):
+            gamma, beta, mean, var = before
+            after = [rng.uniform(0.8, 1.2, gamma.shape), rng.normal(0, 0.1, beta.shape),
+                     rng.normal(0, 0.1, mean.shape), rng.uniform(0.5, 1.5, var.shape)]
+        elif layer.name == "fc2":
+            kernel, bias = before
+            after = [rng.normal(0, 2e-3, kernel.shape), bias]
+        else:  # Conv2D, Dense
+            kernel, bias = before
+            after = [kernel * rng.uniform(0.9, 1.1, kernel.shape), rng.normal(0, 0.02, bias.shape)]
+        layer.set_weights([w.astype("float32") for w in after])
+        assert all(not np.array_equal(b, a) for b, a in zip(before, layer.get_weights())
+                   if b.size > 8 or layer.name != "fc2"), layer.name
+        changed.append(layer.name)
+    assert changed[-1] == "fc2" and {f"conv{k}" for k in range(1, 9)} <= set(changed), changed
 
 
 def _random_stage(seed, name):
+    """A single stage whose every weight reaches the output (the paper's widths: at conftest's
+    narrow widths the zero and mirror fills of stage 2 differed by less than the comparisons'
+    tolerance)."""
     model = models.build_stn_homography(name=name)
     _randomize(model.get_layer("regression"), seed)
     return model
 
 
 def _constant_stage(h_pix, name="constant"):
-    """A single-stage model that outputs H_bar = M @ h_pix @ inv(M) whatever its input."""
-    model = models.build_stn_homography(name=name)
+    """A single-stage model that outputs H_bar = M @ h_pix @ inv(M) whatever its input (conftest's
+    narrow network: its width does not reach the output)."""
+    with narrow_network():
+        model = models.build_stn_homography(name=name)
     fc2 = model.get_layer("regression").get_layer("fc2")
     kernel, _ = fc2.get_weights()
     fc2.set_weights([np.zeros_like(kernel), to_bar(h_pix).ravel()[:8].astype("float32")])
@@ -788,7 +808,7 @@ def test_estimate_images_pure_rescaling(identity_model_path):
     est = HomographyEstimator.load(identity_model_path)
     image_a = skimage.data.astronaut()  # 512 x 512 RGB
     image_b = cv2.resize(image_a, (1024, 1024), interpolation=cv2.INTER_LINEAR)  # 2x
-    h = est.estimate_images(image_a, image_b)
+    h = est.estimate_images(image_a, image_b, search="none")
     assert h.shape == (3, 3) and h.dtype == np.float64
     expected = np.array([[0.5, 0, -0.25], [0, 0.5, -0.25], [0, 0, 1]])
     np.testing.assert_allclose(h, expected, atol=1e-9)
@@ -801,7 +821,7 @@ def test_estimate_images_pure_rescaling(identity_model_path):
     assert np.abs(warped - gray_b)[inner].max() < 1.0
     # Images of different sizes and aspect ratios, colour vs gray, float vs uint8.
     image_c = cv2.resize(image_a, (300, 700), interpolation=cv2.INTER_AREA)
-    h_ca = est.estimate_images(image_c[..., 0] / 255.0, image_a)
+    h_ca = est.estimate_images(image_c[..., 0] / 255.0, image_a, search="none")
     np.testing.assert_allclose(h_ca, np.linalg.inv(_resize_ref((300, 700), (512, 512))), atol=1e-9)
 
 
@@ -823,7 +843,7 @@ def test_estimate_images_maps_patch_estimate_to_image_frames(rng):
     est = HomographyEstimator([_constant_stage(h_patch)])
     image = skimage.data.camera()  # 512 x 512 gray
     image_b = cv2.resize(image, (640, 480), interpolation=cv2.INTER_AREA)
-    got = est.estimate_images(image, image_b)
+    got = est.estimate_images(image, image_b, search="none")  # the network's path
     t = np.array([[1, 0, 96.0], [0, 1, 56.0], [0, 0, 1]])  # central 128 square of 320 x 240
     s_a, s_b = _resize_ref((512, 512), (320, 240)), _resize_ref((640, 480), (320, 240))
     want = np.linalg.inv(s_a) @ t @ h_patch @ np.linalg.inv(t) @ s_b
@@ -1032,17 +1052,30 @@ def test_mixed_precision_model_estimates_and_exports_in_float32(pairs, tmp_path)
         est.estimate(a, b, batch_size=0, search="none")
 
 
-def test_benchmark_estimator_binary(identity_model_path, tmp_path):
-    """One-step smoke test: the estimator and the latency benchmark time the same model."""
+def test_benchmark_estimator_binary(tmp_path):
+    """The estimator and the latency benchmark time the model they are given, in the precision
+    asked for: a 2-stage hierarchy saved in mixed bfloat16 is reported with its 2 stages and,
+    with --compute_dtype=as_saved, its saved policy (float32 by default); the ratio is the ratio
+    of the two timings."""
+    with keras_policy("mixed_bfloat16"):
+        stages = [_constant_stage(np.eye(3), f"c{k}") for k in (1, 2)]
+    for k, stage in enumerate(stages, start=1):
+        stage.save(tmp_path / f"stage{k}.keras")
+    manifest = model_files.write_manifest(tmp_path / "h.json", [tmp_path / "stage1.keras",
+                                                                tmp_path / "stage2.keras"])
     out = tmp_path / "bench.json"
     res = subprocess.run([sys.executable, "-m", "experiments.benchmark_estimator",
-                          f"--model={identity_model_path}", "--runs=1", "--warmup=0",
-                          "--large_batch=2", f"--json_out={out}"],
+                          f"--model={manifest}", "--compute_dtype=as_saved", "--runs=1",
+                          "--warmup=0", "--large_batch=2", "--seed=3", f"--json_out={out}"],
                          cwd=REPO, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     result = json.loads(out.read_text())
-    assert result["stages"] == 1 and result["policy"] == "float32"
-    assert result["estimate_batch1_ms"] > 0 and result["benchmark_d_e_ms"] > 0
+    assert result["model"] == str(manifest) and result["stages"] == 2
+    assert result["policy"] == "mixed_bfloat16"
+    assert (result["runs"], result["seed"], result["tta"], result["search"]) == (1, 3, "none", "none")
+    for key in ("estimate_batch1_ms", "benchmark_d_e_ms", "estimate_batch2_ms_per_pair",
+                "benchmark_l_m_ms"):
+        assert result[key] > 0, key
     assert result["ratio"] == pytest.approx(result["estimate_batch1_ms"]
                                             / result["benchmark_d_e_ms"])
 
@@ -1072,16 +1105,25 @@ def test_predict_binary(identity_model_path, tmp_path):
     assert result["retry_tta"] == "none" and result["retried"] is False
     # A model whose estimate moves a patch corner by 60 px (trained range: 32) gets a warning;
     # with --retry_tta it is estimated again (each symmetry's estimate moves a corner 60 px too).
+    # --search=none: the network's estimate is what is tested (the search could align the pair).
     far = np.eye(3)
     far[0, 2] = 60.0
     _constant_stage(far, "far").save(tmp_path / "far.keras")
     proc = _run("experiments.predict", f"--image_a={tmp_path / 'a.png'}",
                 f"--image_b={tmp_path / 'a.png'}", f"--model={tmp_path / 'far.keras'}",
-                f"--output_dir={tmp_path / 'far'}", "--retry_tta=flips")
+                f"--output_dir={tmp_path / 'far'}", "--retry_tta=flips", "--search=none")
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads(proc.stdout)
     assert result["implausible"] is True and result["retried"] is True
-    assert result["retry_tta"] == "flips"
+    assert result["retry_tta"] == "flips" and result["search"] == "none"
+    assert result["searched"] is False
+    # the kept estimate is the 60-px shift seen through the chosen flip G, inv(G) @ far @ G,
+    # mapped from the central patch to the 600 x 400 image (estimate_images' rule, written above)
+    g = _PATCH_SYMMETRIES[result["tta_choice"]]
+    s_a, t = _resize_ref((600, 400), (320, 240)), geometry.translation(96, 56)
+    want = np.linalg.inv(s_a) @ t @ np.linalg.inv(g) @ far @ g @ np.linalg.inv(t) @ s_a
+    np.testing.assert_allclose(result["homography"], want / want[2, 2], atol=1e-4)
+    assert abs(result["homography"][0][2]) == pytest.approx(60.0 * 600 / 320, abs=1e-3)
     assert "warning: the estimate is implausible" in proc.stderr and "60.0 px" in proc.stderr
 
     (tmp_path / "junk.png").write_text("not an image")
@@ -1110,7 +1152,10 @@ def test_predict_checks_its_output_dir_first(identity_model_path, tmp_path):
 def test_predict_outputs_of_pairs_with_the_same_names_do_not_collide(identity_model_path,
                                                                      tmp_path):
     """Two pairs whose images share base names used to overwrite each other's outputs in one
-    --output_dir; a re-run of the same pair still replaces its own."""
+    --output_dir; a re-run of the same pair still replaces its own. (The predict binary's own
+    call of ``align_image_files`` is tested above; here the library call, in-process.)"""
+    from stnh_tf import alignment
+
     photos = {"one": skimage.data.camera(), "two": skimage.data.coffee()[..., ::-1]}
     for name, photo in photos.items():
         (tmp_path / name).mkdir()
@@ -1119,11 +1164,9 @@ def test_predict_outputs_of_pairs_with_the_same_names_do_not_collide(identity_mo
     out = tmp_path / "out"
     results = []
     for name in ("one", "two", "one"):
-        proc = _run("experiments.predict", f"--image_a={tmp_path / name / 'a.png'}",
-                    f"--image_b={tmp_path / name / 'b.png'}", f"--model={identity_model_path}",
-                    f"--output_dir={out}")
-        assert proc.returncode == 0, proc.stderr[-3000:]
-        results.append(json.loads(proc.stdout))
+        results.append(alignment.align_image_files(
+            str(tmp_path / name / "a.png"), str(tmp_path / name / "b.png"),
+            model=identity_model_path, output_dir=str(out)))
     assert [os.path.basename(r["overlay_png"]) for r in results] == \
         ["a__b_overlay.png", "a__b-2_overlay.png", "a__b_overlay.png"]
     assert sorted(p.name for p in out.iterdir()) == [
@@ -1132,6 +1175,7 @@ def test_predict_outputs_of_pairs_with_the_same_names_do_not_collide(identity_mo
         str(tmp_path / "two" / "a.png")
     assert json.loads((out / "a__b_homography.json").read_text())["image_a"] == \
         str(tmp_path / "one" / "a.png")
+    assert cv2.imread(str(out / "a__b-2_overlay.png")).shape[0] == photos["two"].shape[0]
 
 
 def test_implausibility_check_with_the_identity_model(identity_model_path):

@@ -353,18 +353,34 @@ def test_merge_mixed_bfloat16_keeps_float32(mixed_bfloat16, rng):
     np.testing.assert_allclose(keras.ops.convert_to_numpy(out), ref / ref[:, 2:3, 2:3], atol=1e-5)
 
 
-def test_policy_restored():
+def test_keras_policy_is_restored_after_its_block():
+    """conftest's keras_policy (the mixed-precision tests' fixture) leaves the global policy
+    float32 after its block, also when the block raises, so later tests build float32 layers."""
     assert keras.mixed_precision.global_policy().name == "float32"
+    with keras_policy("mixed_bfloat16"):
+        assert SpatialTransformer().compute_dtype == "bfloat16"
+    assert keras.mixed_precision.global_policy().name == "float32"
+    with pytest.raises(RuntimeError, match="inside"):
+        with keras_policy("mixed_bfloat16"):
+            raise RuntimeError("inside")
+    assert keras.mixed_precision.global_policy().name == "float32"
+    assert SpatialTransformer().compute_dtype == "float32"
 
 
 # --------------------------------------------------------------------------------------------
 # Benchmark binary smoke test (subprocess: its absl flags must not clash with other binaries')
 # --------------------------------------------------------------------------------------------
 def test_benchmark_binary_smoke(tmp_path):
+    """The benchmark's inputs are paper-protocol homographies at its size (H_bar recomputed here
+    with the paper's M), its reported difference from OpenCV is the one computed here from those
+    inputs (the layer against conftest's OpenCV warp, every pixel), and its speed-ups are the
+    ratios of its timings."""
     import json
     import os
     import subprocess
     import sys
+
+    from stnh_tf import benchmarks
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     out = tmp_path / "bench.json"
@@ -374,11 +390,32 @@ def test_benchmark_binary_smoke(tmp_path):
         cwd=root, capture_output=True, text=True, timeout=180)
     assert res.returncode == 0, res.stderr[-3000:]
     result = json.loads(out.read_text())
+    assert (result["batch_size"], result["size"], result["iterations"], result["seed"]) == (
+        2, 32, 1, 0)
+    images, h_bar, h_pix = benchmarks.stn_inputs(2, 32, 0)
+    assert images.shape == (2, 32, 32, 1) and images.max() > 100  # photograph patches, 0..255
+    for h, hb in zip(h_pix, h_bar):
+        np.testing.assert_allclose(hb, to_bar(h, 32).ravel()[:8], atol=1e-6)
+        moved = cv2.perspectiveTransform(np.array([[[0, 0], [32, 0], [32, 32], [0, 32]]],
+                                                  np.float64), h)[0]
+        assert np.abs(moved - [[0, 0], [32, 0], [32, 32], [0, 32]]).max() <= 8.0  # rho = 32 / 4
+    warped = _stn(images, h_bar)
+    ref = np.stack([cv2_warp(images[i, ..., 0], h_pix[i]) for i in range(2)])
+    diff = float(np.abs(warped[..., 0] - ref).mean())
+    wrong = float(np.abs(warped[..., 0] - np.stack([cv2_warp(images[i, ..., 0],
+                                                             np.linalg.inv(h_pix[i]))
+                                                    for i in range(2)])).mean())
+    assert diff < 0.5 and wrong > 20 * diff  # the reported number tells the direction apart
     assert set(result["stn"]) == {"no_jit", "jit"}
-    for r in result["stn"].values():
+    for key, r in result["stn"].items():
+        # the same warp in a tf.function: measured equal without XLA, 1.5e-8 apart with it
+        assert r["mean_abs_diff_vs_cv2_all_pixels"] == pytest.approx(diff, abs=1e-5), key
         assert r["forward_ms"] > 0 and r["forward_backward_ms"] > 0
-        assert r["mean_abs_diff_vs_cv2_all_pixels"] < 0.5
-    assert result["machine"]["cpu_count"] >= 1 and result["cv2_loop_forward_ms"] > 0
+    nj, j = result["stn"]["no_jit"], result["stn"]["jit"]
+    assert result["jit_speedup"] == pytest.approx(
+        {"forward": nj["forward_ms"] / j["forward_ms"],
+         "forward_backward": nj["forward_backward_ms"] / j["forward_backward_ms"]})
+    assert result["machine"]["cpu_count"] == os.cpu_count() and result["cv2_loop_forward_ms"] > 0
 
 
 def test_degenerate_homography_gives_finite_output_and_gradient(photo_patches):

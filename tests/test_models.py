@@ -1,8 +1,11 @@
 """The regression network's layout against the paper's text, counted independently."""
 
+import contextlib
+
 import numpy as np
 import pytest
 
+from conftest import narrow_network
 from stnh_tf import models
 
 FILTERS = [64, 64, 64, 64, 128, 128, 128, 128]
@@ -82,10 +85,11 @@ def _random_last_layer(model, rng, scale=0.01):
 
 def test_untrained_homographynet_predicts_no_motion(rng):
     """DeTone's network starts at zero offsets (fc2 zero kernel and bias) and the identity
-    H_bar."""
+    H_bar (at conftest's narrow widths: the output layer decides it)."""
     from stnh_tf import geometry
 
-    model = models.build_homographynet()
+    with narrow_network():
+        model = models.build_homographynet()
     x = {k: rng.uniform(size=(2, 128, 128, 1)).astype(np.float32) for k in ("patch_a", "patch_b")}
     out = model.predict(x, verbose=0)
     np.testing.assert_array_equal(out["offsets"], 0.0)
@@ -97,10 +101,12 @@ def test_untrained_homographynet_predicts_no_motion(rng):
 
 
 def test_homographynet_offsets_define_h_bar(rng):
-    """The 4-point output, scaled by 32, moves the patch corners to where h_bar maps them."""
+    """The 4-point output, scaled by 32, moves the patch corners to where h_bar maps them (at
+    conftest's narrow widths: the head decides it)."""
     from stnh_tf import geometry
 
-    model = models.build_homographynet()
+    with narrow_network():
+        model = models.build_homographynet()
     _random_last_layer(model, rng)
     x = {k: rng.uniform(size=(2, 128, 128, 1)).astype(np.float32) for k in ("patch_a", "patch_b")}
     out = model.predict(x, verbose=0)
@@ -139,11 +145,17 @@ def test_batch_norm_variant_adds_one_normalization_per_convolution(batch_norm):
     assert net.count_params() == _expected_params() + sum(FILTERS) * 3 * (batch_norm == "conv")
 
 
-@pytest.mark.parametrize("build", [models.build_homographynet, models.build_homographynet_gap])
-def test_homographynet_save_load_round_trip(build, tmp_path, rng):
+@pytest.mark.parametrize("build, narrow", [
+    # DeTone's 34M-parameter network is a 137 MB file (slow); the fast suite round-trips the same
+    # layers (BatchNorm, both dropouts, the flattened head) at conftest's narrow widths
+    pytest.param(models.build_homographynet, False, marks=pytest.mark.slow, id="homographynet"),
+    pytest.param(models.build_homographynet, True, id="homographynet_narrow"),
+    pytest.param(models.build_homographynet_gap, False, id="homographynet_gap")])
+def test_homographynet_save_load_round_trip(build, narrow, tmp_path, rng):
     import keras
 
-    model = build()
+    with narrow_network() if narrow else contextlib.nullcontext():
+        model = build()
     _random_last_layer(model, rng)
     x = {k: rng.uniform(size=(2, 128, 128, 1)).astype(np.float32) for k in ("patch_a", "patch_b")}
     assert np.ptp(model.predict(x, verbose=0)["offsets"], axis=0).max() > 1e-3  # input-dependent
@@ -178,7 +190,7 @@ def test_patch_standardization_matches_numpy_and_ignores_gain_and_offset(rng):
         assert (relative < 0.01) == same and (relative > 0.05) != same, (norm, relative)
 
 
-def test_input_norm_is_saved_and_refused_when_unknown(tmp_path, rng):
+def test_input_norm_is_saved_and_refused_when_unknown(tmp_path, rng, narrow):
     import keras
 
     with pytest.raises(ValueError, match="input_norm"):

@@ -133,9 +133,12 @@ def _train_binary(args):
                           capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow
 def test_binary_recipe_preset_then_explicit_flags_and_bad_values(two_folders, tmp_path):
     """``--recipe=fast`` sets its preset, a flag given explicitly wins, config.json records the
-    resolved values; a bad value fails before anything is written."""
+    resolved values; a bad value fails before anything is written. (Slow: two binary runs. The
+    fast suite has the presets' resolution in test_flags and test_homographynet_recipe, the
+    binary's training and its refusal of a bad flag in test_training.)"""
     model_dir = tmp_path / "fast"
     res = _train_binary([f"--image_dir={','.join(two_folders)}", f"--model_dir={model_dir}",
                          "--recipe=fast", "--learning_rate=5e-4", "--train_steps=1",
@@ -157,9 +160,12 @@ def test_binary_recipe_preset_then_explicit_flags_and_bad_values(two_folders, tm
     assert not bad.exists()
 
 
-def test_resume_with_the_new_options_matches_the_uninterrupted_run(two_folders, tmp_path):
+@pytest.mark.slow
+def test_resume_with_the_new_options_matches_the_uninterrupted_run(two_folders, tmp_path, narrow):
     """AdamW + clipping + L2 sum + photometric fresh pairs from two folders: interrupted after
-    the step-4 checkpoint and resumed, the run ends with the uninterrupted run's weights."""
+    the step-4 checkpoint and resumed, the run ends with the uninterrupted run's weights. (Slow:
+    three runs. The fast suite resumes the paper's recipe in test_training and positions the
+    generated streams, fresh pairs included, in test_streams.)"""
     def cfg(name):
         return train_config.TrainConfig(
             image_dir=",".join(two_folders), model_dir=str(tmp_path / name), optimizer="adamw",

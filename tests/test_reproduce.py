@@ -1,4 +1,5 @@
-"""The reproduce driver end to end at a tiny budget (a few steps per model, bundled photographs)."""
+"""The reproduce driver end to end at a tiny budget (a few steps per model, bundled photographs;
+marked slow, about 2 minutes), and its budget checks of reused models (fast)."""
 
 import dataclasses
 import json
@@ -16,6 +17,28 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PNG = b"\x89PNG\r\n\x1a\n"
 
 
+def _mace(h, h_true):
+    """MACE (px) of ``h`` ([3, 3] or [N, 3, 3]) against ``h_true`` [N, 3, 3], written out here."""
+    corners = np.array([[0, 0, 1], [128, 0, 1], [128, 128, 1], [0, 128, 1]], np.float64).T
+    p, q = h @ corners, h_true @ corners
+    return float(np.linalg.norm(p[:, :2] / p[:, 2:] - q[:, :2] / q[:, 2:], axis=1).mean())
+
+
+def _model_mace(model_dir, samples):
+    """MACE of a single-stage model's raw H_bar on ``samples``, denormalized with the paper's M
+    written out independently (conftest)."""
+    import keras
+
+    from conftest import norm_matrix
+
+    model = keras.models.load_model(os.path.join(model_dir, "model.keras"), compile=False)
+    h8 = model.predict({"patch_a": samples["patch_a"], "patch_b": samples["patch_b"]},
+                       verbose=0)["h_bar"].astype(np.float64)
+    h_bar = np.concatenate([h8, np.ones((len(h8), 1))], axis=1).reshape(-1, 3, 3)
+    m = norm_matrix()
+    return _mace(np.linalg.inv(m) @ h_bar @ m, samples["h_ba"])
+
+
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     out = str(tmp_path_factory.mktemp("reproduce"))
@@ -26,6 +49,7 @@ def tiny_run(tmp_path_factory):
     return out, result, logs
 
 
+@pytest.mark.slow
 def test_every_table_and_figure_is_written(tiny_run):
     out, result, _ = tiny_run
     tables = open(os.path.join(out, "tables.md")).read()
@@ -52,72 +76,78 @@ def test_every_table_and_figure_is_written(tiny_run):
     assert open(os.path.join(out, "table1.md")).read().count("\n| ") == 7  # header, rule, 5 rows
 
 
+@pytest.mark.slow
 def test_numbers_come_from_the_models_on_the_test_pairs(tiny_run):
     """Identity and the (1, 1) ablation row (= stage 1 alone) recomputed here from the stored test
     pairs: the model's raw H_bar, denormalized with the paper's M written out independently."""
     out, result, _ = tiny_run
-    import keras
-
-    from conftest import norm_matrix
-
     samples = data.load_arrays(os.path.join(out, "data", "stage1"), "test")
-    h_true = samples["h_ba"]
-    corners = np.array([[0, 0, 1], [128, 0, 1], [128, 128, 1], [0, 128, 1]], np.float64).T
-
-    def mace(h):
-        p, q = h @ corners, h_true @ corners
-        return float(np.linalg.norm(p[:, :2] / p[:, 2:] - q[:, :2] / q[:, 2:], axis=1).mean())
-
-    assert result["fig4_mace"]["Identity"] == pytest.approx(mace(np.eye(3)[None]), rel=1e-9)
+    assert result["fig4_mace"]["Identity"] == pytest.approx(_mace(np.eye(3)[None], samples["h_ba"]),
+                                                            rel=1e-9)
     stage1 = result["models"]["stages"][0]
     assert result["models"]["ablation"]["1,1"] == stage1
-
-    def model_mace(model_dir):
-        model = keras.models.load_model(os.path.join(model_dir, "model.keras"), compile=False)
-        h8 = model.predict({"patch_a": samples["patch_a"], "patch_b": samples["patch_b"]},
-                           verbose=0)["h_bar"].astype(np.float64)
-        h_bar = np.concatenate([h8, np.ones((len(h8), 1))], axis=1).reshape(-1, 3, 3)
-        m = norm_matrix()
-        return mace(np.linalg.inv(m) @ h_bar @ m)
-
     # Seed 0 of the (1, 1) row is stage 1; seed 1 is its own model, trained with seed 1.
     seed1 = result["models"]["ablation_seeds"]["1,1"][1]
     assert result["models"]["ablation_seeds"]["1,1"][0] == stage1 and seed1 != stage1
     assert json.load(open(os.path.join(seed1, run_dir.CONFIG_FILE)))["seed"] == 1
-    per_seed = [model_mace(stage1), model_mace(seed1)]
+    per_seed = [_model_mace(stage1, samples), _model_mace(seed1, samples)]
     assert result["table1_mace_per_seed"]["1,1"] == pytest.approx(per_seed, rel=1e-4)
     assert result["table1_mace"]["1,1"] == pytest.approx(np.mean(per_seed), rel=1e-4)
 
 
+@pytest.mark.slow
 def test_rerun_skips_finished_work_and_ablation_binary_reuses_rows(tiny_run):
+    """A second run trains nothing and reports what the models give (recomputed here from the
+    stored test pairs, not from the first run's results); so does the ablation binary."""
     out, first, _ = tiny_run
+    samples = data.load_arrays(os.path.join(out, "data", "stage1"), "test")
     logs = []
     again = reproduce.Reproduction(reproduce.BUDGETS["tiny"], out, source="bundled",
                                    printer=logs.append).run()
     assert not any(line.startswith(("[train]", "[data]")) for line in logs), logs
     assert not [k for k in again["timings_this_run_s"] if k.startswith("train_")]
-    assert again["fig4_mace"] == first["fig4_mace"]
+    assert set(again["fig4_mace"]) == set(first["fig4_mace"])
+    assert again["fig4_mace"]["Identity"] == pytest.approx(_mace(np.eye(3)[None], samples["h_ba"]),
+                                                           rel=1e-9)
+    for row, dirs in again["models"]["ablation_seeds"].items():
+        assert dirs == first["models"]["ablation_seeds"][row]  # the same models, not retrained
+        assert again["table1_mace_per_seed"][row] == pytest.approx(
+            [_model_mace(d, samples) for d in dirs], rel=1e-4), row
     res = subprocess.run([sys.executable, "-m", "experiments.loss_weight_ablation", "--budget=tiny",
                           "--source=bundled", f"--output_dir={out}", "--weights=10:1,1:1"],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "l2=10 l1=1: MACE" in res.stdout and "(seeds: " in res.stdout and "[train]" not in res.stdout
     table = json.load(open(os.path.join(out, "table1.json")))
-    assert table["10,1"]["mace"] == pytest.approx(first["table1_mace"]["10,1"], rel=1e-9)
+    assert table["10,1"]["model_dirs"] == first["models"]["ablation_seeds"]["10,1"]
+    assert len(table["10,1"]["model_dirs"]) == 2  # the tiny budget's 2 seeds
+    assert table["10,1"]["mace"] == pytest.approx(
+        np.mean([_model_mace(d, samples) for d in table["10,1"]["model_dirs"]]), rel=1e-4)
 
 
-def test_reuse_refuses_a_model_of_another_budget(tiny_run, tmp_path):
-    out, _, _ = tiny_run
-    stage1 = os.path.join(out, "models", "stage1")
-    other = dataclasses.replace(reproduce.BUDGETS["tiny"], train_steps=4)
-    run = reproduce.Reproduction(other, str(tmp_path), source="bundled", printer=lambda *a: None,
-                                 reuse={"stage1": stage1, "data_stage1": os.path.join(out, "data", "stage1")})
-    with pytest.raises(ValueError, match="different budget"):
+def test_reuse_refuses_a_model_of_another_budget(tmp_path):
+    """A reused stage-1 run (its config.json as training writes it, and a finished model.keras)
+    is taken as it is at its own budget and refused at another one, before any training."""
+    tiny = reproduce.BUDGETS["tiny"]
+    data_dir = str(tmp_path / "data")
+    stage1 = str(tmp_path / "stage1")
+    run = reproduce.Reproduction(tiny, str(tmp_path / "same"), source="bundled",
+                                 printer=lambda *a: None,
+                                 reuse={"stage1": stage1, "data_stage1": data_dir})
+    run_dir.prepare_model_dir(run.config("stage1", data_dir=run.stage1_data(), stage=1))
+    with open(os.path.join(stage1, run_dir.FINAL_MODEL), "w") as f:
+        f.write("a finished model")
+    assert json.load(open(os.path.join(stage1, run_dir.CONFIG_FILE)))["train_steps"] == 2
+    assert run.hierarchy(1) == [stage1]  # same budget: reused, not trained
+    assert "train_stage1" not in run.timings
+    other = dataclasses.replace(tiny, train_steps=4)
+    run = reproduce.Reproduction(other, str(tmp_path / "other"), source="bundled",
+                                 printer=lambda *a: None,
+                                 reuse={"stage1": stage1, "data_stage1": data_dir})
+    with pytest.raises(ValueError, match=r"different budget \{'train_steps': \(2, 4\)\}"):
         run.hierarchy(1)
     with pytest.raises(ValueError, match="unknown reuse"):
         reproduce.Reproduction(other, str(tmp_path), reuse={"stage9": stage1})
-    cfg = json.load(open(os.path.join(stage1, run_dir.CONFIG_FILE)))
-    assert cfg["train_steps"] == 2
 
 
 def test_paper_budget_uses_the_papers_image_counts():
@@ -131,6 +161,7 @@ def test_paper_budget_uses_the_papers_image_counts():
     assert reproduce.BUDGETS["cpu"].sequence_train_steps == reproduce.BUDGETS["cpu"].train_steps
 
 
+@pytest.mark.slow
 def test_homographynet_is_detones_network_with_its_schedule(tiny_run):
     out, result, _ = tiny_run
     cfg = json.load(open(os.path.join(result["models"]["homographynet"], run_dir.CONFIG_FILE)))
@@ -139,6 +170,7 @@ def test_homographynet_is_detones_network_with_its_schedule(tiny_run):
         "homographynet", "conv", "step", 0.005, 0, reproduce.BUDGETS["tiny"].train_steps)
 
 
+@pytest.mark.slow
 def test_train_only_trains_that_part_and_stops(tiny_run, tmp_path):
     out, _, _ = tiny_run
     cmd = [sys.executable, "-m", "experiments.reproduce", "--budget=tiny", "--source=bundled",

@@ -50,7 +50,7 @@ def bundled():
     return shipped_weights.bundled_pairs()
 
 
-def test_ship_refresh_check_and_replace_stage(tmp_path, bundled, monkeypatch):
+def test_ship_refresh_check_and_replace_stage(tmp_path, bundled, monkeypatch, narrow):
     # the card's check of the network's estimates (the search would move the constant stages'
     # estimates); the check records that setting
     monkeypatch.setitem(shipped_weights.BUNDLED_CHECK, "search", "none")

@@ -187,7 +187,10 @@ def test_input_must_be_previous_stage(stage1_data, tmp_path):
         stage_k.make_stage_dataset(1, stage1_data, str(tmp_path / "y"), "train", predict=Oracle(a1), log=QUIET)
 
 
-def test_binary_with_a_real_stage_model(stage1_data, tmp_path):
+@pytest.mark.slow
+def test_binary_with_a_real_stage_model(stage1_data, tmp_path, narrow):
+    """The binary makes both splits with an untrained stage (slow: the library call with a real
+    model is tested in test_streams, the binary's error path below)."""
     import keras
 
     from stnh_tf import models
@@ -207,8 +210,12 @@ def test_binary_with_a_real_stage_model(stage1_data, tmp_path):
     # equal stage-1 targets.
     a1, a2 = data.load_arrays(stage1_data, "test"), data.load_arrays(str(out), "test")
     np.testing.assert_allclose(a2["h_bar"], a1["h_bar"], atol=1e-5)
+
+
+def test_binary_without_a_trained_model_is_a_clear_error(stage1_data, tmp_path):
     missing = subprocess.run([sys.executable, "-m", "data_prep.make_stage_dataset", "--stage=2",
                               f"--input_dir={stage1_data}", f"--model_dir={tmp_path / 'none'}",
                               f"--output_dir={tmp_path / 'o2'}"], cwd=ROOT, capture_output=True, text=True,
                              timeout=300)
     assert missing.returncode != 0 and "make_stage_dataset: no trained model" in missing.stderr
+    assert "Traceback" not in missing.stderr

@@ -175,7 +175,7 @@ def test_config_needs_exactly_one_source():
 
 @pytest.mark.parametrize("in_memory", [False, True])
 def test_train_from_image_folder_validates_on_make_dataset_test_pairs(folder, records, tmp_path,
-                                                                       in_memory):
+                                                                       narrow, in_memory):
     """Training from a folder runs the paper's losses on generated pairs, and its validation
     pairs (seed 1, three per image) are exactly make_dataset's test split: the validation MACE
     equals the evaluation of the saved model on the TFRecords."""
@@ -213,7 +213,8 @@ def test_both_validation_sources_serve_exactly_val_samples_same_pairs(folder, re
     assert sum(len(b[1]["h_bar"]) for b in stored) == expected
 
 
-def test_stage2_from_image_folder_validates_on_make_stage_dataset_pairs(folder, records, tmp_path):
+def test_stage2_from_image_folder_validates_on_make_stage_dataset_pairs(folder, records, tmp_path,
+                                                                       narrow):
     """Stage 2 trains from the folder with the stage-1 model's predictions made in memory; its
     validation pairs are the stage-2 test records make_stage_dataset writes with that model."""
     from data_prep import stage_k
