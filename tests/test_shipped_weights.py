@@ -63,11 +63,12 @@ def opencv_path(request):
     cv2.setUseOptimized(before)
 
 
-@pytest.mark.parametrize("name", [pytest.param(name, marks=[pytest.mark.slow] * (name != "default"))
-                                  for name in sorted(SHIPPED)])
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(SHIPPED))
 def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs, name, opencv_path):
-    """Regression guard: the card's numbers, on both OpenCV paths, within
-    :data:`CARD_TOLERANCE_PX`."""
+    """Regression guard: the card's numbers for 1..n stages, gated and not, on both OpenCV paths,
+    within :data:`CARD_TOLERANCE_PX` (the fast suite checks the default's n stages:
+    :func:`test_default_estimate_reproduces_its_card`)."""
     _, arrays = card_and_pairs
     folder = SHIPPED[name]
     check = _card(folder)["bundled_check"]
@@ -103,18 +104,44 @@ def default_estimator_float32():
     return inference.HomographyEstimator.load(compute_dtype="float32")
 
 
-@pytest.mark.parametrize("photometric", [False, True], ids=["plain", "photometric"])
+@pytest.fixture(scope="module")
+def default_card_estimates(card_and_pairs, default_estimator_float32):
+    """``{"plain" | "photometric": (arrays, H, last_info)}``: the default estimate (the
+    estimator's default options, which are the card's) of the card's pairs and of the same pairs
+    with a photometric change, once for the tests below."""
+    check = card_and_pairs[0]["bundled_check"]
+    assert (check["fill"], check["search"]) == (inference.PATCH_FILL, inference.SEARCH)
+    out = {}
+    for key, photometric in (("plain", False), ("photometric", True)):
+        arrays = card_and_pairs[1] if not photometric else shipped_weights.bundled_pairs(True)
+        h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"])
+        out[key] = (arrays, h, dict(default_estimator_float32.last_info))
+    return out
+
+
+def test_default_estimate_reproduces_its_card(card_and_pairs, default_card_estimates):
+    """Regression guard: the default's n-stage MACE and flag count on the card's pairs (plain and
+    photometric) within :data:`CARD_TOLERANCE_PX`, on OpenCV's default path (both paths and every
+    depth: :func:`test_shipped_weights_reproduce_their_recorded_mace`)."""
+    card, _ = card_and_pairs
+    check, n = card["bundled_check"], len(card["stages"])
+    for prefix, key in (("", "plain"), ("photometric_", "photometric")):
+        arrays, h, info = default_card_estimates[key]
+        assert float(geometry.mean_corner_error(h, arrays["h_ba"])) == pytest.approx(
+            check[f"{prefix}estimate_mace_{n}_stages"], abs=CARD_TOLERANCE_PX)
+        assert int(info["implausible"].sum()) == check[f"{prefix}implausible_{n}_stages"]
+
+
+@pytest.mark.parametrize("key", ["plain", "photometric"])
 def test_default_estimate_beats_sift_ransac_and_is_never_worse_than_the_identity(
-        default_estimator_float32, photometric):
+        default_card_estimates, key):
     """Independent of the card: on its 60 bundled pairs the default estimate's MACE is below
     SIFT + RANSAC's on the same pairs (measured 2.08 against 2.50 px, photometric 2.44 against
     4.58), and no pair ends farther from the truth than the identity."""
     from stnh_tf import baselines
 
-    arrays = shipped_weights.bundled_pairs(photometric=photometric)
-    errors = geometry.corner_errors(default_estimator_float32.estimate(arrays["patch_a"],
-                                                                       arrays["patch_b"]),
-                                    arrays["h_ba"])
+    arrays, h, _ = default_card_estimates[key]
+    errors = geometry.corner_errors(h, arrays["h_ba"])
     sift = baselines.evaluate_baseline("sift_ransac", arrays["patch_a"], arrays["patch_b"],
                                        arrays["h_ba"])
     assert float(errors.mean()) < sift["mace"]
@@ -123,17 +150,15 @@ def test_default_estimate_beats_sift_ransac_and_is_never_worse_than_the_identity
     assert (errors <= identity).all()
 
 
-def test_default_weights_beat_the_identity_under_a_photometric_change(card_and_pairs,
-                                                                  default_estimator_float32):
+def test_default_weights_beat_the_identity_under_a_photometric_change(
+        card_and_pairs, default_estimator_float32, default_card_estimates):
     """Bundled pairs whose patch_b also differs in brightness, contrast and gamma (true corner
     motion within the trained +-32 px): the default weights' MACE is below the identity's and
     equals their card's record."""
     check = card_and_pairs[0]["bundled_check"]
-    arrays = shipped_weights.bundled_pairs(photometric=True)
+    arrays, h, _ = default_card_estimates["photometric"]
     identity = geometry.corner_errors(np.broadcast_to(np.eye(3), arrays["h_ba"].shape), arrays["h_ba"])
     assert float(identity.mean()) == pytest.approx(check["photometric_identity_mace"], rel=1e-6)
-    h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"], fill=check["fill"],
-                                           search=check["search"])
     errors = geometry.corner_errors(h, arrays["h_ba"])
     n = default_estimator_float32.num_stages
     assert float(errors.mean()) == pytest.approx(check[f"photometric_estimate_mace_{n}_stages"],
