@@ -58,10 +58,9 @@ def search_stability(estimator, patch_a, patch_b, h_ba, perturbations=(0.01, 0.1
         cv2.setUseOptimized(True)
         network = estimator.estimate(patch_a, patch_b, search="none")
         info = estimator.last_info
-        searched = np.flatnonzero(~info["flat"] & np.isfinite(info["max_corner_shift_px"]) & (
-            (info["rejected_stages"] > 0)
-            | (info["max_corner_shift_px"] > inference.IMPLAUSIBLE_CORNER_SHIFT)
-            | ~(info["alignment_ncc"] >= inference.SEARCH_BELOW_NCC)))
+        shift = info["max_corner_shift_px"]
+        searched = np.flatnonzero(~info["flat"] & np.isfinite(shift) & inference._beyond_rule(
+            info["rejected_stages"], shift, info["alignment_ncc"], inference.SEARCH_BELOW_NCC))
         out["searched_network"] = int(len(searched))
 
         def search_all(moved_px, rng):

@@ -1210,3 +1210,23 @@ def test_implausibility_check_with_the_identity_model(identity_model_path):
     assert result["refine"] == "none" and result["ordinary"]["refined"] == 0.0
     assert result["retry_tta"] == "none" and result["ordinary"]["retried"] == 0.0
     assert result["search"] == "none" and result["ordinary"]["searched"] == 0.0
+
+
+def test_search_stability_measures_both_opencv_paths_and_moved_starts(pairs, identity_model_path):
+    """stnh_tf.search_stability with the identity model: every pair's identity estimate aligns
+    it poorly (NCC recomputed here below 0.9), so every pair is searched; the search's results
+    agree between OpenCV's two paths and from starts moved by 0.1 px, and beat the identity."""
+    from stnh_tf import search_stability
+
+    a, b, hs = pairs
+    a, b = a.astype(np.float32) / 255.0, b.astype(np.float32) / 255.0
+    est = HomographyEstimator.load(identity_model_path)
+    out = search_stability.search_stability(est, a, b, hs, perturbations=(0.1,))
+    poorly = sum(ncc_reference(x[..., 0], y[..., 0], np.eye(3)) < 0.9 for x, y in zip(a, b))
+    assert out["pairs"] == 4 and out["searched_network"] == poorly == 4
+    assert out["optimized"]["searched"] == out["unoptimized"]["searched"] == 4
+    assert out["differ_between_paths"] == 0 and out["differ_moved_0.1px"] == 0
+    identity = float(geometry.mean_corner_error(np.broadcast_to(np.eye(3), hs.shape), hs))
+    assert out["optimized"]["mace"] < identity
+    assert out["optimized"]["mace"] == pytest.approx(out["unoptimized"]["mace"], abs=0.01)
+    assert cv2.useOptimized()  # restored
