@@ -74,10 +74,12 @@ def ecc_homography(source, template, source_from_template, iterations: int = 100
         if inside.mean() < MIN_INSIDE:
             return None
         x, y, u, v, w = xs[inside], ys[inside], u[inside], v[inside], w[inside]
-        warped, gx, gy = (ndimage.map_coordinates(img, [v, u], order=1) for img in (src, *gradients))
+        warped, gx, gy = (ndimage.map_coordinates(img, [v, u], order=1)
+                          for img in (src, *gradients))
         # d warped / d parameters, chain rule through the projective division
         gw = -(gx * u + gy * v)
-        jac = np.stack([gx * x, gx * y, gx, gy * x, gy * y, gy, gw * x, gw * y], axis=1) / w[:, None]
+        jac = np.stack([gx * x, gx * y, gx, gy * x, gy * y, gy, gw * x, gw * y],
+                       axis=1) / w[:, None]
         jac -= jac.mean(axis=0)
         warped -= warped.mean()
         t = tpl[inside] - tpl[inside].mean()

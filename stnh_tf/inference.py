@@ -54,8 +54,8 @@ an estimate aligns its pair poorly (:func:`alignment_ncc` below :data:`SEARCH_BE
 flagged implausible, :func:`search_translations` scores translations of it by normalized
 cross-correlation and starts coarse-to-fine ECC from each of the best; the best-aligned result at
 :data:`VERIFIED_NCC` or better replaces the estimate, which is kept otherwise. It gives the same
-result on OpenCV's optimized and unoptimized paths (the per-CPU kernels). ``search="none"``: the network's
-estimate (what the exported SavedModel computes).
+result on OpenCV's optimized and unoptimized paths (the per-CPU kernels). ``search="none"``: the
+network's estimate (what the exported SavedModel computes).
 
 Implausible estimates. :attr:`HomographyEstimator.last_info` flags, per pair, an estimate that
 moves a patch corner beyond the trained range, needed a skipped stage, or leaves patch_a warped
