@@ -69,6 +69,7 @@ def test_schedule_is_warmup_then_cosine():
     assert lr(91_000) == pytest.approx(0.0, abs=1e-7)
 
 
+@pytest.mark.slow  # (its error paths: test_binary_refuses_a_bad_flag_before_writing, fast)
 def test_binary_one_step_smoke(tiny_data, tmp_path):
     model_dir = tmp_path / "run"
     res = _run_binary([f"--data_dir={tiny_data}", f"--model_dir={model_dir}", "--train_steps=1",
@@ -356,6 +357,7 @@ print(json.dumps(out))
 """
 
 
+@pytest.mark.slow
 def test_mirrored_strategy_on_two_logical_cpus_equals_one_device(tiny_data, tmp_path):
     """Two logical CPUs under MirroredStrategy train the same weights, and log the same losses,
     as one device with the same global batch of 4 (2 per replica), with h_mask 1 on one
