@@ -10,6 +10,7 @@ nonzero if it exceeds ``--tolerance``. Library code: ``stnh_tf.export``.
 """
 
 import json
+import math
 import sys
 
 from absl import app, flags
@@ -30,10 +31,13 @@ def main(argv):
 
     if FLAGS.check_pairs < 1:
         raise SystemExit(f"export: --check_pairs must be >= 1; received {FLAGS.check_pairs}.")
+    if not math.isfinite(FLAGS.tolerance) or FLAGS.tolerance < 0:
+        raise SystemExit(f"export: --tolerance must be a finite number >= 0; received "
+                         f"{FLAGS.tolerance}.")
     try:
         estimator = HomographyEstimator.load(FLAGS.model)
         export.export_saved_model(estimator, FLAGS.output, overwrite=FLAGS.overwrite)
-    except (FileNotFoundError, FileExistsError, ValueError) as e:
+    except (OSError, ValueError) as e:  # FileNotFoundError and FileExistsError included
         raise SystemExit(f"export: {e}") from None
     patch_a, patch_b = export.verification_pairs(FLAGS.check_pairs)
     report = export.verify_export(FLAGS.output, estimator, patch_a, patch_b, FLAGS.tolerance)

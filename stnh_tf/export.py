@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import tempfile
 
 import numpy as np
 
@@ -91,15 +92,20 @@ def serving_function(estimator):
     return serve
 
 
+SAVED_MODEL_ENTRIES = ("saved_model.pb", "fingerprint.pb", "variables", "assets")
+"""What a SavedModel export writes into its folder: ``overwrite`` replaces these and nothing else."""
+
+
 def export_saved_model(estimator, output_dir, overwrite: bool = False) -> str:
     """Write ``estimator`` as a SavedModel to ``output_dir`` (see the module docstring).
 
     An existing ``output_dir`` is replaced only with ``overwrite=True`` and only if it is a
-    SavedModel (holds ``saved_model.pb``) or empty; otherwise ``FileExistsError``.
+    SavedModel (holds ``saved_model.pb``) or empty; otherwise ``FileExistsError``. The new export
+    is written to a temporary folder beside ``output_dir`` and moved in only when complete; then
+    only the entries an export writes (:data:`SAVED_MODEL_ENTRIES`) are replaced, so the user's
+    own files in the folder stay, and a failed write (e.g. a full disk) leaves the old export as
+    it was and raises ``OSError`` naming the path and the cause.
     """
-    import keras
-    import tensorflow as tf
-
     output_dir = os.fspath(output_dir)
     if os.path.exists(output_dir) and (not os.path.isdir(output_dir) or os.listdir(output_dir)):
         is_saved_model = os.path.isfile(os.path.join(output_dir, "saved_model.pb"))
@@ -107,7 +113,34 @@ def export_saved_model(estimator, output_dir, overwrite: bool = False) -> str:
             why = ("pass overwrite=True (--overwrite) to replace it" if is_saved_model
                    else "it is not a SavedModel; choose another path")
             raise FileExistsError(f"{output_dir} exists and is not empty; {why}.")
-        shutil.rmtree(output_dir)
+    parent = os.path.dirname(os.path.abspath(output_dir))
+    os.makedirs(parent, exist_ok=True)
+    staging = tempfile.mkdtemp(prefix=f".{os.path.basename(output_dir)}.", dir=parent)
+    try:
+        try:
+            _write_archive(estimator, staging)
+        except Exception as e:  # TensorFlow's write errors are not OSErrors
+            raise OSError(f"cannot write the SavedModel to {output_dir}: "
+                          f"{type(e).__name__}: {e}") from None
+        os.makedirs(output_dir, exist_ok=True)
+        for name in SAVED_MODEL_ENTRIES:  # the old export's entries, then the new ones moved in
+            old = os.path.join(output_dir, name)
+            if os.path.isdir(old) and not os.path.islink(old):
+                shutil.rmtree(old)
+            elif os.path.lexists(old):
+                os.remove(old)
+        for name in os.listdir(staging):
+            os.replace(os.path.join(staging, name), os.path.join(output_dir, name))
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return output_dir
+
+
+def _write_archive(estimator, path):
+    """The SavedModel of :func:`serving_function` written to the new folder ``path``."""
+    import keras
+    import tensorflow as tf
+
     serve = serving_function(estimator)
     archive = keras.export.ExportArchive()
     for obj in serve.tracked:
@@ -115,8 +148,7 @@ def export_saved_model(estimator, output_dir, overwrite: bool = False) -> str:
     spec = [tf.TensorSpec([None, geometry.PATCH_SIZE, geometry.PATCH_SIZE, 1], tf.uint8, name="patch_a"),
             tf.TensorSpec([None, geometry.PATCH_SIZE, geometry.PATCH_SIZE, 1], tf.uint8, name="patch_b")]
     archive.add_endpoint("serve", serve, input_signature=spec)
-    archive.write_out(output_dir, verbose=False)
-    return output_dir
+    archive.write_out(path, verbose=False)
 
 
 def load_serving_signature(path):

@@ -12,6 +12,7 @@ import os
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import keras
@@ -966,6 +967,53 @@ def test_saved_model_matches_keras_model(exported, saved, pairs):
     with pytest.raises(FileExistsError, match="not a SavedModel"):
         export.export_saved_model(HomographyEstimator([saved["single"]]), path.parent.parent,
                                   overwrite=True)
+
+
+def test_export_overwrite_keeps_the_users_files_and_a_failed_write_keeps_the_old_export(
+        saved, pairs, tmp_path, monkeypatch):
+    """--overwrite replaces only what an export writes (the user's own files in the folder stay),
+    and a write that fails midway (here: a partial file, then TensorFlow's disk-full error)
+    leaves the old export whole and loadable, raises OSError naming the folder and the cause,
+    and leaves no temporary folder behind."""
+    import tensorflow as tf
+
+    a, b, _ = pairs
+    out = tmp_path / "out"
+    export.export_saved_model(HomographyEstimator([saved["single"]]), out)
+    (out / "README.md").write_text("mine")
+    (out / "client").mkdir()
+    (out / "client" / "app.py").write_text("print('mine')")
+    export.export_saved_model(HomographyEstimator([saved["stage1"]]), out, overwrite=True)
+    assert (out / "README.md").read_text() == "mine"
+    assert (out / "client" / "app.py").read_text() == "print('mine')"
+
+    def serve(path):
+        fn = tf.saved_model.load(str(path)).signatures["serving_default"]
+        return fn(patch_a=tf.constant(a), patch_b=tf.constant(b))["homography"].numpy()
+
+    ref = _direct(saved["stage1"], a.astype(np.float32) / 255, b.astype(np.float32) / 255)
+    np.testing.assert_allclose(serve(out), ref, rtol=1e-4, atol=1e-3)  # the new model's
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+
+    def disk_full(estimator, path):  # the archive's write, failing midway
+        (Path(path) / "saved_model.pb").write_bytes(b"partial")
+        raise tf.errors.ResourceExhaustedError(None, None, "No space left on device")
+
+    monkeypatch.setattr(export, "_write_archive", disk_full)
+    with pytest.raises(OSError, match=f"cannot write the SavedModel to {out}: .*No space left"):
+        export.export_saved_model(HomographyEstimator([saved["single"]]), out, overwrite=True)
+    monkeypatch.undo()
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    np.testing.assert_allclose(serve(out), ref, rtol=1e-4, atol=1e-3)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+@pytest.mark.parametrize("tolerance", ["-1", "nan", "inf"])
+def test_export_binary_refuses_a_bad_tolerance_before_writing(tmp_path, tolerance):
+    proc = _run("experiments.export", f"--output={tmp_path / 'out'}", f"--tolerance={tolerance}")
+    assert proc.returncode == 1
+    assert "--tolerance must be a finite number >= 0" in proc.stderr
+    assert not (tmp_path / "out").exists()
 
 
 BAD_REQUESTS_SCRIPT = r"""
