@@ -484,7 +484,7 @@ class HomographyEstimator:
         flat), the pair is estimated again with ``tta=retry_tta`` and keeps that estimate, if
         ``retry_tta`` runs more symmetries than ``tta``. Sets :attr:`last_info` (with
         ``retried``) and :attr:`last_rejected`."""
-        if retry_tta not in TTAS:
+        if not isinstance(retry_tta, str) or retry_tta not in TTAS:
             raise ValueError(f"retry_tta must be one of {tuple(TTAS)}; received {retry_tta!r}.")
         total, info, rejected = self._estimate_once(patch_a, patch_b, context, origin, batch_size,
                                                     gate_stages, fill, refine, tta, search)
@@ -533,7 +533,7 @@ class HomographyEstimator:
             raise ValueError(f"refine must be one of {REFINES}; received {refine!r}.")
         if search not in SEARCHES:
             raise ValueError(f"search must be one of {SEARCHES}; received {search!r}.")
-        if tta not in TTAS:
+        if not isinstance(tta, str) or tta not in TTAS:
             raise ValueError(f"tta must be one of {tuple(TTAS)}; received {tta!r}.")
         sources = (context if context is not None
                    else [np.ascontiguousarray(p[..., 0]) for p in patch_a])

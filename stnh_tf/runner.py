@@ -25,6 +25,10 @@ import numpy as np
 from stnh_tf import geometry
 
 
+COMPUTE_DTYPES = ("float32", "bfloat16", "float16")
+"""The precisions :func:`load_model` can rebuild a mixed-precision model to compute in."""
+
+
 def load_model(model_dir_or_file, compute_dtype=None):
     """Load a trained Keras model from a model directory (its ``model.keras``) or a file.
 
@@ -35,8 +39,12 @@ def load_model(model_dir_or_file, compute_dtype=None):
 
     Raises:
       FileNotFoundError: no such file.
-      ValueError: a ``.keras`` file that is not a Keras model archive.
+      ValueError: a ``.keras`` file that is not a Keras model archive, or a ``compute_dtype``
+        other than None and :data:`COMPUTE_DTYPES`.
     """
+    if compute_dtype is not None and compute_dtype not in COMPUTE_DTYPES:
+        raise ValueError(f"compute_dtype must be None (as saved) or one of {COMPUTE_DTYPES}; "
+                         f"received {compute_dtype!r}.")
     import keras
 
     import stnh_tf.layers  # noqa: F401  (registers the custom layers)

@@ -207,6 +207,9 @@ class TrainConfig:
             value = getattr(self, name)
             if not (value >= 0 and math.isfinite(value)):
                 raise ValueError(f"{name} must be a finite number >= 0; received {value}.")
+        if self.l2_weight == 0 and self.l1_weight == 0:
+            raise ValueError("l2_weight and l1_weight are both 0: the loss would be 0 and nothing "
+                             "would train; set at least one of them above 0.")
         if self.train_steps % self.checkpoint_every:
             raise ValueError(f"train_steps ({self.train_steps}) must be a multiple of "
                              f"checkpoint_every ({self.checkpoint_every}).")

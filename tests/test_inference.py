@@ -603,8 +603,9 @@ def test_tta_keeps_the_estimate_that_aligns_the_pair_best(pairs):
     assert est.last_info["tta_choice"][0] in ("identity", "flip_x", "flip_y", "rotate_180")
     assert geometry.corner_errors(got[:1], want[:1])[0] > 1.0
     np.testing.assert_allclose(got[1:3], want[1:3], rtol=1e-5, atol=1e-5)
-    with pytest.raises(ValueError, match="tta must be one of"):
-        est.estimate(a, b, tta="rotations", search="none")
+    for bad in ("rotations", ["dihedral"]):  # a list named, not an unhashable-type TypeError
+        with pytest.raises(ValueError, match=r"^tta must be one of .*received "):
+            est.estimate(a, b, tta=bad, search="none")
 
 
 def test_flagged_estimates_are_retried_with_test_time_augmentation(pairs):
@@ -640,8 +641,9 @@ def test_flagged_estimates_are_retried_with_test_time_augmentation(pairs):
     assert not info["implausible"].any()
     est.estimate(a, b, tta="dihedral", retry_tta="flips", search="none")
     assert not est.last_info["retried"].any()
-    with pytest.raises(ValueError, match="retry_tta must be one of"):
-        est.estimate(a, b, retry_tta="rotations", search="none")
+    for bad in ("rotations", ["dihedral"]):
+        with pytest.raises(ValueError, match="retry_tta must be one of"):
+            est.estimate(a, b, retry_tta=bad, search="none")
 
     two = HomographyEstimator([_constant_stage(h_c, "c1"), _constant_stage(np.eye(3), "c2")])
     predict = two._predict_stage
@@ -1006,6 +1008,13 @@ def test_export_overwrite_keeps_the_users_files_and_a_failed_write_keeps_the_old
     assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
     np.testing.assert_allclose(serve(out), ref, rtol=1e-4, atol=1e-3)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_load_refuses_an_unknown_compute_dtype(identity_model_path):
+    """A float32 model (nothing to rebuild) still refuses a precision that is not one."""
+    with pytest.raises(ValueError, match=r"compute_dtype must be None .*'bogus'"):
+        HomographyEstimator.load(identity_model_path, compute_dtype="bogus")
+    assert HomographyEstimator.load(identity_model_path, compute_dtype="bfloat16").num_stages == 1
 
 
 @pytest.mark.parametrize("tolerance", ["-1", "nan", "inf"])

@@ -584,6 +584,15 @@ def test_bad_flag_values_are_clear_errors(field, value):
         cfg.validate()
 
 
+def test_both_loss_weights_zero_is_refused():
+    """l2_weight = l1_weight = 0 would train nothing and mark the run finished; one of them alone
+    at 0 is a valid ablation."""
+    with pytest.raises(ValueError, match="l2_weight and l1_weight are both 0"):
+        _cfg("d", "m", l2_weight=0.0, l1_weight=0.0).validate()
+    for weights in ({"l2_weight": 0.0}, {"l1_weight": 0.0}):
+        _cfg("d", "m", **weights).validate()
+
+
 def test_binary_refuses_a_bad_flag_before_writing(tiny_data, tmp_path):
     """--checkpoint_every=-5 used to exit 0 with an untrained model.keras."""
     res = _run_binary([f"--data_dir={tiny_data}", f"--model_dir={tmp_path / 'run'}",
