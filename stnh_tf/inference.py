@@ -227,12 +227,7 @@ def ecc_refine(source_a, patch_b, a_from_b, origin=(0, 0), iterations=None):
     limit, eps = ECC_CRITERIA
     warp = ecc.opencv_ecc(source_a, patch_b, source_from_patch @ np.asarray(a_from_b, np.float64),
                           limit if iterations is None else iterations, eps, ECC_GAUSSIAN)
-    if warp is None:
-        return None
-    refined = np.linalg.inv(source_from_patch) @ warp
-    if not np.all(np.isfinite(refined)) or abs(refined[2, 2]) < 1e-12:
-        return None
-    return refined / refined[2, 2]
+    return None if warp is None else geometry.scale_to_unit(np.linalg.inv(source_from_patch) @ warp)
 
 
 def search_translations(source_a, patch_b, a_from_b, origin=(0, 0)):

@@ -26,6 +26,20 @@ def keras_policy(name="mixed_bfloat16"):
         keras.mixed_precision.set_global_policy("float32")
 
 
+@contextlib.contextmanager
+def opencv_optimized(on: bool):
+    """OpenCV's per-CPU SIMD kernels (``on``) or its portable code path, restored after: two
+    machines' numerics on one machine."""
+    import cv2
+
+    before = cv2.useOptimized()
+    cv2.setUseOptimized(on)
+    try:
+        yield on
+    finally:
+        cv2.setUseOptimized(before)
+
+
 NARROW_FILTERS = (4, 4, 4, 4, 8, 8, 8, 8)
 """Convolution widths of the narrow network: 1/16 of the paper's (64, ..., 128), every layer kept."""
 

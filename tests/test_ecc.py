@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from conftest import opencv_optimized
 from stnh_tf import ecc, geometry
 
 TRUE = np.array([[1.03, 0.02, 3.2], [-0.015, 0.98, -2.1], [2e-4, -1e-4, 1.0]])
@@ -29,10 +30,8 @@ def scene():
 
 @pytest.fixture(params=[True, False], ids=["opencv_optimized", "opencv_unoptimized"])
 def opencv_path(request):
-    before = cv2.useOptimized()
-    cv2.setUseOptimized(request.param)
-    yield request.param
-    cv2.setUseOptimized(before)
+    with opencv_optimized(request.param):
+        yield request.param
 
 
 def _corner_error(a, b):

@@ -10,7 +10,7 @@ import os
 import numpy as np
 import pytest
 
-from conftest import ncc_reference
+from conftest import ncc_reference, opencv_optimized
 from stnh_tf import geometry, inference, model_files, shipped_weights
 
 WEIGHTS = model_files.default_weights_dir()
@@ -53,14 +53,8 @@ moves the MACE by 0.1 px or more (6 px / 60 pairs), so 0.01 px still catches it.
 @pytest.fixture(params=[pytest.param(True, id="opencv_optimized"),
                         pytest.param(False, id="opencv_unoptimized", marks=pytest.mark.slow)])
 def opencv_path(request):
-    """OpenCV's per-CPU SIMD kernels (the default) or its portable code path: two machines'
-    numerics on one machine."""
-    import cv2
-
-    before = cv2.useOptimized()
-    cv2.setUseOptimized(request.param)
-    yield request.param
-    cv2.setUseOptimized(before)
+    with opencv_optimized(request.param):
+        yield request.param
 
 
 @pytest.mark.slow
