@@ -105,7 +105,8 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
       ValueError: ``stage < 2``, the input is not stage ``k-1`` data, or the split is missing.
       FileNotFoundError: no model in ``model_dir``.
     """
-    from stnh_tf import data, runner
+    from stnh_tf import data
+    from stnh_tf.modeling import runner
 
     if stage < 2:
         raise ValueError(f"stage must be >= 2 (stage 1 is data_prep.make_dataset); received {stage}.")

@@ -1,25 +1,49 @@
 """stnh-tf: STN-Homography (Zhou & Li, 2019) in TensorFlow/Keras.
 
-Conventions live in :mod:`stnh_tf.geometry` (NumPy-only import); Keras pieces are imported
-lazily, so data-generation workers that only need geometry never import a deep-learning backend.
+The layers of the package, each importing only the ones above it (``tests/test_layout.py``):
+
+* the NumPy core at the top: :mod:`stnh_tf.geometry` (every convention), :mod:`stnh_tf.pixels`,
+  :mod:`stnh_tf.paths`, :mod:`stnh_tf.hierarchy`, and :mod:`stnh_tf.startup` for the binaries;
+* :mod:`stnh_tf.modeling`: Keras layers, models, losses, model kinds, and the one way to run a
+  model;
+* :mod:`stnh_tf.data`: image sources, the pair protocol, generated batches, TFRecords;
+* :mod:`stnh_tf.training`: the run's configuration, folder, input streams and loop;
+* :mod:`stnh_tf.inference`: the estimator for users, its inputs, model files and export;
+* :mod:`stnh_tf.evaluation`: MACE, the classical baselines, benchmarks;
+* :mod:`stnh_tf.paper`: the paper's tables and figures, and the demo.
+
+Keras is imported lazily, so data-generation workers that only need the NumPy core never import
+a deep-learning backend.
 """
 
 import importlib
 
+from stnh_tf import _compat
+
 __version__ = "0.1.0"
 
 _LAZY = {
-    "SpatialTransformer": "stnh_tf.layers",
-    "HomographyMerge": "stnh_tf.layers",
+    "SpatialTransformer": "stnh_tf.modeling.layers",
+    "HomographyMerge": "stnh_tf.modeling.layers",
     "HomographyEstimator": "stnh_tf.inference",
 }
 
 __all__ = ["geometry", *_LAZY]
 
+# Modules of the flat layout before 0.2 and where they are now (importable for one release).
+_compat.install({
+    "stnh_tf.layers": "stnh_tf.modeling.layers",
+    "stnh_tf.models": "stnh_tf.modeling.models",
+    "stnh_tf.losses": "stnh_tf.modeling.losses",
+    "stnh_tf.model_kinds": "stnh_tf.modeling.model_kinds",
+    "stnh_tf.runner": "stnh_tf.modeling.runner",
+})
+
 
 def __getattr__(name):
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
-    if name in ("geometry", "layers", "data", "models", "training", "evaluation"):
-        return importlib.import_module(f"stnh_tf.{name}")
+    old = f"stnh_tf.{name}"
+    if old in _compat.MOVED or name in ("geometry", "data", "training", "evaluation", "inference"):
+        return importlib.import_module(_compat.MOVED.get(old, old))
     raise AttributeError(f"module 'stnh_tf' has no attribute {name!r}")

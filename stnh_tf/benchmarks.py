@@ -109,7 +109,8 @@ def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
     import keras
     import tensorflow as tf
 
-    from stnh_tf import model_kinds, train_config, training
+    from stnh_tf import train_config, training
+    from stnh_tf.modeling import model_kinds
 
     keras.mixed_precision.set_global_policy(policy)
     keras.utils.set_random_seed(seed)
@@ -122,7 +123,7 @@ def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
             model = reg
             x = tf.concat([x["patch_a"], x["patch_b"]], axis=-1)
             y = y["h_bar"]
-            from stnh_tf import losses
+            from stnh_tf.modeling import losses
 
             model.compile(optimizer=keras.optimizers.SGD(training.learning_rate_schedule(cfg), momentum=0.9),
                           loss=losses.h_bar_l2, jit_compile=jit)
@@ -143,7 +144,7 @@ def time_latency(runs, seed):
     import numpy as np
     import tensorflow as tf
 
-    from stnh_tf import models
+    from stnh_tf.modeling import models
 
     keras.utils.set_random_seed(seed)
     model = models.build_stn_homography()
@@ -222,7 +223,7 @@ def stn_benchmark(batch_size=64, size=128, iterations=30, warmup=3, seed=0, jit_
     import tensorflow as tf
 
     from stnh_tf.evaluation import median_ms
-    from stnh_tf.layers import SpatialTransformer
+    from stnh_tf.modeling.layers import SpatialTransformer
 
     images_np, h_np, h_pix = stn_inputs(batch_size, size, seed)
     images, h_bar = tf.constant(images_np), tf.constant(h_np)
@@ -298,7 +299,8 @@ def time_fit(mode, pair_batches, image_dir, batch_size=64, workers=2, samples_pe
     over ``epochs`` epochs after an untimed one, and the median and longest step."""
     import keras
 
-    from stnh_tf import model_kinds, train_config, training
+    from stnh_tf import train_config, training
+    from stnh_tf.modeling import model_kinds
 
     class Ends(keras.callbacks.Callback):
         def __init__(self):
@@ -378,7 +380,8 @@ def estimator_benchmark(model=None, compute_dtype="float32", runs=30, warmup=5, 
     searches every pair, the search's worst case)."""
     import numpy as np
 
-    from stnh_tf import evaluation, inference, model_files, runner
+    from stnh_tf import evaluation, inference, model_files
+    from stnh_tf.modeling import runner
 
     dtype = None if compute_dtype == "as_saved" else "float32"
     estimator = inference.HomographyEstimator.load(model, compute_dtype=dtype)

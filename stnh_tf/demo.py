@@ -19,7 +19,7 @@ def self_check(seed: int = 0, num_pairs: int = 8) -> dict:
     import skimage.data
 
     from stnh_tf import geometry
-    from stnh_tf.layers import SpatialTransformer
+    from stnh_tf.modeling.layers import SpatialTransformer
 
     rng = np.random.default_rng(seed)
     gray = cv2.resize(cv2.cvtColor(skimage.data.astronaut(), cv2.COLOR_RGB2GRAY), (320, 240))
@@ -75,7 +75,8 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
     import numpy as np
 
     from data_prep import stage1
-    from stnh_tf import data, evaluation, figures, geometry, hierarchy, runner
+    from stnh_tf import data, evaluation, figures, geometry, hierarchy
+    from stnh_tf.modeling import runner
     from stnh_tf.baselines import FIGURE_BASELINES
 
     t_start = time.time()

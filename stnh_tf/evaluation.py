@@ -12,7 +12,8 @@ import time
 
 import numpy as np
 
-from stnh_tf import geometry, pixels, runner
+from stnh_tf import geometry, pixels
+from stnh_tf.modeling import runner
 
 
 def error_summary(errors, identity_errors=None) -> dict:
@@ -101,7 +102,7 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
       data_dir, split: the stored pairs (``stnh_tf.data``).
       baselines: names from :data:`stnh_tf.baselines.BASELINES`, evaluated on the same pairs.
       max_samples: evaluate the first N pairs only (reported as ``count``; default all).
-      compute_dtype: see :func:`stnh_tf.runner.load_model` (``"float32"`` scores mixed-precision models as
+      compute_dtype: see :func:`stnh_tf.modeling.runner.load_model` (``"float32"`` scores mixed-precision models as
         ``HomographyEstimator.load`` runs them; default: as saved).
       clip_to_context: for a hierarchy, the degenerate-prediction rule's clipping of corners onto
         the context border (:func:`evaluate_hierarchy`); ``False`` reports MACE without it.
@@ -170,11 +171,12 @@ def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
     """Table 2: batch-1 latency (ms) of 1..n hierarchical stages (``d_e``, with its terms ``l_m``
     and ``l_w``) and of sequence models; see ``experiments.benchmark_latency``. ``policy`` builds
     the untrained models (and the sequence models); models loaded from ``model_dirs`` keep the
-    policy they were saved with unless ``compute_dtype`` (:func:`stnh_tf.runner.load_model`),
+    policy they were saved with unless ``compute_dtype`` (:func:`stnh_tf.modeling.runner.load_model`),
     and the result's ``policy`` records what the hierarchy ran in."""
     import keras
 
-    from stnh_tf import hierarchy, models
+    from stnh_tf import hierarchy
+    from stnh_tf.modeling import models
 
     rng = np.random.default_rng(seed)
     context = rng.integers(0, 256, (1, 192, 192), dtype=np.uint8)

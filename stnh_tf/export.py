@@ -15,7 +15,7 @@ It is self-contained TensorFlow (no stnh_tf or OpenCV needed to serve it)::
 
 Single-stage and sequence models export exactly the computation of
 :meth:`HomographyEstimator.estimate`. A hierarchy exports its stages chained by the package's
-:class:`~stnh_tf.layers.SpatialTransformer` (the warp of the patch itself, filled beyond it as
+:class:`~stnh_tf.modeling.layers.SpatialTransformer` (the warp of the patch itself, filled beyond it as
 ``estimate`` fills by default, :data:`stnh_tf.inference.PATCH_FILL`: the same geometry as the
 estimator's OpenCV warp of a patch); OpenCV's bilinear warp quantizes sampling
 positions to 1/32 px, so a hierarchy's SavedModel agrees with ``estimate`` only up to that
@@ -70,7 +70,7 @@ def serving_function(estimator):
     from keras import ops
 
     from stnh_tf.inference import PATCH_FILL
-    from stnh_tf.layers import SpatialTransformer
+    from stnh_tf.modeling.layers import SpatialTransformer
 
     stages, outputs = estimator.stages, estimator.output_names
     warp = SpatialTransformer(fill=PATCH_FILL, dtype="float32", name="hierarchy_warp")

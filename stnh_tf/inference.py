@@ -311,7 +311,7 @@ def _output_names(model):
 
 
 def _check_model(model, where):
-    from stnh_tf.runner import final_h_bar_name
+    from stnh_tf.modeling.runner import final_h_bar_name
 
     inputs = getattr(model, "inputs", None) or []
     names = {getattr(t, "name", "").split(":")[0] for t in inputs}
@@ -384,7 +384,7 @@ class HomographyEstimator:
         Raises ``FileNotFoundError`` if nothing is found (also when no weights are shipped) and
         ``ValueError`` if a file is not a usable model.
         """
-        from stnh_tf.runner import load_model
+        from stnh_tf.modeling.runner import load_model
 
         paths = resolve_model_paths(path)
         models = []
@@ -427,9 +427,9 @@ class HomographyEstimator:
     # -- estimation ---------------------------------------------------------------------------
     def _predict_stage(self, k, patch_a, patch_b, batch_size):
         """Stage k's pixel ``H_ba`` ``[B, 3, 3]`` (float64) for float32 ``[B, S, S, 1]`` inputs,
-        through the stage's compiled predictor (:func:`stnh_tf.runner.predictor`, built on
+        through the stage's compiled predictor (:func:`stnh_tf.modeling.runner.predictor`, built on
         first use and kept)."""
-        from stnh_tf import runner
+        from stnh_tf.modeling import runner
 
         if self._predictors[k] is None:
             self._predictors[k] = runner.predictor(self._stages[k], output=self._outputs[k])

@@ -330,7 +330,8 @@ class Reproduction:
         return result
 
     def figures(self, fig4: dict, stages) -> dict:
-        from stnh_tf import data, figures, hierarchy, runner
+        from stnh_tf import data, figures, hierarchy
+        from stnh_tf.modeling import runner
 
         fdir = os.path.join(self.out, "figures")
         out = {}

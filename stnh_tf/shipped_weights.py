@@ -39,7 +39,7 @@ def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
 def _copy_stage(model_dir, weights_dir, name) -> dict:
     """Save run ``model_dir``'s model as ``weights_dir/name``; returns its card entry (file,
     source, the run's config and result without the history)."""
-    from stnh_tf import runner
+    from stnh_tf.modeling import runner
 
     runner.load_model(model_dir).save(os.path.join(weights_dir, name))  # no optimizer state
     entry = {"file": name, "source": os.path.abspath(model_dir)}

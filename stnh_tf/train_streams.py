@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import logging
 
-from stnh_tf import batches, model_kinds, pair_datasets
+from stnh_tf import batches, pair_datasets
+from stnh_tf.modeling import model_kinds
 from stnh_tf.train_config import TrainConfig
 
 _log = logging.getLogger(__name__)
@@ -56,7 +57,8 @@ def stage_pairs(cfg: TrainConfig, pair_batches) -> dict:
     processes. Stage 1: as generated; stage k > 1: re-made in memory from the predictions of
     ``cfg.prev_stages`` (:func:`stnh_tf.hierarchy.next_stage_arrays`, the paper's offline
     re-generation without TFRecords)."""
-    from stnh_tf import hierarchy, runner
+    from stnh_tf import hierarchy
+    from stnh_tf.modeling import runner
 
     if cfg.stage == 1:
         return batches.materialize(pair_batches, cfg.workers)

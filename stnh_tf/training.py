@@ -28,7 +28,7 @@ folder too: its pairs are made in memory from the predictions of the ``prev_stag
 make_stage_dataset makes them.
 
 The pieces, one module per concern: :mod:`stnh_tf.train_config` (the fields and their checks),
-:mod:`stnh_tf.model_kinds` (build, losses and targets of each model kind),
+:mod:`stnh_tf.modeling.model_kinds` (build, losses and targets of each model kind),
 :mod:`stnh_tf.run_dir` (the run's folder and checkpoints), :mod:`stnh_tf.train_streams` (inputs).
 """
 
@@ -43,7 +43,9 @@ import time
 
 import keras
 
-from stnh_tf import model_kinds, run_dir, runner, train_streams
+from stnh_tf import run_dir, train_streams
+from stnh_tf.modeling import model_kinds
+from stnh_tf.modeling import runner
 from stnh_tf.paths import atomic_write_json, fsync_replace
 from stnh_tf.train_config import OPTIMIZER_NAMES, TrainConfig
 

@@ -50,7 +50,7 @@ def narrow_network():
     last layer; about 1/250 of a forward pass's work) for tests of wiring only: loading, saving,
     the estimator's and the card's bookkeeping, training plumbing. The paper's widths are
     tested in test_models; the full network's training in test_training's slow tests."""
-    from stnh_tf import models
+    from stnh_tf.modeling import models
 
     with pytest.MonkeyPatch.context() as m:
         m.setattr(models, "CONV_FILTERS", NARROW_FILTERS)

@@ -166,7 +166,8 @@ def test_no_clip_through_the_hierarchy_and_its_evaluation(pairs, monkeypatch):
     """Stage 1 overshoots by 45 px (outside the 32-px context), stage 2 returns a fixed matrix:
     without clipping the estimates are exactly their products, stage 2 reads zeros beyond the
     context, and ``evaluate_hierarchy`` scores those products."""
-    from stnh_tf import evaluation, runner
+    from stnh_tf import evaluation
+    from stnh_tf.modeling import runner
 
     n = len(pairs["h_ba"])
     t45 = np.repeat(geometry.translation(45, 0)[None], n, 0)
@@ -215,7 +216,8 @@ def test_no_clip_needs_a_hierarchy():
 def test_latency_records_the_policy_the_models_ran_in(tmp_path):
     """Loaded models keep the policy they were saved with, whatever ``policy`` asks for."""
     from conftest import keras_policy
-    from stnh_tf import evaluation, models
+    from stnh_tf import evaluation
+    from stnh_tf.modeling import models
 
     with keras_policy("mixed_bfloat16"):
         models.build_stn_homography().save(tmp_path / "stage1.keras")

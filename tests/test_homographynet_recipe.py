@@ -9,7 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from stnh_tf import model_kinds, train_config, training
+from stnh_tf import train_config, training
+from stnh_tf.modeling import model_kinds
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

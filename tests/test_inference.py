@@ -22,7 +22,8 @@ import skimage.data
 
 from conftest import (cv2_warp, inside_mask, keras_policy, narrow_network, ncc_reference,
                       norm_matrix, paper_homography, to_bar)
-from stnh_tf import export, geometry, image_input, model_files, models
+from stnh_tf import export, geometry, image_input, model_files
+from stnh_tf.modeling import models
 from stnh_tf.inference import HomographyEstimator
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -7,7 +7,7 @@ import pytest
 import tensorflow as tf
 
 from conftest import cv2_warp, inside_mask, keras_policy, norm_matrix, paper_homography, to_bar
-from stnh_tf.layers import HomographyMerge, SpatialTransformer
+from stnh_tf.modeling.layers import HomographyMerge, SpatialTransformer
 
 TOL = 0.5  # mean absolute difference, gray levels of 255
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import narrow_network
-from stnh_tf import models
+from stnh_tf.modeling import models
 
 FILTERS = [64, 64, 64, 64, 128, 128, 128, 128]
 
@@ -168,7 +168,7 @@ def test_homographynet_save_load_round_trip(build, narrow, tmp_path, rng):
 
 
 def test_patch_standardization_matches_numpy_and_ignores_gain_and_offset(rng):
-    from stnh_tf.layers import PatchStandardization
+    from stnh_tf.modeling.layers import PatchStandardization
 
     x = rng.uniform(size=(3, 16, 16, 2)).astype(np.float32)
     x[2, ..., 1] = 0.4  # a constant channel maps to zeros

@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 
 from data_prep import stage1
-from stnh_tf import batches, data, models, pairs, run_dir, runner, sources, train_config, training
+from stnh_tf import batches, data, pairs, run_dir, sources, train_config, training
+from stnh_tf.modeling import models
+from stnh_tf.modeling import runner
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PHOTO = pairs.PhotometricChange()

@@ -16,9 +16,11 @@ import tensorflow as tf
 from keras import ops
 
 from conftest import cv2_warp, inside_mask, keras_policy, norm_matrix, paper_homography, to_bar
-from stnh_tf import losses as losses_lib
-from stnh_tf import model_kinds, models, run_dir, train_config, training
-from stnh_tf.layers import HomographyMerge, SpatialTransformer
+from stnh_tf.modeling import losses as losses_lib
+from stnh_tf import run_dir, train_config, training
+from stnh_tf.modeling import model_kinds
+from stnh_tf.modeling import models
+from stnh_tf.modeling.layers import HomographyMerge, SpatialTransformer
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CORNERS = np.array([[0, 0], [128, 0], [128, 128], [0, 128]], np.float64)

@@ -16,7 +16,8 @@ import pytest
 
 from conftest import keras_policy, ncc_reference, to_bar
 from stnh_tf import shipped_weights
-from stnh_tf import inference, models
+from stnh_tf import inference
+from stnh_tf.modeling import models
 
 S = 128
 

@@ -193,7 +193,7 @@ def test_binary_with_a_real_stage_model(stage1_data, tmp_path, narrow):
     model is tested in test_streams, the binary's error path below)."""
     import keras
 
-    from stnh_tf import models
+    from stnh_tf.modeling import models
 
     keras.utils.set_random_seed(0)
     model_dir = tmp_path / "stage1_model"

@@ -243,7 +243,7 @@ def test_evaluate_scores_mixed_precision_models_in_float32_on_request(records, t
     build of the same weights, alone and as a 2-stage hierarchy; by default it runs as saved."""
     from conftest import keras_policy
 
-    from stnh_tf import models
+    from stnh_tf.modeling import models
 
     rng = np.random.default_rng(5)
     with keras_policy("mixed_bfloat16"):

@@ -19,7 +19,9 @@ import tensorflow as tf
 
 from conftest import NARROW_FILTERS, narrow_network
 from data_prep import stage1
-from stnh_tf import data, geometry, model_kinds, run_dir, runner, train_config, training
+from stnh_tf import data, geometry, run_dir, train_config, training
+from stnh_tf.modeling import model_kinds
+from stnh_tf.modeling import runner
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -327,7 +329,9 @@ import numpy as np
 import tensorflow as tf
 cpu = tf.config.list_physical_devices("CPU")[0]
 tf.config.set_logical_device_configuration(cpu, [tf.config.LogicalDeviceConfiguration()] * 2)
-from stnh_tf import data, models, runner, train_config, training
+from stnh_tf import data, train_config, training
+from stnh_tf.modeling import models
+from stnh_tf.modeling import runner
 data_dir, work, filters, mask = sys.argv[1], sys.argv[2], json.loads(sys.argv[3]), sys.argv[4]
 models.CONV_FILTERS = tuple(filters)  # conftest's narrow network
 

@@ -47,9 +47,9 @@ def load_model(model_dir_or_file, compute_dtype=None):
                          f"received {compute_dtype!r}.")
     import keras
 
-    import stnh_tf.layers  # noqa: F401  (registers the custom layers)
-    import stnh_tf.losses  # noqa: F401
-    import stnh_tf.models  # noqa: F401
+    import stnh_tf.modeling.layers  # noqa: F401  (registers the custom layers)
+    import stnh_tf.modeling.losses  # noqa: F401
+    import stnh_tf.modeling.models  # noqa: F401
 
     path = model_dir_or_file
     if os.path.isdir(path):

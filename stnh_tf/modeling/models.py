@@ -19,7 +19,7 @@ import numpy as np
 from keras import layers, ops
 
 from stnh_tf import geometry
-from stnh_tf.layers import HomographyMerge, PatchStandardization, SpatialTransformer
+from stnh_tf.modeling.layers import HomographyMerge, PatchStandardization, SpatialTransformer
 
 IDENTITY_H_BAR = np.array([1, 0, 0, 0, 1, 0, 0, 0], dtype=np.float32)
 CONV_FILTERS = (64, 64, 64, 64, 128, 128, 128, 128)

@@ -11,12 +11,12 @@ from typing import Callable
 
 import keras
 
-from stnh_tf import losses as losses_lib
-from stnh_tf import models
+from stnh_tf.modeling import losses as losses_lib
+from stnh_tf.modeling import models
 from stnh_tf.train_config import MODEL_KINDS, TrainConfig
 
 def l2_term_weight(cfg: TrainConfig) -> float:
-    """The loss weight of :func:`stnh_tf.losses.h_bar_l2` (a mean over H_bar's 8 entries):
+    """The loss weight of :func:`stnh_tf.modeling.losses.h_bar_l2` (a mean over H_bar's 8 entries):
     ``l2_weight``, times 8 with ``l2_reduction="sum"`` (a sum over the 8 entries)."""
     return cfg.l2_weight * (8.0 if cfg.l2_reduction == "sum" else 1.0)
 
