@@ -2,8 +2,8 @@
 pairs made on the fly from images (:class:`PairSequence`, :class:`PairStream`) or served from
 arrays made once in memory (:class:`ArraySequence`, :class:`ArrayStream`).
 
-Batches are ``(x, y, w)`` NumPy arrays with the structure of :func:`stnh_tf.data.load_split`'s
-(TFRecords); the pairs are those of :class:`stnh_tf.batches.PairBatches` (the same samples as
+Batches are ``(x, y, w)`` NumPy arrays with the structure of :func:`stnh_tf.data.tfrecords.load_split`'s
+(TFRecords); the pairs are those of :class:`stnh_tf.data.batches.PairBatches` (the same samples as
 ``data_prep.make_dataset``), so training can run under the JAX backend without TFRecords.
 
 Which one: :class:`PairSequence` for one pass over a fixed set (indexable, shuffled per seed);
@@ -18,7 +18,7 @@ import time
 
 import keras
 
-from stnh_tf.batches import PairBatches, generator_pool, model_batch, step_batch_async
+from stnh_tf.data.batches import PairBatches, generator_pool, model_batch, step_batch_async
 
 class PairSequence(keras.utils.PyDataset):
     """:class:`PairBatches` as a ``keras.utils.PyDataset``: ``model.fit(PairSequence(...))``.

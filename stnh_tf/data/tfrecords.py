@@ -1,6 +1,6 @@
 """TFRecord datasets: reading the shards ``data_prep`` writes, for ``model.fit`` and evaluation.
 
-Datasets are written by ``python -m data_prep.make_dataset`` (spec: :mod:`stnh_tf.features`).
+Datasets are written by ``python -m data_prep.make_dataset`` (spec: :mod:`stnh_tf.data.features`).
 A dataset directory holds ``{split}-NNNNN-of-MMMMM.tfrecord`` shards and ``metadata.json``
 (``{"stage": k, "feature_spec": ..., "splits": {split: {...}}}``); the readers trust only the
 shards the metadata lists for a split whose ``status`` is ``"complete"``.
@@ -15,8 +15,8 @@ where ``patch_a_warp`` is the stored ``patch_a_t`` (``patch_a`` warped by the tr
 ``patch_a_t(p) = patch_a(H_ba @ p)``, zero outside), the target of the photometric loss.
 
 TensorFlow is imported only inside the TFRecord functions. The same samples generated with
-NumPy/OpenCV only (no TFRecords, any Keras backend) are :class:`stnh_tf.batches.PairBatches`,
-served to ``model.fit`` by :mod:`stnh_tf.pair_datasets`.
+NumPy/OpenCV only (no TFRecords, any Keras backend) are :class:`stnh_tf.data.batches.PairBatches`,
+served to ``model.fit`` by :mod:`stnh_tf.data.pair_datasets`.
 """
 
 from __future__ import annotations
@@ -26,7 +26,8 @@ import os
 
 import numpy as np
 
-from stnh_tf import features, pixels
+from stnh_tf import pixels
+from stnh_tf.data import features
 from stnh_tf.paths import inside, read_json
 
 METADATA_FILE = "metadata.json"

@@ -6,7 +6,7 @@
 * **One writer per split.** :func:`split_lock` holds the split's lock (``.{split}.lock``) for one
   writer; a second writer of the same split fails at once.
 
-The readers' side is :mod:`stnh_tf.data`. Standard library only (with :mod:`stnh_tf.paths`).
+The readers' side is :mod:`stnh_tf.data.tfrecords`. Standard library only (with :mod:`stnh_tf.paths`).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import os
 import re
 from typing import Optional
 
-from stnh_tf.data import METADATA_FILE
+from stnh_tf.data.tfrecords import METADATA_FILE
 from stnh_tf.paths import atomic_write_json, read_json
 
 LOCK_FILE = ".metadata.lock"

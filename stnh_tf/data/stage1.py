@@ -14,8 +14,9 @@ import shlex
 import socket
 import sys
 
-from data_prep import metadata, writer
-from stnh_tf import pairs, paths, sources
+from stnh_tf.data import metadata, writer
+from stnh_tf import paths
+from stnh_tf.data import pairs, sources
 
 SOURCES = ("folder", "bundled", "coco2014")
 COCO_TFDS_SPLITS = {"train": "train+validation", "test": "test"}
@@ -93,7 +94,7 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
                  photometric: bool = False) -> dict:
     """Library entry point of the binary (tests call it directly). Returns the split's metadata.
 
-    ``photometric`` changes patch_b photometrically (:class:`stnh_tf.pairs.PhotometricChange`;
+    ``photometric`` changes patch_b photometrically (:class:`stnh_tf.data.pairs.PhotometricChange`;
     not the paper's protocol, recorded in the metadata's ``protocol``).
 
     Every argument, and for the folder and bundled sources the image listing, is checked

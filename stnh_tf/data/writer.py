@@ -2,17 +2,17 @@
 
 Used by ``data_prep.make_dataset`` (stage 1) and reusable by later-stage generators: give it a
 sequence of :class:`WorkItem` and a picklable ``worker_fn(item) -> list of sample dicts`` (the
-dicts hold :data:`stnh_tf.features.FEATURE_NAMES`).
+dicts hold :data:`stnh_tf.data.features.FEATURE_NAMES`).
 
 * **Determinism.** Item ``i`` of ``n`` goes to shard ``i * num_shards // n`` (contiguous blocks, so
   the shards read in order list the items in order); results are written in item order whatever
   ``num_workers`` is. Byte-identical output therefore only needs ``worker_fn`` to depend on the
   item alone (seed its RNG from the item's index).
 * **Workers** are ``spawn``-ed processes (``num_workers > 1``) that import only what ``worker_fn``'s
-  module imports (no TensorFlow for ``stnh_tf.pairs``); they build and serialize the samples. The
+  module imports (no TensorFlow for ``stnh_tf.data.pairs``); they build and serialize the samples. The
   parent process writes the records (TensorFlow's ``TFRecordWriter``, imported lazily here).
   ``num_workers <= 1`` runs everything in-process.
-* **One writer per split.** A run holds the split's lock (:func:`data_prep.metadata.split_lock`)
+* **One writer per split.** A run holds the split's lock (:func:`stnh_tf.data.metadata.split_lock`)
   from start to end; a second run on the same split fails at once instead of deleting the first
   one's files.
 * **Atomicity.** Each shard is written to ``<name>.tmp-<pid>`` and renamed when complete; the
@@ -24,7 +24,7 @@ dicts hold :data:`stnh_tf.features.FEATURE_NAMES`).
   reason in the split's ``skipped`` list (and logged); it never stops the run.
 * **metadata.json** (``{"stage": ..., "feature_spec": ..., "splits": {split: {...}}}``) is
   read-modify-written under a file lock and replaced atomically, so separate commands can write
-  ``train`` and ``test`` into one directory (:mod:`data_prep.metadata`).
+  ``train`` and ``test`` into one directory (:mod:`stnh_tf.data.metadata`).
 """
 
 from __future__ import annotations
@@ -40,8 +40,8 @@ import re
 import time
 from typing import Any, Callable, Iterable, Optional
 
-from data_prep.metadata import check_split_name, read_metadata_file, split_lock, update_metadata
-from stnh_tf import features
+from stnh_tf.data.metadata import check_split_name, read_metadata_file, split_lock, update_metadata
+from stnh_tf.data import features
 from stnh_tf.paths import check_output_dir
 
 TARGET_SHARD_BYTES = 128 * 2 ** 20
@@ -231,7 +231,7 @@ def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: 
       ValueError: no work items, bad ``num_shards``/``split``, or every item skipped.
       OSError: ``output_dir`` not writable.
       FileExistsError: the split is complete and ``overwrite`` is off, or another process is
-        writing it (:func:`data_prep.metadata.split_lock`).
+        writing it (:func:`stnh_tf.data.metadata.split_lock`).
     """
     check_split_name(split)
     if num_items is None:

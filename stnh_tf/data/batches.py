@@ -1,10 +1,10 @@
 """Stage-1 training batches generated on the fly from images, and their worker processes.
 
 NumPy / OpenCV only (no TensorFlow, no Keras): generator worker processes import this module and
-never start a deep-learning backend. :mod:`stnh_tf.pair_datasets` wraps these pieces in Keras
+never start a deep-learning backend. :mod:`stnh_tf.data.pair_datasets` wraps these pieces in Keras
 ``PyDataset``\ s (``PairSequence``, ``PairStream``, ``ArrayStream``, ``ArraySequence``).
 
-Batches are ``(x, y, w)`` with :func:`stnh_tf.data.load_split`'s structure and values, or the
+Batches are ``(x, y, w)`` with :func:`stnh_tf.data.tfrecords.load_split`'s structure and values, or the
 compact form of :func:`stack_samples` (uint8 patches: what workers send back and what
 :func:`materialize` keeps in memory, 48 KB a pair), which :func:`model_batch` turns into floats.
 """
@@ -18,8 +18,9 @@ import sys
 
 import numpy as np
 
-from stnh_tf import pairs, pixels, sources
-from stnh_tf.sources import (ImageDecodeError, SourceError, bundled_image_files, scan_image_folder,
+from stnh_tf import pixels
+from stnh_tf.data import pairs, sources
+from stnh_tf.data.sources import (ImageDecodeError, SourceError, bundled_image_files, scan_image_folder,
                              scan_image_folders)
 
 _log = logging.getLogger(__name__)
@@ -284,7 +285,7 @@ def materialize(batches: PairBatches, workers: int = 0, chunk: int = 256,
     :func:`stack_samples`'s compact form (uint8 patches, 48 KB a pair; with ``context`` also
     ``context_a`` and ``h_ba``, 84 KB), generated in ``workers`` processes (0: this process)
     straight into preallocated arrays. The fixed set of ``len(images) * samples_per_image``
-    pairs then trains from memory (:class:`stnh_tf.pair_datasets.ArrayStream`)."""
+    pairs then trains from memory (:class:`stnh_tf.data.pair_datasets.ArrayStream`)."""
     n = batches.num_samples
     tasks = [(a, min(a + chunk, n), context) for a in range(0, n, chunk)]
     out = None

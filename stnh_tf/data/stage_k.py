@@ -19,7 +19,7 @@
 
 The model runs in the parent process; the re-cropping runs in the writer's worker processes
 (NumPy/OpenCV only). Sharding, atomic writes, metadata and progress are those of
-:mod:`data_prep.writer` and :mod:`data_prep.metadata`, shared with the stage-1 generator.
+:mod:`stnh_tf.data.writer` and :mod:`stnh_tf.data.metadata`, shared with the stage-1 generator.
 """
 
 from __future__ import annotations
@@ -31,8 +31,9 @@ import sys
 
 import numpy as np
 
-from data_prep import metadata, writer
-from stnh_tf import features, hierarchy, pixels
+from stnh_tf.data import metadata, writer
+from stnh_tf import hierarchy, pixels
+from stnh_tf.data import features
 from stnh_tf.paths import check_output_dir
 
 READ_BATCH = 256
@@ -105,7 +106,7 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
       ValueError: ``stage < 2``, the input is not stage ``k-1`` data, or the split is missing.
       FileNotFoundError: no model in ``model_dir``.
     """
-    from stnh_tf import data
+    from stnh_tf.data import tfrecords as data
     from stnh_tf.modeling import runner
 
     if stage < 2:

@@ -242,12 +242,12 @@ def generate_item_samples(item, seed: int, protocol: Protocol = Protocol()) -> l
     """Worker function of the stage-1 writer: a work item -> its samples.
 
     ``item`` has ``index`` (image index, seeds the RNG), ``item_id`` and ``payload`` (a path,
-    encoded image bytes, or a decoded array); see ``data_prep.writer.WorkItem``.
+    encoded image bytes, or a decoded array); see ``stnh_tf.data.writer.WorkItem``.
 
     Raises:
       sources.ImageDecodeError: the image cannot be read (the writer records the reason).
     """
-    from stnh_tf import sources
+    from stnh_tf.data import sources
 
     image_a = sources.as_gray_320x240(item.payload)
     return make_image_samples(image_a, seed, item.index, item.item_id, protocol)

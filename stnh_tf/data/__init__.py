@@ -1,0 +1,15 @@
+"""Data: image sources (:mod:`~stnh_tf.data.sources`), the paper's pair protocol
+(:mod:`~stnh_tf.data.pairs`), batches generated from images and their Keras datasets
+(:mod:`~stnh_tf.data.batches`, :mod:`~stnh_tf.data.pair_datasets`; NumPy/OpenCV only), and the
+TFRecord side: the feature spec (:mod:`~stnh_tf.data.features`), reading
+(:mod:`~stnh_tf.data.tfrecords`), the sharded writer and the stage-1 / stage-k dataset libraries
+behind ``python -m data_prep.*`` (:mod:`~stnh_tf.data.writer`, :mod:`~stnh_tf.data.metadata`,
+:mod:`~stnh_tf.data.stage1`, :mod:`~stnh_tf.data.stage_k`).
+
+Importing a submodule imports no deep-learning backend unless that submodule needs one.
+"""
+
+from stnh_tf import _compat
+
+# Before 0.2 ``stnh_tf.data`` was the TFRecord reader: its names stay reachable here.
+__getattr__ = _compat.delegate(__name__, "stnh_tf.data.tfrecords")
