@@ -9,7 +9,7 @@ it on the TFRecord dataset in ``config.data_dir`` with:
   ``warmup_target``): the paper's 1,000 + 90,000 steps by default. ``lr_schedule="step"`` is
   DeTone et al.'s schedule instead (the learning rate divided by 10 after each third of the
   steps), which the binaries preset for ``--model=homographynet``
-  (:data:`stnh_tf.train_config.MODEL_DEFAULTS`).
+  (:data:`stnh_tf.training.config.MODEL_DEFAULTS`).
 * Atomic periodic checkpoints (model + optimizer + RNG state) every ``checkpoint_every`` steps; a
   killed run restarted with the same command resumes at the last checkpoint, repositions the data
   stream at that step, and follows the same schedule to the same final step.
@@ -19,17 +19,17 @@ it on the TFRecord dataset in ``config.data_dir`` with:
 
 Two data sources, same losses and schedule: the TFRecords in ``data_dir`` (TensorFlow backend), or
 ``image_dir``: stage-1 pairs generated on the fly from a folder of images by
-:class:`stnh_tf.pair_datasets.PairStream` (NumPy/OpenCV in worker processes; any Keras backend,
+:class:`stnh_tf.data.pair_datasets.PairStream` (NumPy/OpenCV in worker processes; any Keras backend,
 e.g. JAX on a GPU machine without TensorFlow). ``image_dir`` with ``samples_per_image=N`` and
 ``seed=S`` gives exactly the pairs ``data_prep.make_dataset --samples_per_image=N --seed=S`` writes (shuffled
 differently); ``fresh_pairs`` draws new pairs every data epoch instead. With ``in_memory`` the set
-is generated once (:func:`stnh_tf.train_streams.stage_pairs`), and stage k > 1 trains from the
+is generated once (:func:`stnh_tf.training.streams.stage_pairs`), and stage k > 1 trains from the
 folder too: its pairs are made in memory from the predictions of the ``prev_stages`` models, as
 make_stage_dataset makes them.
 
-The pieces, one module per concern: :mod:`stnh_tf.train_config` (the fields and their checks),
+The pieces, one module per concern: :mod:`stnh_tf.training.config` (the fields and their checks),
 :mod:`stnh_tf.modeling.model_kinds` (build, losses and targets of each model kind),
-:mod:`stnh_tf.run_dir` (the run's folder and checkpoints), :mod:`stnh_tf.train_streams` (inputs).
+:mod:`stnh_tf.training.run_dir` (the run's folder and checkpoints), :mod:`stnh_tf.training.streams` (inputs).
 """
 
 from __future__ import annotations
@@ -43,11 +43,11 @@ import time
 
 import keras
 
-from stnh_tf import run_dir, train_streams
-from stnh_tf.modeling import model_kinds
-from stnh_tf.modeling import runner
+from stnh_tf.training import run_dir
+from stnh_tf.training import streams as train_streams
+from stnh_tf.modeling import model_kinds, runner
 from stnh_tf.paths import atomic_write_json, fsync_replace
-from stnh_tf.train_config import OPTIMIZER_NAMES, TrainConfig
+from stnh_tf.training.config import OPTIMIZER_NAMES, TrainConfig
 
 
 def _sgd(cfg, schedule, **common):
@@ -193,7 +193,9 @@ def check_start(cfg: TrainConfig) -> None:
       ValueError / OSError (``FileNotFoundError``, ``data.ShardError``): naming the flag, folder
         or file.
     """
-    from stnh_tf import batches, data, sources
+    from stnh_tf.data import batches
+    from stnh_tf.data import tfrecords as data
+    from stnh_tf.data import sources
 
     cfg.validate()
     model_kinds.loss_spec(cfg)
@@ -272,7 +274,7 @@ def initialize_from(model, stage_dirs):
 
 
 # ------------------------------------------------------------------------------------------------
-# Data streams (on top of stnh_tf.data)
+# Data streams (on top of stnh_tf.data.tfrecords)
 # ------------------------------------------------------------------------------------------------
 
 
@@ -356,7 +358,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     wrote is removed again. A corrupted shard met while training raises ``data.ShardError``
     naming the file.
     """
-    from stnh_tf import data
+    from stnh_tf.data import tfrecords as data
 
     check_start(cfg)
     warning = mixed_precision_warning(cfg)

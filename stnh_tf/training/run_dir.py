@@ -1,7 +1,7 @@
 """A training run's folder: the files a run writes, its atomic checkpoints, and the rules by which
 a run is started, resumed or overwritten there.
 
-Layout of ``model_dir``: ``config.json`` (the :class:`~stnh_tf.train_config.TrainConfig` with
+Layout of ``model_dir``: ``config.json`` (the :class:`~stnh_tf.training.config.TrainConfig` with
 :data:`CONFIG_MARKER`), ``checkpoint/`` (``ckpt-<step>.weights.h5`` committed by ``state.json``),
 ``logs/`` (TensorBoard), and when finished ``model.keras`` and ``result.json``.
 """
@@ -16,7 +16,7 @@ import keras
 import numpy as np
 
 from stnh_tf.paths import atomic_write_json, fsync_replace, inside, read_json
-from stnh_tf.train_config import RESUME_FREE_FIELDS, TrainConfig
+from stnh_tf.training.config import RESUME_FREE_FIELDS, TrainConfig
 
 FINAL_MODEL = "model.keras"
 CONFIG_FILE = "config.json"

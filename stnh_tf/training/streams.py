@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import logging
 
-from stnh_tf import batches, pair_datasets
+from stnh_tf.data import batches, pair_datasets
 from stnh_tf.modeling import model_kinds
-from stnh_tf.train_config import TrainConfig
+from stnh_tf.training.config import TrainConfig
 
 _log = logging.getLogger(__name__)
 
@@ -21,7 +21,7 @@ def check_dataset(data_dir: str, split: str, stage: int) -> dict:
     dataset is missing, lacks the split, or was built for another stage (a stage-k model must be
     trained on the stage-k data that ``data_prep.make_stage_dataset`` writes).
     """
-    from stnh_tf import data
+    from stnh_tf.data import tfrecords as data
 
     meta = data.read_metadata(data_dir)
     splits = meta.get("splits", {})
@@ -44,7 +44,7 @@ def training_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0)
     interleave), so a resumed run skips the batches it has already consumed and sees exactly the
     batches an uninterrupted run would have seen.
     """
-    from stnh_tf import data
+    from stnh_tf.data import tfrecords as data
 
     return data.load_split(cfg.data_dir, split, cfg.batch_size, shuffle=True, seed=cfg.seed,
                            repeat=True, shuffle_buffer=cfg.shuffle_buffer, cycle_length=64,
@@ -52,8 +52,8 @@ def training_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0)
 
 
 def stage_pairs(cfg: TrainConfig, pair_batches) -> dict:
-    """``pair_batches``' pairs (``stnh_tf.batches.PairBatches``, epoch 0) for stage ``cfg.stage``,
-    in the compact form (:func:`stnh_tf.batches.stack_samples`), generated with ``cfg.workers``
+    """``pair_batches``' pairs (``stnh_tf.data.batches.PairBatches``, epoch 0) for stage ``cfg.stage``,
+    in the compact form (:func:`stnh_tf.data.batches.stack_samples`), generated with ``cfg.workers``
     processes. Stage 1: as generated; stage k > 1: re-made in memory from the predictions of
     ``cfg.prev_stages`` (:func:`stnh_tf.hierarchy.next_stage_arrays`, the paper's offline
     re-generation without TFRecords)."""
@@ -73,9 +73,9 @@ def stage_pairs(cfg: TrainConfig, pair_batches) -> dict:
 
 def generated_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0):
     """The endless stream of pairs generated from ``cfg.image_dir`` (mapped onto the model's
-    outputs), positioned at ``start_step`` (:class:`stnh_tf.pair_datasets.PairStream`, or with
-    ``in_memory`` :class:`stnh_tf.pair_datasets.ArrayStream` over :func:`stage_pairs`)."""
-    from stnh_tf import sources
+    outputs), positioned at ``start_step`` (:class:`stnh_tf.data.pair_datasets.PairStream`, or with
+    ``in_memory`` :class:`stnh_tf.data.pair_datasets.ArrayStream` over :func:`stage_pairs`)."""
+    from stnh_tf.data import sources
 
     del split
     if cfg.in_memory:
@@ -97,7 +97,7 @@ def generated_validation(cfg: TrainConfig):
     """The first :func:`validation_count` of the fixed pairs from ``cfg.val_image_dir`` (seed
     ``cfg.val_seed``, three per image in image order: with seed 1, make_dataset's test pairs), for
     stage ``cfg.stage``, made once in memory."""
-    from stnh_tf import sources
+    from stnh_tf.data import sources
 
     per_image = 3
     pair_batches = batches.PairBatches(sources.split_folders(cfg.val_image_dir), cfg.batch_size,
@@ -117,7 +117,7 @@ def validation_count(cfg: TrainConfig, available: int) -> int:
 def validation_stream(cfg: TrainConfig, split: str):
     """The first :func:`validation_count` pairs of ``split`` (unshuffled, fixed), batched.
     Returns ``(dataset, batches)``."""
-    from stnh_tf import data
+    from stnh_tf.data import tfrecords as data
 
     available = data.split_info(cfg.data_dir, split).get("num_samples", cfg.val_samples)
     n = validation_count(cfg, available)
@@ -129,11 +129,11 @@ def validation_stream(cfg: TrainConfig, split: str):
 def raise_shard_error(cfg: TrainConfig, error: BaseException) -> None:
     """For a ``DataLossError`` met while training on ``cfg.data_dir``: raise ``data.ShardError``
     naming the corrupted shard, found by reading the splits in use with CRC checks
-    (:func:`stnh_tf.data.verify_split`, what evaluation's reader reports). Any other error:
+    (:func:`stnh_tf.data.tfrecords.verify_split`, what evaluation's reader reports). Any other error:
     return (the caller re-raises it)."""
     import tensorflow as tf
 
-    from stnh_tf import data
+    from stnh_tf.data import tfrecords as data
 
     if not isinstance(error, tf.errors.DataLossError):
         return
