@@ -1,7 +1,7 @@
 """Data generation and reading throughput, library core of ``experiments.benchmark_data`` (its
 docstring says what is timed and how to run it): the stage-1 worker through the real writer
-(:func:`data_prep.writer.write_sharded`) with each worker count, then
-:func:`stnh_tf.data.load_split` reading what was written.
+(:func:`stnh_tf.data.writer.write_sharded`) with each worker count, then
+:func:`stnh_tf.data.tfrecords.load_split` reading what was written.
 """
 
 from __future__ import annotations
@@ -15,9 +15,8 @@ import sys
 import tempfile
 import time
 
-from data_prep import stage1, writer
-from stnh_tf import pairs, sources
-from stnh_tf.benchmarks import machine_info
+from stnh_tf.data import pairs, sources, stage1, writer
+from stnh_tf.evaluation.benchmarks import machine_info
 
 
 def repeated_items(source, image_dir, max_images, repeat, samples_per_image=3):
@@ -74,7 +73,7 @@ def data_benchmark(source="bundled", image_dir=None, max_images=0, repeat=0, wor
                 "bytes_per_sample": sec["bytes_per_sample"]})
         result["shards_identical_across_worker_counts"] = len(set(digests.values())) == 1
 
-        from stnh_tf import data
+        from stnh_tf.data import tfrecords as data
 
         read_dir = os.path.join(root, f"w{int(workers[0])}")
         ds = data.load_split(read_dir, "train", batch_size, shuffle=True, seed=0)

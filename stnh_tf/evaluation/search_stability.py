@@ -29,7 +29,7 @@ def _moved(a_from_b, px, rng):
 def search_stability(estimator, patch_a, patch_b, h_ba, perturbations=(0.01, 0.1, 0.3),
                      seed=0) -> dict:
     """The default ``estimator.estimate`` of float32 ``[B, 128, 128, 1]`` pairs on both OpenCV
-    paths, and :func:`stnh_tf.inference.search_translations` from the network's estimates
+    paths, and :func:`stnh_tf.inference.estimator.search_translations` from the network's estimates
     moved by each of ``perturbations`` px (optimized path).
 
     Returns a dict: ``pairs``; per path (``optimized``, ``unoptimized``) ``mace``, ``searched``,
@@ -39,7 +39,7 @@ def search_stability(estimator, patch_a, patch_b, h_ba, perturbations=(0.01, 0.1
     differs by more than :data:`DIFFER_PX` from the unmoved one's; not found counts as the
     network estimate).
     """
-    from stnh_tf import inference
+    from stnh_tf.inference import estimator as inference
 
     was_optimized = cv2.useOptimized()
     out, estimates = {"pairs": int(len(h_ba))}, {}

@@ -1,8 +1,8 @@
 """The settings grid of the classical baselines, library core of ``experiments.tune_baselines``
 (its docstring says how to run it): paper-protocol pairs drawn in memory from photographs
-(:func:`stnh_tf.sources.load_gray_images`, :func:`stnh_tf.pairs.make_pair_arrays`), identity, the
+(:func:`stnh_tf.data.sources.load_gray_images`, :func:`stnh_tf.data.pairs.make_pair_arrays`), identity, the
 registered baselines and ORB / SIFT settings around them (:func:`settings_grid`), each evaluated
-with :func:`stnh_tf.baselines.evaluate_baseline`. NumPy/OpenCV only.
+with :func:`stnh_tf.evaluation.baselines.evaluate_baseline`. NumPy/OpenCV only.
 """
 
 from __future__ import annotations
@@ -58,8 +58,9 @@ def run_tuning(image_dir=None, num_pairs=300, seed=0, grid="small"):
     """Generate the pairs, evaluate every entry of :func:`settings_grid`; returns the result dict."""
     import cv2
 
-    from stnh_tf import baselines, pairs, sources
-    from stnh_tf.benchmarks import machine_info
+    from stnh_tf.evaluation import baselines
+    from stnh_tf.data import pairs, sources
+    from stnh_tf.evaluation.benchmarks import machine_info
 
     images = sources.load_gray_images(image_dir)
     pa, pb, h = pairs.make_pair_arrays(images, num_pairs, seed)

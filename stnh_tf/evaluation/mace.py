@@ -99,8 +99,8 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
         dataset its estimate is composed with the stored ``h_prev``), or several single-stage
         directories forming a hierarchy (run on stage-1 pairs with the context warp between
         stages), or none.
-      data_dir, split: the stored pairs (``stnh_tf.data``).
-      baselines: names from :data:`stnh_tf.baselines.BASELINES`, evaluated on the same pairs.
+      data_dir, split: the stored pairs (``stnh_tf.data.tfrecords``).
+      baselines: names from :data:`stnh_tf.evaluation.baselines.BASELINES`, evaluated on the same pairs.
       max_samples: evaluate the first N pairs only (reported as ``count``; default all).
       compute_dtype: see :func:`stnh_tf.modeling.runner.load_model` (``"float32"`` scores mixed-precision models as
         ``HomographyEstimator.load`` runs them; default: as saved).
@@ -113,8 +113,8 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
         without a hierarchy (checked before anything is read); a missing split, a model or
         baseline that does not fit the data.
     """
-    from stnh_tf import baselines as baselines_lib
-    from stnh_tf import data
+    from stnh_tf.evaluation import baselines as baselines_lib
+    from stnh_tf.data import tfrecords as data
 
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1; received {batch_size}.")
@@ -231,7 +231,7 @@ IMPLAUSIBILITY_CASES = ("ordinary", "other_photograph", "rotated_180", "moved_80
 def implausibility_check(model=None, data_dir=None, split="test", compute_dtype="float32",
                          batch_size=64, photometric=False, refine="none",
                          tta="none", retry_tta="none", search=None) -> dict:
-    """How often :attr:`~stnh_tf.inference.HomographyEstimator.last_info` flags the estimates of
+    """How often :attr:`~stnh_tf.inference.estimator.HomographyEstimator.last_info` flags the estimates of
     ``HomographyEstimator.estimate`` on stored pairs and on pairs made from them that the models
     were not trained on (:data:`IMPLAUSIBILITY_CASES`):
 
@@ -242,12 +242,12 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
 
     Args:
       model: what ``HomographyEstimator.load`` takes (``None``: the shipped weights).
-      data_dir, split: stage-1 pairs (``stnh_tf.data``); ``None``: the seeded bundled test pairs
-        of the model card (:func:`stnh_tf.shipped_weights.bundled_pairs`, with ``photometric``).
-      refine: ``estimate``'s ``refine`` (:data:`stnh_tf.inference.REFINES`).
-      tta: ``estimate``'s ``tta`` (:data:`stnh_tf.inference.TTAS`).
-      retry_tta: ``estimate``'s ``retry_tta`` (:data:`stnh_tf.inference.TTAS`).
-      search: ``estimate``'s ``search`` (:data:`stnh_tf.inference.SEARCHES`; ``None``: its
+      data_dir, split: stage-1 pairs (``stnh_tf.data.tfrecords``); ``None``: the seeded bundled test pairs
+        of the model card (:func:`stnh_tf.inference.shipped_weights.bundled_pairs`, with ``photometric``).
+      refine: ``estimate``'s ``refine`` (:data:`stnh_tf.inference.estimator.REFINES`).
+      tta: ``estimate``'s ``tta`` (:data:`stnh_tf.inference.estimator.TTAS`).
+      retry_tta: ``estimate``'s ``retry_tta`` (:data:`stnh_tf.inference.estimator.TTAS`).
+      search: ``estimate``'s ``search`` (:data:`stnh_tf.inference.estimator.SEARCHES`; ``None``: its
         default).
     Returns:
       ``{case: {"count", "flagged" (fraction), "refined" (fraction), "retried" (fraction),
@@ -258,8 +258,9 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
       where no pair falls in it) and ``worse_than_identity`` (pairs whose corner error exceeds
       the identity's).
     """
-    from stnh_tf import data, shipped_weights
-    from stnh_tf.inference import SEARCH, HomographyEstimator
+    from stnh_tf.inference import shipped_weights
+    from stnh_tf.data import tfrecords as data
+    from stnh_tf.inference.estimator import SEARCH, HomographyEstimator
 
     search = SEARCH if search is None else search
     if data_dir is None:

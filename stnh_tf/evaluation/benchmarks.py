@@ -109,7 +109,8 @@ def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
     import keras
     import tensorflow as tf
 
-    from stnh_tf import train_config, training
+    from stnh_tf.training import config as train_config
+    from stnh_tf.training import loop as training
     from stnh_tf.modeling import model_kinds
 
     keras.mixed_precision.set_global_policy(policy)
@@ -222,7 +223,7 @@ def stn_benchmark(batch_size=64, size=128, iterations=30, warmup=3, seed=0, jit_
     import numpy as np
     import tensorflow as tf
 
-    from stnh_tf.evaluation import median_ms
+    from stnh_tf.evaluation.mace import median_ms
     from stnh_tf.modeling.layers import SpatialTransformer
 
     images_np, h_np, h_pix = stn_inputs(batch_size, size, seed)
@@ -284,7 +285,7 @@ def stn_benchmark(batch_size=64, size=128, iterations=30, warmup=3, seed=0, jit_
 # ------------------------------------------------------------------------------------------------
 def _fit_inputs(mode, pair_batches, image_dir, batch_size, workers, samples_per_image, seed,
                 photometric):
-    from stnh_tf import batches, pair_datasets
+    from stnh_tf.data import batches, pair_datasets
 
     common_args = dict(samples_per_image=samples_per_image, seed=seed, photometric=photometric)
     if mode == "array":
@@ -299,7 +300,8 @@ def time_fit(mode, pair_batches, image_dir, batch_size=64, workers=2, samples_pe
     over ``epochs`` epochs after an untimed one, and the median and longest step."""
     import keras
 
-    from stnh_tf import train_config, training
+    from stnh_tf.training import config as train_config
+    from stnh_tf.training import loop as training
     from stnh_tf.modeling import model_kinds
 
     class Ends(keras.callbacks.Callback):
@@ -341,8 +343,8 @@ def stream_benchmark(image_dir, workers=2, samples_per_image=100, batch_size=64,
     folders) on the current Keras backend and returns the result dict."""
     import keras
 
-    from stnh_tf import batches, pair_datasets
-    from stnh_tf.evaluation import median_ms
+    from stnh_tf.data import batches, pair_datasets
+    from stnh_tf.evaluation.mace import median_ms
 
     __import__({"tensorflow": "tensorflow", "jax": "jax"}.get(keras.backend.backend(), "keras"))
     pair_batches = batches.PairBatches(image_dir, batch_size, samples_per_image=samples_per_image,
@@ -374,13 +376,15 @@ def stream_benchmark(image_dir, workers=2, samples_per_image=100, batch_size=64,
 def estimator_benchmark(model=None, compute_dtype="float32", runs=30, warmup=5, large_batch=256,
                         seed=0, tta="none", search="none"):
     """``estimate`` at batch 1 and ``large_batch`` on seeded random uint8 patches, beside
-    :func:`stnh_tf.evaluation.latency`'s ``d_e`` for the same models; ``compute_dtype``
+    :func:`stnh_tf.evaluation.mace.latency`'s ``d_e`` for the same models; ``compute_dtype``
     ``"float32"`` or ``"as_saved"``; ``tta``: ``estimate``'s test-time augmentation; ``search``:
     its search (``"none"``, the network, by default: random patches do not align, so ``"ecc"``
     searches every pair, the search's worst case)."""
     import numpy as np
 
-    from stnh_tf import evaluation, inference, model_files
+    from stnh_tf.inference import estimator as inference
+    from stnh_tf.inference import model_files
+    from stnh_tf.evaluation import mace as evaluation
     from stnh_tf.modeling import runner
 
     dtype = None if compute_dtype == "as_saved" else "float32"
