@@ -1,8 +1,8 @@
-"""What :class:`stnh_tf.inference.HomographyEstimator` accepts: patches and images checked and
+"""What :class:`stnh_tf.inference.estimator.HomographyEstimator` accepts: patches and images checked and
 converted to the models' input, and the resizing rule of ``estimate_images`` with its maps
 between pixel frames.
 
-Resizing rule of :meth:`~stnh_tf.inference.HomographyEstimator.estimate_images`. The models were
+Resizing rule of :meth:`~stnh_tf.inference.estimator.HomographyEstimator.estimate_images`. The models were
 trained on 128 x 128 crops of 320 x 240 images with corners moved by up to 32 px. Each image (any
 size, any aspect ratio; image_a and image_b need not have the same size) is converted to
 grayscale (ITU-R 601 luma; an alpha channel is composited onto black), resized to 320 x 240

@@ -1,10 +1,10 @@
-"""Two image files aligned by a :class:`~stnh_tf.inference.HomographyEstimator`: the overlay PNG
+"""Two image files aligned by a :class:`~stnh_tf.inference.estimator.HomographyEstimator`: the overlay PNG
 and the JSON of ``experiments.predict`` (library core; the binary's docstring describes the
 outputs and their names).
 
 The homography maps image_b pixel coordinates (x, y) to image_a pixel coordinates
 (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``); resizing rule:
-:mod:`stnh_tf.image_input`.
+:mod:`stnh_tf.inference.image_input`.
 """
 
 import json
@@ -97,7 +97,7 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
     import numpy as np
 
     from stnh_tf import geometry, paths
-    from stnh_tf.inference import SEARCH, HomographyEstimator
+    from stnh_tf.inference.estimator import SEARCH, HomographyEstimator
 
     search = SEARCH if search is None else search
     image_a = read_image(image_a_path, "image_a")

@@ -17,8 +17,8 @@ Model kinds (all loaded with :meth:`HomographyEstimator.load`):
   bilinear warp, and the estimate is ``H_1 @ H_2 @ ... @ H_n``.
 
 Where the models are (hierarchy manifests, the accepted layouts, the shipped default in
-``stnh_tf/weights/``): :mod:`stnh_tf.model_files`. What the estimator accepts, and the resizing
-rule of :meth:`HomographyEstimator.estimate_images`: :mod:`stnh_tf.image_input`.
+``stnh_tf/weights/``): :mod:`stnh_tf.inference.model_files`. What the estimator accepts, and the resizing
+rule of :meth:`HomographyEstimator.estimate_images`: :mod:`stnh_tf.inference.image_input`.
 
 Context in the hierarchy. The paper warps the whole image_a between stages and crops patch_a_k
 from it, so pixels that the warp brings into the patch come from real image content.
@@ -72,9 +72,9 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry
-from stnh_tf.image_input import (PATCH_ORIGIN, PATCH_SIZE, central_patch, patch_to_image_frames,
+from stnh_tf.inference.image_input import (PATCH_ORIGIN, PATCH_SIZE, central_patch, patch_to_image_frames,
                                  prepare_image, prepare_patches, resize_to_work_size)
-from stnh_tf.model_files import default_source, resolve_model_paths
+from stnh_tf.inference.model_files import default_source, resolve_model_paths
 
 KINDS = ("single", "sequence", "hierarchy")
 
@@ -147,7 +147,7 @@ SEARCH_PEAKS = 8
 
 SEARCH_COARSE_ITERATIONS = (100, 50)
 """Iteration limits of the float64 ECC on the 32 x 32 and 64 x 64 pyramid levels of
-:func:`search_translations` (:func:`stnh_tf.ecc.coarse_to_fine_ecc`)."""
+:func:`search_translations` (:func:`stnh_tf.inference.ecc.coarse_to_fine_ecc`)."""
 
 SEARCH_ECC_ITERATIONS = 100
 """``cv2.findTransformECC``'s iteration limit at full resolution in :func:`search_translations`."""
@@ -221,7 +221,7 @@ def ecc_refine(source_a, patch_b, a_from_b, origin=(0, 0), iterations=None):
     >>> np.round(ecc_refine(p, b, np.eye(3))[:2, 2], 1)
     array([ 1.5, -1. ])
     """
-    from stnh_tf import ecc
+    from stnh_tf.inference import ecc
 
     source_from_patch = geometry.translation(*origin)
     limit, eps = ECC_CRITERIA
@@ -236,7 +236,7 @@ def search_translations(source_a, patch_b, a_from_b, origin=(0, 0)):
     Patch_a is warped onto patch_b by ``a_from_b`` (mirror fill beyond ``source_a``), the central
     :data:`SEARCH_TEMPLATE` square of ``patch_b`` is slid over it (``cv2.matchTemplate``,
     ``TM_CCOEFF_NORMED``), and from the translations ``d`` at its :data:`SEARCH_PEAKS` highest
-    local peaks coarse-to-fine ECC (:func:`stnh_tf.ecc.coarse_to_fine_ecc`,
+    local peaks coarse-to-fine ECC (:func:`stnh_tf.inference.ecc.coarse_to_fine_ecc`,
     :data:`SEARCH_COARSE_ITERATIONS`, :data:`SEARCH_ECC_ITERATIONS`) is started at
     ``a_from_b @ T(d)``. Of the results whose :func:`alignment_ncc` reaches :data:`VERIFIED_NCC`,
     the highest is returned (the better-ranked peak on a tie). It finds the estimate that a network
@@ -259,7 +259,8 @@ def search_translations(source_a, patch_b, a_from_b, origin=(0, 0)):
     >>> np.round(h[:2, 2], 1), ncc > 0.95
     (array([ 9., -6.]), True)
     """
-    from stnh_tf import ecc, hierarchy
+    from stnh_tf import hierarchy
+    from stnh_tf.inference import ecc
 
     size = np.shape(patch_b)[0]
     margin = (size - SEARCH_TEMPLATE) // 2
@@ -373,7 +374,7 @@ class HomographyEstimator:
     def load(cls, path=None, compute_dtype: str | None = "float32") -> "HomographyEstimator":
         """Load a single-stage or sequence ``.keras`` model, a training run directory, or a
         hierarchy (manifest or ``stage1, stage2, ...`` directory); ``None`` loads the shipped
-        default from ``stnh_tf/weights/``. See :mod:`stnh_tf.model_files` for the layouts.
+        default from ``stnh_tf/weights/``. See :mod:`stnh_tf.inference.model_files` for the layouts.
 
         ``compute_dtype``: models trained in mixed precision (the shipped ones: mixed bfloat16)
         are rebuilt to compute in float32 by default, so an estimate does not depend on the batch
@@ -670,7 +671,7 @@ class HomographyEstimator:
 
         Each image is made grayscale and resized to 320 x 240; the central 128 x 128 squares are
         the patch pair; a hierarchy's later stages crop from the warped 320 x 240 image_a
-        (context beyond the patch, as in the paper). The rule: :mod:`stnh_tf.image_input`.
+        (context beyond the patch, as in the paper). The rule: :mod:`stnh_tf.inference.image_input`.
 
         Args:
           image_a, image_b: ``[H, W]`` or ``[H, W, C]`` (C = 1, 3, 4), uint8 or float in [0, 1];

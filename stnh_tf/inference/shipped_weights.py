@@ -19,7 +19,7 @@ from stnh_tf.paths import atomic_write_json
 def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
     """Copy the trained stages ``model_dirs`` (in order) into ``weights_dir`` (default: the
     package's ``stnh_tf/weights``) with the manifest and the model card; returns the card."""
-    from stnh_tf import model_files
+    from stnh_tf.inference import model_files
 
     weights_dir = weights_dir or model_files.default_weights_dir()
     os.makedirs(weights_dir, exist_ok=True)
@@ -89,12 +89,12 @@ BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_i
 
 def bundled_pairs(photometric: bool = False) -> dict:
     """The seeded bundled test pairs of :data:`BUNDLED_CHECK` as arrays
-    (:func:`stnh_tf.data.load_arrays`); ``photometric`` changes each patch_b in brightness,
-    contrast and gamma (:class:`stnh_tf.pairs.PhotometricChange`) on top of its homography."""
+    (:func:`stnh_tf.data.tfrecords.load_arrays`); ``photometric`` changes each patch_b in brightness,
+    contrast and gamma (:class:`stnh_tf.data.pairs.PhotometricChange`) on top of its homography."""
     import tempfile
 
-    from data_prep import stage1
-    from stnh_tf import data
+    from stnh_tf.data import stage1
+    from stnh_tf.data import tfrecords as data
 
     with tempfile.TemporaryDirectory() as tmp:
         stage1.make_dataset(BUNDLED_CHECK["source"], tmp, BUNDLED_CHECK["split"],
@@ -124,7 +124,7 @@ def bundled_check(stage_paths) -> dict:
     import numpy as np
 
     from stnh_tf import geometry
-    from stnh_tf.inference import HomographyEstimator
+    from stnh_tf.inference.estimator import HomographyEstimator
 
     stages = [HomographyEstimator.load(p, compute_dtype=BUNDLED_CHECK["compute_dtype"]).stages[0]
               for p in stage_paths]
@@ -169,7 +169,7 @@ def refresh_check(weights_dir=None) -> dict:
 
 def _shipped_card(weights_dir=None):
     """``(weights_dir, card)`` of already shipped weights (default: the package's)."""
-    from stnh_tf import model_files
+    from stnh_tf.inference import model_files
 
     weights_dir = weights_dir or model_files.default_weights_dir()
     with open(os.path.join(weights_dir, "model_card.json")) as f:

@@ -1,4 +1,4 @@
-"""Where the models :meth:`stnh_tf.inference.HomographyEstimator.load` reads are: hierarchy
+"""Where the models :meth:`stnh_tf.inference.estimator.HomographyEstimator.load` reads are: hierarchy
 manifests, the accepted layouts on disk, and the shipped default in ``stnh_tf/weights/``.
 
 Hierarchy manifest (a JSON file; by convention ``hierarchy.json``)::
@@ -14,7 +14,7 @@ Hierarchy manifest (a JSON file; by convention ``hierarchy.json``)::
 holding ``model.keras``, given relative to the manifest's folder and inside it (absolute paths
 and ``../`` are refused, so a manifest cannot make the loader read models from elsewhere). Each stage may be a
 single-stage or a sequence model. :func:`write_manifest` writes one. :func:`resolve_model_paths`
-(and so :meth:`~stnh_tf.inference.HomographyEstimator.load`) accepts
+(and so :meth:`~stnh_tf.inference.estimator.HomographyEstimator.load`) accepts
 
 * a ``.keras`` file;
 * a ``.json`` manifest;
@@ -128,7 +128,7 @@ def _numbered_stages(directory):
 
 
 def resolve_model_paths(path=None) -> list:
-    """The stage model paths that :meth:`~stnh_tf.inference.HomographyEstimator.load` would load
+    """The stage model paths that :meth:`~stnh_tf.inference.estimator.HomographyEstimator.load` would load
     (see the module docstring for the accepted layouts). Raises ``FileNotFoundError`` with the
     places looked at."""
     if path is None:

@@ -1,4 +1,4 @@
-"""Export a :class:`~stnh_tf.inference.HomographyEstimator` as a TensorFlow SavedModel.
+"""Export a :class:`~stnh_tf.inference.estimator.HomographyEstimator` as a TensorFlow SavedModel.
 
 The SavedModel has one serving signature (``serving_default``, also reachable as ``serve``):
 
@@ -16,7 +16,7 @@ It is self-contained TensorFlow (no stnh_tf or OpenCV needed to serve it)::
 Single-stage and sequence models export exactly the computation of
 :meth:`HomographyEstimator.estimate`. A hierarchy exports its stages chained by the package's
 :class:`~stnh_tf.modeling.layers.SpatialTransformer` (the warp of the patch itself, filled beyond it as
-``estimate`` fills by default, :data:`stnh_tf.inference.PATCH_FILL`: the same geometry as the
+``estimate`` fills by default, :data:`stnh_tf.inference.estimator.PATCH_FILL`: the same geometry as the
 estimator's OpenCV warp of a patch); OpenCV's bilinear warp quantizes sampling
 positions to 1/32 px, so a hierarchy's SavedModel agrees with ``estimate`` only up to that
 interpolation difference, while it agrees with the same TensorFlow computation run before
@@ -69,7 +69,7 @@ def serving_function(estimator):
     ``[B, 128, 128, 1]`` patches, computing the estimator's ``H_ba`` with its Keras models."""
     from keras import ops
 
-    from stnh_tf.inference import PATCH_FILL
+    from stnh_tf.inference.estimator import PATCH_FILL
     from stnh_tf.modeling.layers import SpatialTransformer
 
     stages, outputs = estimator.stages, estimator.output_names
