@@ -52,7 +52,7 @@ def shipped_models() -> dict:
     """``{name: [stage model paths]}`` of the weights shipped in ``stnh_tf/weights``: the default
     (its first stage, and all its stages if several) and the paper recipe's weights in
     ``paper_recipe`` (likewise)."""
-    from stnh_tf import model_files
+    from stnh_tf.inference import model_files
 
     d = model_files.default_weights_dir()
     found = {}
@@ -74,10 +74,13 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
     table through ``printer``; returns the result, also written to ``results.json``."""
     import numpy as np
 
-    from data_prep import stage1
-    from stnh_tf import data, evaluation, figures, geometry, hierarchy
+    from stnh_tf.data import stage1
+    from stnh_tf import geometry, hierarchy
+    from stnh_tf.paper import figures
+    from stnh_tf.evaluation import mace as evaluation
+    from stnh_tf.data import tfrecords as data
     from stnh_tf.modeling import runner
-    from stnh_tf.baselines import FIGURE_BASELINES
+    from stnh_tf.evaluation.baselines import FIGURE_BASELINES
 
     t_start = time.time()
     os.makedirs(output_dir, exist_ok=True)

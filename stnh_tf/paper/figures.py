@@ -159,7 +159,7 @@ ENTRY_NAMES = ("h11", "h12", "h13", "h21", "h22", "h23", "h31", "h32")
 
 def read_h_bar(data_dir: str, split: str, max_samples: int = 0) -> np.ndarray:
     """``float32 [N, 8]``: the stored H_bar targets of ``split`` (only that feature is parsed)."""
-    from stnh_tf import data
+    from stnh_tf.data import tfrecords as data
 
     ds = data.load_raw(data_dir, split, fields=("h_bar",)).batch(4096)
     if max_samples > 0:

@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from stnh_tf import train_config
+from stnh_tf.training import config as train_config
 from stnh_tf.paths import atomic_write_json
 
 # The paper's numbers (Zhou & Li 2019; the 2-stage sequence model's 2.14 px is in its section 5;
@@ -142,8 +142,8 @@ class Reproduction:
 
     # -- data -----------------------------------------------------------------------------------
     def stage1_data(self):
-        from data_prep import stage1
-        from stnh_tf import data
+        from stnh_tf.data import stage1
+        from stnh_tf.data import tfrecords as data
 
         d, b = self.data_dir(1), self.budget
         quiet = lambda *a, **k: None  # noqa: E731
@@ -160,8 +160,8 @@ class Reproduction:
         return d
 
     def stage_data(self, stage: int):
-        from data_prep import stage_k
-        from stnh_tf import data
+        from stnh_tf.data import stage_k
+        from stnh_tf.data import tfrecords as data
 
         d = self.data_dir(stage)
         for split in ("train", "test"):
@@ -186,7 +186,8 @@ class Reproduction:
 
     def train(self, name: str, cfg) -> str:
         """Train ``cfg`` unless ``cfg.model_dir`` already holds a finished model of this budget."""
-        from stnh_tf import run_dir, training
+        from stnh_tf.training import run_dir
+        from stnh_tf.training import loop as training
 
         final = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
         if os.path.exists(final):
@@ -259,7 +260,8 @@ class Reproduction:
     def evaluate(self, key: str, model_dirs=(), baselines=()) -> dict:
         """``evaluation.evaluate`` on the stage-1 test pairs, cached in ``eval/{key}.json`` (kept
         while it is newer than every model it evaluated)."""
-        from stnh_tf import evaluation, run_dir
+        from stnh_tf.evaluation import mace as evaluation
+        from stnh_tf.training import run_dir
 
         path = os.path.join(self.out, "eval", f"{key}.json")
         finals = [os.path.join(d, run_dir.FINAL_MODEL) for d in model_dirs]
@@ -272,7 +274,7 @@ class Reproduction:
         return result
 
     def latency(self, stage_dirs) -> dict:
-        from stnh_tf import evaluation
+        from stnh_tf.evaluation import mace as evaluation
 
         path = os.path.join(self.out, "eval", "latency.json")
         if os.path.exists(path):
@@ -288,7 +290,7 @@ class Reproduction:
 
     # -- the whole run --------------------------------------------------------------------------
     def run(self) -> dict:
-        from stnh_tf.baselines import FIGURE_BASELINES
+        from stnh_tf.evaluation.baselines import FIGURE_BASELINES
 
         t0 = time.time()
         stages = self.hierarchy(3)
@@ -330,7 +332,9 @@ class Reproduction:
         return result
 
     def figures(self, fig4: dict, stages) -> dict:
-        from stnh_tf import data, figures, hierarchy
+        from stnh_tf import hierarchy
+        from stnh_tf.paper import figures
+        from stnh_tf.data import tfrecords as data
         from stnh_tf.modeling import runner
 
         fdir = os.path.join(self.out, "figures")
@@ -357,7 +361,7 @@ class Reproduction:
 def check_budget(model_dir: str, cfg) -> None:
     """Raise ``ValueError`` unless the finished model in ``model_dir`` was trained with ``cfg``'s
     budget (model kind, schedule, loss weights, network options)."""
-    from stnh_tf import run_dir
+    from stnh_tf.training import run_dir
 
     saved = run_dir.read_run_config(os.path.join(model_dir, run_dir.CONFIG_FILE))
     # A field the saved run predates had its default value then (e.g. lr_schedule="cosine").
@@ -432,7 +436,7 @@ def _model_dirs(models: dict):
 
 def _trained_on(model_dir: str) -> str:
     """The data source a model's recorded configuration names."""
-    from stnh_tf import run_dir
+    from stnh_tf.training import run_dir
 
     try:
         cfg = run_dir.read_run_config(os.path.join(model_dir, run_dir.CONFIG_FILE))
