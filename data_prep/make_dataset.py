@@ -17,8 +17,7 @@ import os
 
 from absl import app, flags, logging
 
-from data_prep import stage1
-from stnh_tf import sources
+from stnh_tf.data import sources, stage1
 
 flags.DEFINE_enum("source", "folder", stage1.SOURCES,
                   "folder: every image file below --image_dir (recursive); bundled: photographs "

@@ -8,7 +8,7 @@ r"""Generate the stage-k dataset of hierarchical STN-Homography from stage k-1's
 Runs the stage-(k-1) model on every stored pair, composes its prediction with the earlier
 estimate (degenerate predictions are replaced by the identity and counted), re-crops patch_a from
 the stored context with OpenCV, and stores the residual target, the new patch_a_t, the original
-H_ba and the composed estimate (data_prep/stage_k.py). Same sharding, atomic writes, metadata and
+H_ba and the composed estimate (stnh_tf/data/stage_k.py). Same sharding, atomic writes, metadata and
 progress as data_prep.make_dataset.
 """
 
@@ -18,7 +18,7 @@ import os
 
 from absl import app, flags, logging
 
-from data_prep import stage_k
+from stnh_tf.data import stage_k
 
 flags.DEFINE_integer("stage", None, "Stage k >= 2 of the dataset to build.", required=True)
 flags.DEFINE_string("input_dir", None, "Stage-(k-1) dataset directory.", required=True)

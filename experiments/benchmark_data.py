@@ -4,8 +4,8 @@ r"""Benchmark data generation (samples/s with 1 and 2 workers) and tf.data readi
   python -m experiments.benchmark_data --source=folder --image_dir=../shared/data/coco_mini/train
 
 Generation writes to a temporary directory (removed afterwards) with the real writer
-(``data_prep.writer.write_sharded`` + the stage-1 worker); the timing includes starting the
-worker processes. Reading times ``stnh_tf.data.load_split`` (interleave, shuffle, batch, parse,
+(``stnh_tf.data.writer.write_sharded`` + the stage-1 worker); the timing includes starting the
+worker processes. Reading times ``stnh_tf.data.tfrecords.load_split`` (interleave, shuffle, batch, parse,
 prefetch) after a short warm-up. ``--resume_skip_batches=N`` also times how long a resumed
 training stream takes to deliver its first batch after skipping N batches, with the skip before
 parsing (``load_split(skip_batches=N)``, what training uses) and after it (``.skip(N)`` on the
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from absl import app, flags
 
-from data_prep import benchmark
+from stnh_tf.evaluation import data_benchmark as benchmark
 from experiments import common
 
 flags.DEFINE_enum("source", "bundled", ["bundled", "folder"], "Image source.")

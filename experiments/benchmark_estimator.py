@@ -1,5 +1,5 @@
 r"""The estimator against the latency benchmark: ``HomographyEstimator.estimate`` (batch 1 and a
-large batch) beside :func:`stnh_tf.evaluation.latency`'s end-to-end hierarchy time ``d_e`` for
+large batch) beside :func:`stnh_tf.evaluation.mace.latency`'s end-to-end hierarchy time ``d_e`` for
 the same models in the same precision.
 
   python -m experiments.benchmark_estimator --runs=30 --json_out=/tmp/estimator.json
@@ -16,8 +16,8 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
-from stnh_tf import benchmarks
-from stnh_tf.inference import SEARCHES, TTAS
+from stnh_tf.evaluation import benchmarks
+from stnh_tf.inference.estimator import SEARCHES, TTAS
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
 flags.DEFINE_enum("compute_dtype", "float32", ["float32", "as_saved"],

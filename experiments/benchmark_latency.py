@@ -24,7 +24,7 @@ import os
 from absl import app, flags
 
 from experiments import common
-from stnh_tf import benchmarks
+from stnh_tf.evaluation import benchmarks
 
 flags.DEFINE_list("model_dir", [], "Stage model directories (default: untrained models).")
 flags.DEFINE_integer("max_stages", 3, "Measure 1..max_stages stages.")
@@ -39,8 +39,8 @@ FLAGS = flags.FLAGS
 
 
 def measure(*args, **kwargs):
-    """:func:`stnh_tf.evaluation.latency` (the library core, also used by the reproduce driver)."""
-    from stnh_tf import evaluation
+    """:func:`stnh_tf.evaluation.mace.latency` (the library core, also used by the reproduce driver)."""
+    from stnh_tf.evaluation import mace as evaluation
 
     return evaluation.latency(*args, **kwargs)
 

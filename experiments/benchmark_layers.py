@@ -16,7 +16,7 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
-from stnh_tf import benchmarks
+from stnh_tf.evaluation import benchmarks
 
 flags.DEFINE_integer("batch_size", 64, "Patches per batch.")
 flags.DEFINE_integer("size", 128, "Patch side in pixels.")

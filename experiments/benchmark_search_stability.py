@@ -33,8 +33,10 @@ def main(argv):
     del argv
     import tensorflow as tf  # noqa: F401  (loaded first, so machine_info reports it)
 
-    from data_prep import stage1
-    from stnh_tf import benchmarks, data, inference, search_stability
+    from stnh_tf.data import stage1
+    from stnh_tf.inference import estimator as inference
+    from stnh_tf.evaluation import benchmarks, search_stability
+    from stnh_tf.data import tfrecords as data
 
     estimator = inference.HomographyEstimator.load(FLAGS.model)
     if FLAGS.stages:

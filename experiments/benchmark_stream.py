@@ -23,7 +23,7 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
-from stnh_tf import benchmarks
+from stnh_tf.evaluation import benchmarks
 
 flags.DEFINE_list("image_dir", None, "Folders of training images (comma-separated).",
                   required=True)

@@ -19,7 +19,7 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
-from stnh_tf import benchmarks
+from stnh_tf.evaluation import benchmarks
 
 flags.DEFINE_integer("batch_size", 64, "Training batch size.")
 flags.DEFINE_integer("steps", 20, "Timed training steps per configuration (median reported).")

@@ -8,7 +8,7 @@ was not trained on (another photograph, patch_b rotated 180 degrees, motion of 8
   python -m experiments.check_implausible --retry_tta=dihedral  # ... of the flagged pairs only
   python -m experiments.check_implausible --search=none         # the network's estimates only
 
-Prints one JSON object (:func:`stnh_tf.evaluation.implausibility_check`).
+Prints one JSON object (:func:`stnh_tf.evaluation.mace.implausibility_check`).
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
-from stnh_tf import evaluation
-from stnh_tf.inference import REFINES, SEARCH, SEARCHES, TTAS
+from stnh_tf.evaluation import mace as evaluation
+from stnh_tf.inference.estimator import REFINES, SEARCH, SEARCHES, TTAS
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
 flags.DEFINE_string("data_dir", None, "Stage-1 pairs (default: the model card's bundled pairs).")

@@ -2,7 +2,7 @@ r"""`make demo`, the main job: the shipped models against the classical baseline
 
   python -m experiments.demo [--output_dir=demo_output] [--seed=0]
 
-1. checks the geometry conventions against OpenCV (:func:`stnh_tf.demo.self_check`);
+1. checks the geometry conventions against OpenCV (:func:`stnh_tf.paper.demo.self_check`);
 2. generates a seeded test set from the photographs bundled with scikit-image and matplotlib
    (the paper's protocol; no download);
 3. evaluates identity, ORB + RANSAC, SIFT + RANSAC and the shipped models (``stnh_tf/weights``:
@@ -18,7 +18,7 @@ import sys
 
 from absl import app, flags
 
-from stnh_tf import demo
+from stnh_tf.paper import demo
 
 flags.DEFINE_string("output_dir", "demo_output", "Where the test set, results.json and the PNG go.")
 flags.DEFINE_integer("seed", 0, "Seed of the test pairs.")

@@ -36,7 +36,8 @@ FLAGS = flags.FLAGS
 
 def main(argv):
     del argv
-    from stnh_tf import evaluation, paths
+    from stnh_tf import paths
+    from stnh_tf.evaluation import mace as evaluation
 
     if not FLAGS.model_dir and not FLAGS.baselines:
         raise SystemExit("evaluate: give --model_dir and/or --baselines.")

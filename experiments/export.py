@@ -6,7 +6,7 @@ Signature ``serving_default``: ``patch_a``, ``patch_b`` uint8 ``[B, 128, 128, 1]
 ``homography`` float32 ``[B, 3, 3]`` (pixel ``H_ba``: patch_b -> patch_a). After writing, the
 SavedModel is reloaded and run on ``--check_pairs`` photograph patch pairs; the JSON summary
 (printed on stdout) gives the max abs difference from the Keras model, and the exit status is
-nonzero if it exceeds ``--tolerance``. Library code: ``stnh_tf.export``.
+nonzero if it exceeds ``--tolerance``. Library code: ``stnh_tf.inference.export``.
 """
 
 import json
@@ -26,8 +26,8 @@ flags.DEFINE_integer("check_pairs", 8, "Patch pairs used to compare the export w
 
 def main(argv):
     del argv
-    from stnh_tf import export
-    from stnh_tf.inference import HomographyEstimator
+    from stnh_tf.inference import export
+    from stnh_tf.inference.estimator import HomographyEstimator
 
     if FLAGS.check_pairs < 1:
         raise SystemExit(f"export: --check_pairs must be >= 1; received {FLAGS.check_pairs}.")

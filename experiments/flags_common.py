@@ -1,13 +1,13 @@
 """Training flags of ``train_stage`` and ``train_sequence``, generated from the fields of
-:class:`stnh_tf.train_config.TrainConfig` (name, type, default, help and choices defined once
+:class:`stnh_tf.training.config.TrainConfig` (name, type, default, help and choices defined once
 there), plus ``--overwrite``."""
 
 import dataclasses
 
 from absl import flags
 
-from stnh_tf import train_config
-from stnh_tf.train_config import TrainConfig
+from stnh_tf.training import config as train_config
+from stnh_tf.training.config import TrainConfig
 
 
 def training_fields(scope: str):
@@ -51,7 +51,7 @@ def define_training_flags(scope: str, choices=None, flag_values=flags.FLAGS):
 
 def config_from_flags(scope: str, flag_values=flags.FLAGS, **overrides) -> TrainConfig:
     """The TrainConfig of the parsed flags of :func:`define_training_flags` (``scope``): the
-    preset of ``--recipe`` and of the model kind (:func:`stnh_tf.train_config.preset_fields`:
+    preset of ``--recipe`` and of the model kind (:func:`stnh_tf.training.config.preset_fields`:
     e.g. DeTone's schedule for ``model="homographynet"``, 90,000 steps for ``"sequence"``), then
     every flag given explicitly, then ``overrides``.
 
@@ -86,7 +86,7 @@ def run_training(cfg, binary: str) -> None:
     """Train (or resume) ``cfg``; user errors exit with ``{binary}: message``, not a traceback."""
     from absl import logging
 
-    from stnh_tf import training
+    from stnh_tf.training import loop as training
 
     try:
         result = training.train(cfg, overwrite=flags.FLAGS.overwrite, printer=logging.info)

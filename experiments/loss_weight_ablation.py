@@ -16,7 +16,7 @@ import dataclasses
 from absl import app, flags
 
 from experiments.reproduce import parse_reuse  # also defines the shared flags: --budget,
-from stnh_tf import reproduce                   # --output_dir, --source, --image_dir,
+from stnh_tf.paper import reproduce  # --output_dir, --source, --image_dir,
                                                 # --test_image_dir, --reuse
 
 flags.DEFINE_integer("steps", 0, "Steps per row (0: the budget's).")

@@ -22,8 +22,8 @@ flags.DEFINE_integer("max_samples", 0, "Use only the first N samples (0 = all)."
 FLAGS = flags.FLAGS
 
 # The library pieces (the reproduce driver draws the same figure).
-from stnh_tf.figures import ENTRY_NAMES, read_h_bar  # noqa: E402,F401
-from stnh_tf.figures import hbar_histogram as plot_histogram  # noqa: E402
+from stnh_tf.paper.figures import ENTRY_NAMES, read_h_bar  # noqa: E402,F401
+from stnh_tf.paper.figures import hbar_histogram as plot_histogram  # noqa: E402
 
 
 def main(argv):

@@ -12,7 +12,7 @@ The PNG has two panels: image_a with the quadrilateral where image_b's border la
 image_b (green channel) over image_a warped onto image_b by the estimate (magenta): aligned
 regions look gray. ``--model`` takes what
 ``HomographyEstimator.load`` takes (``.keras`` file, run directory, hierarchy manifest); without
-it the shipped default weights are used. Resizing rule: see ``stnh_tf.image_input``.
+it the shipped default weights are used. Resizing rule: see ``stnh_tf.inference.image_input``.
 """
 
 import json
@@ -20,8 +20,8 @@ import sys
 
 from absl import app, flags
 
-from stnh_tf import alignment
-from stnh_tf.inference import REFINES, SEARCH, SEARCHES, TTAS
+from stnh_tf.inference import image_files as alignment
+from stnh_tf.inference.estimator import REFINES, SEARCH, SEARCHES, TTAS
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("image_a", None, "Path of image_a (the reference image).", required=True)

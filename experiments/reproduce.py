@@ -11,12 +11,12 @@ whatever is already complete; writes OUTPUT_DIR/tables.md (the paper's numbers b
 results.json and figures/. Models trained elsewhere at the same budget are used in place with
 --reuse=stage1=runs/cpu/stage1,homographynet=...; their recorded configuration must match the
 budget. --train_only=homographynet trains that part alone (resumable) and stops, to spread the
-training over several sessions. See stnh_tf/reproduce.py for the steps and budgets.
+training over several sessions. See stnh_tf/paper/reproduce.py for the steps and budgets.
 """
 
 from absl import app, flags
 
-from stnh_tf import reproduce
+from stnh_tf.paper import reproduce
 
 flags.DEFINE_enum("budget", "cpu", sorted(reproduce.BUDGETS), "Training budget of every model.")
 flags.DEFINE_string("output_dir", None, "Where data, models, tables and figures go.", required=True)

@@ -28,7 +28,7 @@ import json
 
 from absl import app, flags
 
-from stnh_tf import shipped_weights
+from stnh_tf.inference import shipped_weights
 
 flags.DEFINE_list("model_dir", None, "Trained stage model directories, in stage order.")
 flags.DEFINE_string("eval_json", None, "experiments.evaluate output to record in the card.")

@@ -12,7 +12,7 @@ after each third of --train_steps). Re-running the same command resumes from the
 from absl import app
 
 from experiments import flags_common
-from stnh_tf import train_config
+from stnh_tf.training import config as train_config
 
 flags_common.define_training_flags(
     train_config.STAGE,

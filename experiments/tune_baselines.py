@@ -9,8 +9,8 @@ rate, ms per pair for each).
   python -m experiments.tune_baselines --image_dir=../shared/data/coco_mini/train \
       --num_pairs=300 --seed=0 --json_out=/tmp/tune_baselines.json
 
-Pairs come from the data generator's own protocol (:mod:`stnh_tf.sources` decoding and
-resizing, :mod:`stnh_tf.pairs`), drawn in memory with one seeded generator.
+Pairs come from the data generator's own protocol (:mod:`stnh_tf.data.sources` decoding and
+resizing, :mod:`stnh_tf.data.pairs`), drawn in memory with one seeded generator.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
-from stnh_tf import baseline_tuning
+from stnh_tf.evaluation import baseline_tuning
 
 flags.DEFINE_string("image_dir", None, "Folder of photographs (jpg/png). Default: scikit-image's.")
 flags.DEFINE_integer("num_pairs", 300, "Number of synthetic pairs.")

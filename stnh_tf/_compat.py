@@ -1,8 +1,8 @@
 """Old module paths of the flat package, kept importable for one release.
 
-``stnh_tf.train_config`` and the other modules that moved into subpackages
+``stnh_tf.training.config`` and the other modules that moved into subpackages
 (``docs/layout.md``) are served as aliases of their new modules, with a ``DeprecationWarning``
-naming the new path, so ``import stnh_tf.layers`` and ``from stnh_tf.pairs import ...`` written
+naming the new path, so ``import stnh_tf.layers`` and ``from stnh_tf.data.pairs import ...`` written
 against earlier versions keep working. Hand-written because Python has no module alias; remove it
 in the next release.
 """

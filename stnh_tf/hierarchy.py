@@ -227,7 +227,7 @@ def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 10
     stages (as at test time; the TFRecord chain stores rounded patches).
 
     Args:
-      arrays: stage-1 pairs in :func:`stnh_tf.batches.stack_samples`' compact form with context
+      arrays: stage-1 pairs in :func:`stnh_tf.data.batches.stack_samples`' compact form with context
         (``patch_a``, ``patch_b``, ``patch_a_t`` uint8 ``[N, S, S]``, ``h_bar``, ``h_mask``,
         ``context_a`` uint8 ``[N, S+2m, S+2m]``, ``h_ba`` ``[N, 3, 3]``).
       stages: the trained stages 1..n as :data:`PredictFn` (e.g. :func:`stnh_tf.modeling.runner.predictor`).

@@ -25,9 +25,10 @@ import tensorflow as tf
 
 from conftest import (NARROW_FILTERS, cv2_warp, inside_mask, narrow_network, norm_matrix,
                       paper_homography, to_bar)
-from stnh_tf import sources, train_config, training
-from stnh_tf.modeling import models
-from stnh_tf.modeling import runner
+from stnh_tf.training import config as train_config
+from stnh_tf.training import loop as training
+from stnh_tf.data import sources
+from stnh_tf.modeling import models, runner
 from stnh_tf.modeling.layers import SpatialTransformer
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -48,9 +49,9 @@ import json, os, sys
 work, backend = sys.argv[1], sys.argv[2]
 os.environ["KERAS_BACKEND"] = backend
 import keras, numpy as np
-from stnh_tf import train_config, training
-from stnh_tf.modeling import models
-from stnh_tf.modeling import runner
+from stnh_tf.training import config as train_config
+from stnh_tf.training import loop as training
+from stnh_tf.modeling import models, runner
 from stnh_tf.modeling.layers import SpatialTransformer
 assert keras.backend.backend() == backend
 models.CONV_FILTERS = tuple(json.loads(sys.argv[4]))  # conftest's narrow network

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from conftest import photo_pairs
-from stnh_tf import baselines, geometry
+from stnh_tf import geometry
+from stnh_tf.evaluation import baselines
 
 
 def _pairs(rng, n=12):

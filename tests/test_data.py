@@ -19,8 +19,9 @@ import pytest
 from PIL import Image
 
 from conftest import cv2_warp, inside_mask, to_bar
-from data_prep import stage1, writer
-from stnh_tf import data, features, pair_datasets, pairs, sources
+from stnh_tf.data import stage1, writer
+from stnh_tf.data import tfrecords as data
+from stnh_tf.data import features, pair_datasets, pairs, sources
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CORNERS = np.array([[0, 0], [128, 0], [128, 128], [0, 128]], np.float64)
@@ -637,7 +638,7 @@ def test_evaluate_json_out_folder_is_made_before_the_evaluation(dataset, tmp_pat
 
 
 def test_evaluate_refuses_bad_numbers_before_reading():
-    from stnh_tf import evaluation
+    from stnh_tf.evaluation import mace as evaluation
 
     with pytest.raises(ValueError, match="batch_size must be >= 1; received 0"):
         evaluation.evaluate([], "no_such_dataset", batch_size=0)

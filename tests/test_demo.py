@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import paper_homography, photo_pairs
-from stnh_tf import figures
+from stnh_tf.paper import figures
 
 
 def test_quadrilateral_is_h_applied_to_the_corners(rng):
@@ -77,7 +77,7 @@ def test_fig5_draws_truth_in_both_images_and_the_prediction_in_image_a(rng):
 
 def test_demo_self_check_passes_and_measures_the_stn_against_opencv():
     """The demo's first line: the conventions against OpenCV, on 8 paper-protocol warps."""
-    from stnh_tf import demo
+    from stnh_tf.paper import demo
 
     check = demo.self_check(seed=0)
     assert check["ok"] is True
@@ -92,7 +92,7 @@ SHIPPED = {"shipped default, 1 stage", "shipped default, 3 stages", "paper recip
 
 @pytest.mark.slow
 def test_demo_runs_offline(tmp_path):
-    from stnh_tf import demo
+    from stnh_tf.paper import demo
 
     lines = []
     result = demo.run_demo(str(tmp_path / "out"), seed=0, samples_per_image=1, examples=2,

@@ -1,4 +1,4 @@
-"""stnh_tf.ecc against independent references: exact float64 warps (scipy), NumPy's correlation,
+"""stnh_tf.inference.ecc against independent references: exact float64 warps (scipy), NumPy's correlation,
 and OpenCV's own ECC; and the same result on OpenCV's optimized and unoptimized code paths."""
 
 import cv2
@@ -7,7 +7,8 @@ import pytest
 from scipy import ndimage
 
 from conftest import opencv_optimized
-from stnh_tf import ecc, geometry
+from stnh_tf import geometry
+from stnh_tf.inference import ecc
 
 TRUE = np.array([[1.03, 0.02, 3.2], [-0.015, 0.98, -2.1], [2e-4, -1e-4, 1.0]])
 

@@ -7,8 +7,8 @@ import pytest
 from absl import flags
 
 from experiments import flags_common
-from stnh_tf import train_config
-from stnh_tf.train_config import SEQUENCE, STAGE, TrainConfig
+from stnh_tf.training import config as train_config
+from stnh_tf.training.config import SEQUENCE, STAGE, TrainConfig
 
 
 def _names(scope):

@@ -192,7 +192,7 @@ def test_mean_corner_error_known_values(rng):
 
 def _sampler_pairs(n):
     """``n`` pairs of the library's sampler: ``(h_ba [n, 3, 3], drawn corner offsets [n, 4, 2])``."""
-    from stnh_tf import pairs
+    from stnh_tf.data import pairs
     protocol = pairs.Protocol(samples_per_image=1)
     image = np.zeros((protocol.image_height, protocol.image_width), np.uint8)
     params = [pairs.draw_params(pairs.image_rng(0, i), protocol)[0] for i in range(n)]

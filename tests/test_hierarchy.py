@@ -137,7 +137,7 @@ def test_degenerate_rule():
 
 
 def test_inputs_are_scaled_by_their_own_dtype(pairs):
-    """uint8 context with float patch_b in [0, 1] (as stnh_tf.data.load_arrays returns them) must
+    """uint8 context with float patch_b in [0, 1] (as stnh_tf.data.tfrecords.load_arrays returns them) must
     show the stage the same patches as all-uint8 inputs."""
     o_u8, o_mixed = _Oracle(pairs["h_ba"]), _Oracle(pairs["h_ba"])
     hierarchy.run_hierarchy([o_u8], pairs["context"], pairs["patch_b"])
@@ -166,7 +166,7 @@ def test_no_clip_through_the_hierarchy_and_its_evaluation(pairs, monkeypatch):
     """Stage 1 overshoots by 45 px (outside the 32-px context), stage 2 returns a fixed matrix:
     without clipping the estimates are exactly their products, stage 2 reads zeros beyond the
     context, and ``evaluate_hierarchy`` scores those products."""
-    from stnh_tf import evaluation
+    from stnh_tf.evaluation import mace as evaluation
     from stnh_tf.modeling import runner
 
     n = len(pairs["h_ba"])
@@ -198,7 +198,7 @@ def test_no_clip_through_the_hierarchy_and_its_evaluation(pairs, monkeypatch):
 
 
 def test_error_summary_counts_pairs_worse_than_the_identity():
-    from stnh_tf import evaluation
+    from stnh_tf.evaluation import mace as evaluation
 
     got = evaluation.error_summary([1.0, 5.0, 3.0, 0.5], identity_errors=[2.0, 2.0, 3.0, 0.4])
     assert got["worse_than_identity"] == 2  # 5 > 2 and 0.5 > 0.4; a tie is not worse
@@ -207,7 +207,7 @@ def test_error_summary_counts_pairs_worse_than_the_identity():
 
 
 def test_no_clip_needs_a_hierarchy():
-    from stnh_tf import evaluation
+    from stnh_tf.evaluation import mace as evaluation
 
     with pytest.raises(ValueError, match="changes only a hierarchy"):
         evaluation.evaluate(["runs/stage1"], "no_such_data", clip_to_context=False)
@@ -216,7 +216,7 @@ def test_no_clip_needs_a_hierarchy():
 def test_latency_records_the_policy_the_models_ran_in(tmp_path):
     """Loaded models keep the policy they were saved with, whatever ``policy`` asks for."""
     from conftest import keras_policy
-    from stnh_tf import evaluation
+    from stnh_tf.evaluation import mace as evaluation
     from stnh_tf.modeling import models
 
     with keras_policy("mixed_bfloat16"):

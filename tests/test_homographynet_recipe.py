@@ -9,7 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from stnh_tf import train_config, training
+from stnh_tf.training import config as train_config
+from stnh_tf.training import loop as training
 from stnh_tf.modeling import model_kinds
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -100,7 +101,7 @@ FLAGS_SCRIPT = r"""
 import json, sys
 from absl import flags
 from experiments import flags_common
-from stnh_tf import train_config
+from stnh_tf.training import config as train_config
 flags_common.define_training_flags(train_config.STAGE)
 out = []
 for argv in json.loads(sys.argv[1]):

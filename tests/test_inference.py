@@ -22,9 +22,10 @@ import skimage.data
 
 from conftest import (cv2_warp, inside_mask, keras_policy, narrow_network, ncc_reference,
                       norm_matrix, paper_homography, to_bar)
-from stnh_tf import export, geometry, image_input, model_files
+from stnh_tf import geometry
+from stnh_tf.inference import export, image_input, model_files
 from stnh_tf.modeling import models
-from stnh_tf.inference import HomographyEstimator
+from stnh_tf.inference.estimator import HomographyEstimator
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 S = 128
@@ -362,7 +363,7 @@ def test_degenerate_stage_predictions_are_skipped_and_counted(pairs, rng, caplog
 
 
 def test_alignment_ncc_against_numpy(pairs):
-    from stnh_tf import inference
+    from stnh_tf.inference import estimator as inference
 
     a, b, hs = pairs
     for k in range(len(a)):
@@ -398,7 +399,7 @@ def test_implausible_estimates_are_flagged_per_pair(pairs):
     NumPy reference."""
     import cv2
 
-    from stnh_tf import inference
+    from stnh_tf.inference import estimator as inference
 
     a, b, hs = pairs
     n = len(a)
@@ -444,7 +445,8 @@ def test_flat_patch_gives_the_flagged_identity(pairs, identity_model_path, tmp_p
     identity, flagged implausible with an undefined NCC, whatever the stages predict; the other
     pairs keep the stages' estimate. estimate_images and the predict CLI's library call do the
     same for a black image_b."""
-    from stnh_tf import alignment, inference
+    from stnh_tf.inference import image_files as alignment
+    from stnh_tf.inference import estimator as inference
 
     a, b, hs = pairs
     a, b = a.copy(), b.copy()
@@ -524,7 +526,7 @@ def test_ecc_refinement_recovers_the_true_homography(pairs, monkeypatch):
     made each pair) lands within 0.5 px of it (the pairs are rounded to uint8), also when patch_b's gain and offset change;
     refine="none" returns the start unchanged; a refinement moving the corners by more than
     MAX_REFINE_MOVE is dropped for the start; an unknown refine is an error."""
-    from stnh_tf import inference
+    from stnh_tf.inference import estimator as inference
 
     a, b, hs = pairs
     off = geometry.translation(3.0, -2.0) @ np.array([[1.02, 0.01, 0], [-0.01, 0.99, 0], [0, 0, 1]])
@@ -673,7 +675,7 @@ def test_search_finds_the_alignment_a_network_put_a_period_off(pairs, rng, monke
     is not searched, and one with patch_b from another texture is searched without result: both
     keep the network's estimate. search="none" returns the network's estimates; with a verified
     NCC no alignment can reach, nothing is replaced."""
-    from stnh_tf import inference
+    from stnh_tf.inference import estimator as inference
 
     a_s, b_s, hs = pairs
     h_wall = geometry.translation(6.0, -4.0) @ np.array([[1.03, 0.02, 0], [-0.01, 0.98, 0],
@@ -1212,7 +1214,7 @@ def test_predict_outputs_of_pairs_with_the_same_names_do_not_collide(identity_mo
     """Two pairs whose images share base names used to overwrite each other's outputs in one
     --output_dir; a re-run of the same pair still replaces its own. (The predict binary's own
     call of ``align_image_files`` is tested above; here the library call, in-process.)"""
-    from stnh_tf import alignment
+    from stnh_tf.inference import image_files as alignment
 
     photos = {"one": skimage.data.camera(), "two": skimage.data.coffee()[..., ::-1]}
     for name, photo in photos.items():
@@ -1240,7 +1242,9 @@ def test_implausibility_check_with_the_identity_model(identity_model_path):
     """``evaluation.implausibility_check`` on the bundled pairs with the identity model: the
     ordinary MACE is the identity's and every case's flagged fraction is the fraction of pairs
     whose plain NumPy NCC of patch_a and that case's patch_b is below the threshold."""
-    from stnh_tf import evaluation, inference, shipped_weights
+    from stnh_tf.inference import estimator as inference
+    from stnh_tf.inference import shipped_weights
+    from stnh_tf.evaluation import mace as evaluation
 
     result = evaluation.implausibility_check(identity_model_path, search="none")
     arrays = shipped_weights.bundled_pairs()
@@ -1271,10 +1275,10 @@ def test_implausibility_check_with_the_identity_model(identity_model_path):
 
 
 def test_search_stability_measures_both_opencv_paths_and_moved_starts(pairs, identity_model_path):
-    """stnh_tf.search_stability with the identity model: every pair's identity estimate aligns
+    """stnh_tf.evaluation.search_stability with the identity model: every pair's identity estimate aligns
     it poorly (NCC recomputed here below 0.9), so every pair is searched; the search's results
     agree between OpenCV's two paths and from starts moved by 0.1 px, and beat the identity."""
-    from stnh_tf import search_stability
+    from stnh_tf.evaluation import search_stability
 
     a, b, hs = pairs
     a, b = a.astype(np.float32) / 255.0, b.astype(np.float32) / 255.0

@@ -380,7 +380,7 @@ def test_benchmark_binary_smoke(tmp_path):
     import subprocess
     import sys
 
-    from stnh_tf import benchmarks
+    from stnh_tf.evaluation import benchmarks
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     out = tmp_path / "bench.json"

@@ -13,10 +13,14 @@ import keras
 import numpy as np
 import pytest
 
-from data_prep import stage1
-from stnh_tf import batches, data, pairs, run_dir, sources, train_config, training
-from stnh_tf.modeling import models
-from stnh_tf.modeling import runner
+from stnh_tf.data import stage1
+from stnh_tf.training import run_dir
+from stnh_tf.training import config as train_config
+from stnh_tf.training import loop as training
+from stnh_tf.data import batches
+from stnh_tf.data import tfrecords as data
+from stnh_tf.data import pairs, sources
+from stnh_tf.modeling import models, runner
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PHOTO = pairs.PhotometricChange()

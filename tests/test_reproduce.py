@@ -11,7 +11,9 @@ import sys
 import numpy as np
 import pytest
 
-from stnh_tf import data, reproduce, run_dir
+from stnh_tf.paper import reproduce
+from stnh_tf.training import run_dir
+from stnh_tf.data import tfrecords as data
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -17,9 +17,10 @@ from keras import ops
 
 from conftest import cv2_warp, inside_mask, keras_policy, norm_matrix, paper_homography, to_bar
 from stnh_tf.modeling import losses as losses_lib
-from stnh_tf import run_dir, train_config, training
-from stnh_tf.modeling import model_kinds
-from stnh_tf.modeling import models
+from stnh_tf.training import run_dir
+from stnh_tf.training import config as train_config
+from stnh_tf.training import loop as training
+from stnh_tf.modeling import model_kinds, models
 from stnh_tf.modeling.layers import HomographyMerge, SpatialTransformer
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

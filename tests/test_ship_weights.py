@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from conftest import keras_policy, ncc_reference, to_bar
-from stnh_tf import shipped_weights
-from stnh_tf import inference
+from stnh_tf.inference import shipped_weights
+from stnh_tf.inference import estimator as inference
 from stnh_tf.modeling import models
 
 S = 128

@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from conftest import ncc_reference, opencv_optimized
-from stnh_tf import geometry, inference, model_files, shipped_weights
+from stnh_tf import geometry
+from stnh_tf.inference import estimator as inference
+from stnh_tf.inference import model_files, shipped_weights
 
 WEIGHTS = model_files.default_weights_dir()
 SHIPPED = {"default": WEIGHTS, "paper_recipe": os.path.join(WEIGHTS, model_files.PAPER_RECIPE_WEIGHTS)}
@@ -132,7 +134,7 @@ def test_default_estimate_beats_sift_ransac_and_is_never_worse_than_the_identity
     """Independent of the card: on its 60 bundled pairs the default estimate's MACE is below
     SIFT + RANSAC's on the same pairs (measured 2.08 against 2.50 px, photometric 2.44 against
     4.58), and no pair ends farther from the truth than the identity."""
-    from stnh_tf import baselines
+    from stnh_tf.evaluation import baselines
 
     arrays, h, _ = default_card_estimates[key]
     errors = geometry.corner_errors(h, arrays["h_ba"])

@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 
 from conftest import norm_matrix
-from data_prep import stage1, stage_k
-from stnh_tf import batches, data, geometry
+from stnh_tf.data import stage1, stage_k
+from stnh_tf import geometry
+from stnh_tf.data import batches
+from stnh_tf.data import tfrecords as data
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 QUIET = lambda *a, **k: None

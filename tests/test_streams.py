@@ -11,9 +11,14 @@ import sys
 import numpy as np
 import pytest
 
-from data_prep import stage1
-from stnh_tf import (batches, data, evaluation, pair_datasets, pairs, sources, train_config,
-                     train_streams, training)
+from stnh_tf.data import stage1
+from stnh_tf.evaluation import mace as evaluation
+from stnh_tf.training import config as train_config
+from stnh_tf.training import streams as train_streams
+from stnh_tf.training import loop as training
+from stnh_tf.data import batches
+from stnh_tf.data import tfrecords as data
+from stnh_tf.data import pair_datasets, pairs, sources
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 N_IMAGES, PER_IMAGE, BATCH = 4, 3, 4  # 12 samples, 3 batches per data epoch
@@ -125,16 +130,16 @@ def test_pair_stream_workers_serve_the_in_process_batches(folder, fresh):
 LOADED_BACKENDS = "sorted({'keras', 'tensorflow', 'jax', 'torch'} & set(__import__('sys').modules))"
 
 # A binary run as ``python -m``: its imports load Keras (as experiments.train_stage's do through
-# stnh_tf.training), which multiprocessing would re-run in every worker to rebuild ``__main__``.
+# stnh_tf.training.loop), which multiprocessing would re-run in every worker to rebuild ``__main__``.
 BINARY = f"""
 import json, sys
 import keras
-from stnh_tf import batches
+from stnh_tf.data import batches
 if __name__ == "__main__":
     b = batches.PairBatches(sys.argv[1], 4, samples_per_image=1, seed=0)
     with batches.generator_pool(b, 1) as pool:
         print(json.dumps([pool.apply(eval, ({LOADED_BACKENDS!r},)),
-                          pool.apply(eval, ("'stnh_tf.batches' in __import__('sys').modules",)),
+                          pool.apply(eval, ("'stnh_tf.data.batches' in __import__('sys').modules",)),
                           batches.stack_samples([b.sample(0)])["patch_b"].tolist()
                           == pool.apply(batches._worker_samples, ((0, 1, False),))["patch_b"].tolist()]))
     print(json.dumps(sorted({{"keras"}} & set(sys.modules))))
@@ -145,7 +150,7 @@ def test_generator_workers_import_no_deep_learning_backend(folder, tmp_path):
     pair_batches = batches.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
     with batches.generator_pool(pair_batches, 1) as pool:
         loaded = pool.apply(eval, (LOADED_BACKENDS,))
-        assert pool.apply(eval, ("'stnh_tf.batches' in __import__('sys').modules",))
+        assert pool.apply(eval, ("'stnh_tf.data.batches' in __import__('sys').modules",))
     assert loaded == []
     # The same from a binary started with ``python -m`` whose own imports load Keras.
     (tmp_path / "fake_binary.py").write_text(BINARY)
@@ -217,7 +222,7 @@ def test_stage2_from_image_folder_validates_on_make_stage_dataset_pairs(folder, 
                                                                        narrow):
     """Stage 2 trains from the folder with the stage-1 model's predictions made in memory; its
     validation pairs are the stage-2 test records make_stage_dataset writes with that model."""
-    from data_prep import stage_k
+    from stnh_tf.data import stage_k
 
     common = dict(image_dir=folder, val_image_dir=folder, samples_per_image=PER_IMAGE,
                   train_steps=2, warmup_steps=1, batch_size=BATCH, checkpoint_every=2,

@@ -18,10 +18,13 @@ import pytest
 import tensorflow as tf
 
 from conftest import NARROW_FILTERS, narrow_network
-from data_prep import stage1
-from stnh_tf import data, geometry, run_dir, train_config, training
-from stnh_tf.modeling import model_kinds
-from stnh_tf.modeling import runner
+from stnh_tf.data import stage1
+from stnh_tf import geometry
+from stnh_tf.training import run_dir
+from stnh_tf.training import config as train_config
+from stnh_tf.training import loop as training
+from stnh_tf.data import tfrecords as data
+from stnh_tf.modeling import model_kinds, runner
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -329,9 +332,10 @@ import numpy as np
 import tensorflow as tf
 cpu = tf.config.list_physical_devices("CPU")[0]
 tf.config.set_logical_device_configuration(cpu, [tf.config.LogicalDeviceConfiguration()] * 2)
-from stnh_tf import data, train_config, training
-from stnh_tf.modeling import models
-from stnh_tf.modeling import runner
+from stnh_tf.training import config as train_config
+from stnh_tf.training import loop as training
+from stnh_tf.data import tfrecords as data
+from stnh_tf.modeling import models, runner
 data_dir, work, filters, mask = sys.argv[1], sys.argv[2], json.loads(sys.argv[3]), sys.argv[4]
 models.CONV_FILTERS = tuple(filters)  # conftest's narrow network
 
@@ -410,7 +414,7 @@ def test_mirrored_strategy_on_two_logical_cpus_equals_one_device(tiny_data, tmp_
 
 @pytest.mark.slow
 def test_overfits_eight_pairs(tmp_path_factory):
-    """The model and losses of :mod:`stnh_tf.training` drive the MACE of 8 fixed pairs far below
+    """The model and losses of :mod:`stnh_tf.training.loop` drive the MACE of 8 fixed pairs far below
     the identity's, and the photometric error down with it: losses, STN and gradients are wired
     through every layer (8 different targets cannot be met by the output bias alone). Adam with
     full batches, because SGD at this scale needs thousands of steps (no claim about

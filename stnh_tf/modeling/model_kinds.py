@@ -1,6 +1,6 @@
 """The model kinds a run can train, each defined once: how to build it, its losses and metrics,
 and how the dataset's targets map onto its outputs (:data:`KINDS`, keyed like
-:data:`stnh_tf.train_config.MODEL_KINDS`, which the binaries' ``--model`` flag offers).
+:data:`stnh_tf.training.config.MODEL_KINDS`, which the binaries' ``--model`` flag offers).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import keras
 
 from stnh_tf.modeling import losses as losses_lib
 from stnh_tf.modeling import models
-from stnh_tf.train_config import MODEL_KINDS, TrainConfig
+from stnh_tf.training.config import MODEL_KINDS, TrainConfig
 
 def l2_term_weight(cfg: TrainConfig) -> float:
     """The loss weight of :func:`stnh_tf.modeling.losses.h_bar_l2` (a mean over H_bar's 8 entries):
