@@ -17,6 +17,7 @@ import os
 
 from absl import app, flags, logging
 
+from experiments import common
 from stnh_tf.data import sources, stage1
 
 flags.DEFINE_enum("source", "folder", stage1.SOURCES,
@@ -48,7 +49,7 @@ def main(argv):
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     sources.quiet_opencv()
-    try:
+    with common.user_errors("make_dataset", (sources.SourceError, ValueError, OSError)):
         stage1.make_dataset(FLAGS.source, FLAGS.output_dir, FLAGS.split,
                             image_dir=FLAGS.image_dir, samples_per_image=FLAGS.samples_per_image,
                             seed=FLAGS.seed, num_shards=FLAGS.num_shards,
@@ -56,8 +57,6 @@ def main(argv):
                             tfds_data_dir=FLAGS.tfds_data_dir, tfds_split=FLAGS.tfds_split,
                             chunk_size=FLAGS.chunk_size, log=logging.info,
                             overwrite=FLAGS.overwrite, photometric=FLAGS.photometric)
-    except (sources.SourceError, ValueError, OSError) as e:
-        raise SystemExit(f"make_dataset: {e}") from None
 
 
 if __name__ == "__main__":

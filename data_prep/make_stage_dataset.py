@@ -18,6 +18,7 @@ import os
 
 from absl import app, flags, logging
 
+from experiments import common
 from stnh_tf.data import stage_k
 
 flags.DEFINE_integer("stage", None, "Stage k >= 2 of the dataset to build.", required=True)
@@ -35,13 +36,11 @@ def main(argv):
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     for split in FLAGS.splits:
-        try:
+        with common.user_errors("make_stage_dataset"):
             result = stage_k.make_stage_dataset(
                 FLAGS.stage, FLAGS.input_dir, FLAGS.output_dir, split, model_dir=FLAGS.model_dir,
                 num_shards=FLAGS.num_shards, num_workers=FLAGS.num_workers, log=logging.info,
                 overwrite=FLAGS.overwrite)
-        except (ValueError, OSError) as e:
-            raise SystemExit(f"make_stage_dataset: {e}") from None
         logging.info("%s: %d samples; degenerate predictions %s", split, result["num_samples"],
                      result["degenerate_predictions"])
 

@@ -5,8 +5,8 @@ r"""Benchmark data generation (samples/s with 1 and 2 workers) and tf.data readi
 
 Generation writes to a temporary directory (removed afterwards) with the real writer
 (``stnh_tf.data.writer.write_sharded`` + the stage-1 worker); the timing includes starting the
-worker processes. Reading times ``stnh_tf.data.tfrecords.load_split`` (interleave, shuffle, batch, parse,
-prefetch) after a short warm-up. ``--resume_skip_batches=N`` also times how long a resumed
+worker processes. Reading times ``stnh_tf.data.tfrecords.load_split`` (interleave, shuffle, batch,
+parse, prefetch) after a short warm-up. ``--resume_skip_batches=N`` also times how long a resumed
 training stream takes to deliver its first batch after skipping N batches, with the skip before
 parsing (``load_split(skip_batches=N)``, what training uses) and after it (``.skip(N)`` on the
 parsed stream). Prints one JSON object (machine, seed, command, results).
@@ -18,7 +18,7 @@ from __future__ import annotations
 from absl import app, flags
 
 from stnh_tf.evaluation import data_benchmark as benchmark
-from experiments import common
+from experiments import common, flags_common
 
 flags.DEFINE_enum("source", "bundled", ["bundled", "folder"], "Image source.")
 flags.DEFINE_string("image_dir", None, "Folder for --source=folder.")
@@ -32,7 +32,7 @@ flags.DEFINE_integer("read_batches", 200, "Batches timed when reading (after 10 
 flags.DEFINE_integer("resume_skip_batches", 0, "Also time resuming the stream at this batch "
                      "(0: not timed).")
 flags.DEFINE_integer("seed", 0, "Generation seed.")
-flags.DEFINE_string("json_out", None, "Also write the JSON here.")
+flags_common.define_json_out()
 FLAGS = flags.FLAGS
 
 

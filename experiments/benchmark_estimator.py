@@ -15,9 +15,9 @@ from __future__ import annotations
 
 from absl import app, flags
 
-from experiments import common
+from experiments import common, flags_common
 from stnh_tf.evaluation import benchmarks
-from stnh_tf.inference.estimator import SEARCHES, TTAS
+from stnh_tf.inference.options import EstimateOptions
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
 flags.DEFINE_enum("compute_dtype", "float32", ["float32", "as_saved"],
@@ -26,10 +26,10 @@ flags.DEFINE_integer("runs", 30, "Timed calls per measurement (median reported).
 flags.DEFINE_integer("warmup", 5, "Untimed calls first.")
 flags.DEFINE_integer("large_batch", 256, "Pairs per call of the large-batch measurement.")
 flags.DEFINE_integer("seed", 0, "Seed of the inputs.")
-flags.DEFINE_enum("tta", "none", list(TTAS), "estimate's test-time augmentation.")
-flags.DEFINE_enum("search", "none", list(SEARCHES), "estimate's search (none: the network; ecc "
-                  "searches every pair of the random patches, its worst case).")
-flags.DEFINE_string("json_out", None, "Also write the JSON here.")
+# search=none by default: random patches do not align, so the search would take every pair.
+DEFAULTS = EstimateOptions(search="none")
+flags_common.define_estimate_flags(("tta", "search"), DEFAULTS)
+flags_common.define_json_out()
 FLAGS = flags.FLAGS
 
 
@@ -39,7 +39,7 @@ def main(argv):
 
     result = benchmarks.estimator_benchmark(FLAGS.model, FLAGS.compute_dtype, FLAGS.runs,
                                             FLAGS.warmup, FLAGS.large_batch, FLAGS.seed,
-                                            FLAGS.tta, FLAGS.search)
+                                            flags_common.options_from_flags(DEFAULTS))
     common.emit_json(result, FLAGS.json_out)
 
 

@@ -23,7 +23,7 @@ import os
 
 from absl import app, flags
 
-from experiments import common
+from experiments import common, flags_common
 from stnh_tf.evaluation import benchmarks
 
 flags.DEFINE_list("model_dir", [], "Stage model directories (default: untrained models).")
@@ -34,12 +34,13 @@ flags.DEFINE_enum("policy", "float32", ["float32", "mixed_bfloat16"], "Dtype pol
                   "models (loaded models keep theirs; the JSON's policy says what ran).")
 flags.DEFINE_bool("sequence", True, "Also time sequence models with 1..max_stages stages.")
 flags.DEFINE_integer("seed", 0, "Seed of the inputs and weights.")
-flags.DEFINE_string("json_out", None, "Also write the JSON here.")
+flags_common.define_json_out()
 FLAGS = flags.FLAGS
 
 
 def measure(*args, **kwargs):
-    """:func:`stnh_tf.evaluation.mace.latency` (the library core, also used by the reproduce driver)."""
+    """:func:`stnh_tf.evaluation.mace.latency` (the library core, also used by the reproduce
+    driver)."""
     from stnh_tf.evaluation import mace as evaluation
 
     return evaluation.latency(*args, **kwargs)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from absl import app, flags
 
-from experiments import common
+from experiments import common, flags_common
 from stnh_tf.evaluation import benchmarks
 
 flags.DEFINE_integer("batch_size", 64, "Patches per batch.")
@@ -24,8 +24,9 @@ flags.DEFINE_integer("iterations", 30, "Timed iterations per measurement (the me
 flags.DEFINE_integer("warmup", 3, "Untimed iterations before each measurement (tracing, XLA).")
 flags.DEFINE_integer("seed", 0, "Seed for patch positions and homographies.")
 flags.DEFINE_bool("jit_compile", False, "Compile the tf.functions with XLA.")
-flags.DEFINE_bool("compare_jit", False, "Measure both jit_compile=False and True (overrides --jit_compile).")
-flags.DEFINE_string("json_out", None, "Also write the JSON result to this file.")
+flags.DEFINE_bool("compare_jit", False,
+                  "Measure both jit_compile=False and True (overrides --jit_compile).")
+flags_common.define_json_out()
 
 FLAGS = flags.FLAGS
 

@@ -17,7 +17,7 @@ import tempfile
 
 from absl import app, flags
 
-from experiments import common
+from experiments import common, flags_common
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
 flags.DEFINE_integer("stages", None, "Use only the first N stages of the hierarchy.")
@@ -25,7 +25,7 @@ flags.DEFINE_integer("seed", 0, "Seed of the bundled test pairs (the model card'
 flags.DEFINE_integer("samples_per_image", 3, "Pairs per bundled test photograph.")
 flags.DEFINE_bool("photometric", False, "patch_b also changed in brightness, contrast and gamma.")
 flags.DEFINE_list("perturbations", ["0.01", "0.1", "0.3"], "Start moves (px) of the search.")
-flags.DEFINE_string("json_out", None, "Also write the JSON here.")
+flags_common.define_json_out()
 FLAGS = flags.FLAGS
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from absl import app, flags
 
-from experiments import common
+from experiments import common, flags_common
 from stnh_tf.evaluation import benchmarks
 
 flags.DEFINE_list("image_dir", None, "Folders of training images (comma-separated).",
@@ -37,7 +37,7 @@ flags.DEFINE_integer("steps_per_epoch", 50, "Keras epoch length (training checkp
 flags.DEFINE_integer("epochs", 3, "Timed Keras epochs (after one untimed).")
 flags.DEFINE_bool("mixed_precision", True, "Keras mixed_bfloat16 policy.")
 flags.DEFINE_integer("seed", 0, "Pair and weight seed.")
-flags.DEFINE_string("json_out", None, "Also write the JSON here.")
+flags_common.define_json_out()
 FLAGS = flags.FLAGS
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from absl import app, flags
 
-from experiments import common
+from experiments import common, flags_common
 from stnh_tf.evaluation import benchmarks
 
 flags.DEFINE_integer("batch_size", 64, "Training batch size.")
@@ -28,7 +28,7 @@ flags.DEFINE_list("policies", ["float32", "mixed_bfloat16"], "Keras dtype polici
 flags.DEFINE_bool("jit", False, "Also measure jit_compile=True.")
 flags.DEFINE_integer("latency_runs", 200, "Batch-1 inference calls timed.")
 flags.DEFINE_integer("seed", 0, "Seed of the batches and weights.")
-flags.DEFINE_string("json_out", None, "Also write the JSON here.")
+flags_common.define_json_out()
 FLAGS = flags.FLAGS
 
 

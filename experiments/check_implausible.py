@@ -15,31 +15,24 @@ from __future__ import annotations
 
 from absl import app, flags
 
-from experiments import common
-from stnh_tf.evaluation import mace as evaluation
-from stnh_tf.inference.estimator import REFINES, SEARCH, SEARCHES, TTAS
+from experiments import common, flags_common
+from stnh_tf.evaluation import mace
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
 flags.DEFINE_string("data_dir", None, "Stage-1 pairs (default: the model card's bundled pairs).")
 flags.DEFINE_string("split", "test", "Split of --data_dir.")
 flags.DEFINE_bool("photometric", False, "Bundled pairs with a photometric change of patch_b.")
-flags.DEFINE_enum("refine", "none", list(REFINES), "estimate's refine: none or ecc.")
-flags.DEFINE_enum("tta", "none", list(TTAS), "estimate's test-time augmentation.")
-flags.DEFINE_enum("retry_tta", "none", list(TTAS), "estimate's retry of flagged pairs.")
-flags.DEFINE_enum("search", SEARCH, list(SEARCHES), "estimate's search of poorly aligned pairs.")
-flags.DEFINE_string("json_out", None, "Also write the JSON here.")
+flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search"))
+flags_common.define_json_out()
 FLAGS = flags.FLAGS
 
 
 def main(argv):
     del argv
-    try:
-        result = evaluation.implausibility_check(FLAGS.model, FLAGS.data_dir, FLAGS.split,
-                                                 photometric=FLAGS.photometric,
-                                                 refine=FLAGS.refine, tta=FLAGS.tta,
-                                                 retry_tta=FLAGS.retry_tta, search=FLAGS.search)
-    except (ValueError, OSError) as e:
-        raise SystemExit(f"check_implausible: {e}") from None
+    with common.user_errors("check_implausible"):
+        result = mace.implausibility_check(FLAGS.model, FLAGS.data_dir, FLAGS.split,
+                                           photometric=FLAGS.photometric,
+                                           options=flags_common.options_from_flags())
     common.emit_json(result, FLAGS.json_out)
 
 

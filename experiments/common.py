@@ -1,7 +1,9 @@
-"""Small helpers shared by the benchmark and evaluation binaries (no flags defined here)."""
+"""Small helpers shared by the binaries (no flags defined here): the JSON they print, and how a
+user's error ends them."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 
 
@@ -12,3 +14,13 @@ def emit_json(result: dict, json_out: str | None = None) -> None:
     if json_out:
         with open(json_out, "w") as f:
             f.write(text + "\n")
+
+
+@contextlib.contextmanager
+def user_errors(binary: str, errors=(ValueError, OSError)):
+    """Turn ``errors`` raised inside into ``SystemExit("<binary>: <message>")``: a user's mistake
+    (a bad flag, a missing file) ends a binary with one line, not a traceback."""
+    try:
+        yield
+    except errors as e:
+        raise SystemExit(f"{binary}: {e}") from None

@@ -16,10 +16,13 @@ import json
 
 from absl import app, flags
 
+from experiments import common
+
 flags.DEFINE_list("model_dir", [], "Model directory, or several (comma-separated) for a hierarchy.")
 flags.DEFINE_string("data_dir", None, "Dataset directory (data_prep output).", required=True)
 flags.DEFINE_string("split", "test", "Split to evaluate.")
-flags.DEFINE_list("baselines", [], "Classical baselines: identity, orb_ransac, sift_ransac, orb_default.")
+flags.DEFINE_list("baselines", [],
+                  "Classical baselines: identity, orb_ransac, sift_ransac, orb_default.")
 flags.DEFINE_integer("max_samples", None, "Evaluate only the first N pairs.")
 flags.DEFINE_integer("batch_size", 64, "Inference batch size.")
 flags.DEFINE_enum("compute_dtype", None, ["float32"],
@@ -41,14 +44,12 @@ def main(argv):
 
     if not FLAGS.model_dir and not FLAGS.baselines:
         raise SystemExit("evaluate: give --model_dir and/or --baselines.")
-    try:
+    with common.user_errors("evaluate"):
         if FLAGS.json_out:  # before the evaluation: its result must not be lost at the end
             paths.check_output_file(FLAGS.json_out)
         result = evaluation.evaluate(FLAGS.model_dir, FLAGS.data_dir, FLAGS.split, FLAGS.baselines,
                                      FLAGS.max_samples, FLAGS.batch_size,
                                      FLAGS.compute_dtype, clip_to_context=not FLAGS.no_clip)
-    except (ValueError, OSError) as e:
-        raise SystemExit(f"evaluate: {e}") from None
     text = json.dumps(result, indent=2, sort_keys=True)
     if FLAGS.json_out:
         with open(FLAGS.json_out, "w") as f:

@@ -15,6 +15,8 @@ import sys
 
 from absl import app, flags
 
+from experiments import common
+
 FLAGS = flags.FLAGS
 flags.DEFINE_string("model", None, "Model: .keras file, run directory or hierarchy manifest "
                     "(default: the weights shipped in stnh_tf/weights).")
@@ -34,11 +36,9 @@ def main(argv):
     if not math.isfinite(FLAGS.tolerance) or FLAGS.tolerance < 0:
         raise SystemExit(f"export: --tolerance must be a finite number >= 0; received "
                          f"{FLAGS.tolerance}.")
-    try:
+    with common.user_errors("export"):
         estimator = HomographyEstimator.load(FLAGS.model)
         export.export_saved_model(estimator, FLAGS.output, overwrite=FLAGS.overwrite)
-    except (OSError, ValueError) as e:  # FileNotFoundError and FileExistsError included
-        raise SystemExit(f"export: {e}") from None
     patch_a, patch_b = export.verification_pairs(FLAGS.check_pairs)
     report = export.verify_export(FLAGS.output, estimator, patch_a, patch_b, FLAGS.tolerance)
     report.update(model=estimator.source, output=FLAGS.output)
@@ -49,8 +49,10 @@ def main(argv):
     if not report["ok"]:
         raise SystemExit(f"export: the reloaded SavedModel differs from the Keras model by "
                          f"{report['max_abs_diff']:.3g} (vs estimate: "
-                         f"{report['max_abs_diff_estimate']:.3g}); tolerance {FLAGS.tolerance:.3g}. "
-                         f"It is left at {FLAGS.output} for inspection; re-export with --overwrite.")
+                         f"{report['max_abs_diff_estimate']:.3g}); "
+                         f"tolerance {FLAGS.tolerance:.3g}. "
+                         f"It is left at {FLAGS.output} for inspection; "
+                         f"re-export with --overwrite.")
 
 
 if __name__ == "__main__":

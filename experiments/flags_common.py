@@ -6,6 +6,7 @@ import dataclasses
 
 from absl import flags
 
+from experiments import common
 from stnh_tf.training import config as train_config
 from stnh_tf.training.config import TrainConfig
 
@@ -88,8 +89,71 @@ def run_training(cfg, binary: str) -> None:
 
     from stnh_tf.training import loop as training
 
-    try:
+    with common.user_errors(binary, (ValueError, OSError, training.TrainingDiverged)):
         result = training.train(cfg, overwrite=flags.FLAGS.overwrite, printer=logging.info)
-    except (ValueError, OSError, training.TrainingDiverged) as e:
-        raise SystemExit(f"{binary}: {e}") from None
     logging.info("finished at step %d", result["final_step"])
+
+
+# ------------------------------------------------------------------------------------------------
+# The estimator's options as flags
+# ------------------------------------------------------------------------------------------------
+# One help line per EstimateOptions field that a binary may take as a flag; the choices and the
+# defaults come from stnh_tf.inference.options, so the binaries cannot disagree on them.
+ESTIMATE_FLAG_HELP = {
+    "search": "Where the estimate aligns a pair poorly: ecc (start ECC from the best translations "
+              "of it, keep a near-perfect result; a deviation) or none (the network's estimate).",
+    "refine": "After the network: none (the paper) or ecc (ECC alignment started from the "
+              "estimate; a deviation).",
+    "tta": "Test-time augmentation: none (the paper), flips or dihedral (also estimate the pair "
+           "mirrored and rotated, keep the best aligned estimate; a deviation).",
+    "retry_tta": "Estimate again with this test-time augmentation only the pairs flagged "
+                 "implausible: none, flips or dihedral (a deviation).",
+    "gate_stages": "In a hierarchy on bare patches, keep a later stage's update only where it "
+                   "does not lower the alignment (a deviation).",
+    "fill": "In a hierarchy on bare patches, what later stages see beyond the patch: reflect (a "
+            "deviation) or zeros.",
+}
+
+
+def _estimate_choices(name):
+    from stnh_tf import geometry
+    from stnh_tf.inference import options
+
+    return {"search": options.SEARCHES, "refine": options.REFINES, "tta": tuple(options.TTAS),
+            "retry_tta": tuple(options.TTAS), "fill": geometry.FILLS}.get(name)
+
+
+def define_estimate_flags(names=("search", "refine", "tta", "retry_tta"), defaults=None,
+                          flag_values=flags.FLAGS):
+    """Define a flag for each :class:`~stnh_tf.inference.options.EstimateOptions` field of
+    ``names`` (keys of :data:`ESTIMATE_FLAG_HELP`), its default taken from ``defaults`` (an
+    ``EstimateOptions``; ``None``: ``EstimateOptions()``). :func:`options_from_flags` reads them.
+    """
+    from stnh_tf.inference.options import EstimateOptions
+
+    defaults = EstimateOptions() if defaults is None else defaults
+    for name in names:
+        default, help_text = getattr(defaults, name), ESTIMATE_FLAG_HELP[name]
+        if isinstance(default, bool):
+            flags.DEFINE_bool(name, default, help_text, flag_values=flag_values)
+        else:
+            flags.DEFINE_enum(name, default, list(_estimate_choices(name)), help_text,
+                              flag_values=flag_values)
+
+
+def options_from_flags(defaults=None, flag_values=flags.FLAGS):
+    """The :class:`~stnh_tf.inference.options.EstimateOptions` of the parsed flags of
+    :func:`define_estimate_flags`: ``defaults`` (``None``: ``EstimateOptions()``) with every field
+    that is a defined flag replaced by the flag's value."""
+    from stnh_tf.inference.options import EstimateOptions
+
+    defaults = EstimateOptions() if defaults is None else defaults
+    return dataclasses.replace(defaults, **{name: flag_values[name].value
+                                            for name in ESTIMATE_FLAG_HELP
+                                            if name in flag_values})
+
+
+def define_json_out(flag_values=flags.FLAGS):
+    """``--json_out``: where a binary also writes the JSON it prints
+    (:func:`experiments.common.emit_json`)."""
+    flags.DEFINE_string("json_out", None, "Also write the JSON here.", flag_values=flag_values)

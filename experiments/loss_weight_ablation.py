@@ -1,6 +1,7 @@
 r"""The paper's Table 1: single-stage STN-Homography trained with five (L2, L1) loss weightings.
 
-  python -m experiments.loss_weight_ablation --budget=cpu --image_dir=../shared/data/coco_mini/train \
+  python -m experiments.loss_weight_ablation --budget=cpu \
+      --image_dir=../shared/data/coco_mini/train \
       --test_image_dir=../shared/data/coco_mini/test --output_dir=runs/reproduce_cpu
 
 Rows (1,1), (1,10), (1,0.1), (10,1), (0.1,1) by default (--weights=l2:l1,...), each trained at the
@@ -14,6 +15,8 @@ models with experiments.reproduce (same OUTPUT_DIR, same --reuse).
 import dataclasses
 
 from absl import app, flags
+
+from experiments import common
 
 from experiments.reproduce import parse_reuse  # also defines the shared flags: --budget,
 from stnh_tf.paper import reproduce  # --output_dir, --source, --image_dir,
@@ -36,13 +39,11 @@ def main(argv):
     budget = reproduce.BUDGETS[FLAGS.budget]
     if FLAGS.steps:
         budget = dataclasses.replace(budget, ablation_steps=FLAGS.steps)
-    try:
+    with common.user_errors("loss_weight_ablation"):
         run = reproduce.Reproduction(budget, FLAGS.output_dir, image_dir=FLAGS.image_dir,
                                      test_image_dir=FLAGS.test_image_dir, source=FLAGS.source,
                                      reuse=parse_reuse(FLAGS.reuse), ablation_weights=weights)
         table = run.table1(run.ablation(run.ablation_weights))
-    except (ValueError, OSError) as e:
-        raise SystemExit(f"loss_weight_ablation: {e}") from None
     for (l2, l1), maces in table.items():
         seeds = f" (seeds: {', '.join(f'{m:.2f}' for m in maces)})" if len(maces) > 1 else ""
         print(f"l2={l2:g} l1={l1:g}: MACE {sum(maces) / len(maces):.2f} px{seeds} "

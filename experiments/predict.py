@@ -20,8 +20,8 @@ import sys
 
 from absl import app, flags
 
-from stnh_tf.inference import image_files as alignment
-from stnh_tf.inference.estimator import REFINES, SEARCH, SEARCHES, TTAS
+from experiments import flags_common
+from stnh_tf.inference import image_files
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("image_a", None, "Path of image_a (the reference image).", required=True)
@@ -29,27 +29,17 @@ flags.DEFINE_string("image_b", None, "Path of image_b (the image mapped into ima
 flags.DEFINE_string("model", None, "Model: .keras file, run directory or hierarchy manifest "
                     "(default: the weights shipped in stnh_tf/weights).")
 flags.DEFINE_string("output_dir", ".", "Folder for the overlay PNG and the JSON (created if missing).")
-flags.DEFINE_enum("refine", "none", list(REFINES), "After the network: none (the paper) or ecc "
-                  "(OpenCV's ECC alignment started from the estimate, a deviation).")
-flags.DEFINE_enum("tta", "none", list(TTAS), "Test-time augmentation: none (the paper), flips "
-                  "or dihedral (also estimate the images mirrored and rotated, keep the best "
-                  "aligned estimate; a deviation).")
-flags.DEFINE_enum("retry_tta", "none", list(TTAS), "Estimate again with this test-time "
-                  "augmentation only if the estimate is flagged implausible: none (the paper), "
-                  "flips or dihedral (a deviation).")
-flags.DEFINE_enum("search", SEARCH, list(SEARCHES), "Where the estimate aligns the images poorly: "
-                  "ecc (start OpenCV's ECC alignment from the best translations of it, keep a "
-                  "near-perfect result; a deviation) or none (the network's estimate).")
+flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search"))
 
 
 def main(argv):
     del argv
     try:
-        result = alignment.align_image_files(
+        result = image_files.align_image_files(
             FLAGS.image_a, FLAGS.image_b, FLAGS.model, FLAGS.output_dir,
             warn=lambda message: print(f"predict: warning: {message}", file=sys.stderr),
-            refine=FLAGS.refine, tta=FLAGS.tta, retry_tta=FLAGS.retry_tta, search=FLAGS.search)
-    except alignment.AlignmentError as e:
+            options=flags_common.options_from_flags())
+    except image_files.AlignmentError as e:
         raise SystemExit(f"predict: {e}") from None
     print(json.dumps(result, indent=2))
 

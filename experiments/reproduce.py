@@ -16,6 +16,7 @@ training over several sessions. See stnh_tf/paper/reproduce.py for the steps and
 
 from absl import app, flags
 
+from experiments import common
 from stnh_tf.paper import reproduce
 
 flags.DEFINE_enum("budget", "cpu", sorted(reproduce.BUDGETS), "Training budget of every model.")
@@ -44,7 +45,7 @@ def parse_reuse(items) -> dict:
 
 def main(argv):
     del argv
-    try:
+    with common.user_errors("reproduce"):
         run = reproduce.Reproduction(reproduce.BUDGETS[FLAGS.budget], FLAGS.output_dir,
                                      image_dir=FLAGS.image_dir, test_image_dir=FLAGS.test_image_dir,
                                      source=FLAGS.source, reuse=parse_reuse(FLAGS.reuse))
@@ -52,13 +53,12 @@ def main(argv):
                  "sequence2": run.sequence2, "table1": lambda: run.ablation(run.ablation_weights)}
         unknown = sorted(set(FLAGS.train_only) - set(parts))
         if unknown:
-            raise ValueError(f"--train_only names must be among {sorted(parts)}; received {unknown}.")
+            raise ValueError(f"--train_only names must be among {sorted(parts)}; "
+                             f"received {unknown}.")
         for name in FLAGS.train_only:
             parts[name]()
         if not FLAGS.train_only:
             run.run()
-    except (ValueError, OSError) as e:
-        raise SystemExit(f"reproduce: {e}") from None
 
 
 if __name__ == "__main__":

@@ -6,14 +6,14 @@ r"""Train Sequence STN-Homography (paper section 5) end to end with the paper's 
 
 Every other flag (schedule, batch, loss weights, checkpoints/resume, logging, NaN guard, strategy)
 is shared with ``train_stage`` (:mod:`experiments.flags_common`) and handled by the same
-:func:`stnh_tf.training.loop.train`; the two binaries differ only in the model they build. The dataset
-is the stage-1 dataset (original patch_a, patch_b, H_bar, patch_a_t). Re-running the same command
-resumes from the last checkpoint (``--init_from`` only applies to a fresh start).
+:func:`stnh_tf.training.loop.train`; the two binaries differ only in the model they build. The
+dataset is the stage-1 dataset (original patch_a, patch_b, H_bar, patch_a_t). Re-running the same
+command resumes from the last checkpoint (``--init_from`` only applies to a fresh start).
 """
 
 from absl import app
 
-from experiments import flags_common
+from experiments import common, flags_common
 from stnh_tf.training import config as train_config
 
 flags_common.define_training_flags(train_config.SEQUENCE)
@@ -21,10 +21,8 @@ flags_common.define_training_flags(train_config.SEQUENCE)
 
 def main(argv):
     del argv
-    try:
+    with common.user_errors("train_sequence", (ValueError,)):
         cfg = flags_common.config_from_flags(train_config.SEQUENCE, model="sequence")
-    except ValueError as e:
-        raise SystemExit(f"train_sequence: {e}") from None
     flags_common.run_training(cfg, "train_sequence")
 
 

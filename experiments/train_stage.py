@@ -11,7 +11,7 @@ after each third of --train_steps). Re-running the same command resumes from the
 
 from absl import app
 
-from experiments import flags_common
+from experiments import common, flags_common
 from stnh_tf.training import config as train_config
 
 flags_common.define_training_flags(
@@ -21,10 +21,8 @@ flags_common.define_training_flags(
 
 def main(argv):
     del argv
-    try:
+    with common.user_errors("train_stage", (ValueError,)):
         cfg = flags_common.config_from_flags(train_config.STAGE)
-    except ValueError as e:
-        raise SystemExit(f"train_stage: {e}") from None
     flags_common.run_training(cfg, "train_stage")
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from absl import app, flags
 
-from experiments import common
+from experiments import common, flags_common
 from stnh_tf.evaluation import baseline_tuning
 
 flags.DEFINE_string("image_dir", None, "Folder of photographs (jpg/png). Default: scikit-image's.")
@@ -25,7 +25,7 @@ flags.DEFINE_integer("num_pairs", 300, "Number of synthetic pairs.")
 flags.DEFINE_integer("seed", 0, "Seed of the pair generator.")
 flags.DEFINE_enum("grid", "small", ["none", "small"],
                   "Settings grid: none (registered baselines only) or small.")
-flags.DEFINE_string("json_out", None, "Also write the JSON result to this file.")
+flags_common.define_json_out()
 
 FLAGS = flags.FLAGS
 

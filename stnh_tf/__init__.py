@@ -35,7 +35,7 @@ _compat.install({
     "stnh_tf.layers": "stnh_tf.modeling.layers",
     "stnh_tf.models": "stnh_tf.modeling.models",
     "stnh_tf.losses": "stnh_tf.modeling.losses",
-    "stnh_tf.model_kinds": "stnh_tf.modeling.model_kinds",
+    "stnh_tf.model_kinds": "stnh_tf.training.model_kinds",
     "stnh_tf.runner": "stnh_tf.modeling.runner",
     "stnh_tf.sources": "stnh_tf.data.sources",
     "stnh_tf.pairs": "stnh_tf.data.pairs",

@@ -175,7 +175,8 @@ def denormalize_homography(a_from_b_norm, width: int = PATCH_SIZE, height: int =
 # 8-vector <-> 3x3
 # --------------------------------------------------------------------------------------------
 def vector_to_matrix(h8):
-    """``[..., 8]`` (first eight entries of the row-major ``H``) -> ``[..., 3, 3]`` with ``[2,2] = 1``."""
+    """``[..., 8]`` (first eight entries of the row-major ``H``) -> ``[..., 3, 3]`` with
+    ``[2,2] = 1``."""
     h8 = _as_float_array(h8)
     _check_last_dims(h8, (8,), "homography vector")
     o = _ops(h8)
@@ -311,12 +312,14 @@ def translation(tx, ty) -> np.ndarray:
 def image_to_patch(h_image, x0, y0):
     """Image-frame ``H_ba`` -> the same map in the frame of the patch at top-left ``(x0, y0)``:
     ``inv(T) @ H @ T`` (NumPy, ``[3, 3]``)."""
-    return scale_to_unit(translation(-x0, -y0) @ np.asarray(h_image, np.float64) @ translation(x0, y0))
+    return scale_to_unit(translation(-x0, -y0) @ np.asarray(h_image, np.float64)
+                         @ translation(x0, y0))
 
 
 def patch_to_image(h_patch, x0, y0):
     """Inverse of :func:`image_to_patch`: ``T @ H @ inv(T)`` (NumPy, ``[3, 3]``)."""
-    return scale_to_unit(translation(x0, y0) @ np.asarray(h_patch, np.float64) @ translation(-x0, -y0))
+    return scale_to_unit(translation(x0, y0) @ np.asarray(h_patch, np.float64)
+                         @ translation(-x0, -y0))
 
 
 DIHEDRAL = {"identity": "", "flip_x": "h", "flip_y": "v", "rotate_180": "hv",

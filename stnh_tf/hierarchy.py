@@ -206,7 +206,8 @@ def run_hierarchy(stages: Sequence[PredictFn], context_a: np.ndarray, patch_b: n
          else np.asarray(h_init, np.float64).copy())
     per_stage, rejected = [], []
     for predict in stages:
-        patch_a = np.stack([crop_warped_context(c, hp, margin, size) for c, hp in zip(context_a, h)])
+        patch_a = np.stack([crop_warped_context(c, hp, margin, size)
+                            for c, hp in zip(context_a, h)])
         h_stage = np.asarray(predict(patch_a[..., None] / scale, patch_b), np.float64)
         h, reasons = accept_or_reject(h, h_stage, margin, size, clip_to_context)
         per_stage.append(h.copy())
@@ -230,7 +231,8 @@ def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 10
       arrays: stage-1 pairs in :func:`stnh_tf.data.batches.stack_samples`' compact form with context
         (``patch_a``, ``patch_b``, ``patch_a_t`` uint8 ``[N, S, S]``, ``h_bar``, ``h_mask``,
         ``context_a`` uint8 ``[N, S+2m, S+2m]``, ``h_ba`` ``[N, 3, 3]``).
-      stages: the trained stages 1..n as :data:`PredictFn` (e.g. :func:`stnh_tf.modeling.runner.predictor`).
+      stages: the trained stages 1..n as :data:`PredictFn`
+        (e.g. :func:`stnh_tf.modeling.runner.predictor`).
       chunk: pairs per model call batch; threads: chunks processed at once (0: one per core).
     Returns:
       ``(pairs, rejected)``: ``pairs`` in the compact form (``patch_a``, ``patch_b``,

@@ -41,7 +41,8 @@ def opencv_optimized(on: bool):
 
 
 NARROW_FILTERS = (4, 4, 4, 4, 8, 8, 8, 8)
-"""Convolution widths of the narrow network: 1/16 of the paper's (64, ..., 128), every layer kept."""
+"""Convolution widths of the narrow network: 1/16 of the paper's (64, ..., 128), every layer
+kept."""
 
 
 @contextlib.contextmanager
@@ -108,7 +109,8 @@ def photo_pairs(rng, n, margin=32):
     Returns a dict: ``image`` (gray 320x240), ``xy`` (square corners), ``h_ba`` (patch frame),
     ``context`` (the square plus ``margin`` px), ``patch_a`` and ``patch_b`` (uint8 128x128).
     """
-    photos = [skimage.data.astronaut(), skimage.data.coffee(), skimage.data.chelsea(), skimage.data.camera()]
+    photos = [skimage.data.astronaut(), skimage.data.coffee(), skimage.data.chelsea(),
+              skimage.data.camera()]
     out = {"image": [], "xy": [], "h_ba": [], "context": [], "patch_a": [], "patch_b": []}
     for i in range(n):
         p = photos[i % len(photos)]

@@ -1,4 +1,5 @@
-"""Keras backend portability: the layers, models and training under ``KERAS_BACKEND=jax`` / ``torch``.
+"""Keras backend portability: the layers, models and training under ``KERAS_BACKEND=jax`` /
+``torch``.
 
 The suite runs under TensorFlow; each other backend runs in one subprocess (the backend is chosen
 at Keras' import). References: OpenCV for the warp, the TensorFlow backend for the values and
@@ -6,9 +7,9 @@ gradients (themselves checked against OpenCV and finite differences in test_laye
 saved under each backend loaded under the other; two training steps under each backend against
 the same two steps under TensorFlow, from the same weights; and ``experiments/gpu_recipe.sh`` end
 to end (two stages) with TensorFlow hidden, as on the GPU machine (slow). The models are
-conftest's narrow network (every layer of the paper's, 1/16 of its widths). A backend that is not installed is
-skipped with the reason (JAX: the test extra installs ``jax[cpu]``; PyTorch: ``pip install torch``,
-not in the test extra, whose CI would otherwise download a CUDA build).
+conftest's narrow network (every layer of the paper's, 1/16 of its widths). A backend that is not
+installed is skipped with the reason (JAX: the test extra installs ``jax[cpu]``; PyTorch:
+``pip install torch``, not in the test extra, whose CI would otherwise download a CUDA build).
 """
 
 import importlib.util
@@ -155,7 +156,8 @@ def test_warp_matches_opencv_and_tensorflow(backend_run):
 def test_gradient_matches_tensorflow(backend_run):
     h8 = tf.Variable(backend_run["h8"])
     with tf.GradientTape() as tape:
-        loss = tf.reduce_sum(SpatialTransformer()([backend_run["images"], h8]) * backend_run["weights"])
+        loss = tf.reduce_sum(SpatialTransformer()([backend_run["images"], h8])
+                             * backend_run["weights"])
     tf_grad = tape.gradient(loss, h8).numpy()
     grad = backend_run["out"]["grad"]
     assert np.abs(tf_grad).max() > 1.0  # a real, non-trivial gradient
@@ -180,7 +182,8 @@ def test_model_trained_under_backend_runs_under_tensorflow(backend_run):
     np.testing.assert_allclose(back, backend_run["out"]["trained"], atol=1e-5)
     # ... and training changed the output away from that of its start, init.keras.
     init = keras.models.load_model(backend_run["work"] / "init.keras", compile=False)
-    assert np.abs(back - runner.compiled_forward(init)(backend_run["a"], backend_run["b"])).max() > 1e-4
+    assert np.abs(back - runner.compiled_forward(init)(backend_run["a"],
+                                                       backend_run["b"])).max() > 1e-4
 
 
 def test_training_steps_under_backend_match_tensorflow(backend_run, tmp_path):

@@ -55,7 +55,8 @@ def test_bad_shapes_raise(shape):
     message = (f"patches_a must have shape [B, 128, 128] or [B, 128, 128, 1]; received shape "
                f"{shape}.")
     with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
-        baselines.make_baseline("orb_ransac").estimate_batch(np.zeros(shape, np.uint8), np.zeros(shape, np.uint8))
+        baselines.make_baseline("orb_ransac").estimate_batch(np.zeros(shape, np.uint8),
+                                                             np.zeros(shape, np.uint8))
     good = np.zeros((2, 128, 128), np.uint8)
     with pytest.raises(ValueError, match=re.escape(f"patches_b must have shape [B, 128, 128] or "
                                                    f"[B, 128, 128, 1]; received shape {shape}.")):

@@ -467,10 +467,10 @@ def test_pair_generator_imports_no_tensorflow():
         "class PyDataset:\n"
         "    def __init__(self, workers=1, use_multiprocessing=False, max_queue_size=10): pass\n"
         "k.utils.PyDataset = PyDataset; sys.modules['keras'] = k\n"
-        "from stnh_tf import data, pair_datasets\n"
+        "from stnh_tf.data import pair_datasets, tfrecords\n"
         "x, y, w = pair_datasets.PairSequence('bundled', 2, max_images=1)[0]\n"
         "assert x['patch_a'].shape == (2, 128, 128, 1)\n"
-        "from data_prep import writer, stage1\n"
+        "from stnh_tf.data import stage1, writer\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('tensorflow', 'jax')))\n")
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True,
                           timeout=60)

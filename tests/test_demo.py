@@ -50,7 +50,8 @@ def test_image_b_window_is_image_b_around_the_square(rng):
 
 
 def test_fig5_draws_truth_in_both_images_and_the_prediction_in_image_a(rng):
-    """The paper's Fig. 5: green boxes (truth) in image_a and image_b, red (prediction) in image_a."""
+    """The paper's Fig. 5: green boxes (truth) in image_a and image_b, red (prediction) in
+    image_a."""
     from matplotlib import colors
 
     n = 2
@@ -100,7 +101,8 @@ def test_demo_runs_offline(tmp_path):
     assert result["conventions"]["ok"]
     methods = result["methods"]
     assert {"Identity", "ORB + RANSAC", "SIFT + RANSAC"} <= set(methods)
-    # Identity on the paper's protocol: 24.49 px in expectation (corners moved uniformly in [-32, 32]).
+    # Identity on the paper's protocol: 24.49 px in expectation (corners moved uniformly in
+    # [-32, 32]).
     assert 18 < methods["Identity"]["mace"] < 31
     for name, r in methods.items():
         assert np.isfinite(r["mace"]) and r["ms_per_pair"] >= 0

@@ -1,5 +1,6 @@
-"""stnh_tf.inference.ecc against independent references: exact float64 warps (scipy), NumPy's correlation,
-and OpenCV's own ECC; and the same result on OpenCV's optimized and unoptimized code paths."""
+"""stnh_tf.inference.ecc against independent references: exact float64 warps (scipy), NumPy's
+correlation, and OpenCV's own ECC; and the same result on OpenCV's optimized and unoptimized code
+paths."""
 
 import cv2
 import numpy as np

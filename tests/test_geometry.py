@@ -110,7 +110,8 @@ def test_warp_points_equals_opencv(rng):
                                    atol=1e-9)
     # Broadcast: one point set against a batch of homographies.
     got_b = g.warp_points(hs, pts[0])
-    np.testing.assert_allclose(got_b[2], cv2.perspectiveTransform(pts[0][None], hs[2])[0], atol=1e-9)
+    np.testing.assert_allclose(got_b[2], cv2.perspectiveTransform(pts[0][None], hs[2])[0],
+                               atol=1e-9)
 
 
 def test_image_patch_frames(rng):
@@ -191,7 +192,8 @@ def test_mean_corner_error_known_values(rng):
 
 
 def _sampler_pairs(n):
-    """``n`` pairs of the library's sampler: ``(h_ba [n, 3, 3], drawn corner offsets [n, 4, 2])``."""
+    """``n`` pairs of the library's sampler:
+    ``(h_ba [n, 3, 3], drawn corner offsets [n, 4, 2])``."""
     from stnh_tf.data import pairs
     protocol = pairs.Protocol(samples_per_image=1)
     image = np.zeros((protocol.image_height, protocol.image_width), np.uint8)
@@ -254,7 +256,8 @@ def test_keras_path_agrees_with_numpy(rng):
         (g.denormalize_homography(t(hs)), g.denormalize_homography(hs)),
         (g.scale_to_unit(t(hs * 2)), g.scale_to_unit(hs * 2)),
         (g.matrix_to_vector(t(hs)), g.matrix_to_vector(hs)),
-        (g.vector_to_matrix(t(hs.reshape(3, 9)[:, :8])), g.vector_to_matrix(hs.reshape(3, 9)[:, :8])),
+        (g.vector_to_matrix(t(hs.reshape(3, 9)[:, :8])),
+         g.vector_to_matrix(hs.reshape(3, 9)[:, :8])),
         (g.as_matrix(t(hs.reshape(3, 9)[:, :8])), hs),
         (g.warp_points(t(hs), t(pts)), g.warp_points(hs, pts)),
         (g.homography_from_points(t(pts[:, :4]), t(pts[:, :4] + offsets)),
@@ -285,7 +288,8 @@ def test_keras_path_inside_tf_function(rng):
         return g.mean_corner_error(h, g.compose(h, g.translation(1.0, 0.0).astype(np.float32)))
 
     assert float(f(tf.constant(hs))) == pytest.approx(
-        g.mean_corner_error(hs.astype(np.float64), g.compose(hs, g.translation(1.0, 0.0))), rel=1e-4)
+        g.mean_corner_error(hs.astype(np.float64), g.compose(hs, g.translation(1.0, 0.0))),
+        rel=1e-4)
 
 
 @pytest.mark.parametrize("fn, arg", [

@@ -15,7 +15,8 @@ S = 128
 def _mace(h_pred, h_true):
     """Independent MACE: corners through both homographies with OpenCV."""
     c = np.array([[[0, 0], [S, 0], [S, S], [0, S]]], np.float64)
-    errs = [np.linalg.norm(cv2.perspectiveTransform(c, p)[0] - cv2.perspectiveTransform(c, t)[0], axis=1).mean()
+    errs = [np.linalg.norm(cv2.perspectiveTransform(c, p)[0] - cv2.perspectiveTransform(c, t)[0],
+                           axis=1).mean()
             for p, t in zip(h_pred, h_true)]
     return float(np.mean(errs))
 
@@ -31,7 +32,8 @@ def test_crop_warped_context_equals_full_image_warp(pairs, rng):
         x0, y0 = pairs["xy"][i]
         h_prev = paper_homography(rng)
         t = np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]])
-        full = cv2.warpPerspective(pairs["image"][i].astype(np.float32), t @ h_prev @ np.linalg.inv(t),
+        full = cv2.warpPerspective(pairs["image"][i].astype(np.float32),
+                                   t @ h_prev @ np.linalg.inv(t),
                                    (320, 240), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
         ref = full[y0:y0 + S, x0:x0 + S]
         got = hierarchy.crop_warped_context(pairs["context"][i], h_prev)
@@ -89,8 +91,10 @@ def test_oracle_stages_give_zero_mace(pairs, num_stages, rng):
     assert run["h"].shape == (n, 3, 3) and len(run["per_stage"]) == num_stages
     assert _mace(run["h"], h_true) < 1e-6
     assert all(sum(r.values()) == 0 for r in run["rejected"])
-    if num_stages > 1:  # the intermediate estimate is the product of the wrong stages, not the truth
-        assert _mace(run["per_stage"][0], h_true) == pytest.approx(_mace(wrong[0], h_true), rel=1e-9)
+    if num_stages > 1:
+        # the intermediate estimate is the product of the wrong stages, not the truth
+        assert _mace(run["per_stage"][0], h_true) == pytest.approx(_mace(wrong[0], h_true),
+                                                                   rel=1e-9)
         assert _mace(run["per_stage"][0], h_true) > 1.0
 
 
@@ -103,7 +107,8 @@ def test_stage_two_sees_the_warped_context(pairs):
     assert patch_a_2.shape == (len(h_true), S, S, 1) and patch_a_2.max() <= 1.0
     assert np.abs(patch_a_2 - patch_b).mean() < 0.6 / 255
     # Stage 1 saw the centre of the context, scaled to [0, 1].
-    np.testing.assert_allclose(o1.seen[0][..., 0], pairs["context"][:, M:M + S, M:M + S] / 255.0, atol=1e-6)
+    np.testing.assert_allclose(o1.seen[0][..., 0], pairs["context"][:, M:M + S, M:M + S] / 255.0,
+                               atol=1e-6)
     assert _mace(run["h"], h_true) < 1e-6
 
 
@@ -118,7 +123,8 @@ def test_degenerate_rule():
     assert hierarchy.rejection_reason(geometry.translation(32, -32)) is None  # on the boundary
     # A batch: rejected samples keep the previous estimate; accepted ones compose.
     h_prev = np.stack([geometry.translation(5, 0)] * 3)
-    h_stage = np.stack([geometry.translation(2, 1), np.full((3, 3), np.inf), geometry.translation(40, 0)])
+    h_stage = np.stack([geometry.translation(2, 1), np.full((3, 3), np.inf),
+                        geometry.translation(40, 0)])
     out, reasons = hierarchy.accept_or_reject(h_prev, h_stage)
     assert reasons == [None, "non_finite", "outside_context"]
     np.testing.assert_allclose(out[0], geometry.translation(7, 1))
@@ -133,15 +139,18 @@ def test_degenerate_rule():
     out, reasons = hierarchy.accept_or_reject(np.eye(3)[None], h[None])
     assert reasons == ["outside_context"]
     mapped = cv2.perspectiveTransform(corners[None].astype(np.float64), out[0])[0]
-    np.testing.assert_allclose(mapped, target.astype(np.float64) + [[10, 0], [0, 0], [0, 0], [0, 0]], atol=1e-3)
+    np.testing.assert_allclose(mapped,
+                               target.astype(np.float64) + [[10, 0], [0, 0], [0, 0], [0, 0]],
+                               atol=1e-3)
 
 
 def test_inputs_are_scaled_by_their_own_dtype(pairs):
-    """uint8 context with float patch_b in [0, 1] (as stnh_tf.data.tfrecords.load_arrays returns them) must
-    show the stage the same patches as all-uint8 inputs."""
+    """uint8 context with float patch_b in [0, 1] (as stnh_tf.data.tfrecords.load_arrays returns
+    them) must show the stage the same patches as all-uint8 inputs."""
     o_u8, o_mixed = _Oracle(pairs["h_ba"]), _Oracle(pairs["h_ba"])
     hierarchy.run_hierarchy([o_u8], pairs["context"], pairs["patch_b"])
-    hierarchy.run_hierarchy([o_mixed], pairs["context"], pairs["patch_b"].astype(np.float32) / 255.0)
+    hierarchy.run_hierarchy([o_mixed], pairs["context"],
+                            pairs["patch_b"].astype(np.float32) / 255.0)
     for a, b in zip(o_u8.seen, o_mixed.seen):
         np.testing.assert_allclose(a, b, atol=1e-6)
     assert 0.2 < o_mixed.seen[1].mean() < 0.8  # patch_b in [0, 1], not divided twice

@@ -11,7 +11,7 @@ import pytest
 
 from stnh_tf.training import config as train_config
 from stnh_tf.training import loop as training
-from stnh_tf.modeling import model_kinds
+from stnh_tf.training import model_kinds
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -125,7 +125,8 @@ def test_binaries_default_to_each_model_kinds_recipe():
     stn, seq, hnet = default["stn"], default["sequence"], default["homographynet"]
     assert (stn["train_steps"], stn["warmup_steps"], stn["learning_rate"], stn["lr_schedule"]) == (
         91_000, 1_000, 0.05, "cosine")
-    assert (seq["train_steps"], seq["warmup_steps"], seq["lr_schedule"]) == (90_000, 1_000, "cosine")
+    assert (seq["train_steps"], seq["warmup_steps"], seq["lr_schedule"]) == (
+        90_000, 1_000, "cosine")
     assert (hnet["train_steps"], hnet["warmup_steps"], hnet["learning_rate"], hnet["lr_schedule"],
             hnet["batch_norm"], hnet["optimizer"], hnet["momentum"], hnet["batch_size"]) == (
         90_000, 0, 0.005, "step", "conv", "sgd", 0.9, 64)

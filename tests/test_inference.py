@@ -12,6 +12,7 @@ import os
 import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import cv2
@@ -23,6 +24,8 @@ import skimage.data
 from conftest import (cv2_warp, inside_mask, keras_policy, narrow_network, ncc_reference,
                       norm_matrix, paper_homography, to_bar)
 from stnh_tf import geometry
+from stnh_tf.inference.options import EstimateOptions, Thresholds
+from stnh_tf.inference.search import search_translations
 from stnh_tf.inference import export, image_input, model_files
 from stnh_tf.modeling import models
 from stnh_tf.inference.estimator import HomographyEstimator
@@ -184,7 +187,7 @@ def test_load_single_stage_round_trip(saved, pairs):
     for path in (saved["root"] / "single.keras", saved["root"] / "run"):
         est = HomographyEstimator.load(path)
         assert (est.kind, est.num_stages) == ("single", 1)
-        h = est.estimate(a, b, search="none")
+        h = est.estimate(a, b, EstimateOptions(search="none"))
         np.testing.assert_allclose(h, ref, rtol=1e-5, atol=1e-4)
 
 
@@ -195,15 +198,15 @@ def test_load_hierarchy_manifest_round_trip(saved, pairs):
     for path in (saved["root"] / "hier" / "hierarchy.json", saved["root"] / "hier"):
         est = HomographyEstimator.load(path)
         assert (est.kind, est.num_stages) == ("hierarchy", 2)
-        np.testing.assert_allclose(est.estimate(a, b, gate_stages=False, search="none"),
+        np.testing.assert_allclose(est.estimate(a, b, EstimateOptions(gate_stages=False, search="none")),
                                    ref, rtol=1e-5, atol=1e-4)
     zeros, _ = _hierarchy_reference(saved["stage1"], saved["stage2"], a, b, cv2.BORDER_CONSTANT)
     assert np.max(geometry.corner_errors(zeros, ref)) > 0.01  # the fill reaches stage 2
-    np.testing.assert_allclose(est.estimate(a, b, gate_stages=False, fill="zeros", search="none"),
+    np.testing.assert_allclose(est.estimate(a, b, EstimateOptions(gate_stages=False, fill="zeros", search="none")),
                                zeros,
                                rtol=1e-5, atol=1e-4)
     with pytest.raises(ValueError, match="fill must be one of"):
-        est.estimate(a, b, fill="edge", search="none")
+        est.estimate(a, b, EstimateOptions(fill="edge", search="none"))
 
 
 def test_load_numbered_stage_directory(saved, pairs, tmp_path):
@@ -215,8 +218,7 @@ def test_load_numbered_stage_directory(saved, pairs, tmp_path):
                                                         str(tmp_path / "stage2.keras")]
     a, b, _ = pairs
     ref, _ = _hierarchy_reference(saved["stage1"], saved["stage2"], a[:2], b[:2])
-    np.testing.assert_allclose(HomographyEstimator.load(tmp_path).estimate(a[:2], b[:2],
-                                                                           gate_stages=False, search="none"),
+    np.testing.assert_allclose(HomographyEstimator.load(tmp_path).estimate(a[:2], b[:2], EstimateOptions(gate_stages=False, search="none")),
                                ref, rtol=1e-5, atol=1e-4)
 
 
@@ -227,7 +229,7 @@ def test_load_sequence_round_trip(saved, pairs):
     af, bf = a.astype(np.float32) / 255, b.astype(np.float32) / 255
     ref = _direct(saved["seq"], af, bf, "h_bar_2")
     assert np.max(geometry.corner_errors(ref, _direct(saved["seq"], af, bf, "h_bar_1"))) > 0.5
-    np.testing.assert_allclose(est.estimate(a, b, search="none"), ref, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(est.estimate(a, b, EstimateOptions(search="none")), ref, rtol=1e-5, atol=1e-4)
 
 
 def test_write_manifest_round_trip(saved, tmp_path):
@@ -328,7 +330,7 @@ def test_hierarchy_of_constant_stages_is_the_product(pairs, rng):
     h1, h2 = paper_homography(rng), paper_homography(rng)
     est = HomographyEstimator([_constant_stage(h1, "c1"), _constant_stage(h2, "c2")])
     assert est.kind == "hierarchy"
-    got = est.estimate(a, b, gate_stages=False, search="none")
+    got = est.estimate(a, b, EstimateOptions(gate_stages=False, search="none"))
     want = h1 @ h2
     np.testing.assert_allclose(got, np.broadcast_to(want / want[2, 2], got.shape), atol=1e-4)
     other = h2 @ h1
@@ -352,13 +354,13 @@ def test_degenerate_stage_predictions_are_skipped_and_counted(pairs, rng, caplog
 
     est._predict_stage = fake_stage
     with caplog.at_level("WARNING"):
-        got = est.estimate(a, b, gate_stages=False, search="none")
+        got = est.estimate(a, b, EstimateOptions(gate_stages=False, search="none"))
     want = h1 @ h3
     np.testing.assert_allclose(got, np.broadcast_to(want / want[2, 2], got.shape), atol=1e-9)
     assert est.last_rejected == {"non_finite": 1, "singular": 1}
     assert "degenerate" in caplog.text
     est._predict_stage = lambda k, pa, pb, bs: np.repeat(outputs.get(k, np.eye(3))[None], len(pa), 0)
-    est.estimate(a, b, search="none")
+    est.estimate(a, b, EstimateOptions(search="none"))
     assert est.last_rejected == {"non_finite": 0, "singular": 0}
 
 
@@ -421,7 +423,7 @@ def test_implausible_estimates_are_flagged_per_pair(pairs):
         return h
 
     est._predict_stage = fake_stage
-    est.estimate(a, b, search="none")
+    est.estimate(a, b, EstimateOptions(search="none"))
     info = est.last_info
     np.testing.assert_array_equal(info["implausible"], [False, True, True, True])
     np.testing.assert_array_equal(info["rejected_stages"], [0, 0, 1, 0])
@@ -429,14 +431,14 @@ def test_implausible_estimates_are_flagged_per_pair(pairs):
     assert info["max_corner_shift_px"][0] == pytest.approx(
         np.linalg.norm(moved - corners, axis=1).max(), abs=1e-6)
     assert info["max_corner_shift_px"][1] == pytest.approx(60.0, abs=1e-6)
-    assert inference.IMPLAUSIBLE_CORNER_SHIFT == 48.0
+    assert EstimateOptions().thresholds.implausible_corner_shift == 48.0
     assert info["max_corner_shift_px"][[0, 2, 3]].max() < 48.0
     for k in (0, 2, 3):
         # (OpenCV quantizes warp positions to 1/32 px: border pixels may differ from the mask)
         assert info["alignment_ncc"][k] == pytest.approx(
             ncc_reference(a[k, ..., 0], b[k, ..., 0], hs[k]), abs=1e-3)
     assert info["alignment_ncc"][[0, 2]].min() > 0.95
-    assert info["alignment_ncc"][3] < inference.MIN_ALIGNMENT_NCC
+    assert info["alignment_ncc"][3] < EstimateOptions().thresholds.min_alignment_ncc
 
 
 def test_flat_patch_gives_the_flagged_identity(pairs, identity_model_path, tmp_path):
@@ -454,8 +456,9 @@ def test_flat_patch_gives_the_flagged_identity(pairs, identity_model_path, tmp_p
     a[2] = 100
     a[2].reshape(-1)[::10] = 101
     std = lambda p: (p.astype(np.float64) / 255).std()  # noqa: E731
-    assert std(b[1]) < inference.MIN_PATCH_STD and std(a[2]) < inference.MIN_PATCH_STD
-    assert min(min(std(a[i]), std(b[i])) for i in (0, 3)) > 10 * inference.MIN_PATCH_STD
+    min_std = EstimateOptions().thresholds.min_patch_std
+    assert std(b[1]) < min_std and std(a[2]) < min_std
+    assert min(min(std(a[i]), std(b[i])) for i in (0, 3)) > 10 * min_std
     est = HomographyEstimator([_constant_stage(np.eye(3), f"c{k}") for k in (1, 2)])
     est._predict_stage = lambda k, pa, pb, bs: hs.copy() if k == 0 else np.repeat(
         np.eye(3)[None], len(pa), 0)
@@ -498,7 +501,7 @@ def test_stage_gate_keeps_later_updates_that_do_not_lower_the_alignment(pairs):
              (np.eye(3), hs[3], np.eye(3))]            # stage 1 sees nothing, stage 2 finds it
     est = HomographyEstimator([_constant_stage(np.eye(3), f"c{k}") for k in (1, 2, 3)])
     est._predict_stage = lambda k, pa, pb, bs: np.stack([p[k] for p in plans])
-    got = est.estimate(a, b, search="none")
+    got = est.estimate(a, b, EstimateOptions(search="none"))
     for i, plan in enumerate(plans):
         total, gated = plan[0], 0
         for h in plan[1:]:
@@ -514,7 +517,7 @@ def test_stage_gate_keeps_later_updates_that_do_not_lower_the_alignment(pairs):
         np.testing.assert_allclose(total / total[2, 2], hs[i] / hs[i, 2, 2], atol=1e-9)
         assert est.last_info["gated_stages"][i] == gated
     np.testing.assert_array_equal(est.last_info["gated_stages"], [1, 1, 0, 0])
-    plain = est.estimate(a, b, gate_stages=False, search="none")
+    plain = est.estimate(a, b, EstimateOptions(gate_stages=False, search="none"))
     for i, plan in enumerate(plans):
         want = plan[0] @ plan[1] @ plan[2]
         np.testing.assert_allclose(plain[i], want / want[2, 2], atol=1e-9)
@@ -537,7 +540,7 @@ def test_ecc_refinement_recovers_the_true_homography(pairs, monkeypatch):
     assert start_error.min() > 3.0
     b_exposed = np.clip(np.rint(0.7 * b.astype(np.float64) + 40), 0, 255).astype(np.uint8)
     for patch_b in (b, b_exposed):
-        got = est.estimate(a, patch_b, refine="ecc", search="none")
+        got = est.estimate(a, patch_b, EstimateOptions(refine="ecc", search="none"))
         assert geometry.corner_errors(got, hs).max() < 0.5
         assert est.last_info["refined"].all()
         # the flags follow the refined estimate: its NCC (NumPy reference) is near 1
@@ -545,16 +548,17 @@ def test_ecc_refinement_recovers_the_true_homography(pairs, monkeypatch):
             assert est.last_info["alignment_ncc"][i] == pytest.approx(
                 ncc_reference(a[i, ..., 0], patch_b[i, ..., 0], got[i]), abs=1e-3)
         assert not est.last_info["implausible"].any()
-    np.testing.assert_allclose(est.estimate(a, b, search="none"),
+    np.testing.assert_allclose(est.estimate(a, b, EstimateOptions(search="none")),
                                starts / starts[:, 2:, 2:], atol=1e-12)
     assert not est.last_info["refined"].any()
-    monkeypatch.setattr(inference, "MAX_REFINE_MOVE", 1.0)
-    np.testing.assert_allclose(est.estimate(a, b, refine="ecc", search="none"),
+    short = EstimateOptions(refine="ecc", search="none",
+                            thresholds=Thresholds(max_refine_move=1.0))
+    np.testing.assert_allclose(est.estimate(a, b, short),
                                starts / starts[:, 2:, 2:],
                                atol=1e-12)
     assert not est.last_info["refined"].any()
     with pytest.raises(ValueError, match="refine must be one of"):
-        est.estimate(a, b, refine="sift", search="none")
+        est.estimate(a, b, EstimateOptions(refine="sift", search="none"))
 
 
 # The symmetries of a 128 x 128 patch written out (pixel centres at integers, c = 127): pixel
@@ -592,23 +596,23 @@ def test_tta_keeps_the_estimate_that_aligns_the_pair_best(pairs):
     names = ["rotate_90_cw", "identity", "flip_y", "anti_transpose"]
     a, b, want, h_c = _symmetry_pairs(pairs, names)
     est = HomographyEstimator([_constant_stage(h_c, "c")])
-    got = est.estimate(a, b, tta="dihedral", search="none")
+    got = est.estimate(a, b, EstimateOptions(tta="dihedral", search="none"))
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)  # H_c passes through float32
     assert est.last_info["tta_choice"].tolist() == names
     ncc = [ncc_reference(x[..., 0], y[..., 0], h) for x, y, h in zip(a, b, got)]
     np.testing.assert_allclose(est.last_info["alignment_ncc"], ncc, atol=3e-3)
     assert min(ncc) > 0.99
-    np.testing.assert_allclose(est.estimate(a, b, search="none"),
+    np.testing.assert_allclose(est.estimate(a, b, EstimateOptions(search="none")),
                                np.broadcast_to(h_c / h_c[2, 2], (4, 3, 3)),
                                rtol=1e-5, atol=1e-5)
     assert est.last_info["tta_choice"].tolist() == ["identity"] * 4
-    got = est.estimate(a, b, tta="flips", search="none")
+    got = est.estimate(a, b, EstimateOptions(tta="flips", search="none"))
     assert est.last_info["tta_choice"][0] in ("identity", "flip_x", "flip_y", "rotate_180")
     assert geometry.corner_errors(got[:1], want[:1])[0] > 1.0
     np.testing.assert_allclose(got[1:3], want[1:3], rtol=1e-5, atol=1e-5)
     for bad in ("rotations", ["dihedral"]):  # a list named, not an unhashable-type TypeError
         with pytest.raises(ValueError, match=r"^tta must be one of .*received "):
-            est.estimate(a, b, tta=bad, search="none")
+            est.estimate(a, b, EstimateOptions(tta=bad, search="none"))
 
 
 def test_flagged_estimates_are_retried_with_test_time_augmentation(pairs):
@@ -622,15 +626,15 @@ def test_flagged_estimates_are_retried_with_test_time_augmentation(pairs):
     names = ["rotate_90_cw", "identity", "flip_y", "rotate_180"]
     a, b, want, h_c = _symmetry_pairs(pairs, names)
     est = HomographyEstimator([_constant_stage(h_c, "c")])
-    plain = est.estimate(a, b, search="none")
+    plain = est.estimate(a, b, EstimateOptions(search="none"))
     plain_info = est.last_info
     flagged = np.array([True, False, True, True])
     np.testing.assert_array_equal(plain_info["implausible"], flagged)
     assert not plain_info["retried"].any()
-    full = est.estimate(a, b, tta="dihedral", search="none")
+    full = est.estimate(a, b, EstimateOptions(tta="dihedral", search="none"))
     full_info = est.last_info
     np.testing.assert_allclose(full, want, rtol=1e-5, atol=1e-5)  # H_c passes through float32
-    got = est.estimate(a, b, retry_tta="dihedral", search="none")
+    got = est.estimate(a, b, EstimateOptions(retry_tta="dihedral", search="none"))
     info = est.last_info
     np.testing.assert_array_equal(info["retried"], flagged)
     np.testing.assert_allclose(got[flagged], full[flagged], atol=1e-12)
@@ -642,17 +646,17 @@ def test_flagged_estimates_are_retried_with_test_time_augmentation(pairs):
             np.testing.assert_array_equal(info[key][flagged], full_info[key][flagged], key)
             np.testing.assert_array_equal(info[key][~flagged], plain_info[key][~flagged], key)
     assert not info["implausible"].any()
-    est.estimate(a, b, tta="dihedral", retry_tta="flips", search="none")
+    est.estimate(a, b, EstimateOptions(tta="dihedral", retry_tta="flips", search="none"))
     assert not est.last_info["retried"].any()
     for bad in ("rotations", ["dihedral"]):
         with pytest.raises(ValueError, match="retry_tta must be one of"):
-            est.estimate(a, b, retry_tta=bad, search="none")
+            est.estimate(a, b, EstimateOptions(retry_tta=bad, search="none"))
 
     two = HomographyEstimator([_constant_stage(h_c, "c1"), _constant_stage(np.eye(3), "c2")])
     predict = two._predict_stage
     two._predict_stage = lambda k, pa, pb, bs: (predict(k, pa, pb, bs) if k == 0
                                                 else np.full((len(pa), 3, 3), np.nan))
-    two.estimate(a, b, retry_tta="dihedral", search="none")
+    two.estimate(a, b, EstimateOptions(retry_tta="dihedral", search="none"))
     assert two.last_info["retried"].all() and two.last_info["implausible"].all()
     np.testing.assert_array_equal(two.last_info["rejected_stages"], [1, 1, 1, 1])
     assert two.last_rejected == {"non_finite": 4, "singular": 0}
@@ -687,9 +691,9 @@ def test_search_finds_the_alignment_a_network_put_a_period_off(pairs, rng, monke
     est = HomographyEstimator([_constant_stage(np.eye(3))])
     est._predict_stage = lambda k, pa, pb, bs: starts.copy()
 
-    network = est.estimate(a, b, search="none")
+    network = est.estimate(a, b, EstimateOptions(search="none"))
     np.testing.assert_allclose(network, starts / starts[:, 2:, 2:], atol=1e-12)
-    assert est.last_info["alignment_ncc"][0] < inference.SEARCH_BELOW_NCC
+    assert est.last_info["alignment_ncc"][0] < EstimateOptions().thresholds.search_below_ncc
     assert not est.last_info["searched"].any() and not est.last_info["search_found"].any()
     assert geometry.corner_errors(network[:1], h_wall[None])[0] > 15.0
 
@@ -700,17 +704,18 @@ def test_search_finds_the_alignment_a_network_put_a_period_off(pairs, rng, monke
     np.testing.assert_array_equal(info["searched"], [True, False, True])
     np.testing.assert_array_equal(info["search_found"], [True, False, False])
     np.testing.assert_array_equal(info["implausible"], [False, False, True])
-    assert info["alignment_ncc"][0] >= inference.VERIFIED_NCC
+    assert info["alignment_ncc"][0] >= EstimateOptions().thresholds.verified_ncc
     assert info["alignment_ncc"][0] == pytest.approx(
         ncc_reference(a[0] / 255.0, b[0] / 255.0, got[0]), abs=1e-3)
 
-    monkeypatch.setattr(inference, "VERIFIED_NCC", 1.01)
-    assert inference.search_translations(a[0] / 255.0, b[0] / 255.0, starts[0]) is None
-    np.testing.assert_allclose(est.estimate(a, b), network, atol=1e-12)
+    strict = EstimateOptions(thresholds=Thresholds(verified_ncc=1.01))
+    assert search_translations(a[0] / 255.0, b[0] / 255.0, starts[0],
+                               thresholds=strict.thresholds) is None
+    np.testing.assert_allclose(est.estimate(a, b, strict), network, atol=1e-12)
     np.testing.assert_array_equal(est.last_info["searched"], [True, False, True])
     assert not est.last_info["search_found"].any()
     with pytest.raises(ValueError, match="search must be one of"):
-        est.estimate(a, b, search="sift")
+        est.estimate(a, b, EstimateOptions(search="sift"))
 
 
 def test_estimate_images_tta_transforms_the_image_context():
@@ -733,13 +738,13 @@ def test_estimate_images_tta_transforms_the_image_context():
     image_b = cv2.warpPerspective(image, h_image, (320, 240),
                                   flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
     est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
-    got = est.estimate_images(image, image_b, tta="dihedral", search="none")
+    got = est.estimate_images(image, image_b, EstimateOptions(tta="dihedral", search="none"))
     assert est.last_info["tta_choice"][0] == "rotate_90_cw"
     np.testing.assert_allclose(got, h_image / h_image[2, 2], rtol=1e-5, atol=1e-4)
     # the plain estimate is flagged; retry_tta re-runs the pair with its context the same way
-    est.estimate_images(image, image_b, search="none")
+    est.estimate_images(image, image_b, EstimateOptions(search="none"))
     assert est.last_info["implausible"][0] and not est.last_info["retried"][0]
-    np.testing.assert_allclose(est.estimate_images(image, image_b, retry_tta="dihedral", search="none"),
+    np.testing.assert_allclose(est.estimate_images(image, image_b, EstimateOptions(retry_tta="dihedral", search="none")),
                                got,
                                atol=1e-12)
     assert est.last_info["retried"][0] and est.last_info["tta_choice"][0] == "rotate_90_cw"
@@ -763,8 +768,8 @@ def test_estimate_images_ecc_refinement_uses_the_whole_image(rng):
                                     - geometry.warp_points(h_true[None], corners), axis=-1).mean())
 
     est = HomographyEstimator([_constant_stage(np.eye(3))])
-    assert corner_error(est.estimate_images(image, image_b, search="none")) > 10.0
-    assert corner_error(est.estimate_images(image, image_b, refine="ecc", search="none")) < 1.5
+    assert corner_error(est.estimate_images(image, image_b, EstimateOptions(search="none"))) > 10.0
+    assert corner_error(est.estimate_images(image, image_b, EstimateOptions(refine="ecc", search="none"))) < 1.5
     assert est.last_info["refined"][0]
 
 
@@ -777,7 +782,7 @@ def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs, fill, bo
     h1 = geometry.translation(20.0, -12.0) @ np.diag([1.1, 0.95, 1.0])
     gain = 0.8
     est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
-    got = est.estimate(a, b, gate_stages=False, fill=fill, search="none")
+    got = est.estimate(a, b, EstimateOptions(gate_stages=False, fill=fill, search="none"))
     for i in range(len(a)):
         seen = cv2_warp(a[i, ..., 0].astype(np.float32) / 255, h1, border)
         want = h1 @ _spy_expected_h(np.eye(3), gain, seen)
@@ -787,17 +792,17 @@ def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs, fill, bo
 def test_uint8_and_float_inputs_agree(saved, pairs):
     a, b, _ = pairs
     est = HomographyEstimator([saved["single"]])
-    h_u8 = est.estimate(a, b, search="none")
-    h_f32 = est.estimate(a.astype(np.float32) / 255, b.astype(np.float32) / 255, search="none")
-    h_f64 = est.estimate(a / 255.0, b / 255.0, search="none")
+    h_u8 = est.estimate(a, b, EstimateOptions(search="none"))
+    h_f32 = est.estimate(a.astype(np.float32) / 255, b.astype(np.float32) / 255, EstimateOptions(search="none"))
+    h_f64 = est.estimate(a / 255.0, b / 255.0, EstimateOptions(search="none"))
     np.testing.assert_allclose(h_f32, h_u8, rtol=0, atol=1e-9)
     np.testing.assert_allclose(h_f64, h_u8, rtol=1e-6, atol=1e-5)
     # Every accepted layout of the same pair gives the same answer.
     for pa, pb in ((a[1, ..., 0], b[1, ..., 0]), (a[1], b[1]), (a[1:2, ..., 0], b[1:2, ..., 0])):
-        np.testing.assert_allclose(est.estimate(pa, pb, search="none"),
+        np.testing.assert_allclose(est.estimate(pa, pb, EstimateOptions(search="none")),
                                    h_u8[1:2], rtol=1e-5, atol=1e-4)
     # Chunking does not change the answer.
-    np.testing.assert_allclose(est.estimate(a, b, batch_size=3, search="none"),
+    np.testing.assert_allclose(est.estimate(a, b, EstimateOptions(search="none"), batch_size=3),
                                h_u8, rtol=1e-5, atol=1e-4)
 
 
@@ -814,7 +819,7 @@ def test_estimate_images_pure_rescaling(identity_model_path):
     est = HomographyEstimator.load(identity_model_path)
     image_a = skimage.data.astronaut()  # 512 x 512 RGB
     image_b = cv2.resize(image_a, (1024, 1024), interpolation=cv2.INTER_LINEAR)  # 2x
-    h = est.estimate_images(image_a, image_b, search="none")
+    h = est.estimate_images(image_a, image_b, EstimateOptions(search="none"))
     assert h.shape == (3, 3) and h.dtype == np.float64
     expected = np.array([[0.5, 0, -0.25], [0, 0.5, -0.25], [0, 0, 1]])
     np.testing.assert_allclose(h, expected, atol=1e-9)
@@ -827,7 +832,7 @@ def test_estimate_images_pure_rescaling(identity_model_path):
     assert np.abs(warped - gray_b)[inner].max() < 1.0
     # Images of different sizes and aspect ratios, colour vs gray, float vs uint8.
     image_c = cv2.resize(image_a, (300, 700), interpolation=cv2.INTER_AREA)
-    h_ca = est.estimate_images(image_c[..., 0] / 255.0, image_a, search="none")
+    h_ca = est.estimate_images(image_c[..., 0] / 255.0, image_a, EstimateOptions(search="none"))
     np.testing.assert_allclose(h_ca, np.linalg.inv(_resize_ref((300, 700), (512, 512))), atol=1e-9)
 
 
@@ -849,7 +854,7 @@ def test_estimate_images_maps_patch_estimate_to_image_frames(rng):
     est = HomographyEstimator([_constant_stage(h_patch)])
     image = skimage.data.camera()  # 512 x 512 gray
     image_b = cv2.resize(image, (640, 480), interpolation=cv2.INTER_AREA)
-    got = est.estimate_images(image, image_b, search="none")  # the network's path
+    got = est.estimate_images(image, image_b, EstimateOptions(search="none"))  # the network's path
     t = np.array([[1, 0, 96.0], [0, 1, 56.0], [0, 0, 1]])  # central 128 square of 320 x 240
     s_a, s_b = _resize_ref((512, 512), (320, 240)), _resize_ref((640, 480), (320, 240))
     want = np.linalg.inv(s_a) @ t @ h_patch @ np.linalg.inv(t) @ s_b
@@ -863,7 +868,7 @@ def test_estimate_images_hierarchy_uses_image_context():
     gain = 0.8
     est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
     # same size: S_a = S_b = 320 x 240 resize
-    got = est.estimate_images(image, image, search="none")
+    got = est.estimate_images(image, image, EstimateOptions(search="none"))
     work = cv2.resize(image.astype(np.float32) / 255, (320, 240), interpolation=cv2.INTER_AREA)
     t = geometry.translation(96, 56)
     full = cv2.warpPerspective(work, t @ h1 @ np.linalg.inv(t), (320, 240),
@@ -1095,21 +1100,21 @@ def test_mixed_precision_model_estimates_and_exports_in_float32(pairs, tmp_path)
 
     est = HomographyEstimator.load(tmp_path / "mixed.keras")
     assert {layer.dtype_policy.name for layer in est.stages[0]._flatten_layers()} == {"float32"}
-    got = est.estimate(a, b, search="none")
+    got = est.estimate(a, b, EstimateOptions(search="none"))
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(est.estimate(a, b, batch_size=1, search="none"),
+    np.testing.assert_allclose(est.estimate(a, b, EstimateOptions(search="none"), batch_size=1),
                                got, rtol=1e-5, atol=1e-5)
     assert np.max(geometry.corner_errors(got, np.broadcast_to(np.eye(3), got.shape))) > 0.1
 
     kept = HomographyEstimator.load(tmp_path / "mixed.keras", compute_dtype=None)
     assert "mixed_bfloat16" in {layer.dtype_policy.name for layer in kept.stages[0]._flatten_layers()}
-    assert np.max(geometry.corner_errors(kept.estimate(a, b, search="none"),
+    assert np.max(geometry.corner_errors(kept.estimate(a, b, EstimateOptions(search="none")),
                   ref)) < 0.5  # bfloat16 rounding only
 
     report = export.verify_export(export.export_saved_model(est, tmp_path / "exported"), est, a, b)
     assert report["ok"] and report["max_abs_diff"] < 1e-3 and report["max_abs_diff_estimate"] < 1e-3
     with pytest.raises(ValueError, match="batch_size"):
-        est.estimate(a, b, batch_size=0, search="none")
+        est.estimate(a, b, EstimateOptions(search="none"), batch_size=0)
 
 
 def test_benchmark_estimator_binary(tmp_path):
@@ -1246,7 +1251,8 @@ def test_implausibility_check_with_the_identity_model(identity_model_path):
     from stnh_tf.inference import shipped_weights
     from stnh_tf.evaluation import mace as evaluation
 
-    result = evaluation.implausibility_check(identity_model_path, search="none")
+    result = evaluation.implausibility_check(identity_model_path,
+                                            options=EstimateOptions(search="none"))
     arrays = shipped_weights.bundled_pairs()
     a = arrays["patch_a"][..., 0].astype(np.float64)
     b = arrays["patch_b"][..., 0].astype(np.float64)
@@ -1258,7 +1264,7 @@ def test_implausibility_check_with_the_identity_model(identity_model_path):
         return (x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum())
 
     for case, patches_b in cases.items():
-        expected = np.mean([ncc(x, y) < inference.MIN_ALIGNMENT_NCC for x, y in zip(a, patches_b)])
+        expected = np.mean([ncc(x, y) < EstimateOptions().thresholds.min_alignment_ncc for x, y in zip(a, patches_b)])
         assert result[case]["count"] == len(a) == 60
         assert result[case]["flagged"] == pytest.approx(expected, abs=1e-9), case
     assert result["moved_80px"]["flagged"] > 0.5
@@ -1292,3 +1298,27 @@ def test_search_stability_measures_both_opencv_paths_and_moved_starts(pairs, ide
     assert out["optimized"]["mace"] < identity
     assert out["optimized"]["mace"] == pytest.approx(out["unoptimized"]["mace"], abs=0.01)
     assert cv2.useOptimized()  # restored
+
+
+def _smooth_patch(seed):
+    return cv2.GaussianBlur(np.random.default_rng(seed).random((128, 128), np.float32), (0, 0), 2)
+
+
+def test_legacy_keywords_warn_and_equal_the_options(identity_model_path):
+    est = HomographyEstimator.load(identity_model_path)
+    a = _smooth_patch(5)
+    b = cv2_warp(a, geometry.translation(1.0, 0.0))
+    with pytest.warns(DeprecationWarning, match="options=EstimateOptions"):
+        legacy = est.estimate(a, b, search="none", refine="ecc")
+    new = est.estimate_with_info(a, b, EstimateOptions(search="none", refine="ecc"))
+    np.testing.assert_allclose(legacy, new.homography, atol=0)
+    with pytest.warns(DeprecationWarning, match="last_info"):
+        info = est.last_info
+    np.testing.assert_array_equal(info["refined"], new.refined)
+    with pytest.raises(TypeError, match="batch_size"):
+        est.estimate(a, b, 64)
+    with pytest.raises(TypeError, match="unexpected"):
+        est.estimate(a, b, serach="none")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)
+        est.estimate(a, b, EstimateOptions(search="none"), batch_size=1)

@@ -1,4 +1,5 @@
-"""Tests of the SpatialTransformer and HomographyMerge layers (OpenCV reference, finite differences)."""
+"""Tests of the SpatialTransformer and HomographyMerge layers (OpenCV reference, finite
+differences)."""
 
 import cv2
 import keras
@@ -287,8 +288,10 @@ def test_save_load_round_trip(tmp_path, photo_patches, rng):
     assert loaded.get_layer("merge_m").output_matrix is True
     assert loaded.get_layer("merge").output_matrix is False
     x = [np.stack([photo_patches["camera"], photo_patches["coffee"]])[..., None],
-         np.stack([to_bar(paper_homography(rng)).reshape(9)[:8] for _ in range(2)]).astype(np.float32),
-         np.stack([to_bar(paper_homography(rng)).reshape(9)[:8] for _ in range(2)]).astype(np.float32)]
+         np.stack([to_bar(paper_homography(rng)).reshape(9)[:8]
+                   for _ in range(2)]).astype(np.float32),
+         np.stack([to_bar(paper_homography(rng)).reshape(9)[:8]
+                   for _ in range(2)]).astype(np.float32)]
     a, b = model.predict(x, verbose=0), loaded.predict(x, verbose=0)
     for u, v in zip(a, b):
         np.testing.assert_array_equal(u, v)

@@ -27,7 +27,8 @@ def test_regression_network_layout():
     shapes = {l.name: tuple(l.output.shape[1:]) for l in net.layers}
     assert [shapes[f"pool{i}"] for i in (1, 2, 3)] == [(64, 64, 64), (32, 32, 64), (16, 16, 128)]
     assert "pool4" not in shapes and shapes["relu8"] == (16, 16, 128) and shapes["gap"] == (128,)
-    assert [l.name for l in net.layers].index("gap") == [l.name for l in net.layers].index("relu8") + 1
+    assert ([l.name for l in net.layers].index("gap")
+            == [l.name for l in net.layers].index("relu8") + 1)
     assert net.get_layer("fc1").units == 1024 and net.get_layer("dropout").rate == 0.5
     assert net.get_layer("fc2").units == 8
     assert net.count_params() == _expected_params() == 768_904

@@ -63,7 +63,8 @@ def test_compiled_optimizer_is_the_named_one_with_its_settings():
     assert adamw.weight_decay == pytest.approx(1e-4) and adamw.global_clipnorm == pytest.approx(2.0)
     assert float(adamw.learning_rate) == pytest.approx(1e-3)
     # AdamW without a weight decay decays nothing (Keras' own default would be 0.004).
-    assert training.build_optimizer(train_config.TrainConfig(**base, optimizer="adamw")).weight_decay == 0
+    assert training.build_optimizer(
+        train_config.TrainConfig(**base, optimizer="adamw")).weight_decay == 0
     adam = training.build_optimizer(train_config.TrainConfig(**base, optimizer="adam"))
     assert type(adam) is keras.optimizers.Adam and adam.weight_decay is None
 
@@ -77,7 +78,8 @@ def test_clipnorm_bounds_the_update_and_weight_decay_shrinks_weights():
     for clip, wd, expected_step in ((0.0, 0.0, 0.1 * grad), (1.0, 0.0, 0.1 * grad / 5.0),
                                     (0.0, 0.5, 0.1 * grad)):
         var = keras.Variable(np.array([1.0, -2.0], np.float32))
-        opt = training.build_optimizer(train_config.TrainConfig(**base, clipnorm=clip, weight_decay=wd))
+        opt = training.build_optimizer(train_config.TrainConfig(**base, clipnorm=clip,
+                                                                weight_decay=wd))
         opt.apply_gradients([(keras.ops.convert_to_tensor(grad), var)])
         decayed = np.array([1.0, -2.0]) * (1.0 - 0.1 * wd)
         np.testing.assert_allclose(np.asarray(var), decayed - expected_step, rtol=1e-6)

@@ -119,7 +119,8 @@ def test_rerun_skips_finished_work_and_ablation_binary_reuses_rows(tiny_run):
                           "--source=bundled", f"--output_dir={out}", "--weights=10:1,1:1"],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
-    assert "l2=10 l1=1: MACE" in res.stdout and "(seeds: " in res.stdout and "[train]" not in res.stdout
+    assert ("l2=10 l1=1: MACE" in res.stdout and "(seeds: " in res.stdout
+            and "[train]" not in res.stdout)
     table = json.load(open(os.path.join(out, "table1.json")))
     assert table["10,1"]["model_dirs"] == first["models"]["ablation_seeds"]["10,1"]
     assert len(table["10,1"]["model_dirs"]) == 2  # the tiny budget's 2 seeds

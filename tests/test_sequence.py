@@ -20,7 +20,8 @@ from stnh_tf.modeling import losses as losses_lib
 from stnh_tf.training import run_dir
 from stnh_tf.training import config as train_config
 from stnh_tf.training import loop as training
-from stnh_tf.modeling import model_kinds, models
+from stnh_tf.modeling import models
+from stnh_tf.training import model_kinds
 from stnh_tf.modeling.layers import HomographyMerge, SpatialTransformer
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -97,7 +98,8 @@ class OracleResidual(keras.layers.Layer):
     def call(self, target, h_prev=None):
         g = ops.reshape(ops.concatenate([target, ops.ones_like(target[:, :1])], -1), (-1, 3, 3))
         if h_prev is not None:
-            hp = ops.reshape(ops.concatenate([h_prev, ops.ones_like(h_prev[:, :1])], -1), (-1, 3, 3))
+            hp = ops.reshape(ops.concatenate([h_prev, ops.ones_like(h_prev[:, :1])], -1),
+                             (-1, 3, 3))
             g = ops.matmul(ops.inv(hp), g)
         g = g / g[:, 2:3, 2:3]
         return ops.reshape(g, (-1, 9))[:, :8]
@@ -209,7 +211,8 @@ def test_each_stage_sees_previous_warp_and_patch_b(batch):
         ref = cv2_warp(batch["patch_a"][i, ..., 0], _pix(wrong_bar[i]))
         mask = inside_mask(_pix(wrong_bar[i]))
         assert np.abs(out["pair_2"][i, ..., 0] - ref)[mask].mean() * 255 < 0.5
-        assert np.abs(out["pair_2"][i, ..., 0] - batch["patch_b"][i, ..., 0])[mask].mean() * 255 > 2.0
+        assert (np.abs(out["pair_2"][i, ..., 0] - batch["patch_b"][i, ..., 0])[mask].mean() * 255
+                > 2.0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -257,7 +260,8 @@ def test_gradients_from_last_stage_reach_every_stage(batch):
     with tf.GradientTape() as tape:
         out = model(x, training=True)
         loss = (ops.mean(losses_lib.h_bar_l2(batch["h_bar8"][:2], out["h_bar_3"]))
-                + ops.mean(losses_lib.photometric_l1(batch["patch_a_t"][:2], out["patch_a_warp_3"])))
+                + ops.mean(losses_lib.photometric_l1(batch["patch_a_t"][:2],
+                                                     out["patch_a_warp_3"])))
     variables = model.trainable_variables
     grads = tape.gradient(loss, variables)
     assert np.isfinite(float(loss))
@@ -299,14 +303,16 @@ def test_save_load_round_trip(tmp_path, batch):
     # Stage 2 composes: h_bar_2 = h_bar_1 @ (stage 2's regression on (warp_1, patch_b)).
     pair = np.concatenate([after["patch_a_warp_1"], x["patch_b"]], axis=-1)
     res = keras.ops.convert_to_numpy(loaded.get_layer("regression_2")(pair, training=False))
-    np.testing.assert_allclose(after["h_bar_2"], _vec(_mat(after["h_bar_1"]) @ _mat(res)), atol=1e-5)
+    np.testing.assert_allclose(after["h_bar_2"], _vec(_mat(after["h_bar_1"]) @ _mat(res)),
+                               atol=1e-5)
 
 
 def test_mixed_bfloat16_keeps_float32_homographies(batch):
     with keras_policy("mixed_bfloat16"):
         model = models.SequenceSTNHomography(num_stages=2)
         _randomize_heads(model, 2, seed=9)
-        out = model({"patch_a": batch["patch_a"][:1], "patch_b": batch["patch_b"][:1]}, training=False)
+        out = model({"patch_a": batch["patch_a"][:1], "patch_b": batch["patch_b"][:1]},
+                    training=False)
     for name in ("h_bar_1", "h_bar_2", "patch_a_warp_1", "patch_a_warp_2"):
         assert keras.backend.standardize_dtype(out[name].dtype) == "float32", name
     h1, h2 = (keras.ops.convert_to_numpy(out[n]) for n in ("h_bar_1", "h_bar_2"))
@@ -328,7 +334,8 @@ def _tiny_regressor(k):
 
 
 def test_loss_spec_and_compiled_loss_for_sequence(batch):
-    cfg = train_config.TrainConfig(model="sequence", num_stages=3, stage_loss_weights=(0.5, 1.0, 2.0),
+    cfg = train_config.TrainConfig(model="sequence", num_stages=3,
+                                   stage_loss_weights=(0.5, 1.0, 2.0),
                                    l2_weight=3.0, l1_weight=0.25, train_steps=10, warmup_steps=1,
                                    checkpoint_every=10)
     losses, weights, metrics = model_kinds.loss_spec(cfg)
@@ -400,7 +407,8 @@ def test_initialize_from_single_stage_models(tmp_path, batch):
     np.testing.assert_allclose(out["h_bar_1"], s1["h_bar"], atol=1e-6)
     np.testing.assert_allclose(out["patch_a_warp_1"], s1["patch_a_warp"], atol=1e-6)
     s2 = _predict(singles[1], {"patch_a": out["patch_a_warp_1"], "patch_b": x["patch_b"]})
-    np.testing.assert_allclose(out["h_bar_2"], _vec(_mat(s1["h_bar"]) @ _mat(s2["h_bar"])), atol=1e-5)
+    np.testing.assert_allclose(out["h_bar_2"], _vec(_mat(s1["h_bar"]) @ _mat(s2["h_bar"])),
+                               atol=1e-5)
     assert np.abs(s2["h_bar"] - models.IDENTITY_H_BAR).max() > 1e-2
 
 

@@ -16,6 +16,7 @@ import pytest
 
 from conftest import keras_policy, ncc_reference, to_bar
 from stnh_tf.inference import shipped_weights
+from stnh_tf.inference.options import EstimateOptions
 from stnh_tf.inference import estimator as inference
 from stnh_tf.modeling import models
 
@@ -62,7 +63,8 @@ def test_ship_refresh_check_and_replace_stage(tmp_path, bundled, monkeypatch, na
     out = tmp_path / "weights"
     card = shipped_weights.ship([str(tmp_path / "s1"), str(tmp_path / "s2")], str(out))
 
-    assert sorted(os.listdir(out)) == ["default.json", "model_card.json", "stage1.keras", "stage2.keras"]
+    assert sorted(os.listdir(out)) == ["default.json", "model_card.json", "stage1.keras",
+                                       "stage2.keras"]
     assert [s["file"] for s in card["stages"]] == ["stage1.keras", "stage2.keras"]
     assert card["stages"][0]["config"]["mixed_precision"] is True
     assert card["stages"][0]["result"] == {"final_step": 7}  # history left out
@@ -107,7 +109,8 @@ def test_ship_refresh_check_and_replace_stage(tmp_path, bundled, monkeypatch, na
         assert refreshed["bundled_check"][key] == (
             pytest.approx(value, rel=1e-6) if isinstance(value, float) else value)
     with open(out / "model_card.json") as f:
-        assert json.load(f)["bundled_check"]["estimate_mace_2_stages"] == pytest.approx(expected, abs=1e-3)
+        assert json.load(f)["bundled_check"]["estimate_mace_2_stages"] == pytest.approx(
+            expected, abs=1e-3)
     assert not os.path.exists(out / "model_card.json.tmp")
 
     # --replace_stage=2: a new stage 2 (a constant H2) in place of the identity; stage 1's file
@@ -122,15 +125,15 @@ def test_ship_refresh_check_and_replace_stage(tmp_path, bundled, monkeypatch, na
     assert replaced["stages"][1]["source"] == str(tmp_path / "s2b")
     assert replaced["stages"][1]["init_from_run"] == before["stages"][1]
     assert replaced["note"] == "kept"
-    assert sorted(os.listdir(out)) == ["default.json", "model_card.json", "stage1.keras", "stage2.keras"]
+    assert sorted(os.listdir(out)) == ["default.json", "model_card.json", "stage1.keras",
+                                       "stage2.keras"]
     new_check = replaced["bundled_check"]
     assert new_check["estimate_mace_1_stages"] == pytest.approx(expected, abs=1e-3)
     composed = h @ h2  # later stages compose on the right: H_1 @ H_2
     assert new_check["ungated_estimate_mace_2_stages"] == pytest.approx(
         _mace_numpy(composed / composed[2, 2], bundled_h_ba), abs=1e-3)
     est = inference.HomographyEstimator.load(out / "default.json")
-    np.testing.assert_allclose(est.estimate(bundled["patch_a"][:2], bundled["patch_b"][:2],
-                                            gate_stages=False, search="none")[0],
+    np.testing.assert_allclose(est.estimate(bundled["patch_a"][:2], bundled["patch_b"][:2], EstimateOptions(gate_stages=False, search="none"))[0],
                                composed / composed[2, 2],
                                atol=1e-3)
     with open(out / "model_card.json") as f:

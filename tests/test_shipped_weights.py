@@ -12,13 +12,16 @@ import pytest
 
 from conftest import ncc_reference, opencv_optimized
 from stnh_tf import geometry
+from stnh_tf.inference.options import EstimateOptions
 from stnh_tf.inference import estimator as inference
 from stnh_tf.inference import model_files, shipped_weights
 
 WEIGHTS = model_files.default_weights_dir()
-SHIPPED = {"default": WEIGHTS, "paper_recipe": os.path.join(WEIGHTS, model_files.PAPER_RECIPE_WEIGHTS)}
+SHIPPED = {"default": WEIGHTS,
+           "paper_recipe": os.path.join(WEIGHTS, model_files.PAPER_RECIPE_WEIGHTS)}
 CARD = os.path.join(WEIGHTS, "model_card.json")
-pytestmark = pytest.mark.skipif(not os.path.exists(CARD), reason="no weights shipped in stnh_tf/weights")
+pytestmark = pytest.mark.skipif(not os.path.exists(CARD),
+                                reason="no weights shipped in stnh_tf/weights")
 
 
 def _card(folder):
@@ -79,8 +82,7 @@ def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs, name, ope
               for s in _card(folder)["stages"]]
     for k in range(1, len(stages) + 1):
         est = inference.HomographyEstimator(stages[:k])
-        h = est.estimate(arrays["patch_a"], arrays["patch_b"], fill=check["fill"],
-                         search=check["search"])
+        h = est.estimate(arrays["patch_a"], arrays["patch_b"], EstimateOptions(fill=check["fill"], search=check["search"]))
         assert h.shape == (len(arrays["h_ba"]), 3, 3)
         mace = float(geometry.mean_corner_error(h, arrays["h_ba"]))
         assert mace == pytest.approx(check[f"estimate_mace_{k}_stages"], abs=CARD_TOLERANCE_PX)
@@ -89,8 +91,7 @@ def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs, name, ope
         # without `ship_weights --refresh_check` fails here)
         assert int(est.last_info["implausible"].sum()) == check[f"implausible_{k}_stages"]
         if k > 1:
-            h = est.estimate(arrays["patch_a"], arrays["patch_b"], gate_stages=False,
-                             fill=check["fill"], search=check["search"])
+            h = est.estimate(arrays["patch_a"], arrays["patch_b"], EstimateOptions(gate_stages=False, fill=check["fill"], search=check["search"]))
             assert float(geometry.mean_corner_error(h, arrays["h_ba"])) == pytest.approx(
                 check[f"ungated_estimate_mace_{k}_stages"], abs=CARD_TOLERANCE_PX)
 
@@ -106,7 +107,7 @@ def default_card_estimates(card_and_pairs, default_estimator_float32):
     estimator's default options, which are the card's) of the card's pairs and of the same pairs
     with a photometric change, once for the tests below."""
     check = card_and_pairs[0]["bundled_check"]
-    assert (check["fill"], check["search"]) == (inference.PATCH_FILL, inference.SEARCH)
+    assert (check["fill"], check["search"]) == (EstimateOptions().fill, EstimateOptions().search)
     out = {}
     for key, photometric in (("plain", False), ("photometric", True)):
         arrays = card_and_pairs[1] if not photometric else shipped_weights.bundled_pairs(True)
@@ -153,7 +154,8 @@ def test_default_weights_beat_the_identity_under_a_photometric_change(
     equals their card's record."""
     check = card_and_pairs[0]["bundled_check"]
     arrays, h, _ = default_card_estimates["photometric"]
-    identity = geometry.corner_errors(np.broadcast_to(np.eye(3), arrays["h_ba"].shape), arrays["h_ba"])
+    identity = geometry.corner_errors(np.broadcast_to(np.eye(3), arrays["h_ba"].shape),
+                                      arrays["h_ba"])
     assert float(identity.mean()) == pytest.approx(check["photometric_identity_mace"], rel=1e-6)
     errors = geometry.corner_errors(h, arrays["h_ba"])
     n = default_estimator_float32.num_stages
@@ -164,8 +166,7 @@ def test_default_weights_beat_the_identity_under_a_photometric_change(
     assert (errors <= identity).all()  # issue 17: never worse than the identity
     # the network's estimates alone (no search): the card's record, one pair (the brick wall's)
     # worse than the identity
-    h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"], fill=check["fill"],
-                                           search="none")
+    h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"], EstimateOptions(fill=check["fill"], search="none"))
     errors = geometry.corner_errors(h, arrays["h_ba"])
     assert float(errors.mean()) == pytest.approx(
         check[f"photometric_unsearched_estimate_mace_{n}_stages"], abs=CARD_TOLERANCE_PX)
@@ -181,8 +182,7 @@ def test_default_weights_test_time_augmentation_beats_the_plain_estimate(card_an
     card, arrays = card_and_pairs
     check = card["bundled_check"]
     n = default_estimator_float32.num_stages
-    h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"], fill=check["fill"],
-                                           tta=check["tta"], search=check["search"])
+    h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"], EstimateOptions(fill=check["fill"], tta=check["tta"], search=check["search"]))
     mace = float(geometry.mean_corner_error(h, arrays["h_ba"]))
     assert mace == pytest.approx(check[f"tta_estimate_mace_{n}_stages"], abs=CARD_TOLERANCE_PX)
     assert mace < check[f"estimate_mace_{n}_stages"]
@@ -202,10 +202,10 @@ def test_implausibility_flag_follows_the_corner_shift_and_alignment(card_and_pai
     corners = geometry.patch_corners(128)
     a = arrays["patch_a"]
     fractions = {}
-    for search, case, b in [(search, case, b) for search in ("none", inference.SEARCH)
+    for search, case, b in [(search, case, b) for search in ("none", EstimateOptions().search)
                             for case, b in (("ordinary", arrays["patch_b"]),
                                             ("moved_80px", np.roll(a, (80, 80), (1, 2))))]:
-        h = est.estimate(a, b, search=search)
+        h = est.estimate(a, b, EstimateOptions(search=search))
         info = est.last_info
         shift = np.linalg.norm(geometry.warp_points(h, corners) - corners, axis=-1).max(axis=-1)
         np.testing.assert_allclose(info["max_corner_shift_px"], shift, rtol=1e-9)
@@ -220,6 +220,6 @@ def test_implausibility_flag_follows_the_corner_shift_and_alignment(card_and_pai
             errors = geometry.corner_errors(h, arrays["h_ba"])
             flagged = info["implausible"]
             assert errors[flagged].mean() > errors[~flagged].mean()
-    for search in ("none", inference.SEARCH):
+    for search in ("none", EstimateOptions().search):
         assert fractions[search, "ordinary"] <= 0.25, fractions
         assert fractions[search, "moved_80px"] >= 0.5, fractions

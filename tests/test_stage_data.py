@@ -39,7 +39,8 @@ class Oracle:
         for i in range(len(arrays["h_ba"])):
             key = arrays["patch_b"][i].tobytes()
             corners = geometry.patch_corners().astype(np.float32)
-            e = cv2.getPerspectiveTransform(corners, corners + rng.uniform(-error_px, error_px, (4, 2)).astype(np.float32))
+            e = cv2.getPerspectiveTransform(
+                corners, corners + rng.uniform(-error_px, error_px, (4, 2)).astype(np.float32))
             self.errors[int(arrays["index"][i])] = e
             self.table[key] = (override or {}).get(int(arrays["index"][i]), arrays["h_ba"][i] @ e)
 
@@ -83,7 +84,8 @@ def test_oracle_with_known_error_gives_exact_residual_targets(stage1_data, tmp_p
             np.testing.assert_allclose(got, np.clip(corners, -32, 160), atol=1e-2)
         # Residual target inv(H_prev) @ H_ba (= inv(E) where accepted), normalized with M.
         target = m @ np.linalg.inv(h_prev) @ h_ba @ np.linalg.inv(m)
-        np.testing.assert_allclose(a2["h_bar"][k], (target / target[2, 2]).reshape(9)[:8], atol=1e-5)
+        np.testing.assert_allclose(a2["h_bar"][k], (target / target[2, 2]).reshape(9)[:8],
+                                   atol=1e-5)
         # patch_a_2 = context warped by T(32) @ H_prev, cropped: computed here with OpenCV.
         t = np.array([[1, 0, 32], [0, 1, 32], [0, 0, 1.0]])
         ref = cv2.warpPerspective(a1["context_a"][i].astype(np.float32), t @ h_prev, (128, 128),
@@ -94,7 +96,8 @@ def test_oracle_with_known_error_gives_exact_residual_targets(stage1_data, tmp_p
         np.testing.assert_array_equal(a2["patch_b"][k], a1["patch_b"][i])
         np.testing.assert_array_equal(a2["context_a"][k], a1["context_a"][i])
         residual = np.linalg.inv(h_prev) @ h_ba
-        ref_t = cv2.warpPerspective(ref, residual, (128, 128), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+        ref_t = cv2.warpPerspective(ref, residual, (128, 128),
+                                    flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
         # uint8 rounding plus OpenCV's 1/32-px interpolation bins (h_prev is stored in float32).
         err = np.abs(a2["patch_a_t"][k, ..., 0] * 255 - ref_t)
         assert err.max() <= 1.5 and err.mean() < 0.3
@@ -109,7 +112,8 @@ def test_stage_data_deterministic_across_workers_and_round_trip(stage1_data, tmp
     outs = []
     for w in (1, 2):
         d = str(tmp_path / f"w{w}")
-        stage_k.make_stage_dataset(2, stage1_data, d, "train", predict=Oracle(a1), num_workers=w, log=QUIET)
+        stage_k.make_stage_dataset(2, stage1_data, d, "train", predict=Oracle(a1), num_workers=w,
+                                   log=QUIET)
         outs.append(d)
     names = sorted(n for n in os.listdir(outs[0]) if n.endswith(".tfrecord"))
     assert names == ["train-00000-of-00002.tfrecord", "train-00001-of-00002.tfrecord"]
@@ -127,16 +131,18 @@ def test_degenerate_predictions_keep_previous_estimate_and_are_counted(stage1_da
     override = {idx[0]: np.full((3, 3), np.nan), idx[1]: np.diag([1e-5, 1e-5, 1.0]),
                 idx[2]: geometry.translation(60, 0)}
     out = str(tmp_path / "degenerate")
-    meta = stage_k.make_stage_dataset(2, stage1_data, out, "train", predict=Oracle(a1, override=override, error_px=0.0),
+    meta = stage_k.make_stage_dataset(2, stage1_data, out, "train",
+                                      predict=Oracle(a1, override=override, error_px=0.0),
                                       log=QUIET)
     counts = meta["degenerate_predictions"]
-    assert counts == {"accepted": len(a1["h_ba"]) - 3, "non_finite": 1, "singular": 1, "outside_context": 1}
+    assert counts == {"accepted": len(a1["h_ba"]) - 3, "non_finite": 1, "singular": 1,
+                      "outside_context": 1}
     assert data.read_metadata(out)["splits"]["train"]["degenerate_predictions"] == counts
     a2 = data.load_arrays(out, "train")
     pos = _by_index(a2)
     # Translation by 60 px: the right corners (x = 188) are clipped onto the context border 160.
-    np.testing.assert_allclose(a2["h_prev"][pos[idx[2]]], [[100 / 128, 0, 60], [0, 1, 0], [0, 0, 1]],
-                               atol=1e-5)
+    np.testing.assert_allclose(a2["h_prev"][pos[idx[2]]],
+                               [[100 / 128, 0, 60], [0, 1, 0], [0, 0, 1]], atol=1e-5)
     for i in idx[:2]:  # identity kept: patch_a is the original patch, the target the full H_ba
         k = pos[i]
         np.testing.assert_allclose(a2["h_prev"][k], np.eye(3), atol=1e-7)
@@ -165,7 +171,8 @@ def test_in_memory_stage_pairs_equal_make_stage_dataset_records(stage1_data, tmp
     for name in pairs:  # chunks in threads write their own rows: the thread count does not matter
         np.testing.assert_array_equal(pairs[name], serial[name])
     assert rejected == {k: v for k, v in meta["degenerate_predictions"].items() if k != "accepted"}
-    assert rejected == {"non_finite": 1, "singular": 1, "outside_context": rejected["outside_context"]}
+    assert rejected == {"non_finite": 1, "singular": 1,
+                        "outside_context": rejected["outside_context"]}
     pos = _by_index(a2)
     assert sorted(pos) == list(range(len(pairs["h_bar"])))
     for s in range(len(pairs["h_bar"])):
@@ -184,9 +191,11 @@ def test_in_memory_stage_pairs_equal_make_stage_dataset_records(stage1_data, tmp
 def test_input_must_be_previous_stage(stage1_data, tmp_path):
     a1 = data.load_arrays(stage1_data, "train")
     with pytest.raises(ValueError, match="stage-1 data; stage 3"):
-        stage_k.make_stage_dataset(3, stage1_data, str(tmp_path / "x"), "train", predict=Oracle(a1), log=QUIET)
+        stage_k.make_stage_dataset(3, stage1_data, str(tmp_path / "x"), "train",
+                                   predict=Oracle(a1), log=QUIET)
     with pytest.raises(ValueError, match="stage must be >= 2"):
-        stage_k.make_stage_dataset(1, stage1_data, str(tmp_path / "y"), "train", predict=Oracle(a1), log=QUIET)
+        stage_k.make_stage_dataset(1, stage1_data, str(tmp_path / "y"), "train",
+                                   predict=Oracle(a1), log=QUIET)
 
 
 @pytest.mark.slow
@@ -203,7 +212,8 @@ def test_binary_with_a_real_stage_model(stage1_data, tmp_path, narrow):
     models.build_stn_homography().save(model_dir / "model.keras")
     out = tmp_path / "stage2"
     res = subprocess.run([sys.executable, "-m", "data_prep.make_stage_dataset", "--stage=2",
-                          f"--input_dir={stage1_data}", f"--model_dir={model_dir}", f"--output_dir={out}",
+                          f"--input_dir={stage1_data}", f"--model_dir={model_dir}",
+                          f"--output_dir={out}",
                           "--num_workers=1"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     meta = data.read_metadata(str(out))
@@ -217,7 +227,7 @@ def test_binary_with_a_real_stage_model(stage1_data, tmp_path, narrow):
 def test_binary_without_a_trained_model_is_a_clear_error(stage1_data, tmp_path):
     missing = subprocess.run([sys.executable, "-m", "data_prep.make_stage_dataset", "--stage=2",
                               f"--input_dir={stage1_data}", f"--model_dir={tmp_path / 'none'}",
-                              f"--output_dir={tmp_path / 'o2'}"], cwd=ROOT, capture_output=True, text=True,
-                             timeout=300)
+                              f"--output_dir={tmp_path / 'o2'}"], cwd=ROOT, capture_output=True,
+                             text=True, timeout=300)
     assert missing.returncode != 0 and "make_stage_dataset: no trained model" in missing.stderr
     assert "Traceback" not in missing.stderr

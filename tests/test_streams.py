@@ -130,7 +130,8 @@ def test_pair_stream_workers_serve_the_in_process_batches(folder, fresh):
 LOADED_BACKENDS = "sorted({'keras', 'tensorflow', 'jax', 'torch'} & set(__import__('sys').modules))"
 
 # A binary run as ``python -m``: its imports load Keras (as experiments.train_stage's do through
-# stnh_tf.training.loop), which multiprocessing would re-run in every worker to rebuild ``__main__``.
+# stnh_tf.training.loop), which multiprocessing would re-run in every worker to rebuild
+# ``__main__``.
 BINARY = f"""
 import json, sys
 import keras
@@ -139,9 +140,11 @@ if __name__ == "__main__":
     b = batches.PairBatches(sys.argv[1], 4, samples_per_image=1, seed=0)
     with batches.generator_pool(b, 1) as pool:
         print(json.dumps([pool.apply(eval, ({LOADED_BACKENDS!r},)),
-                          pool.apply(eval, ("'stnh_tf.data.batches' in __import__('sys').modules",)),
+                          pool.apply(eval,
+                                     ("'stnh_tf.data.batches' in __import__('sys').modules",)),
                           batches.stack_samples([b.sample(0)])["patch_b"].tolist()
-                          == pool.apply(batches._worker_samples, ((0, 1, False),))["patch_b"].tolist()]))
+                          == pool.apply(batches._worker_samples,
+                                        ((0, 1, False),))["patch_b"].tolist()]))
     print(json.dumps(sorted({{"keras"}} & set(sys.modules))))
 """
 
@@ -171,9 +174,11 @@ def test_config_needs_exactly_one_source():
     with pytest.raises(ValueError, match="previous stages"):
         train_config.TrainConfig(image_dir="i", model_dir="m", stage=2).validate()
     with pytest.raises(ValueError, match="in_memory"):
-        train_config.TrainConfig(image_dir="i", model_dir="m", stage=2, prev_stages=("s1",)).validate()
+        train_config.TrainConfig(image_dir="i", model_dir="m", stage=2,
+                                 prev_stages=("s1",)).validate()
     with pytest.raises(ValueError, match="prev_stages is for"):
-        train_config.TrainConfig(data_dir="d", model_dir="m", stage=2, prev_stages=("s1",)).validate()
+        train_config.TrainConfig(data_dir="d", model_dir="m", stage=2,
+                                 prev_stages=("s1",)).validate()
     train_config.TrainConfig(image_dir="i", model_dir="m", stage=2, prev_stages=("s1",),
                              in_memory=True).validate()
 
@@ -184,7 +189,8 @@ def test_train_from_image_folder_validates_on_make_dataset_test_pairs(folder, re
     """Training from a folder runs the paper's losses on generated pairs, and its validation
     pairs (seed 1, three per image) are exactly make_dataset's test split: the validation MACE
     equals the evaluation of the saved model on the TFRecords."""
-    cfg = train_config.TrainConfig(image_dir=folder, val_image_dir=folder, model_dir=str(tmp_path / "m"),
+    cfg = train_config.TrainConfig(image_dir=folder, val_image_dir=folder,
+                                   model_dir=str(tmp_path / "m"),
                                    samples_per_image=PER_IMAGE, train_steps=2, warmup_steps=1,
                                    batch_size=BATCH, checkpoint_every=2, val_samples=12,
                                    learning_rate=0.01, in_memory=in_memory)
@@ -229,8 +235,8 @@ def test_stage2_from_image_folder_validates_on_make_stage_dataset_pairs(folder, 
                   val_samples=12, learning_rate=0.01, in_memory=True)
     s1 = train_config.TrainConfig(model_dir=str(tmp_path / "s1"), **common)
     training.train(s1, printer=lambda *a: None)
-    s2 = train_config.TrainConfig(model_dir=str(tmp_path / "s2"), stage=2, prev_stages=(s1.model_dir,),
-                                  **common)
+    s2 = train_config.TrainConfig(model_dir=str(tmp_path / "s2"), stage=2,
+                                  prev_stages=(s1.model_dir,), **common)
     result = training.train(s2, printer=lambda *a: None)
     assert result["final_step"] == 2
     r2 = str(tmp_path / "r2")

@@ -24,7 +24,8 @@ from stnh_tf.training import run_dir
 from stnh_tf.training import config as train_config
 from stnh_tf.training import loop as training
 from stnh_tf.data import tfrecords as data
-from stnh_tf.modeling import model_kinds, runner
+from stnh_tf.modeling import runner
+from stnh_tf.training import model_kinds
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -78,7 +79,8 @@ def test_schedule_is_warmup_then_cosine():
 def test_binary_one_step_smoke(tiny_data, tmp_path):
     model_dir = tmp_path / "run"
     res = _run_binary([f"--data_dir={tiny_data}", f"--model_dir={model_dir}", "--train_steps=1",
-                       "--warmup_steps=0", "--batch_size=4", "--checkpoint_every=1", "--val_samples=4"])
+                       "--warmup_steps=0", "--batch_size=4", "--checkpoint_every=1",
+                       "--val_samples=4"])
     assert res.returncode == 0, res.stderr[-3000:]
     cfg = json.loads((model_dir / "config.json").read_text())
     assert cfg["train_steps"] == 1 and cfg["learning_rate"] == 0.05 and cfg["momentum"] == 0.9
@@ -181,7 +183,8 @@ def test_init_from_starts_a_stage_from_a_trained_one(tiny_data, tmp_path, narrow
     training.check_start(dataclasses.replace(cfg, init_from=(str(tmp_path / "src_run"),)))
     os.makedirs(tmp_path / "unfinished_run")
     with pytest.raises(FileNotFoundError, match="no trained model at .*unfinished_run"):
-        training.check_start(dataclasses.replace(cfg, init_from=(str(tmp_path / "unfinished_run"),)))
+        training.check_start(dataclasses.replace(cfg,
+                                                 init_from=(str(tmp_path / "unfinished_run"),)))
     model = model_kinds.build_model(cfg)
     training.initialize_from(model, (str(tmp_path / "src_run"),))
     for g, s in zip(model.get_weights(), src.get_weights()):
@@ -226,7 +229,8 @@ def test_kill_9_then_same_command_finishes(tiny_data, tmp_path):
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     state = model_dir / "checkpoint" / "state.json"
     deadline = time.time() + 240
-    while time.time() < deadline and not (state.exists() and json.loads(state.read_text())["step"] >= 4):
+    while time.time() < deadline and not (state.exists()
+                                          and json.loads(state.read_text())["step"] >= 4):
         time.sleep(0.02)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
@@ -323,7 +327,8 @@ def test_semi_supervised_mask_keeps_only_l1(tiny_data, narrow):
         pred = model(x, training=False)
         loss = tf.reduce_mean(tf.abs(pred["patch_a_warp"] - y["patch_a_warp"]))
     grads = tape.gradient(loss, model.get_layer("regression").trainable_variables)
-    assert all(g is not None for g in grads) and any(float(tf.reduce_max(tf.abs(g))) > 0 for g in grads)
+    assert (all(g is not None for g in grads)
+            and any(float(tf.reduce_max(tf.abs(g))) > 0 for g in grads))
 
 
 MIRRORED_SCRIPT = r"""
@@ -414,10 +419,10 @@ def test_mirrored_strategy_on_two_logical_cpus_equals_one_device(tiny_data, tmp_
 
 @pytest.mark.slow
 def test_overfits_eight_pairs(tmp_path_factory):
-    """The model and losses of :mod:`stnh_tf.training.loop` drive the MACE of 8 fixed pairs far below
-    the identity's, and the photometric error down with it: losses, STN and gradients are wired
-    through every layer (8 different targets cannot be met by the output bias alone). Adam with
-    full batches, because SGD at this scale needs thousands of steps (no claim about
+    """The model and losses of :mod:`stnh_tf.training.loop` drive the MACE of 8 fixed pairs far
+    below the identity's, and the photometric error down with it: losses, STN and gradients are
+    wired through every layer (8 different targets cannot be met by the output bias alone). Adam
+    with full batches, because SGD at this scale needs thousands of steps (no claim about
     generalization; the schedule itself is tested above). Measured with init seeds 0/1/2 on a
     Zen 3 CPU (fit in 10-epoch calls): MACE / identity 0.39 / 0.40 / 0.47 and L1 / initial L1
     0.36 / 0.41 / 0.52 after 100 epochs, ~95 s; the descent is not monotone (0.67 -> 0.89 -> 0.51
@@ -437,12 +442,14 @@ def test_overfits_eight_pairs(tmp_path_factory):
 
     def mace_and_l1():
         out = model.predict(x, verbose=0)
-        h = geometry.denormalize_homography(geometry.vector_to_matrix(out["h_bar"].astype(np.float64)))
+        h = geometry.denormalize_homography(
+            geometry.vector_to_matrix(out["h_bar"].astype(np.float64)))
         return (float(geometry.mean_corner_error(h, arrays["h_ba"])),
                 float(np.abs(out["patch_a_warp"] - arrays["patch_a_t"]).mean()))
 
     mace0, l1_0 = mace_and_l1()
-    identity = float(geometry.mean_corner_error(np.broadcast_to(np.eye(3), arrays["h_ba"].shape), arrays["h_ba"]))
+    identity = float(geometry.mean_corner_error(np.broadcast_to(np.eye(3), arrays["h_ba"].shape),
+                                                arrays["h_ba"]))
     assert mace0 == pytest.approx(identity, rel=1e-3)  # identity-initialised output layer
     model.fit(x, y, batch_size=8, epochs=100, verbose=0)
     mace, l1 = mace_and_l1()
@@ -452,8 +459,10 @@ def test_overfits_eight_pairs(tmp_path_factory):
 
 
 CPUINFO = {  # abridged /proc/cpuinfo of four CPUs (two logical CPUs each where x86)
-    "epyc_milan": "processor\t: 0\nvendor_id\t: AuthenticAMD\nflags\t\t: fpu sse2 avx avx2 fma f16c\n\n"
-                  "processor\t: 1\nvendor_id\t: AuthenticAMD\nflags\t\t: fpu sse2 avx avx2 fma f16c\n",
+    "epyc_milan": "processor\t: 0\nvendor_id\t: AuthenticAMD\n"
+                  "flags\t\t: fpu sse2 avx avx2 fma f16c\n\n"
+                  "processor\t: 1\nvendor_id\t: AuthenticAMD\n"
+                  "flags\t\t: fpu sse2 avx avx2 fma f16c\n",
     "sapphire_rapids": "processor\t: 0\nflags\t\t: avx2 avx512f avx512_bf16 amx_bf16 amx_tile\n",
     "xeon_no_amx": "processor\t: 0\nflags\t\t: avx2 avx512f avx512_bf16 avx512_fp16\n",
     "neoverse_v1": "processor\t: 0\nFeatures\t: fp asimd sve bf16 i8mm\nCPU implementer\t: 0x41\n",

@@ -1,11 +1,11 @@
-"""Stage-1 training batches generated on the fly from images, and their worker processes.
+r"""Stage-1 training batches generated on the fly from images, and their worker processes.
 
 NumPy / OpenCV only (no TensorFlow, no Keras): generator worker processes import this module and
 never start a deep-learning backend. :mod:`stnh_tf.data.pair_datasets` wraps these pieces in Keras
 ``PyDataset``\ s (``PairSequence``, ``PairStream``, ``ArrayStream``, ``ArraySequence``).
 
-Batches are ``(x, y, w)`` with :func:`stnh_tf.data.tfrecords.load_split`'s structure and values, or the
-compact form of :func:`stack_samples` (uint8 patches: what workers send back and what
+Batches are ``(x, y, w)`` with :func:`stnh_tf.data.tfrecords.load_split`'s structure and values, or
+the compact form of :func:`stack_samples` (uint8 patches: what workers send back and what
 :func:`materialize` keeps in memory, 48 KB a pair), which :func:`model_batch` turns into floats.
 """
 
@@ -20,8 +20,8 @@ import numpy as np
 
 from stnh_tf import pixels
 from stnh_tf.data import pairs, sources
-from stnh_tf.data.sources import (ImageDecodeError, SourceError, bundled_image_files, scan_image_folder,
-                             scan_image_folders)
+from stnh_tf.data.sources import (ImageDecodeError, SourceError, bundled_image_files,
+                                  scan_image_folder, scan_image_folders)
 
 _log = logging.getLogger(__name__)
 

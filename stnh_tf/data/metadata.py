@@ -6,7 +6,8 @@
 * **One writer per split.** :func:`split_lock` holds the split's lock (``.{split}.lock``) for one
   writer; a second writer of the same split fails at once.
 
-The readers' side is :mod:`stnh_tf.data.tfrecords`. Standard library only (with :mod:`stnh_tf.paths`).
+The readers' side is :mod:`stnh_tf.data.tfrecords`. Standard library only
+(with :mod:`stnh_tf.paths`).
 """
 
 from __future__ import annotations

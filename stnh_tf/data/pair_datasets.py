@@ -1,10 +1,11 @@
-"""Keras ``PyDataset``\ s of generated pairs (NumPy/OpenCV only, no TensorFlow): ``model.fit`` on
+r"""Keras ``PyDataset``\ s of generated pairs (NumPy/OpenCV only, no TensorFlow): ``model.fit`` on
 pairs made on the fly from images (:class:`PairSequence`, :class:`PairStream`) or served from
 arrays made once in memory (:class:`ArraySequence`, :class:`ArrayStream`).
 
-Batches are ``(x, y, w)`` NumPy arrays with the structure of :func:`stnh_tf.data.tfrecords.load_split`'s
-(TFRecords); the pairs are those of :class:`stnh_tf.data.batches.PairBatches` (the same samples as
-``data_prep.make_dataset``), so training can run under the JAX backend without TFRecords.
+Batches are ``(x, y, w)`` NumPy arrays with the structure of
+:func:`stnh_tf.data.tfrecords.load_split`'s (TFRecords); the pairs are those of
+:class:`stnh_tf.data.batches.PairBatches` (the same samples as ``data_prep.make_dataset``), so
+training can run under the JAX backend without TFRecords.
 
 Which one: :class:`PairSequence` for one pass over a fixed set (indexable, shuffled per seed);
 :class:`PairStream` for an endless training stream positioned at a step (worker processes,

@@ -109,7 +109,8 @@ class Protocol:
         if self.photometric is not None:
             d["photometric_rule"] = (
                 "patch_b only: x = patch_b/255; x = clip((x**gamma - 0.5)*contrast + 0.5 + "
-                "brightness + sigma * N(0, 1) (float32 standard_normal)); per sample gamma = gamma_max**u(-1,1), contrast = "
+                "brightness + sigma * N(0, 1) (float32 standard_normal)); per sample "
+                "gamma = gamma_max**u(-1,1), contrast = "
                 "1 + contrast_range*u(-1,1), brightness = brightness_range*u(-1,1), sigma = "
                 "noise_max*u(0,1), noise seed = integers(2**63), drawn after all geometric draws")
         return d

@@ -69,7 +69,8 @@ def _items(paths, predict, counts: dict):
 
     def flush():
         nonlocal index
-        decoded = [features.decode_example(r, names=("patch_a", "patch_b", "h_prev")) for r in batch]
+        decoded = [features.decode_example(r, names=("patch_a", "patch_b", "h_prev"))
+                   for r in batch]
         patch_a = pixels.to_unit(np.stack([d["patch_a"] for d in decoded])[..., None])
         patch_b = pixels.to_unit(np.stack([d["patch_b"] for d in decoded])[..., None])
         h_prev = np.stack([np.asarray(d["h_prev"], np.float64).reshape(3, 3) for d in decoded])
@@ -110,7 +111,8 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
     from stnh_tf.modeling import runner
 
     if stage < 2:
-        raise ValueError(f"stage must be >= 2 (stage 1 is data_prep.make_dataset); received {stage}.")
+        raise ValueError(f"stage must be >= 2 (stage 1 is data_prep.make_dataset); "
+                         f"received {stage}.")
     meta = data.read_metadata(input_dir)
     if int(meta.get("stage", 1)) != stage - 1:
         raise ValueError(f"{input_dir} holds stage-{meta.get('stage', 1)} data; stage {stage} is "

@@ -9,8 +9,8 @@ dicts hold :data:`stnh_tf.data.features.FEATURE_NAMES`).
   ``num_workers`` is. Byte-identical output therefore only needs ``worker_fn`` to depend on the
   item alone (seed its RNG from the item's index).
 * **Workers** are ``spawn``-ed processes (``num_workers > 1``) that import only what ``worker_fn``'s
-  module imports (no TensorFlow for ``stnh_tf.data.pairs``); they build and serialize the samples. The
-  parent process writes the records (TensorFlow's ``TFRecordWriter``, imported lazily here).
+  module imports (no TensorFlow for ``stnh_tf.data.pairs``); they build and serialize the samples.
+  The parent process writes the records (TensorFlow's ``TFRecordWriter``, imported lazily here).
   ``num_workers <= 1`` runs everything in-process.
 * **One writer per split.** A run holds the split's lock (:func:`stnh_tf.data.metadata.split_lock`)
   from start to end; a second run on the same split fails at once instead of deleting the first

@@ -1,8 +1,8 @@
 """The settings grid of the classical baselines, library core of ``experiments.tune_baselines``
 (its docstring says how to run it): paper-protocol pairs drawn in memory from photographs
-(:func:`stnh_tf.data.sources.load_gray_images`, :func:`stnh_tf.data.pairs.make_pair_arrays`), identity, the
-registered baselines and ORB / SIFT settings around them (:func:`settings_grid`), each evaluated
-with :func:`stnh_tf.evaluation.baselines.evaluate_baseline`. NumPy/OpenCV only.
+(:func:`stnh_tf.data.sources.load_gray_images`, :func:`stnh_tf.data.pairs.make_pair_arrays`),
+identity, the registered baselines and ORB / SIFT settings around them (:func:`settings_grid`), each
+evaluated with :func:`stnh_tf.evaluation.baselines.evaluate_baseline`. NumPy/OpenCV only.
 """
 
 from __future__ import annotations
@@ -55,7 +55,8 @@ def settings_grid(grid="small"):
 
 
 def run_tuning(image_dir=None, num_pairs=300, seed=0, grid="small"):
-    """Generate the pairs, evaluate every entry of :func:`settings_grid`; returns the result dict."""
+    """Generate the pairs, evaluate every entry of :func:`settings_grid`; returns the result
+    dict."""
     import cv2
 
     from stnh_tf.evaluation import baselines

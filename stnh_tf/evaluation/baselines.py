@@ -136,7 +136,8 @@ def _as_single(x, name: str, size: int = geometry.PATCH_SIZE) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Validity of an estimate
 # --------------------------------------------------------------------------------------------
-def is_plausible_homography(h, size: int = geometry.PATCH_SIZE, max_area_ratio: float = 4.0) -> bool:
+def is_plausible_homography(h, size: int = geometry.PATCH_SIZE,
+                            max_area_ratio: float = 4.0) -> bool:
     """True if ``h`` ``[3, 3]`` is finite, maps the patch corners in front of the camera onto a
     convex quadrilateral with the patch's orientation, and changes area by at most
     ``max_area_ratio`` (either way)."""
@@ -150,7 +151,8 @@ def is_plausible_homography(h, size: int = geometry.PATCH_SIZE, max_area_ratio: 
         return False
     q = hom[:, :2] / hom[:, 2:3]
     edges = np.roll(q, -1, axis=0) - q
-    cross = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    cross = (edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1]
+             - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0])
     if not np.all(cross > 0):  # corners are listed clockwise in image coords (y down): cross > 0
         return False
     area = 0.5 * abs(np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1]))
@@ -349,7 +351,8 @@ BASELINES = {
 }
 """Name -> constructor (keyword settings override the defaults)."""
 
-FIGURE_BASELINES = {"identity": "Identity", "orb_ransac": "ORB + RANSAC", "sift_ransac": "SIFT + RANSAC"}
+FIGURE_BASELINES = {"identity": "Identity", "orb_ransac": "ORB + RANSAC",
+                    "sift_ransac": "SIFT + RANSAC"}
 """The baselines that the reproduction's Fig. 4 and the demo report, in order: name in
 :data:`BASELINES` -> display name (their key in ``results.json`` and their label)."""
 

@@ -26,7 +26,7 @@ import time
 
 def git_commit() -> str | None:
     """Short commit of the checkout the code runs from (``+dirty`` if modified), or ``None``."""
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, check=True,
                                 capture_output=True, text=True).stdout.strip()
@@ -111,7 +111,7 @@ def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
 
     from stnh_tf.training import config as train_config
     from stnh_tf.training import loop as training
-    from stnh_tf.modeling import model_kinds
+    from stnh_tf.training import model_kinds
 
     keras.mixed_precision.set_global_policy(policy)
     keras.utils.set_random_seed(seed)
@@ -302,7 +302,7 @@ def time_fit(mode, pair_batches, image_dir, batch_size=64, workers=2, samples_pe
 
     from stnh_tf.training import config as train_config
     from stnh_tf.training import loop as training
-    from stnh_tf.modeling import model_kinds
+    from stnh_tf.training import model_kinds
 
     class Ends(keras.callbacks.Callback):
         def __init__(self):
@@ -374,13 +374,16 @@ def stream_benchmark(image_dir, workers=2, samples_per_image=100, batch_size=64,
 
 
 def estimator_benchmark(model=None, compute_dtype="float32", runs=30, warmup=5, large_batch=256,
-                        seed=0, tta="none", search="none"):
+                        seed=0, options=None):
     """``estimate`` at batch 1 and ``large_batch`` on seeded random uint8 patches, beside
     :func:`stnh_tf.evaluation.mace.latency`'s ``d_e`` for the same models; ``compute_dtype``
-    ``"float32"`` or ``"as_saved"``; ``tta``: ``estimate``'s test-time augmentation; ``search``:
-    its search (``"none"``, the network, by default: random patches do not align, so ``"ecc"``
-    searches every pair, the search's worst case)."""
+    ``"float32"`` or ``"as_saved"``; ``options``: ``estimate``'s
+    (:class:`~stnh_tf.inference.options.EstimateOptions`; ``None``: the default with
+    ``search="none"``, the network: random patches do not align, so the search would search every
+    pair, its worst case)."""
     import numpy as np
+
+    from stnh_tf.inference.options import EstimateOptions
 
     from stnh_tf.inference import estimator as inference
     from stnh_tf.inference import model_files
@@ -392,10 +395,9 @@ def estimator_benchmark(model=None, compute_dtype="float32", runs=30, warmup=5, 
     rng = np.random.default_rng(seed)
     n = large_batch
     a, b = (rng.integers(0, 256, (n, 128, 128), dtype=np.uint8) for _ in range(2))
-    one = evaluation.median_ms(lambda: estimator.estimate(a[0], b[0], tta=tta, search=search),
-                               runs, warmup)
-    many = evaluation.median_ms(lambda: estimator.estimate(a, b, batch_size=n, tta=tta,
-                                                           search=search),
+    options = EstimateOptions(search="none") if options is None else options
+    one = evaluation.median_ms(lambda: estimator.estimate(a[0], b[0], options), runs, warmup)
+    many = evaluation.median_ms(lambda: estimator.estimate(a, b, options, batch_size=n),
                                 max(runs // 10, 3), 1)
     stages = model_files.resolve_model_paths(model)
     bench = evaluation.latency(stages, max_stages=len(stages), runs=runs, warmup=warmup,
@@ -403,7 +405,7 @@ def estimator_benchmark(model=None, compute_dtype="float32", runs=30, warmup=5, 
     d_e = bench["hierarchy"][str(len(stages))]["d_e_ms"]
     return {"benchmark": "estimator_vs_latency", "model": estimator.source,
             "stages": len(stages), "policy": runner.compute_policy(estimator.stages[0]),
-            "runs": runs, "seed": seed, "tta": tta, "search": search,
+            "runs": runs, "seed": seed, "tta": options.tta, "search": options.search,
             "estimate_batch1_ms": one, "benchmark_d_e_ms": d_e, "ratio": one / d_e,
             f"estimate_batch{n}_ms_per_pair": many / n,
             "benchmark_l_m_ms": bench["l_m_ms"], "machine": machine_info()}

@@ -229,10 +229,9 @@ IMPLAUSIBILITY_CASES = ("ordinary", "other_photograph", "rotated_180", "moved_80
 
 
 def implausibility_check(model=None, data_dir=None, split="test", compute_dtype="float32",
-                         batch_size=64, photometric=False, refine="none",
-                         tta="none", retry_tta="none", search=None) -> dict:
-    """How often :attr:`~stnh_tf.inference.estimator.HomographyEstimator.last_info` flags the estimates of
-    ``HomographyEstimator.estimate`` on stored pairs and on pairs made from them that the models
+                         batch_size=64, photometric=False, options=None) -> dict:
+    """How often :meth:`~stnh_tf.inference.estimator.HomographyEstimator.estimate_with_info` flags
+    its estimates on stored pairs and on pairs made from them that the models
     were not trained on (:data:`IMPLAUSIBILITY_CASES`):
 
     * ``ordinary``: the pairs as stored (true corners moved by up to 32 px);
@@ -244,11 +243,8 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
       model: what ``HomographyEstimator.load`` takes (``None``: the shipped weights).
       data_dir, split: stage-1 pairs (``stnh_tf.data.tfrecords``); ``None``: the seeded bundled test pairs
         of the model card (:func:`stnh_tf.inference.shipped_weights.bundled_pairs`, with ``photometric``).
-      refine: ``estimate``'s ``refine`` (:data:`stnh_tf.inference.estimator.REFINES`).
-      tta: ``estimate``'s ``tta`` (:data:`stnh_tf.inference.estimator.TTAS`).
-      retry_tta: ``estimate``'s ``retry_tta`` (:data:`stnh_tf.inference.estimator.TTAS`).
-      search: ``estimate``'s ``search`` (:data:`stnh_tf.inference.estimator.SEARCHES`; ``None``: its
-        default).
+      options: the estimator's :class:`~stnh_tf.inference.options.EstimateOptions` (``None``:
+        the default).
     Returns:
       ``{case: {"count", "flagged" (fraction), "refined" (fraction), "retried" (fraction),
       "searched" (fraction), "search_found" (fraction),
@@ -260,9 +256,10 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
     """
     from stnh_tf.inference import shipped_weights
     from stnh_tf.data import tfrecords as data
-    from stnh_tf.inference.estimator import SEARCH, HomographyEstimator
+    from stnh_tf.inference.estimator import HomographyEstimator
+    from stnh_tf.inference.options import EstimateOptions
 
-    search = SEARCH if search is None else search
+    options = EstimateOptions() if options is None else options
     if data_dir is None:
         samples = shipped_weights.bundled_pairs(photometric)
     elif photometric:
@@ -275,20 +272,18 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
                  "rotated_180": b[:, ::-1, ::-1], "moved_80px": np.roll(a, (80, 80), axis=(1, 2))}
     estimator = HomographyEstimator.load(model, compute_dtype=compute_dtype)
     out = {"model": estimator.source, "data_dir": data_dir, "split": split,
-           "photometric": photometric, "refine": refine, "tta": tta, "retry_tta": retry_tta,
-           "search": search}
+           "photometric": photometric,
+           **{k: getattr(options, k) for k in ("refine", "tta", "retry_tta", "search")}}
     for case in IMPLAUSIBILITY_CASES:
         start = time.perf_counter()
-        h = estimator.estimate(a, patches_b[case], batch_size=batch_size, refine=refine,
-                               tta=tta, retry_tta=retry_tta, search=search)
+        result = estimator.estimate_with_info(a, patches_b[case], options, batch_size=batch_size)
         seconds = time.perf_counter() - start
-        flagged = estimator.last_info["implausible"]
-        ncc = estimator.last_info["alignment_ncc"]
+        h, flagged, ncc = result.homography, result.implausible, result.alignment_ncc
         out[case] = {"count": int(len(h)), "flagged": float(flagged.mean()),
-                     "refined": float(estimator.last_info["refined"].mean()),
-                     "retried": float(estimator.last_info["retried"].mean()),
-                     "searched": float(estimator.last_info["searched"].mean()),
-                     "search_found": float(estimator.last_info["search_found"].mean()),
+                     "refined": float(result.refined.mean()),
+                     "retried": float(result.retried.mean()),
+                     "searched": float(result.searched.mean()),
+                     "search_found": float(result.found.mean()),
                      "ms_per_pair": 1e3 * seconds / len(h),
                      "alignment_ncc_median": float(np.nanmedian(ncc))}
         if case == "ordinary":

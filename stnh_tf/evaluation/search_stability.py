@@ -29,7 +29,7 @@ def _moved(a_from_b, px, rng):
 def search_stability(estimator, patch_a, patch_b, h_ba, perturbations=(0.01, 0.1, 0.3),
                      seed=0) -> dict:
     """The default ``estimator.estimate`` of float32 ``[B, 128, 128, 1]`` pairs on both OpenCV
-    paths, and :func:`stnh_tf.inference.estimator.search_translations` from the network's estimates
+    paths, and :func:`stnh_tf.inference.search.search_translations` from the network's estimates
     moved by each of ``perturbations`` px (optimized path).
 
     Returns a dict: ``pairs``; per path (``optimized``, ``unoptimized``) ``mace``, ``searched``,
@@ -39,7 +39,8 @@ def search_stability(estimator, patch_a, patch_b, h_ba, perturbations=(0.01, 0.1
     differs by more than :data:`DIFFER_PX` from the unmoved one's; not found counts as the
     network estimate).
     """
-    from stnh_tf.inference import estimator as inference
+    from stnh_tf.inference import checks, search
+    from stnh_tf.inference.options import EstimateOptions
 
     was_optimized = cv2.useOptimized()
     out, estimates = {"pairs": int(len(h_ba))}, {}
@@ -47,28 +48,28 @@ def search_stability(estimator, patch_a, patch_b, h_ba, perturbations=(0.01, 0.1
         for path, optimized in (("optimized", True), ("unoptimized", False)):
             cv2.setUseOptimized(optimized)
             start = time.perf_counter()
-            estimates[path] = estimator.estimate(patch_a, patch_b)
-            info = estimator.last_info
+            result = estimator.estimate_with_info(patch_a, patch_b, EstimateOptions())
+            estimates[path] = result.homography
             out[path] = {"mace": float(geometry.mean_corner_error(estimates[path], h_ba)),
-                         "searched": int(info["searched"].sum()),
-                         "found": int(info["search_found"].sum()),
+                         "searched": int(result.searched.sum()),
+                         "found": int(result.found.sum()),
                          "seconds": round(time.perf_counter() - start, 2)}
         out["differ_between_paths"] = int((geometry.corner_errors(
             estimates["optimized"], estimates["unoptimized"]) > DIFFER_PX).sum())
         cv2.setUseOptimized(True)
-        network = estimator.estimate(patch_a, patch_b, search="none")
-        info = estimator.last_info
-        shift = info["max_corner_shift_px"]
-        searched = np.flatnonzero(~info["flat"] & np.isfinite(shift) & inference._beyond_rule(
-            info["rejected_stages"], shift, info["alignment_ncc"], inference.SEARCH_BELOW_NCC))
+        options = EstimateOptions(search="none")
+        result = estimator.estimate_with_info(patch_a, patch_b, options)
+        network, shift, t = result.homography, result.max_corner_shift_px, options.thresholds
+        searched = np.flatnonzero(~result.flat & np.isfinite(shift) & checks.beyond(
+            result.rejected_stages, shift, result.alignment_ncc, t.search_below_ncc, t))
         out["searched_network"] = int(len(searched))
 
         def search_all(moved_px, rng):
             results = []
             for i in searched:
                 start = network[i] if not moved_px else _moved(network[i], moved_px, rng)
-                found = inference.search_translations(patch_a[i, ..., 0], patch_b[i, ..., 0],
-                                                      start)
+                found = search.search_translations(patch_a[i, ..., 0], patch_b[i, ..., 0],
+                                                   start, thresholds=t)
                 results.append(network[i] if found is None else found[0])
             return np.array(results).reshape(-1, 3, 3)
 

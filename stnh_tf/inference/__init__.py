@@ -11,7 +11,9 @@ the SavedModel export (:mod:`~stnh_tf.inference.export`) and the shipped weights
 
 from stnh_tf import _compat
 
-__all__ = ["HomographyEstimator"]
+from stnh_tf.inference.options import EstimateOptions, Thresholds  # noqa: E402
+
+__all__ = ["HomographyEstimator", "EstimateOptions", "Thresholds", "Estimate"]
 
 # Before 0.2 ``stnh_tf.inference`` was the estimator's module: its names stay reachable here.
 __getattr__ = _compat.delegate(__name__, "stnh_tf.inference.estimator")

@@ -13,22 +13,19 @@ It is self-contained TensorFlow (no stnh_tf or OpenCV needed to serve it)::
     fn = tf.saved_model.load(path).signatures["serving_default"]
     h = fn(patch_a=a_uint8, patch_b=b_uint8)["homography"]
 
-Single-stage and sequence models export exactly the computation of
-:meth:`HomographyEstimator.estimate`. A hierarchy exports its stages chained by the package's
-:class:`~stnh_tf.modeling.layers.SpatialTransformer` (the warp of the patch itself, filled beyond it as
-``estimate`` fills by default, :data:`stnh_tf.inference.estimator.PATCH_FILL`: the same geometry as the
-estimator's OpenCV warp of a patch); OpenCV's bilinear warp quantizes sampling
-positions to 1/32 px, so a hierarchy's SavedModel agrees with ``estimate`` only up to that
-interpolation difference, while it agrees with the same TensorFlow computation run before
-export to float32 rounding (models compute in float32 as ``HomographyEstimator.load`` rebuilds
-them by default; one kept in bfloat16 differs between eager and graph runs by bfloat16 rounding
-and fails ``verify_export``'s default tolerance). The estimator's degenerate-prediction rule (a stage whose
-prediction makes the composition non-finite or singular is skipped) is not exported: the
-SavedModel returns such a composition as it is; nor is ``estimate``'s stage gate (a later stage's
-update kept only where it does not lower the alignment NCC): a hierarchy's SavedModel composes
-every stage, as ``estimate(..., gate_stages=False)`` does; nor is the flat-patch rule (the
-identity for a pair with a flat patch, ``inference.MIN_PATCH_STD``); nor is ``estimate``'s search of
-poorly aligned estimates (OpenCV, ``estimate(..., search="none")`` leaves it out).
+The SavedModel computes :meth:`HomographyEstimator.estimate` with
+``EstimateOptions.network_only()`` (:class:`~stnh_tf.inference.options.EstimateOptions`): the
+network's composed estimate, every stage composed, with no search and no flat rule. Single-stage
+and sequence models export exactly that computation. A hierarchy exports its stages chained by
+the package's :class:`~stnh_tf.modeling.layers.SpatialTransformer` (the warp of the patch itself,
+filled beyond it as the options' ``fill`` says: the same geometry as the estimator's OpenCV warp
+of a patch); OpenCV's bilinear warp quantizes sampling positions to 1/32 px, so a hierarchy's
+SavedModel agrees with the estimate only up to that interpolation difference, while it agrees
+with the same TensorFlow computation run before export to float32 rounding (models compute in
+float32 as ``HomographyEstimator.load`` rebuilds them by default; one kept in bfloat16 differs
+between eager and graph runs by bfloat16 rounding and fails ``verify_export``'s default
+tolerance). One difference remains: the estimator skips a stage whose prediction makes the
+composition non-finite or singular; the SavedModel returns such a composition as it is.
 """
 
 from __future__ import annotations
@@ -69,11 +66,12 @@ def serving_function(estimator):
     ``[B, 128, 128, 1]`` patches, computing the estimator's ``H_ba`` with its Keras models."""
     from keras import ops
 
-    from stnh_tf.inference.estimator import PATCH_FILL
+    from stnh_tf.inference.options import EstimateOptions
     from stnh_tf.modeling.layers import SpatialTransformer
 
     stages, outputs = estimator.stages, estimator.output_names
-    warp = SpatialTransformer(fill=PATCH_FILL, dtype="float32", name="hierarchy_warp")
+    warp = SpatialTransformer(fill=EstimateOptions.network_only().fill, dtype="float32",
+                              name="hierarchy_warp")
 
     def serve(patch_a, patch_b):
         patch_a, patch_b = checked_inputs(patch_a, patch_b)
@@ -207,7 +205,7 @@ def verify_export(path, estimator, patch_a=None, patch_b=None, tolerance: float 
 
     Returns a dict with ``max_abs_diff`` (SavedModel vs the same TensorFlow computation run on the
     in-memory Keras models), ``max_abs_diff_estimate`` (SavedModel vs
-    :meth:`HomographyEstimator.estimate` without its stage gate and search), ``tolerance`` and
+    :meth:`HomographyEstimator.estimate` with ``EstimateOptions.network_only()``), ``tolerance`` and
     ``ok``.
     ``ok`` requires ``max_abs_diff <= tolerance``, and for single-stage and sequence models
     (where both compute the same thing) also ``max_abs_diff_estimate <= tolerance``; for a
@@ -222,7 +220,9 @@ def verify_export(path, estimator, patch_a=None, patch_b=None, tolerance: float 
     saved = run_saved_model(path, patch_a, patch_b).astype(np.float64)
     eager = np.asarray(serving_function(estimator)(tf.constant(patch_a), tf.constant(patch_b))[OUTPUT],
                        np.float64)
-    estimate = estimator.estimate(patch_a, patch_b, gate_stages=False, search="none")
+    from stnh_tf.inference.options import EstimateOptions
+
+    estimate = estimator.estimate(patch_a, patch_b, EstimateOptions.network_only())
     diff = float(np.max(np.abs(saved - eager)))
     diff_estimate = float(np.max(np.abs(saved - estimate)))
     ok = diff <= tolerance and (estimator.kind == "hierarchy" or diff_estimate <= tolerance)

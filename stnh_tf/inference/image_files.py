@@ -80,11 +80,10 @@ def _warn_stderr(message):
 
 
 def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", warn=_warn_stderr,
-                      refine="none", tta="none", retry_tta="none", search=None):
+                      options=None):
     """Estimate ``H_ba`` between two image files with ``model`` (what
-    ``HomographyEstimator.load`` takes; ``None``: the shipped weights; ``refine``, ``tta``,
-    ``retry_tta`` and ``search``: as in ``HomographyEstimator.estimate_images``, ``search=None``
-    its default), write
+    ``HomographyEstimator.load`` takes; ``None``: the shipped weights) and ``options`` (an
+    :class:`~stnh_tf.inference.options.EstimateOptions`; ``None``: the default), write
     ``<a>__<b>_overlay.png`` and ``<a>__<b>_homography.json`` into ``output_dir`` (created if
     missing; :func:`output_stem`) and return the JSON's content. ``warn`` receives the warning
     of an implausible estimate.
@@ -97,9 +96,8 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
     import numpy as np
 
     from stnh_tf import geometry, paths
-    from stnh_tf.inference.estimator import SEARCH, HomographyEstimator
+    from stnh_tf.inference.estimator import HomographyEstimator
 
-    search = SEARCH if search is None else search
     image_a = read_image(image_a_path, "image_a")
     image_b = read_image(image_b_path, "image_b")
     try:
@@ -110,9 +108,8 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         estimator = HomographyEstimator.load(model)
     except (FileNotFoundError, ValueError) as e:
         raise AlignmentError(str(e)) from None
-    h = estimator.estimate_images(image_a, image_b, channel_order="bgr", refine=refine,
-                                  tta=tta, retry_tta=retry_tta, search=search)
-    info = estimator.last_info
+    estimate = estimator.estimate_images_with_info(image_a, image_b, options, channel_order="bgr")
+    h, info, used = estimate.homography[0], estimate.info(), estimate.options
     implausible = bool(info["implausible"][0])
     if implausible and info["flat"][0]:
         warn("the central patch of image_a or image_b is flat (nothing to align): the estimate "
@@ -145,10 +142,10 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         "input_paths": inputs,
         "implausible": implausible,
         "flat": bool(info["flat"][0]),
-        "refine": refine, "refined": bool(info["refined"][0]),
-        "tta": tta, "tta_choice": str(info["tta_choice"][0]),
-        "retry_tta": retry_tta, "retried": bool(info["retried"][0]),
-        "search": search, "searched": bool(info["searched"][0]),
+        "refine": used.refine, "refined": bool(info["refined"][0]),
+        "tta": used.tta, "tta_choice": str(info["tta_choice"][0]),
+        "retry_tta": used.retry_tta, "retried": bool(info["retried"][0]),
+        "search": used.search, "searched": bool(info["searched"][0]),
         "search_found": bool(info["search_found"][0]),
         "max_corner_shift_px": float(info["max_corner_shift_px"][0]),
         "alignment_ncc": (float(info["alignment_ncc"][0])

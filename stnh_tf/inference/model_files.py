@@ -49,7 +49,7 @@ before the fast recipe's)."""
 
 def default_weights_dir() -> str:
     """The package folder ``stnh_tf/weights`` (may not exist before weights are shipped)."""
-    return os.path.join(os.path.dirname(os.path.abspath(__file__)), "weights")
+    return os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "weights")
 
 
 def default_source() -> str:

@@ -111,7 +111,7 @@ def bundled_check(stage_paths) -> dict:
     shipped weights must keep reproducing (``tests/test_shipped_weights.py``).
 
     Keys: ``count``, ``identity_mace``, ``estimate_mace_{k}_stages`` and ``implausible_{k}_stages``
-    (pairs flagged in ``last_info``) on the plain pairs; the same with the prefix ``photometric_``
+    (pairs the estimate flags implausible) on the plain pairs; the same with the prefix ``photometric_``
     on the pairs with a photometric change (:func:`bundled_pairs`), plus
     ``photometric_worse_than_identity_{k}_stages``, the pairs whose corner error exceeds the
     identity's; ``[photometric_]ungated_estimate_mace_{k}_stages`` (k > 1): the same without the
@@ -121,14 +121,21 @@ def bundled_check(stage_paths) -> dict:
     ``photometric_unsearched_worse_than_identity_{n}_stages``), all n stages with
     ``search="none"``, the network's estimates. Every other estimate uses
     ``search=BUNDLED_CHECK["search"]``."""
+    import dataclasses
+
     import numpy as np
 
     from stnh_tf import geometry
     from stnh_tf.inference.estimator import HomographyEstimator
+    from stnh_tf.inference.options import EstimateOptions
 
     stages = [HomographyEstimator.load(p, compute_dtype=BUNDLED_CHECK["compute_dtype"]).stages[0]
               for p in stage_paths]
-    out, fill, search = dict(BUNDLED_CHECK), BUNDLED_CHECK["fill"], BUNDLED_CHECK["search"]
+    out = dict(BUNDLED_CHECK)
+    options = EstimateOptions(fill=BUNDLED_CHECK["fill"], search=BUNDLED_CHECK["search"])
+    variants = {"ungated": dataclasses.replace(options, gate_stages=False),
+                "tta": dataclasses.replace(options, tta=BUNDLED_CHECK["tta"]),
+                "unsearched": dataclasses.replace(options, search="none")}
     for prefix, photometric in (("", False), ("photometric_", True)):
         arrays = bundled_pairs(photometric)
         identity = geometry.corner_errors(np.broadcast_to(np.eye(3), arrays["h_ba"].shape),
@@ -138,23 +145,20 @@ def bundled_check(stage_paths) -> dict:
         out[f"{prefix}identity_mace"] = float(identity.mean())
         for k in range(1, len(stages) + 1):
             estimator = HomographyEstimator(stages[:k])
-            errors = geometry.corner_errors(estimator.estimate(
-                arrays["patch_a"], arrays["patch_b"], fill=fill, search=search), arrays["h_ba"])
+            result = estimator.estimate_with_info(arrays["patch_a"], arrays["patch_b"], options)
+            errors = geometry.corner_errors(result.homography, arrays["h_ba"])
             out[f"{prefix}estimate_mace_{k}_stages"] = float(errors.mean())
-            out[f"{prefix}implausible_{k}_stages"] = int(estimator.last_info["implausible"].sum())
+            out[f"{prefix}implausible_{k}_stages"] = int(result.implausible.sum())
             if prefix:
                 out[f"{prefix}worse_than_identity_{k}_stages"] = int((errors > identity).sum())
             if k > 1:
                 ungated = geometry.corner_errors(estimator.estimate(
-                    arrays["patch_a"], arrays["patch_b"], gate_stages=False, fill=fill,
-                    search=search), arrays["h_ba"])
+                    arrays["patch_a"], arrays["patch_b"], variants["ungated"]), arrays["h_ba"])
                 out[f"{prefix}ungated_estimate_mace_{k}_stages"] = float(ungated.mean())
             if k == len(stages):
-                for name, options in (("tta", {"tta": BUNDLED_CHECK["tta"], "search": search}),
-                                      ("unsearched", {"search": "none"})):
+                for name in ("tta", "unsearched"):
                     errors = geometry.corner_errors(estimator.estimate(
-                        arrays["patch_a"], arrays["patch_b"], fill=fill, **options),
-                        arrays["h_ba"])
+                        arrays["patch_a"], arrays["patch_b"], variants[name]), arrays["h_ba"])
                     out[f"{prefix}{name}_estimate_mace_{k}_stages"] = float(errors.mean())
                     if prefix:
                         out[f"{prefix}{name}_worse_than_identity_{k}_stages"] = int(

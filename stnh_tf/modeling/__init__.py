@@ -1,5 +1,4 @@
 """The Keras side of the model: layers (:mod:`~stnh_tf.modeling.layers`), the Functional models
-(:mod:`~stnh_tf.modeling.models`), losses and metrics (:mod:`~stnh_tf.modeling.losses`), the
-model kinds a run can train (:mod:`~stnh_tf.modeling.model_kinds`), and the one way to load and
-run a trained model (:mod:`~stnh_tf.modeling.runner`). Besides training and inference, the only
-place that imports Keras."""
+(:mod:`~stnh_tf.modeling.models`), losses and metrics (:mod:`~stnh_tf.modeling.losses`), and the
+one way to load and run a trained model (:mod:`~stnh_tf.modeling.runner`). Besides training and
+inference, the only place that imports Keras."""

@@ -100,20 +100,24 @@ class SpatialTransformer(keras.layers.Layer):
                              f"{len(inputs) if isinstance(inputs, (list, tuple)) else 'n/a'}.")
         images, h_bar = inputs
         if len(images.shape) != 4:
-            raise ValueError(f"images must have shape [B, h, w, C]; received shape {tuple(images.shape)}.")
+            raise ValueError(f"images must have shape [B, h, w, C]; received shape "
+                             f"{tuple(images.shape)}.")
         height, width, channels = images.shape[1], images.shape[2], images.shape[3]
         if height is None or width is None or channels is None:
-            raise ValueError(f"images need static h, w and C; received shape {tuple(images.shape)}.")
+            raise ValueError(f"images need static h, w and C; received shape "
+                             f"{tuple(images.shape)}.")
         dtype = self._coord_dtype()
         h_bar = _homography_matrix(ops.cast(h_bar, dtype))
-        if images.shape[0] is not None and h_bar.shape[0] is not None and images.shape[0] != h_bar.shape[0]:
+        if (images.shape[0] is not None and h_bar.shape[0] is not None
+                and images.shape[0] != h_bar.shape[0]):
             raise ValueError(f"images and homography batch sizes differ: {tuple(images.shape)} vs "
                              f"{tuple(h_bar.shape)}.")
         m = geometry.normalization_matrix(width, height)
         # H_pix = inv(M) @ H_bar @ M, applied to the pixel grid of the output; not scaled to
         # [2,2] = 1 (geometry.denormalize_homography does), which would move the w threshold below.
         m = ops.convert_to_tensor(m.astype(dtype))
-        m_inv = ops.convert_to_tensor(np.linalg.inv(geometry.normalization_matrix(width, height)).astype(dtype))
+        m_inv = ops.convert_to_tensor(
+            np.linalg.inv(geometry.normalization_matrix(width, height)).astype(dtype))
         h_pix = ops.matmul(ops.matmul(m_inv, h_bar), m)  # [B, 3, 3]
 
         xs, ys = np.meshgrid(np.arange(width), np.arange(height))
@@ -193,7 +197,8 @@ def _bilinear_sample(images, x, y):
 
 @keras.saving.register_keras_serializable(package="stnh_tf")
 class HomographyMerge(keras.layers.Layer):
-    """The paper's Tensor Homography Merge layer: ``H_k = H_{k-1} @ H_k'``, rescaled to ``[2,2] = 1``.
+    """The paper's Tensor Homography Merge layer: ``H_k = H_{k-1} @ H_k'``, rescaled to
+    ``[2,2] = 1``.
 
     Called as ``HomographyMerge()([h_prev, h_residual])`` with both ``[B, 8]`` (or ``[B, 3, 3]``)
     normalized homographies in the ``H_ba`` direction: ``h_prev`` warps the original patch_a to

@@ -1,8 +1,8 @@
 """The two STN-Homography losses and the corner-error metric, reduced per sample.
 
 Each loss returns ``[B]`` (one value per sample) so Keras applies per-sample weights such as the
-semi-supervised mask ``h_mask`` (a sample without ground truth ``H`` gets weight 0 on the L2 term and
-still contributes its L1 term), then averages over the batch.
+semi-supervised mask ``h_mask`` (a sample without ground truth ``H`` gets weight 0 on the L2 term
+and still contributes its L1 term), then averages over the batch.
 """
 
 from __future__ import annotations

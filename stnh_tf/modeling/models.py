@@ -32,8 +32,9 @@ with the identity-initialised output layer, and a training step costs about a qu
 BatchNorm variant's on a CPU (docs/training.md, "Batch normalization")."""
 
 
-def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5, dense_units: int = 1024,
-                       outputs: int = 8, last_init: str = "identity", size: int = geometry.PATCH_SIZE,
+def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5,
+                       dense_units: int = 1024, outputs: int = 8, last_init: str = "identity",
+                       size: int = geometry.PATCH_SIZE,
                        name: str = "regression", head: str = "gap",
                        conv_dropout: float = 0.0, input_norm: str = "unit") -> keras.Model:
     """The paper's regression network (and, with ``head="flatten"``, DeTone et al.'s).
@@ -74,7 +75,8 @@ def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.
         dropout rate outside ``[0, 1)``.
     """
     if batch_norm not in BATCH_NORM_CHOICES:
-        raise ValueError(f"batch_norm must be one of {BATCH_NORM_CHOICES}; received {batch_norm!r}.")
+        raise ValueError(f"batch_norm must be one of {BATCH_NORM_CHOICES}; "
+                         f"received {batch_norm!r}.")
     if head not in HEAD_CHOICES:
         raise ValueError(f"head must be one of {HEAD_CHOICES}; received {head!r}.")
     if input_norm not in INPUT_NORM_CHOICES:
@@ -83,7 +85,8 @@ def regression_network(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.
     for label, rate in (("dropout", dropout), ("conv_dropout", conv_dropout)):
         if not 0.0 <= rate < 1.0:
             raise ValueError(f"{label} must be in [0, 1); received {rate}.")
-    if last_init not in ("identity", "zeros", "glorot") or (last_init == "identity" and outputs != 8):
+    if (last_init not in ("identity", "zeros", "glorot")
+            or (last_init == "identity" and outputs != 8)):
         raise ValueError(f"last_init must be 'identity' (8 outputs), 'zeros' or 'glorot'; received "
                          f"{last_init!r} with {outputs} outputs.")
     inputs = keras.Input((size, size, 2), name=f"{name}_pair")
@@ -154,7 +157,8 @@ def sequence_output_names(num_stages: int):
 
 
 def _check_num_stages(num_stages):
-    if isinstance(num_stages, bool) or not isinstance(num_stages, (int, np.integer)) or num_stages < 1:
+    if (isinstance(num_stages, bool) or not isinstance(num_stages, (int, np.integer))
+            or num_stages < 1):
         raise ValueError(f"num_stages must be an integer >= 1; received {num_stages!r}.")
     return int(num_stages)
 
@@ -199,7 +203,8 @@ def build_sequence_stn_homography(num_stages: int = 2, batch_norm: str = DEFAULT
                                   dropout: float = 0.5, size: int = geometry.PATCH_SIZE,
                                   name: str | None = None,
                                   regressor_factory=None, input_norm: str = "unit") -> keras.Model:
-    """Sequence STN-Homography (paper section 5), trained end to end. Also :data:`SequenceSTNHomography`.
+    """Sequence STN-Homography (paper section 5), trained end to end. Also
+    :data:`SequenceSTNHomography`.
 
     Stage 1 regresses ``H_1`` from (patch_a, patch_b); stage k regresses ``H_k'`` from
     (patch_a_warp_{k-1}, patch_b); :class:`HomographyMerge` forms ``H_k = H_{k-1} @ H_k'``; every
@@ -245,7 +250,8 @@ class OffsetsToHBar(layers.Layer):
     offsets are ``H_ba @ c - c`` for the corners of :func:`geometry.patch_corners`.
     """
 
-    def __init__(self, size: int = geometry.PATCH_SIZE, scale: float = HOMOGRAPHYNET_SCALE, **kwargs):
+    def __init__(self, size: int = geometry.PATCH_SIZE, scale: float = HOMOGRAPHYNET_SCALE,
+                 **kwargs):
         kwargs.setdefault("dtype", "float32")
         super().__init__(**kwargs)
         self.size, self.scale = int(size), float(scale)

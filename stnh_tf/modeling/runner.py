@@ -1,9 +1,10 @@
 """One way to run a trained model: load it, find its final ``H_bar`` output, and call it through a
 compiled forward pass that returns pixel homographies.
 
-Every path that runs a model goes through here: :class:`stnh_tf.inference.estimator.HomographyEstimator`,
-evaluation, stage-data generation (``stnh_tf.data.stage_k``), in-memory stage pairs
-(:func:`stnh_tf.training.streams.stage_pairs`), export verification and the latency benchmark.
+Every path that runs a model goes through here:
+:class:`stnh_tf.inference.estimator.HomographyEstimator`, evaluation, stage-data generation
+(``stnh_tf.data.stage_k``), in-memory stage pairs (:func:`stnh_tf.training.streams.stage_pairs`),
+export verification and the latency benchmark.
 
 Convention: inputs are float ``[B, S, S, 1]`` patches in [0, 1] (``S = 128``); the pixel
 homography returned is ``H_ba`` in the patch frame (patch_b -> patch_a, :mod:`stnh_tf.geometry`),

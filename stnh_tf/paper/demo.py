@@ -26,13 +26,15 @@ def self_check(seed: int = 0, num_pairs: int = 8) -> dict:
     patch = gray[50:178, 120:248].astype(np.float32)
     corners = geometry.patch_corners().astype(np.float32)
     h_pix = np.stack([cv2.getPerspectiveTransform(
-        corners, corners + rng.uniform(-32, 32, (4, 2)).astype(np.float32)) for _ in range(num_pairs)])
+        corners, corners + rng.uniform(-32, 32, (4, 2)).astype(np.float32))
+        for _ in range(num_pairs)])
     m = geometry.normalization_matrix()
     h_bar = geometry.normalize_homography(h_pix)
     ref_bar = m @ h_pix @ np.linalg.inv(m)
     ref_bar /= ref_bar[:, 2:3, 2:3]
     out = keras.ops.convert_to_numpy(SpatialTransformer()(
-        [np.repeat(patch[None, ..., None], num_pairs, 0), geometry.matrix_to_vector(h_bar).astype(np.float32)]))
+        [np.repeat(patch[None, ..., None], num_pairs, 0),
+         geometry.matrix_to_vector(h_bar).astype(np.float32)]))
     stn_diff = max(float(np.abs(out[i, ..., 0] - cv2.warpPerspective(
         patch, h_pix[i], (128, 128), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)).mean())
         for i in range(num_pairs))
@@ -89,7 +91,8 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
             f"(STN mean abs diff {check['stn_vs_opencv_mean_abs_gray_levels']:.3f} gray levels)")
     data_dir = os.path.join(output_dir, "bundled_test")
     if not data.has_split(data_dir, "test"):
-        stage1.make_dataset("bundled", data_dir, "test", seed=seed, samples_per_image=samples_per_image,
+        stage1.make_dataset("bundled", data_dir, "test", seed=seed,
+                            samples_per_image=samples_per_image,
                             num_shards=1, num_workers=1, log=lambda *a, **k: None)
     samples = data.load_arrays(data_dir, "test")
     n = len(samples["h_ba"])
@@ -121,11 +124,13 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
         rows[name] = {"mace": float(errors.mean()), "median": float(np.median(errors)),
                       "failure_rate": None, "ms_per_pair": ms}
         predictions[name] = run["h"]
-    printer(f"\n{n} test pairs from {len(set(samples['image_id']))} bundled photographs (seed {seed}):")
+    printer(f"\n{n} test pairs from {len(set(samples['image_id']))} bundled photographs "
+            f"(seed {seed}):")
     printer(f"{'method':<36} {'MACE px':>8} {'median':>8} {'fails':>6} {'ms/pair':>8}")
     for name, r in rows.items():
         fails = "-" if r["failure_rate"] is None else f"{100 * r['failure_rate']:.0f}%"
-        printer(f"{name:<36} {r['mace']:8.2f} {r['median']:8.2f} {fails:>6} {r['ms_per_pair']:8.2f}")
+        printer(f"{name:<36} {r['mace']:8.2f} {r['median']:8.2f} {fails:>6} "
+                f"{r['ms_per_pair']:8.2f}")
     png = None
     if predictions:
         best = min(predictions, key=lambda k: rows[k]["mace"])

@@ -26,10 +26,12 @@ def _pyplot():
     return plt
 
 
-def quadrilateral(a_from_b: np.ndarray, offset: float = 0.0, size: int = geometry.PATCH_SIZE) -> np.ndarray:
+def quadrilateral(a_from_b: np.ndarray, offset: float = 0.0,
+                  size: int = geometry.PATCH_SIZE) -> np.ndarray:
     """Where patch_b's four corners lie in patch_a (``H_ba @ c``), shifted by ``offset`` (e.g. the
     context margin), as a closed ``[5, 2]`` polyline."""
-    pts = geometry.warp_points(np.asarray(a_from_b, np.float64), geometry.patch_corners(size)) + offset
+    pts = geometry.warp_points(np.asarray(a_from_b, np.float64),
+                               geometry.patch_corners(size)) + offset
     return np.concatenate([pts, pts[:1]], axis=0)
 
 
@@ -138,7 +140,8 @@ def mace_bars(results: dict, path: str, paper: dict | None = None,
     x = np.arange(len(names))
     fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(names)), 3.6))
     width = 0.4 if paper else 0.7
-    bars = ax.bar(x - (width / 2 if paper else 0), [results[n] for n in names], width, label="this run")
+    bars = ax.bar(x - (width / 2 if paper else 0), [results[n] for n in names], width,
+                  label="this run")
     ax.bar_label(bars, fmt="%.1f", fontsize=7)
     if paper:
         vals = [paper.get(n, np.nan) for n in names]

@@ -46,8 +46,9 @@ ABLATION_WEIGHTS = tuple(PAPER_TABLE1)
 # Table 1 rows trained with several seeds: the paper's claim (10:1 beats 1:1) compares these two.
 SPREAD_ROWS = ((1.0, 1.0), (10.0, 1.0))
 # Configuration fields a reused model must share with the budget.
-_BUDGET_FIELDS = ("model", "stage", "seed", "train_steps", "warmup_steps", "batch_size", "learning_rate",
-                  "lr_schedule", "momentum", "l2_weight", "l1_weight", "batch_norm", "dropout")
+_BUDGET_FIELDS = ("model", "stage", "seed", "train_steps", "warmup_steps", "batch_size",
+                  "learning_rate", "lr_schedule", "momentum", "l2_weight", "l1_weight",
+                  "batch_norm", "dropout")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,7 +130,8 @@ class Reproduction:
 
     # -- paths ----------------------------------------------------------------------------------
     def data_dir(self, stage: int) -> str:
-        return self.reuse.get(f"data_stage{stage}") or os.path.join(self.out, "data", f"stage{stage}")
+        return (self.reuse.get(f"data_stage{stage}")
+                or os.path.join(self.out, "data", f"stage{stage}"))
 
     def model_dir(self, name: str) -> str:
         return self.reuse.get(name) or os.path.join(self.out, "models", name)
@@ -167,7 +169,8 @@ class Reproduction:
         for split in ("train", "test"):
             if data.has_split(d, split):
                 continue
-            self.printer(f"[data] stage-{stage} {split} pairs from {self.model_dir(f'stage{stage - 1}')}")
+            self.printer(f"[data] stage-{stage} {split} pairs from "
+                         f"{self.model_dir(f'stage{stage - 1}')}")
             self._timed("data", lambda: stage_k.make_stage_dataset(
                 stage, self.data_dir(stage - 1), d, split,
                 model_dir=self.model_dir(f"stage{stage - 1}"), num_workers=self.budget.num_workers,
@@ -227,7 +230,8 @@ class Reproduction:
         for l2, l1 in weights:
             rows[(l2, l1)] = []
             for seed in table1_seeds(self.budget, l2, l1):
-                same_as_stage1 = (l2, l1, seed) == (1.0, 1.0, 0) and steps == self.budget.train_steps
+                same_as_stage1 = ((l2, l1, seed) == (1.0, 1.0, 0)
+                                  and steps == self.budget.train_steps)
                 name = "stage1" if same_as_stage1 else ablation_name(l2, l1, seed)
                 cfg = self.config(name, data_dir=d, l2_weight=l2, l1_weight=l1, train_steps=steps,
                                   warmup_steps=min(self.budget.warmup_steps, steps), seed=seed)
@@ -265,7 +269,8 @@ class Reproduction:
 
         path = os.path.join(self.out, "eval", f"{key}.json")
         finals = [os.path.join(d, run_dir.FINAL_MODEL) for d in model_dirs]
-        if os.path.exists(path) and all(os.path.getmtime(f) < os.path.getmtime(path) for f in finals):
+        if os.path.exists(path) and all(os.path.getmtime(f) < os.path.getmtime(path)
+                                        for f in finals):
             with open(path) as f:
                 return json.load(f)
         result = self._timed("evaluate", lambda: evaluation.evaluate(
@@ -312,14 +317,16 @@ class Reproduction:
         self.printer("[figures]")
         figs = self.figures(fig4, stages)
         result = {"budget": dataclasses.asdict(self.budget), "fig4_mace": fig4,
-                  "table1_mace": {f"{l2:g},{l1:g}": float(np.mean(v)) for (l2, l1), v in table1.items()},
+                  "table1_mace": {f"{l2:g},{l1:g}": float(np.mean(v))
+                                  for (l2, l1), v in table1.items()},
                   "table1_mace_per_seed": {f"{l2:g},{l1:g}": v for (l2, l1), v in table1.items()},
                   "table2_latency_ms": {k: v["d_e_ms"] for k, v in lat["hierarchy"].items()},
-                  "sequence_latency_ms": {k: v["forward_ms"] for k, v in lat.get("sequence", {}).items()},
-                  "test_pairs": base["count"], "models": {"stages": stages, "homographynet": hnet,
-                                                          "sequence2": seq,
-                                                          "ablation": {f"{a:g},{b:g}": d[0] for (a, b), d in rows.items()},
-                                                          "ablation_seeds": {f"{a:g},{b:g}": d for (a, b), d in rows.items()}},
+                  "sequence_latency_ms": {k: v["forward_ms"]
+                                          for k, v in lat.get("sequence", {}).items()},
+                  "test_pairs": base["count"],
+                  "models": {"stages": stages, "homographynet": hnet, "sequence2": seq,
+                             "ablation": {f"{a:g},{b:g}": d[0] for (a, b), d in rows.items()},
+                             "ablation_seeds": {f"{a:g},{b:g}": d for (a, b), d in rows.items()}},
                   "figures": figs, "wall_s_this_run": time.time() - t0,
                   "timings_this_run_s": self.timings, "paper": {
                       "fig4_mace": PAPER_FIG4,
@@ -345,7 +352,8 @@ class Reproduction:
         out["fig1"] = os.path.join(fdir, "fig1_hbar_histogram.png")
         out["fig4"] = figures.mace_bars(fig4, os.path.join(fdir, "fig4_mace_bars.png"),
                                         paper=PAPER_FIG4,
-                                        title=f"MACE on the same test pairs, budget '{self.budget.name}'")
+                                        title=f"MACE on the same test pairs, budget "
+                                              f"'{self.budget.name}'")
         samples = data.load_arrays(self.data_dir(1), "test", max_samples=64)
         run = hierarchy.run_hierarchy([runner.predictor(runner.load_model(d)) for d in stages],
                                       samples["context_a"], samples["patch_b"])
@@ -431,7 +439,8 @@ def _model_dirs(models: dict):
     for key, dirs in models["ablation_seeds"].items():
         for seed, d in enumerate(dirs):
             if d not in models["stages"]:
-                yield f"ablation L2:L1 = {key.replace(',', ':')}{f', seed {seed}' if seed else ''}", d
+                yield (f"ablation L2:L1 = {key.replace(',', ':')}"
+                       f"{f', seed {seed}' if seed else ''}", d)
 
 
 def _trained_on(model_dir: str) -> str:

@@ -1,6 +1,7 @@
 """Training: a run's configuration (:mod:`~stnh_tf.training.config`), its folder and atomic
 checkpoints (:mod:`~stnh_tf.training.run_dir`), its input streams
-(:mod:`~stnh_tf.training.streams`), and the loop that fits every model kind with the paper's
+(:mod:`~stnh_tf.training.streams`), the model kinds a run can train
+(:mod:`~stnh_tf.training.model_kinds`), and the loop that fits every model kind with the paper's
 recipe (:mod:`~stnh_tf.training.loop`, :func:`~stnh_tf.training.loop.train`)."""
 
 from stnh_tf import _compat

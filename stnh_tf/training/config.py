@@ -228,8 +228,8 @@ class TrainConfig:
             raise ValueError(f"lr_schedule 'step' (DeTone et al.'s) has no warm-up; received "
                              f"warmup_steps={self.warmup_steps} (give 0, or lr_schedule 'cosine').")
         if self.model == "homographynet" and self.batch_norm != "conv":
-            raise ValueError("model 'homographynet' is DeTone et al.'s network, with BatchNorm after "
-                             f"every convolution: batch_norm must be 'conv' (received "
+            raise ValueError("model 'homographynet' is DeTone et al.'s network, with BatchNorm "
+                             f"after every convolution: batch_norm must be 'conv' (received "
                              f"{self.batch_norm!r}); model 'homographynet_gap' is the 4-point "
                              "regression on this project's backbone, with or without it.")
         if self.model in FOUR_POINT_KINDS and self.input_norm != "unit":

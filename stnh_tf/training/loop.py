@@ -21,15 +21,16 @@ Two data sources, same losses and schedule: the TFRecords in ``data_dir`` (Tenso
 ``image_dir``: stage-1 pairs generated on the fly from a folder of images by
 :class:`stnh_tf.data.pair_datasets.PairStream` (NumPy/OpenCV in worker processes; any Keras backend,
 e.g. JAX on a GPU machine without TensorFlow). ``image_dir`` with ``samples_per_image=N`` and
-``seed=S`` gives exactly the pairs ``data_prep.make_dataset --samples_per_image=N --seed=S`` writes (shuffled
-differently); ``fresh_pairs`` draws new pairs every data epoch instead. With ``in_memory`` the set
-is generated once (:func:`stnh_tf.training.streams.stage_pairs`), and stage k > 1 trains from the
-folder too: its pairs are made in memory from the predictions of the ``prev_stages`` models, as
-make_stage_dataset makes them.
+``seed=S`` gives exactly the pairs ``data_prep.make_dataset --samples_per_image=N --seed=S`` writes
+(shuffled differently); ``fresh_pairs`` draws new pairs every data epoch instead. With ``in_memory``
+the set is generated once (:func:`stnh_tf.training.streams.stage_pairs`), and stage k > 1 trains
+from the folder too: its pairs are made in memory from the predictions of the ``prev_stages``
+models, as make_stage_dataset makes them.
 
 The pieces, one module per concern: :mod:`stnh_tf.training.config` (the fields and their checks),
-:mod:`stnh_tf.modeling.model_kinds` (build, losses and targets of each model kind),
-:mod:`stnh_tf.training.run_dir` (the run's folder and checkpoints), :mod:`stnh_tf.training.streams` (inputs).
+:mod:`stnh_tf.training.model_kinds` (build, losses and targets of each model kind),
+:mod:`stnh_tf.training.run_dir` (the run's folder and checkpoints),
+:mod:`stnh_tf.training.streams` (inputs).
 """
 
 from __future__ import annotations
@@ -45,7 +46,8 @@ import keras
 
 from stnh_tf.training import run_dir
 from stnh_tf.training import streams as train_streams
-from stnh_tf.modeling import model_kinds, runner
+from stnh_tf.modeling import runner
+from stnh_tf.training import model_kinds
 from stnh_tf.paths import atomic_write_json, fsync_replace
 from stnh_tf.training.config import OPTIMIZER_NAMES, TrainConfig
 
@@ -311,7 +313,8 @@ def accelerator_present() -> bool:
     if backend == "tensorflow":
         import tensorflow as tf
 
-        return bool(tf.config.list_physical_devices("GPU") or tf.config.list_physical_devices("TPU"))
+        return bool(tf.config.list_physical_devices("GPU")
+                    or tf.config.list_physical_devices("TPU"))
     if backend == "jax":
         import jax
 
@@ -402,9 +405,9 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         callbacks = [guard, run_dir.AtomicCheckpoint(ckpt_dir, guard),
                      ProgressLogger(cfg.log_every, cfg.train_steps, printer)]
         if tensorboard_available():
-            callbacks.append(keras.callbacks.TensorBoard(os.path.join(cfg.model_dir, run_dir.LOGS_DIR),
-                                                         update_freq=cfg.log_every,
-                                                         write_graph=False))
+            callbacks.append(keras.callbacks.TensorBoard(
+                os.path.join(cfg.model_dir, run_dir.LOGS_DIR), update_freq=cfg.log_every,
+                write_graph=False))
         else:
             printer("TensorFlow is not installed: no TensorBoard logs (console progress only)")
         callbacks.extend(extra_callbacks)

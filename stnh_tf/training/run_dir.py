@@ -86,7 +86,8 @@ class AtomicCheckpoint(keras.callbacks.Callback):
         atomic_write_json(self.state_path, {"step": step, "epoch": epoch + 1, "time": time.time(),
                                              "weights": name,
                                              "seed_states": _seed_states(self.model),
-                                             "logs": {k: float(v) for k, v in (logs or {}).items()}})
+                                             "logs": {k: float(v)
+                                                      for k, v in (logs or {}).items()}})
         for old in os.listdir(self.directory):  # superseded (or never committed) weight files
             if old != name and old.endswith(".weights.h5") and not old.startswith("tmp-"):
                 os.remove(os.path.join(self.directory, old))

@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 
 from stnh_tf.data import batches, pair_datasets
-from stnh_tf.modeling import model_kinds
+from stnh_tf.training import model_kinds
 from stnh_tf.training.config import TrainConfig
 
 _log = logging.getLogger(__name__)
@@ -52,11 +52,11 @@ def training_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0)
 
 
 def stage_pairs(cfg: TrainConfig, pair_batches) -> dict:
-    """``pair_batches``' pairs (``stnh_tf.data.batches.PairBatches``, epoch 0) for stage ``cfg.stage``,
-    in the compact form (:func:`stnh_tf.data.batches.stack_samples`), generated with ``cfg.workers``
-    processes. Stage 1: as generated; stage k > 1: re-made in memory from the predictions of
-    ``cfg.prev_stages`` (:func:`stnh_tf.hierarchy.next_stage_arrays`, the paper's offline
-    re-generation without TFRecords)."""
+    """``pair_batches``' pairs (``stnh_tf.data.batches.PairBatches``, epoch 0) for stage
+    ``cfg.stage``, in the compact form (:func:`stnh_tf.data.batches.stack_samples`), generated with
+    ``cfg.workers`` processes. Stage 1: as generated; stage k > 1: re-made in memory from the
+    predictions of ``cfg.prev_stages`` (:func:`stnh_tf.hierarchy.next_stage_arrays`, the paper's
+    offline re-generation without TFRecords)."""
     from stnh_tf import hierarchy
     from stnh_tf.modeling import runner
 
@@ -129,8 +129,8 @@ def validation_stream(cfg: TrainConfig, split: str):
 def raise_shard_error(cfg: TrainConfig, error: BaseException) -> None:
     """For a ``DataLossError`` met while training on ``cfg.data_dir``: raise ``data.ShardError``
     naming the corrupted shard, found by reading the splits in use with CRC checks
-    (:func:`stnh_tf.data.tfrecords.verify_split`, what evaluation's reader reports). Any other error:
-    return (the caller re-raises it)."""
+    (:func:`stnh_tf.data.tfrecords.verify_split`, what evaluation's reader reports). Any other
+    error: return (the caller re-raises it)."""
     import tensorflow as tf
 
     from stnh_tf.data import tfrecords as data

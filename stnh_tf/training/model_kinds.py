@@ -111,7 +111,8 @@ def build_model(cfg: TrainConfig) -> keras.Model:
 
 def loss_spec(cfg: TrainConfig):
     """(losses, loss_weights, metrics) dicts keyed by the model's output names. Raises
-    ``ValueError`` for loss settings the model kind cannot use (:meth:`TrainConfig.check_losses`)."""
+    ``ValueError`` for loss settings the model kind cannot use
+    (:meth:`TrainConfig.check_losses`)."""
     cfg.check_losses()
     return KINDS[cfg.model].losses(cfg)
 

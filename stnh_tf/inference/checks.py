@@ -1,0 +1,88 @@
+"""The estimator's checks of an estimate: how far it moves the patch corners, how well it aligns
+the pair (:func:`alignment_ncc`), flat patches, and the rule that flags an estimate implausible
+(:func:`beyond`). NumPy and OpenCV only; the numbers come from
+:class:`~stnh_tf.inference.options.Thresholds`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stnh_tf import geometry, hierarchy
+from stnh_tf.inference.options import Thresholds
+
+_DEFAULT = Thresholds()
+
+
+def corner_shift(a_from_b) -> np.ndarray:
+    """Largest displacement ``|H c - c|`` (px) of the four 128 x 128 patch corners ``c`` under each
+    ``a_from_b`` ``[B, 3, 3]`` (patch frame); ``inf`` where a corner maps to infinity or NaN.
+    Returns float64 ``[B]``.
+
+    >>> corner_shift(geometry.translation(3.0, -4.0)[None])
+    array([5.])
+    """
+    corners = geometry.patch_corners(geometry.PATCH_SIZE)
+    with np.errstate(all="ignore"):
+        moved = geometry.warp_points(np.asarray(a_from_b, np.float64), corners)
+        shift = np.linalg.norm(moved - corners, axis=-1).max(axis=-1)
+    return np.where(np.isfinite(shift), shift, np.inf)
+
+
+def alignment_ncc(source_a, patch_b, a_from_b, origin=(0, 0),
+                  min_overlap: float = _DEFAULT.min_overlap) -> float:
+    """Normalized cross-correlation between ``patch_b`` and patch_a warped onto it by ``a_from_b``,
+    over the pixels whose position ``a_from_b @ p`` lies inside ``source_a``.
+
+    Args:
+      source_a: ``[h, w]`` image holding patch_a with its top-left corner at ``origin`` (the patch
+        itself with ``(0, 0)``, or the image it was cut from as context).
+      patch_b: ``[S, S]`` (any real scale; NCC ignores gain and offset).
+      a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame.
+      min_overlap: the fraction of the pixels that must overlap.
+    Returns:
+      NCC in [-1, 1]: 1 for a perfect alignment up to gain and offset, about 0 for unrelated
+      content; NaN where fewer than ``min_overlap`` of the pixels overlap or either side is
+      constant there.
+
+    >>> p = np.random.default_rng(0).random((128, 128))
+    >>> round(alignment_ncc(p, 2 * p + 1, np.eye(3)), 6)
+    1.0
+    """
+    size = np.shape(patch_b)[0]
+    warped = hierarchy.warp_crop(source_a, a_from_b, origin, size).astype(np.float64)
+    inside = hierarchy.warp_crop(np.ones(np.shape(source_a), np.float32), a_from_b, origin,
+                                 size) > 0.999
+    if inside.mean() < min_overlap:
+        return float("nan")
+    x = warped[inside] - warped[inside].mean()
+    y = np.asarray(patch_b, np.float64)[inside]
+    y = y - y.mean()
+    norm = np.sqrt((x * x).sum() * (y * y).sum())
+    return float((x * y).sum() / norm) if norm > 1e-12 else float("nan")
+
+
+def alignment_nccs(sources, patches_b, a_from_b, origin, min_overlap=_DEFAULT.min_overlap):
+    """:func:`alignment_ncc` of each pair (``patches_b`` ``[B, S, S, 1]``) as float64 ``[B]``,
+    NaN (undefined) as ``-inf`` so that it ranks below every defined NCC."""
+    return np.nan_to_num([alignment_ncc(src, b[..., 0], h, origin, min_overlap)
+                          for src, b, h in zip(sources, patches_b, a_from_b)], nan=-np.inf)
+
+
+def beyond(rejected_stages, shift, ncc, min_ncc, thresholds: Thresholds = _DEFAULT):
+    """Per pair ``[B]``: a stage was skipped as degenerate, a corner moved beyond
+    ``thresholds.implausible_corner_shift``, or the alignment NCC is below ``min_ncc`` or
+    undefined. With ``min_ncc = thresholds.min_alignment_ncc`` it is the implausibility rule,
+    with ``thresholds.search_below_ncc`` the search's trigger.
+
+    >>> beyond(np.array([0, 1, 0]), np.array([1.0, 1.0, 60.0]), np.array([0.9, 0.9, 0.9]), 0.7)
+    array([False,  True,  True])
+    """
+    return ((np.asarray(rejected_stages) > 0) | (shift > thresholds.implausible_corner_shift)
+            | ~(ncc >= min_ncc))
+
+
+def flat_pairs(patch_a, patch_b, min_std: float = _DEFAULT.min_patch_std) -> np.ndarray:
+    """Per pair ``[B]`` of float ``[B, S, S, 1]`` patches on [0, 1]: patch_a or patch_b varies less
+    than ``min_std`` (it holds nothing to align)."""
+    return (patch_a.std(axis=(1, 2, 3)) < min_std) | (patch_b.std(axis=(1, 2, 3)) < min_std)

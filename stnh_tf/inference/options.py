@@ -1,0 +1,167 @@
+"""What :class:`~stnh_tf.inference.estimator.HomographyEstimator` does beyond the network, as one
+value: :class:`EstimateOptions` (the steps, each named from a table) holding :class:`Thresholds`
+(every number the steps use). Standard library and NumPy only.
+
+Two presets: ``EstimateOptions()``, the estimator's default (the stage gate, the mirror fill and
+the search of poorly aligned pairs: deviations from the paper, docs/estimate.md), and
+:meth:`EstimateOptions.network_only`, the network's composed estimate alone: what the paper's
+evaluation, the tables and the exported SavedModel compute.
+
+    >>> EstimateOptions().search, EstimateOptions.network_only().search
+    ('ecc', 'none')
+    >>> EstimateOptions(tta="dihedral").tta_symmetries[:2]
+    ('identity', 'flip_x')
+    >>> EstimateOptions(search="sift")
+    Traceback (most recent call last):
+    ...
+    ValueError: search must be one of ('none', 'ecc'); received 'sift'.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+
+from stnh_tf import geometry
+
+REFINES = ("none", "ecc")
+"""What the estimator does after the network: ``"none"`` (the paper) or ``"ecc"`` (polish each
+estimate with OpenCV's ECC alignment started from it, :func:`stnh_tf.inference.search.ecc_refine`;
+a deviation)."""
+
+SEARCHES = ("none", "ecc")
+"""What the estimator does with a pair its estimate aligns poorly: ``"ecc"`` tries
+:func:`stnh_tf.inference.search.search_translations` (a deviation); ``"none"`` keeps the
+network's estimate."""
+
+TTAS = {"none": ("identity",),
+        "flips": ("identity", "flip_x", "flip_y", "rotate_180"),
+        "dihedral": tuple(geometry.DIHEDRAL)}
+"""Test-time augmentation by name (a deviation from the paper): the symmetries
+(:data:`stnh_tf.geometry.DIHEDRAL`) the stages also run on; ``"none"`` (the paper) runs them
+once."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Thresholds:
+    """The numbers of the estimator's checks, search and refinement (px are of the 128 x 128
+    patch frame; NCC is :func:`stnh_tf.inference.checks.alignment_ncc`). How each was chosen:
+    docs/estimate.md and BENCHMARKS.md.
+
+    Attributes:
+      implausible_corner_shift: a corner moved more than this flags the estimate implausible (the
+        models were trained on corners moved by up to 32 px).
+      min_alignment_ncc: an alignment NCC below this (or undefined) flags it implausible.
+      min_patch_std: a patch whose intensities (on [0, 1]) vary less than this is flat: its pair
+        gets the identity, flagged implausible (0: no flat rule).
+      min_overlap: the fraction of patch_b's pixels that must land inside patch_a's source for
+        the NCC to be defined.
+      search_below_ncc: ``search="ecc"`` searches a pair aligned below this (or implausible).
+      verified_ncc: a search result must align the pair at least this well to be kept.
+      search_template: side (px) of patch_b's central square slid over the warped patch_a:
+        translations up to ``(128 - side) / 2`` px are scored.
+      search_peaks: translation peaks the search starts ECC from.
+      search_coarse_iterations: ECC iteration limits on the 32 x 32 and 64 x 64 pyramid levels.
+      search_ecc_iterations: ``cv2.findTransformECC``'s iteration limit at full size.
+      refine_iterations, refine_eps, refine_gaussian: ``cv2.findTransformECC``'s iteration
+        limit, convergence threshold and Gaussian pre-filter size in ``refine="ecc"``.
+      max_refine_move: a refinement moving the corners by more than this on average is dropped.
+    """
+
+    implausible_corner_shift: float = 1.5 * geometry.MAX_PERTURBATION
+    min_alignment_ncc: float = 0.7
+    min_patch_std: float = 0.5 / 255
+    min_overlap: float = 0.25
+    search_below_ncc: float = 0.9
+    verified_ncc: float = 0.95
+    search_template: int = 64
+    search_peaks: int = 8
+    search_coarse_iterations: tuple = (100, 50)
+    search_ecc_iterations: int = 100
+    refine_iterations: int = 50
+    refine_eps: float = 1e-5
+    refine_gaussian: int = 1
+    max_refine_move: float = 16.0
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            values = value if isinstance(value, tuple) else (value,)
+            if not values or any(isinstance(v, bool) or not isinstance(v, numbers.Real)
+                                 or not math.isfinite(v) or v < 0 for v in values):
+                raise ValueError(f"Thresholds.{f.name} must be finite and >= 0; received "
+                                 f"{value!r}.")
+        if not 0 < self.search_template <= geometry.PATCH_SIZE:
+            raise ValueError(f"Thresholds.search_template must be in (0, {geometry.PATCH_SIZE}]; "
+                             f"received {self.search_template}.")
+
+
+@dataclasses.dataclass(frozen=True)
+class EstimateOptions:
+    """What the estimator does beyond the network (cf. ``cv2.UsacParams``): a frozen value,
+    checked when made (``ValueError`` naming the field). ``dataclasses.replace(options, ...)``
+    makes a variant.
+
+    Attributes:
+      search: a key of :data:`SEARCHES`. ``"ecc"`` (default, a deviation): a pair whose estimate
+        aligns it below ``thresholds.search_below_ncc``, or is implausible, gets the result of
+        :func:`~stnh_tf.inference.search.search_translations` where one aligns it at
+        ``thresholds.verified_ncc`` or better. ``"none"``: the network's estimate.
+      refine: a key of :data:`REFINES` (``"ecc"``: ECC started from the final estimate; dropped
+        where it fails or moves the corners by more than ``thresholds.max_refine_move``).
+      tta: a key of :data:`TTAS`: the stages also run on each pair mirrored (and rotated); each
+        pair keeps the estimate, mapped back, that aligns it best.
+      retry_tta: a key of :data:`TTAS` with more symmetries than ``tta``: a pair flagged
+        implausible (not flat) is estimated again with it and keeps that estimate. One with no
+        more symmetries than ``tta`` does nothing.
+      gate_stages: in a hierarchy, keep a later stage's update of a pair only where it does not
+        lower the pair's alignment NCC (a deviation for bare patches); False composes every stage.
+      fill: in a hierarchy on bare patches, what later stages see of patch_a beyond the patch
+        (:data:`stnh_tf.geometry.FILLS`): ``"reflect"`` (default, a deviation) or ``"zeros"``.
+        With image context (``estimate_images``) the context is used instead.
+      thresholds: the numbers of the checks, the search and the refinement.
+    """
+
+    search: str = "ecc"
+    refine: str = "none"
+    tta: str = "none"
+    retry_tta: str = "none"
+    gate_stages: bool = True
+    fill: str = "reflect"
+    thresholds: Thresholds = Thresholds()
+
+    def __post_init__(self):
+        for name, table in (("search", SEARCHES), ("refine", REFINES), ("tta", tuple(TTAS)),
+                            ("retry_tta", tuple(TTAS)), ("fill", geometry.FILLS)):
+            value = getattr(self, name)
+            if not isinstance(value, str) or value not in table:
+                raise ValueError(f"{name} must be one of {tuple(table)}; received {value!r}.")
+        if not isinstance(self.gate_stages, (bool, numbers.Integral)):
+            raise ValueError(f"gate_stages must be a bool; received {self.gate_stages!r}.")
+        object.__setattr__(self, "gate_stages", bool(self.gate_stages))
+        if not isinstance(self.thresholds, Thresholds):
+            raise ValueError(f"thresholds must be a Thresholds; received {self.thresholds!r}.")
+
+    @classmethod
+    def network_only(cls, **changes) -> "EstimateOptions":
+        """The network's composed estimate alone: every stage composed (no gate), no search, no
+        flat rule; what the paper's evaluation, the tables and the exported SavedModel compute
+        (with the mirror fill of bare patches, as the export does). ``changes`` override fields.
+        """
+        return cls(**{"search": "none", "gate_stages": False,
+                      "thresholds": Thresholds(min_patch_std=0.0), **changes})
+
+    @property
+    def tta_symmetries(self) -> tuple:
+        """The symmetries the stages run on (:data:`TTAS` of ``tta``)."""
+        return TTAS[self.tta]
+
+    @property
+    def retries(self) -> bool:
+        """Whether ``retry_tta`` adds symmetries to ``tta`` (else a retry would change nothing)."""
+        return set(TTAS[self.retry_tta]) > set(TTAS[self.tta])
+
+    def to_json(self) -> dict:
+        """The options as a JSON-ready dict (thresholds nested)."""
+        return dataclasses.asdict(self)

@@ -1,0 +1,269 @@
+"""The estimator's pipeline as small steps, each a function of arrays (tested alone in
+``tests/test_inference.py``): the stages of a hierarchy (:func:`run_hierarchy`), with test-time
+augmentation (:func:`run_network`), the checks (:func:`check`), the search (:func:`search`), the
+refinement (:func:`refine`), and the retry of implausible pairs (:func:`estimate_pairs`); the
+result is an :class:`Estimate`. NumPy and OpenCV only: the network comes in as a function.
+
+Frames: every homography is a pixel ``H_ba`` (``a_from_b``) in the 128 x 128 patch frame
+(:mod:`stnh_tf.geometry`); ``sources`` are the images patch_a lies in, its top-left corner at
+``origin`` (the patches themselves with ``(0, 0)``, or the 320 x 240 images as context).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import numpy as np
+
+from stnh_tf import geometry, hierarchy
+from stnh_tf.inference import checks
+from stnh_tf.inference import search as search_lib
+from stnh_tf.inference.options import EstimateOptions
+
+PredictStage = Callable[[int, np.ndarray, np.ndarray], np.ndarray]
+"""``predict(k, patch_a, patch_b)``: stage k's pixel ``H_ba`` ``[B, 3, 3]`` for float32
+``[B, S, S, 1]`` inputs."""
+
+REASONS = ("non_finite", "singular")
+"""Why a stage prediction is skipped as degenerate (:func:`stnh_tf.hierarchy.accept_or_reject`)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Estimate:
+    """The estimate of B pairs and what the estimator found out about each (arrays of length B).
+
+    Attributes:
+      homography: float64 ``[B, 3, 3]`` ``H_ba`` (``[2, 2] = 1``): patch frame from
+        ``estimate_with_info``, the images' own frames from ``estimate_images_with_info``.
+      implausible: a stage was skipped as degenerate, a corner moved beyond the trained range,
+        the alignment NCC is below ``thresholds.min_alignment_ncc`` or undefined, or a patch is
+        flat.
+      alignment_ncc: NCC of patch_b and patch_a warped by the estimate (NaN: undefined, flat).
+      max_corner_shift_px: the largest displacement of a 128 x 128 patch corner.
+      flat: patch_a or patch_b varies less than ``thresholds.min_patch_std`` (the identity).
+      searched: the search looked at the pair.
+      found: the estimate is the search's result.
+      refined: the estimate is the ECC refinement.
+      retried: the pair was estimated again with ``retry_tta`` (every other field is the retry's).
+      tta_choice: the symmetry whose estimate was kept (``"identity"`` without ``tta``).
+      non_finite_stages, singular_stages: stage predictions skipped as degenerate, by reason.
+      gated_stages: later stages whose update the stage gate did not keep.
+      options: the options that made it.
+    """
+
+    homography: np.ndarray
+    implausible: np.ndarray
+    alignment_ncc: np.ndarray
+    max_corner_shift_px: np.ndarray
+    flat: np.ndarray
+    searched: np.ndarray
+    found: np.ndarray
+    refined: np.ndarray
+    retried: np.ndarray
+    tta_choice: np.ndarray
+    non_finite_stages: np.ndarray
+    singular_stages: np.ndarray
+    gated_stages: np.ndarray
+    options: EstimateOptions
+
+    def __len__(self):
+        return len(self.homography)
+
+    @property
+    def rejected_stages(self) -> np.ndarray:
+        """Stage predictions skipped as degenerate per pair ``[B]``."""
+        return self.non_finite_stages + self.singular_stages
+
+    @property
+    def rejected(self) -> dict:
+        """Stage predictions skipped as degenerate over the batch, by reason."""
+        return {r: int(getattr(self, f"{r}_stages").sum()) for r in REASONS}
+
+    def info(self) -> dict:
+        """The per-pair fields under the keys of the deprecated ``last_info`` dict."""
+        names = ("implausible", "max_corner_shift_px", "rejected_stages", "gated_stages",
+                 "alignment_ncc", "flat", "searched", "refined", "tta_choice", "retried")
+        return {**{n: getattr(self, n) for n in names}, "search_found": self.found}
+
+
+def run_hierarchy(predict: PredictStage, num_stages, patch_a, patch_b, sources, origin,
+                  options: EstimateOptions) -> dict:
+    """The stages one after another, later ones on patch_a warped by the estimate so far (cropped
+    from ``sources``, ``options.fill`` beyond them); a non-finite or singular composition keeps
+    the estimate so far; with ``options.gate_stages`` a later stage's update of a pair is kept only
+    where it does not lower its alignment NCC. Returns ``{"total", "non_finite", "singular",
+    "gated", "ncc"}`` (``ncc``: the gate's NCC of ``total``, ``None`` without a gate)."""
+    n = len(patch_a)
+    out = {"total": np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), "gated": np.zeros(n, np.int64),
+           "ncc": None, **{r: np.zeros(n, np.int64) for r in REASONS}}
+    gate = options.gate_stages and num_stages > 1
+    nccs = lambda h: checks.alignment_nccs(sources, patch_b, h, origin,  # noqa: E731
+                                           options.thresholds.min_overlap)
+    current = patch_a
+    for k in range(num_stages):
+        if k:
+            current = np.stack([hierarchy.warp_crop(src, h, origin, patch_a.shape[1], options.fill)
+                                for src, h in zip(sources, out["total"])])[..., None]
+        proposed, reasons = hierarchy.accept_or_reject(out["total"], predict(k, current, patch_b),
+                                                       margin=np.inf)
+        for i, reason in enumerate(reasons):
+            if reason:
+                out[reason][i] += 1
+        if gate and k:
+            ncc_proposed = nccs(proposed)
+            lowered = ncc_proposed < out["ncc"]
+            out["gated"] += lowered
+            out["total"] = np.where(lowered[:, None, None], out["total"], proposed)
+            out["ncc"] = np.where(lowered, out["ncc"], ncc_proposed)
+        else:
+            out["total"] = proposed
+            out["ncc"] = nccs(proposed) if gate else None
+    return out
+
+
+def run_network(predict: PredictStage, num_stages, patch_a, patch_b, sources, origin,
+                options: EstimateOptions) -> dict:
+    """:func:`run_hierarchy` on the pairs transformed by each symmetry of ``options.tta``, each
+    estimate mapped back (``inv(G) @ H' @ G``); per pair the one with the highest alignment NCC is
+    kept (the first listed on a tie). Returns :func:`run_hierarchy`'s dict with ``"choice"`` (the
+    index of the kept symmetry)."""
+    names = options.tta_symmetries
+    if len(names) > 1 and len({np.shape(src) for src in sources}) > 1:
+        raise ValueError("tta needs contexts of one size.")
+    size, (height, width) = patch_a.shape[1], np.shape(sources[0])
+    chosen = None
+    for j, name in enumerate(names):
+        # Pixel p of the patch (source) lands at g_patch @ p (g_source @ p) once transformed.
+        g_patch = geometry.dihedral_matrix(name, size, size)
+        g_source = geometry.dihedral_matrix(name, width, height)
+        t_origin = tuple((g_source @ [origin[0], origin[1], 1.0] - g_patch @ [0.0, 0.0, 1.0])[:2])
+        run = run_hierarchy(
+            predict, num_stages,
+            *(np.ascontiguousarray(geometry.dihedral_image(p, name, axes=(1, 2)))
+              for p in (patch_a, patch_b)),
+            [np.ascontiguousarray(geometry.dihedral_image(src, name)) for src in sources],
+            t_origin, options)
+        run["total"] = geometry.scale_to_unit(np.linalg.inv(g_patch) @ run["total"] @ g_patch)
+        run["choice"] = np.full(len(patch_a), j)
+        if len(names) > 1:  # the same alignment measured in the pairs' own frame
+            run["ncc"] = checks.alignment_nccs(sources, patch_b, run["total"], origin,
+                                               options.thresholds.min_overlap)
+        if chosen is None:
+            chosen = run
+        else:
+            better = run["ncc"] > chosen["ncc"]
+            chosen = {key: np.where(better.reshape((-1,) + (1,) * (np.ndim(value) - 1)), value,
+                                    chosen[key]) for key, value in run.items()}
+    return chosen
+
+
+def check(run: dict, patch_a, patch_b, sources, origin, options: EstimateOptions) -> dict:
+    """The checks of a network estimate: a flat pair gets the identity (``"flat"``), and
+    ``"ncc"`` becomes each estimate's alignment NCC (reused from the gate where measured; NaN for
+    flat pairs and corners mapped to infinity). Returns a new dict."""
+    t = options.thresholds
+    run = dict(run, total=run["total"].copy())
+    run["flat"] = checks.flat_pairs(patch_a, patch_b, t.min_patch_std)
+    run["total"][run["flat"]] = np.eye(3)
+    shift = checks.corner_shift(run["total"])
+    valid = np.isfinite(shift) & ~run["flat"]
+    if run["ncc"] is not None:
+        run["ncc"] = np.where(np.isfinite(run["ncc"]) & valid, run["ncc"], np.nan)
+    else:
+        run["ncc"] = np.array([checks.alignment_ncc(src, b[..., 0], h, origin, t.min_overlap)
+                               if ok else np.nan
+                               for src, b, h, ok in zip(sources, patch_b, run["total"], valid)])
+    return run
+
+
+def search(run: dict, patch_b, sources, origin, options: EstimateOptions) -> dict:
+    """With ``options.search == "ecc"``: each pair that is not flat, has finite corners and is
+    beyond ``thresholds.search_below_ncc`` (:func:`stnh_tf.inference.checks.beyond`) gets
+    :func:`~stnh_tf.inference.search.search_translations`' result where there is one. Adds
+    ``"searched"`` and ``"found"``; returns a new dict."""
+    t, n = options.thresholds, len(run["total"])
+    run = dict(run, total=run["total"].copy(), ncc=run["ncc"].copy(),
+               searched=np.zeros(n, bool), found=np.zeros(n, bool))
+    if options.search != "ecc":
+        return run
+    shift = checks.corner_shift(run["total"])
+    run["searched"] = (~run["flat"] & np.isfinite(shift) & checks.beyond(
+        run["non_finite"] + run["singular"], shift, run["ncc"], t.search_below_ncc, t))
+    for i in np.flatnonzero(run["searched"]):
+        result = search_lib.search_translations(sources[i], patch_b[i, ..., 0], run["total"][i],
+                                                origin, t)
+        if result is not None:
+            (run["total"][i], run["ncc"][i]), run["found"][i] = result, True
+    return run
+
+
+def refine(run: dict, patch_b, sources, origin, options: EstimateOptions) -> dict:
+    """With ``options.refine == "ecc"``: each finite estimate of a pair that is not flat and not
+    found by the search (an ECC optimum already) is replaced by its ECC refinement, unless that
+    fails or moves the corners by more than ``thresholds.max_refine_move`` on average. Adds
+    ``"refined"``; returns a new dict."""
+    t = options.thresholds
+    run = dict(run, total=run["total"].copy(), ncc=run["ncc"].copy(),
+               refined=np.zeros(len(run["total"]), bool))
+    if options.refine != "ecc":
+        return run
+    candidates = ~run["flat"] & ~run["found"] & np.isfinite(run["total"]).all(axis=(1, 2))
+    for i in np.flatnonzero(candidates):
+        h = search_lib.ecc_refine(sources[i], patch_b[i, ..., 0], run["total"][i], origin, t)
+        if h is not None and float(geometry.corner_errors(
+                h[None], run["total"][i][None])[0]) <= t.max_refine_move:
+            run["total"][i], run["refined"][i] = h, True
+            run["ncc"][i] = checks.alignment_ncc(sources[i], patch_b[i, ..., 0], h, origin,
+                                                 t.min_overlap)
+    return run
+
+
+def finish(run: dict, options: EstimateOptions) -> Estimate:
+    """The :class:`Estimate` of a run through the steps: corner shifts and NCC of the final
+    estimates, and the implausibility flag."""
+    t = options.thresholds
+    shift = checks.corner_shift(run["total"])
+    ncc = np.where(np.isfinite(shift) & ~run["flat"], run["ncc"], np.nan)
+    rejected = run["non_finite"] + run["singular"]
+    return Estimate(
+        homography=run["total"], alignment_ncc=ncc, max_corner_shift_px=shift,
+        implausible=checks.beyond(rejected, shift, ncc, t.min_alignment_ncc, t) | run["flat"],
+        flat=run["flat"], searched=run["searched"], found=run["found"], refined=run["refined"],
+        retried=np.zeros(len(shift), bool),
+        tta_choice=np.array(options.tta_symmetries)[run["choice"]],
+        non_finite_stages=run["non_finite"], singular_stages=run["singular"],
+        gated_stages=run["gated"], options=options)
+
+
+def estimate_once(predict: PredictStage, num_stages, patch_a, patch_b, sources, origin,
+                  options: EstimateOptions) -> Estimate:
+    """The network (with ``options.tta``) -> checks -> search -> refinement, without retry."""
+    run = run_network(predict, num_stages, patch_a, patch_b, sources, origin, options)
+    run = check(run, patch_a, patch_b, sources, origin, options)
+    run = search(run, patch_b, sources, origin, options)
+    run = refine(run, patch_b, sources, origin, options)
+    return finish(run, options)
+
+
+def estimate_pairs(predict: PredictStage, num_stages, patch_a, patch_b, sources, origin,
+                   options: EstimateOptions) -> Estimate:
+    """:func:`estimate_once`; then, where ``options.retries``, each pair flagged implausible (not
+    flat) is estimated again with ``tta=options.retry_tta`` and keeps that estimate and its
+    fields (``retried``)."""
+    first = estimate_once(predict, num_stages, patch_a, patch_b, sources, origin, options)
+    retry = np.flatnonzero(first.implausible & ~first.flat) if options.retries else []
+    if not len(retry):
+        return first
+    again = estimate_once(predict, num_stages, patch_a[retry], patch_b[retry],
+                          [sources[i] for i in retry], origin,
+                          dataclasses.replace(options, tta=options.retry_tta))
+    merged = {}
+    for f in dataclasses.fields(Estimate):
+        if f.name == "options":
+            continue
+        value, new = getattr(first, f.name), getattr(again, f.name)
+        value = value.astype(np.result_type(value, new))  # (tta_choice names may be longer)
+        value[retry] = True if f.name == "retried" else new
+        merged[f.name] = value
+    return Estimate(**merged, options=options)

@@ -1,0 +1,217 @@
+"""The docs' headline numbers agree with the JSON that records them (standard library only, fast).
+
+Two kinds of number: the generated tables of BENCHMARKS.md and README.md (between the markers of
+``experiments.current_results``, rewritten by ``python -m experiments.current_results --write``),
+and numbers typed in prose, each listed in ``PROSE`` with the JSON value it must equal. A doc
+that is reworded so that a listed phrase no longer matches fails too: update ``PROSE`` with it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+
+from experiments import current_results as cr
+
+ROOT = cr.default_root()
+N = r"([\d.]+)"  # one number in a phrase
+S = r"\s+"  # a space or a line break
+
+
+def num(source, path, digits=2):
+    """Expected text of the number at ``path`` of ``source`` (see ``current_results.SOURCES``)."""
+    return lambda sources: cr.fixed(cr.value(sources, source, path), digits)
+
+
+def count(source, path):
+    return lambda sources: str(cr.value(sources, source, path))
+
+
+def percent(source, path):
+    return lambda sources: cr.percent(cr.value(sources, source, path))[:-1]
+
+
+CARD_3 = "evaluation/plain_coco_mini_test/model/stages/after_3_stages/mace"
+CARD_STAGES = [num("card", f"evaluation/plain_coco_mini_test/model/stages/after_{k}_stages/mace")
+               for k in (1, 2, 3)]
+PHOTO = "evaluation/photometric_coco_mini_test/model"
+NO_CLIP = "evaluation/plain_coco_mini_test_no_clip/model/mace"
+FLAG = "evaluation/implausibility_coco_mini_test/ordinary"
+FLAG_PHOTO = "evaluation/implausibility_coco_mini_test_photometric/ordinary"
+CHECK = "bundled_check"
+PAPER_STAGES = [num("paper_card", f"evaluation/model/stages/after_{k}_stages/mace")
+                for k in (1, 2, 3)]
+
+
+def check(prefix, k, source="card"):
+    return num(source, f"{CHECK}/{prefix}estimate_mace_{k}_stages")
+
+
+def fig4(label):
+    return num("results", f"fig4_mace/{label}")
+
+
+def total_steps(sources):
+    return f"{sum(cr.card_steps(sources)):,}"
+
+
+def share_of_paper(sources):
+    return f"{sum(cr.card_steps(sources)) / cr.PAPER_STEPS:.0%}"[:-1]
+
+
+# (file, regex with one group per number, the expected value of each group). Every match of the
+# regex in the file is checked, and the regex must match at least once.
+PROSE = [
+    ("docs/weights.md",
+     rf"\*\*{N} px\*\* after stage 1, \*\*{N}\*\* after stage 2, \*\*{N}\*\* after stage 3 "
+     rf"\({N} without",
+     CARD_STAGES + [num("card", NO_CLIP, 3)]),
+    ("docs/weights.md", rf"tuned ORB \+ RANSAC {N},{S}SIFT \+ RANSAC {N} on the same pairs",
+     [fig4("ORB + RANSAC"), fig4("SIFT + RANSAC")]),
+    ("docs/weights.md",
+     rf"photometric change of patch_b \*\*{N} px\*\* \(identity{S}{N}; (\d+) of 300",
+     [num("card", f"{PHOTO}/mace"), num("card", f"{PHOTO}/identity/mace"),
+      count("card", f"{PHOTO}/worse_than_identity")]),
+    ("docs/weights.md",
+     rf"estimates-default\):{S}{N} / {N} / {N} px after 1 / 2 / 3 stages, photometric "
+     rf"{N} / {N} / {N}",
+     [check("", k) for k in (1, 2, 3)] + [check("photometric_", k) for k in (1, 2, 3)]),
+    ("docs/weights.md", rf"test-time-augmentation-opt-in\)\) {N} \(photometric {N}\)",
+     [check("tta_", 3), check("photometric_tta_", 3)]),
+    ("docs/weights.md", rf'`search="none"`\): {N} px{S}after 3 stages, photometric {N}',
+     [check("unsearched_", 3), check("photometric_unsearched_", 3)]),
+    ("docs/weights.md",
+     rf"on the 300 coco_mini test pairs {N} px after 3 stages{S}\({N} with the photometric",
+     [num("card", f"{FLAG}/mace"), num("card", f"{FLAG_PHOTO}/mace")]),
+    ("docs/weights.md", rf"without the{S}gate {N} / {N} px after 3 stages with the search",
+     [num("card", f"{CHECK}/ungated_estimate_mace_3_stages"),
+      num("card", f"{CHECK}/photometric_ungated_estimate_mace_3_stages")]),
+    ("docs/weights.md", rf"full benefit \({N} px\)", [num("card", CARD_3)]),
+    ("docs/weights.md",
+     rf"flags {N}% of ordinary bare coco_mini test pairs \(their MACE {N} px{S}against {N} for",
+     [percent("card", f"{FLAG}/flagged"), num("card", f"{FLAG}/mace_flagged"),
+      num("card", f"{FLAG}/mace_kept")]),
+    ("docs/weights.md", r"\(([\d,]+) steps in all, (\d+)% of the paper's 3 x 90,000\)",
+     [total_steps, share_of_paper]),
+    ("docs/weights.md", rf"in the paper\):{S}{N} px \(1 stage\), {N} \(2\), {N} \(3\)",
+     PAPER_STAGES),
+    ("docs/weights.md", rf"3 stages {N} px \(with the default search: {N} and {N};",
+     [check("unsearched_", 3, "paper_card"), check("", 1, "paper_card"),
+      check("", 3, "paper_card")]),
+    ("docs/estimate.md", rf"today's default, with both: {N} px bundled",
+     [check("unsearched_", 3)]),
+    ("docs/estimate.md", rf"{N} px on the coco_mini test pairs \({N} with context\)",
+     [num("card", f"{FLAG}/mace"), num("card", CARD_3)]),
+    ("docs/estimate.md",
+     rf"estimates-default\): {N},{S}{N} and {N} px bundled",
+     [check("", 3), check("", 2), check("", 1)]),
+    ("docs/estimate.md", rf"takes the 300 coco_mini{S}test pairs from{S}{N}{S}to",
+     [num("card", f"{FLAG}/mace")]),
+    ("docs/estimate.md", rf"the 60{S}bundled{S}pairs{S}from {N} to", [check("unsearched_", 3)]),
+    ("docs/estimate.md", rf"\| coco_mini test \(300\) \| {N} \[", [num("card", f"{FLAG}/mace")]),
+    ("docs/estimate.md", rf"\| model card's bundled \(60\) \| {N} \[1\] \| \*\*{N}\*\*",
+     [check("unsearched_", 3), check("", 3)]),
+    ("docs/estimate.md",
+     rf"the model card's 60 bundled pairs {N}{S}px \(photometric {N};",
+     [check("", 3), check("photometric_", 3)]),
+    ("docs/estimate.md", rf"with a single stage {N} on the card's", [check("", 1)]),
+    ("docs/estimate.md",
+     rf"bundled MACE goes from {N} to{S}{N} px \(photometric {N} to {N}\)",
+     [check("unsearched_", 3, "paper_card"), check("", 3, "paper_card"),
+      check("photometric_unsearched_", 3, "paper_card"),
+      check("photometric_", 3, "paper_card")]),
+    ("docs/estimate.md", rf"and {N}% of ordinary bare coco_mini test pairs before the search",
+     [percent("card", f"{FLAG}/flagged")]),
+    ("docs/estimate.md", rf"3-stage test MACE is [\d.]+ px in float32 against {N} in bfloat16",
+     [PAPER_STAGES[2]]),
+    ("docs/conventions.md", rf"shipped fast recipe's: {N} and {N} px",
+     [num("card", CARD_3, 3), num("card", NO_CLIP, 3)]),
+    ("docs/conventions.md", rf"show it \({N} px\) beside", [fig4("HomographyNet")]),
+    ("docs/conventions.md", rf"schedule \({N} px\)", [fig4("HomographyNet variant (GAP)")]),
+    ("docs/training.md",
+     rf"DeTone's network {N} px,{S}the variant {N} px, STN-Homography's single stage {N} px",
+     [fig4("HomographyNet"), fig4("HomographyNet variant (GAP)"),
+      fig4("STN-Homography 1 stage")]),
+    ("BENCHMARKS.md",
+     rf"\| \*\*this stage 3\*\* \| {N} / {N} / \*\*{N}\*\* \[(\d+)\] \| {N} / {N} / "
+     rf"\*\*{N}\*\* \[(\d+)\]",
+     CARD_STAGES[:2] + [num("card", CARD_3, 3),
+                        count("card", "evaluation/plain_coco_mini_test/model/worse_than_identity")]
+     + [num("card", f"{PHOTO}/stages/after_{k}_stages/mace") for k in (1, 2)]
+     + [num("card", f"{PHOTO}/mace", 3), count("card", f"{PHOTO}/worse_than_identity")]),
+    ("BENCHMARKS.md", rf"3 stages <= 2\.0{S}met \({N}\); bare patches <= 8\.65 met \({N}\)",
+     [num("card", CARD_3), check("unsearched_", 3)]),
+    ("BENCHMARKS.md", rf"Without clipping {N} after 3 stages \(previous 0.829\)",
+     [num("card", NO_CLIP, 3)]),
+    ("BENCHMARKS.md",
+     rf"--data_dir=D \[--photometric\]`\): {N}% of ordinary bare coco_mini test pairs \(their MACE "
+     rf"{N} px{S}against {N} for the rest",
+     [percent("card", f"{FLAG}/flagged"), num("card", f"{FLAG}/mace_flagged"),
+      num("card", f"{FLAG}/mace_kept")]),
+    ("BENCHMARKS.md",
+     rf"HomographyNet \(DeTone's network\) {N}, its `homographynet_gap` variant {N}, STN 1/2/3 "
+     rf"stages {N} / {N} / {N}, sequence {N}, ORB {N}, SIFT {N}, identity {N} px",
+     [fig4("HomographyNet"), fig4("HomographyNet variant (GAP)"), fig4("STN-Homography 1 stage"),
+      fig4("STN-Homography 2 stages"), fig4("STN-Homography 3 stages"),
+      fig4("Sequence 2 stages"), fig4("ORB + RANSAC"), fig4("SIFT + RANSAC"),
+      fig4("Identity")]),
+]
+
+
+def _read(name, root=ROOT):
+    with open(os.path.join(root, name)) as f:
+        return f.read()
+
+
+def test_generated_blocks_equal_what_the_json_gives():
+    stale = cr.differing(ROOT)
+    assert not stale, ("run python -m experiments.current_results --write:\n"
+                       + "\n".join(stale.values()))
+
+
+def test_prose_numbers_equal_their_json():
+    sources = cr.load_sources(ROOT)
+    wrong = []
+    for name, pattern, expected in PROSE:
+        matches = re.findall(pattern, _read(name))
+        assert matches, f"{name}: no text matches {pattern!r} (reworded? update PROSE)"
+        want = tuple(f(sources) for f in expected)
+        for found in matches:
+            found = found if isinstance(found, tuple) else (found,)
+            if found != want:
+                wrong.append(f"{name}: {pattern!r} reads {found}, the JSON gives {want}")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_readme_types_no_generated_number_outside_its_table():
+    text = _read("README.md")
+    head, rest = text.split(cr.START)
+    block, tail = rest.split(cr.END)
+    generated = set(re.findall(r"\d+\.\d+", block))
+    typed = generated & set(re.findall(r"\d+\.\d+", head + tail))
+    assert not typed, f"README.md types {sorted(typed)} outside the generated table"
+
+
+def test_check_names_the_file_whose_number_changed(tmp_path):
+    for name in [*cr.SOURCES.values(), "README.md", "BENCHMARKS.md"]:
+        os.makedirs(tmp_path / os.path.dirname(name), exist_ok=True)
+        shutil.copy(os.path.join(ROOT, name), tmp_path / name)
+    assert cr.differing(str(tmp_path)) == {}
+    card_path = tmp_path / cr.SOURCES["card"]
+    card = json.loads(card_path.read_text())
+    card["evaluation"]["plain_coco_mini_test"]["model"]["stages"]["after_3_stages"]["mace"] = 0.5
+    card_path.write_text(json.dumps(card))
+    stale = cr.differing(str(tmp_path))
+    assert sorted(stale) == ["BENCHMARKS.md", "README.md"]
+    assert "**0.50**" in stale["README.md"]
+    assert cr.write(str(tmp_path)) == ["BENCHMARKS.md", "README.md"]
+    assert cr.differing(str(tmp_path)) == {}
+    (tmp_path / "README.md").write_text("no markers\n")
+    try:
+        cr.differing(str(tmp_path))
+    except ValueError as e:
+        assert "README.md" in str(e)
+    else:
+        raise AssertionError("a file without markers must be refused")

@@ -1,0 +1,166 @@
+"""The package's layers (stnh_tf/__init__.py): who may import whom, the old flat module paths kept
+for one release, and the doctests of the modules that need no deep-learning backend."""
+
+import ast
+import doctest
+import importlib
+import os
+import subprocess
+import sys
+import warnings
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PACKAGE = os.path.join(ROOT, "stnh_tf")
+
+# Layer of each part of stnh_tf -> the parts it may import (itself always). The NumPy core is the
+# top-level modules; "_compat" serves old paths.
+ALLOWED = {
+    "core": {"core"},
+    "modeling": {"core"},
+    "data": {"core", "modeling"},
+    "training": {"core", "modeling", "data"},
+    "inference": {"core", "modeling", "data"},
+    "evaluation": {"core", "modeling", "data", "training", "inference"},
+    "paper": {"core", "modeling", "data", "training", "inference", "evaluation"},
+}
+# Deep-learning backends: the NumPy core and these modules never import them at module level.
+BACKENDS = ("tensorflow", "keras", "jax", "torch")
+BACKEND_FREE = ("core", "data/sources", "data/pairs", "data/batches",
+                "data/features", "training/config", "inference/options", "inference/checks",
+                "inference/search", "inference/pipeline", "inference/ecc")
+
+
+def _part(path):
+    rel = os.path.relpath(path, PACKAGE)
+    return rel.split(os.sep)[0] if os.sep in rel else "core"
+
+
+def _imports(path, top_level_only=False):
+    """(line, imported module) of every stnh_tf/data_prep/experiments/backend import in a file."""
+    tree = ast.parse(open(path).read())
+    nodes = tree.body if top_level_only else ast.walk(tree)
+    for node in nodes:
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            yield node.lineno, names
+        elif isinstance(node, ast.Import):
+            yield node.lineno, [a.name for a in node.names]
+
+
+def _module_part(name):
+    parts = name.split(".")
+    if parts[0] != "stnh_tf" or len(parts) == 1:
+        return None
+    if parts[1] in ALLOWED:
+        return parts[1]
+    return "core" if os.path.isfile(os.path.join(PACKAGE, parts[1] + ".py")) else None
+
+
+def _sources():
+    for folder, _, files in os.walk(PACKAGE):
+        for f in files:
+            if f.endswith(".py"):
+                yield os.path.join(folder, f)
+
+
+def test_imports_follow_the_layers():
+    """Every import in stnh_tf (also inside functions) goes to its own layer or one above it, and
+    never to the binaries (data_prep, experiments)."""
+    bad = []
+    for path in _sources():
+        if path.endswith("_compat.py") or path == os.path.join(PACKAGE, "__init__.py"):
+            continue
+        part = _part(path)
+        for line, names in _imports(path):
+            for name in names:
+                if name.split(".")[0] in ("data_prep", "experiments"):
+                    bad.append(f"{os.path.relpath(path, ROOT)}:{line} imports {name}")
+                target = _module_part(name)
+                if target and target != part and target not in ALLOWED[part]:
+                    bad.append(f"{os.path.relpath(path, ROOT)}:{line} ({part}) imports {name} "
+                               f"({target})")
+    assert not bad, "\n".join(bad)
+
+
+def test_the_numpy_core_imports_no_backend_at_module_level():
+    bad = []
+    for path in _sources():
+        rel = os.path.relpath(path, PACKAGE)[:-3]
+        if not (_part(path) == "core" or rel in BACKEND_FREE):
+            continue
+        for line, names in _imports(path, top_level_only=True):
+            bad += [f"{rel}:{line} imports {n}" for n in names if n.split(".")[0] in BACKENDS]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_options_and_pipeline_load_no_backend():
+    """In a fresh process the estimator's options, checks, search and pipeline import neither
+    TensorFlow nor Keras (a worker or a tool can use them without a backend)."""
+    code = ("import sys\n"
+            "import stnh_tf.inference.pipeline, stnh_tf.inference.options\n"
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'tensorflow', 'keras'}))\n")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("old, new", [
+    ("stnh_tf.layers", "stnh_tf.modeling.layers"),
+    ("stnh_tf.train_config", "stnh_tf.training.config"),
+    ("stnh_tf.pairs", "stnh_tf.data.pairs"),
+    ("stnh_tf.alignment", "stnh_tf.inference.image_files"),
+    ("stnh_tf.reproduce", "stnh_tf.paper.reproduce"),
+])
+def test_old_module_paths_are_the_new_modules_with_a_warning(old, new):
+    sys.modules.pop(old, None)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        module = importlib.import_module(old)
+    assert module is importlib.import_module(new)
+    assert module.__spec__.name == new
+    assert any(issubclass(w.category, DeprecationWarning) and new in str(w.message)
+               for w in caught)
+
+
+def test_old_package_level_names_still_resolve():
+    """The names users had: ``stnh_tf.HomographyEstimator``, ``stnh_tf.geometry``, and the old
+    modules now packages (``stnh_tf.training.train``, ``stnh_tf.data.load_split``, ...)."""
+    import stnh_tf
+    from stnh_tf import data, evaluation, inference, training
+    from stnh_tf.data import tfrecords
+    from stnh_tf.evaluation import mace
+    from stnh_tf.inference import estimator
+    from stnh_tf.training import loop
+
+    assert stnh_tf.HomographyEstimator is estimator.HomographyEstimator
+    assert stnh_tf.geometry.PATCH_SIZE == 128
+    assert training.train is loop.train and data.load_split is tfrecords.load_split
+    assert evaluation.evaluate is mace.evaluate
+    assert inference.HomographyEstimator is estimator.HomographyEstimator
+    assert inference.alignment_ncc is estimator.alignment_ncc
+    assert training.config.TrainConfig is stnh_tf.training.config.TrainConfig  # a submodule
+    with pytest.raises(AttributeError):
+        training.no_such_name
+
+
+def test_modules_stay_small():
+    """No module of the package is over 460 lines (the layout's goal: ~400)."""
+    long = {os.path.relpath(p, ROOT): n for p in _sources()
+            if (n := sum(1 for _ in open(p))) > 460}
+    assert not long, long
+
+
+DOCTEST_MODULES = ("stnh_tf.geometry", "stnh_tf.pixels", "stnh_tf.training.config",
+                   "stnh_tf.inference.options", "stnh_tf.inference.checks",
+                   "stnh_tf.inference.search", "stnh_tf.inference.ecc")
+
+
+@pytest.mark.parametrize("name", DOCTEST_MODULES)
+def test_doctests(name):
+    """The examples in the docstrings of the modules that need no backend run and hold."""
+    result = doctest.testmod(importlib.import_module(name), optionflags=doctest.ELLIPSIS)
+    assert result.attempted > 0, f"{name} has no doctest"
+    assert result.failed == 0, f"{result.failed} of {name}'s doctests failed"

@@ -1,0 +1,231 @@
+"""The estimator's options (stnh_tf.inference.options) and each step of its pipeline
+(stnh_tf.inference.pipeline) alone, on arrays, against references computed here with NumPy and
+OpenCV; and the estimator's flags (experiments.flags_common)."""
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+from absl import flags
+
+from conftest import cv2_warp, ncc_reference
+from stnh_tf import geometry
+from stnh_tf.inference import checks, pipeline
+from stnh_tf.inference.options import TTAS, EstimateOptions, Thresholds
+
+
+def _smooth(seed, shape=(128, 128)):
+    return cv2.GaussianBlur(np.random.default_rng(seed).random(shape, np.float32), (0, 0), 2)
+
+
+def _pair(seed, a_from_b):
+    """A smooth float32 patch_a and patch_b(p) = patch_a(a_from_b p) (OpenCV), as [1, S, S, 1]."""
+    a = _smooth(seed)
+    b = cv2.warpPerspective(a, a_from_b, (128, 128), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    return a[None, ..., None], b[None, ..., None]
+
+
+# ------------------------------------------------------------------------------------------------
+# Options
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("field, value", [("search", "sift"), ("refine", "lk"), ("tta", 3),
+                                          ("retry_tta", "all"), ("fill", "edge"),
+                                          ("gate_stages", "yes"), ("thresholds", {})])
+def test_options_refuse_bad_values_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        EstimateOptions(**{field: value})
+
+
+@pytest.mark.parametrize("field, value", [("verified_ncc", float("nan")), ("search_peaks", -1),
+                                          ("search_coarse_iterations", ()),
+                                          ("search_template", 200), ("min_overlap", True)])
+def test_thresholds_refuse_bad_values(field, value):
+    with pytest.raises(ValueError, match=field):
+        Thresholds(**{field: value})
+
+
+def test_presets_and_variants():
+    default, paper = EstimateOptions(), EstimateOptions.network_only()
+    assert (default.search, default.gate_stages, default.fill) == ("ecc", True, "reflect")
+    assert (paper.search, paper.gate_stages, paper.thresholds.min_patch_std) == ("none", False, 0)
+    assert paper.refine == paper.tta == paper.retry_tta == "none"
+    assert EstimateOptions.network_only(fill="zeros").fill == "zeros"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        default.search = "none"
+    assert default.thresholds.implausible_corner_shift == 1.5 * geometry.MAX_PERTURBATION
+    assert EstimateOptions(tta="flips", retry_tta="dihedral").retries
+    assert not EstimateOptions(tta="dihedral", retry_tta="flips").retries
+    assert EstimateOptions(tta="flips").tta_symmetries == TTAS["flips"]
+    assert EstimateOptions().to_json()["thresholds"]["verified_ncc"] == 0.95
+
+
+def test_flags_are_the_options_fields():
+    """define_estimate_flags takes its defaults from EstimateOptions (or the binary's own), and
+    options_from_flags gives back the options the command line asks for."""
+    from experiments import flags_common
+
+    fv = flags.FlagValues()
+    flags_common.define_estimate_flags(("search", "tta", "gate_stages"), flag_values=fv)
+    fv(["prog"])
+    assert flags_common.options_from_flags(flag_values=fv) == EstimateOptions()
+    fv = flags.FlagValues()
+    base = EstimateOptions(search="none")
+    flags_common.define_estimate_flags(("search", "tta", "gate_stages"), base, flag_values=fv)
+    fv(["prog", "--tta=dihedral", "--nogate_stages"])
+    assert flags_common.options_from_flags(base, flag_values=fv) == EstimateOptions(
+        search="none", tta="dihedral", gate_stages=False)
+    with pytest.raises(flags.IllegalFlagValueError):
+        fv(["prog", "--search=sift"])
+
+
+# ------------------------------------------------------------------------------------------------
+# Steps
+# ------------------------------------------------------------------------------------------------
+def test_run_hierarchy_composes_skips_degenerate_and_gates():
+    """Stage k's prediction is composed as H_1 @ H_2 (NumPy); a singular one is skipped and
+    counted; with the gate, a stage 2 that lowers the NCC (computed here) is left out."""
+    h_true = geometry.translation(3.0, -2.0) @ np.array([[1.0, 0.02, 0], [0.01, 1.0, 0], [0, 0, 1]])
+    a, b = _pair(0, h_true)
+    first = geometry.translation(3.0, -2.0)
+    second = np.linalg.inv(first) @ h_true
+    seen = []
+
+    def predict(k, patch_a, patch_b):
+        seen.append((k, patch_a.copy()))
+        return np.stack([first, second][k][None])
+
+    ungated = EstimateOptions(gate_stages=False)
+    out = pipeline.run_hierarchy(predict, 2, a, b, [a[0, ..., 0]], (0, 0), ungated)
+    np.testing.assert_allclose(out["total"][0], first @ second, atol=1e-12)
+    assert out["ncc"] is None and out["singular"][0] == 0 and out["gated"][0] == 0
+    # stage 2 saw patch_a warped by stage 1 (the mirror fill beyond the patch)
+    np.testing.assert_allclose(seen[1][1][0, ..., 0],
+                               cv2_warp(a[0, ..., 0], first, cv2.BORDER_REFLECT_101), atol=1e-6)
+
+    second = np.array([[1.0, 0, 0], [1.0, 0, 0], [0, 0, 1.0]])  # singular (det 0): skipped
+    out = pipeline.run_hierarchy(predict, 2, a, b, [a[0, ..., 0]], (0, 0), ungated)
+    np.testing.assert_allclose(out["total"][0], first, atol=1e-12)
+    assert out["singular"][0] == 1 and out["non_finite"][0] == 0
+
+    second = geometry.translation(9.0, 0.0)  # moves away from the truth: lowers the NCC
+    out = pipeline.run_hierarchy(predict, 2, a, b, [a[0, ..., 0]], (0, 0), EstimateOptions())
+    np.testing.assert_allclose(out["total"][0], first, atol=1e-12)
+    assert out["gated"][0] == 1
+    # the gate's decision by an independent NCC, and the NCC it keeps is the kept estimate's
+    assert ncc_reference(a[0, ..., 0], b[0, ..., 0], first) > ncc_reference(
+        a[0, ..., 0], b[0, ..., 0], first @ second)
+    assert out["ncc"][0] == checks.alignment_ncc(a[0, ..., 0], b[0, ..., 0], first)
+
+
+def test_check_sets_flat_pairs_to_the_identity_and_measures_the_alignment():
+    h = geometry.translation(2.0, 1.0)
+    a, b = _pair(1, h)
+    a2 = np.concatenate([a, np.full_like(a, 0.5)])  # pair 1: flat patch_a
+    b2 = np.concatenate([b, b])
+    run = {"total": np.stack([h, h]), "ncc": None}
+    out = pipeline.check(run, a2, b2, [a2[0, ..., 0], a2[1, ..., 0]], (0, 0), EstimateOptions())
+    np.testing.assert_array_equal(out["flat"], [False, True])
+    np.testing.assert_allclose(out["total"][1], np.eye(3))
+    np.testing.assert_allclose(run["total"][1], h)  # the input is left as it was
+    assert out["ncc"][0] == pytest.approx(ncc_reference(a[0, ..., 0], b[0, ..., 0], h), abs=3e-3)
+    assert np.isnan(out["ncc"][1])
+    # without the flat rule (network_only) the pair keeps its estimate
+    out = pipeline.check(run, a2, b2, [a2[0, ..., 0], a2[1, ..., 0]], (0, 0),
+                         EstimateOptions.network_only())
+    assert not out["flat"].any()
+    np.testing.assert_allclose(out["total"][1], h)
+
+
+def test_search_step_finds_a_translated_estimate_and_respects_its_thresholds():
+    h_true = geometry.translation(9.0, -6.0)
+    a, b = _pair(2, h_true)
+    start = {"total": np.eye(3)[None], "ncc": np.array([0.3]), "flat": np.array([False]),
+             "non_finite": np.zeros(1, int), "singular": np.zeros(1, int)}
+    src = [a[0, ..., 0]]
+    out = pipeline.search(start, b, src, (0, 0), EstimateOptions())
+    assert out["searched"][0] and out["found"][0]
+    assert geometry.corner_errors(out["total"], h_true[None])[0] < 0.1
+    assert out["ncc"][0] >= 0.95
+    np.testing.assert_allclose(start["total"][0], np.eye(3))  # the input is left as it was
+    none = pipeline.search(start, b, src, (0, 0), EstimateOptions(search="none"))
+    assert not none["searched"].any() and not none["found"].any()
+    strict = EstimateOptions(thresholds=Thresholds(verified_ncc=1.01))
+    out = pipeline.search(start, b, src, (0, 0), strict)
+    assert out["searched"][0] and not out["found"][0]
+    np.testing.assert_allclose(out["total"][0], np.eye(3))
+    aligned = dict(start, ncc=np.array([0.99]))  # aligned well: not searched
+    assert not pipeline.search(aligned, b, src, (0, 0), EstimateOptions())["searched"].any()
+
+
+def test_refine_step_polishes_and_drops_long_moves():
+    h_true = geometry.translation(1.5, -1.0)
+    a, b = _pair(3, h_true)
+    run = {"total": np.eye(3)[None], "ncc": np.array([0.8]), "flat": np.array([False]),
+           "found": np.array([False])}
+    out = pipeline.refine(run, b, [a[0, ..., 0]], (0, 0), EstimateOptions(refine="ecc"))
+    assert out["refined"][0]
+    assert geometry.corner_errors(out["total"], h_true[None])[0] < 0.05
+    assert out["ncc"][0] == pytest.approx(ncc_reference(a[0, ..., 0], b[0, ..., 0],
+                                                        out["total"][0]), abs=3e-3)
+    short = EstimateOptions(refine="ecc", thresholds=Thresholds(max_refine_move=0.5))
+    out = pipeline.refine(run, b, [a[0, ..., 0]], (0, 0), short)
+    assert not out["refined"][0]
+    np.testing.assert_allclose(out["total"][0], np.eye(3))
+    found = dict(run, found=np.array([True]))  # a search result is not refined
+    assert not pipeline.refine(found, b, [a[0, ..., 0]], (0, 0),
+                               EstimateOptions(refine="ecc"))["refined"][0]
+
+
+def test_finish_flags_by_the_thresholds():
+    """implausible = skipped stage | corner beyond 48 px | NCC below 0.7 or undefined | flat."""
+    hs = np.stack([np.eye(3), geometry.translation(50.0, 0.0), np.eye(3), np.eye(3), np.eye(3)])
+    run = {"total": hs, "ncc": np.array([0.9, 0.9, 0.6, np.nan, 0.9]),
+           "flat": np.array([False, False, False, False, True]),
+           "searched": np.zeros(5, bool), "found": np.zeros(5, bool),
+           "refined": np.zeros(5, bool), "choice": np.zeros(5, int),
+           "non_finite": np.array([0, 0, 0, 0, 0]), "singular": np.array([1, 0, 0, 0, 0]),
+           "gated": np.zeros(5, int)}
+    result = pipeline.finish(run, EstimateOptions())
+    np.testing.assert_array_equal(result.implausible, [True, True, True, True, True])
+    run["singular"] = np.zeros(5, int)
+    result = pipeline.finish(run, EstimateOptions())
+    np.testing.assert_array_equal(result.implausible, [False, True, True, True, True])
+    np.testing.assert_allclose(result.max_corner_shift_px, [0, 50, 0, 0, 0])
+    loose = EstimateOptions(thresholds=Thresholds(implausible_corner_shift=60,
+                                                  min_alignment_ncc=0.5))
+    np.testing.assert_array_equal(pipeline.finish(run, loose).implausible,
+                                  [False, False, False, True, True])
+    assert result.rejected == {"non_finite": 0, "singular": 0} and len(result) == 5
+    assert set(result.info()) == {"implausible", "max_corner_shift_px", "rejected_stages",
+                                  "gated_stages", "alignment_ncc", "flat", "searched",
+                                  "search_found", "refined", "tta_choice", "retried"}
+
+
+def test_estimate_pairs_retries_only_flagged_pairs_with_more_symmetries():
+    """A predictor whose estimate is right only for the identity symmetry's input: every pair
+    aligns; with a non-finite first try (flagged), the retry with "flips" replaces exactly the
+    flagged pairs and marks them."""
+    h_true = geometry.translation(2.0, -1.0)
+    a, b = _pair(4, h_true)
+    a, b = np.concatenate([a, a]), np.concatenate([b, b])
+    calls = []
+
+    def predict(k, patch_a, patch_b):
+        calls.append(len(patch_a))
+        out = np.stack([h_true] * len(patch_a))
+        if len(calls) == 1:
+            out[1] = np.nan  # pair 1's first try is degenerate
+        return out
+
+    options = EstimateOptions(search="none", retry_tta="flips")
+    result = pipeline.estimate_pairs(predict, 1, a, b, [x[..., 0] for x in a], (0, 0), options)
+    np.testing.assert_array_equal(result.retried, [False, True])
+    assert calls[0] == 2 and sum(calls[1:]) == len(TTAS["flips"])  # one pair, 4 symmetries
+    assert result.non_finite_stages.tolist() == [0, 0] and not result.implausible.any()
+    assert result.options is options
+    without = pipeline.estimate_pairs(lambda k, x, y: np.full((len(x), 3, 3), np.nan), 1, a, b,
+                                      [x[..., 0] for x in a], (0, 0),
+                                      EstimateOptions(search="none"))
+    assert not without.retried.any() and without.implausible.all()
+    assert without.rejected == {"non_finite": 2, "singular": 0}
