@@ -48,6 +48,9 @@ def define_training_flags(scope: str, choices=None, flag_values=flags.FLAGS):
                       "resumed). Only what a run wrote is deleted, and only after every flag and "
                       "the data are checked; a folder that is not a training run is never "
                       "touched.", flag_values=flag_values)
+    flags.DEFINE_float("time_limit_s", 0.0, "Stop at the last checkpoint before this many seconds "
+                       "and leave the run unfinished: the same command resumes it (0: no limit; "
+                       "for runs trained in chunks).", flag_values=flag_values)
 
 
 def config_from_flags(scope: str, flag_values=flags.FLAGS, **overrides) -> TrainConfig:
@@ -90,7 +93,8 @@ def run_training(cfg, binary: str) -> None:
     from stnh_tf.training import loop as training
 
     with common.user_errors(binary, (ValueError, OSError, training.TrainingDiverged)):
-        result = training.train(cfg, overwrite=flags.FLAGS.overwrite, printer=logging.info)
+        result = training.train(cfg, overwrite=flags.FLAGS.overwrite, printer=logging.info,
+                                time_limit_s=flags.FLAGS.time_limit_s or None)
     logging.info("finished at step %d", result["final_step"])
 
 

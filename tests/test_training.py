@@ -3,15 +3,18 @@ overwrite protection, stage/dataset checks, the schedule, the semi-supervised ma
 MirroredStrategy, and an overfitting run that proves losses, STN and gradients are wired."""
 
 import dataclasses
+import io
 import json
 import os
 import re
 import shutil
 import signal
 import subprocess
+import zipfile
 import sys
 import time
 
+import h5py
 import keras
 import numpy as np
 import pytest
@@ -22,6 +25,7 @@ from stnh_tf.data import stage1
 from stnh_tf import geometry
 from stnh_tf.training import run_dir
 from stnh_tf.training import config as train_config
+from stnh_tf.training import precision
 from stnh_tf.training import loop as training
 from stnh_tf.data import tfrecords as data
 from stnh_tf.modeling import runner
@@ -476,8 +480,8 @@ CPUINFO = {  # abridged /proc/cpuinfo of four CPUs (two logical CPUs each where 
 def test_cpu_has_native_bfloat16_reads_cpu_flags(tmp_path, name, expected):
     path = tmp_path / name
     path.write_text(CPUINFO[name])
-    assert training.cpu_has_native_bfloat16(str(path)) is expected
-    assert training.cpu_has_native_bfloat16(str(tmp_path / "missing")) is None
+    assert precision.cpu_has_native_bfloat16(str(path)) is expected
+    assert precision.cpu_has_native_bfloat16(str(tmp_path / "missing")) is None
 
 
 def test_mixed_precision_warning_for_emulated_bfloat16_and_no_amx(tmp_path, monkeypatch):
@@ -485,21 +489,21 @@ def test_mixed_precision_warning_for_emulated_bfloat16_and_no_amx(tmp_path, monk
         (tmp_path / name).write_text(text)
     mixed = train_config.TrainConfig(data_dir="d", model_dir="m", mixed_precision=True)
     fp32 = train_config.TrainConfig(data_dir="d", model_dir="m", mixed_precision=False)
-    monkeypatch.setattr(training, "accelerator_present", lambda: False)
-    warning = training.mixed_precision_warning(mixed, str(tmp_path / "epyc_milan"))
+    monkeypatch.setattr(precision, "accelerator_present", lambda: False)
+    warning = precision.mixed_precision_warning(mixed, str(tmp_path / "epyc_milan"))
     assert "no bfloat16 instructions" in warning and "--nomixed_precision" in warning
-    assert training.mixed_precision_warning(fp32, str(tmp_path / "epyc_milan")) is None
-    warning = training.mixed_precision_warning(mixed, str(tmp_path / "xeon_no_amx"))
+    assert precision.mixed_precision_warning(fp32, str(tmp_path / "epyc_milan")) is None
+    warning = precision.mixed_precision_warning(mixed, str(tmp_path / "xeon_no_amx"))
     assert "no AMX" in warning and "benchmark_training" in warning
-    assert training.mixed_precision_warning(fp32, str(tmp_path / "xeon_no_amx")) is None
+    assert precision.mixed_precision_warning(fp32, str(tmp_path / "xeon_no_amx")) is None
     for name in ("sapphire_rapids", "neoverse_v1", "no_flags"):
-        assert training.mixed_precision_warning(mixed, str(tmp_path / name)) is None
-    monkeypatch.setattr(training, "accelerator_present", lambda: True)
-    assert training.mixed_precision_warning(mixed, str(tmp_path / "epyc_milan")) is None
+        assert precision.mixed_precision_warning(mixed, str(tmp_path / name)) is None
+    monkeypatch.setattr(precision, "accelerator_present", lambda: True)
+    assert precision.mixed_precision_warning(mixed, str(tmp_path / "epyc_milan")) is None
 
 
 def test_accelerator_present_agrees_with_tensorflow():
-    assert training.accelerator_present() == bool(tf.config.list_physical_devices("GPU"))
+    assert precision.accelerator_present() == bool(tf.config.list_physical_devices("GPU"))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -630,3 +634,63 @@ def test_checkpoint_state_cannot_name_weights_outside_its_folder(tmp_path):
     (ckpt / "state.json").write_text("{not json")
     with pytest.raises(ValueError, match="state.json"):
         run_dir.checkpoint_weights_path(str(ckpt))
+
+
+def test_chunks_stop_at_the_time_limit_and_continue_on_another_machine(tiny_data, straight_run,
+                                                                       tmp_path, narrow):
+    """Three chunks of the 6-step run, each stopped by the time limit after one checkpoint, each
+    on a fresh run folder (another machine) resuming from the checkpoint committed in the
+    repository folder: the finished model (without optimizer state) equals the uninterrupted
+    run's, the committed checkpoint is gone, and the ledger has one row per chunk."""
+    from stnh_tf.training import chunks
+
+    repo = tmp_path / "repo"
+    rows = []
+    for k in range(3):
+        cfg = _cfg(tiny_data, tmp_path / f"machine{k}")
+        rows.append(chunks.run_chunk(cfg, str(repo), 1e-9, f"machine {k}", printer=_quiet))
+        resume = repo / "resume" / "stage1"
+        if k < 2:
+            assert json.loads((resume / "state.json").read_text())["step"] == 2 * (k + 1)
+            assert not (tmp_path / f"machine{k}" / "model.keras").exists()
+            assert sorted(p.name for p in resume.iterdir()) == [
+                "ckpt-%08d.weights.h5" % (2 * (k + 1)), "config.json", "state.json"]
+    assert [(r["from_step"], r["to_step"], r["done"]) for r in rows] == [
+        (0, 2, False), (2, 4, False), (4, 6, True)]
+    assert not (repo / "resume" / "stage1").exists()
+    assert json.loads((repo / "ledger.json").read_text()) == rows
+    def optimizer_saved(path):
+        with zipfile.ZipFile(path) as z, h5py.File(io.BytesIO(z.read("model.weights.h5"))) as f:
+            return "optimizer" in f
+
+    assert optimizer_saved(tmp_path / "machine2" / "model.keras")
+    assert not optimizer_saved(repo / "stage1.keras")
+    finished = keras.saving.load_model(str(repo / "stage1.keras"), compile=False)
+    a = _weights(straight_run)
+    b = [np.asarray(w) for w in finished.get_weights()]
+    assert max(np.abs(u - v).max() for u, v in zip(a, b)) <= 1e-4 * max(np.abs(u).max() for u in a)
+    doc = tmp_path / "gpu.md"
+    doc.write_text(f"# ledger\n{chunks.LEDGER_START}\nold\n{chunks.LEDGER_END}\nafter\n")
+    assert chunks.write_ledger_table(str(repo), str(doc))
+    lines = doc.read_text().splitlines()
+    assert lines[4] == "| 1 | 0 -> 2 | machine 0 | tensorflow | %.2f | 0 | %s |" % (
+        rows[0]["steps_per_s"], rows[0]["date"]) and lines[-1] == "after"
+    assert not chunks.write_ledger_table(str(repo), str(doc))  # unchanged the second time
+
+
+def test_sync_in_keeps_a_newer_local_checkpoint(tmp_path):
+    from stnh_tf.training import chunks
+
+    def checkpoint(folder, step):
+        folder.mkdir(parents=True)
+        (folder / f"ckpt-{step:08d}.weights.h5").write_bytes(b"w%d" % step)
+        (folder / "state.json").write_text(json.dumps({"step": step,
+                                                       "weights": f"ckpt-{step:08d}.weights.h5"}))
+
+    checkpoint(tmp_path / "resume", 4)
+    (tmp_path / "resume" / "config.json").write_text("{}")
+    checkpoint(tmp_path / "run" / "checkpoint", 6)
+    assert chunks.sync_in(str(tmp_path / "resume"), str(tmp_path / "run")) is None
+    assert chunks.sync_in(str(tmp_path / "resume"), str(tmp_path / "new")) == 4
+    assert (tmp_path / "new" / "checkpoint" / "ckpt-00000004.weights.h5").read_bytes() == b"w4"
+    assert (tmp_path / "new" / "config.json").read_text() == "{}"

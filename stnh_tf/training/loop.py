@@ -30,7 +30,9 @@ models, as make_stage_dataset makes them.
 The pieces, one module per concern: :mod:`stnh_tf.training.config` (the fields and their checks),
 :mod:`stnh_tf.training.model_kinds` (build, losses and targets of each model kind),
 :mod:`stnh_tf.training.run_dir` (the run's folder and checkpoints),
-:mod:`stnh_tf.training.streams` (inputs).
+:mod:`stnh_tf.training.streams` (inputs), :mod:`stnh_tf.training.callbacks` (non-finite guard,
+progress, time limit), :mod:`stnh_tf.training.precision` (mixed precision on this machine).
+A run trained in chunks across machines: :mod:`stnh_tf.training.chunks`.
 """
 
 from __future__ import annotations
@@ -38,18 +40,18 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import logging
-import math
 import os
 import time
 
 import keras
 
-from stnh_tf.training import run_dir
-from stnh_tf.training import streams as train_streams
 from stnh_tf.modeling import runner
-from stnh_tf.training import model_kinds
 from stnh_tf.paths import atomic_write_json, fsync_replace
+from stnh_tf.training import model_kinds, run_dir
+from stnh_tf.training import streams as train_streams
+from stnh_tf.training.callbacks import NonFiniteGuard, ProgressLogger, TimeLimit
 from stnh_tf.training.config import OPTIMIZER_NAMES, TrainConfig
+from stnh_tf.training.precision import mixed_precision_warning
 
 
 def _sgd(cfg, schedule, **common):
@@ -129,52 +131,6 @@ def compile_model(model, cfg: TrainConfig):
     model.compile(optimizer=optimizer, loss=losses, loss_weights=loss_weights,
                   weighted_metrics=metrics)
     return model
-
-
-# ------------------------------------------------------------------------------------------------
-# Callbacks
-# ------------------------------------------------------------------------------------------------
-
-
-class NonFiniteGuard(keras.callbacks.Callback):
-    """Stops training at the first non-finite loss and remembers the step."""
-
-    def __init__(self):
-        super().__init__()
-        self.bad_step = None
-
-    def on_train_batch_end(self, batch, logs=None):
-        loss = (logs or {}).get("loss")
-        if loss is not None and not math.isfinite(float(loss)):
-            self.bad_step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
-            self.model.stop_training = True
-
-
-class ProgressLogger(keras.callbacks.Callback):
-    """One console line every ``every`` steps: step, losses, learning rate, steps/s."""
-
-    def __init__(self, every, total, printer=print):
-        super().__init__()
-        self.every, self.total, self.printer = max(int(every), 1), total, printer
-        self._t0 = self._s0 = None
-
-    def on_train_batch_end(self, batch, logs=None):
-        step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
-        if self._t0 is None:
-            self._t0, self._s0 = time.time(), step
-        if step % self.every and step != self.total:
-            return
-        rate = (step - self._s0) / max(time.time() - self._t0, 1e-9)
-        lr = float(keras.ops.convert_to_numpy(self.model.optimizer.learning_rate))
-        parts = " ".join(f"{k}={float(v):.5g}" for k, v in sorted((logs or {}).items()))
-        self.printer(f"step {step}/{self.total} lr={lr:.5g} {parts} ({rate:.2f} steps/s)")
-
-    def on_epoch_end(self, epoch, logs=None):
-        vals = {k: v for k, v in (logs or {}).items() if k.startswith("val_")}
-        if vals:
-            step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
-            self.printer(f"step {step} validation " +
-                         " ".join(f"{k}={float(v):.5g}" for k, v in sorted(vals.items())))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -280,78 +236,13 @@ def initialize_from(model, stage_dirs):
 # ------------------------------------------------------------------------------------------------
 
 
-# CPU flags of native bfloat16 arithmetic: x86 AVX-512 BF16 and AMX, Arm BF16.
-BFLOAT16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16", "bf16"})
-
-
-def cpu_flags(cpuinfo: str = "/proc/cpuinfo") -> frozenset | None:
-    """The CPU's instruction flags listed in ``cpuinfo`` (its ``flags`` lines on x86,
-    ``Features`` on Arm); ``None`` if it cannot be read or lists none."""
-    try:
-        with open(cpuinfo) as f:
-            text = f.read()
-    except OSError:
-        return None
-    flags = set()
-    for line in text.splitlines():
-        key, _, value = line.partition(":")
-        if key.strip().lower() in ("flags", "features"):
-            flags.update(value.split())
-    return frozenset(flags) or None
-
-
-def cpu_has_native_bfloat16(cpuinfo: str = "/proc/cpuinfo") -> bool | None:
-    """Whether the CPU lists a bfloat16 instruction flag (:data:`BFLOAT16_CPU_FLAGS`) in
-    ``cpuinfo``; ``None`` if its flags cannot be read."""
-    flags = cpu_flags(cpuinfo)
-    return None if flags is None else bool(flags & BFLOAT16_CPU_FLAGS)
-
-
-def accelerator_present() -> bool:
-    """Whether the Keras backend computes on a GPU/TPU rather than the CPU."""
-    backend = keras.backend.backend()
-    if backend == "tensorflow":
-        import tensorflow as tf
-
-        return bool(tf.config.list_physical_devices("GPU")
-                    or tf.config.list_physical_devices("TPU"))
-    if backend == "jax":
-        import jax
-
-        return jax.default_backend() != "cpu"
-    if backend == "torch":
-        import torch
-
-        return bool(torch.cuda.is_available())
-    return False
-
-
-def mixed_precision_warning(cfg: TrainConfig, cpuinfo: str = "/proc/cpuinfo") -> str | None:
-    """A warning when ``cfg`` asks for mixed bfloat16 on a CPU where it may be slower than
-    float32: one with no bfloat16 instructions (emulated, many times slower), or an x86 CPU with
-    AVX-512 BF16 but no AMX (slower on the Intel Xeon measured, BENCHMARKS.md "The same benchmark
-    on CPUs without AMX"). ``None`` on an accelerator, with float32, on AMX or Arm BF16, or where
-    the CPU flags cannot be read."""
-    if not cfg.mixed_precision or accelerator_present():
-        return None
-    flags = cpu_flags(cpuinfo)
-    if flags is None:
-        return None
-    if not flags & BFLOAT16_CPU_FLAGS:
-        return ("mixed_precision is on, but this CPU has no bfloat16 instructions (none of "
-                f"{sorted(BFLOAT16_CPU_FLAGS)} in {cpuinfo}): bfloat16 is emulated and training "
-                "is many times slower than in float32 here; consider --nomixed_precision.")
-    if "avx512_bf16" in flags and "amx_bf16" not in flags:
-        return ("mixed_precision is on, and this CPU has AVX-512 BF16 but no AMX (no amx_bf16 in "
-                f"{cpuinfo}): on such an Intel Xeon a bfloat16 step was 1.6x slower than float32; "
-                "time both with experiments.benchmark_training before a long run, and use "
-                "--nomixed_precision if float32 is faster.")
-    return None
-
-
 def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=None,
-          extra_callbacks=()):
+          extra_callbacks=(), time_limit_s: float | None = None):
     """Train (or resume) the model described by ``cfg``. Returns a dict of final results.
+
+    ``time_limit_s``: stop at the last checkpoint that leaves time for none more within this many
+    seconds of the call (:class:`~stnh_tf.training.callbacks.TimeLimit`); the result then has
+    ``stopped_at_time_limit`` and no final model is written: the same call resumes the run.
 
     ``stream_fn(cfg, split, start_step)`` may replace the TFRecord stream (tests, generators);
     ``extra_callbacks`` run after the built-in ones (checkpointing comes first).
@@ -363,6 +254,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     """
     from stnh_tf.data import tfrecords as data
 
+    t_call = time.monotonic()
     check_start(cfg)
     warning = mixed_precision_warning(cfg)
     if warning:
@@ -411,6 +303,8 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         else:
             printer("TensorFlow is not installed: no TensorBoard logs (console progress only)")
         callbacks.extend(extra_callbacks)
+        limit = TimeLimit(time_limit_s, start=t_call) if time_limit_s else None
+        callbacks += [limit] if limit else []
         epochs = cfg.train_steps // cfg.checkpoint_every
         t0 = time.time()
         try:
@@ -430,6 +324,12 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
                 f"{last or '(none)'} (step {last_step}). Resuming with the same flags repeats the "
                 "same batches and diverges again: check the data, or train anew with a lower "
                 "--learning_rate (a new --model_dir, or --overwrite).")
+        step = int(keras.ops.convert_to_numpy(model.optimizer.iterations))
+        if limit is not None and limit.stopped_step is not None and step < cfg.train_steps:
+            printer(f"stopped at step {step} of {cfg.train_steps} by the time limit "
+                    f"({time_limit_s:g} s); the same command resumes from there")
+            return {"final_step": step, "stopped_at_time_limit": True,
+                    "wall_s_this_run": time.time() - t0}
         final_path = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
         tmp = os.path.join(cfg.model_dir, f"tmp-{os.getpid()}-{run_dir.FINAL_MODEL}")
         model.save(tmp)

@@ -1,0 +1,68 @@
+r"""The paper's recipe at the paper's schedule (91,000 steps a stage), trained in chunks that
+continue one run on any machine: the GPU machine when one is lent, the CPU in the background
+otherwise (docs/gpu.md, "The paper's schedule in chunks").
+
+  python -m experiments.paper_schedule --stage=1 --time_limit_s=480        # a GPU chunk
+  nohup nice -n 19 python -m experiments.paper_schedule --stage=1 > log &  # CPU, background
+
+Each call resumes stage ``--stage`` in ``--runs_dir/stage<k>`` from the newest checkpoint (the
+folder's own, or the one committed in ``paper_schedule/resume/stage<k>/``), trains until
+``--time_limit_s`` (0: to the end), and commits the checkpoint back there; a finished stage is kept
+as ``paper_schedule/stage<k>.keras``. Each chunk adds a row to ``paper_schedule/ledger.json`` and
+to the ledger table of docs/gpu.md. The data (:data:`SCHEDULE`): pairs from the coco_mini train
+photographs and photos_extra (1,848 photographs, not COCO 2014's 82,783), 100 squares per image
+made once in memory (184,800 pairs), validation on 300 coco_mini test pairs; stage k > 1 trains on
+pairs re-made from the finished stages' predictions.
+"""
+
+from __future__ import annotations
+
+import os
+
+from absl import app, flags
+
+from experiments import common
+from stnh_tf.training import chunks
+from stnh_tf.training.config import TrainConfig
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SHARED = os.path.join(os.path.dirname(REPO), "shared", "data")
+ROOT = os.path.join(REPO, "paper_schedule")
+# The run's TrainConfig fields besides the paper's recipe (TrainConfig's defaults): what every
+# chunk of every machine must train with, so that they continue one run.
+SCHEDULE = {"samples_per_image": 100, "in_memory": True, "mixed_precision": True,
+            "val_samples": 300, "checkpoint_every": 500, "log_every": 500, "seed": 0}
+
+flags.DEFINE_integer("stage", 1, "Hierarchical stage to train (stage k > 1 needs stages 1..k-1 "
+                     "finished in paper_schedule/).")
+flags.DEFINE_list("image_dir", [os.path.join(SHARED, "coco_mini", "train"),
+                                os.path.join(SHARED, "photos_extra")], "Training photographs.")
+flags.DEFINE_list("val_image_dir", [os.path.join(SHARED, "coco_mini", "test")],
+                  "Validation photographs.")
+flags.DEFINE_string("runs_dir", os.path.expanduser("~/stnh-runs/paper_schedule"),
+                    "Where the run folders are (outside the repository).")
+flags.DEFINE_float("time_limit_s", 0.0, "Stop at the last checkpoint before this many seconds "
+                   "(0: train to the end).")
+flags.DEFINE_integer("workers", max((os.cpu_count() or 1) - 2, 1), "Pair-generator processes.")
+flags.DEFINE_string("device", None, "The machine, for the ledger (default: described here).")
+FLAGS = flags.FLAGS
+
+
+def main(argv):
+    del argv
+    from stnh_tf.evaluation.benchmarks import machine_info
+
+    stage = FLAGS.stage
+    cfg = TrainConfig(**SCHEDULE, stage=stage, image_dir=",".join(FLAGS.image_dir),
+                      val_image_dir=",".join(FLAGS.val_image_dir), workers=FLAGS.workers,
+                      model_dir=os.path.join(FLAGS.runs_dir, f"stage{stage}"),
+                      prev_stages=tuple(chunks.finished_model(ROOT, k) for k in range(1, stage)))
+    device = FLAGS.device or f"{machine_info()['cpu']}, {os.cpu_count()} cores"
+    with common.user_errors("paper_schedule"):
+        row = chunks.run_chunk(cfg, ROOT, FLAGS.time_limit_s, str(device))
+        chunks.write_ledger_table(ROOT, os.path.join(REPO, "docs", "gpu.md"))
+    print(row)
+
+
+if __name__ == "__main__":
+    app.run(main)

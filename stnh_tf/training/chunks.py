@@ -1,0 +1,181 @@
+"""One training run continued in chunks on whatever machine is at hand: each chunk resumes the run
+from the newest checkpoint (the run folder's own, or the one committed in the repository), trains
+until a time limit, and commits its checkpoint back; a ledger records where each chunk ran.
+
+Layout of a chunked run's repository folder ``root`` (e.g. ``paper_schedule/``):
+
+* ``resume/stage<k>/``: the checkpoint of the unfinished stage k: ``config.json`` (the
+  :class:`~stnh_tf.training.config.TrainConfig`), ``state.json`` (step, RNG states) and the one
+  ``ckpt-<step>.weights.h5`` it names (weights and optimizer state); replaced by each chunk and
+  removed when the stage is done;
+* ``stage<k>.keras``: a finished stage (weights without optimizer state);
+* ``ledger.json``: one row per chunk (stage, steps, machine, steps/s, date).
+
+    >>> ledger_table([{"stage": 1, "from_step": 0, "to_step": 500, "device": "2-core CPU",
+    ...                "backend": "tensorflow", "steps_per_s": 1.52, "wall_s": 400.0,
+    ...                "date": "2026-11-27"}]).splitlines()[2]
+    '| 1 | 0 -> 500 | 2-core CPU | tensorflow | 1.52 | 7 | 2026-11-27 |'
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import shutil
+import time
+
+from stnh_tf.paths import atomic_write_json, read_json
+from stnh_tf.training import run_dir
+from stnh_tf.training.config import TrainConfig
+
+RESUME_DIR = "resume"
+LEDGER_FILE = "ledger.json"
+LEDGER_START = "<!-- ledger:start -->"
+LEDGER_END = "<!-- ledger:end -->"
+
+
+def resume_dir(root: str, stage: int) -> str:
+    """The repository folder of stage ``stage``'s committed checkpoint."""
+    return os.path.join(root, RESUME_DIR, f"stage{stage}")
+
+
+def finished_model(root: str, stage: int) -> str:
+    """Where a finished stage's model is kept (``stage<k>.keras``)."""
+    return os.path.join(root, f"stage{stage}.keras")
+
+
+def _step(checkpoint_dir) -> int:
+    state = run_dir.read_checkpoint_state(checkpoint_dir)
+    return -1 if state is None or run_dir.checkpoint_weights_path(checkpoint_dir) is None \
+        else int(state["step"])
+
+
+def _copy_checkpoint(src_dir, dst_dir, extra_files=()):
+    """Copy the committed checkpoint of ``src_dir`` (state and the weights it names) and
+    ``extra_files`` into ``dst_dir``, replaced whole (written beside it, then swapped in)."""
+    tmp, old = f"{dst_dir}.tmp-{os.getpid()}", f"{dst_dir}.old-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    os.makedirs(tmp)
+    for path in (run_dir.checkpoint_weights_path(src_dir),
+                 os.path.join(src_dir, run_dir.CHECKPOINT_STATE), *extra_files):
+        shutil.copy2(path, os.path.join(tmp, os.path.basename(path)))
+    if os.path.exists(dst_dir):
+        os.rename(dst_dir, old)
+    os.rename(tmp, dst_dir)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def sync_in(resume: str, model_dir: str) -> int | None:
+    """Copy the committed checkpoint in ``resume`` into the run folder ``model_dir`` where it is
+    newer than the folder's own (or the folder has none). Returns the step copied in, else
+    ``None``."""
+    ckpt = os.path.join(model_dir, run_dir.CHECKPOINT_DIR)
+    if _step(resume) <= _step(ckpt):
+        return None
+    os.makedirs(model_dir, exist_ok=True)
+    config = os.path.join(model_dir, run_dir.CONFIG_FILE)
+    if not os.path.exists(config):
+        shutil.copy2(os.path.join(resume, run_dir.CONFIG_FILE), config)
+    _copy_checkpoint(resume, ckpt)
+    return _step(ckpt)
+
+
+def sync_out(model_dir: str, resume: str) -> int:
+    """Replace ``resume`` by the run folder's committed checkpoint and ``config.json``. Returns
+    its step."""
+    ckpt = os.path.join(model_dir, run_dir.CHECKPOINT_DIR)
+    os.makedirs(os.path.dirname(resume), exist_ok=True)
+    _copy_checkpoint(ckpt, resume, [os.path.join(model_dir, run_dir.CONFIG_FILE)])
+    return _step(resume)
+
+
+def strip_optimizer(src: str, dst: str) -> None:
+    """Save the model of ``src`` (``.keras``) to ``dst`` without its optimizer state."""
+    import keras
+
+    from stnh_tf.modeling import runner  # noqa: F401  (registers the custom objects)
+
+    model = keras.saving.load_model(src, compile=False)
+    tmp = f"{dst}.tmp-{os.getpid()}.keras"
+    model.save(tmp)
+    os.replace(tmp, dst)
+
+
+def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
+              printer=print) -> dict:
+    """One chunk of ``cfg``'s run: resume from the newest checkpoint (``cfg.model_dir``'s or the
+    one committed under ``root``), train until ``time_limit_s`` (:func:`stnh_tf.training.loop.train`
+    stops at a checkpoint before it), then commit the checkpoint back under ``root``, or, once the
+    stage is done, its model as ``stage<k>.keras`` (and remove the checkpoint), and add a row to
+    the ledger. Returns the row.
+
+    Raises:
+      ValueError / OSError: as :func:`stnh_tf.training.loop.train`.
+    """
+    import keras
+
+    from stnh_tf.training import loop
+
+    resume = resume_dir(root, cfg.stage)
+    copied = sync_in(resume, cfg.model_dir)
+    if copied is not None:
+        printer(f"resuming from the committed checkpoint at step {copied} ({resume})")
+    start_step = max(_step(os.path.join(cfg.model_dir, run_dir.CHECKPOINT_DIR)), 0)
+    t0 = time.time()
+    result = loop.train(cfg, printer=printer, time_limit_s=time_limit_s)
+    final = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
+    done = result["final_step"] >= cfg.train_steps and os.path.exists(final)
+    if done:
+        strip_optimizer(final, finished_model(root, cfg.stage))
+        shutil.rmtree(resume, ignore_errors=True)
+    else:
+        sync_out(cfg.model_dir, resume)
+    steps = result["final_step"] - start_step
+    row = {"stage": cfg.stage, "from_step": start_step, "to_step": result["final_step"],
+           "done": bool(done), "device": device, "backend": keras.backend.backend(),
+           "steps_per_s": round(steps / max(result["wall_s_this_run"], 1e-9), 3),
+           "wall_s": round(time.time() - t0, 1), "date": datetime.date.today().isoformat()}
+    add_ledger_row(root, row)
+    return row
+
+
+def add_ledger_row(root: str, row: dict) -> list:
+    """Append ``row`` to ``root``'s ledger; returns the ledger."""
+    path = os.path.join(root, LEDGER_FILE)
+    ledger = read_json(path, "ledger") if os.path.exists(path) else []
+    ledger.append(row)
+    atomic_write_json(path, ledger)
+    return ledger
+
+
+def ledger_table(ledger: list) -> str:
+    """The ledger as a Markdown table (stage, steps, machine, backend, steps/s, minutes, date)."""
+    lines = ["| stage | steps | machine | backend | steps/s | minutes | date |",
+             "|---|---|---|---|---|---|---|"]
+    for r in ledger:
+        lines.append(f"| {r['stage']} | {r['from_step']} -> {r['to_step']} | {r['device']} | "
+                     f"{r['backend']} | {r['steps_per_s']:.2f} | {r['wall_s'] / 60:.0f} | "
+                     f"{r['date']} |")
+    return "\n".join(lines)
+
+
+def write_ledger_table(root: str, doc: str) -> bool:
+    """Rewrite the block between :data:`LEDGER_START` and :data:`LEDGER_END` in the Markdown file
+    ``doc`` with :func:`ledger_table` of ``root``'s ledger. Returns whether it changed.
+
+    Raises:
+      ValueError: ``doc`` lacks the markers.
+    """
+    path = os.path.join(root, LEDGER_FILE)
+    ledger = read_json(path, "ledger") if os.path.exists(path) else []
+    with open(doc) as f:
+        text = f.read()
+    if LEDGER_START not in text or LEDGER_END not in text:
+        raise ValueError(f"{doc} has no {LEDGER_START} ... {LEDGER_END} block.")
+    head, rest = text.split(LEDGER_START, 1)
+    _, tail = rest.split(LEDGER_END, 1)
+    new = f"{head}{LEDGER_START}\n{ledger_table(ledger)}\n{LEDGER_END}{tail}"
+    if new != text:
+        with open(doc, "w") as f:
+            f.write(new)
+    return new != text
