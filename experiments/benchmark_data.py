@@ -34,6 +34,7 @@ flags.DEFINE_integer("resume_skip_batches", 0, "Also time resuming the stream at
 flags.DEFINE_integer("seed", 0, "Generation seed.")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
+flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 
 def main(argv):

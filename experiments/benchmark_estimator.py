@@ -31,6 +31,7 @@ DEFAULTS = EstimateOptions(search="none")
 flags_common.define_estimate_flags(("tta", "search"), DEFAULTS)
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
+flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 
 def main(argv):

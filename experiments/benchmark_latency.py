@@ -44,6 +44,7 @@ def measure(*args, **kwargs):
     from stnh_tf.evaluation import mace as evaluation
 
     return evaluation.latency(*args, **kwargs)
+flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 
 def main(argv):

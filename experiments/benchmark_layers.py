@@ -29,6 +29,7 @@ flags.DEFINE_bool("compare_jit", False,
 flags_common.define_json_out()
 
 FLAGS = flags.FLAGS
+flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 
 def main(argv):

@@ -27,6 +27,7 @@ flags.DEFINE_bool("photometric", False, "patch_b also changed in brightness, con
 flags.DEFINE_list("perturbations", ["0.01", "0.1", "0.3"], "Start moves (px) of the search.")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
+flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 
 def main(argv):

@@ -39,6 +39,7 @@ flags.DEFINE_bool("mixed_precision", True, "Keras mixed_bfloat16 policy.")
 flags.DEFINE_integer("seed", 0, "Pair and weight seed.")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
+flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 
 def main(argv):

@@ -30,6 +30,7 @@ flags.DEFINE_integer("latency_runs", 200, "Batch-1 inference calls timed.")
 flags.DEFINE_integer("seed", 0, "Seed of the batches and weights.")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
+flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 
 def main(argv):

@@ -25,6 +25,7 @@ flags.DEFINE_bool("photometric", False, "Bundled pairs with a photometric change
 flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search"))
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
+flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 
 def main(argv):

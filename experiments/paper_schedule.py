@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 
-from absl import app, flags
+from absl import app, flags, logging
 
 from experiments import common
 from stnh_tf.training import chunks
@@ -59,8 +59,9 @@ def main(argv):
                       prev_stages=tuple(chunks.finished_model(ROOT, k) for k in range(1, stage)))
     device = FLAGS.device or f"{machine_info()['cpu']}, {os.cpu_count()} cores"
     with common.user_errors("paper_schedule"):
-        row = chunks.run_chunk(cfg, ROOT, FLAGS.time_limit_s, str(device))
+        row = chunks.run_chunk(cfg, ROOT, FLAGS.time_limit_s, str(device), printer=logging.info)
         chunks.write_ledger_table(ROOT, os.path.join(REPO, "docs", "gpu.md"))
+    logging.info("chunk done: %s", row)
     print(row)
 
 

@@ -30,6 +30,7 @@ flags.DEFINE_string("model", None, "Model: .keras file, run directory or hierarc
                     "(default: the weights shipped in stnh_tf/weights).")
 flags.DEFINE_string("output_dir", ".", "Folder for the overlay PNG and the JSON (created if missing).")
 flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search"))
+flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 
 def main(argv):
@@ -38,6 +39,7 @@ def main(argv):
         result = image_files.align_image_files(
             FLAGS.image_a, FLAGS.image_b, FLAGS.model, FLAGS.output_dir,
             warn=lambda message: print(f"predict: warning: {message}", file=sys.stderr),
+            note=lambda message: print(f"predict: note: {message}", file=sys.stderr),
             options=flags_common.options_from_flags())
     except image_files.AlignmentError as e:
         raise SystemExit(f"predict: {e}") from None

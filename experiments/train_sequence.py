@@ -11,18 +11,20 @@ dataset is the stage-1 dataset (original patch_a, patch_b, H_bar, patch_a_t). Re
 command resumes from the last checkpoint (``--init_from`` only applies to a fresh start).
 """
 
-from absl import app
+from absl import app, flags
 
 from experiments import common, flags_common
 from stnh_tf.training import config as train_config
 
 flags_common.define_training_flags(train_config.SEQUENCE)
+flags.adopt_module_key_flags(flags_common)  # --help lists the training flags
 
 
 def main(argv):
     del argv
     with common.user_errors("train_sequence", (ValueError,)):
         cfg = flags_common.config_from_flags(train_config.SEQUENCE, model="sequence")
+        cfg.validate()  # every flag's problem in one message, before TensorFlow starts
     flags_common.run_training(cfg, "train_sequence")
 
 

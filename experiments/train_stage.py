@@ -9,7 +9,7 @@ decay over 90,000); ``--model=homographynet`` defaults to DeTone et al.'s (lr 0.
 after each third of --train_steps). Re-running the same command resumes from the last checkpoint.
 """
 
-from absl import app
+from absl import app, flags
 
 from experiments import common, flags_common
 from stnh_tf.training import config as train_config
@@ -17,12 +17,14 @@ from stnh_tf.training import config as train_config
 flags_common.define_training_flags(
     train_config.STAGE,
     choices={"model": [k for k in train_config.MODEL_KINDS if k != "sequence"]})
+flags.adopt_module_key_flags(flags_common)  # --help lists the training flags
 
 
 def main(argv):
     del argv
     with common.user_errors("train_stage", (ValueError,)):
         cfg = flags_common.config_from_flags(train_config.STAGE)
+        cfg.validate()  # every flag's problem in one message, before TensorFlow starts
     flags_common.run_training(cfg, "train_stage")
 
 

@@ -28,6 +28,7 @@ flags.DEFINE_enum("grid", "small", ["none", "small"],
 flags_common.define_json_out()
 
 FLAGS = flags.FLAGS
+flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 
 def main(argv):

@@ -2,6 +2,9 @@
 a binary, and every flag given on the command line reaches the config unchanged."""
 
 import dataclasses
+import os
+import subprocess
+import sys
 
 import pytest
 from absl import flags
@@ -9,6 +12,8 @@ from absl import flags
 from experiments import flags_common
 from stnh_tf.training import config as train_config
 from stnh_tf.training.config import SEQUENCE, STAGE, TrainConfig
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def _names(scope):
@@ -77,3 +82,35 @@ def test_a_list_value_of_the_wrong_type_is_a_clear_error():
     flag_values(["binary", "--model_dir=m", "--stage_loss_weights=1,heavy"])
     with pytest.raises(ValueError, match="stage_loss_weights takes float values"):
         flags_common.config_from_flags(SEQUENCE, flag_values=flag_values)
+
+
+@pytest.mark.parametrize("binary, wanted", [
+    ("train_stage", ["--train_steps", "--learning_rate", "--time_limit_s", "--[no]overwrite"]),
+    ("predict", ["--search", "--tta", "--image_a"]),
+])
+def test_help_lists_the_binarys_own_flags(binary, wanted):
+    """``--help`` (absl's key flags of the main module) shows the flags defined for the binary in
+    experiments.flags_common, not only the few it defines itself."""
+    out = subprocess.run([sys.executable, "-m", f"experiments.{binary}", "--helpshort"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    text = out.stdout + out.stderr
+    assert all(flag in text for flag in wanted), text[-2000:]
+
+
+def test_every_flag_problem_in_one_message_before_tensorflow_starts():
+    code = ("import sys\n"
+            "sys.argv = ['train_stage', '--model_dir=x', '--image_dir=y', '--train_steps=100',\n"
+            "            '--warmup_steps=200', '--checkpoint_every=30', '--dropout=2']\n"
+            "from absl import app\n"
+            "from experiments import train_stage\n"
+            "try:\n"
+            "    app.run(train_stage.main)\n"
+            "except SystemExit as e:\n"
+            "    print(e)\n"
+            "print('tensorflow' in sys.modules, 'keras' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True,
+                         timeout=120)
+    lines = out.stdout.strip().splitlines()
+    assert lines[-1] == "False False", out.stderr[-2000:]
+    assert lines[0].startswith("train_stage: 3 problems: (1) need 0 <= warmup_steps")
+    assert "dropout must be in [0, 1)" in lines[0] and "multiple of checkpoint_every" in lines[0]

@@ -1159,10 +1159,13 @@ def test_predict_binary(identity_model_path, tmp_path):
                                np.linalg.inv(_resize_ref((600, 400), (300, 200))), atol=1e-9)
     assert result["image_a_size"] == [600, 400] and result["image_b_size"] == [300, 200]
     png = cv2.imread(result["overlay_png"])
-    assert png is not None and png.shape == (400, 600 + 8 + 300 + 8, 3)
+    top = png.shape[0] - 400  # the captions' band above both panels
+    assert png is not None and png.shape[1:] == (600 + 8 + 300 + 8, 3) and 10 < top < 60
+    assert png[:top, :600].max() > 200 and png[:top, 608:908].max() > 200  # captions written
+    np.testing.assert_array_equal(png[top + 50, 300], image_a[50, 300, ::-1])  # panel 1: image_a
     assert json.loads((tmp_path / "out" / "a__b_homography.json").read_text()) == result
     # With the identity model, image_a warped onto image_b equals image_b (gray overlay):
-    blend = png[:200, 608:908].astype(np.float64)
+    blend = png[top:top + 200, 608:908].astype(np.float64)
     assert np.abs(blend[..., 1] - blend[..., 0])[4:-4, 4:-4].mean() < 3.0
     assert result["implausible"] is False and result["max_corner_shift_px"] < 1e-6
     assert "implausible" not in proc.stderr
@@ -1190,6 +1193,20 @@ def test_predict_binary(identity_model_path, tmp_path):
     np.testing.assert_allclose(result["homography"], want / want[2, 2], atol=1e-4)
     assert abs(result["homography"][0][2]) == pytest.approx(60.0 * 600 / 320, abs=1e-3)
     assert "warning: the estimate is implausible" in proc.stderr and "60.0 px" in proc.stderr
+    assert "note: the estimate was flagged and estimated again" in proc.stderr
+    # a network 8 px off on a pair of identical images: the default search finds the identity
+    # and says so (the network's estimate was replaced)
+    off = geometry.translation(8.0, 0.0)
+    _constant_stage(off, "off").save(tmp_path / "off.keras")
+    proc = _run("experiments.predict", f"--image_a={tmp_path / 'a.png'}",
+                f"--image_b={tmp_path / 'a.png'}", f"--model={tmp_path / 'off.keras'}",
+                f"--output_dir={tmp_path / 'off'}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(proc.stdout)
+    assert result["search_found"] is True
+    assert np.abs(np.array(result["homography"]) - np.eye(3)).max() < 0.05
+    assert "predict: note: the network's estimate aligned the images poorly; the search" \
+        in proc.stderr
 
     (tmp_path / "junk.png").write_text("not an image")
     for bad, what in ((tmp_path / "junk.png", "cannot read image_a"),
@@ -1240,7 +1257,7 @@ def test_predict_outputs_of_pairs_with_the_same_names_do_not_collide(identity_mo
         str(tmp_path / "two" / "a.png")
     assert json.loads((out / "a__b_homography.json").read_text())["image_a"] == \
         str(tmp_path / "one" / "a.png")
-    assert cv2.imread(str(out / "a__b-2_overlay.png")).shape[0] == photos["two"].shape[0]
+    assert cv2.imread(str(out / "a__b-2_overlay.png")).shape[0] > photos["two"].shape[0]
 
 
 def test_implausibility_check_with_the_identity_model(identity_model_path):

@@ -187,3 +187,24 @@ def test_train_only_trains_that_part_and_stops(tiny_run, tmp_path):
     res = subprocess.run(cmd + ["--train_only=homographynet,stage7"], cwd=ROOT, capture_output=True,
                          text=True, timeout=300)
     assert res.returncode != 0 and "['stage7']" in res.stderr
+
+
+def test_tables_mark_rows_whose_predictions_were_rejected():
+    """A hierarchy row whose stage predictions the degenerate rule rejected is marked and
+    explained (its MACE is the identity's there, not the network's); a clean run has no note."""
+    budget = dataclasses.asdict(reproduce.BUDGETS["tiny"])
+    result = {"budget": budget, "test_pairs": 12,
+              "fig4_mace": {"Identity": 23.53, "STN-Homography 1 stage": 23.53},
+              "fig4_rejected": {"STN-Homography 1 stage": 12},
+              "paper": {"fig4_mace": reproduce.PAPER_FIG4, "table1_mace": {},
+                        "table2_gpu_ms": reproduce.PAPER_TABLE2_GPU_MS},
+              "table1_mace_per_seed": {}, "models": {"stages": [], "homographynet": "h",
+                                                     "sequence2": "s", "ablation_seeds": {}},
+              "figures": {}}
+    latency = {"hierarchy": {}, "policy": "float32"}
+    text = reproduce.tables_markdown(result, latency)
+    assert "| STN-Homography 1 stage (rejected: see below) | 23.53 |" in text
+    assert "| Identity | 23.53 |" in text
+    assert "STN-Homography 1 stage: 12 stage predictions of 12 pairs were rejected" in text
+    clean = reproduce.tables_markdown({**result, "fig4_rejected": {}}, latency)
+    assert "rejected" not in clean

@@ -694,3 +694,40 @@ def test_sync_in_keeps_a_newer_local_checkpoint(tmp_path):
     assert chunks.sync_in(str(tmp_path / "resume"), str(tmp_path / "new")) == 4
     assert (tmp_path / "new" / "checkpoint" / "ckpt-00000004.weights.h5").read_bytes() == b"w4"
     assert (tmp_path / "new" / "config.json").read_text() == "{}"
+
+
+def _scalars(folder):
+    """{tag: {step: value}} of the TensorBoard event files in ``folder``."""
+    out = {}
+    for path in sorted(folder.glob("events.out.tfevents.*")):
+        for event in tf.compat.v1.train.summary_iterator(str(path)):
+            for v in event.summary.value:
+                out.setdefault(v.tag, {})[event.step] = float(tf.make_ndarray(v.tensor))
+    return out
+
+
+@pytest.mark.parametrize("log_every, checkpoint_every, train_steps, logged", [
+    (1, 2, 6, [1, 2, 3, 4, 5, 6]),
+    (50, 3, 6, [1, 2, 3, 4, 5, 6]),   # a run shorter than log_every: at least ten reports
+    (4, 3, 12, [2, 4, 6, 8, 10, 12]),  # checkpoint_every not a multiple of log_every
+])
+def test_tensorboard_scalars_are_against_the_global_step(tiny_data, tmp_path, narrow, log_every,
+                                                          checkpoint_every, train_steps, logged):
+    """The loss terms and the learning rate at every reported step, the validation MACE at every
+    checkpoint, read back from the event files; the learning rate equals the schedule's (Keras'
+    CosineDecay) at that step."""
+    cfg = _cfg(tiny_data, tmp_path / "run", log_every=log_every,
+               checkpoint_every=checkpoint_every, train_steps=train_steps, val_samples=4)
+    lines = []
+    training.train(cfg, printer=lines.append)
+    train = _scalars(tmp_path / "run" / "logs" / "train")
+    for tag in ("loss", "h_bar_loss", "patch_a_warp_loss", "learning_rate"):
+        assert sorted(train[tag]) == logged, (tag, train[tag])
+    schedule = training.learning_rate_schedule(cfg)
+    for step, lr in train["learning_rate"].items():
+        assert lr == pytest.approx(float(schedule(step)), rel=1e-5)
+    validation = _scalars(tmp_path / "run" / "logs" / "validation")
+    assert sorted(validation["h_bar_mace"]) == list(range(checkpoint_every, train_steps + 1,
+                                                          checkpoint_every))
+    reported = [int(m.group(1)) for m in map(re.compile(r"step (\d+)/").match, lines) if m]
+    assert reported == logged

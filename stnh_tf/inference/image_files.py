@@ -51,9 +51,27 @@ def output_stem(output_dir, inputs):
                          "another --output_dir.")
 
 
+OVERLAY_CAPTIONS = ("image_a; green: image_b's border mapped into it",
+                    "magenta: image_a warped onto image_b; green: image_b; gray: aligned")
+"""The caption above each panel of :func:`overlay`."""
+
+
+def _caption(panel, text, scale):
+    """``panel`` with a black band above it holding ``text`` in white (font ``scale``)."""
+    import cv2
+    import numpy as np
+
+    (_, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    band = np.zeros((h + base + 8, panel.shape[1], 3), np.uint8)
+    cv2.putText(band, text, (4, h + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1,
+                cv2.LINE_AA)
+    return np.concatenate([band, panel], axis=0)
+
+
 def overlay(image_a, image_b, h_ba):
-    """Two panels (uint8 BGR): image_a with image_b's border mapped into it, and the colour
-    overlay of image_b on image_a warped onto image_b's frame by ``h_ba``."""
+    """Two captioned panels (uint8 BGR, :data:`OVERLAY_CAPTIONS`): image_a with image_b's border
+    mapped into it, and the colour overlay of image_b on image_a warped onto image_b's frame by
+    ``h_ba``. Returns ``(panels, quad)``, ``quad`` the ``[4, 2]`` border of image_b in image_a."""
     import cv2
     import numpy as np
 
@@ -70,23 +88,51 @@ def overlay(image_a, image_b, h_ba):
     thickness = max(1, round(max(wa, ha) / 300))
     cv2.polylines(left, [np.round(quad).astype(np.int32).reshape(-1, 1, 2)], True, (0, 255, 0),
                   thickness, cv2.LINE_AA)
-    height = max(ha, hb)
-    pad = lambda im: cv2.copyMakeBorder(im, 0, height - im.shape[0], 0, 8, cv2.BORDER_CONSTANT, value=0)
-    return np.concatenate([pad(left), pad(blend)], axis=1), quad
+    scale = max(max(wa, wb) / 900.0, 0.35)  # one font size: the captions' bands are as high
+    left, blend = (_caption(p, c, scale) for p, c in zip((left, blend), OVERLAY_CAPTIONS))
+    height = max(left.shape[0], blend.shape[0])
+    panels = [cv2.copyMakeBorder(p, 0, height - p.shape[0], 0, 8, cv2.BORDER_CONSTANT, value=0)
+              for p in (left, blend)]
+    return np.concatenate(panels, axis=1), quad
 
 
 def _warn_stderr(message):
     print(f"warning: {message}", file=sys.stderr)
 
 
+def _note_stderr(message):
+    print(f"note: {message}", file=sys.stderr)
+
+
+def deviation_notes(estimate) -> list:
+    """One line per step beyond the paper's network that changed the estimate of the (first)
+    pair of an :class:`~stnh_tf.inference.pipeline.Estimate`: the search, the refinement, the
+    retry, a test-time symmetry."""
+    notes, ncc = [], float(estimate.alignment_ncc[0])
+    if estimate.found[0]:
+        notes.append(f"the network's estimate aligned the images poorly; the search (a deviation "
+                     f"from the paper; --search=none gives the network's estimate) replaced it "
+                     f"with one that aligns them at NCC {ncc:.3f}.")
+    if estimate.refined[0]:
+        notes.append("the estimate is the ECC refinement of the network's (--refine=ecc, a "
+                     "deviation from the paper).")
+    if estimate.retried[0]:
+        notes.append(f"the estimate was flagged and estimated again with test-time augmentation "
+                     f"(--retry_tta={estimate.options.retry_tta}, a deviation from the paper).")
+    if estimate.tta_choice[0] != "identity":
+        notes.append(f"the estimate is the network's on the images transformed by "
+                     f"{estimate.tta_choice[0]} (test-time augmentation, a deviation).")
+    return notes
+
+
 def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", warn=_warn_stderr,
-                      options=None):
+                      options=None, note=_note_stderr):
     """Estimate ``H_ba`` between two image files with ``model`` (what
     ``HomographyEstimator.load`` takes; ``None``: the shipped weights) and ``options`` (an
     :class:`~stnh_tf.inference.options.EstimateOptions`; ``None``: the default), write
     ``<a>__<b>_overlay.png`` and ``<a>__<b>_homography.json`` into ``output_dir`` (created if
     missing; :func:`output_stem`) and return the JSON's content. ``warn`` receives the warning
-    of an implausible estimate.
+    of an implausible estimate, ``note`` each line of :func:`deviation_notes`.
 
     Raises:
       AlignmentError: an image cannot be read, ``output_dir`` cannot be written, or the model
@@ -121,6 +167,8 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
              f"as degenerate; image_a warped onto image_b correlates "
              f"{info['alignment_ncc'][0]:.2f} with it at the central patch): the images may not "
              "overlap enough, or differ in ways the model was not trained on.")
+    for line in deviation_notes(estimate):
+        note(line)
     panels, quad = overlay(image_a, image_b, h)
 
     inputs = [os.path.realpath(image_a_path), os.path.realpath(image_b_path)]

@@ -160,111 +160,148 @@ class TrainConfig:
                          choices=tuple(sorted(RECIPES)))
 
     def validate(self):
-        """Raise ``ValueError`` naming the field and value for anything training cannot use:
-        every field's range is checked here, in one place, before anything is written."""
+        """Raise ``ValueError`` naming every field and value training cannot use, all of them in
+        one message (:meth:`problems`): checked here, in one place, before anything is written."""
+        problems = self.problems()
+        if len(problems) == 1:
+            raise ValueError(problems[0])
+        if problems:
+            raise ValueError(f"{len(problems)} problems: "
+                             + " ".join(f"({i}) {p}" for i, p in enumerate(problems, 1)))
+
+    def problems(self) -> list:
+        """Every problem :meth:`validate` reports, as messages naming the field and value."""
+        out = []
+        for group in (self._choice_problems, self._source_problems, self._model_problems,
+                      self._number_problems, self._loss_problems, self._folder_problems):
+            try:
+                out.extend(group())
+            except (TypeError, ValueError) as e:  # a value of the wrong type, met in a group
+                out.append(f"{type(e).__name__}: {e}")
+        return out
+
+    def _choice_problems(self):
         for f in dataclasses.fields(self):
             choices = f.metadata.get("choices")
             if choices and getattr(self, f.name) not in choices:
-                raise ValueError(f"{f.name} must be one of {sorted(choices)}; received "
-                                 f"{getattr(self, f.name)!r}.")
+                yield (f"{f.name} must be one of {sorted(choices)}; received "
+                       f"{getattr(self, f.name)!r}.")
+
+    def _source_problems(self):
         if not self.model_dir:
-            raise ValueError("model_dir is required.")
+            yield ("model_dir is required.")
         if bool(self.data_dir) == bool(self.image_dir):
-            raise ValueError("give exactly one of data_dir (TFRecords) and image_dir (pairs "
-                             f"generated on the fly); received data_dir={self.data_dir!r}, "
-                             f"image_dir={self.image_dir!r}.")
+            yield ("give exactly one of data_dir (TFRecords) and image_dir (pairs "
+                   f"generated on the fly); received data_dir={self.data_dir!r}, "
+                   f"image_dir={self.image_dir!r}.")
         if self.image_dir and self.stage != 1 and (len(self.prev_stages) != self.stage - 1
                                                    or not self.in_memory or self.model != "stn"):
-            raise ValueError(f"stage {self.stage} from image_dir needs in_memory, model 'stn' and "
-                             f"the {self.stage - 1} previous stages' model dirs in prev_stages "
-                             f"(received {len(self.prev_stages)}): their predictions make the "
-                             "stage's pairs in memory. Or train on stage-k TFRecords "
-                             "(data_prep.make_stage_dataset) with data_dir.")
+            yield (f"stage {self.stage} from image_dir needs in_memory, model 'stn' and "
+                   f"the {self.stage - 1} previous stages' model dirs in prev_stages "
+                   f"(received {len(self.prev_stages)}): their predictions make the "
+                   "stage's pairs in memory. Or train on stage-k TFRecords "
+                   "(data_prep.make_stage_dataset) with data_dir.")
         if self.prev_stages and (not self.image_dir or self.stage == 1):
-            raise ValueError("prev_stages is for stage k > 1 trained from image_dir; stage-k "
-                             "TFRecords already hold the previous stages' predictions.")
+            yield ("prev_stages is for stage k > 1 trained from image_dir; stage-k "
+                   "TFRecords already hold the previous stages' predictions.")
+
+    def _model_problems(self):
         if self.model == "sequence" and self.num_stages < 1:
-            raise ValueError(f"num_stages must be >= 1; received {self.num_stages}.")
+            yield (f"num_stages must be >= 1; received {self.num_stages}.")
         if self.model != "sequence" and self.init_from and (len(self.init_from) != 1
                                                             or self.model != "stn"):
-            raise ValueError(f"init_from of a single stage takes one stn run and model 'stn'; "
-                             f"received {len(self.init_from)} dirs, model {self.model!r}.")
+            yield (f"init_from of a single stage takes one stn run and model 'stn'; "
+                   f"received {len(self.init_from)} dirs, model {self.model!r}.")
         if self.model == "sequence" and self.init_from and len(self.init_from) > self.num_stages:
-            raise ValueError(f"init_from names {len(self.init_from)} models for {self.num_stages} "
-                             "stages.")
-        if self.train_steps <= 0 or self.warmup_steps < 0 or self.warmup_steps > self.train_steps:
-            raise ValueError(f"need 0 <= warmup_steps <= train_steps, train_steps > 0; received "
-                             f"warmup_steps={self.warmup_steps}, train_steps={self.train_steps}.")
+            yield (f"init_from names {len(self.init_from)} models for {self.num_stages} "
+                   "stages.")
+        if self.lr_schedule == "step" and self.warmup_steps:
+            yield (f"lr_schedule 'step' (DeTone et al.'s) has no warm-up; received "
+                   f"warmup_steps={self.warmup_steps} (give 0, or lr_schedule 'cosine').")
+        if self.model == "homographynet" and self.batch_norm != "conv":
+            yield ("model 'homographynet' is DeTone et al.'s network, with BatchNorm "
+                   f"after every convolution: batch_norm must be 'conv' (received "
+                   f"{self.batch_norm!r}); model 'homographynet_gap' is the 4-point "
+                   "regression on this project's backbone, with or without it.")
+        if self.model in FOUR_POINT_KINDS and self.input_norm != "unit":
+            yield (f"model={self.model!r} scales its input to [-1, 1]: input_norm must "
+                   f"be 'unit' (received {self.input_norm!r}).")
+
+    def _number_problems(self):
+        wrong = [name for name, low in _INTEGER_MINIMUMS.items()
+                 if isinstance(getattr(self, name), bool)
+                 or not isinstance(getattr(self, name), numbers.Integral)
+                 or getattr(self, name) < low]
         for name, low in _INTEGER_MINIMUMS.items():
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
-                raise ValueError(f"{name} must be an integer >= {low}; received {value!r}.")
+                yield (f"{name} must be an integer >= {low}; received {value!r}.")
+        if wrong:  # the checks below need those integers
+            return
+        if self.train_steps <= 0 or self.warmup_steps < 0 or self.warmup_steps > self.train_steps:
+            yield (f"need 0 <= warmup_steps <= train_steps, train_steps > 0; received "
+                   f"warmup_steps={self.warmup_steps}, train_steps={self.train_steps}.")
         if not 0.0 <= self.dropout < 1.0:
-            raise ValueError(f"dropout must be in [0, 1); received {self.dropout}.")
+            yield (f"dropout must be in [0, 1); received {self.dropout}.")
         if not 0.0 <= self.momentum <= 1.0:
-            raise ValueError(f"momentum must be in [0, 1]; received {self.momentum}.")
+            yield (f"momentum must be in [0, 1]; received {self.momentum}.")
         for name in ("l2_weight", "l1_weight"):
             value = getattr(self, name)
             if not (value >= 0 and math.isfinite(value)):
-                raise ValueError(f"{name} must be a finite number >= 0; received {value}.")
+                yield (f"{name} must be a finite number >= 0; received {value}.")
         if self.l2_weight == 0 and self.l1_weight == 0:
-            raise ValueError("l2_weight and l1_weight are both 0: the loss would be 0 and nothing "
-                             "would train; set at least one of them above 0.")
+            yield ("l2_weight and l1_weight are both 0: the loss would be 0 and nothing "
+                   "would train; set at least one of them above 0.")
         if self.train_steps % self.checkpoint_every:
-            raise ValueError(f"train_steps ({self.train_steps}) must be a multiple of "
-                             f"checkpoint_every ({self.checkpoint_every}).")
+            yield (f"train_steps ({self.train_steps}) must be a multiple of "
+                   f"checkpoint_every ({self.checkpoint_every}).")
         if self.stage < 1:
-            raise ValueError(f"stage must be >= 1; received {self.stage}.")
+            yield (f"stage must be >= 1; received {self.stage}.")
         if not (self.weight_decay >= 0 and math.isfinite(self.weight_decay)):
-            raise ValueError(f"weight_decay must be a finite number >= 0; received "
-                             f"{self.weight_decay}.")
+            yield (f"weight_decay must be a finite number >= 0; received "
+                   f"{self.weight_decay}.")
         if not (self.clipnorm >= 0 and math.isfinite(self.clipnorm)):
-            raise ValueError(f"clipnorm must be a finite number >= 0 (0: off); received "
-                             f"{self.clipnorm}.")
+            yield (f"clipnorm must be a finite number >= 0 (0: off); received "
+                   f"{self.clipnorm}.")
         if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
-            raise ValueError(f"learning_rate must be a finite number > 0; received "
-                             f"{self.learning_rate}.")
-        if self.lr_schedule == "step" and self.warmup_steps:
-            raise ValueError(f"lr_schedule 'step' (DeTone et al.'s) has no warm-up; received "
-                             f"warmup_steps={self.warmup_steps} (give 0, or lr_schedule 'cosine').")
-        if self.model == "homographynet" and self.batch_norm != "conv":
-            raise ValueError("model 'homographynet' is DeTone et al.'s network, with BatchNorm "
-                             f"after every convolution: batch_norm must be 'conv' (received "
-                             f"{self.batch_norm!r}); model 'homographynet_gap' is the 4-point "
-                             "regression on this project's backbone, with or without it.")
-        if self.model in FOUR_POINT_KINDS and self.input_norm != "unit":
-            raise ValueError(f"model={self.model!r} scales its input to [-1, 1]: input_norm must "
-                             f"be 'unit' (received {self.input_norm!r}).")
-        self.check_losses()
+            yield (f"learning_rate must be a finite number > 0; received "
+                   f"{self.learning_rate}.")
+
+    def _folder_problems(self):
         for name in ("image_dir", "val_image_dir"):
             spec = getattr(self, name)
             if spec and not [f for f in spec.split(",") if f.strip()]:
-                raise ValueError(f"{name} names no folder (received {spec!r}); give one or "
-                                 "more comma-separated folders.")
+                yield (f"{name} names no folder (received {spec!r}); give one or "
+                       "more comma-separated folders.")
         if self.photometric and not self.image_dir:
-            raise ValueError("photometric changes pairs generated from image_dir; for TFRecords, "
-                             "write them with data_prep.make_dataset --photometric.")
+            yield ("photometric changes pairs generated from image_dir; for TFRecords, "
+                   "write them with data_prep.make_dataset --photometric.")
         if self.in_memory and self.fresh_pairs:
-            raise ValueError("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
+            yield ("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
 
     def check_losses(self):
         """Raise ``ValueError`` for loss settings the model kind cannot use (part of
         :meth:`validate`; also run when the losses are built)."""
+        problems = list(self._loss_problems())
+        if problems:
+            raise ValueError(problems[0])
+
+    def _loss_problems(self):
         if self.model in FOUR_POINT_KINDS and (self.l2_weight, self.l1_weight,
                                                self.l2_reduction) != (1.0, 1.0, "mean"):
-            raise ValueError(f"model={self.model!r} trains its 4-point offsets with one L2 loss: "
-                             "l2_weight/l1_weight/l2_reduction do not apply (received "
-                             f"{self.l2_weight}, {self.l1_weight}, {self.l2_reduction!r}); leave "
-                             "them at 1, 1, 'mean'.")
+            yield (f"model={self.model!r} trains its 4-point offsets with one L2 loss: "
+                   "l2_weight/l1_weight/l2_reduction do not apply (received "
+                   f"{self.l2_weight}, {self.l1_weight}, {self.l2_reduction!r}); leave "
+                   "them at 1, 1, 'mean'.")
         weights = self.stage_loss_weights
         if weights and (self.model != "sequence" or len(weights) != self.num_stages):
-            raise ValueError(f"stage_loss_weights needs {self.num_stages} values (one per "
-                             f"sequence stage); received {list(weights)} for model "
-                             f"{self.model!r}.")
+            yield (f"stage_loss_weights needs {self.num_stages} values (one per "
+                   f"sequence stage); received {list(weights)} for model "
+                   f"{self.model!r}.")
         if any(not (isinstance(w, numbers.Real) and math.isfinite(w) and w >= 0)
                for w in weights):
-            raise ValueError(f"stage_loss_weights must be finite and >= 0; received "
-                             f"{list(weights)}.")
+            yield (f"stage_loss_weights must be finite and >= 0; received "
+                   f"{list(weights)}.")
 
     def to_json(self):
         d = dataclasses.asdict(self)

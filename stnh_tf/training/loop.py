@@ -13,7 +13,8 @@ it on the TFRecord dataset in ``config.data_dir`` with:
 * Atomic periodic checkpoints (model + optimizer + RNG state) every ``checkpoint_every`` steps; a
   killed run restarted with the same command resumes at the last checkpoint, repositions the data
   stream at that step, and follows the same schedule to the same final step.
-* TensorBoard logs (both loss terms, learning rate, validation MACE) and console progress.
+* TensorBoard scalars against the global step (both loss terms, learning rate, validation MACE)
+  and console progress, every ``log_every`` steps and at least ten times a run.
 * A non-finite loss stops training with an error naming the step and the last good checkpoint.
 * ``strategy="mirrored"`` runs under ``tf.distribute.MirroredStrategy``.
 
@@ -39,7 +40,6 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
-import logging
 import os
 import time
 
@@ -49,7 +49,8 @@ from stnh_tf.modeling import runner
 from stnh_tf.paths import atomic_write_json, fsync_replace
 from stnh_tf.training import model_kinds, run_dir
 from stnh_tf.training import streams as train_streams
-from stnh_tf.training.callbacks import NonFiniteGuard, ProgressLogger, TimeLimit
+from stnh_tf.training.callbacks import (NonFiniteGuard, ProgressLogger, StepScalars, TimeLimit,
+                                        report_every)
 from stnh_tf.training.config import OPTIMIZER_NAMES, TrainConfig
 from stnh_tf.training.precision import mixed_precision_warning
 
@@ -71,9 +72,6 @@ OPTIMIZERS = {"sgd": _sgd, "adam": _adam, "adamw": _adamw}
 if sorted(OPTIMIZERS) != sorted(OPTIMIZER_NAMES):
     raise ImportError(f"training.OPTIMIZERS {sorted(OPTIMIZERS)} must match "
                       f"train_config.OPTIMIZER_NAMES {sorted(OPTIMIZER_NAMES)}.")
-
-
-_log = logging.getLogger(__name__)
 
 
 class TrainingDiverged(RuntimeError):
@@ -258,7 +256,6 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     check_start(cfg)
     warning = mixed_precision_warning(cfg)
     if warning:
-        _log.warning(warning)
         printer(f"warning: {warning}")
     generated = bool(cfg.image_dir)
     stream_fn = stream_fn or (train_streams.generated_stream if generated
@@ -294,12 +291,12 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
                 train_ds = train_ds.map(mapper)
                 val_ds = val_ds.map(mapper) if val_ds is not None else None
         guard = NonFiniteGuard()
+        every = report_every(cfg.log_every, cfg.train_steps)
         callbacks = [guard, run_dir.AtomicCheckpoint(ckpt_dir, guard),
-                     ProgressLogger(cfg.log_every, cfg.train_steps, printer)]
+                     ProgressLogger(every, cfg.train_steps, printer)]
         if tensorboard_available():
-            callbacks.append(keras.callbacks.TensorBoard(
-                os.path.join(cfg.model_dir, run_dir.LOGS_DIR), update_freq=cfg.log_every,
-                write_graph=False))
+            callbacks.append(StepScalars(os.path.join(cfg.model_dir, run_dir.LOGS_DIR), every,
+                                         cfg.train_steps))
         else:
             printer("TensorFlow is not installed: no TensorBoard logs (console progress only)")
         callbacks.extend(extra_callbacks)
@@ -311,7 +308,8 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             history = model.fit(train_ds, epochs=epochs,
                                 initial_epoch=start_step // cfg.checkpoint_every,
                                 steps_per_epoch=cfg.checkpoint_every, validation_data=val_ds,
-                                validation_steps=val_steps, callbacks=callbacks, verbose=0)
+                                validation_steps=val_steps, callbacks=callbacks, verbose=0,
+                                shuffle=False)  # (the streams are shuffled themselves)
         except Exception as e:
             if not generated:
                 train_streams.raise_shard_error(cfg, e)
