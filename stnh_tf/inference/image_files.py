@@ -125,6 +125,44 @@ def deviation_notes(estimate) -> list:
     return notes
 
 
+def implausibility_warning(estimate) -> str | None:
+    """The warning for the (first) pair of an :class:`~stnh_tf.inference.pipeline.Estimate`
+    flagged implausible, or ``None``."""
+    if not estimate.implausible[0]:
+        return None
+    if estimate.flat[0]:
+        return ("the central patch of image_a or image_b is flat (nothing to align): the "
+                "estimate is the identity, flagged implausible.")
+    return (f"the estimate is implausible for this model (a patch corner moved "
+            f"{estimate.max_corner_shift_px[0]:.1f} px at 128-px patch scale, the models were "
+            f"trained on up to 32 px; {int(estimate.rejected_stages[0])} stage(s) skipped as "
+            f"degenerate; image_a warped onto image_b correlates "
+            f"{estimate.alignment_ncc[0]:.2f} with it at the central patch): the images may not "
+            "overlap enough, or differ in ways the model was not trained on.")
+
+
+def _estimate_json(estimate, shape_b, quad) -> dict:
+    """The JSON fields of ``predict`` that describe the (first) pair's estimate."""
+    import numpy as np
+
+    from stnh_tf import geometry
+
+    h, used, ncc = estimate.homography[0], estimate.options, float(estimate.alignment_ncc[0])
+    center_b = np.array([[(shape_b[1] - 1) / 2, (shape_b[0] - 1) / 2]])
+    return {"direction": "homography maps image_b pixel (x, y) to image_a pixel: p_a ~ H @ p_b",
+            "homography": np.asarray(h, np.float64).tolist(),
+            "image_b_border_in_a": np.asarray(quad).tolist(),
+            "image_b_center_in_a": geometry.warp_points(h, center_b)[0].tolist(),
+            "implausible": bool(estimate.implausible[0]), "flat": bool(estimate.flat[0]),
+            "refine": used.refine, "refined": bool(estimate.refined[0]),
+            "tta": used.tta, "tta_choice": str(estimate.tta_choice[0]),
+            "retry_tta": used.retry_tta, "retried": bool(estimate.retried[0]),
+            "search": used.search, "searched": bool(estimate.searched[0]),
+            "search_found": bool(estimate.found[0]),
+            "max_corner_shift_px": float(estimate.max_corner_shift_px[0]),
+            "alignment_ncc": ncc if np.isfinite(ncc) else None}
+
+
 def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", warn=_warn_stderr,
                       options=None, note=_note_stderr):
     """Estimate ``H_ba`` between two image files with ``model`` (what
@@ -139,9 +177,8 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         cannot be loaded.
     """
     import cv2
-    import numpy as np
 
-    from stnh_tf import geometry, paths
+    from stnh_tf import paths
     from stnh_tf.inference.estimator import HomographyEstimator
 
     image_a = read_image(image_a_path, "image_a")
@@ -155,50 +192,24 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
     except (FileNotFoundError, ValueError) as e:
         raise AlignmentError(str(e)) from None
     estimate = estimator.estimate_images_with_info(image_a, image_b, options, channel_order="bgr")
-    h, info, used = estimate.homography[0], estimate.info(), estimate.options
-    implausible = bool(info["implausible"][0])
-    if implausible and info["flat"][0]:
-        warn("the central patch of image_a or image_b is flat (nothing to align): the estimate "
-             "is the identity, flagged implausible.")
-    elif implausible:
-        warn(f"the estimate is implausible for this model (a patch corner "
-             f"moved {info['max_corner_shift_px'][0]:.1f} px at 128-px patch scale, the models "
-             f"were trained on up to 32 px; {int(info['rejected_stages'][0])} stage(s) skipped "
-             f"as degenerate; image_a warped onto image_b correlates "
-             f"{info['alignment_ncc'][0]:.2f} with it at the central patch): the images may not "
-             "overlap enough, or differ in ways the model was not trained on.")
+    warning = implausibility_warning(estimate)
+    if warning:
+        warn(warning)
     for line in deviation_notes(estimate):
         note(line)
-    panels, quad = overlay(image_a, image_b, h)
-
+    panels, quad = overlay(image_a, image_b, estimate.homography[0])
     inputs = [os.path.realpath(image_a_path), os.path.realpath(image_b_path)]
     stem = output_stem(output_dir, inputs)
     png = os.path.join(output_dir, f"{stem}_overlay.png")
     if not cv2.imwrite(png, panels):
         raise AlignmentError(f"cannot write {png}.")
-    result = {
-        "image_a": image_a_path, "image_b": image_b_path,
-        "image_a_size": [int(image_a.shape[1]), int(image_a.shape[0])],
-        "image_b_size": [int(image_b.shape[1]), int(image_b.shape[0])],
-        "model": estimator.source, "kind": estimator.kind, "num_stages": estimator.num_stages,
-        "direction": "homography maps image_b pixel (x, y) to image_a pixel: p_a ~ H @ p_b",
-        "homography": np.asarray(h, np.float64).tolist(),
-        "image_b_border_in_a": np.asarray(quad).tolist(),
-        "image_b_center_in_a": geometry.warp_points(
-            h, np.array([[(image_b.shape[1] - 1) / 2, (image_b.shape[0] - 1) / 2]]))[0].tolist(),
-        "overlay_png": png,
-        "input_paths": inputs,
-        "implausible": implausible,
-        "flat": bool(info["flat"][0]),
-        "refine": used.refine, "refined": bool(info["refined"][0]),
-        "tta": used.tta, "tta_choice": str(info["tta_choice"][0]),
-        "retry_tta": used.retry_tta, "retried": bool(info["retried"][0]),
-        "search": used.search, "searched": bool(info["searched"][0]),
-        "search_found": bool(info["search_found"][0]),
-        "max_corner_shift_px": float(info["max_corner_shift_px"][0]),
-        "alignment_ncc": (float(info["alignment_ncc"][0])
-                          if np.isfinite(info["alignment_ncc"][0]) else None),
-    }
+    result = {"image_a": image_a_path, "image_b": image_b_path,
+              "image_a_size": [int(image_a.shape[1]), int(image_a.shape[0])],
+              "image_b_size": [int(image_b.shape[1]), int(image_b.shape[0])],
+              "model": estimator.source, "kind": estimator.kind,
+              "num_stages": estimator.num_stages,
+              **_estimate_json(estimate, image_b.shape, quad), "overlay_png": png,
+              "input_paths": inputs}
     with open(os.path.join(output_dir, f"{stem}_homography.json"), "w") as f:
         json.dump(result, f, indent=2)
         f.write("\n")
