@@ -1,0 +1,99 @@
+"""The Markdown of ``experiments.reproduce``'s outputs: ``tables.md`` (Fig. 4, Table 1, Table 2,
+the models), Table 1's rows, and the banner of the smoke-test budget."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+SMOKE_NOTE = ("**Smoke test** (`--budget=tiny`: 2 steps of every model, 1 warm-up step, batch 4, "
+              "2 pairs per image from the first 4 images): it checks that every step of the "
+              "reproduction runs; its numbers mean nothing (expect errors of hundreds of px).")
+"""The banner of every output of ``--budget=tiny``."""
+
+
+def tables_markdown(result: dict, latency: dict) -> str:
+    b = result["budget"]
+    paper = result["paper"]
+    lines = [f"# Reproduction at budget '{b['name']}'", "",
+             f"{b['train_steps']} steps per model ({b['warmup_steps']} warm-up), batch "
+             f"{b['batch_size']}, {'mixed bfloat16' if b['mixed_precision'] else 'float32'}; "
+             f"{result['test_pairs']} test pairs (seed 1). The paper trains 91,000 steps on all of "
+             "COCO 2014 on a GPU: numbers at a smaller budget are not expected to match it.",
+             *([f"Total time of this run: {result['wall_s_this_run'] / 3600:.2f} h."]
+               if "wall_s_this_run" in result else []),
+             *(["", SMOKE_NOTE] if b["name"] == "tiny" else []), "",
+             "## Fig. 4: mean corner error on the same test pairs", "",
+             "| method | MACE (px), ours | paper |", "| --- | ---: | ---: |"]
+    rejected = result.get("fig4_rejected", {})
+    for name, v in result["fig4_mace"].items():
+        p = paper["fig4_mace"].get(name)
+        mark = " (rejected: see below)" if rejected.get(name) else ""
+        lines.append(f"| {name}{mark} | {v:.2f} | {'' if p is None else f'{p:.2f}'} |")
+    if rejected:
+        lines += ["", "Rejected predictions: " + "; ".join(
+            f"{name}: {n} stage predictions of {result['test_pairs']} pairs were rejected by the "
+            "hierarchy's rule (non-finite, singular or leaving the context), so those pairs "
+            "keep the estimate before that stage (the identity at stage 1): the MACE is not the "
+            "network's" for name, n in rejected.items()) + "."]
+    steps = b["ablation_steps"] or b["train_steps"]
+    lines += ["", f"## Table 1: loss weights, single stage ({steps} steps per row)", "",
+              *TABLE1_HEAD]
+    for key, v in result["table1_mace_per_seed"].items():
+        lines.append(table1_line(*key.split(","), v, paper["table1_mace"].get(key)))
+    lines += ["", f"## Table 2: batch-1 latency ({latency.get('policy', '')}; paper: a GPU)", "",
+              "| stages | d_e (ms), ours | formula (l_m + l_w) n | paper GPU (ms) |",
+              "| ---: | ---: | ---: | ---: |"]
+    for k, v in latency["hierarchy"].items():
+        lines.append(f"| {k} | {v['d_e_ms']:.2f} | {v['formula_ms']:.2f} | "
+                     f"{paper['table2_gpu_ms'].get(int(k), float('nan')):.2f} |")
+    if latency.get("sequence"):
+        lines += ["", "Sequence models, forward pass: " + ", ".join(
+            f"{k} stage{'s' if k != '1' else ''} {v['forward_ms']:.2f} ms"
+            for k, v in latency["sequence"].items()) + "."]
+    lines += ["", "## Models", "", "| model | directory | trained on |", "| --- | --- | --- |"]
+    for name, d in _model_dirs(result["models"]):
+        lines.append(f"| {name} | `{d}` | {_trained_on(d)} |")
+    lines += ["", "Figures: " + ", ".join(f"[{k}](figures/{os.path.basename(v)})"
+                                          for k, v in result["figures"].items()), ""]
+    return "\n".join(lines)
+
+
+TABLE1_HEAD = ["| L2 weight | L1 weight | MACE (px), ours | seeds: range | paper |",
+               "| ---: | ---: | ---: | ---: | ---: |"]
+
+
+def table1_line(l2: str, l1: str, maces, paper) -> str:
+    """One Table 1 row: the mean over seeds, and the range when there are several."""
+    spread = (f"{len(maces)} seeds: {min(maces):.2f}-{max(maces):.2f}" if len(maces) > 1
+              else "1 seed")
+    return (f"| {l2} | {l1} | {float(np.mean(maces)):.2f} | {spread} | "
+            f"{'' if paper is None else f'{paper:.2f}'} |")
+
+
+def _model_dirs(models: dict):
+    for k, d in enumerate(models["stages"], start=1):
+        yield f"stage {k}", d
+    yield "HomographyNet", models["homographynet"]
+    yield "sequence, 2 stages", models["sequence2"]
+    for key, dirs in models["ablation_seeds"].items():
+        for seed, d in enumerate(dirs):
+            if d not in models["stages"]:
+                yield (f"ablation L2:L1 = {key.replace(',', ':')}"
+                       f"{f', seed {seed}' if seed else ''}", d)
+
+
+def _trained_on(model_dir: str) -> str:
+    """The data source a model's recorded configuration names."""
+    from stnh_tf.training import run_dir
+
+    try:
+        cfg = run_dir.read_run_config(os.path.join(model_dir, run_dir.CONFIG_FILE))
+    except (OSError, ValueError):
+        return "?"
+    if cfg.get("image_dir"):
+        how = "in memory" if cfg.get("in_memory") else "generated on the fly"
+        return (f"pairs from `{cfg['image_dir']}` ({cfg.get('samples_per_image')} per image, "
+                f"seed {cfg.get('seed')}, {how})")
+    return f"TFRecords `{cfg.get('data_dir')}`"
