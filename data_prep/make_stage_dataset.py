@@ -35,6 +35,9 @@ FLAGS = flags.FLAGS
 def main(argv):
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
+    with common.user_errors("make_stage_dataset"):  # every split's flags, before the model loads
+        stage_k.check_stage_arguments(FLAGS.stage, FLAGS.input_dir, FLAGS.output_dir,
+                                      FLAGS.splits, num_shards=FLAGS.num_shards)
     for split in FLAGS.splits:
         with common.user_errors("make_stage_dataset"):
             result = stage_k.make_stage_dataset(

@@ -869,7 +869,8 @@ def test_estimate_images_hierarchy_uses_image_context():
     est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
     # same size: S_a = S_b = 320 x 240 resize
     got = est.estimate_images(image, image, EstimateOptions(search="none"))
-    work = cv2.resize(image.astype(np.float32) / 255, (320, 240), interpolation=cv2.INTER_AREA)
+    # (a uint8 image is resized in uint8, as the training data: issue 48 item 6)
+    work = cv2.resize(image, (320, 240), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
     t = geometry.translation(96, 56)
     full = cv2.warpPerspective(work, t @ h1 @ np.linalg.inv(t), (320, 240),
                                flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)

@@ -1,8 +1,10 @@
 """``metadata.json`` of a dataset being written, and the locks of its writers.
 
-* **metadata.json** (``{"stage": ..., "feature_spec": ..., "splits": {split: {...}}}``) is
-  read-modify-written under a file lock (``.metadata.lock``) and replaced atomically, so separate
-  commands can write ``train`` and ``test`` into one directory (:func:`update_metadata`).
+* **metadata.json** (``{"format": "stnh_tf.dataset", "format_version": 1, "stage": ...,
+  "feature_spec": ..., "splits": {split: {...}}}``) is read-modify-written under a file lock
+  (``.metadata.lock``) and replaced atomically, so separate commands can write ``train`` and
+  ``test`` into one directory (:func:`update_metadata`). A ``metadata.json`` this project did not
+  write is refused, never merged into (:func:`read_metadata_file`).
 * **One writer per split.** :func:`split_lock` holds the split's lock (``.{split}.lock``) for one
   writer; a second writer of the same split fails at once.
 
@@ -22,6 +24,11 @@ from stnh_tf.data.tfrecords import METADATA_FILE
 from stnh_tf.paths import atomic_write_json, read_json
 
 LOCK_FILE = ".metadata.lock"
+METADATA_MARKER = {"format": "stnh_tf.dataset", "format_version": 1}
+"""Written into metadata.json: what makes it a dataset's metadata (:func:`read_metadata_file`)."""
+# The top-level keys of the metadata.json files written before METADATA_MARKER.
+_LEGACY_KEYS = frozenset({"stage", "feature_spec", "splits"})
+_SPLIT_STATUSES = ("incomplete", "complete", "empty")
 
 
 @contextlib.contextmanager
@@ -36,8 +43,36 @@ def _metadata_lock(output_dir: str):
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
 
+def _legacy_problem(meta: dict) -> Optional[str]:
+    """Why ``meta``, a metadata.json without :data:`METADATA_MARKER`, is not one this project wrote
+    before the marker existed (None if it is): only the keys ``stage`` (an integer >= 1),
+    ``feature_spec`` (an object) and ``splits`` (an object of split sections, each an object
+    with a ``status`` the writer sets)."""
+    unknown = sorted(set(meta) - _LEGACY_KEYS)
+    if unknown:
+        return f"its keys {unknown[:5]} are not a dataset's"
+    splits = meta.get("splits")
+    if not isinstance(splits, dict):
+        return "it has no 'splits' object"
+    for name, section in splits.items():
+        if not isinstance(section, dict) or section.get("status") not in _SPLIT_STATUSES:
+            return f"its split {name!r} is not a section the writer made (no status)"
+    stage = meta.get("stage", 1)
+    if isinstance(stage, bool) or not isinstance(stage, int) or stage < 1:
+        return f"its stage is {stage!r}, not an integer >= 1"
+    if not isinstance(meta.get("feature_spec", {}), dict):
+        return "its feature_spec is not an object"
+    return None
+
+
 def read_metadata_file(output_dir: str) -> dict:
-    """The ``metadata.json`` being written in ``output_dir`` ({} before the first split)."""
+    """The ``metadata.json`` being written in ``output_dir`` ({} before the first split).
+
+    Raises:
+      ValueError: naming the file, when it is not valid JSON, or not one this project wrote
+        (without :data:`METADATA_MARKER`, and not one written before the marker existed:
+        :func:`_legacy_problem`): a user's own ``metadata.json`` is never merged into.
+    """
     path = os.path.join(output_dir, METADATA_FILE)
     if not os.path.exists(path):
         return {}
@@ -46,7 +81,21 @@ def read_metadata_file(output_dir: str) -> dict:
     except ValueError as e:
         raise ValueError(f"{e} Move it away.") from None
     if not isinstance(meta, dict):
-        raise ValueError(f"{path} does not hold a JSON object.")
+        why = f"it holds a JSON {type(meta).__name__}, not an object"
+    elif "format" in meta:
+        why = (None if meta["format"] == METADATA_MARKER["format"]
+               else f"its format is {meta['format']!r}")
+        if why is None and meta.get("format_version") != METADATA_MARKER["format_version"]:
+            raise ValueError(f"{path} has format_version {meta.get('format_version')!r}; this "
+                             f"version of stnh_tf writes version "
+                             f"{METADATA_MARKER['format_version']}.")
+    else:
+        why = _legacy_problem(meta)
+    if why is not None:
+        raise ValueError(f"{path} is not the metadata of a stnh-tf dataset (no \"format\": "
+                         f"\"{METADATA_MARKER['format']}\", and not one written before that "
+                         f"marker: {why}); it is neither changed nor merged into: write to "
+                         "another --output_dir, or move the file away.")
     return meta
 
 
@@ -66,6 +115,7 @@ def update_metadata(output_dir: str, split: str, section: Optional[dict],
                                  f"{json.dumps(value)[:200]}; write to another --output_dir.")
             meta[key] = value
         meta.setdefault("splits", {})
+        meta.update(METADATA_MARKER)
         if section is not None:
             meta["splits"][split] = section
         atomic_write_json(os.path.join(output_dir, METADATA_FILE), meta)

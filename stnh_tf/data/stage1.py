@@ -104,7 +104,10 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
       ValueError: a bad split name or number (negative ``num_shards``/``max_images``,
         ``samples_per_image``/``chunk_size`` < 1, ``seed`` < 0).
       sources.SourceError: unknown/empty source, missing folder, coco2014 unavailable.
-      OSError: ``output_dir`` not writable.
+      ValueError: ``output_dir`` holds a ``metadata.json`` this project did not write (refused
+        before anything is written there).
+      OSError: ``output_dir`` not writable, or a write failed (a full disk, a file size limit:
+        the message names the file and the cause).
       FileExistsError: ``split`` is already complete there and ``overwrite`` is off.
     """
     metadata.check_split_name(split)
@@ -117,6 +120,7 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
                               photometric=pairs.PhotometricChange() if photometric else None)
     if source == "coco2014":
         output_dir = paths.check_output_dir(output_dir)  # fail before any download
+        metadata.read_metadata_file(output_dir)  # (a metadata.json that is not a dataset's)
     if source == "folder":
         if not image_dir:
             raise sources.SourceError("--source=folder needs --image_dir.")

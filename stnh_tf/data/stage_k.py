@@ -92,6 +92,47 @@ def _items(paths, predict, counts: dict):
         yield from flush()
 
 
+def check_stage_arguments(stage: int, input_dir: str, output_dir: str, splits, *,
+                          num_shards: int = 0) -> list:
+    """Check what :func:`make_stage_dataset` is given, before any model is loaded or folder
+    made: ``stage >= 2``; ``num_shards`` an integer >= 0; ``splits`` (a list of names) not empty,
+    without repeats, each a plain name present and complete in ``input_dir``, which holds
+    stage-(k-1) data; ``output_dir`` another folder, and one whose ``metadata.json``, if any, is a
+    dataset's (:func:`stnh_tf.data.metadata.read_metadata_file`). Returns the splits as a list.
+
+    Raises:
+      ValueError: naming the argument (``--stage``, ``--num_shards``, ``--splits``...) or file.
+      FileNotFoundError: ``input_dir`` holds no dataset.
+    """
+    from stnh_tf.data import tfrecords as data
+
+    if isinstance(stage, bool) or not isinstance(stage, int) or stage < 2:
+        raise ValueError(f"--stage must be >= 2, an integer (stage 1 is data_prep.make_dataset); "
+                         f"received {stage!r}.")
+    if isinstance(num_shards, bool) or not isinstance(num_shards, int) or num_shards < 0:
+        raise ValueError(f"--num_shards must be an integer >= 0 (0: as many as the input split "
+                         f"has); received {num_shards!r}.")
+    splits = [splits] if isinstance(splits, str) else list(splits)
+    if not splits:
+        raise ValueError("--splits names no split; give one or more, e.g. --splits=train,test.")
+    repeated = sorted({s for s in splits if splits.count(s) > 1})
+    if repeated:
+        raise ValueError(f"--splits names {repeated} more than once; received {splits}.")
+    for split in splits:
+        metadata.check_split_name(split)
+    meta = data.read_metadata(input_dir)
+    if int(meta.get("stage", 1)) != stage - 1:
+        raise ValueError(f"{input_dir} holds stage-{meta.get('stage', 1)} data; stage {stage} is "
+                         f"built from stage-{stage - 1} data.")
+    for split in splits:
+        data.split_info(input_dir, split)
+    if os.path.abspath(input_dir) == os.path.abspath(output_dir):
+        raise ValueError("output_dir must differ from input_dir.")
+    if os.path.isdir(output_dir):
+        metadata.read_metadata_file(output_dir)
+    return splits
+
+
 def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, *,
                        model_dir: str | None = None, predict=None, num_shards: int = 0,
                        num_workers: int = 1, log=print, command=None,
@@ -99,33 +140,35 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
     """Write the stage-``stage`` ``split`` from the stage-(k-1) data and model. Returns the split's
     metadata section (``degenerate_predictions`` counts by reason).
 
+    Every argument is checked (:func:`check_stage_arguments`) before the model is loaded or
+    ``output_dir`` is made; a model that fails to load leaves no new ``output_dir`` behind.
+
     Args:
       model_dir: the trained stage-(k-1) model; or
       predict: ``predict(patch_a [N,S,S,1], patch_b [N,S,S,1]) -> pixel H [N,3,3]`` (float
         patches in [0, 1]; e.g. an oracle in tests).
     Raises:
-      ValueError: ``stage < 2``, the input is not stage ``k-1`` data, or the split is missing.
+      ValueError: ``stage < 2``, a bad ``num_shards`` or split name, the input is not stage
+        ``k-1`` data, or the split is missing.
       FileNotFoundError: no model in ``model_dir``.
     """
     from stnh_tf.data import tfrecords as data
     from stnh_tf.modeling import runner
 
-    if stage < 2:
-        raise ValueError(f"stage must be >= 2 (stage 1 is data_prep.make_dataset); "
-                         f"received {stage}.")
-    meta = data.read_metadata(input_dir)
-    if int(meta.get("stage", 1)) != stage - 1:
-        raise ValueError(f"{input_dir} holds stage-{meta.get('stage', 1)} data; stage {stage} is "
-                         f"built from stage-{stage - 1} data.")
-    if os.path.abspath(input_dir) == os.path.abspath(output_dir):
-        raise ValueError("output_dir must differ from input_dir.")
-    info = data.split_info(input_dir, split)
-    paths = data.shard_paths(input_dir, split, "size")
-    output_dir = check_output_dir(output_dir)
     if (model_dir is None) == (predict is None):
         raise ValueError("give exactly one of model_dir and predict.")
+    check_stage_arguments(stage, input_dir, output_dir, [split], num_shards=num_shards)
+    info = data.split_info(input_dir, split)
+    paths = data.shard_paths(input_dir, split, "size")
+    made_dir = not os.path.exists(output_dir)
+    output_dir = check_output_dir(output_dir)
     if predict is None:
-        predict = runner.predictor(runner.load_model(model_dir), batch_size=READ_BATCH)
+        try:
+            predict = runner.predictor(runner.load_model(model_dir), batch_size=READ_BATCH)
+        except BaseException:
+            if made_dir and not os.listdir(output_dir):
+                os.rmdir(output_dir)
+            raise
     counts = collections.Counter()
     split_metadata = {
         "source": "stage", "input_dir": os.path.abspath(input_dir),

@@ -22,6 +22,10 @@ dicts hold :data:`stnh_tf.data.features.FEATURE_NAMES`).
   new layout no longer has (e.g. another ``num_shards``).
 * **Bad input.** An exception from ``worker_fn`` skips that item: it is counted and listed with its
   reason in the split's ``skipped`` list (and logged); it never stops the run.
+* **A failed write** (a full disk, a file size limit) stops the run with an ``OSError`` naming
+  the file and the cause, whether the operating system or TensorFlow's writer reported it
+  (``OutOfRangeError: File too large``, ``ResourceExhaustedError``); the split stays marked
+  ``"incomplete"`` and the same command regenerates it.
 * **metadata.json** (``{"stage": ..., "feature_spec": ..., "splits": {split: {...}}}``) is
   read-modify-written under a file lock and replaced atomically, so separate commands can write
   ``train`` and ``test`` into one directory (:mod:`stnh_tf.data.metadata`).
@@ -32,6 +36,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
+import errno
 import glob
 import math
 import multiprocessing
@@ -42,6 +47,7 @@ from typing import Any, Callable, Iterable, Optional
 
 from stnh_tf.data.metadata import check_split_name, read_metadata_file, split_lock, update_metadata
 from stnh_tf.data import features
+from stnh_tf.data.tfrecords import METADATA_FILE
 from stnh_tf.paths import check_output_dir
 
 TARGET_SHARD_BYTES = 128 * 2 ** 20
@@ -189,6 +195,28 @@ def _shard_pattern_matches(output_dir, split):
             if rx.match(os.path.basename(p))]
 
 
+@contextlib.contextmanager
+def _naming_write_errors(path: str, split: str):
+    """Re-raise a failed write to ``path`` (an ``OSError``, or TensorFlow's error for one) as an
+    ``OSError`` whose message names ``path`` and the cause (``errno`` kept where there is one)."""
+    import tensorflow as tf
+
+    try:
+        yield
+    except (OSError, tf.errors.OpError) as e:
+        if isinstance(e, tf.errors.OpError):
+            cause = f"{type(e).__name__}: {e.message}"
+        else:
+            cause = e.strerror or str(e)
+        code = getattr(e, "errno", None)
+        fix = ("raise the file size limit (ulimit -f)"
+               if code == errno.EFBIG or "File too large" in cause else "free disk space")
+        error = OSError(f"cannot write {path}: {cause} (split {split!r} is left incomplete: fix "
+                        f"the cause, e.g. {fix}, then run the same command again)")
+        error.errno = code
+        raise error from None
+
+
 def _fsync_path(path):
     fd = os.open(path, os.O_RDONLY)
     try:
@@ -228,8 +256,11 @@ def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: 
     Returns:
       The split's metadata section (also written to ``metadata.json``).
     Raises:
-      ValueError: no work items, bad ``num_shards``/``split``, or every item skipped.
-      OSError: ``output_dir`` not writable.
+      ValueError: no work items, bad ``num_shards``/``split``, every item skipped, or
+        ``output_dir`` holds a ``metadata.json`` this project did not write
+        (:func:`stnh_tf.data.metadata.read_metadata_file`; checked before anything is written).
+      OSError: ``output_dir`` not writable, or a write failed (the message names the file and
+        the cause: a full disk, a file size limit).
       FileExistsError: the split is complete and ``overwrite`` is off, or another process is
         writing it (:func:`stnh_tf.data.metadata.split_lock`).
     """
@@ -241,6 +272,7 @@ def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: 
     if num_shards < 1:
         raise ValueError(f"num_shards must be >= 1; received {num_shards}.")
     output_dir = check_output_dir(output_dir)
+    read_metadata_file(output_dir)  # a metadata.json that is not ours: refused before the lock
     with split_lock(output_dir, split):
         return _write_split(output_dir, split, work_items, worker_fn, num_shards=num_shards,
                             num_items=num_items, num_workers=num_workers,
@@ -261,7 +293,10 @@ def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_it
             "samples); pass --overwrite to regenerate it (it is unreadable until the new one is "
             "finished).")
     top = {"feature_spec": features.spec_as_dict(), **(top_metadata or {})}
-    update_metadata(output_dir, split, {"status": "incomplete", "started_pid": os.getpid()}, top)
+    meta_path = os.path.join(output_dir, METADATA_FILE)
+    with _naming_write_errors(meta_path, split):
+        update_metadata(output_dir, split, {"status": "incomplete", "started_pid": os.getpid()},
+                        top)
     for stale in glob.glob(os.path.join(output_dir, f"{glob.escape(split)}-*.tfrecord.tmp-*")):
         os.remove(stale)
 
@@ -280,14 +315,16 @@ def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_it
         nonlocal writer, current, tmp_path
         current = k
         tmp_path = os.path.join(output_dir, f"{names[k]}.tmp-{os.getpid()}")
-        writer = tf.io.TFRecordWriter(tmp_path)
+        with _naming_write_errors(os.path.join(output_dir, names[k]), split):
+            writer = tf.io.TFRecordWriter(tmp_path)
 
     def close_shard():
         nonlocal writer, tmp_path
-        writer.close()
-        _fsync_path(tmp_path)
         final = os.path.join(output_dir, names[current])
-        os.replace(tmp_path, final)
+        with _naming_write_errors(final, split):
+            writer.close()
+            _fsync_path(tmp_path)
+            os.replace(tmp_path, final)
         shards[current]["num_bytes"] = os.path.getsize(final)
         writer, tmp_path = None, None
 
@@ -306,8 +343,9 @@ def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_it
                 log(f"[{split}] skipped {item.item_id}: {reason}")
                 progress.update(0, True)
                 continue
-            for rec in records:
-                writer.write(rec)
+            with _naming_write_errors(os.path.join(output_dir, names[k]), split):
+                for rec in records:
+                    writer.write(rec)
             shards[k]["num_samples"] += len(records)
             progress.update(len(records), False)
         if position != num_items:
@@ -350,7 +388,8 @@ def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_it
         samples_per_s=round(num_samples / wall, 1) if wall > 0 else None,
         finished_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     )
-    update_metadata(output_dir, split, section, top)
+    with _naming_write_errors(meta_path, split):
+        update_metadata(output_dir, split, section, top)
     log(f"[{split}] wrote {num_samples} samples from {section['num_items_used']} items "
         f"({len(skipped)} skipped) into {num_shards} shards, {num_bytes / 2 ** 20:.1f} MiB, "
         f"{wall:.1f} s ({section['samples_per_s']} samples/s) -> {output_dir}")

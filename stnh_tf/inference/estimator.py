@@ -57,9 +57,10 @@ from stnh_tf import geometry
 from stnh_tf.inference import pipeline
 # Public names of this module before the pipeline was split (stnh_tf.inference.<name>).
 from stnh_tf.inference.checks import alignment_ncc, corner_shift  # noqa: F401
-from stnh_tf.inference.image_input import (PATCH_ORIGIN, PATCH_SIZE, central_patch,
-                                           patch_to_image_frames, prepare_image, prepare_patches,
-                                           resize_to_work_size)
+from stnh_tf.inference.image_input import (PATCH_ORIGIN, PATCH_SIZE, central_patch,  # noqa: F401
+                                           check_patches, patch_to_image_frames, prepare_image,
+                                           prepare_patches, resize_to_work_size, unit_patches,
+                                           work_image)
 from stnh_tf.inference.model_files import default_source, resolve_model_paths
 from stnh_tf.inference.options import (REFINES, SEARCHES, TTAS, EstimateOptions,  # noqa: F401
                                        Thresholds)
@@ -70,6 +71,11 @@ KINDS = ("single", "sequence", "hierarchy")
 """What :attr:`HomographyEstimator.kind` can be."""
 
 _LEGACY_OPTIONS = ("gate_stages", "fill", "refine", "tta", "retry_tta", "search")
+
+CHUNK_PAIRS = 256
+"""Pairs at a time through the pipeline (rounded up to a multiple of the batch size): memory
+stays bounded however many pairs one call gets, and the result is the same as in one pass
+(:func:`stnh_tf.inference.pipeline.estimate_in_chunks`)."""
 
 _log = logging.getLogger(__name__)
 
@@ -142,10 +148,11 @@ class HomographyEstimator:
         layouts. ``options``: what every call does by default (``EstimateOptions()``).
 
         ``compute_dtype``: models trained in mixed precision (the shipped ones: mixed bfloat16)
-        are rebuilt to compute in float32 by default, so an estimate does not depend on the batch
-        size or on eager vs graph execution, and the exported SavedModel matches it (see
-        docs/estimate.md); ``None`` keeps the policy they were saved with (faster on CPUs with
-        bfloat16 units; ``experiments.evaluate`` scores models so).
+        are rebuilt to compute in float32 by default, so an estimate depends on the batch size
+        and on eager vs graph execution only by float32 rounding, and the exported SavedModel
+        matches it (see docs/estimate.md, "Batch size"); ``None`` keeps the policy they were
+        saved with (faster on CPUs with bfloat16 units; ``experiments.evaluate`` scores models
+        so).
 
         Raises ``FileNotFoundError`` if nothing is found (also when no weights are shipped) and
         ``ValueError`` if a file is not a usable model.
@@ -233,13 +240,21 @@ class HomographyEstimator:
         return options
 
     def _run(self, patch_a, patch_b, context, origin, options, batch_size) -> Estimate:
-        """The pipeline on float32 ``[B, S, S, 1]`` pairs (``context``: images holding patch_a at
-        ``origin``, else the patches themselves)."""
-        sources = (context if context is not None
-                   else [np.ascontiguousarray(p[..., 0]) for p in patch_a])
-        result = pipeline.estimate_pairs(
-            lambda k, a, b: self._predict_stage(k, a, b, batch_size), self.num_stages,
-            patch_a, patch_b, sources, origin if context is not None else (0, 0), options)
+        """The pipeline on ``[B, S, S, 1]`` pairs (uint8, or float in [0, 1]: checked by
+        :func:`~stnh_tf.inference.image_input.check_patches`; ``context``: images holding patch_a
+        at ``origin``, else the patches themselves), :data:`CHUNK_PAIRS` (rounded up to a multiple
+        of ``batch_size``) at a time, each chunk converted to float32 when it is reached."""
+        def take(index):
+            a, b = unit_patches(patch_a[index]), unit_patches(patch_b[index])
+            if context is None:
+                return a, b, [p[..., 0] for p in a]
+            return a, b, (context[index] if isinstance(index, slice)
+                          else [context[i] for i in index])
+
+        chunk = batch_size * -(-CHUNK_PAIRS // batch_size)
+        result = pipeline.estimate_in_chunks(
+            lambda k, a, b: self._predict_stage(k, a, b, batch_size), self.num_stages, take,
+            len(patch_a), origin if context is not None else (0, 0), options, chunk)
         if result.flat.any():
             _log.warning("HomographyEstimator: %d pair(s) with a flat patch (nothing to align): "
                          "estimate set to the identity", int(result.flat.sum()))
@@ -255,8 +270,8 @@ class HomographyEstimator:
         homographies and what the checks, search, refinement and retry found per pair)."""
         _check_batch_size(batch_size)
         options = self._resolve(options, legacy)
-        a = prepare_patches(patch_a, "patch_a")
-        b = prepare_patches(patch_b, "patch_b")
+        a = check_patches(patch_a, "patch_a")
+        b = check_patches(patch_b, "patch_b")
         if len(a) != len(b):
             raise ValueError(f"patch_a and patch_b must hold the same number of patches; received "
                              f"shapes {np.shape(patch_a)} and {np.shape(patch_b)}.")
@@ -272,7 +287,10 @@ class HomographyEstimator:
           options: what to do beyond the network
             (:class:`~stnh_tf.inference.options.EstimateOptions`; default: the estimator's
             ``options``). ``EstimateOptions.network_only()`` is the paper's network alone.
-          batch_size: pairs per model call.
+          batch_size: pairs per model call. Large batches go through the pipeline
+            :data:`CHUNK_PAIRS` pairs at a time (rounded up to a multiple of ``batch_size``), so
+            memory stays bounded; the result is that of one pass. A pair's estimate depends on
+            ``batch_size`` by float32 rounding only (docs/estimate.md, "Batch size").
           **legacy: the keyword options of earlier versions (``search="none"``, ...), applied
             over ``options``; deprecated.
         Returns:
@@ -295,13 +313,11 @@ class HomographyEstimator:
         # later stages see zeros beyond the image, as in the paper.
         options = dataclasses.replace(self._resolve(options, legacy), gate_stages=False,
                                       fill="zeros")
-        gray_a = prepare_image(image_a, "image_a", channel_order)
-        gray_b = prepare_image(image_b, "image_b", channel_order)
-        work_a, work_b = resize_to_work_size(gray_a), resize_to_work_size(gray_b)
+        work_a, size_a = work_image(image_a, "image_a", channel_order)
+        work_b, size_b = work_image(image_b, "image_b", channel_order)
         result = self._run(central_patch(work_a), central_patch(work_b), [work_a], PATCH_ORIGIN,
                            options, 64)
-        h = patch_to_image_frames(result.homography[0], (gray_a.shape[1], gray_a.shape[0]),
-                                  (gray_b.shape[1], gray_b.shape[0]))
+        h = patch_to_image_frames(result.homography[0], size_a, size_b)
         return dataclasses.replace(result, homography=h[None])
 
     def estimate_images(self, image_a, image_b, options: EstimateOptions | None = None,

@@ -3,8 +3,8 @@
 The SavedModel has one serving signature (``serving_default``, also reachable as ``serve``):
 
 * inputs ``patch_a`` and ``patch_b``: ``uint8`` ``[B, 128, 128, 1]`` grayscale patches (0..255),
-  the same ``B`` for both; checked in the graph (:func:`checked_inputs`): any other rank, size,
-  channel count or dtype raises ``InvalidArgumentError``;
+  the same ``B >= 1`` for both; checked in the graph (:func:`checked_inputs`): any other rank,
+  size, channel count, dtype or an empty batch raises ``InvalidArgumentError``;
 * output ``homography``: ``float32`` ``[B, 3, 3]`` pixel ``H_ba`` (maps patch_b pixel coordinates
   to patch_a pixel coordinates, ``[2, 2] = 1``; see :mod:`stnh_tf.geometry`).
 
@@ -44,8 +44,9 @@ OUTPUT = "homography"
 
 def checked_inputs(patch_a, patch_b):
     """``patch_a``, ``patch_b`` after run-time checks in the graph: each of shape
-    ``[B, 128, 128, 1]`` (``tf.ensure_shape``) and the same ``B`` for both; anything else raises
-    ``InvalidArgumentError`` when the function runs. (A SavedModel signature's declared input
+    ``[B, 128, 128, 1]`` (``tf.ensure_shape``) and the same ``B >= 1`` for both (an empty batch
+    is refused as ``estimate`` refuses it); anything else raises ``InvalidArgumentError`` when
+    the function runs. (A SavedModel signature's declared input
     shape is not enforced when it is called, and the graph is optimized for that shape: without
     these checks a ``[1, 128, 128]`` request aborted the serving process and a ``[1, 64, 64, 1]``
     one returned a homography.) The dtype (uint8) is checked by the signature itself."""
@@ -57,7 +58,10 @@ def checked_inputs(patch_a, patch_b):
     same = tf.debugging.assert_equal(tf.shape(patch_a)[0], tf.shape(patch_b)[0],
                                      message="patch_a and patch_b must hold the same number of "
                                              "patches")
-    with tf.control_dependencies([same]):
+    some = tf.debugging.assert_positive(tf.shape(patch_a)[0],
+                                        message="patch_a is an empty batch: patch_a and patch_b "
+                                                "must hold at least one patch each")
+    with tf.control_dependencies([same, some]):
         return tf.identity(patch_a), tf.identity(patch_b)
 
 

@@ -8,11 +8,18 @@ size, any aspect ratio; image_a and image_b need not have the same size) is conv
 grayscale (ITU-R 601 luma; an alpha channel is composited onto black), resized to 320 x 240
 (aspect ratio not preserved; ``cv2.INTER_AREA`` when both sides shrink, else
 ``cv2.INTER_LINEAR``: the training data's rule), and the central 128 x 128 square (top-left
-corner ``(96, 56)``) of each is the patch pair. The patch estimate is mapped back with
-``H_img = inv(S_a) @ T @ H_patch @ inv(T) @ S_b`` where ``T`` is the translation by ``(96, 56)``
-and ``S_x`` maps pixels of image x to pixels of its 320 x 240 version. With pixel centres at
-integer coordinates a resize by ``s`` maps ``x -> s (x + 0.5) - 0.5`` (exactly what
-``cv2.resize`` does), so ``S_x`` has that half-pixel offset. The result is meaningful when, in
+corner ``(96, 56)``) of each is the patch pair. A uint8 image is made gray and resized in uint8,
+with the training data's own functions (:func:`stnh_tf.data.sources.to_gray_uint8` and
+:func:`~stnh_tf.data.sources.resize_to_protocol`), before anything is converted to float: its
+patches are the pixels ``data_prep.make_dataset`` would crop from it, and a large image costs
+one uint8 gray copy at most (a 10000 x 10000 colour image converted to float first cost 2 GB).
+A float image (in [0, 1]) is converted and resized in float32.
+
+The patch estimate is mapped back with ``H_img = inv(S_a) @ T @ H_patch @ inv(T) @ S_b`` where
+``T`` is the translation by ``(96, 56)`` and ``S_x`` maps pixels of image x to pixels of its
+320 x 240 version. With pixel centres at integer coordinates a resize by ``s`` maps
+``x -> s (x + 0.5) - 0.5`` (exactly what ``cv2.resize`` does), so ``S_x`` has that half-pixel
+offset. The result is meaningful when, in
 the 320 x 240 frame, the motion between the images is of the size the model was trained on
 (corners of the central square moving by up to about 32 px, i.e. 10% of the width) and the
 central square holds texture.
@@ -37,18 +44,26 @@ PATCH_ORIGIN = ((WORK_SIZE[0] - PATCH_SIZE) // 2, (WORK_SIZE[1] - PATCH_SIZE) //
 # --------------------------------------------------------------------------------------------
 def _to_unit_float(x, name, what):
     """uint8 (0..255) or float in [0, 1] -> float32 in [0, 1]."""
+    _check_pixel_values(x, name, what)
+    return pixels.to_unit(x) if x.dtype == np.uint8 else x.astype(np.float32)
+
+
+def _check_pixel_values(x, name, what):
+    """``ValueError`` unless ``x`` is uint8, or floating point with every value in [0, 1] (checked
+    by its minimum and maximum: no temporary of its size unless it fails)."""
     if x.dtype == np.uint8:
-        return pixels.to_unit(x)
+        return
     if np.issubdtype(x.dtype, np.floating):
-        finite = np.isfinite(x)
-        if not np.all(finite) or x.min() < 0.0 or x.max() > 1.0:
+        low, high = (x.min(), x.max()) if x.size else (0.0, 0.0)
+        if not (np.isfinite(low) and np.isfinite(high) and low >= 0.0 and high <= 1.0):
+            finite = np.isfinite(x)
             seen = (f"values in [{x[finite].min()}, {x[finite].max()}]" if finite.any() else
                     "no finite values")
             if not finite.all():
                 seen += f" and {int(x.size - finite.sum())} NaN/inf"
             raise ValueError(f"{name}: floating-point {what} must lie in [0, 1] (use uint8 for "
                              f"0..255); received {seen} with shape {x.shape}.")
-        return x.astype(np.float32)
+        return
     raise ValueError(f"{name}: {what} must be uint8 (0..255) or floating point in [0, 1]; "
                      f"received dtype {x.dtype} with shape {x.shape}.")
 
@@ -69,6 +84,20 @@ def _as_array(x, name):
 def prepare_patches(x, name="patch") -> np.ndarray:
     """Patches ``[S, S]``, ``[S, S, 1]``, ``[B, S, S]`` or ``[B, S, S, 1]`` (S = 128; uint8 0..255
     or float in [0, 1]) -> float32 ``[B, S, S, 1]`` in [0, 1]. Anything else raises ``ValueError``."""
+    return unit_patches(check_patches(x, name))
+
+
+def unit_patches(batch) -> np.ndarray:
+    """A batch that :func:`check_patches` accepted (or any part of it) as float32 in [0, 1]."""
+    if batch.dtype == np.uint8:
+        return pixels.to_unit(batch)
+    return np.asarray(batch, np.float32)
+
+
+def check_patches(x, name="patch") -> np.ndarray:
+    """:func:`prepare_patches` without the conversion: the patches as ``[B, S, S, 1]`` (a view of
+    ``x`` where it can be), uint8 or floating point, checked (floats in [0, 1]: no full-size
+    temporary). Raises ``ValueError`` as :func:`prepare_patches`."""
     s = PATCH_SIZE
     arr = _as_array(x, name)
     shape = tuple(arr.shape)
@@ -95,23 +124,15 @@ def prepare_patches(x, name="patch") -> np.ndarray:
                          f"or [B, {s}, {s}, 1]); received shape {shape}.")
     if batch[0] == 0:
         raise ValueError(f"{name} is an empty batch; received shape {shape}.")
-    return _to_unit_float(arr, name, "patches").reshape(batch + (1,))
+    _check_pixel_values(arr, name, "patches")
+    return arr.reshape(batch + (1,))
 
 
 def prepare_image(x, name="image", channel_order: str = "rgb") -> np.ndarray:
     """One image ``[H, W]`` or ``[H, W, C]`` (C = 1, 3 or 4; uint8 or float in [0, 1]) ->
     grayscale float32 ``[H, W]`` in [0, 1]. Colour is ``channel_order`` ("rgb" as NumPy/scikit-image
     read it, "bgr" as OpenCV does)."""
-    if channel_order not in ("rgb", "bgr"):
-        raise ValueError(f"channel_order must be 'rgb' or 'bgr'; received {channel_order!r}.")
-    arr = _as_array(x, name)
-    shape = tuple(arr.shape)
-    if not (len(shape) == 2 or (len(shape) == 3 and shape[2] in (1, 3, 4))):
-        raise ValueError(f"{name} must be one image [H, W] or [H, W, C] with C in (1, 3, 4); "
-                         f"received shape {shape}.")
-    if shape[0] == 0 or shape[1] == 0:
-        raise ValueError(f"{name} is empty; received shape {shape}.")
-    img = _to_unit_float(arr, name, "images")
+    img = _to_unit_float(_check_image(x, name, channel_order), name, "images")
     if img.ndim == 3:
         alpha = img[..., 3] if img.shape[2] == 4 else None
         if img.shape[2] == 1:
@@ -122,6 +143,51 @@ def prepare_image(x, name="image", channel_order: str = "rgb") -> np.ndarray:
         if alpha is not None:
             img = img * alpha  # composited onto black, as the training data does
     return np.ascontiguousarray(img, dtype=np.float32)
+
+
+def _check_image(x, name, channel_order):
+    """``x`` as an array, checked as :func:`prepare_image` describes (``ValueError``)."""
+    if channel_order not in ("rgb", "bgr"):
+        raise ValueError(f"channel_order must be 'rgb' or 'bgr'; received {channel_order!r}.")
+    arr = _as_array(x, name)
+    shape = tuple(arr.shape)
+    if not (len(shape) == 2 or (len(shape) == 3 and shape[2] in (1, 3, 4))):
+        raise ValueError(f"{name} must be one image [H, W] or [H, W, C] with C in (1, 3, 4); "
+                         f"received shape {shape}.")
+    if shape[0] == 0 or shape[1] == 0:
+        raise ValueError(f"{name} is empty; received shape {shape}.")
+    _check_pixel_values(arr, name, "images")
+    return arr
+
+
+_GRAY_BLOCK_PIXELS = 1 << 16
+"""Pixels per block of rows converted to gray at a time (bounds the float64 temporaries of an
+image with an alpha channel)."""
+
+
+def work_image(x, name="image", channel_order: str = "rgb"):
+    """One image (as :func:`prepare_image` accepts it) -> ``(work, (w, h))``: its gray float32
+    ``[240, 320]`` version in [0, 1] and its own size.
+
+    A uint8 image is made gray (:func:`stnh_tf.data.sources.to_gray_uint8`, a block of rows at a
+    time) and resized (:func:`~stnh_tf.data.sources.resize_to_protocol`) in uint8, as the
+    training data was made, and only then converted to float; a float image goes through
+    :func:`prepare_image` and :func:`resize_to_work_size`. Raises ``ValueError`` as
+    :func:`prepare_image`."""
+    from stnh_tf.data import sources
+
+    arr = _check_image(x, name, channel_order)
+    size = (arr.shape[1], arr.shape[0])
+    if arr.dtype != np.uint8:
+        return resize_to_work_size(prepare_image(arr, name, channel_order)), size
+    if arr.ndim == 2 or arr.shape[2] == 1:
+        gray = arr.reshape(arr.shape[:2])
+    else:
+        rows = max(1, _GRAY_BLOCK_PIXELS // arr.shape[1])
+        gray = np.empty(arr.shape[:2], np.uint8)
+        for r in range(0, arr.shape[0], rows):
+            gray[r:r + rows] = sources.to_gray_uint8(arr[r:r + rows], channel_order)
+    return pixels.to_unit(sources.resize_to_protocol(np.ascontiguousarray(gray))), size
 
 
 # --------------------------------------------------------------------------------------------

@@ -21,7 +21,8 @@ single-stage or a sequence model. :func:`write_manifest` writes one. :func:`reso
 * a directory holding ``model.keras`` (a training run: single or sequence model);
 * a directory holding ``hierarchy.json`` (the manifest);
 * a directory holding stage models named ``stage1``, ``stage2``, ... (sub-directories holding
-  ``model.keras``, or files ``stage1.keras``, ...), taken as a hierarchy in numeric order;
+  ``model.keras``, or files ``stage1.keras``, ...), taken as a hierarchy in numeric order (a gap
+  in the numbers, or two models for one stage, is refused, naming the files);
 * nothing: the shipped default in the package folder ``stnh_tf/weights/``: ``default.json`` (a
   manifest) if present, else ``default.keras``.
 
@@ -118,19 +119,39 @@ def read_manifest(path) -> list:
 # Layouts
 # --------------------------------------------------------------------------------------------
 def _numbered_stages(directory):
-    """``stage1``, ``stage2``, ... (directories or ``.keras`` files) in ``directory``, in order."""
+    """``stage1``, ``stage2``, ... (directories or ``.keras`` files) in ``directory``, in order.
+
+    Raises:
+      ValueError: naming the files, when the numbers do not run 1, 2, ..., n without a gap, or
+        when two entries give the same stage (``stage1/`` and ``stage1.keras``, ``stage01``):
+        which models make the hierarchy would otherwise be a guess.
+    """
     found = {}
-    for name in os.listdir(directory):
+    for name in sorted(os.listdir(directory)):
         m = re.fullmatch(r"stage(\d+)(\.keras)?", name)
         if m:
-            found.setdefault(int(m.group(1)), os.path.join(directory, name))
-    return [found[k] for k in sorted(found)]
+            found.setdefault(int(m.group(1)), []).append(name)
+    clashes = {k: names for k, names in found.items() if len(names) > 1}
+    if clashes:
+        listed = "; ".join(f"stage {k}: {', '.join(names)}" for k, names in sorted(clashes.items()))
+        raise ValueError(f"{directory} holds more than one model for a stage ({listed}): keep "
+                         "one of each, or list the stages in a hierarchy.json manifest.")
+    if found and sorted(found) != list(range(1, len(found) + 1)):
+        missing = sorted(set(range(1, max(found) + 1)) - set(found))
+        listed = ", ".join(found[k][0] for k in sorted(found))
+        why = (f"stage {', '.join(map(str, missing))} missing" if missing
+               else "no stage 0")
+        raise ValueError(f"{directory} holds stage models {listed}: the stages of a hierarchy are "
+                         f"numbered 1, 2, ... without a gap ({why}); add the missing ones, "
+                         "rename the files, or list the stages in a hierarchy.json manifest.")
+    return [os.path.join(directory, found[k][0]) for k in sorted(found)]
 
 
 def resolve_model_paths(path=None) -> list:
     """The stage model paths that :meth:`~stnh_tf.inference.estimator.HomographyEstimator.load` would load
     (see the module docstring for the accepted layouts). Raises ``FileNotFoundError`` with the
-    places looked at."""
+    places looked at, and ``ValueError`` naming the files for numbered stages with a gap or two
+    models for one stage."""
     if path is None:
         folder = default_weights_dir()
         manifest, model = os.path.join(folder, DEFAULT_MANIFEST), os.path.join(folder, DEFAULT_MODEL)

@@ -3,11 +3,14 @@ a run is started, resumed or overwritten there.
 
 Layout of ``model_dir``: ``config.json`` (the :class:`~stnh_tf.training.config.TrainConfig` with
 :data:`CONFIG_MARKER`), ``checkpoint/`` (``ckpt-<step>.weights.h5`` committed by ``state.json``),
-``logs/`` (TensorBoard), and when finished ``model.keras`` and ``result.json``.
+``logs/`` (TensorBoard), and when finished ``model.keras`` and ``result.json``; while a run
+trains, its lock (:class:`RunLock`, ``.stnh_tf_run.lock``).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import numbers
 import os
 import shutil
 import time
@@ -16,7 +19,7 @@ import keras
 import numpy as np
 
 from stnh_tf.paths import atomic_write_json, fsync_replace, inside, read_json
-from stnh_tf.training.config import RESUME_FREE_FIELDS, TrainConfig
+from stnh_tf.training.config import MODEL_KINDS, RESUME_FREE_FIELDS, TrainConfig
 
 FINAL_MODEL = "model.keras"
 CONFIG_FILE = "config.json"
@@ -30,9 +33,16 @@ CHECKPOINT_WEIGHTS_PATTERN = "ckpt-{step:08d}.weights.h5"
 CHECKPOINT_STATE = "state.json"
 # What a run writes in model_dir besides config.json: all that --overwrite deletes (remove_run).
 RUN_ENTRIES = (FINAL_MODEL, RESULT_FILE, CHECKPOINT_DIR, LOGS_DIR)
-# The fields by which a config.json written before CONFIG_MARKER is recognised as a run's.
+# The fields by which a config.json written before CONFIG_MARKER is recognised as a run's (with
+# their values: _legacy_config_problem).
 _LEGACY_CONFIG_KEYS = frozenset({"model", "model_dir", "stage", "train_steps", "warmup_steps",
                                  "batch_size", "checkpoint_every", "seed"})
+# The smallest value of the integer ones among them (as TrainConfig.validate has always checked).
+_LEGACY_MINIMUMS = {"stage": 1, "train_steps": 1, "warmup_steps": 0, "batch_size": 1,
+                    "checkpoint_every": 1, "seed": 0}
+LOCK_FILE = ".stnh_tf_run.lock"
+"""The lock file of a run's folder (:class:`RunLock`); not part of the run (never deleted by
+:func:`remove_run`, ignored when a folder is checked for being empty)."""
 
 
 def _seed_variables(model):
@@ -139,12 +149,56 @@ def load_checkpoint(model, directory) -> int:
     return step
 
 
+def _typed(value, field) -> bool:
+    """Whether ``value`` (read from JSON) has the type of the TrainConfig ``field``."""
+    def of(kind, v):
+        if kind == "bool" or kind is bool:
+            return isinstance(v, bool)
+        if kind == "int" or kind is int:
+            return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+        if kind == "float" or kind is float:
+            return isinstance(v, numbers.Real) and not isinstance(v, bool)
+        return isinstance(v, str)
+
+    if field.type == "tuple":
+        return isinstance(value, list) and all(of(field.metadata.get("item", str), v)
+                                               for v in value)
+    return of(field.type, value)
+
+
+def _legacy_config_problem(doc: dict) -> str | None:
+    """Why ``doc``, a ``config.json`` without :data:`CONFIG_MARKER`, is not one this project wrote
+    before the marker existed (None if it is): it holds every field of
+    :data:`_LEGACY_CONFIG_KEYS` and nothing but :class:`TrainConfig` fields, ``model`` is one of
+    :data:`~stnh_tf.training.config.MODEL_KINDS`, the integers of :data:`_LEGACY_MINIMUMS` are at
+    least their minimum, and every value has its field's type."""
+    fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
+    missing = sorted(_LEGACY_CONFIG_KEYS - set(doc))
+    if missing:
+        return f"it lacks the fields {missing}"
+    unknown = sorted(set(doc) - set(fields))
+    if unknown:
+        return f"{unknown[:5]} are not fields of a training configuration"
+    for name, value in doc.items():
+        if not _typed(value, fields[name]):
+            return f"its {name} is {value!r}, not of the type {fields[name].type}"
+    if doc["model"] not in MODEL_KINDS:
+        return f"its model {doc['model']!r} is not one of {list(MODEL_KINDS)}"
+    for name, low in _LEGACY_MINIMUMS.items():
+        if doc[name] < low:
+            return f"its {name} is {doc[name]!r}, below {low}"
+    return None
+
+
 def read_run_config(config_path: str) -> dict:
     """The saved fields of the training run whose ``config.json`` is ``config_path``.
 
     A run's ``config.json`` holds :data:`CONFIG_MARKER` (``format`` and ``format_version``) with
     the :class:`TrainConfig` fields (:func:`prepare_model_dir` writes it); one written before the
-    marker existed is recognised by holding every field of :data:`_LEGACY_CONFIG_KEYS`.
+    marker existed is recognised by its fields and their values (every field of
+    :data:`_LEGACY_CONFIG_KEYS`, only TrainConfig fields, each of its type, ``model`` one of
+    this project's kinds, ``stage`` an integer >= 1...: :func:`_legacy_config_problem`), so that
+    someone else's ``config.json`` with the same generic keys is not taken for a run.
 
     Raises:
       ValueError: naming the file, when it is not valid JSON, not a JSON object, or not a training
@@ -156,11 +210,19 @@ def read_run_config(config_path: str) -> dict:
             raise ValueError(f"{config_path!r} has format_version {doc.get('format_version')!r}; "
                              f"this version of stnh_tf reads version "
                              f"{CONFIG_MARKER['format_version']}.")
-    elif not (isinstance(doc, dict) and "format" not in doc and _LEGACY_CONFIG_KEYS <= set(doc)):
-        raise ValueError(f"{config_path!r} is not the configuration of a stnh-tf training run (no "
-                         f"\"format\": \"{CONFIG_MARKER['format']}\"); its folder is neither "
-                         "resumed nor deleted, with or without --overwrite: choose another "
-                         "--model_dir, or move the folder away.")
+    else:
+        if not isinstance(doc, dict):
+            why = f"it holds a JSON {type(doc).__name__}, not an object"
+        elif "format" in doc:
+            why = f"its format is {doc['format']!r}"
+        else:
+            why = _legacy_config_problem(doc)
+        if why is not None:
+            raise ValueError(
+                f"{config_path!r} is not the configuration of a stnh-tf training run (no "
+                f"\"format\": \"{CONFIG_MARKER['format']}\", and not one written before that "
+                f"marker: {why}); its folder is neither resumed nor deleted, with or without "
+                "--overwrite: choose another --model_dir, or move the folder away.")
     return {k: v for k, v in doc.items() if k not in CONFIG_MARKER}
 
 
@@ -201,7 +263,7 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
     config_path = os.path.join(cfg.model_dir, CONFIG_FILE)
     if os.path.exists(cfg.model_dir) and not os.path.isdir(cfg.model_dir):
         raise NotADirectoryError(f"model_dir {cfg.model_dir} exists and is not a folder.")
-    if os.path.isdir(cfg.model_dir) and os.listdir(cfg.model_dir) \
+    if os.path.isdir(cfg.model_dir) and set(os.listdir(cfg.model_dir)) - {LOCK_FILE} \
             and not os.path.isfile(config_path):
         raise FileExistsError(f"model_dir {cfg.model_dir} is not empty and holds no training run "
                               f"(no {CONFIG_FILE}); it is not trained into or deleted, with or "
@@ -250,3 +312,83 @@ def undo_new_run(model_dir: str, made_dir: bool) -> None:
     remove_run(model_dir)
     if made_dir and not os.listdir(model_dir):
         os.rmdir(model_dir)
+
+
+class RunLock:
+    """The lock of a training run's folder: one run at a time in ``model_dir``.
+
+    Made before :func:`prepare_model_dir` and released when the run ends (:meth:`release`, or
+    as a context manager), it holds ``fcntl.flock`` on ``model_dir/.stnh_tf_run.lock``
+    (:data:`LOCK_FILE`; ``model_dir`` is created if missing). A second run in the same folder,
+    in this process or another, is refused at once, before it reads or deletes anything there;
+    the lock goes with the process, so a killed run leaves none held. The lock file is removed on
+    release if this lock created it (a stale one left by a killed run stays, and is reused).
+
+    Raises:
+      FileExistsError: another run holds the lock (the message names the folder).
+      NotADirectoryError: ``model_dir`` exists and is not a folder.
+      PermissionError: ``model_dir`` cannot be created or written.
+    """
+
+    def __init__(self, model_dir: str):
+        import fcntl
+
+        self.model_dir = os.fspath(model_dir)
+        self.path = os.path.join(self.model_dir, LOCK_FILE)
+        if os.path.exists(self.model_dir) and not os.path.isdir(self.model_dir):
+            raise NotADirectoryError(f"model_dir {self.model_dir} exists and is not a folder.")
+        self.made_dir = not os.path.exists(self.model_dir)
+        self._fd = None
+        try:
+            os.makedirs(self.model_dir, exist_ok=True)
+            for _ in range(10):  # retried only when the holder removed the file meanwhile
+                try:
+                    fd, self.created = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL,
+                                               0o644), True
+                except FileExistsError:
+                    try:
+                        fd, self.created = os.open(self.path, os.O_RDWR), False
+                    except FileNotFoundError:
+                        continue
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    os.close(fd)
+                    raise FileExistsError(
+                        f"another training run is using model_dir {self.model_dir} (it holds "
+                        f"{self.path}); wait for it to finish, or choose another "
+                        "--model_dir.") from None
+                if self._same_file(fd):
+                    self._fd = fd
+                    return
+                os.close(fd)  # locked a file its holder had just removed: try again
+        except PermissionError:
+            raise PermissionError(f"model_dir {self.model_dir} is not writable.") from None
+        raise FileExistsError(f"cannot lock model_dir {self.model_dir}: {self.path} keeps being "
+                              "replaced by another process.")
+
+    def _same_file(self, fd) -> bool:
+        try:
+            return os.stat(self.path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            return False
+
+    def release(self) -> None:
+        """Unlock (idempotent); remove the lock file if this lock created it, and ``model_dir``
+        if this lock created it and nothing else is in it."""
+        if self._fd is None:
+            return
+        try:
+            if self.created and self._same_file(self._fd):
+                os.remove(self.path)
+        finally:
+            os.close(self._fd)  # releases the flock
+            self._fd = None
+        if self.made_dir and os.path.isdir(self.model_dir) and not os.listdir(self.model_dir):
+            os.rmdir(self.model_dir)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
