@@ -116,6 +116,8 @@ ESTIMATE_FLAG_HELP = {
                    "does not lower the alignment (a deviation).",
     "fill": "In a hierarchy on bare patches, what later stages see beyond the patch: reflect (a "
             "deviation) or zeros.",
+    "verify": "Before flagging: none, or ecc (flag an estimate that ECC started from it moves by "
+              "more than Thresholds.max_verify_move; a deviation).",
 }
 
 
@@ -124,7 +126,8 @@ def _estimate_choices(name):
     from stnh_tf.inference import options
 
     return {"search": options.SEARCHES, "refine": options.REFINES, "tta": tuple(options.TTAS),
-            "retry_tta": tuple(options.TTAS), "fill": geometry.FILLS}.get(name)
+            "retry_tta": tuple(options.TTAS), "fill": geometry.FILLS,
+            "verify": options.VERIFIES}.get(name)
 
 
 def define_estimate_flags(names=("search", "refine", "tta", "retry_tta"), defaults=None,

@@ -4,7 +4,8 @@
 TFRecord side: the feature spec (:mod:`~stnh_tf.data.features`), reading
 (:mod:`~stnh_tf.data.tfrecords`), the sharded writer and the stage-1 / stage-k dataset libraries
 behind ``python -m data_prep.*`` (:mod:`~stnh_tf.data.writer`, :mod:`~stnh_tf.data.metadata`,
-:mod:`~stnh_tf.data.stage1`, :mod:`~stnh_tf.data.stage_k`).
+:mod:`~stnh_tf.data.stage1`, :mod:`~stnh_tf.data.stage_k`), and realistic camera pairs with their
+files (:mod:`~stnh_tf.data.camera_motions`, :mod:`~stnh_tf.data.camera_pair_files`).
 
 Importing a submodule imports no deep-learning backend unless that submodule needs one.
 """

@@ -2,7 +2,8 @@
 (:mod:`~stnh_tf.evaluation.mace`), the classical baselines and their tuning
 (:mod:`~stnh_tf.evaluation.baselines`, :mod:`~stnh_tf.evaluation.baseline_tuning`), and the
 benchmarks' library cores (:mod:`~stnh_tf.evaluation.benchmarks`,
-:mod:`~stnh_tf.evaluation.data_benchmark`, :mod:`~stnh_tf.evaluation.search_stability`)."""
+:mod:`~stnh_tf.evaluation.data_benchmark`, :mod:`~stnh_tf.evaluation.search_stability`,
+:mod:`~stnh_tf.evaluation.camera_pairs`)."""
 
 from stnh_tf import _compat
 

@@ -133,6 +133,16 @@ def _as_single(x, name: str, size: int = geometry.PATCH_SIZE) -> np.ndarray:
     return _to_uint8(np.reshape(x, shape2), name)
 
 
+def _as_image(x, name: str) -> np.ndarray:
+    """``[H, W]`` or ``[H, W, 1]`` -> uint8 ``[H, W]``."""
+    shape = tuple(np.shape(x))
+    shape2 = shape[:2] if (len(shape) == 3 and shape[-1] == 1) else shape
+    if len(shape2) != 2 or min(shape2) == 0:
+        raise ValueError(f"{name} must be one gray image [H, W] or [H, W, 1]; received shape "
+                         f"{shape}.")
+    return _to_uint8(np.reshape(x, shape2), name)
+
+
 # --------------------------------------------------------------------------------------------
 # Validity of an estimate
 # --------------------------------------------------------------------------------------------
@@ -192,7 +202,24 @@ class _Estimator:
             hs[i], oks[i] = self._estimate_uint8(a[i], b[i])
         return hs, oks
 
-    def _estimate_uint8(self, a, b):
+    def estimate_images(self, image_a, image_b):
+        """Estimate ``H_ba`` between two whole gray images (any sizes; e.g. the 320 x 240 ones
+        of ``estimate_images``), with the settings used on patches; the plausibility check of
+        the result (:func:`is_plausible_homography`) is on the largest square at image_b's
+        origin.
+
+        Args:
+          image_a, image_b: ``[H, W]`` or ``[H, W, 1]``, uint8 or float in [0, 1].
+        Returns:
+          ``(H_ba, ok)``: float64 ``[3, 3]`` mapping image_b pixels to image_a pixels
+          (``H[2,2] = 1``, identity if ``ok`` is False).
+        Raises:
+          ValueError: another rank or channel count, an empty image, a bad dtype or range.
+        """
+        a, b = (_as_image(x, name) for x, name in ((image_a, "image_a"), (image_b, "image_b")))
+        return self._estimate_uint8(a, b, min(b.shape))
+
+    def _estimate_uint8(self, a, b, size=geometry.PATCH_SIZE):
         raise NotImplementedError
 
     def __repr__(self):
@@ -214,7 +241,7 @@ class IdentityBaseline(_Estimator):
         _as_single(patch_b, "patch_b")
         return np.eye(3), True
 
-    def _estimate_uint8(self, a, b):
+    def _estimate_uint8(self, a, b, size=geometry.PATCH_SIZE):
         return np.eye(3), True
 
 
@@ -275,7 +302,7 @@ class _FeatureRansac(_Estimator):
             pairs = [(ia, ib) for ia, ib in pairs if best_b.get(ia) == ib]
         return np.array(pairs, int).reshape(-1, 2)
 
-    def _estimate_uint8(self, a, b):
+    def _estimate_uint8(self, a, b, size=geometry.PATCH_SIZE):
         s = self.settings
         pts_a, desc_a = self.detect(a)
         pts_b, desc_b = self.detect(b)
@@ -292,7 +319,7 @@ class _FeatureRansac(_Estimator):
             return np.eye(3), False
         if h is None or mask is None or int(mask.sum()) < s["min_inliers"]:
             return np.eye(3), False
-        if not is_plausible_homography(h, max_area_ratio=s["max_area_ratio"]):
+        if not is_plausible_homography(h, size, max_area_ratio=s["max_area_ratio"]):
             return np.eye(3), False
         return h / h[2, 2], True
 

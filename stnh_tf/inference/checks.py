@@ -29,6 +29,26 @@ def corner_shift(a_from_b) -> np.ndarray:
     return np.where(np.isfinite(shift), shift, np.inf)
 
 
+def frame_corner_distance(a_from_b, other, source_shape, origin=(0, 0)) -> float:
+    """Mean distance (px) between where two patch-frame ``a_from_b`` ``[3, 3]`` map the corners
+    ``(0, 0), (w, 0), (w, h), (0, h)`` of ``source_a``'s ``[h, w]`` frame (the patch has its
+    top-left corner at ``origin`` there): their corner error in the frame the estimate is made
+    in (the patch itself, or the 320 x 240 image of ``estimate_images``). ``inf`` where a corner
+    maps to infinity.
+
+    >>> frame_corner_distance(np.eye(3), geometry.translation(3.0, 4.0), (240, 320), (96, 56))
+    5.0
+    """
+    height, width = source_shape[:2]
+    corners = np.array([[0, 0], [width, 0], [width, height], [0, height]], np.float64)
+    t = geometry.translation(*origin)
+    with np.errstate(all="ignore"):
+        d = (geometry.warp_points(t @ np.asarray(a_from_b, np.float64) @ np.linalg.inv(t), corners)
+             - geometry.warp_points(t @ np.asarray(other, np.float64) @ np.linalg.inv(t), corners))
+        out = float(np.linalg.norm(d, axis=-1).mean())
+    return out if np.isfinite(out) else float("inf")
+
+
 def alignment_ncc(source_a, patch_b, a_from_b, origin=(0, 0),
                   min_overlap: float = _DEFAULT.min_overlap) -> float:
     """Normalized cross-correlation between ``patch_b`` and patch_a warped onto it by ``a_from_b``,

@@ -35,6 +35,12 @@ SEARCHES = ("none", "ecc")
 :func:`stnh_tf.inference.search.search_translations` (a deviation); ``"none"`` keeps the
 network's estimate."""
 
+VERIFIES = ("none", "ecc")
+"""How the estimator double-checks its final estimate before flagging it: ``"none"`` (the
+checks alone) or ``"ecc"`` (an estimate that ECC alignment started from it moves by more than
+``Thresholds.max_verify_move``, or from which ECC does not converge, is flagged implausible; the
+estimate is kept; a deviation, issue 46)."""
+
 TTAS = {"none": ("identity",),
         "flips": ("identity", "flip_x", "flip_y", "rotate_180"),
         "dihedral": tuple(geometry.DIHEDRAL)}
@@ -67,6 +73,9 @@ class Thresholds:
       refine_iterations, refine_eps, refine_gaussian: ``cv2.findTransformECC``'s iteration
         limit, convergence threshold and Gaussian pre-filter size in ``refine="ecc"``.
       max_refine_move: a refinement moving the corners by more than this on average is dropped.
+      max_verify_move: with ``verify="ecc"``, an estimate that ECC (the refinement's settings)
+        moves by more than this is flagged implausible: px, mean over the corners of the frame
+        the estimate is made in (the patch; the 320 x 240 image in ``estimate_images``).
     """
 
     implausible_corner_shift: float = 1.5 * geometry.MAX_PERTURBATION
@@ -83,6 +92,7 @@ class Thresholds:
     refine_eps: float = 1e-5
     refine_gaussian: int = 1
     max_refine_move: float = 16.0
+    max_verify_move: float = 5.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -121,6 +131,11 @@ class EstimateOptions:
         (:data:`stnh_tf.geometry.FILLS`): ``"reflect"`` (default, a deviation) or ``"zeros"``.
         With image context (``estimate_images``) the context is used instead.
       thresholds: the numbers of the checks, the search and the refinement.
+      verify: a key of :data:`VERIFIES`. ``"ecc"`` (a deviation): ECC alignment is started from
+        each final estimate (not flat, finite); where it fails or moves the estimate by more than
+        ``thresholds.max_verify_move`` at the frame's corners on average, the estimate is
+        flagged implausible (it is not replaced: ``refine="ecc"`` does that). ``"none"``: no
+        such check.
     """
 
     search: str = "ecc"
@@ -130,10 +145,12 @@ class EstimateOptions:
     gate_stages: bool = True
     fill: str = "reflect"
     thresholds: Thresholds = Thresholds()
+    verify: str = "none"
 
     def __post_init__(self):
         for name, table in (("search", SEARCHES), ("refine", REFINES), ("tta", tuple(TTAS)),
-                            ("retry_tta", tuple(TTAS)), ("fill", geometry.FILLS)):
+                            ("retry_tta", tuple(TTAS)), ("fill", geometry.FILLS),
+                            ("verify", VERIFIES)):
             value = getattr(self, name)
             if not isinstance(value, str) or value not in table:
                 raise ValueError(f"{name} must be one of {tuple(table)}; received {value!r}.")

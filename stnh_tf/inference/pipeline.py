@@ -37,8 +37,9 @@ class Estimate:
       homography: float64 ``[B, 3, 3]`` ``H_ba`` (``[2, 2] = 1``): patch frame from
         ``estimate_with_info``, the images' own frames from ``estimate_images_with_info``.
       implausible: a stage was skipped as degenerate, a corner moved beyond the trained range,
-        the alignment NCC is below ``thresholds.min_alignment_ncc`` or undefined, or a patch is
-        flat.
+        the alignment NCC is below ``thresholds.min_alignment_ncc`` or undefined, a patch is
+        flat, or (``verify="ecc"``) ECC moved the estimate by more than
+        ``thresholds.max_verify_move`` or did not converge.
       alignment_ncc: NCC of patch_b and patch_a warped by the estimate (NaN: undefined, flat).
       max_corner_shift_px: the largest displacement of a 128 x 128 patch corner.
       flat: patch_a or patch_b varies less than ``thresholds.min_patch_std`` (the identity).
@@ -50,6 +51,9 @@ class Estimate:
       non_finite_stages, singular_stages: stage predictions skipped as degenerate, by reason.
       gated_stages: later stages whose update the stage gate did not keep.
       options: the options that made it.
+      verify_move_px: with ``verify="ecc"``, how far ECC started from the estimate moved it
+        (mean over the corners of the patch, or of the 320 x 240 image in
+        ``estimate_images_with_info``; ``inf``: it did not converge); NaN where not verified.
     """
 
     homography: np.ndarray
@@ -66,6 +70,7 @@ class Estimate:
     singular_stages: np.ndarray
     gated_stages: np.ndarray
     options: EstimateOptions
+    verify_move_px: np.ndarray = None
 
     def __len__(self):
         return len(self.homography)
@@ -219,6 +224,26 @@ def refine(run: dict, patch_b, sources, origin, options: EstimateOptions) -> dic
     return run
 
 
+def verify(run: dict, patch_b, sources, origin, options: EstimateOptions) -> dict:
+    """With ``options.verify == "ecc"``: ECC (:func:`~stnh_tf.inference.search.ecc_refine`, the
+    refinement's settings) is started from each finite estimate of a pair that is not flat, and
+    how far it moves the estimate is recorded: the mean distance at the corners of the source's
+    frame (:func:`~stnh_tf.inference.checks.frame_corner_distance`: the patch for bare patches,
+    the 320 x 240 image with context), ``inf`` where ECC fails. The estimates are not changed.
+    An estimate away from the nearest alignment optimum is likely wrong where its alignment NCC
+    still looks good (issue 46). Adds ``"verify_move"`` (float64 ``[B]``, NaN where not
+    verified); returns a new dict."""
+    t = options.thresholds
+    run = dict(run, verify_move=np.full(len(run["total"]), np.nan))
+    if options.verify != "ecc":
+        return run
+    for i in np.flatnonzero(~run["flat"] & np.isfinite(run["total"]).all(axis=(1, 2))):
+        h = search_lib.ecc_refine(sources[i], patch_b[i, ..., 0], run["total"][i], origin, t)
+        run["verify_move"][i] = np.inf if h is None else checks.frame_corner_distance(
+            h, run["total"][i], np.shape(sources[i]), origin)
+    return run
+
+
 def finish(run: dict, options: EstimateOptions) -> Estimate:
     """The :class:`Estimate` of a run through the steps: corner shifts and NCC of the final
     estimates, and the implausibility flag."""
@@ -226,38 +251,68 @@ def finish(run: dict, options: EstimateOptions) -> Estimate:
     shift = checks.corner_shift(run["total"])
     ncc = np.where(np.isfinite(shift) & ~run["flat"], run["ncc"], np.nan)
     rejected = run["non_finite"] + run["singular"]
+    move = run.get("verify_move", np.full(len(shift), np.nan))
+    moved = ~np.isnan(move) & ~(move <= t.max_verify_move)
     return Estimate(
         homography=run["total"], alignment_ncc=ncc, max_corner_shift_px=shift,
-        implausible=checks.beyond(rejected, shift, ncc, t.min_alignment_ncc, t) | run["flat"],
+        implausible=(checks.beyond(rejected, shift, ncc, t.min_alignment_ncc, t) | run["flat"]
+                     | moved),
         flat=run["flat"], searched=run["searched"], found=run["found"], refined=run["refined"],
         retried=np.zeros(len(shift), bool),
         tta_choice=np.array(options.tta_symmetries)[run["choice"]],
         non_finite_stages=run["non_finite"], singular_stages=run["singular"],
-        gated_stages=run["gated"], options=options)
+        gated_stages=run["gated"], options=options, verify_move_px=move)
 
 
 def estimate_once(predict: PredictStage, num_stages, patch_a, patch_b, sources, origin,
                   options: EstimateOptions) -> Estimate:
-    """The network (with ``options.tta``) -> checks -> search -> refinement, without retry."""
+    """The network (with ``options.tta``) -> checks -> search -> refinement -> verification,
+    without retry."""
     run = run_network(predict, num_stages, patch_a, patch_b, sources, origin, options)
     run = check(run, patch_a, patch_b, sources, origin, options)
     run = search(run, patch_b, sources, origin, options)
     run = refine(run, patch_b, sources, origin, options)
+    run = verify(run, patch_b, sources, origin, options)
     return finish(run, options)
 
 
-def estimate_pairs(predict: PredictStage, num_stages, patch_a, patch_b, sources, origin,
-                   options: EstimateOptions) -> Estimate:
-    """:func:`estimate_once`; then, where ``options.retries``, each pair flagged implausible (not
-    flat) is estimated again with ``tta=options.retry_tta`` and keeps that estimate and its
-    fields (``retried``)."""
-    first = estimate_once(predict, num_stages, patch_a, patch_b, sources, origin, options)
+Take = Callable[[object], tuple]
+"""``take(index) -> (patch_a, patch_b, sources)``: the pairs at ``index`` (a slice, or an array of
+positions) as float32 ``[b, S, S, 1]`` patches in [0, 1] and their ``b`` sources."""
+
+
+def concatenate(parts) -> Estimate:
+    """The :class:`Estimate` of the pairs of ``parts`` (Estimates made with the same options), in
+    order."""
+    if len(parts) == 1:
+        return parts[0]
+    return Estimate(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])
+                       for f in dataclasses.fields(Estimate) if f.name != "options"},
+                    options=parts[0].options)
+
+
+def estimate_in_chunks(predict: PredictStage, num_stages, take: Take, num_pairs: int, origin,
+                       options: EstimateOptions, chunk: int) -> Estimate:
+    """:func:`estimate_pairs` on ``num_pairs`` pairs loaded by ``take``, at most ``chunk`` at a
+    time, so that memory does not grow with the number of pairs: :func:`estimate_once` on
+    consecutive chunks, then the retry on the flagged pairs of all chunks, ``chunk`` at a time.
+
+    ``predict`` therefore sees the pairs in the order and groups one call over all of them would
+    give it, cut only at multiples of ``chunk``: when ``predict`` runs its network in batches of
+    ``n`` and ``chunk`` is a multiple of ``n``, every network batch, and so the result, is the
+    same as with a single chunk."""
+    chunk = max(int(chunk), 1)
+    first = concatenate([estimate_once(predict, num_stages, *take(slice(i, i + chunk)), origin,
+                                       options)
+                         for i in range(0, num_pairs, chunk)] or
+                        [estimate_once(predict, num_stages, *take(slice(0, 0)), origin, options)])
     retry = np.flatnonzero(first.implausible & ~first.flat) if options.retries else []
     if not len(retry):
         return first
-    again = estimate_once(predict, num_stages, patch_a[retry], patch_b[retry],
-                          [sources[i] for i in retry], origin,
-                          dataclasses.replace(options, tta=options.retry_tta))
+    retry_options = dataclasses.replace(options, tta=options.retry_tta)
+    again = concatenate([estimate_once(predict, num_stages, *take(retry[i:i + chunk]), origin,
+                                       retry_options)
+                         for i in range(0, len(retry), chunk)])
     merged = {}
     for f in dataclasses.fields(Estimate):
         if f.name == "options":
@@ -267,3 +322,18 @@ def estimate_pairs(predict: PredictStage, num_stages, patch_a, patch_b, sources,
         value[retry] = True if f.name == "retried" else new
         merged[f.name] = value
     return Estimate(**merged, options=options)
+
+
+def estimate_pairs(predict: PredictStage, num_stages, patch_a, patch_b, sources, origin,
+                   options: EstimateOptions, chunk: int | None = None) -> Estimate:
+    """:func:`estimate_once`; then, where ``options.retries``, each pair flagged implausible (not
+    flat) is estimated again with ``tta=options.retry_tta`` and keeps that estimate and its
+    fields (``retried``). ``chunk``: at most this many pairs at a time
+    (:func:`estimate_in_chunks`; default: all at once)."""
+    def take(index):
+        picked = (sources[index] if isinstance(index, slice)
+                  else [sources[i] for i in index])
+        return patch_a[index], patch_b[index], picked
+
+    n = len(patch_a)
+    return estimate_in_chunks(predict, num_stages, take, n, origin, options, chunk or max(n, 1))

@@ -1,0 +1,44 @@
+r"""The estimator, SIFT + RANSAC, ORB + RANSAC and the identity on realistic camera pairs (a folder
+written by ``experiments.make_camera_pairs``), per group of motion size: MACE at the 320 x 240
+image's corners (and of the central patch), median, success rate (< 3 px), time per pair, and the
+estimator's implausibility flag as a detector of estimates more than 5 px off
+(:mod:`stnh_tf.evaluation.camera_pairs`).
+
+  python -m experiments.benchmark_camera_pairs --pairs_dir=/tmp/camera_pairs
+  python -m experiments.benchmark_camera_pairs --pairs_dir=D --methods=sift_ransac,identity
+  python -m experiments.benchmark_camera_pairs --pairs_dir=D --search=none   # the network alone
+  python -m experiments.benchmark_camera_pairs --pairs_dir=D --verify=ecc    # ECC check of flags
+
+Prints one JSON object.
+"""
+
+from __future__ import annotations
+
+from absl import app, flags
+
+from experiments import common, flags_common
+from stnh_tf.evaluation import camera_pairs
+
+flags.DEFINE_string("pairs_dir", None, "Folder of pairs (make_camera_pairs).", required=True)
+flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
+flags.DEFINE_list("methods", list(camera_pairs.METHODS),
+                  f"Methods, among {','.join(camera_pairs.METHODS)}.")
+flags.DEFINE_integer("max_pairs", 0, "Only the first this many pairs (0: all).")
+flags.DEFINE_bool("per_pair", False, "Also print each pair's errors and flag.")
+flags_common.define_estimate_flags(("search", "refine", "tta", "retry_tta", "verify"))
+flags_common.define_json_out()
+FLAGS = flags.FLAGS
+flags.adopt_module_key_flags(flags_common)  # --help lists them
+
+
+def main(argv):
+    del argv
+    with common.user_errors("benchmark_camera_pairs"):
+        result = camera_pairs.benchmark_folder(
+            FLAGS.pairs_dir, tuple(FLAGS.methods), FLAGS.model, flags_common.options_from_flags(),
+            FLAGS.max_pairs, FLAGS.per_pair)
+    common.emit_json(result, FLAGS.json_out)
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -1,0 +1,286 @@
+"""Realistic camera pairs (issue 46): the homography convention against OpenCV, the camera
+models against ``cv2.projectPoints``, grouping by motion size, seeding, the files, the benchmark
+library and both binaries. Photographs from scikit-image or made here (never ../shared)."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import skimage.data
+
+from stnh_tf import geometry
+from stnh_tf.data import camera_motions as cm
+from stnh_tf.data import camera_pair_files
+from stnh_tf.evaluation import camera_pairs
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DEG = math.pi / 180
+
+
+def _textured_source(seed=0, sigma=3.0):
+    """A smooth random texture of the 560 x 420 source's size (uint8)."""
+    noise = np.random.default_rng(seed).random((cm.SOURCE_SIZE[1], cm.SOURCE_SIZE[0]))
+    return cv2.normalize(cv2.GaussianBlur(noise, (0, 0), sigma), None, 0, 255,
+                         cv2.NORM_MINMAX).astype(np.uint8)
+
+
+MOTIONS = {
+    "camera_rotation": cm.rotation_homography(250.0, 1.2, 8 * DEG, -5 * DEG, 12 * DEG),
+    "plane_viewpoint": cm.plane_homography(250.0, 0.9, 25 * DEG, 40 * DEG, 1.1, 20 * DEG,
+                                           200 * DEG, -7 * DEG),
+    "inplane_rotation": cm.inplane_homography(0.8, 25 * DEG, 10.0, -6.0),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(MOTIONS))
+def test_image_b_is_image_a_warped_by_h_ba_as_opencv_warps(kind):
+    """image_b(p) = image_a(h_ba @ p): cv2.warpPerspective(image_a, h_ba, WARP_INVERSE_MAP) on
+    every pixel whose source lies inside image_a, and a blob of image_a at q lands in image_b at
+    cv2.perspectiveTransform(q, inv(h_ba))."""
+    h = MOTIONS[kind]
+    image_a, image_b = cm.render_pair(_textured_source(), h)
+    ref = cv2.warpPerspective(image_a, h, cm.WORK_SIZE,
+                              flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    ys, xs = np.mgrid[0:240, 0:320]
+    mapped = cv2.perspectiveTransform(np.stack([xs, ys], -1).reshape(-1, 1, 2).astype(float),
+                                      h).reshape(240, 320, 2)
+    inside = ((mapped[..., 0] > 1) & (mapped[..., 0] < 318) & (mapped[..., 1] > 1)
+              & (mapped[..., 1] < 238))
+    assert inside.mean() > 0.3
+    diff = np.abs(image_b - ref)[inside]
+    assert np.median(diff) < 1e-3 and diff.max() < 2.0, (np.median(diff), diff.max())
+    # A bright blob at q in image_a (drawn into the source) is found at inv(h) @ q in image_b.
+    source = np.zeros(cm.SOURCE_SIZE[::-1], np.float32)
+    q = np.array([150.0, 110.0])
+    yy, xx = np.mgrid[0:cm.SOURCE_SIZE[1], 0:cm.SOURCE_SIZE[0]]
+    source += 255 * np.exp(-((xx - q[0] - cm.MARGIN[0]) ** 2 + (yy - q[1] - cm.MARGIN[1]) ** 2)
+                           / (2 * 2.0 ** 2))
+    _, blob_b = cm.render_pair(source, h)
+    centroid = np.array([(blob_b * xs).sum(), (blob_b * ys).sum()]) / blob_b.sum()
+    expected = cv2.perspectiveTransform(q.reshape(1, 1, 2), np.linalg.inv(h)).ravel()
+    np.testing.assert_allclose(centroid, expected, atol=0.1)
+
+
+def test_camera_models_against_project_points():
+    """h_ba maps where cv2.projectPoints sees a 3D point in camera b onto where it sees it in
+    camera a: for a rotation about the centre (any points) and for points on the plane."""
+    rng = np.random.default_rng(1)
+    f, zoom = 260.0, 1.3
+    k_a, k_b = cm.intrinsics(f), cm.intrinsics(zoom * f)
+    no_dist = np.zeros(5)
+
+    def project(points, r, t, k):
+        return cv2.projectPoints(points, cv2.Rodrigues(r)[0], t, k, no_dist)[0].reshape(-1, 2)
+
+    points = np.column_stack([rng.uniform(-1, 1, (20, 2)), rng.uniform(2, 5, 20)])
+    r = cm.rotation(6 * DEG, -4 * DEG, 15 * DEG)
+    h = cm.rotation_homography(f, zoom, 6 * DEG, -4 * DEG, 15 * DEG)
+    p_a = project(points, np.eye(3), np.zeros(3), k_a)
+    p_b = project(points, r, np.zeros(3), k_b)
+    np.testing.assert_allclose(geometry.warp_points(h, p_b), p_a, atol=1e-6)
+
+    angles = (30 * DEG, 60 * DEG, 1.2, 25 * DEG, 120 * DEG, 10 * DEG)
+    r, t, n = cm.plane_pose(*angles)
+    h = cm.plane_homography(f, zoom, *angles)
+    uv = rng.uniform(-0.3, 0.3, (20, 2))  # points n . X = 1 near the axis
+    x0 = np.array([0, 0, 1 / n[2]])
+    e1 = np.cross(n, [0, 1, 0])
+    e1 /= np.linalg.norm(e1)
+    plane = x0 + uv[:, :1] * e1 + uv[:, 1:] * np.cross(n, e1)
+    np.testing.assert_allclose(plane @ n, 1.0)
+    p_a = project(plane, np.eye(3), np.zeros(3), k_a)
+    p_b = project(plane, r, t, k_b)
+    np.testing.assert_allclose(geometry.warp_points(h, p_b), p_a, atol=1e-6)
+    np.testing.assert_allclose(cm.plane_homography(f, 1.0, 0, 0.3, 1.0, 0.2, 1.0, 0), np.eye(3),
+                               atol=1e-12)
+
+
+def test_motion_offset_and_groups():
+    """Offsets per coordinate of the central patch's corners, in the patch frame; groups by
+    multiples of the trained 32 px; every drawn motion lands in its group."""
+    assert float(cm.motion_offset(geometry.translation(-20.0, 32.0))) == pytest.approx(32.0)
+    scale = geometry.patch_to_image(np.diag([1.5, 1.5, 1.0]), *cm.PATCH_ORIGIN)  # about (96, 56)
+    assert float(cm.motion_offset(scale)) == pytest.approx(64.0)
+    assert [cm.group_of(x) for x in (0.0, 31.9, 32.0, 32.1, 64.0, 100.0, 128.0, 128.1)] == [
+        "within", "within", "within", "1-2x", "1-2x", "2-4x", "2-4x", None]
+    rng = np.random.default_rng(0)
+    for group, (lo, hi) in cm.GROUPS.items():
+        for _ in range(6):
+            kind, params, h = cm.draw_motion(rng, group)
+            offset = float(cm.motion_offset(h))
+            assert 32 * lo < offset <= 32 * hi and cm.group_of(offset) == group
+            assert offset == pytest.approx(params["target_offset_px"], abs=1e-6)
+            assert kind in cm.KINDS and 0 <= params["scale"] <= 1 and cm.in_front(h)
+            assert 0.7 <= params["zoom"] <= 1.4 and abs(params["roll_deg"]) <= 30
+    with pytest.raises(ValueError, match="group must be one of"):
+        cm.draw_motion(rng, "8x")
+
+
+def _photos():
+    return [skimage.data.camera(), cv2.cvtColor(skimage.data.astronaut(), cv2.COLOR_RGB2GRAY)]
+
+
+def test_same_seed_same_pairs():
+    one, two = (cm.make_image_pairs(_photos()[0], 4, "camera", 3, seed=5) for _ in range(2))
+    other = cm.make_image_pairs(_photos()[0], 4, "camera", 3, seed=6)
+    for p, q, r in zip(one, two, other):
+        assert (p.index, p.group, p.kind, p.motion) == (q.index, q.group, q.kind, q.motion)
+        np.testing.assert_array_equal(p.h_ba, q.h_ba)
+        np.testing.assert_array_equal(p.image_b, q.image_b)
+        assert not np.array_equal(p.h_ba, r.h_ba)
+    assert [p.index for p in one] == [12, 13, 14]
+    assert [p.group for p in one] == ["within", "1-2x", "2-4x"]
+    assert one[0].image_a.shape == one[0].image_b.shape == (240, 320)
+    assert one[0].image_a.dtype == np.uint8
+
+
+@pytest.fixture(scope="module")
+def pair_set(tmp_path_factory):
+    """Two skimage photographs as files (and a file that is not an image), 3 pairs each."""
+    images = tmp_path_factory.mktemp("photos")
+    for name, photo in zip(("camera.png", "astronaut.png"), _photos()):
+        cv2.imwrite(str(images / name), photo)
+    (images / "broken.jpg").write_bytes(b"not a jpeg")
+    out = tmp_path_factory.mktemp("pairs")
+    manifest = camera_pair_files.write_pairs(images, out, pairs_per_image=3, seed=0)
+    return images, out, manifest
+
+
+def test_written_set_reads_back(pair_set):
+    images, out, manifest = pair_set
+    assert manifest["counts"] == {"within": 2, "1-2x": 2, "2-4x": 2} and manifest["images"] == 2
+    assert [s[0] for s in manifest["skipped"]] == ["broken.jpg"]
+    loaded, pairs = camera_pair_files.load_pairs(out)
+    fresh = cm.make_image_pairs(_photos()[1], 0, "astronaut.png", 3, 0)  # sorted: astronaut first
+    for p, q in zip(pairs, fresh):
+        np.testing.assert_array_equal(p.image_a, q.image_a)
+        np.testing.assert_array_equal(p.image_b, q.image_b)  # PNG is lossless
+        np.testing.assert_allclose(p.h_ba, q.h_ba, rtol=1e-15)
+    with pytest.raises(ValueError, match="exists"):
+        camera_pair_files.write_pairs(images, out)
+
+
+class _Oracle:
+    """A stand-in estimator: the true H for the first pairs, the identity (flagged) for the rest
+    and the identity unflagged for the last."""
+
+    def __init__(self, pairs):
+        self.truth = {id(p.image_b): p.h_ba for p in pairs}
+        self.calls = 0
+
+    def estimate_images_with_info(self, image_a, image_b, options=None):
+        from types import SimpleNamespace
+
+        self.calls += 1
+        good = id(image_b) in self.truth and self.calls <= 4  # warm-up + 3 pairs
+        h = self.truth[id(image_b)] if good else np.eye(3)
+        flag = not good and self.calls < 7
+        return SimpleNamespace(homography=h[None], implausible=np.array([flag]),
+                               searched=np.array([False]), found=np.array([False]),
+                               alignment_ncc=np.array([0.9]))
+
+
+def test_benchmark_library_on_tiny_pairs(pair_set):
+    _, out, _ = pair_set
+    _, pairs = camera_pair_files.load_pairs(out)
+    result = camera_pairs.benchmark(pairs, ("estimator", "sift_ransac", "identity"),
+                                    estimator=_Oracle(pairs), per_pair=True)
+    every = result["groups"]["all"]
+    assert every["estimator"]["count"] == 6 and set(result["groups"]) == {*cm.GROUPS, "all"}
+    h_true = np.stack([p.h_ba for p in pairs])
+    identity = camera_pairs.image_errors(np.broadcast_to(np.eye(3), h_true.shape), h_true)
+    assert every["identity"]["mace"] == pytest.approx(identity.mean())
+    assert every["identity"]["patch_mace"] == pytest.approx(geometry.corner_errors(
+        np.broadcast_to(np.eye(3), h_true.shape),
+        [geometry.image_to_patch(h, *cm.PATCH_ORIGIN) for h in h_true]).mean())
+    # The oracle: 3 exact pairs, 2 identities flagged, 1 identity not flagged.
+    errors = np.array([r["estimator_error"] for r in result["pairs"]])
+    np.testing.assert_allclose(errors[:3], 0, atol=1e-9)
+    np.testing.assert_allclose(errors[3:], identity[3:])
+    assert every["estimator"]["success_rate"] == pytest.approx(0.5)
+    bad = int((identity[3:] > 5).sum())
+    assert every["estimator"]["flag"] == {
+        "bad": bad, "flagged": 2, "flagged_bad": int((identity[3:5] > 5).sum()),
+        "flagged_good": 2 - int((identity[3:5] > 5).sum()),
+        "recall": int((identity[3:5] > 5).sum()) / bad,
+        "false_alarm_rate": (2 - int((identity[3:5] > 5).sum())) / (6 - bad)}
+    # SIFT on the whole images: the within-range pairs of these photographs are easy.
+    assert result["groups"]["within"]["sift_ransac"]["mace"] < 3.0
+    assert every["sift_ransac"]["ms_per_pair"] > 0
+    with pytest.raises(ValueError, match="methods must be among"):
+        camera_pairs.benchmark(pairs, ("surf",))
+
+
+def test_binaries_smoke(pair_set, tmp_path):
+    images, _, _ = pair_set
+    out = tmp_path / "set"
+    run = lambda *args: subprocess.run([sys.executable, "-m", *args], cwd=ROOT,  # noqa: E731
+                                       capture_output=True, text=True, timeout=120)
+    made = run("experiments.make_camera_pairs", f"--image_dir={images}", f"--output_dir={out}",
+               "--pairs_per_image=2", "--seed=3")
+    assert made.returncode == 0, made.stderr[-2000:]
+    assert json.loads(made.stdout)["counts"] == {"within": 2, "1-2x": 1, "2-4x": 1}
+    again = run("experiments.make_camera_pairs", f"--image_dir={images}", f"--output_dir={out}")
+    assert again.returncode != 0 and "exists" in again.stderr
+    bench = run("experiments.benchmark_camera_pairs", f"--pairs_dir={out}",
+                "--methods=orb_ransac,identity", f"--json_out={tmp_path / 'b.json'}")
+    assert bench.returncode == 0, bench.stderr[-2000:]
+    result = json.loads((tmp_path / "b.json").read_text())
+    assert result["seed"] == 3 and result["groups"]["all"]["identity"]["count"] == 4
+    assert result["options"] is None and "estimator" not in result["groups"]["all"]
+
+
+@pytest.mark.slow
+def test_benchmark_with_the_shipped_estimator(pair_set):
+    """The shipped default on the tiny set: the within-range pairs are estimated well."""
+    _, out, _ = pair_set
+    result = camera_pairs.benchmark_folder(out, ("estimator", "identity"))
+    within = result["groups"]["within"]
+    assert within["estimator"]["mace"] < within["identity"]["mace"]
+    assert result["options"]["search"] == "ecc" and result["model"]
+
+
+@pytest.mark.parametrize("module", [cm, camera_pairs])
+def test_doctests(module):
+    import doctest
+
+    result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
+    assert result.attempted > 0 and result.failed == 0
+
+
+def test_verify_ecc_flags_estimates_away_from_the_alignment_optimum():
+    """Item 3: verify="ecc" flags an estimate that ECC started from it moves by more than
+    max_verify_move at the patch corners (here scaled by 1.1 about the centre: 9 px off at the
+    corners, still aligned at NCC > 0.7), keeps the estimates, and leaves the default and the
+    paper's path unchanged."""
+    from stnh_tf.inference import pipeline
+    from stnh_tf.inference.options import EstimateOptions
+
+    source = _textured_source(2, sigma=8.0)[:128, :128].astype(np.float32) / 255
+    h_true = geometry.offsets_to_homography(np.array([[3, -2], [5, 1], [2, 4], [-1, 2.0]]))
+    patch_b = cv2.warpPerspective(source, h_true, (128, 128),
+                                  flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    scale = geometry.patch_to_image(np.diag([1.1, 1.1, 1.0]), 64, 64)
+    estimates = np.stack([h_true, h_true @ scale])
+    patch_a = np.stack([source] * 2)[..., None]
+    b = np.stack([patch_b] * 2)[..., None]
+    run = lambda options: pipeline.estimate_pairs(  # noqa: E731
+        lambda k, x, y: estimates, 1, patch_a, b, [source] * 2, (0, 0), options)
+    plain, checked = run(EstimateOptions(search="none")), run(
+        EstimateOptions(search="none", verify="ecc"))
+    np.testing.assert_array_equal(checked.homography, plain.homography)
+    assert not plain.implausible.any() and np.isnan(plain.verify_move_px).all()
+    assert (plain.alignment_ncc > 0.7).all()
+    error = float(geometry.corner_errors(estimates[1], h_true))
+    assert 8 < error < 10
+    assert checked.verify_move_px[0] < 0.5 and checked.verify_move_px[1] == pytest.approx(
+        error, abs=1.0)
+    assert checked.implausible.tolist() == [False, True]
+    assert EstimateOptions.network_only().verify == EstimateOptions().verify == "none"
+    with pytest.raises(ValueError, match="verify must be one of"):
+        EstimateOptions(verify="sift")
