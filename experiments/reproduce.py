@@ -12,12 +12,14 @@ results.json and figures/. Models trained elsewhere at the same budget are used 
 --reuse=stage1=runs/cpu/stage1,homographynet=...; their recorded configuration must match the
 budget. --train_only=homographynet trains that part alone (resumable) and stops, to spread the
 training over several sessions. See stnh_tf/paper/reproduce.py for the steps and budgets.
+--train_only=semi_supervised runs the semi-supervised table (experiments.semi_supervised with its
+defaults: trains its rows, evaluates them, writes semi_supervised.md and .json).
 """
 
 from absl import app, flags
 
 from experiments import common
-from stnh_tf.paper import reproduce
+from stnh_tf.paper import reproduce, semi_supervised
 
 flags.DEFINE_enum("budget", "cpu", sorted(reproduce.BUDGETS), "Training budget of every model.")
 flags.DEFINE_string("output_dir", None, "Where data, models, tables and figures go.", required=True)
@@ -29,7 +31,8 @@ flags.DEFINE_list("reuse", [], "name=dir pairs of finished models / datasets to 
                   "data_stage1, data_stage2, data_stage3).")
 flags.DEFINE_list("train_only", [], "Train only these parts (hierarchy, homographynet, sequence2, "
                   "table1) and stop before evaluation, tables and figures: a long reproduction "
-                  "spread over sessions, one part at a time.")
+                  "spread over sessions, one part at a time. semi_supervised: the semi-supervised "
+                  "table, trained, evaluated and written (experiments.semi_supervised).")
 FLAGS = flags.FLAGS
 
 
@@ -50,7 +53,8 @@ def main(argv):
                                      image_dir=FLAGS.image_dir, test_image_dir=FLAGS.test_image_dir,
                                      source=FLAGS.source, reuse=parse_reuse(FLAGS.reuse))
         parts = {"hierarchy": run.hierarchy, "homographynet": run.homographynet,
-                 "sequence2": run.sequence2, "table1": lambda: run.ablation(run.ablation_weights)}
+                 "sequence2": run.sequence2, "table1": lambda: run.ablation(run.ablation_weights),
+                 "semi_supervised": lambda: semi_supervised.SemiSupervised(run).table()}
         unknown = sorted(set(FLAGS.train_only) - set(parts))
         if unknown:
             raise ValueError(f"--train_only names must be among {sorted(parts)}; "

@@ -1,0 +1,49 @@
+r"""The paper's semi-supervised claim as a table: does training on pairs without ground truth
+(the L1 photometric loss alone) help? Four single-stage rows at the budget's schedule, evaluated
+on the reproduction's stage-1 test pairs (those of Fig. 4 and Table 1):
+
+  python -m experiments.semi_supervised --budget=cpu --image_dir=../shared/data/coco_mini/train \
+      --test_image_dir=../shared/data/coco_mini/test --output_dir=runs/reproduce_cpu
+  python -m experiments.semi_supervised --budget=tiny --source=bundled --output_dir=/tmp/smoke
+
+Rows: 100% labels; 10% labels alone (--label_fraction=0.1 --drop_unlabeled); 10% labels + 90%
+unlabeled (--label_fraction=0.1); 0% labels (L1 only). Seed 0 each; rows within --close_px of
+another with --max_seeds seeds. Resumable (finished models and evaluations are kept); shares its
+data and models with experiments.reproduce (same OUTPUT_DIR: the 100% row is its stage 1 and
+Table 1's 1:1 seeds). Writes OUTPUT_DIR/semi_supervised.md and semi_supervised.json. See
+stnh_tf/paper/semi_supervised.py.
+"""
+
+from absl import app, flags
+
+from experiments import common
+from experiments.reproduce import parse_reuse  # also defines the shared flags: --budget,
+from stnh_tf.paper import reproduce  # --output_dir, --source, --image_dir, --test_image_dir,
+from stnh_tf.paper import semi_supervised  # --reuse
+
+flags.DEFINE_float("label_fraction", 0.0, "Labeled share of the two partly labeled rows (0: the "
+                   "budget's, 0.1; --budget=tiny: 0.75).")
+flags.DEFINE_float("close_px", semi_supervised.CLOSE_PX, "Rows whose mean MACE is within this "
+                   "of another row's are trained with --max_seeds seeds.")
+flags.DEFINE_integer("max_seeds", semi_supervised.MAX_SEEDS, "Seeds of the close rows.")
+FLAGS = flags.FLAGS
+
+
+def main(argv):
+    del argv
+    with common.user_errors("semi_supervised"):
+        run = reproduce.Reproduction(reproduce.BUDGETS[FLAGS.budget], FLAGS.output_dir,
+                                     image_dir=FLAGS.image_dir, test_image_dir=FLAGS.test_image_dir,
+                                     source=FLAGS.source, reuse=parse_reuse(FLAGS.reuse))
+        result = semi_supervised.SemiSupervised(run, FLAGS.label_fraction or None,
+                                                close_px=FLAGS.close_px,
+                                                max_seeds=FLAGS.max_seeds).table()
+    for row in result["rows"]:
+        seeds = (f" (seeds: {', '.join(f'{m:.2f}' for m in row['mace_per_seed'])})"
+                 if len(row["mace_per_seed"]) > 1 else "")
+        print(f"{row['row']}: MACE {row['mace']:.2f} px{seeds}")
+    print(result["claim"]["text"])
+
+
+if __name__ == "__main__":
+    app.run(main)

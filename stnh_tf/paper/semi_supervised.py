@@ -1,0 +1,226 @@
+"""The paper's semi-supervised claim, measured (issue 47; core of ``experiments.semi_supervised``
+and ``experiments.reproduce --train_only=semi_supervised``).
+
+The paper keeps the L1 photometric loss so that pairs without a ground-truth ``H_bar`` still
+train (section 4.2 and the conclusion). Four single-stage rows, trained on the reproduction's
+stage-1 training pairs at its budget's schedule (``Budget.train_steps``) and evaluated on its
+stage-1 test pairs (those of Fig. 4 and Table 1):
+
+* ``100% labels``: every pair supervised (seed 0 is the reproduction's stage 1; seed ``s`` is
+  Table 1's 1:1 row of that seed when the ablation runs at the same steps);
+* ``10% labels alone``: ``label_fraction=0.1, drop_unlabeled``: the other 90% left out;
+* ``10% labels + 90% unlabeled``: ``label_fraction=0.1``: the other 90% on the L1 loss alone;
+* ``0% labels (L1 only)``: ``label_fraction=0``.
+
+Each row is trained with seed 0; a row whose mean MACE is within ``close_px`` (1 px) of another
+row's is trained with seeds ``0 .. max_seeds - 1`` (2), and the comparison is repeated until no
+row needs more. The labeled pairs of a seed are :mod:`stnh_tf.data.labels`' draw (the same pairs
+for the two 10% rows of a seed). ``--budget=tiny`` (the smoke test) labels 75% instead of 10%,
+since 10% of its 8 training pairs is less than one batch of 4.
+
+Writes ``semi_supervised.md`` and ``semi_supervised.json`` in the reproduction's folder; every
+model and evaluation is kept, so the same command resumes and, once done, trains nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import numpy as np
+
+from stnh_tf.paper import reproduce
+from stnh_tf.paths import atomic_write_json
+
+CLOSE_PX = 1.0
+MAX_SEEDS = 2
+LABEL_FRACTIONS = {"tiny": 0.75}
+"""The labeled share of the two partly labeled rows at a budget (0.1 unless listed here)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Row:
+    """One row: its title, ``key`` (JSON), ``label_fraction`` and ``drop_unlabeled``."""
+
+    title: str
+    key: str
+    label_fraction: float
+    drop_unlabeled: bool
+
+
+def rows(fraction: float) -> tuple:
+    """The four rows for the labeled share ``fraction`` of the two partly labeled ones."""
+    pct = f"{100 * fraction:g}%"
+    rest = f"{100 * (1 - fraction):g}%"
+    return (Row("100% labels", "all", 1.0, False),
+            Row(f"{pct} labels alone", "labeled_alone", fraction, True),
+            Row(f"{pct} labels + {rest} unlabeled", "labeled_plus_unlabeled", fraction, False),
+            Row("0% labels (L1 only)", "none", 0.0, False))
+
+
+class SemiSupervised:
+    """The experiment inside a :class:`~stnh_tf.paper.reproduce.Reproduction` (its data,
+    budget, training, evaluation and output folder)."""
+
+    def __init__(self, run: reproduce.Reproduction, fraction: float | None = None,
+                 close_px: float = CLOSE_PX, max_seeds: int = MAX_SEEDS):
+        if max_seeds < 1:
+            raise ValueError(f"max_seeds must be >= 1; received {max_seeds}.")
+        self.run, self.close_px, self.max_seeds = run, float(close_px), int(max_seeds)
+        self.fraction = (LABEL_FRACTIONS.get(run.budget.name, 0.1) if fraction is None
+                         else float(fraction))
+        if not 0.0 < self.fraction < 1.0:
+            raise ValueError(f"the partly labeled rows need a share in (0, 1); received "
+                             f"{self.fraction}.")
+        self.rows = rows(self.fraction)
+
+    # -- models ---------------------------------------------------------------------------------
+    def model_name(self, row: Row, seed: int) -> str:
+        """The model's folder name under ``models/``: the reproduction's own for the 100% row
+        (``stage1``; Table 1's ``ablation_l2-1_l1-1_seed{s}`` at the same steps)."""
+        b = self.run.budget
+        if row.label_fraction == 1.0 and seed == 0:
+            return "stage1"
+        if row.label_fraction == 1.0 and b.ablation_train_steps == b.train_steps:
+            return reproduce.ablation_name(1.0, 1.0, seed)
+        name = f"semi_labels-{row.label_fraction:g}" + ("_drop" if row.drop_unlabeled else "")
+        return name + (f"_seed{seed}" if seed else "")
+
+    def config(self, row: Row, seed: int):
+        """The row's :class:`~stnh_tf.training.config.TrainConfig` for ``seed``."""
+        return self.run.config(self.model_name(row, seed), data_dir=self.run.stage1_data(),
+                               seed=seed, label_fraction=row.label_fraction,
+                               drop_unlabeled=row.drop_unlabeled)
+
+    def train(self, row: Row, seed: int) -> str:
+        """Train (or find finished) the row's model of ``seed``; returns its folder.
+
+        Raises:
+          ValueError: a finished model there was trained with another budget or other label
+            options.
+        """
+        from stnh_tf.training import run_dir
+
+        cfg = self.config(row, seed)
+        d = self.run.train(self.model_name(row, seed), cfg)
+        saved = run_dir.read_run_config(os.path.join(d, run_dir.CONFIG_FILE))
+        got = (saved.get("label_fraction", 1.0), saved.get("drop_unlabeled", False))
+        want = (cfg.label_fraction, cfg.drop_unlabeled)
+        if got != want:
+            raise ValueError(f"{d} was trained with label_fraction, drop_unlabeled = {got}; "
+                             f"the row {row.title!r} needs {want}.")
+        return d
+
+    def mace(self, row: Row, seed: int) -> float:
+        """The MACE (px) of the row's model of ``seed`` on the stage-1 test pairs (cached under
+        ``eval/`` with Table 1's keys where the model is shared)."""
+        d, name = self.train(row, seed), self.model_name(row, seed)
+        key = "stage1_alone" if name == "stage1" else name
+        return self.run.evaluate(key, [d])["model"]["mace"]
+
+    # -- the experiment -------------------------------------------------------------------------
+    def measure(self) -> dict:
+        """``{row.key: [MACE per seed]}``: seed 0 of every row, then seeds up to ``max_seeds``
+        for every row within ``close_px`` of another, until no row needs more."""
+        maces = {r.key: [self.mace(r, 0)] for r in self.rows}
+        while True:
+            need = [r for r in self.rows if len(maces[r.key]) < self.max_seeds
+                    and self.close_to_another(r.key, maces)]
+            if not need:
+                return maces
+            for r in need:
+                maces[r.key] += [self.mace(r, s) for s in range(len(maces[r.key]),
+                                                                  self.max_seeds)]
+
+    def close_to_another(self, key: str, maces: dict) -> bool:
+        """Whether row ``key``'s mean MACE is within ``close_px`` of another row's."""
+        mean = float(np.mean(maces[key]))
+        return any(abs(mean - float(np.mean(v))) <= self.close_px
+                   for k, v in maces.items() if k != key)
+
+    def labeled_counts(self, seeds: int) -> dict:
+        """``{(row.key, seed): (labeled, trained)}`` pairs of the training split: the pairs
+        that keep their label, and the pairs a step draws from (all, or the labeled ones with
+        ``drop_unlabeled``); plus ``"total"``."""
+        from stnh_tf.data import labels
+        from stnh_tf.data import tfrecords as data
+
+        index, h_mask = data.read_index(self.run.stage1_data(), "train")
+        out = {"total": len(index)}
+        for r in self.rows:
+            for seed in range(seeds):
+                n = int((labels.labeled(seed, index, r.label_fraction) & (h_mask > 0)).sum())
+                out[(r.key, seed)] = (n, n if r.drop_unlabeled else len(index))
+        return out
+
+    def table(self) -> dict:
+        """Train and evaluate the rows (:meth:`measure`), write ``semi_supervised.md`` and
+        ``semi_supervised.json``; returns the JSON's content."""
+        maces = self.measure()
+        counts = self.labeled_counts(max(len(v) for v in maces.values()))
+        b = self.run.budget
+        result = {"budget": b.name, "train_steps": b.train_steps, "batch_size": b.batch_size,
+                  "label_fraction": self.fraction, "close_px": self.close_px,
+                  "train_pairs_total": counts["total"],
+                  "test_pairs": self.run.evaluate("stage1_alone", [self.train(self.rows[0], 0)]
+                                                  )["count"],
+                  "rows": [], "claim": claim(maces, self.rows)}
+        for r in self.rows:
+            seeds = list(range(len(maces[r.key])))
+            result["rows"].append({
+                "row": r.title, "key": r.key, "label_fraction": r.label_fraction,
+                "drop_unlabeled": r.drop_unlabeled, "seeds": seeds,
+                "mace": float(np.mean(maces[r.key])), "mace_per_seed": maces[r.key],
+                "labeled_pairs": [counts[(r.key, s)][0] for s in seeds],
+                "train_pairs": [counts[(r.key, s)][1] for s in seeds],
+                "model_dirs": [self.train(r, s) for s in seeds]})
+        atomic_write_json(os.path.join(self.run.out, "semi_supervised.json"), result)
+        with open(os.path.join(self.run.out, "semi_supervised.md"), "w") as f:
+            f.write(markdown(result))
+        return result
+
+
+def claim(maces: dict, row_list) -> dict:
+    """Whether the unlabeled pairs helped: the ``labeled_plus_unlabeled`` row against the
+    ``labeled_alone`` row. ``verdict``: ``"holds"`` (every seed of the first below every seed of
+    the second), ``"does not hold"`` (every seed above), ``"unresolved"`` (the seeds' ranges
+    overlap); ``difference_px``: the second's mean minus the first's."""
+    semi, alone = maces["labeled_plus_unlabeled"], maces["labeled_alone"]
+    diff = float(np.mean(alone) - np.mean(semi))
+    titles = {r.key: r.title for r in row_list}
+    if max(semi) < min(alone):
+        verdict, how = "holds", f"lowers the MACE by {diff:.2f} px"
+    elif min(semi) > max(alone):
+        verdict, how = "does not hold", f"raises the MACE by {-diff:.2f} px"
+    else:
+        verdict, how = "unresolved", (f"changes the mean MACE by {-diff:+.2f} px, within the "
+                                      "seeds' spread")
+    text = (f"Adding the unlabeled pairs ({titles['labeled_plus_unlabeled']} against "
+            f"{titles['labeled_alone']}) {how}: the claim {verdict} at this budget "
+            f"({len(semi)} and {len(alone)} seeds).")
+    return {"verdict": verdict, "difference_px": diff, "text": text}
+
+
+def markdown(result: dict) -> str:
+    """``semi_supervised.md``: the table (mean and seeds' range, labeled and trained pairs,
+    difference to the 100% row) and the claim's verdict."""
+    full = result["rows"][0]["mace"]
+    lines = [f"# Semi-supervised training: single stage, {result['train_steps']} steps per row "
+             f"(budget '{result['budget']}')", "",
+             *([reproduce.SMOKE_NOTE, ""] if result["budget"] == "tiny" else []),
+             f"MACE on the same {result['test_pairs']} stage-1 test pairs as Fig. 4 and Table 1; "
+             f"{result['train_pairs_total']} training pairs, batch {result['batch_size']}. A pair "
+             "without a label trains on the L1 photometric loss alone (h_mask 0); rows within "
+             f"{result['close_px']:g} px of another have several seeds.", "",
+             "| training pairs | labeled pairs (seed 0) | pairs trained on | MACE (px) | "
+             "seeds: range | vs 100% labels |",
+             "| --- | ---: | ---: | ---: | ---: | ---: |"]
+    for r in result["rows"]:
+        maces = r["mace_per_seed"]
+        spread = (f"{len(maces)} seeds: {min(maces):.2f}-{max(maces):.2f}" if len(maces) > 1
+                  else "1 seed")
+        delta = "" if r is result["rows"][0] else f"{r['mace'] - full:+.2f}"
+        lines.append(f"| {r['row']} | {r['labeled_pairs'][0]:,} | {r['train_pairs'][0]:,} | "
+                     f"{r['mace']:.2f} | {spread} | {delta} |")
+    lines += ["", result["claim"]["text"], ""]
+    return "\n".join(lines)
