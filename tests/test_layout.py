@@ -28,7 +28,7 @@ ALLOWED = {
 # Deep-learning backends: the NumPy core and these modules never import them at module level.
 BACKENDS = ("tensorflow", "keras", "jax", "torch")
 BACKEND_FREE = ("core", "data/sources", "data/pairs", "data/batches",
-                "data/features", "training/config", "inference/options", "inference/checks",
+                "data/features", "data/labels", "training/config", "inference/options", "inference/checks",
                 "inference/search", "inference/pipeline", "inference/ecc")
 
 
@@ -154,6 +154,7 @@ def test_modules_stay_small():
 
 
 DOCTEST_MODULES = ("stnh_tf.geometry", "stnh_tf.pixels", "stnh_tf.training.config",
+                   "stnh_tf.data.labels",
                    "stnh_tf.inference.options", "stnh_tf.inference.checks",
                    "stnh_tf.inference.search", "stnh_tf.inference.ecc")
 

@@ -205,6 +205,7 @@ def test_tables_mark_rows_whose_predictions_were_rejected():
     text = reproduce.tables_markdown(result, latency)
     assert "| STN-Homography 1 stage (rejected: see below) | 23.53 |" in text
     assert "| Identity | 23.53 |" in text
-    assert "STN-Homography 1 stage: 12 stage predictions of 12 pairs were rejected" in text
+    assert "Rejected predictions (the hierarchy's rule" in text
+    assert "STN-Homography 1 stage: 12 stage predictions for 12 pairs" in text
     clean = reproduce.tables_markdown({**result, "fig4_rejected": {}}, latency)
     assert "rejected" not in clean

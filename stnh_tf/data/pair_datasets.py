@@ -73,7 +73,8 @@ class ArraySequence(keras.utils.PyDataset):
 class ArrayStream(keras.utils.PyDataset):
     """:class:`PairStream` without ``fresh_pairs``, served from :func:`materialize`'s arrays in
     this process: item ``i`` is the same batch (same samples, same order) as
-    ``PairStream(...)[i]``, without generating anything after the start."""
+    ``PairStream(...)[i]``, without generating anything after the start. A share of the batches
+    (``batches.set_share``) serves that share's rows of every batch."""
 
     def __init__(self, arrays: dict, batches: PairBatches, *, start_step: int = 0, mapper=None):
         super().__init__()
@@ -93,7 +94,7 @@ class ArrayStream(keras.utils.PyDataset):
         if self._order[0] != epoch:
             self._order = (epoch, self.batches.epoch_order(epoch))
         size = self.batches.batch_size
-        ids = self._order[1][i * size:(i + 1) * size]
+        ids = self._order[1][i * size:(i + 1) * size][self.batches.share_slice()]
         batch = model_batch({k: v[ids] for k, v in self.arrays.items()})
         return self.mapper(*batch) if self.mapper is not None else batch
 
@@ -115,18 +116,25 @@ class PairStream(keras.utils.PyDataset):
     enqueuer (a new process pool every ``fit`` epoch, float batches pickled back) is not used.
     Reading out of order is allowed (it restarts the look-ahead there). ``close()`` stops the
     workers (also done when the stream is garbage-collected).
+
+    ``label_fraction``, ``unlabeled_images`` and ``drop_unlabeled`` choose the samples without
+    ground truth (``h_mask`` 0, ``h_bar`` zeroed), as in :class:`PairBatches`.
     """
 
     def __init__(self, images, batch_size: int = 64, *, samples_per_image: int = 3, seed: int = 0,
                  start_step: int = 0, fresh_pairs: bool = False, mapper=None, max_images: int = 0,
-                 workers: int = 0, prefetch: int = 0, photometric: bool = False):
+                 workers: int = 0, prefetch: int = 0, photometric: bool = False,
+                 label_fraction: float = 1.0, unlabeled_images=None,
+                 drop_unlabeled: bool = False):
         super().__init__()
         if workers < 0 or prefetch < 0:
             raise ValueError(f"workers and prefetch must be >= 0; received {workers}, {prefetch}.")
         self.batches = PairBatches(images, batch_size, samples_per_image=samples_per_image,
                                    seed=seed, shuffle=True, drop_remainder=True,
                                    max_images=max_images, cache_images=True,
-                                   photometric=photometric)
+                                   photometric=photometric, label_fraction=label_fraction,
+                                   unlabeled_images=unlabeled_images,
+                                   drop_unlabeled=drop_unlabeled)
         self.start_step, self.fresh_pairs, self.mapper = int(start_step), bool(fresh_pairs), mapper
         self.num_workers = int(workers)
         self.prefetch = int(prefetch) or 2 * self.num_workers

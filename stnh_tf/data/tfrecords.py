@@ -27,7 +27,7 @@ import os
 import numpy as np
 
 from stnh_tf import pixels
-from stnh_tf.data import features
+from stnh_tf.data import features, labels
 from stnh_tf.paths import inside, read_json
 
 METADATA_FILE = "metadata.json"
@@ -152,16 +152,23 @@ def _iter_records(path: str, batch: int = 0):
 # ------------------------------------------------------------------------------------------------
 # tf.data pipelines
 # ------------------------------------------------------------------------------------------------
-def to_model_batch(parsed: dict):
-    """Parsed fields (uint8 patches ``[..., 128, 128]``) -> ``(x, y, w)`` of float32 tensors."""
+def to_model_batch(parsed: dict, labeled=None):
+    """Parsed fields (uint8 patches ``[..., 128, 128]``) -> ``(x, y, w)`` of float32 tensors.
+
+    ``labeled`` (a bool tensor like ``h_mask``; None: all): the pairs that keep their label; the
+    others, and every pair stored with ``h_mask`` 0, get weight 0 and ``h_bar`` zeros."""
     import tensorflow as tf
 
     def unit(t):
         return tf.cast(t, tf.float32)[..., None] / 255.0
 
+    h_bar, h_mask = parsed["h_bar"], parsed["h_mask"]
+    if labeled is not None:
+        h_mask = h_mask * tf.cast(labeled, h_mask.dtype)
+        h_bar = tf.where((h_mask > 0)[..., None], h_bar, tf.zeros_like(h_bar))
     x = {"patch_a": unit(parsed["patch_a"]), "patch_b": unit(parsed["patch_b"])}
-    y = {"h_bar": parsed["h_bar"], "patch_a_warp": unit(parsed["patch_a_t"])}
-    w = {"h_bar": parsed["h_mask"], "patch_a_warp": tf.ones_like(parsed["h_mask"])}
+    y = {"h_bar": h_bar, "patch_a_warp": unit(parsed["patch_a_t"])}
+    w = {"h_bar": h_mask, "patch_a_warp": tf.ones_like(h_mask)}
     return x, y, w
 
 
@@ -182,9 +189,27 @@ def load_raw(data_dir: str, split: str, fields=None, verify: str = "size"):
                   num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
 
 
+def share_policy(num_files: int, count: int) -> str:
+    """How :func:`load_split` divides a split of ``num_files`` shards among ``count`` shares
+    (data-parallel processes): ``"file"`` when ``num_files`` is a multiple of ``count`` (share k
+    reads shards k, k + count, ...: each record is read by one share, and the shares' passes are
+    equally long within one image's samples, the writer's shards being contiguous blocks of
+    images), ``"data"`` otherwise (every share reads every record, in the whole stream's order,
+    and parses only its rows of each batch), ``"none"`` for one share.
+
+    >>> share_policy(8, 2), share_policy(3, 2), share_policy(3, 1)
+    ('file', 'data', 'none')
+    """
+    if count <= 1:
+        return "none"
+    return "file" if num_files % count == 0 else "data"
+
+
 def load_split(data_dir: str, split: str, batch_size: int, shuffle: bool = True, seed: int = 0,
                repeat: bool = True, drop_remainder: bool = True, shuffle_buffer: int = 1024,
-               cycle_length: int = 8, verify: str = "size", skip_batches: int = 0):
+               cycle_length: int = 8, verify: str = "size", skip_batches: int = 0,
+               label_fraction: float = 1.0, drop_unlabeled: bool = False,
+               share: tuple = (0, 1)):
     """The training/validation stream: ``tf.data.Dataset`` of ``(x, y, w)`` batches (see module).
 
     Shards are read interleaved (``cycle_length`` at a time, deterministic), records shuffled
@@ -194,9 +219,22 @@ def load_split(data_dir: str, split: str, batch_size: int, shuffle: bool = True,
     batches are still read and shuffled (the shuffle buffer's state depends on them) but not
     parsed. With ``shuffle`` the shard order is also reshuffled (seeded) every pass.
 
+    ``label_fraction`` < 1: a record keeps its label iff :func:`stnh_tf.data.labels.labeled`
+    (``seed``, its ``index``) says so; the others get ``h_mask`` 0 and ``h_bar`` zeros
+    (:func:`to_model_batch`). ``drop_unlabeled``: the records without a label (by the draw, or
+    stored with ``h_mask`` 0) are left out before the shuffle (a stream of labeled records
+    alone; see :func:`count_labeled` for how many there are).
+
+    ``share=(k, n)``: process k of n's share of the stream in data-parallel training
+    (:mod:`stnh_tf.training.distribute`), ``batch_size`` being the global batch; by
+    :func:`share_policy`, either shards k, k + n, ... read as above in batches of
+    ``batch_size / n`` (``"file"``), or rows ``[k b, (k + 1) b)`` of each batch of the whole
+    stream, ``b = batch_size / n``, only they parsed (``"data"``). ``(0, 1)``: the whole stream.
+
     Raises:
       ValueError / FileNotFoundError: missing or incomplete split; fewer samples than one batch
-        with ``drop_remainder``.
+        with ``drop_remainder``; a share that is not ``0 <= k < n`` with ``batch_size`` a
+        multiple of ``n``.
       ShardError: missing or truncated shard (``verify="size"``), corrupted (``verify="full"``).
     """
     import tensorflow as tf
@@ -208,6 +246,13 @@ def load_split(data_dir: str, split: str, batch_size: int, shuffle: bool = True,
         raise ValueError(f"split {split!r} of {data_dir!r} has {info['num_samples']} samples, "
                          f"fewer than one batch of {batch_size}.")
     paths = shard_paths(data_dir, split, verify)
+    index, count = share
+    if not 0 <= index < count or batch_size % count:
+        raise ValueError(f"share {share} needs 0 <= index < count and batch_size ({batch_size}) "
+                         "a multiple of count.")
+    policy = share_policy(len(paths), count)
+    if policy == "file":  # this share's shards, its part of the global batch from them
+        paths, batch_size = paths[index::count], batch_size // count
     files = tf.data.Dataset.from_tensor_slices(paths)
     if shuffle:
         files = files.shuffle(len(paths), seed=seed, reshuffle_each_iteration=True)
@@ -216,16 +261,60 @@ def load_split(data_dir: str, split: str, batch_size: int, shuffle: bool = True,
     ds = files.interleave(lambda p: tf.data.TFRecordDataset(p, buffer_size=4 << 20),
                           cycle_length=max(1, min(cycle_length, len(paths))), block_length=1,
                           num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+    if drop_unlabeled:
+        def keep(record):
+            f = features.parse_examples(record, ("index", "h_mask"))
+            return labels.tf_labeled(seed, f["index"], label_fraction) & (f["h_mask"] > 0)
+
+        ds = ds.filter(keep)
     if shuffle:
         ds = ds.shuffle(shuffle_buffer, seed=seed, reshuffle_each_iteration=True)
     ds = ds.batch(batch_size, drop_remainder=drop_remainder)
     if skip_batches:
         ds = ds.skip(skip_batches)
-    ds = ds.map(lambda r: to_model_batch(features.parse_examples(r, MODEL_FIELDS)),
-                num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+    if policy == "data":  # every record read, this share's rows of each batch parsed
+        part = batch_size // count
+        ds = ds.map(lambda r: r[index * part:(index + 1) * part])
+
+    def model_batch(records):
+        if label_fraction == 1.0 and not drop_unlabeled:
+            return to_model_batch(features.parse_examples(records, MODEL_FIELDS))
+        parsed = features.parse_examples(records, MODEL_FIELDS + ("index",))
+        return to_model_batch(parsed, labels.tf_labeled(seed, parsed["index"], label_fraction))
+
+    ds = ds.map(model_batch, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
     options = tf.data.Options()
     options.deterministic = True
     return ds.with_options(options).prefetch(tf.data.AUTOTUNE)
+
+
+def read_index(data_dir: str, split: str) -> tuple:
+    """``(index, h_mask)``: every record's ``index`` (int64 ``[N]``) and stored ``h_mask``
+    (float32 ``[N]``) in stored order, read without the patches' decoding (a pass over the
+    split's files).
+
+    Raises:
+      ShardError: a missing or truncated shard (naming the file).
+    """
+    index, h_mask = [np.zeros(0, np.int64)], [np.zeros(0, np.float32)]
+    for batch in load_raw(data_dir, split, fields=("index", "h_mask")).batch(4096):
+        index.append(batch["index"].numpy())
+        h_mask.append(batch["h_mask"].numpy())
+    return np.concatenate(index), np.concatenate(h_mask)
+
+
+def count_labeled(data_dir: str, split: str, label_fraction: float, seed: int) -> tuple:
+    """``(labeled, total)``: how many of ``split``'s records keep their label under
+    ``label_fraction`` and ``seed`` (:func:`stnh_tf.data.labels.labeled` of their ``index``,
+    and stored with ``h_mask`` > 0), of how many: what :func:`load_split` trains on with
+    ``drop_unlabeled`` (:func:`read_index`: a pass over the split).
+
+    Raises:
+      ShardError: a missing or truncated shard (naming the file).
+    """
+    index, h_mask = read_index(data_dir, split)
+    keep = labels.labeled(seed, index, label_fraction) & (h_mask > 0)
+    return int(keep.sum()), len(index)
 
 
 def load_arrays(data_dir: str, split: str, max_samples=None, verify: str = "size") -> dict:

@@ -32,11 +32,11 @@ def tables_markdown(result: dict, latency: dict) -> str:
         mark = " (rejected: see below)" if rejected.get(name) else ""
         lines.append(f"| {name}{mark} | {v:.2f} | {'' if p is None else f'{p:.2f}'} |")
     if rejected:
-        lines += ["", "Rejected predictions: " + "; ".join(
-            f"{name}: {n} stage predictions of {result['test_pairs']} pairs were rejected by the "
-            "hierarchy's rule (non-finite, singular or leaving the context), so those pairs "
-            "keep the estimate before that stage (the identity at stage 1): the MACE is not the "
-            "network's" for name, n in rejected.items()) + "."]
+        lines += ["", "Rejected predictions (the hierarchy's rule: non-finite, singular or leaving "
+                  "the context; such a pair keeps the estimate before that stage, the identity at "
+                  "stage 1, so the row's MACE is not the network's): " + "; ".join(
+                      f"{name}: {n} stage predictions for {result['test_pairs']} pairs"
+                      for name, n in rejected.items()) + "."]
     steps = b["ablation_steps"] or b["train_steps"]
     lines += ["", f"## Table 1: loss weights, single stage ({steps} steps per row)", "",
               *TABLE1_HEAD]

@@ -27,7 +27,7 @@ L2_REDUCTIONS = ("mean", "sum")
 LR_SCHEDULES = ("cosine", "step")
 BATCH_NORMS = ("none", "conv")
 INPUT_NORMS = ("unit", "patch")
-STRATEGIES = ("default", "mirrored")
+STRATEGIES = ("default", "mirrored", "data_parallel")
 
 # Defaults that depend on the model kind: what ``preset_fields`` (and so the training binaries)
 # set beneath a recipe's preset and the flags given explicitly. TrainConfig's own defaults do not
@@ -126,7 +126,18 @@ class TrainConfig:
     log_every: int = _field(50, "Steps between progress lines / TensorBoard points.")
     val_split: str = _field("test", "Split for the validation MACE (monitoring only).")
     val_samples: int = _field(1024, "Validation pairs per checkpoint (0: off).")
-    strategy: str = _field("default", "tf.distribute strategy.", choices=STRATEGIES)
+    strategy: str = _field("default", "default (one device), mirrored (TensorFlow backend: "
+                           "tf.distribute.MirroredStrategy over this machine's devices) or "
+                           "data_parallel (JAX backend: keras.distribution.DataParallel over "
+                           "every device of every process; several hosts or local workers with "
+                           "--num_processes: docs/scale.md).", choices=STRATEGIES)
+    coordinator_address: str = _field("", "With --strategy=data_parallel --num_processes=N > 1: "
+                                      "host:port of process 0 (the chief, the only one writing "
+                                      "--model_dir), the same on every process.")
+    num_processes: int = _field(1, "With --strategy=data_parallel: processes training together "
+                                "(hosts or local workers); --batch_size is their global batch.")
+    process_id: int = _field(0, "With --num_processes=N: this process's number, 0..N-1 (0: the "
+                             "chief).")
     init_from: tuple = _field((), "Comma list of finished train_stage --model=stn runs (dirs "
                               "holding model.keras, or .keras files), applied on a fresh start "
                               "only: train_stage takes one, whose regression network initialises "
@@ -153,6 +164,18 @@ class TrainConfig:
                                "and noise changes of patch_b in the training pairs "
                                "(pairs.PhotometricChange; not the paper's; the validation pairs "
                                "stay unchanged).")
+    label_fraction: float = _field(1.0, "Share of the training pairs that keep their ground-truth "
+                                   "H_bar: pair i keeps it iff a hash of (seed, i) falls below "
+                                   "the share (stnh_tf.data.labels: the same pairs on resume, "
+                                   "from TFRecords or generated pairs); the others get h_mask 0 "
+                                   "and H_bar zeroed, and train on the L1 photometric loss alone "
+                                   "(the paper's semi-supervised training). 1: every pair.")
+    drop_unlabeled: bool = _field(False, "Train on the labeled pairs alone (the others left out): "
+                                  "with --label_fraction=F, F of the data, fully supervised.")
+    unlabeled_image_dir: str = _field("", "With --image_dir: folders of images (comma-separated) "
+                                      "whose pairs (--samples_per_image each) are mixed into "
+                                      "training without labels: h_mask 0, H_bar zeroed, the L1 "
+                                      "photometric loss alone.", comma_list=True)
     recipe: str = _field("paper", "Preset of the recipe flags: paper (the paper's, default) or "
                          "fast (a deviation: " + ", ".join(f"{k}={v}" for k, v in
                                                            RECIPES["fast"].items())
@@ -173,7 +196,8 @@ class TrainConfig:
         """Every problem :meth:`validate` reports, as messages naming the field and value."""
         out = []
         for group in (self._choice_problems, self._source_problems, self._model_problems,
-                      self._number_problems, self._loss_problems, self._folder_problems):
+                      self._number_problems, self._loss_problems, self._folder_problems,
+                      self._label_problems, self._distribution_problems):
             try:
                 out.extend(group())
             except (TypeError, ValueError) as e:  # a value of the wrong type, met in a group
@@ -268,7 +292,7 @@ class TrainConfig:
                    f"{self.learning_rate}.")
 
     def _folder_problems(self):
-        for name in ("image_dir", "val_image_dir"):
+        for name in ("image_dir", "val_image_dir", "unlabeled_image_dir"):
             spec = getattr(self, name)
             if spec and not [f for f in spec.split(",") if f.strip()]:
                 yield (f"{name} names no folder (received {spec!r}); give one or "
@@ -278,6 +302,52 @@ class TrainConfig:
                    "write them with data_prep.make_dataset --photometric.")
         if self.in_memory and self.fresh_pairs:
             yield ("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
+
+    def _label_problems(self):
+        fraction = self.label_fraction
+        valid = (not isinstance(fraction, bool) and isinstance(fraction, numbers.Real)
+                 and math.isfinite(fraction) and 0.0 <= fraction <= 1.0)
+        if not valid:
+            yield (f"label_fraction must be a number in [0, 1]; received {fraction!r}.")
+        if self.unlabeled_image_dir and not self.image_dir:
+            yield ("unlabeled_image_dir mixes pairs generated from its images into pairs "
+                   "generated from image_dir; give image_dir (with TFRecords in data_dir, "
+                   "label_fraction leaves a share of the pairs unlabeled).")
+        if self.drop_unlabeled and self.unlabeled_image_dir:
+            yield ("drop_unlabeled would leave out every pair of unlabeled_image_dir; give one "
+                   "of them.")
+        if not valid:
+            return
+        if self.drop_unlabeled and fraction == 0:
+            yield "drop_unlabeled with label_fraction 0 leaves no pair to train on."
+        unlabeled = (fraction < 1 and not self.drop_unlabeled) or self.unlabeled_image_dir
+        if unlabeled and self.model in FOUR_POINT_KINDS:
+            yield (f"model={self.model!r} has no photometric loss: its unlabeled pairs would "
+                   "train nothing; give drop_unlabeled (label_fraction < 1) or an stn model.")
+        elif unlabeled and self.l1_weight == 0:
+            yield ("l1_weight is 0: the unlabeled pairs (label_fraction < 1, "
+                   "unlabeled_image_dir) would train nothing; give l1_weight > 0 or "
+                   "drop_unlabeled.")
+
+    def _distribution_problems(self):
+        n, k = self.num_processes, self.process_id
+        if not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in (n, k)):
+            return  # (_number_problems names them)
+        if n > 1 and self.strategy != "data_parallel":
+            yield (f"num_processes={n} trains with strategy 'data_parallel' (received "
+                   f"{self.strategy!r}).")
+        if n >= 1 and not 0 <= k < n:
+            yield f"process_id must be in [0, num_processes); received {k} of {n}."
+        if n > 1 and not self.coordinator_address:
+            yield ("num_processes > 1 needs coordinator_address (host:port of process 0, the "
+                   "same on every process).")
+        if n == 1 and self.coordinator_address:
+            yield (f"coordinator_address ({self.coordinator_address!r}) joins several "
+                   "processes: give num_processes > 1 too (else each trains alone), or leave it "
+                   "empty.")
+        if n > 1 and isinstance(self.batch_size, numbers.Integral) and self.batch_size % n:
+            yield (f"batch_size ({self.batch_size}) is the global batch: it must be a multiple "
+                   f"of num_processes ({n}).")
 
     def check_losses(self):
         """Raise ``ValueError`` for loss settings the model kind cannot use (part of
@@ -323,11 +393,12 @@ _TUPLE_FIELDS = tuple(f.name for f in dataclasses.fields(TrainConfig) if f.type 
 # The integer fields and their smallest allowed values (TrainConfig.validate).
 _INTEGER_MINIMUMS = {"checkpoint_every": 1, "batch_size": 1, "shuffle_buffer": 1, "log_every": 1,
                      "samples_per_image": 1, "val_samples": 0, "workers": 0, "seed": 0,
-                     "val_seed": 0}
+                     "val_seed": 0, "num_processes": 1, "process_id": 0}
 
 # Fields that may differ between a run and its resumption without changing the result.
 RESUME_FREE_FIELDS = frozenset({"log_every", "model_dir", "data_dir", "image_dir", "val_image_dir",
-                                "workers", "in_memory"})
+                                "workers", "in_memory", "unlabeled_image_dir",
+                                "coordinator_address"})
 
 
 def preset_fields(recipe: str, model: str) -> dict:

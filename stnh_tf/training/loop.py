@@ -16,7 +16,10 @@ it on the TFRecord dataset in ``config.data_dir`` with:
 * TensorBoard scalars against the global step (both loss terms, learning rate, validation MACE)
   and console progress, every ``log_every`` steps and at least ten times a run.
 * A non-finite loss stops training with an error naming the step and the last good checkpoint.
-* ``strategy="mirrored"`` runs under ``tf.distribute.MirroredStrategy``.
+* ``strategy="mirrored"`` runs under ``tf.distribute.MirroredStrategy``; ``"data_parallel"``
+  (JAX backend) under ``keras.distribution.DataParallel``, also on several processes
+  (``num_processes``, ``process_id``, ``coordinator_address``), of which only the chief writes
+  ``model_dir`` (:mod:`stnh_tf.training.distribute`).
 
 Two data sources, same losses and schedule: the TFRecords in ``data_dir`` (TensorFlow backend), or
 ``image_dir``: stage-1 pairs generated on the fly from a folder of images by
@@ -47,7 +50,7 @@ import keras
 
 from stnh_tf.modeling import runner
 from stnh_tf.paths import atomic_write_json, fsync_replace
-from stnh_tf.training import model_kinds, run_dir
+from stnh_tf.training import distribute, model_kinds, run_dir
 from stnh_tf.training import streams as train_streams
 from stnh_tf.training.callbacks import (NonFiniteGuard, ProgressLogger, StepScalars, TimeLimit,
                                         report_every)
@@ -142,7 +145,8 @@ def check_start(cfg: TrainConfig) -> None:
     under ``--overwrite`` nor leaves files behind: the fields (:meth:`TrainConfig.validate`),
     the losses (:func:`loss_spec`), the backend's strategy; the dataset (a ``train`` split of
     this stage holding at least one batch, its shards and the validation split's present with
-    their recorded sizes) or the image folders (at least one batch of pairs); the models that
+    their recorded sizes) or the image folders (at least one batch of pairs); the data of the
+    label options (:func:`~stnh_tf.training.streams.check_labels`); the models that
     ``init_from`` and ``prev_stages`` name.
 
     Raises:
@@ -155,6 +159,7 @@ def check_start(cfg: TrainConfig) -> None:
 
     cfg.validate()
     model_kinds.loss_spec(cfg)
+    distribute.check(cfg)  # data_parallel: the JAX backend
     if keras.backend.backend() != "tensorflow":
         _strategy(cfg)
     if cfg.image_dir:
@@ -168,6 +173,7 @@ def check_start(cfg: TrainConfig) -> None:
         data.load_split(cfg.data_dir, "train", cfg.batch_size, shuffle=False, repeat=False)
         if cfg.val_samples and data.has_split(cfg.data_dir, cfg.val_split):
             data.shard_paths(cfg.data_dir, cfg.val_split)
+    train_streams.check_labels(cfg)  # label_fraction, drop_unlabeled, unlabeled_image_dir
     for d in (*cfg.init_from, *cfg.prev_stages):
         path = os.path.join(d, run_dir.FINAL_MODEL) if os.path.isdir(d) else d
         if not os.path.isfile(path):
@@ -176,7 +182,10 @@ def check_start(cfg: TrainConfig) -> None:
 
 
 def _strategy(cfg):
-    """The tf.distribute strategy (None on other backends, which run on their default device)."""
+    """The tf.distribute strategy (None on other backends, which run on their default device,
+    and for ``data_parallel``: keras.distribution, :mod:`stnh_tf.training.distribute`)."""
+    if cfg.strategy == "data_parallel":
+        return None
     if keras.backend.backend() != "tensorflow":
         if cfg.strategy != "default":
             raise ValueError(f"strategy={cfg.strategy!r} needs the TensorFlow backend; this is "
@@ -192,6 +201,15 @@ def _strategy(cfg):
 def _strategy_scope(cfg):
     strategy = _strategy(cfg)
     return strategy.scope() if strategy is not None else contextlib.nullcontext()
+
+
+def _load_start(model, cfg: TrainConfig, ckpt_dir: str) -> int:
+    """Load the latest checkpoint of ``ckpt_dir`` into the compiled ``model``, or on a fresh start
+    (none there) ``cfg.init_from``'s weights; returns the checkpoint's step (0: fresh)."""
+    start_step = run_dir.load_checkpoint(model, ckpt_dir)
+    if start_step == 0 and cfg.init_from:
+        initialize_from(model, cfg.init_from)
+    return start_step
 
 
 def tensorboard_available() -> bool:
@@ -248,11 +266,20 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     Every check of the flags and data (:func:`check_start`) runs before ``model_dir`` is touched
     (:func:`prepare_model_dir`); if a new run then fails before its first checkpoint, what it
     wrote is removed again. A corrupted shard met while training raises ``data.ShardError``
-    naming the file.
+    naming the file. The run holds the lock of ``model_dir``
+    (:class:`~stnh_tf.training.run_dir.RunLock`) from before :func:`prepare_model_dir` to its
+    end: a second run there meanwhile is refused (``FileExistsError`` naming the folder) before
+    it reads or deletes anything.
+
+    With ``cfg.num_processes`` > 1 every process calls this with the same ``cfg`` but its
+    ``process_id``: only process 0 takes the lock and writes ``model_dir``, every process trains
+    on its share of each global batch and returns the same result
+    (:mod:`stnh_tf.training.distribute`).
     """
     from stnh_tf.data import tfrecords as data
 
     t_call = time.monotonic()
+    cluster = distribute.join(cfg)  # first: before any JAX computation (metrics in check_start)
     check_start(cfg)
     warning = mixed_precision_warning(cfg)
     if warning:
@@ -261,23 +288,34 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     stream_fn = stream_fn or (train_streams.generated_stream if generated
                               else train_streams.training_stream)
     made_dir = not os.path.exists(cfg.model_dir)
-    new_run = run_dir.prepare_model_dir(cfg, overwrite=overwrite)
+    lock, new_run = None, False
+    try:
+        if cluster.is_chief:  # several processes: only the chief touches model_dir
+            lock = run_dir.RunLock(cfg.model_dir)  # one run per folder, held to the end
+            new_run = run_dir.prepare_model_dir(cfg, overwrite=overwrite)
+    except BaseException:
+        if lock is not None:
+            lock.release()
+        distribute.report_start(cluster, ok=False)
+        raise
+    distribute.report_start(cluster, ok=True)
     keras.utils.set_random_seed(cfg.seed)
     keras.mixed_precision.set_global_policy("mixed_bfloat16" if cfg.mixed_precision else "float32")
     train_ds = None
     try:
+        distribute.activate(cluster, cfg.batch_size)
         with _strategy_scope(cfg):
             model = model_kinds.build_model(cfg)
             compile_model(model, cfg)
             ckpt_dir = os.path.join(cfg.model_dir, run_dir.CHECKPOINT_DIR)
-            start_step = run_dir.load_checkpoint(model, ckpt_dir)
-            if start_step == 0 and cfg.init_from:
-                initialize_from(model, cfg.init_from)
+            start_step = distribute.load_state(  # several processes: the chief's, sent to all
+                cluster, model, lambda m: _load_start(m, cfg, ckpt_dir),
+                lambda: compile_model(model_kinds.build_model(cfg), cfg))
         if start_step:
             printer(f"resuming {cfg.model_dir} from step {start_step}")
         if start_step >= cfg.train_steps:
             printer("checkpoint already at the final step")
-        train_ds = stream_fn(cfg, "train", start_step)
+        train_ds = distribute.train_stream(cluster, cfg, start_step, stream_fn)  # this share
         val_ds = val_steps = None
         if generated:
             if cfg.val_samples and cfg.val_image_dir:
@@ -290,18 +328,22 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             if mapper is not None:
                 train_ds = train_ds.map(mapper)
                 val_ds = val_ds.map(mapper) if val_ds is not None else None
+        val_ds, val_steps = distribute.validation_share(cluster, val_ds, val_steps)
         guard = NonFiniteGuard()
         every = report_every(cfg.log_every, cfg.train_steps)
-        callbacks = [guard, run_dir.AtomicCheckpoint(ckpt_dir, guard),
-                     ProgressLogger(every, cfg.train_steps, printer)]
-        if tensorboard_available():
-            callbacks.append(StepScalars(os.path.join(cfg.model_dir, run_dir.LOGS_DIR), every,
-                                         cfg.train_steps))
-        else:
-            printer("TensorFlow is not installed: no TensorBoard logs (console progress only)")
+        callbacks = [guard, ProgressLogger(every, cfg.train_steps, printer)]
+        if cluster.is_chief:  # checkpoints and logs: the chief's alone
+            callbacks.insert(1, distribute.chief_callback(
+                cluster, run_dir.AtomicCheckpoint(ckpt_dir, guard)))
+            if tensorboard_available():
+                callbacks.append(StepScalars(os.path.join(cfg.model_dir, run_dir.LOGS_DIR),
+                                             every, cfg.train_steps))
+            else:
+                printer("TensorFlow is not installed: no TensorBoard logs (console progress only)")
         callbacks.extend(extra_callbacks)
         limit = TimeLimit(time_limit_s, start=t_call) if time_limit_s else None
         callbacks += [limit] if limit else []
+        callbacks += distribute.callbacks(cluster, limit)  # the chief's stop decision, to all
         epochs = cfg.train_steps // cfg.checkpoint_every
         t0 = time.time()
         try:
@@ -330,12 +372,15 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
                     "wall_s_this_run": time.time() - t0}
         final_path = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
         tmp = os.path.join(cfg.model_dir, f"tmp-{os.getpid()}-{run_dir.FINAL_MODEL}")
-        model.save(tmp)
-        fsync_replace(tmp, final_path)
+        if cluster.is_chief:
+            with distribute.local_only(cluster):
+                model.save(tmp)
+            fsync_replace(tmp, final_path)
         result = {"final_step": int(keras.ops.convert_to_numpy(model.optimizer.iterations)),
                   "wall_s_this_run": time.time() - t0,
                   "history": {k: [float(x) for x in v] for k, v in history.history.items()}}
-        atomic_write_json(os.path.join(cfg.model_dir, run_dir.RESULT_FILE), result)
+        if cluster.is_chief:
+            atomic_write_json(os.path.join(cfg.model_dir, run_dir.RESULT_FILE), result)
         return result
     except BaseException:
         if new_run:
@@ -345,3 +390,6 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         keras.mixed_precision.set_global_policy("float32")
         if hasattr(train_ds, "close"):  # a PairStream's generator processes
             train_ds.close()
+        distribute.deactivate(cluster)
+        if lock is not None:
+            lock.release()

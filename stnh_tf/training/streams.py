@@ -1,6 +1,9 @@
 """The input streams of a training run: the seeded TFRecord stream of ``data_dir``, pairs
 generated from ``image_dir`` (streamed, or made once in memory, for stage k > 1 from the previous
 stages' predictions), and the validation pairs.
+
+Every training stream applies the run's label options (``label_fraction``, ``drop_unlabeled``,
+``unlabeled_image_dir``: :mod:`stnh_tf.data.labels`); the validation pairs are always labeled.
 """
 
 from __future__ import annotations
@@ -37,18 +40,62 @@ def check_dataset(data_dir: str, split: str, stage: int) -> dict:
     return meta
 
 
-def training_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0):
+def training_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0,
+                    share: tuple = (0, 1)):
     """The endless, seeded training stream positioned at ``start_step``.
 
     The order of batches is a pure function of ``cfg.seed`` (seeded shuffle, deterministic
     interleave), so a resumed run skips the batches it has already consumed and sees exactly the
-    batches an uninterrupted run would have seen.
+    batches an uninterrupted run would have seen. ``share=(k, n)``: process k of n's share
+    (:func:`stnh_tf.data.tfrecords.load_split`; :mod:`stnh_tf.training.distribute`).
     """
     from stnh_tf.data import tfrecords as data
 
     return data.load_split(cfg.data_dir, split, cfg.batch_size, shuffle=True, seed=cfg.seed,
                            repeat=True, shuffle_buffer=cfg.shuffle_buffer, cycle_length=64,
-                           skip_batches=start_step)
+                           skip_batches=start_step, label_fraction=cfg.label_fraction,
+                           drop_unlabeled=cfg.drop_unlabeled, share=share)
+
+
+def label_options(cfg: TrainConfig) -> dict:
+    """The keyword arguments of :class:`stnh_tf.data.batches.PairBatches` (and ``PairStream``)
+    that leave ``cfg``'s pairs without labels: ``label_fraction``, ``unlabeled_images`` (the
+    folders of ``cfg.unlabeled_image_dir``, or None), ``drop_unlabeled``."""
+    from stnh_tf.data import sources
+
+    unlabeled = (sources.split_folders(cfg.unlabeled_image_dir) if cfg.unlabeled_image_dir
+                 else None)
+    return {"label_fraction": cfg.label_fraction, "unlabeled_images": unlabeled,
+            "drop_unlabeled": cfg.drop_unlabeled}
+
+
+def check_labels(cfg: TrainConfig) -> None:
+    """The data checks of ``cfg``'s label options (part of the training loop's ``check_start``,
+    run before ``model_dir`` is touched): the folders of ``unlabeled_image_dir`` list images;
+    with ``drop_unlabeled`` the labeled pairs fill at least one batch (generated pairs: counted
+    from their indices; TFRecords: counted by reading every record's ``index``,
+    :func:`stnh_tf.data.tfrecords.count_labeled`). Nothing to check (returns at once) for the
+    default options.
+
+    Raises:
+      ValueError / OSError (``data.sources.SourceError``, a ``ValueError``): naming the problem.
+    """
+    from stnh_tf.data import sources
+
+    if cfg.label_fraction == 1.0 and not cfg.drop_unlabeled and not cfg.unlabeled_image_dir:
+        return
+    if cfg.image_dir:
+        batches.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
+                            samples_per_image=cfg.samples_per_image, seed=cfg.seed,
+                            cache_images=False, **label_options(cfg))
+    elif cfg.drop_unlabeled:
+        from stnh_tf.data import tfrecords as data
+
+        labeled, total = data.count_labeled(cfg.data_dir, "train", cfg.label_fraction, cfg.seed)
+        if labeled < cfg.batch_size:
+            raise ValueError(f"drop_unlabeled: {labeled} of the {total} train pairs of "
+                             f"{cfg.data_dir} are labeled (label_fraction={cfg.label_fraction}, "
+                             f"seed {cfg.seed}), fewer than one batch of {cfg.batch_size}.")
 
 
 def stage_pairs(cfg: TrainConfig, pair_batches) -> dict:
@@ -56,7 +103,8 @@ def stage_pairs(cfg: TrainConfig, pair_batches) -> dict:
     ``cfg.stage``, in the compact form (:func:`stnh_tf.data.batches.stack_samples`), generated with
     ``cfg.workers`` processes. Stage 1: as generated; stage k > 1: re-made in memory from the
     predictions of ``cfg.prev_stages`` (:func:`stnh_tf.hierarchy.next_stage_arrays`, the paper's
-    offline re-generation without TFRecords)."""
+    offline re-generation without TFRecords), the pairs without ground truth (``h_mask`` 0)
+    keeping ``h_bar`` zeros (their stage-k target is not kept)."""
     from stnh_tf import hierarchy
     from stnh_tf.modeling import runner
 
@@ -68,6 +116,7 @@ def stage_pairs(cfg: TrainConfig, pair_batches) -> dict:
     _log.info("stage-%d pairs from %d previous stages; degenerate-rule cases %s", cfg.stage,
               len(stages), rejected)
     pairs.pop("h_prev")
+    pairs["h_bar"][pairs["h_mask"] == 0] = 0.0
     return pairs
 
 
@@ -83,14 +132,14 @@ def generated_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0
             raise ValueError("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
         pair_batches = batches.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
                                            samples_per_image=cfg.samples_per_image, seed=cfg.seed,
-                                           photometric=cfg.photometric)
+                                           photometric=cfg.photometric, **label_options(cfg))
         return pair_datasets.ArrayStream(stage_pairs(cfg, pair_batches), pair_batches,
                                          start_step=start_step, mapper=model_kinds.targets_for(cfg))
     return pair_datasets.PairStream(sources.split_folders(cfg.image_dir), cfg.batch_size,
-                           samples_per_image=cfg.samples_per_image, seed=cfg.seed,
+                                    samples_per_image=cfg.samples_per_image, seed=cfg.seed,
                                     start_step=start_step, fresh_pairs=cfg.fresh_pairs,
                                     mapper=model_kinds.targets_for(cfg), workers=cfg.workers,
-                                    photometric=cfg.photometric)
+                                    photometric=cfg.photometric, **label_options(cfg))
 
 
 def generated_validation(cfg: TrainConfig):
