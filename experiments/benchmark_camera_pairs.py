@@ -8,6 +8,7 @@ estimator's implausibility flag as a detector of estimates more than 5 px off
   python -m experiments.benchmark_camera_pairs --pairs_dir=D --methods=sift_ransac,identity
   python -m experiments.benchmark_camera_pairs --pairs_dir=D --search=none   # the network alone
   python -m experiments.benchmark_camera_pairs --pairs_dir=D --verify=ecc    # ECC check of flags
+  python -m experiments.benchmark_camera_pairs --pairs_dir=D --coarse=rotations  # wider motions
 
 Prints one JSON object.
 """
@@ -25,7 +26,8 @@ flags.DEFINE_list("methods", list(camera_pairs.METHODS),
                   f"Methods, among {','.join(camera_pairs.METHODS)}.")
 flags.DEFINE_integer("max_pairs", 0, "Only the first this many pairs (0: all).")
 flags.DEFINE_bool("per_pair", False, "Also print each pair's errors and flag.")
-flags_common.define_estimate_flags(("search", "refine", "tta", "retry_tta", "verify"))
+flags_common.define_estimate_flags(("search", "refine", "tta", "retry_tta", "verify",
+                                     "coarse"))
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them

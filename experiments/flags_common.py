@@ -118,6 +118,8 @@ ESTIMATE_FLAG_HELP = {
             "deviation) or zeros.",
     "verify": "Before flagging: none, or ecc (flag an estimate that ECC started from it moves by "
               "more than Thresholds.max_verify_move; a deviation).",
+    "coarse": "estimate_images only: none, or rotations (try a poorly aligned pair again from "
+              "coarse rotations and zooms, for motions beyond the trained range; a deviation).",
 }
 
 
@@ -127,7 +129,7 @@ def _estimate_choices(name):
 
     return {"search": options.SEARCHES, "refine": options.REFINES, "tta": tuple(options.TTAS),
             "retry_tta": tuple(options.TTAS), "fill": geometry.FILLS,
-            "verify": options.VERIFIES}.get(name)
+            "verify": options.VERIFIES, "coarse": tuple(options.COARSES)}.get(name)
 
 
 def define_estimate_flags(names=("search", "refine", "tta", "retry_tta"), defaults=None,

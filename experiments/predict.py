@@ -1,7 +1,8 @@
 r"""Estimate the homography between two images and draw the alignment.
 
   python -m experiments.predict --image_a=a.jpg --image_b=b.jpg [--model=runs/stage1] \
-      [--output_dir=out] [--refine=ecc] [--tta=dihedral | --retry_tta=dihedral] [--search=none]
+      [--output_dir=out] [--refine=ecc] [--tta=dihedral | --retry_tta=dihedral] [--search=none] \
+      [--coarse=rotations]
 
 Prints a JSON object whose ``homography`` maps image_b pixel coordinates (x, y) to image_a pixel
 coordinates (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``), and writes
@@ -29,7 +30,7 @@ flags.DEFINE_string("image_b", None, "Path of image_b (the image mapped into ima
 flags.DEFINE_string("model", None, "Model: .keras file, run directory or hierarchy manifest "
                     "(default: the weights shipped in stnh_tf/weights).")
 flags.DEFINE_string("output_dir", ".", "Folder for the overlay PNG and the JSON (created if missing).")
-flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search"))
+flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search", "coarse"))
 flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 

@@ -63,7 +63,14 @@ def test_every_table_and_figure_is_written(tiny_run):
                          "STN-Homography 1 stage", "STN-Homography 2 stages",
                          "STN-Homography 3 stages", "Sequence 2 stages"}
     assert all(np.isfinite(v) and v >= 0 for v in fig4.values())
-    assert re.search(r"\| STN-Homography 3 stages \| \d+\.\d\d \| 1\.57 \|", tables)
+    # (a row whose stage predictions were rejected is marked and explained: the tiny models')
+    marked = " (rejected: see below)" if result["fig4_rejected"].get(
+        "STN-Homography 3 stages") else ""
+    assert re.search(r"\| STN-Homography 3 stages" + re.escape(marked)
+                     + r" \| \d+\.\d\d \| 1\.57 \|", tables)
+    assert ("Rejected predictions" in tables) == bool(result["fig4_rejected"])
+    assert "**Smoke test**" in tables and "**Smoke test**" in open(
+        os.path.join(out, "table1.md")).read()
     assert set(result["table1_mace"]) == {"1,1", "1,10", "1,0.1", "10,1", "0.1,1"}
     # The rows the paper's claim compares have the budget's seeds (tiny: 2), the others one.
     assert re.search(r"\| 10 \| 1 \| \d+\.\d\d \| 2 seeds: \d+\.\d\d-\d+\.\d\d \| 4\.85 \|", tables)

@@ -54,7 +54,7 @@ import warnings
 import numpy as np
 
 from stnh_tf import geometry
-from stnh_tf.inference import pipeline
+from stnh_tf.inference import coarse, pipeline
 # Public names of this module before the pipeline was split (stnh_tf.inference.<name>).
 from stnh_tf.inference.checks import alignment_ncc, corner_shift  # noqa: F401
 from stnh_tf.inference.image_input import (PATCH_ORIGIN, PATCH_SIZE, central_patch,  # noqa: F401
@@ -317,6 +317,10 @@ class HomographyEstimator:
         work_b, size_b = work_image(image_b, "image_b", channel_order)
         result = self._run(central_patch(work_a), central_patch(work_b), [work_a], PATCH_ORIGIN,
                            options, 64)
+        if options.coarse != "none":  # a deviation (issue 46): motions beyond the trained range
+            result = coarse.coarse_pass(
+                lambda a, b, contexts, opts: self._run(a, b, contexts, PATCH_ORIGIN, opts, 64),
+                work_a, work_b, result, options, PATCH_ORIGIN)
         h = patch_to_image_frames(result.homography[0], size_a, size_b)
         return dataclasses.replace(result, homography=h[None])
 
@@ -335,7 +339,9 @@ class HomographyEstimator:
           image_a, image_b: ``[H, W]`` or ``[H, W, C]`` (C = 1, 3, 4), uint8 or float in [0, 1];
             the two may differ in size.
           options: as in :meth:`estimate` (search and refinement align patch_b with the
-            320 x 240 image_a; test-time augmentation transforms image_a with its patch).
+            320 x 240 image_a; test-time augmentation transforms image_a with its patch);
+            ``options.coarse`` (used here only): the coarse pass for motions beyond the trained
+            range (:mod:`stnh_tf.inference.coarse`).
           channel_order: "rgb" (NumPy/scikit-image) or "bgr" (``cv2.imread``).
           **legacy: as in :meth:`estimate`; deprecated.
         Returns:

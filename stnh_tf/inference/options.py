@@ -41,6 +41,18 @@ checks alone) or ``"ecc"`` (an estimate that ECC alignment started from it moves
 ``Thresholds.max_verify_move``, or from which ECC does not converge, is flagged implausible; the
 estimate is kept; a deviation, issue 46)."""
 
+COARSES = {
+    "none": ((0.0, 1.0),),
+    "rotations": tuple((float(angle), zoom) for zoom in (1.0, 0.7, 1.4)
+                       for angle in (0, -15, 15, -30, 30, -45, 45)),
+}
+"""The coarse pass of ``estimate_images`` by name (:mod:`stnh_tf.inference.coarse`; a deviation,
+issue 46): its starts as ``(angle in degrees, zoom)`` of ``a_from_b`` about the image centre, the
+identity first. ``"none"`` (the default): no coarse pass. ``"rotations"``: in-plane rotations by
+multiples of 15 degrees up to 45 and zooms 0.7 / 1 / 1.4, 21 starts; a motion inside that range
+is at most 7.5 degrees and a zoom factor of 1.2 from a start, which moves the patch corners by
+about 12 and 18 px: inside the trained range (32 px)."""
+
 TTAS = {"none": ("identity",),
         "flips": ("identity", "flip_x", "flip_y", "rotate_180"),
         "dihedral": tuple(geometry.DIHEDRAL)}
@@ -76,6 +88,9 @@ class Thresholds:
       max_verify_move: with ``verify="ecc"``, an estimate that ECC (the refinement's settings)
         moves by more than this is flagged implausible: px, mean over the corners of the frame
         the estimate is made in (the patch; the 320 x 240 image in ``estimate_images``).
+      coarse_corner_shift: with ``coarse`` other than ``"none"``, this replaces
+        ``implausible_corner_shift`` in the implausibility rule (a patch corner moved further is
+        beyond what the coarse pass handles: 4x the trained range).
     """
 
     implausible_corner_shift: float = 1.5 * geometry.MAX_PERTURBATION
@@ -93,6 +108,7 @@ class Thresholds:
     refine_gaussian: int = 1
     max_refine_move: float = 16.0
     max_verify_move: float = 5.0
+    coarse_corner_shift: float = 4 * geometry.MAX_PERTURBATION
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -136,6 +152,11 @@ class EstimateOptions:
         ``thresholds.max_verify_move`` at the frame's corners on average, the estimate is
         flagged implausible (it is not replaced: ``refine="ecc"`` does that). ``"none"``: no
         such check.
+      coarse: a key of :data:`COARSES`, used by ``estimate_images`` only (a deviation, issue 46):
+        ``"rotations"`` tries a pair that its estimate aligns poorly again from coarse rotations
+        and zooms (:mod:`stnh_tf.inference.coarse`), for motions beyond the trained range; where
+        the pass ran, the flag's corner rule uses ``thresholds.coarse_corner_shift``.
+        ``"none"`` (default): no coarse pass.
     """
 
     search: str = "ecc"
@@ -146,11 +167,12 @@ class EstimateOptions:
     fill: str = "reflect"
     thresholds: Thresholds = Thresholds()
     verify: str = "none"
+    coarse: str = "none"
 
     def __post_init__(self):
         for name, table in (("search", SEARCHES), ("refine", REFINES), ("tta", tuple(TTAS)),
                             ("retry_tta", tuple(TTAS)), ("fill", geometry.FILLS),
-                            ("verify", VERIFIES)):
+                            ("verify", VERIFIES), ("coarse", tuple(COARSES))):
             value = getattr(self, name)
             if not isinstance(value, str) or value not in table:
                 raise ValueError(f"{name} must be one of {tuple(table)}; received {value!r}.")
