@@ -500,6 +500,7 @@ def test_make_dataset_on_a_full_disk_ends_with_one_line_naming_the_file(
     assert status == "incomplete"
 
 
+@pytest.mark.slow  # (make test-all)
 def test_make_dataset_under_a_file_size_limit_ends_with_one_line(tmp_path):
     """Item 7, for real: the binary under ``ulimit -f 64`` (KB; a record is 86 KB)."""
     def limit():

@@ -219,6 +219,7 @@ def _altered_stream(where):
     return stream_fn
 
 
+@pytest.mark.slow  # (make test-all)
 def test_the_unlabeled_pairs_h_bar_never_reaches_the_loss(tiny_data, tmp_path, narrow):
     """One step on a batch of labeled and unlabeled pairs: changing the unlabeled pairs' H_bar
     leaves every weight bit-identical; changing the labeled pairs' H_bar does not."""
@@ -241,6 +242,7 @@ def test_the_unlabeled_pairs_h_bar_never_reaches_the_loss(tiny_data, tmp_path, n
         0.5, False, "")
 
 
+@pytest.mark.slow  # (make test-all)
 def test_an_all_unlabeled_run_is_the_l1_loss_alone(tiny_data, tmp_path, narrow):
     """label_fraction=0 trains exactly as l2_weight=0 on labeled pairs (the L2 term adds no
     gradient), and differs from the supervised run."""
@@ -316,6 +318,7 @@ def test_label_options_are_checked_before_the_run_starts(tiny_data, folders, tmp
     assert not os.path.exists(tmp_path / "few") and not os.path.exists(tmp_path / "few2")
 
 
+@pytest.mark.slow  # (make test-all)
 def test_resume_refuses_another_label_fraction_and_takes_a_moved_unlabeled_folder(
         folders, tmp_path, narrow):
     """Generated pairs in memory with unlabeled images mixed in, interrupted after step 1: the

@@ -52,6 +52,7 @@ def bundled():
     return shipped_weights.bundled_pairs()
 
 
+@pytest.mark.slow  # (make test-all)
 def test_ship_refresh_check_and_replace_stage(tmp_path, bundled, monkeypatch, narrow):
     # the card's check of the network's estimates (the search would move the constant stages'
     # estimates); the check records that setting

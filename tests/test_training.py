@@ -636,6 +636,7 @@ def test_checkpoint_state_cannot_name_weights_outside_its_folder(tmp_path):
         run_dir.checkpoint_weights_path(str(ckpt))
 
 
+@pytest.mark.slow  # (make test-all)
 def test_chunks_stop_at_the_time_limit_and_continue_on_another_machine(tiny_data, straight_run,
                                                                        tmp_path, narrow):
     """Three chunks of the 6-step run, each stopped by the time limit after one checkpoint, each
