@@ -26,10 +26,12 @@ from stnh_tf.inference import image_files
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("image_a", None, "Path of image_a (the reference image).", required=True)
-flags.DEFINE_string("image_b", None, "Path of image_b (the image mapped into image_a).", required=True)
+flags.DEFINE_string("image_b", None, "Path of image_b (the image mapped into image_a).",
+                    required=True)
 flags.DEFINE_string("model", None, "Model: .keras file, run directory or hierarchy manifest "
                     "(default: the weights shipped in stnh_tf/weights).")
-flags.DEFINE_string("output_dir", ".", "Folder for the overlay PNG and the JSON (created if missing).")
+flags.DEFINE_string("output_dir", ".",
+                    "Folder for the overlay PNG and the JSON (created if missing).")
 flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search", "coarse"))
 flags.adopt_module_key_flags(flags_common)  # --help lists them
 

@@ -113,7 +113,8 @@ def _spy_expected_h(h_const, gain, patch_a_seen):
 def _direct(model, a_f32, b_f32, output="h_bar"):
     """Run the Keras model itself; convert its H_bar with geometry.denormalize_homography."""
     out = model.predict({"patch_a": a_f32, "patch_b": b_f32}, verbose=0)
-    return geometry.denormalize_homography(geometry.vector_to_matrix(np.asarray(out[output], np.float64)))
+    return geometry.denormalize_homography(
+        geometry.vector_to_matrix(np.asarray(out[output], np.float64)))
 
 
 def _unit(h):
@@ -198,13 +199,15 @@ def test_load_hierarchy_manifest_round_trip(saved, pairs):
     for path in (saved["root"] / "hier" / "hierarchy.json", saved["root"] / "hier"):
         est = HomographyEstimator.load(path)
         assert (est.kind, est.num_stages) == ("hierarchy", 2)
-        np.testing.assert_allclose(est.estimate(a, b, EstimateOptions(gate_stages=False, search="none")),
-                                   ref, rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(
+            est.estimate(a, b, EstimateOptions(gate_stages=False, search="none")),
+            ref, rtol=1e-5, atol=1e-4)
     zeros, _ = _hierarchy_reference(saved["stage1"], saved["stage2"], a, b, cv2.BORDER_CONSTANT)
     assert np.max(geometry.corner_errors(zeros, ref)) > 0.01  # the fill reaches stage 2
-    np.testing.assert_allclose(est.estimate(a, b, EstimateOptions(gate_stages=False, fill="zeros", search="none")),
-                               zeros,
-                               rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(
+        est.estimate(a, b, EstimateOptions(gate_stages=False, fill="zeros", search="none")),
+        zeros,
+        rtol=1e-5, atol=1e-4)
     with pytest.raises(ValueError, match="fill must be one of"):
         est.estimate(a, b, EstimateOptions(fill="edge", search="none"))
 
@@ -218,8 +221,10 @@ def test_load_numbered_stage_directory(saved, pairs, tmp_path):
                                                         str(tmp_path / "stage2.keras")]
     a, b, _ = pairs
     ref, _ = _hierarchy_reference(saved["stage1"], saved["stage2"], a[:2], b[:2])
-    np.testing.assert_allclose(HomographyEstimator.load(tmp_path).estimate(a[:2], b[:2], EstimateOptions(gate_stages=False, search="none")),
-                               ref, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(
+        HomographyEstimator.load(tmp_path).estimate(
+            a[:2], b[:2], EstimateOptions(gate_stages=False, search="none")),
+        ref, rtol=1e-5, atol=1e-4)
 
 
 def test_load_sequence_round_trip(saved, pairs):
@@ -229,7 +234,8 @@ def test_load_sequence_round_trip(saved, pairs):
     af, bf = a.astype(np.float32) / 255, b.astype(np.float32) / 255
     ref = _direct(saved["seq"], af, bf, "h_bar_2")
     assert np.max(geometry.corner_errors(ref, _direct(saved["seq"], af, bf, "h_bar_1"))) > 0.5
-    np.testing.assert_allclose(est.estimate(a, b, EstimateOptions(search="none")), ref, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(est.estimate(a, b, EstimateOptions(search="none")), ref,
+                               rtol=1e-5, atol=1e-4)
 
 
 def test_write_manifest_round_trip(saved, tmp_path):
@@ -305,7 +311,8 @@ def test_estimate_known_output_shape_dtype_and_direction(pairs, rng):
     h_true = paper_homography(rng)
     est = HomographyEstimator([_constant_stage(h_true)])
     # patch_b(p) = patch_a(H p): the estimate must be H itself (patch_b -> patch_a).
-    b = np.stack([np.clip(np.rint(cv2_warp(p[..., 0], h_true)), 0, 255) for p in a]).astype(np.uint8)
+    b = np.stack([np.clip(np.rint(cv2_warp(p[..., 0], h_true)), 0, 255)
+                  for p in a]).astype(np.uint8)
     h = est.estimate(a, b)
     assert h.shape == (4, 3, 3) and h.dtype == np.float64
     m = norm_matrix()
@@ -359,7 +366,8 @@ def test_degenerate_stage_predictions_are_skipped_and_counted(pairs, rng, caplog
     np.testing.assert_allclose(got, np.broadcast_to(want / want[2, 2], got.shape), atol=1e-9)
     assert est.last_rejected == {"non_finite": 1, "singular": 1}
     assert "degenerate" in caplog.text
-    est._predict_stage = lambda k, pa, pb, bs: np.repeat(outputs.get(k, np.eye(3))[None], len(pa), 0)
+    est._predict_stage = lambda k, pa, pb, bs: np.repeat(outputs.get(k, np.eye(3))[None],
+                                                         len(pa), 0)
     est.estimate(a, b, EstimateOptions(search="none"))
     assert est.last_rejected == {"non_finite": 0, "singular": 0}
 
@@ -386,7 +394,8 @@ def test_alignment_ncc_against_numpy(pairs):
     context[50:178, 50:178] = a[0, ..., 0]
     t = np.array([[1.0, 0, 50], [0, 1, 50], [0, 0, 1]])
     for h in (hs[0], shift):
-        x = cv2.warpPerspective(context, t @ h, (S, S), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+        x = cv2.warpPerspective(context, t @ h, (S, S),
+                                flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
         x = x.astype(np.float64).ravel() - x.mean()
         y = b[0, ..., 0].astype(np.float64).ravel() - b[0].mean()
         assert inference.alignment_ncc(context, b[0, ..., 0], h, (50, 50)) == pytest.approx(
@@ -396,8 +405,8 @@ def test_alignment_ncc_against_numpy(pairs):
 def test_implausible_estimates_are_flagged_per_pair(pairs):
     """A pair whose estimate moves a patch corner beyond 1.5 x 32 px, one with a stage skipped as
     degenerate, and one whose estimate leaves patch_a warped onto patch_b uncorrelated with it
-    (patch_b from another photograph) are flagged in ``last_info``; the true H of an ordinary pair is
-    not. The corner shift is checked against OpenCV's perspectiveTransform, the NCC against a
+    (patch_b from another photograph) are flagged in ``last_info``; the true H of an ordinary pair
+    is not. The corner shift is checked against OpenCV's perspectiveTransform, the NCC against a
     NumPy reference."""
     import cv2
 
@@ -526,9 +535,9 @@ def test_stage_gate_keeps_later_updates_that_do_not_lower_the_alignment(pairs):
 
 def test_ecc_refinement_recovers_the_true_homography(pairs, monkeypatch):
     """refine="ecc" started from estimates 3-5 px off the true H (known from the OpenCV warp that
-    made each pair) lands within 0.5 px of it (the pairs are rounded to uint8), also when patch_b's gain and offset change;
-    refine="none" returns the start unchanged; a refinement moving the corners by more than
-    MAX_REFINE_MOVE is dropped for the start; an unknown refine is an error."""
+    made each pair) lands within 0.5 px of it (the pairs are rounded to uint8), also when patch_b's
+    gain and offset change; refine="none" returns the start unchanged; a refinement moving the
+    corners by more than MAX_REFINE_MOVE is dropped for the start; an unknown refine is an error."""
     from stnh_tf.inference import estimator as inference
 
     a, b, hs = pairs
@@ -669,7 +678,8 @@ def _wall_pair(rng, a_from_b):
     wall = np.tile(cell, (1, S // 20 + 1))[:, :S]
     a = cv2.GaussianBlur(wall + 0.6 * rng.random(wall.shape), (0, 0), 1.5)
     a = np.rint(255 * (a - a.min()) / (a.max() - a.min())).astype(np.uint8)
-    return a, cv2.warpPerspective(a, a_from_b, (S, S), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    return a, cv2.warpPerspective(a, a_from_b, (S, S),
+                                  flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
 
 
 def test_search_finds_the_alignment_a_network_put_a_period_off(pairs, rng, monkeypatch):
@@ -744,9 +754,11 @@ def test_estimate_images_tta_transforms_the_image_context():
     # the plain estimate is flagged; retry_tta re-runs the pair with its context the same way
     est.estimate_images(image, image_b, EstimateOptions(search="none"))
     assert est.last_info["implausible"][0] and not est.last_info["retried"][0]
-    np.testing.assert_allclose(est.estimate_images(image, image_b, EstimateOptions(retry_tta="dihedral", search="none")),
-                               got,
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        est.estimate_images(image, image_b,
+                            EstimateOptions(retry_tta="dihedral", search="none")),
+        got,
+        atol=1e-12)
     assert est.last_info["retried"][0] and est.last_info["tta_choice"][0] == "rotate_90_cw"
     # the spy's reading matters: the crop without context would give another estimate
     zero_filled = cv2_warp(image[56:56 + S, 96:96 + S], h1_back)
@@ -769,7 +781,8 @@ def test_estimate_images_ecc_refinement_uses_the_whole_image(rng):
 
     est = HomographyEstimator([_constant_stage(np.eye(3))])
     assert corner_error(est.estimate_images(image, image_b, EstimateOptions(search="none"))) > 10.0
-    assert corner_error(est.estimate_images(image, image_b, EstimateOptions(refine="ecc", search="none"))) < 1.5
+    assert corner_error(est.estimate_images(
+        image, image_b, EstimateOptions(refine="ecc", search="none"))) < 1.5
     assert est.last_info["refined"][0]
 
 
@@ -793,7 +806,8 @@ def test_uint8_and_float_inputs_agree(saved, pairs):
     a, b, _ = pairs
     est = HomographyEstimator([saved["single"]])
     h_u8 = est.estimate(a, b, EstimateOptions(search="none"))
-    h_f32 = est.estimate(a.astype(np.float32) / 255, b.astype(np.float32) / 255, EstimateOptions(search="none"))
+    h_f32 = est.estimate(a.astype(np.float32) / 255, b.astype(np.float32) / 255,
+                         EstimateOptions(search="none"))
     h_f64 = est.estimate(a / 255.0, b / 255.0, EstimateOptions(search="none"))
     np.testing.assert_allclose(h_f32, h_u8, rtol=0, atol=1e-9)
     np.testing.assert_allclose(h_f64, h_u8, rtol=1e-6, atol=1e-5)
@@ -840,8 +854,9 @@ def test_prepare_image_gray_conversion():
     rgb = skimage.data.astronaut()[:50, :60]
     ref = (rgb.astype(np.float64) @ [0.299, 0.587, 0.114]) / 255  # ITU-R 601 luma
     np.testing.assert_allclose(image_input.prepare_image(rgb), ref, atol=2e-3)
-    np.testing.assert_allclose(image_input.prepare_image(rgb[..., ::-1].copy(), channel_order="bgr"),
-                               ref, atol=2e-3)
+    np.testing.assert_allclose(
+        image_input.prepare_image(rgb[..., ::-1].copy(), channel_order="bgr"),
+        ref, atol=2e-3)
     alpha = np.random.default_rng(0).integers(0, 256, rgb.shape[:2], dtype=np.uint8)
     rgba = np.concatenate([rgb, alpha[..., None]], axis=-1)
     np.testing.assert_allclose(image_input.prepare_image(rgba), ref * alpha / 255, atol=2e-3)
@@ -1108,7 +1123,8 @@ def test_mixed_precision_model_estimates_and_exports_in_float32(pairs, tmp_path)
     assert np.max(geometry.corner_errors(got, np.broadcast_to(np.eye(3), got.shape))) > 0.1
 
     kept = HomographyEstimator.load(tmp_path / "mixed.keras", compute_dtype=None)
-    assert "mixed_bfloat16" in {layer.dtype_policy.name for layer in kept.stages[0]._flatten_layers()}
+    assert "mixed_bfloat16" in {layer.dtype_policy.name
+                                for layer in kept.stages[0]._flatten_layers()}
     assert np.max(geometry.corner_errors(kept.estimate(a, b, EstimateOptions(search="none")),
                   ref)) < 0.5  # bfloat16 rounding only
 
@@ -1138,7 +1154,8 @@ def test_benchmark_estimator_binary(tmp_path):
     result = json.loads(out.read_text())
     assert result["model"] == str(manifest) and result["stages"] == 2
     assert result["policy"] == "mixed_bfloat16"
-    assert (result["runs"], result["seed"], result["tta"], result["search"]) == (1, 3, "none", "none")
+    assert (result["runs"], result["seed"], result["tta"], result["search"]) == (
+        1, 3, "none", "none")
     for key in ("estimate_batch1_ms", "benchmark_d_e_ms", "estimate_batch2_ms_per_pair",
                 "benchmark_l_m_ms"):
         assert result[key] > 0, key
@@ -1282,7 +1299,8 @@ def test_implausibility_check_with_the_identity_model(identity_model_path):
         return (x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum())
 
     for case, patches_b in cases.items():
-        expected = np.mean([ncc(x, y) < EstimateOptions().thresholds.min_alignment_ncc for x, y in zip(a, patches_b)])
+        expected = np.mean([ncc(x, y) < EstimateOptions().thresholds.min_alignment_ncc
+                            for x, y in zip(a, patches_b)])
         assert result[case]["count"] == len(a) == 60
         assert result[case]["flagged"] == pytest.approx(expected, abs=1e-9), case
     assert result["moved_80px"]["flagged"] > 0.5
@@ -1299,9 +1317,10 @@ def test_implausibility_check_with_the_identity_model(identity_model_path):
 
 
 def test_search_stability_measures_both_opencv_paths_and_moved_starts(pairs, identity_model_path):
-    """stnh_tf.evaluation.search_stability with the identity model: every pair's identity estimate aligns
-    it poorly (NCC recomputed here below 0.9), so every pair is searched; the search's results
-    agree between OpenCV's two paths and from starts moved by 0.1 px, and beat the identity."""
+    """stnh_tf.evaluation.search_stability with the identity model: every pair's identity estimate
+    aligns it poorly (NCC recomputed here below 0.9), so every pair is searched; the search's
+    results agree between OpenCV's two paths and from starts moved by 0.1 px, and beat the
+    identity."""
     from stnh_tf.evaluation import search_stability
 
     a, b, hs = pairs

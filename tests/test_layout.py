@@ -28,8 +28,8 @@ ALLOWED = {
 # Deep-learning backends: the NumPy core and these modules never import them at module level.
 BACKENDS = ("tensorflow", "keras", "jax", "torch")
 BACKEND_FREE = ("core", "data/sources", "data/pairs", "data/batches",
-                "data/features", "data/labels", "training/config", "inference/options", "inference/checks",
-                "inference/search", "inference/pipeline", "inference/ecc")
+                "data/features", "data/labels", "training/config", "inference/options",
+                "inference/checks", "inference/search", "inference/pipeline", "inference/ecc")
 
 
 def _part(path):

@@ -134,7 +134,8 @@ def test_ship_refresh_check_and_replace_stage(tmp_path, bundled, monkeypatch, na
     assert new_check["ungated_estimate_mace_2_stages"] == pytest.approx(
         _mace_numpy(composed / composed[2, 2], bundled_h_ba), abs=1e-3)
     est = inference.HomographyEstimator.load(out / "default.json")
-    np.testing.assert_allclose(est.estimate(bundled["patch_a"][:2], bundled["patch_b"][:2], EstimateOptions(gate_stages=False, search="none"))[0],
+    np.testing.assert_allclose(est.estimate(bundled["patch_a"][:2], bundled["patch_b"][:2],
+                                            EstimateOptions(gate_stages=False, search="none"))[0],
                                composed / composed[2, 2],
                                atol=1e-3)
     with open(out / "model_card.json") as f:

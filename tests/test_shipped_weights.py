@@ -82,7 +82,8 @@ def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs, name, ope
               for s in _card(folder)["stages"]]
     for k in range(1, len(stages) + 1):
         est = inference.HomographyEstimator(stages[:k])
-        h = est.estimate(arrays["patch_a"], arrays["patch_b"], EstimateOptions(fill=check["fill"], search=check["search"]))
+        h = est.estimate(arrays["patch_a"], arrays["patch_b"],
+                         EstimateOptions(fill=check["fill"], search=check["search"]))
         assert h.shape == (len(arrays["h_ba"]), 3, 3)
         mace = float(geometry.mean_corner_error(h, arrays["h_ba"]))
         assert mace == pytest.approx(check[f"estimate_mace_{k}_stages"], abs=CARD_TOLERANCE_PX)
@@ -91,7 +92,9 @@ def test_shipped_weights_reproduce_their_recorded_mace(card_and_pairs, name, ope
         # without `ship_weights --refresh_check` fails here)
         assert int(est.last_info["implausible"].sum()) == check[f"implausible_{k}_stages"]
         if k > 1:
-            h = est.estimate(arrays["patch_a"], arrays["patch_b"], EstimateOptions(gate_stages=False, fill=check["fill"], search=check["search"]))
+            h = est.estimate(arrays["patch_a"], arrays["patch_b"],
+                             EstimateOptions(gate_stages=False, fill=check["fill"],
+                                             search=check["search"]))
             assert float(geometry.mean_corner_error(h, arrays["h_ba"])) == pytest.approx(
                 check[f"ungated_estimate_mace_{k}_stages"], abs=CARD_TOLERANCE_PX)
 
@@ -166,7 +169,8 @@ def test_default_weights_beat_the_identity_under_a_photometric_change(
     assert (errors <= identity).all()  # issue 17: never worse than the identity
     # the network's estimates alone (no search): the card's record, one pair (the brick wall's)
     # worse than the identity
-    h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"], EstimateOptions(fill=check["fill"], search="none"))
+    h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"],
+                                           EstimateOptions(fill=check["fill"], search="none"))
     errors = geometry.corner_errors(h, arrays["h_ba"])
     assert float(errors.mean()) == pytest.approx(
         check[f"photometric_unsearched_estimate_mace_{n}_stages"], abs=CARD_TOLERANCE_PX)
@@ -182,7 +186,9 @@ def test_default_weights_test_time_augmentation_beats_the_plain_estimate(card_an
     card, arrays = card_and_pairs
     check = card["bundled_check"]
     n = default_estimator_float32.num_stages
-    h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"], EstimateOptions(fill=check["fill"], tta=check["tta"], search=check["search"]))
+    h = default_estimator_float32.estimate(arrays["patch_a"], arrays["patch_b"],
+                                           EstimateOptions(fill=check["fill"], tta=check["tta"],
+                                                           search=check["search"]))
     mace = float(geometry.mean_corner_error(h, arrays["h_ba"]))
     assert mace == pytest.approx(check[f"tta_estimate_mace_{n}_stages"], abs=CARD_TOLERANCE_PX)
     assert mace < check[f"estimate_mace_{n}_stages"]

@@ -45,7 +45,8 @@ def machine_info() -> dict:
     model = platform.processor()
     try:
         with open("/proc/cpuinfo") as f:
-            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), model)
+            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")),
+                         model)
     except OSError:
         pass
     import cv2
@@ -53,7 +54,8 @@ def machine_info() -> dict:
 
     info = {"platform": platform.platform(), "cpu": model or None, "cpu_count": os.cpu_count(),
             "python": platform.python_version(), "numpy": np.__version__, "opencv": cv2.__version__,
-            "git_commit": git_commit(), "command": " ".join([os.path.basename(sys.executable)] + sys.argv)}
+            "git_commit": git_commit(),
+            "command": " ".join([os.path.basename(sys.executable)] + sys.argv)}
     if hasattr(os, "getloadavg"):
         info["loadavg_at_start"] = [round(x, 2) for x in os.getloadavg()]
     if "tensorflow" in sys.modules:
@@ -116,7 +118,8 @@ def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
     keras.mixed_precision.set_global_policy(policy)
     keras.utils.set_random_seed(seed)
     try:
-        cfg = train_config.TrainConfig(data_dir="-", model_dir="-", train_steps=10_000, warmup_steps=100)
+        cfg = train_config.TrainConfig(data_dir="-", model_dir="-", train_steps=10_000,
+                                       warmup_steps=100)
         model = model_kinds.build_model(cfg)
         x, y = _random_batch(batch_size, seed)
         if kind == "bare":
@@ -126,7 +129,8 @@ def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
             y = y["h_bar"]
             from stnh_tf.modeling import losses
 
-            model.compile(optimizer=keras.optimizers.SGD(training.learning_rate_schedule(cfg), momentum=0.9),
+            model.compile(optimizer=keras.optimizers.SGD(training.learning_rate_schedule(cfg),
+                                                         momentum=0.9),
                           loss=losses.h_bar_l2, jit_compile=jit)
         else:
             training.compile_model(model, cfg)
@@ -159,7 +163,8 @@ def time_latency(runs, seed):
         t0 = time.perf_counter()
         fn(a, b).numpy()
         times.append(time.perf_counter() - t0)
-    return {"median_ms": 1e3 * statistics.median(times), "p90_ms": 1e3 * float(np.percentile(times, 90)),
+    return {"median_ms": 1e3 * statistics.median(times),
+            "p90_ms": 1e3 * float(np.percentile(times, 90)),
             "runs": runs}
 
 
@@ -263,7 +268,8 @@ def stn_benchmark(batch_size=64, size=128, iterations=30, warmup=3, seed=0, jit_
         ref = np.stack([cv2.warpPerspective(images_np[i, ..., 0], h_pix[i], (size, size),
                                             flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
                         for i in range(batch_size)])
-        result["stn"][key]["mean_abs_diff_vs_cv2_all_pixels"] = float(np.abs(out[..., 0] - ref).mean())
+        result["stn"][key]["mean_abs_diff_vs_cv2_all_pixels"] = float(
+            np.abs(out[..., 0] - ref).mean())
 
     def cv2_loop():
         for i in range(batch_size):

@@ -100,10 +100,11 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
         directories forming a hierarchy (run on stage-1 pairs with the context warp between
         stages), or none.
       data_dir, split: the stored pairs (``stnh_tf.data.tfrecords``).
-      baselines: names from :data:`stnh_tf.evaluation.baselines.BASELINES`, evaluated on the same pairs.
+      baselines: names from :data:`stnh_tf.evaluation.baselines.BASELINES`, evaluated on the same
+        pairs.
       max_samples: evaluate the first N pairs only (reported as ``count``; default all).
-      compute_dtype: see :func:`stnh_tf.modeling.runner.load_model` (``"float32"`` scores mixed-precision models as
-        ``HomographyEstimator.load`` runs them; default: as saved).
+      compute_dtype: see :func:`stnh_tf.modeling.runner.load_model` (``"float32"`` scores
+        mixed-precision models as ``HomographyEstimator.load`` runs them; default: as saved).
       clip_to_context: for a hierarchy, the degenerate-prediction rule's clipping of corners onto
         the context border (:func:`evaluate_hierarchy`); ``False`` reports MACE without it.
     Returns:
@@ -121,9 +122,9 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
     if max_samples is not None and max_samples < 1:
         raise ValueError(f"max_samples must be >= 1 (or unset: all pairs); received {max_samples}.")
     if not clip_to_context and len([d for d in (model_dirs or ()) if d]) < 2:
-        raise ValueError("clip_to_context=False (--no_clip) changes only a hierarchy (several model "
-                         "dirs), whose degenerate-prediction rule clips corners onto the context; "
-                         "a single model or a baseline is evaluated without that rule.")
+        raise ValueError("clip_to_context=False (--no_clip) changes only a hierarchy (several "
+                         "model dirs), whose degenerate-prediction rule clips corners onto the "
+                         "context; a single model or a baseline is evaluated without that rule.")
     samples = data.load_arrays(data_dir, split, max_samples=max_samples)
     h_true = np.asarray(samples["h_ba"], np.float64)
     h_prev = np.asarray(samples["h_prev"], np.float64)
@@ -144,8 +145,8 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
         out["model"]["model_dirs"] = list(model_dirs)
     if baselines:
         if not np.allclose(h_prev, np.eye(3)):
-            raise ValueError(f"baselines are evaluated on stage-1 pairs; {data_dir} holds pairs with "
-                             "earlier-stage estimates (h_prev != identity).")
+            raise ValueError(f"baselines are evaluated on stage-1 pairs; {data_dir} holds pairs "
+                             "with earlier-stage estimates (h_prev != identity).")
         pa = pixels.to_uint8(samples["patch_a"][..., 0])
         pb = pixels.to_uint8(samples["patch_b"][..., 0])
         out["baselines"] = {}
@@ -171,8 +172,9 @@ def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
     """Table 2: batch-1 latency (ms) of 1..n hierarchical stages (``d_e``, with its terms ``l_m``
     and ``l_w``) and of sequence models; see ``experiments.benchmark_latency``. ``policy`` builds
     the untrained models (and the sequence models); models loaded from ``model_dirs`` keep the
-    policy they were saved with unless ``compute_dtype`` (:func:`stnh_tf.modeling.runner.load_model`),
-    and the result's ``policy`` records what the hierarchy ran in."""
+    policy they were saved with unless ``compute_dtype``
+    (:func:`stnh_tf.modeling.runner.load_model`), and the result's ``policy`` records what the
+    hierarchy ran in."""
     import keras
 
     from stnh_tf import hierarchy
@@ -209,7 +211,8 @@ def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
         result = {"policy": run_policy, "l_m_ms": l_m, "l_w_ms": l_w, "l_w_over_l_m": l_w / l_m,
                   "hierarchy": {}}
         for n in range(1, len(stages) + 1):
-            d_e = median_ms(lambda: hierarchy.run_hierarchy(stages[:n], context, patch_b), runs, warmup)
+            d_e = median_ms(lambda: hierarchy.run_hierarchy(stages[:n], context, patch_b), runs,
+                            warmup)
             result["hierarchy"][str(n)] = {"d_e_ms": d_e, "formula_ms": n * (l_m + l_w),
                                            "ratio_to_one_stage": None}
         one = result["hierarchy"]["1"]["d_e_ms"]
@@ -219,7 +222,8 @@ def latency(model_dirs=(), max_stages=3, runs=200, warmup=20, policy="float32", 
             result["sequence"] = {}
             for n in range(1, max_stages + 1):
                 seq_fwd = runner.compiled_forward(models.build_sequence_stn_homography(n))
-                result["sequence"][str(n)] = {"forward_ms": median_ms(lambda: seq_fwd(a, b), runs, warmup)}
+                result["sequence"][str(n)] = {
+                    "forward_ms": median_ms(lambda: seq_fwd(a, b), runs, warmup)}
         return result
     finally:
         keras.mixed_precision.set_global_policy("float32")
@@ -241,8 +245,9 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
 
     Args:
       model: what ``HomographyEstimator.load`` takes (``None``: the shipped weights).
-      data_dir, split: stage-1 pairs (``stnh_tf.data.tfrecords``); ``None``: the seeded bundled test pairs
-        of the model card (:func:`stnh_tf.inference.shipped_weights.bundled_pairs`, with ``photometric``).
+      data_dir, split: stage-1 pairs (``stnh_tf.data.tfrecords``); ``None``: the seeded bundled test
+        pairs of the model card (:func:`stnh_tf.inference.shipped_weights.bundled_pairs`, with
+        ``photometric``).
       options: the estimator's :class:`~stnh_tf.inference.options.EstimateOptions` (``None``:
         the default).
     Returns:

@@ -1,8 +1,8 @@
 """ECC image alignment (Evangelidis & Psarakis, 2008) of a homography, coarse to fine, in float64.
 
-The search of poorly aligned estimates (:func:`stnh_tf.inference.estimator.search_translations`) starts ECC
-several pixels from the optimum. There, ``cv2.findTransformECC`` alone is not reproducible across
-machines: it warps with bilinear weights quantized to 1/32 px, so its objective is piecewise
+The search of poorly aligned estimates (:func:`stnh_tf.inference.search.search_translations`) starts
+ECC several pixels from the optimum. There, ``cv2.findTransformECC`` alone is not reproducible
+across machines: it warps with bilinear weights quantized to 1/32 px, so its objective is piecewise
 constant, and where it stops depends on OpenCV's per-CPU kernels (BENCHMARKS.md, "Same answer on
 every machine"). :func:`coarse_to_fine_ecc` therefore aligns on a Gaussian pyramid with
 :func:`ecc_homography` (the same update as OpenCV's, with exact float64 bilinear sampling) at the

@@ -39,8 +39,8 @@ the skipped predictions by reason.
     >>> from stnh_tf.inference import EstimateOptions, HomographyEstimator
     >>> estimator = HomographyEstimator.load()  # doctest: +SKIP
     >>> a = b = np.random.default_rng(0).integers(0, 255, (128, 128), np.uint8)
-    >>> result = estimator.estimate_with_info(a, b, EstimateOptions.network_only())  # doctest: +SKIP
-    >>> result.homography.shape, result.implausible.shape  # doctest: +SKIP
+    >>> res = estimator.estimate_with_info(a, b, EstimateOptions.network_only())  # doctest: +SKIP
+    >>> res.homography.shape, res.implausible.shape  # doctest: +SKIP
     ((1, 3, 3), (1,))
 """
 

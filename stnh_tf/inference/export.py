@@ -85,7 +85,8 @@ def serving_function(estimator):
         for model, name in zip(stages, outputs):
             if total is not None:
                 current = warp([a, total])  # patch_a(H_1 ... H_{k-1} p), mirrored outside
-            h8 = ops.cast(model({"patch_a": current, "patch_b": b}, training=False)[name], "float32")
+            h8 = ops.cast(model({"patch_a": current, "patch_b": b}, training=False)[name],
+                          "float32")
             h_bar = geometry.vector_to_matrix(h8)
             total = geometry.scale_to_unit(h_bar if total is None else ops.matmul(total, h_bar))
         return {OUTPUT: geometry.denormalize_homography(total)}
@@ -95,7 +96,8 @@ def serving_function(estimator):
 
 
 SAVED_MODEL_ENTRIES = ("saved_model.pb", "fingerprint.pb", "variables", "assets")
-"""What a SavedModel export writes into its folder: ``overwrite`` replaces these and nothing else."""
+"""What a SavedModel export writes into its folder: ``overwrite`` replaces these and nothing
+else."""
 
 
 def export_saved_model(estimator, output_dir, overwrite: bool = False) -> str:
@@ -147,8 +149,10 @@ def _write_archive(estimator, path):
     archive = keras.export.ExportArchive()
     for obj in serve.tracked:
         archive.track(obj)
-    spec = [tf.TensorSpec([None, geometry.PATCH_SIZE, geometry.PATCH_SIZE, 1], tf.uint8, name="patch_a"),
-            tf.TensorSpec([None, geometry.PATCH_SIZE, geometry.PATCH_SIZE, 1], tf.uint8, name="patch_b")]
+    spec = [tf.TensorSpec([None, geometry.PATCH_SIZE, geometry.PATCH_SIZE, 1], tf.uint8,
+                          name="patch_a"),
+            tf.TensorSpec([None, geometry.PATCH_SIZE, geometry.PATCH_SIZE, 1], tf.uint8,
+                          name="patch_b")]
     archive.add_endpoint("serve", serve, input_signature=spec)
     archive.write_out(path, verbose=False)
 
@@ -222,8 +226,9 @@ def verify_export(path, estimator, patch_a=None, patch_b=None, tolerance: float 
         patch_a, patch_b = verification_pairs()
     patch_a, patch_b = np.asarray(patch_a, np.uint8), np.asarray(patch_b, np.uint8)
     saved = run_saved_model(path, patch_a, patch_b).astype(np.float64)
-    eager = np.asarray(serving_function(estimator)(tf.constant(patch_a), tf.constant(patch_b))[OUTPUT],
-                       np.float64)
+    eager = np.asarray(
+        serving_function(estimator)(tf.constant(patch_a), tf.constant(patch_b))[OUTPUT],
+        np.float64)
     from stnh_tf.inference.options import EstimateOptions
 
     estimate = estimator.estimate(patch_a, patch_b, EstimateOptions.network_only())

@@ -1,6 +1,6 @@
-"""Two image files aligned by a :class:`~stnh_tf.inference.estimator.HomographyEstimator`: the overlay PNG
-and the JSON of ``experiments.predict`` (library core; the binary's docstring describes the
-outputs and their names).
+"""Two image files aligned by a :class:`~stnh_tf.inference.estimator.HomographyEstimator`: the
+overlay PNG and the JSON of ``experiments.predict`` (library core; the binary's docstring describes
+the outputs and their names).
 
 The homography maps image_b pixel coordinates (x, y) to image_a pixel coordinates
 (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``); resizing rule:
@@ -80,7 +80,8 @@ def overlay(image_a, image_b, h_ba):
     (ha, wa), (hb, wb) = image_a.shape[:2], image_b.shape[:2]
     gray_a = cv2.cvtColor(image_a, cv2.COLOR_BGR2GRAY)
     gray_b = cv2.cvtColor(image_b, cv2.COLOR_BGR2GRAY)
-    warped_a = cv2.warpPerspective(gray_a, h_ba, (wb, hb), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    warped_a = cv2.warpPerspective(gray_a, h_ba, (wb, hb),
+                                   flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
     blend = np.stack([warped_a, gray_b, warped_a], axis=-1)  # BGR: a -> magenta, b -> green
     left = image_a.copy()
     border_b = np.array([[0, 0], [wb - 1, 0], [wb - 1, hb - 1], [0, hb - 1]], np.float64)

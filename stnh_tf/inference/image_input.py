@@ -1,10 +1,10 @@
-"""What :class:`stnh_tf.inference.estimator.HomographyEstimator` accepts: patches and images checked and
-converted to the models' input, and the resizing rule of ``estimate_images`` with its maps
+"""What :class:`stnh_tf.inference.estimator.HomographyEstimator` accepts: patches and images checked
+and converted to the models' input, and the resizing rule of ``estimate_images`` with its maps
 between pixel frames.
 
-Resizing rule of :meth:`~stnh_tf.inference.estimator.HomographyEstimator.estimate_images`. The models were
-trained on 128 x 128 crops of 320 x 240 images with corners moved by up to 32 px. Each image (any
-size, any aspect ratio; image_a and image_b need not have the same size) is converted to
+Resizing rule of :meth:`~stnh_tf.inference.estimator.HomographyEstimator.estimate_images`. The
+models were trained on 128 x 128 crops of 320 x 240 images with corners moved by up to 32 px. Each
+image (any size, any aspect ratio; image_a and image_b need not have the same size) is converted to
 grayscale (ITU-R 601 luma; an alpha channel is composited onto black), resized to 320 x 240
 (aspect ratio not preserved; ``cv2.INTER_AREA`` when both sides shrink, else
 ``cv2.INTER_LINEAR``: the training data's rule), and the central 128 x 128 square (top-left
@@ -83,7 +83,8 @@ def _as_array(x, name):
 
 def prepare_patches(x, name="patch") -> np.ndarray:
     """Patches ``[S, S]``, ``[S, S, 1]``, ``[B, S, S]`` or ``[B, S, S, 1]`` (S = 128; uint8 0..255
-    or float in [0, 1]) -> float32 ``[B, S, S, 1]`` in [0, 1]. Anything else raises ``ValueError``."""
+    or float in [0, 1]) -> float32 ``[B, S, S, 1]`` in [0, 1]. Anything else raises
+    ``ValueError``."""
     return unit_patches(check_patches(x, name))
 
 
@@ -120,8 +121,8 @@ def check_patches(x, name="patch") -> np.ndarray:
         raise ValueError(f"{name} must have shape [{s}, {s}], [{s}, {s}, 1], [B, {s}, {s}] or "
                          f"[B, {s}, {s}, 1]; received shape {shape}.")
     if core != (s, s):
-        raise ValueError(f"{name} must be {s}x{s} patches ([{s}, {s}], [{s}, {s}, 1], [B, {s}, {s}] "
-                         f"or [B, {s}, {s}, 1]); received shape {shape}.")
+        raise ValueError(f"{name} must be {s}x{s} patches ([{s}, {s}], [{s}, {s}, 1], "
+                         f"[B, {s}, {s}] or [B, {s}, {s}, 1]); received shape {shape}.")
     if batch[0] == 0:
         raise ValueError(f"{name} is an empty batch; received shape {shape}.")
     _check_pixel_values(arr, name, "patches")

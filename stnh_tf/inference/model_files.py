@@ -1,5 +1,5 @@
-"""Where the models :meth:`stnh_tf.inference.estimator.HomographyEstimator.load` reads are: hierarchy
-manifests, the accepted layouts on disk, and the shipped default in ``stnh_tf/weights/``.
+"""Where the models :meth:`stnh_tf.inference.estimator.HomographyEstimator.load` reads are:
+hierarchy manifests, the accepted layouts on disk, and the shipped default in ``stnh_tf/weights/``.
 
 Hierarchy manifest (a JSON file; by convention ``hierarchy.json``)::
 
@@ -12,9 +12,10 @@ Hierarchy manifest (a JSON file; by convention ``hierarchy.json``)::
 
 ``stages`` lists the stage models in order: each a ``.keras`` file or a training run directory
 holding ``model.keras``, given relative to the manifest's folder and inside it (absolute paths
-and ``../`` are refused, so a manifest cannot make the loader read models from elsewhere). Each stage may be a
-single-stage or a sequence model. :func:`write_manifest` writes one. :func:`resolve_model_paths`
-(and so :meth:`~stnh_tf.inference.estimator.HomographyEstimator.load`) accepts
+and ``../`` are refused, so a manifest cannot make the loader read models from elsewhere). Each
+stage may be a single-stage or a sequence model. :func:`write_manifest` writes one.
+:func:`resolve_model_paths` (and so :meth:`~stnh_tf.inference.estimator.HomographyEstimator.load`)
+accepts
 
 * a ``.keras`` file;
 * a ``.json`` manifest;
@@ -107,9 +108,10 @@ def read_manifest(path) -> list:
         raise ValueError(f"hierarchy manifest {path} has version {doc.get('version')!r}; this "
                          f"version of stnh_tf reads version {MANIFEST_VERSION}.")
     stages = doc.get("stages")
-    if not isinstance(stages, list) or not stages or not all(isinstance(s, str) and s for s in stages):
-        raise ValueError(f"hierarchy manifest {path}: \"stages\" must be a non-empty list of paths; "
-                         f"received {stages!r}.")
+    if (not isinstance(stages, list) or not stages
+            or not all(isinstance(s, str) and s for s in stages)):
+        raise ValueError(f"hierarchy manifest {path}: \"stages\" must be a non-empty list of "
+                         f"paths; received {stages!r}.")
     folder = os.path.dirname(os.path.abspath(path))
     return [inside(folder, s, f"hierarchy manifest {path}, stage {k}")
             for k, s in enumerate(stages, start=1)]
@@ -148,20 +150,22 @@ def _numbered_stages(directory):
 
 
 def resolve_model_paths(path=None) -> list:
-    """The stage model paths that :meth:`~stnh_tf.inference.estimator.HomographyEstimator.load` would load
-    (see the module docstring for the accepted layouts). Raises ``FileNotFoundError`` with the
-    places looked at, and ``ValueError`` naming the files for numbered stages with a gap or two
-    models for one stage."""
+    """The stage model paths that :meth:`~stnh_tf.inference.estimator.HomographyEstimator.load`
+    would load (see the module docstring for the accepted layouts). Raises ``FileNotFoundError``
+    with the places looked at, and ``ValueError`` naming the files for numbered stages with a gap or
+    two models for one stage."""
     if path is None:
         folder = default_weights_dir()
-        manifest, model = os.path.join(folder, DEFAULT_MANIFEST), os.path.join(folder, DEFAULT_MODEL)
+        manifest, model = (os.path.join(folder, DEFAULT_MANIFEST),
+                           os.path.join(folder, DEFAULT_MODEL))
         if os.path.isfile(manifest):
             return read_manifest(manifest)
         if os.path.isfile(model):
             return [model]
         raise FileNotFoundError(
             f"no shipped weights: this copy of stnh_tf has neither {manifest} nor {model}. Pass "
-            "the path of a trained model (.keras file, run directory or hierarchy manifest) instead.")
+            "the path of a trained model (.keras file, run directory or hierarchy manifest) "
+            "instead.")
     path = os.fspath(path)
     if os.path.isdir(path):
         for candidate in (MODEL_FILE, MANIFEST_FILE):

@@ -89,8 +89,9 @@ BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_i
 
 def bundled_pairs(photometric: bool = False) -> dict:
     """The seeded bundled test pairs of :data:`BUNDLED_CHECK` as arrays
-    (:func:`stnh_tf.data.tfrecords.load_arrays`); ``photometric`` changes each patch_b in brightness,
-    contrast and gamma (:class:`stnh_tf.data.pairs.PhotometricChange`) on top of its homography."""
+    (:func:`stnh_tf.data.tfrecords.load_arrays`); ``photometric`` changes each patch_b in
+    brightness, contrast and gamma (:class:`stnh_tf.data.pairs.PhotometricChange`) on top of its
+    homography."""
     import tempfile
 
     from stnh_tf.data import stage1
@@ -111,8 +112,8 @@ def bundled_check(stage_paths) -> dict:
     shipped weights must keep reproducing (``tests/test_shipped_weights.py``).
 
     Keys: ``count``, ``identity_mace``, ``estimate_mace_{k}_stages`` and ``implausible_{k}_stages``
-    (pairs the estimate flags implausible) on the plain pairs; the same with the prefix ``photometric_``
-    on the pairs with a photometric change (:func:`bundled_pairs`), plus
+    (pairs the estimate flags implausible) on the plain pairs; the same with the prefix
+    ``photometric_`` on the pairs with a photometric change (:func:`bundled_pairs`), plus
     ``photometric_worse_than_identity_{k}_stages``, the pairs whose corner error exceeds the
     identity's; ``[photometric_]ungated_estimate_mace_{k}_stages`` (k > 1): the same without the
     estimator's stage gate (``gate_stages=False``); ``[photometric_]tta_estimate_mace_{n}_stages``
