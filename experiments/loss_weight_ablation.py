@@ -17,10 +17,10 @@ import dataclasses
 from absl import app, flags
 
 from experiments import common
-
-from experiments.reproduce import parse_reuse  # also defines the shared flags: --budget,
-from stnh_tf.paper import reproduce  # --output_dir, --source, --image_dir,
-                                                # --test_image_dir, --reuse
+# (importing experiments.reproduce also defines the shared flags: --budget, --output_dir,
+# --source, --image_dir, --test_image_dir, --reuse)
+from experiments.reproduce import reproduction_from_flags
+from stnh_tf.paper import reproduce
 
 flags.DEFINE_integer("steps", 0, "Steps per row (0: the budget's).")
 flags.DEFINE_list("weights", [f"{a:g}:{b:g}" for a, b in reproduce.ABLATION_WEIGHTS],
@@ -40,9 +40,7 @@ def main(argv):
     if FLAGS.steps:
         budget = dataclasses.replace(budget, ablation_steps=FLAGS.steps)
     with common.user_errors("loss_weight_ablation"):
-        run = reproduce.Reproduction(budget, FLAGS.output_dir, image_dir=FLAGS.image_dir,
-                                     test_image_dir=FLAGS.test_image_dir, source=FLAGS.source,
-                                     reuse=parse_reuse(FLAGS.reuse), ablation_weights=weights)
+        run = reproduction_from_flags(budget, ablation_weights=weights)
         table = run.table1(run.ablation(run.ablation_weights))
     for (l2, l1), maces in table.items():
         seeds = f" (seeds: {', '.join(f'{m:.2f}' for m in maces)})" if len(maces) > 1 else ""

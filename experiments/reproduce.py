@@ -46,12 +46,20 @@ def parse_reuse(items) -> dict:
     return out
 
 
+def reproduction_from_flags(budget=None, **kwargs):
+    """The :class:`~stnh_tf.paper.reproduce.Reproduction` of the shared flags (``--budget``,
+    ``--output_dir``, ``--source``, ``--image_dir``, ``--test_image_dir``, ``--reuse``), which
+    experiments.loss_weight_ablation and experiments.semi_supervised take too; ``budget`` replaces
+    ``--budget``'s and ``kwargs`` go to the constructor."""
+    return reproduce.Reproduction(budget or reproduce.BUDGETS[FLAGS.budget], FLAGS.output_dir,
+                                  image_dir=FLAGS.image_dir, test_image_dir=FLAGS.test_image_dir,
+                                  source=FLAGS.source, reuse=parse_reuse(FLAGS.reuse), **kwargs)
+
+
 def main(argv):
     del argv
     with common.user_errors("reproduce"):
-        run = reproduce.Reproduction(reproduce.BUDGETS[FLAGS.budget], FLAGS.output_dir,
-                                     image_dir=FLAGS.image_dir, test_image_dir=FLAGS.test_image_dir,
-                                     source=FLAGS.source, reuse=parse_reuse(FLAGS.reuse))
+        run = reproduction_from_flags()
         parts = {"hierarchy": run.hierarchy, "homographynet": run.homographynet,
                  "sequence2": run.sequence2, "table1": lambda: run.ablation(run.ablation_weights),
                  "semi_supervised": lambda: semi_supervised.SemiSupervised(run).table()}

@@ -17,9 +17,10 @@ stnh_tf/paper/semi_supervised.py.
 from absl import app, flags
 
 from experiments import common
-from experiments.reproduce import parse_reuse  # also defines the shared flags: --budget,
-from stnh_tf.paper import reproduce  # --output_dir, --source, --image_dir, --test_image_dir,
-from stnh_tf.paper import semi_supervised  # --reuse
+# (importing experiments.reproduce also defines the shared flags: --budget, --output_dir,
+# --source, --image_dir, --test_image_dir, --reuse)
+from experiments.reproduce import reproduction_from_flags
+from stnh_tf.paper import semi_supervised
 
 flags.DEFINE_float("label_fraction", 0.0, "Labeled share of the two partly labeled rows (0: the "
                    "budget's, 0.1; --budget=tiny: 0.75).")
@@ -32,9 +33,7 @@ FLAGS = flags.FLAGS
 def main(argv):
     del argv
     with common.user_errors("semi_supervised"):
-        run = reproduce.Reproduction(reproduce.BUDGETS[FLAGS.budget], FLAGS.output_dir,
-                                     image_dir=FLAGS.image_dir, test_image_dir=FLAGS.test_image_dir,
-                                     source=FLAGS.source, reuse=parse_reuse(FLAGS.reuse))
+        run = reproduction_from_flags()
         result = semi_supervised.SemiSupervised(run, FLAGS.label_fraction or None,
                                                 close_px=FLAGS.close_px,
                                                 max_seeds=FLAGS.max_seeds).table()

@@ -170,3 +170,16 @@ def ncc_reference(a, b, h_pix):
     y = b.astype(np.float64)[mask]
     x, y = x - x.mean(), y - y.mean()
     return float((x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum()))
+
+
+def constant_stage(h_pix, name="constant"):
+    """A single-stage model that outputs H_bar = M @ h_pix @ inv(M) whatever its input (the narrow
+    network, fc2's kernel zeroed: its width does not reach the output)."""
+    from stnh_tf.modeling import models
+
+    with narrow_network():
+        model = models.build_stn_homography(name=name)
+    fc2 = model.get_layer("regression").get_layer("fc2")
+    kernel, _ = fc2.get_weights()
+    fc2.set_weights([np.zeros_like(kernel), to_bar(h_pix).ravel()[:8].astype("float32")])
+    return model

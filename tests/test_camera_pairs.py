@@ -1,6 +1,7 @@
 """Realistic camera pairs (issue 46): the homography convention against OpenCV, the camera
 models against ``cv2.projectPoints``, grouping by motion size, seeding, the files, the benchmark
-library and both binaries. Photographs from scikit-image or made here (never ../shared)."""
+library and both binaries. Photographs from scikit-image or made here, nothing from outside the
+package."""
 
 import json
 import math

@@ -4,12 +4,11 @@ input: what the pass finds is then its own start (rotation, zoom and translation
 ``coarse="none"`` is the estimator's previous ``estimate_images``."""
 
 import cv2
-import keras
 import numpy as np
 import pytest
 import skimage.data
 
-from conftest import to_bar
+from conftest import constant_stage
 from stnh_tf import geometry
 from stnh_tf.evaluation.camera_pairs import image_errors
 from stnh_tf.inference import coarse, image_input
@@ -20,23 +19,9 @@ S = geometry.PATCH_SIZE
 W, H = image_input.WORK_SIZE
 
 
-def _identity_stage():
-    """A tiny model whose H_bar is the identity whatever its input."""
-    a = keras.Input((S, S, 1), name="patch_a")
-    b = keras.Input((S, S, 1), name="patch_b")
-    means = keras.layers.Concatenate()([keras.layers.GlobalAveragePooling2D()(a),
-                                        keras.layers.GlobalAveragePooling2D()(b)])
-    dense = keras.layers.Dense(8, name="fc")
-    model = keras.Model({"patch_a": a, "patch_b": b},
-                        {"h_bar": keras.layers.Identity(name="h_bar")(dense(means))})
-    dense.set_weights([np.zeros((2, 8), np.float32),
-                       to_bar(np.eye(3)).ravel()[:8].astype(np.float32)])
-    return model
-
-
 @pytest.fixture(scope="module")
 def estimator():
-    return HomographyEstimator([_identity_stage()])
+    return HomographyEstimator([constant_stage(np.eye(3), "identity")])
 
 
 def _motion(angle_deg, zoom, tx=0.0, ty=0.0):

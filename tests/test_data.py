@@ -2,7 +2,7 @@
 
 References are written here with OpenCV/NumPy (conftest's ``to_bar``, ``cv2_warp``,
 ``inside_mask``), independently of stnh_tf. Sources are the bundled photographs or images made in
-``tmp_path`` (never /work/shared).
+``tmp_path`` (nothing from outside the package).
 """
 
 import functools

@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from conftest import narrow_network, photo_pairs, to_bar
+from conftest import constant_stage, narrow_network, photo_pairs
 from experiments import common
 from stnh_tf import geometry, pixels
 from stnh_tf.data import sources, stage1
@@ -68,16 +68,6 @@ def tiny_data(tmp_path_factory):
     stage1.make_dataset("bundled", d, "train", seed=0, num_shards=2, max_images=4, log=QUIET)
     stage1.make_dataset("bundled", d, "test", seed=1, num_shards=1, max_images=4, log=QUIET)
     return d
-
-
-def _constant_stage(h_pix, name="constant"):
-    """A narrow single-stage model whose H_bar is M @ h_pix @ inv(M) whatever its input."""
-    with narrow_network():
-        model = models.build_stn_homography(name=name)
-    fc2 = model.get_layer("regression").get_layer("fc2")
-    kernel, _ = fc2.get_weights()
-    fc2.set_weights([np.zeros_like(kernel), to_bar(h_pix).ravel()[:8].astype("float32")])
-    return model
 
 
 def _random_stage(seed, name):
@@ -212,7 +202,7 @@ def test_a_second_run_in_the_same_folder_is_refused_while_the_first_trains(
 @pytest.fixture(scope="module")
 def model_file(tmp_path_factory):
     path = tmp_path_factory.mktemp("model") / "identity.keras"
-    _constant_stage(np.eye(3), "identity").save(path)
+    constant_stage(np.eye(3), "identity").save(path)
     return path
 
 
@@ -320,7 +310,7 @@ def _peak_bytes(fn):
 def test_memory_of_estimate_does_not_grow_with_the_number_of_pairs():
     """Item 6: NumPy memory (every array the pipeline makes) at the peak of one call on 512 and
     on 2,048 uint8 pairs: float32 copies of all pairs (128 KB a pair) are no longer made."""
-    est = HomographyEstimator([_constant_stage(np.eye(3), "ident")])
+    est = HomographyEstimator([constant_stage(np.eye(3), "ident")])
     rng = np.random.default_rng(0)
     a = rng.integers(0, 256, (2048, S, S), np.uint8)
     b = rng.integers(0, 256, (2048, S, S), np.uint8)
@@ -354,7 +344,7 @@ def test_estimate_images_crops_the_pixels_the_training_data_would(kind, monkeypa
     10000 x 10000 gray image). It is now made gray and resized in uint8 by the training data's
     own functions: the network sees exactly the patch make_dataset would crop."""
     image, order = _images()[kind]
-    est = HomographyEstimator([_constant_stage(np.eye(3), "ident")])
+    est = HomographyEstimator([constant_stage(np.eye(3), "ident")])
     seen = []
     predict = est._predict_stage
     monkeypatch.setattr(est, "_predict_stage",
@@ -376,7 +366,7 @@ def test_memory_of_estimate_images_is_one_gray_copy_of_a_large_image(channels):
     rng = np.random.default_rng(0)
     shape = (h, w) if channels is None else (h, w, channels)
     image = rng.integers(0, 256, shape, np.uint8)
-    est = HomographyEstimator([_constant_stage(np.eye(3), "ident")])
+    est = HomographyEstimator([constant_stage(np.eye(3), "ident")])
     options = EstimateOptions.network_only()
     est.estimate_images(image[:300, :400], image[:300, :400], options)
     peak = _peak_bytes(lambda: est.estimate_images(image, image, options))
@@ -526,7 +516,7 @@ def test_saved_model_refuses_an_empty_batch_with_a_clear_message(tmp_path):
     from stnh_tf.inference import export
 
     out = tmp_path / "saved"
-    export.export_saved_model(HomographyEstimator([_constant_stage(np.eye(3), "ident")]), out)
+    export.export_saved_model(HomographyEstimator([constant_stage(np.eye(3), "ident")]), out)
     fn = tf.saved_model.load(str(out)).signatures["serving_default"]
     empty = tf.zeros((0, S, S, 1), tf.uint8)
     with pytest.raises(tf.errors.InvalidArgumentError, match="patch_a is an empty batch"):

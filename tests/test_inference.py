@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from conftest import (cv2_warp, inside_mask, keras_policy, narrow_network, ncc_reference,
+from conftest import (constant_stage, cv2_warp, inside_mask, keras_policy, ncc_reference,
                       norm_matrix, paper_homography, to_bar)
 from stnh_tf import geometry
 from stnh_tf.inference.options import EstimateOptions, Thresholds
@@ -72,17 +72,6 @@ def _random_stage(seed, name):
     tolerance)."""
     model = models.build_stn_homography(name=name)
     _randomize(model.get_layer("regression"), seed)
-    return model
-
-
-def _constant_stage(h_pix, name="constant"):
-    """A single-stage model that outputs H_bar = M @ h_pix @ inv(M) whatever its input (conftest's
-    narrow network: its width does not reach the output)."""
-    with narrow_network():
-        model = models.build_stn_homography(name=name)
-    fc2 = model.get_layer("regression").get_layer("fc2")
-    kernel, _ = fc2.get_weights()
-    fc2.set_weights([np.zeros_like(kernel), to_bar(h_pix).ravel()[:8].astype("float32")])
     return model
 
 
@@ -164,7 +153,7 @@ def saved(tmp_path_factory):
 @pytest.fixture(scope="module")
 def identity_model_path(tmp_path_factory):
     path = tmp_path_factory.mktemp("identity") / "identity.keras"
-    _constant_stage(np.eye(3), "identity").save(path)
+    constant_stage(np.eye(3), "identity").save(path)
     return str(path)
 
 
@@ -309,7 +298,7 @@ def test_load_errors(tmp_path):
 def test_estimate_known_output_shape_dtype_and_direction(pairs, rng):
     a, _, _ = pairs
     h_true = paper_homography(rng)
-    est = HomographyEstimator([_constant_stage(h_true)])
+    est = HomographyEstimator([constant_stage(h_true)])
     # patch_b(p) = patch_a(H p): the estimate must be H itself (patch_b -> patch_a).
     b = np.stack([np.clip(np.rint(cv2_warp(p[..., 0], h_true)), 0, 255)
                   for p in a]).astype(np.uint8)
@@ -335,7 +324,7 @@ def test_estimate_known_output_shape_dtype_and_direction(pairs, rng):
 def test_hierarchy_of_constant_stages_is_the_product(pairs, rng):
     a, b, _ = pairs
     h1, h2 = paper_homography(rng), paper_homography(rng)
-    est = HomographyEstimator([_constant_stage(h1, "c1"), _constant_stage(h2, "c2")])
+    est = HomographyEstimator([constant_stage(h1, "c1"), constant_stage(h2, "c2")])
     assert est.kind == "hierarchy"
     got = est.estimate(a, b, EstimateOptions(gate_stages=False, search="none"))
     want = h1 @ h2
@@ -349,7 +338,7 @@ def test_degenerate_stage_predictions_are_skipped_and_counted(pairs, rng, caplog
     estimate so far kept), as in evaluation; the others compose as usual."""
     a, b, _ = pairs
     h1, h3 = paper_homography(rng), paper_homography(rng)
-    est = HomographyEstimator([_constant_stage(np.eye(3), f"c{k}") for k in (1, 2, 3)])
+    est = HomographyEstimator([constant_stage(np.eye(3), f"c{k}") for k in (1, 2, 3)])
     bad = {0: np.full((3, 3), np.nan), 1: np.diag([1e-4, 1e-4, 1.0])}  # non-finite, singular
     outputs = {0: h1, 2: h3}
 
@@ -421,7 +410,7 @@ def test_implausible_estimates_are_flagged_per_pair(pairs):
     beyond = cv2.getPerspectiveTransform(corners.astype(np.float32),
                                          (corners + [[60, 0], [0, 0], [0, 0], [0, 0]])
                                          .astype(np.float32))
-    est = HomographyEstimator([_constant_stage(np.eye(3), f"c{k}") for k in (1, 2)])
+    est = HomographyEstimator([constant_stage(np.eye(3), f"c{k}") for k in (1, 2)])
 
     def fake_stage(k, patch_a, patch_b, batch_size):
         h = hs.copy() if k == 0 else np.repeat(np.eye(3)[None], len(patch_a), 0)
@@ -468,7 +457,7 @@ def test_flat_patch_gives_the_flagged_identity(pairs, identity_model_path, tmp_p
     min_std = EstimateOptions().thresholds.min_patch_std
     assert std(b[1]) < min_std and std(a[2]) < min_std
     assert min(min(std(a[i]), std(b[i])) for i in (0, 3)) > 10 * min_std
-    est = HomographyEstimator([_constant_stage(np.eye(3), f"c{k}") for k in (1, 2)])
+    est = HomographyEstimator([constant_stage(np.eye(3), f"c{k}") for k in (1, 2)])
     est._predict_stage = lambda k, pa, pb, bs: hs.copy() if k == 0 else np.repeat(
         np.eye(3)[None], len(pa), 0)
     got = est.estimate(a, b)
@@ -508,7 +497,7 @@ def test_stage_gate_keeps_later_updates_that_do_not_lower_the_alignment(pairs):
              (hs[1] @ np.linalg.inv(off), off, off),   # stage 2 corrects stage 1, stage 3 errs
              (hs[2] @ off, np.linalg.inv(off), np.eye(3)),
              (np.eye(3), hs[3], np.eye(3))]            # stage 1 sees nothing, stage 2 finds it
-    est = HomographyEstimator([_constant_stage(np.eye(3), f"c{k}") for k in (1, 2, 3)])
+    est = HomographyEstimator([constant_stage(np.eye(3), f"c{k}") for k in (1, 2, 3)])
     est._predict_stage = lambda k, pa, pb, bs: np.stack([p[k] for p in plans])
     got = est.estimate(a, b, EstimateOptions(search="none"))
     for i, plan in enumerate(plans):
@@ -543,7 +532,7 @@ def test_ecc_refinement_recovers_the_true_homography(pairs, monkeypatch):
     a, b, hs = pairs
     off = geometry.translation(3.0, -2.0) @ np.array([[1.02, 0.01, 0], [-0.01, 0.99, 0], [0, 0, 1]])
     starts = np.stack([h @ off for h in hs])
-    est = HomographyEstimator([_constant_stage(np.eye(3))])
+    est = HomographyEstimator([constant_stage(np.eye(3))])
     est._predict_stage = lambda k, pa, pb, bs: starts.copy()
     start_error = geometry.corner_errors(starts, hs)
     assert start_error.min() > 3.0
@@ -604,7 +593,7 @@ def test_tta_keeps_the_estimate_that_aligns_the_pair_best(pairs):
     flags' NCC is the kept estimate's (NumPy reference); an unknown tta is an error."""
     names = ["rotate_90_cw", "identity", "flip_y", "anti_transpose"]
     a, b, want, h_c = _symmetry_pairs(pairs, names)
-    est = HomographyEstimator([_constant_stage(h_c, "c")])
+    est = HomographyEstimator([constant_stage(h_c, "c")])
     got = est.estimate(a, b, EstimateOptions(tta="dihedral", search="none"))
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)  # H_c passes through float32
     assert est.last_info["tta_choice"].tolist() == names
@@ -634,7 +623,7 @@ def test_flagged_estimates_are_retried_with_test_time_augmentation(pairs):
     symmetries than tta does nothing; an unknown one is an error."""
     names = ["rotate_90_cw", "identity", "flip_y", "rotate_180"]
     a, b, want, h_c = _symmetry_pairs(pairs, names)
-    est = HomographyEstimator([_constant_stage(h_c, "c")])
+    est = HomographyEstimator([constant_stage(h_c, "c")])
     plain = est.estimate(a, b, EstimateOptions(search="none"))
     plain_info = est.last_info
     flagged = np.array([True, False, True, True])
@@ -661,7 +650,7 @@ def test_flagged_estimates_are_retried_with_test_time_augmentation(pairs):
         with pytest.raises(ValueError, match="retry_tta must be one of"):
             est.estimate(a, b, EstimateOptions(retry_tta=bad, search="none"))
 
-    two = HomographyEstimator([_constant_stage(h_c, "c1"), _constant_stage(np.eye(3), "c2")])
+    two = HomographyEstimator([constant_stage(h_c, "c1"), constant_stage(np.eye(3), "c2")])
     predict = two._predict_stage
     two._predict_stage = lambda k, pa, pb, bs: (predict(k, pa, pb, bs) if k == 0
                                                 else np.full((len(pa), 3, 3), np.nan))
@@ -698,7 +687,7 @@ def test_search_finds_the_alignment_a_network_put_a_period_off(pairs, rng, monke
     a = np.stack([wall_a, a_s[0, ..., 0], a_s[1, ..., 0]])
     b = np.stack([wall_b, b_s[0, ..., 0], b_s[0, ..., 0]])  # pair 2: patch_b of another texture
     starts = np.stack([h_wall @ geometry.translation(20.0, 0.0), hs[0], np.eye(3)])
-    est = HomographyEstimator([_constant_stage(np.eye(3))])
+    est = HomographyEstimator([constant_stage(np.eye(3))])
     est._predict_stage = lambda k, pa, pb, bs: starts.copy()
 
     network = est.estimate(a, b, EstimateOptions(search="none"))
@@ -747,7 +736,7 @@ def test_estimate_images_tta_transforms_the_image_context():
     h_image = t @ h_patch @ np.linalg.inv(t)
     image_b = cv2.warpPerspective(image, h_image, (320, 240),
                                   flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
-    est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
+    est = HomographyEstimator([constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
     got = est.estimate_images(image, image_b, EstimateOptions(tta="dihedral", search="none"))
     assert est.last_info["tta_choice"][0] == "rotate_90_cw"
     np.testing.assert_allclose(got, h_image / h_image[2, 2], rtol=1e-5, atol=1e-4)
@@ -779,7 +768,7 @@ def test_estimate_images_ecc_refinement_uses_the_whole_image(rng):
         return float(np.linalg.norm(geometry.warp_points(h[None], corners)
                                     - geometry.warp_points(h_true[None], corners), axis=-1).mean())
 
-    est = HomographyEstimator([_constant_stage(np.eye(3))])
+    est = HomographyEstimator([constant_stage(np.eye(3))])
     assert corner_error(est.estimate_images(image, image_b, EstimateOptions(search="none"))) > 10.0
     assert corner_error(est.estimate_images(
         image, image_b, EstimateOptions(refine="ecc", search="none"))) < 1.5
@@ -794,7 +783,7 @@ def test_hierarchy_later_stage_sees_warped_patch_without_context(pairs, fill, bo
     a, b, _ = pairs
     h1 = geometry.translation(20.0, -12.0) @ np.diag([1.1, 0.95, 1.0])
     gain = 0.8
-    est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
+    est = HomographyEstimator([constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
     got = est.estimate(a, b, EstimateOptions(gate_stages=False, fill=fill, search="none"))
     for i in range(len(a)):
         seen = cv2_warp(a[i, ..., 0].astype(np.float32) / 255, h1, border)
@@ -866,7 +855,7 @@ def test_prepare_image_gray_conversion():
 
 def test_estimate_images_maps_patch_estimate_to_image_frames(rng):
     h_patch = paper_homography(rng)
-    est = HomographyEstimator([_constant_stage(h_patch)])
+    est = HomographyEstimator([constant_stage(h_patch)])
     image = skimage.data.camera()  # 512 x 512 gray
     image_b = cv2.resize(image, (640, 480), interpolation=cv2.INTER_AREA)
     got = est.estimate_images(image, image_b, EstimateOptions(search="none"))  # the network's path
@@ -881,7 +870,7 @@ def test_estimate_images_hierarchy_uses_image_context():
     image = skimage.data.camera()
     h1 = geometry.translation(-30.0, 20.0)  # brings 30 px of image beyond the patch border in
     gain = 0.8
-    est = HomographyEstimator([_constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
+    est = HomographyEstimator([constant_stage(h1, "c1"), _spy_stage(gain, np.eye(3), "spy")])
     # same size: S_a = S_b = 320 x 240 resize
     got = est.estimate_images(image, image, EstimateOptions(search="none"))
     # (a uint8 image is resized in uint8, as the training data: issue 48 item 6)
@@ -903,7 +892,7 @@ def test_estimate_images_hierarchy_uses_image_context():
 # --------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def identity_estimator():
-    return HomographyEstimator([_constant_stage(np.eye(3), "ident")])
+    return HomographyEstimator([constant_stage(np.eye(3), "ident")])
 
 
 _OK = np.zeros((S, S), np.uint8)
@@ -1140,7 +1129,7 @@ def test_benchmark_estimator_binary(tmp_path):
     with --compute_dtype=as_saved, its saved policy (float32 by default); the ratio is the ratio
     of the two timings."""
     with keras_policy("mixed_bfloat16"):
-        stages = [_constant_stage(np.eye(3), f"c{k}") for k in (1, 2)]
+        stages = [constant_stage(np.eye(3), f"c{k}") for k in (1, 2)]
     for k, stage in enumerate(stages, start=1):
         stage.save(tmp_path / f"stage{k}.keras")
     manifest = model_files.write_manifest(tmp_path / "h.json", [tmp_path / "stage1.keras",
@@ -1194,7 +1183,7 @@ def test_predict_binary(identity_model_path, tmp_path):
     # --search=none: the network's estimate is what is tested (the search could align the pair).
     far = np.eye(3)
     far[0, 2] = 60.0
-    _constant_stage(far, "far").save(tmp_path / "far.keras")
+    constant_stage(far, "far").save(tmp_path / "far.keras")
     proc = _run("experiments.predict", f"--image_a={tmp_path / 'a.png'}",
                 f"--image_b={tmp_path / 'a.png'}", f"--model={tmp_path / 'far.keras'}",
                 f"--output_dir={tmp_path / 'far'}", "--retry_tta=flips", "--search=none")
@@ -1215,7 +1204,7 @@ def test_predict_binary(identity_model_path, tmp_path):
     # a network 8 px off on a pair of identical images: the default search finds the identity
     # and says so (the network's estimate was replaced)
     off = geometry.translation(8.0, 0.0)
-    _constant_stage(off, "off").save(tmp_path / "off.keras")
+    constant_stage(off, "off").save(tmp_path / "off.keras")
     proc = _run("experiments.predict", f"--image_a={tmp_path / 'a.png'}",
                 f"--image_b={tmp_path / 'a.png'}", f"--model={tmp_path / 'off.keras'}",
                 f"--output_dir={tmp_path / 'off'}")

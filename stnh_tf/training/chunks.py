@@ -90,14 +90,13 @@ def sync_out(model_dir: str, resume: str) -> int:
 
 
 def strip_optimizer(src: str, dst: str) -> None:
-    """Save the model of ``src`` (``.keras``) to ``dst`` without its optimizer state."""
-    import keras
+    """Save the model of ``src`` (``.keras``) to ``dst`` without its optimizer state (loaded
+    uncompiled by :func:`stnh_tf.modeling.runner.load_model`, as ``ship_weights`` copies
+    stages), written beside ``dst`` and then renamed."""
+    from stnh_tf.modeling import runner
 
-    from stnh_tf.modeling import runner  # noqa: F401  (registers the custom objects)
-
-    model = keras.saving.load_model(src, compile=False)
     tmp = f"{dst}.tmp-{os.getpid()}.keras"
-    model.save(tmp)
+    runner.load_model(src).save(tmp)
     os.replace(tmp, dst)
 
 
