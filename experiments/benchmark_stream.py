@@ -13,7 +13,9 @@ Times, on any Keras backend:
   ``--in_memory``), ``stream`` (``PairStream`` workers, the fixed pairs) and ``fresh`` (workers,
   new pairs every data epoch: ``--fresh_pairs``), over ``--epochs`` Keras epochs of
   ``--steps_per_epoch`` steps after one untimed epoch (compilation), epoch boundaries included.
-  ``step_ms_median`` is the median wall time between consecutive batch ends.
+  ``step_ms_median`` is the median wall time between consecutive batch ends (per step). Each
+  mode is timed at every ``--steps_per_execution`` with every ``--callbacks`` set (keys
+  ``array/spe50+callbacks``: 50 steps a call, with the training loop's per-step callbacks).
 
 Prints one JSON object.
 """
@@ -37,6 +39,10 @@ flags.DEFINE_integer("steps_per_epoch", 50, "Keras epoch length (training checkp
 flags.DEFINE_integer("epochs", 3, "Timed Keras epochs (after one untimed).")
 flags.DEFINE_bool("mixed_precision", True, "Keras mixed_bfloat16 policy.")
 flags.DEFINE_integer("seed", 0, "Pair and weight seed.")
+flags.DEFINE_list("steps_per_execution", ["1"], "Keras steps_per_execution values to time each "
+                  "mode at (each must divide --steps_per_epoch).")
+flags.DEFINE_list("callbacks", ["none"], "Callbacks to time each mode with: none, training (the "
+                  "training loop's per-step non-finite guard and progress logger).")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them
@@ -47,7 +53,9 @@ def main(argv):
     result = benchmarks.stream_benchmark(
         FLAGS.image_dir, FLAGS.workers, FLAGS.samples_per_image, FLAGS.batch_size,
         FLAGS.alone_batches, FLAGS.modes, FLAGS.steps_per_epoch, FLAGS.epochs,
-        FLAGS.mixed_precision, FLAGS.seed, FLAGS.photometric)
+        FLAGS.mixed_precision, FLAGS.seed, FLAGS.photometric,
+        steps_per_execution=[int(k) for k in FLAGS.steps_per_execution],
+        callbacks=FLAGS.callbacks)
     common.emit_json(result, FLAGS.json_out)
 
 

@@ -44,6 +44,8 @@ flags.DEFINE_string("runs_dir", os.path.expanduser("~/stnh-runs/paper_schedule")
 flags.DEFINE_float("time_limit_s", 0.0, "Stop at the last checkpoint before this many seconds "
                    "(0: train to the end).")
 flags.DEFINE_integer("workers", max((os.cpu_count() or 1) - 2, 1), "Pair-generator processes.")
+flags.DEFINE_integer("steps_per_execution", 1, "Training steps per compiled call (the same "
+                     "updates; fewer waits for the accelerator: docs/gpu.md). Divides 500.")
 flags.DEFINE_string("device", None, "The machine, for the ledger (default: described here).")
 FLAGS = flags.FLAGS
 
@@ -55,6 +57,7 @@ def main(argv):
     stage = FLAGS.stage
     cfg = TrainConfig(**SCHEDULE, stage=stage, image_dir=",".join(FLAGS.image_dir),
                       val_image_dir=",".join(FLAGS.val_image_dir), workers=FLAGS.workers,
+                      steps_per_execution=FLAGS.steps_per_execution,
                       model_dir=os.path.join(FLAGS.runs_dir, f"stage{stage}"),
                       prev_stages=tuple(chunks.finished_model(ROOT, k) for k in range(1, stage)))
     device = FLAGS.device or f"{machine_info()['cpu']}, {os.cpu_count()} cores"

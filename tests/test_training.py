@@ -206,6 +206,31 @@ def test_init_from_rejects_a_stage_of_another_build(tiny_data, tmp_path, narrow)
             _cfg(tiny_data, tmp_path / "run2", **bad).validate()
 
 
+def test_steps_per_execution_makes_the_same_updates(tiny_data, straight_run, tmp_path):
+    """Two steps per compiled call: the same six updates as the straight run (one step a call),
+    checkpoints at the same steps, and the resume check lets the two settings continue one run."""
+    cfg = _cfg(tiny_data, tmp_path / "spe2", steps_per_execution=2, log_every=2)
+    with narrow_network():
+        out = training.train(cfg, printer=_quiet)
+    assert out["final_step"] == 6
+    names = sorted(p.name for p in (tmp_path / "spe2" / "checkpoint").iterdir())
+    assert "ckpt-00000006.weights.h5" in names
+    for got, ref in zip(_weights(cfg.model_dir), _weights(straight_run)):
+        np.testing.assert_array_equal(got, ref)
+    resumed = dataclasses.replace(cfg, model_dir=str(tmp_path / "resumed"))
+    run_dir.prepare_model_dir(resumed)
+    run_dir.prepare_model_dir(dataclasses.replace(resumed, steps_per_execution=1))
+
+
+def test_steps_per_execution_must_divide_checkpoints_and_reports(tiny_data, tmp_path):
+    for kw, name in (({"checkpoint_every": 3}, "checkpoint_every"),
+                     ({"log_every": 3, "checkpoint_every": 4}, "log_every")):
+        with pytest.raises(ValueError, match=f"steps_per_execution \\(2\\) must divide {name}"):
+            _cfg(tiny_data, tmp_path / "run", steps_per_execution=2, **kw).validate()
+    with pytest.raises(ValueError, match="steps_per_execution"):
+        _cfg(tiny_data, tmp_path / "run", steps_per_execution=0).validate()
+
+
 def test_resume_refuses_different_configuration(tiny_data, tmp_path):
     cfg = _cfg(tiny_data, tmp_path / "run", train_steps=2)
     run_dir.prepare_model_dir(cfg)

@@ -58,8 +58,8 @@ def machine_info() -> dict:
             "command": " ".join([os.path.basename(sys.executable)] + sys.argv)}
     if hasattr(os, "getloadavg"):
         info["loadavg_at_start"] = [round(x, 2) for x in os.getloadavg()]
-    if "tensorflow" in sys.modules:
-        tf = sys.modules["tensorflow"]
+    tf = sys.modules.get("tensorflow")  # (None also where an import of it was blocked)
+    if tf is not None:
         info["tensorflow"] = tf.__version__
         info["gpus"] = [d.name for d in tf.config.list_physical_devices("GPU")]
     if "jax" in sys.modules:
@@ -301,14 +301,19 @@ def _fit_inputs(mode, pair_batches, image_dir, batch_size, workers, samples_per_
 
 
 def time_fit(mode, pair_batches, image_dir, batch_size=64, workers=2, samples_per_image=100,
-             steps_per_epoch=50, epochs=3, mixed_precision=True, seed=0, photometric=False) -> dict:
-    """Steps per second of ``model.fit`` fed by ``mode`` (``array``, ``stream`` or ``fresh``)
-    over ``epochs`` epochs after an untimed one, and the median and longest step."""
+             steps_per_epoch=50, epochs=3, mixed_precision=True, seed=0, photometric=False,
+             steps_per_execution=1, training_callbacks=False, stream=None) -> dict:
+    """Steps per second of ``model.fit`` fed by ``mode`` (``array``, ``stream`` or ``fresh``;
+    or by ``stream`` where given) over ``epochs`` epochs after an untimed one, and the median and
+    longest step, at ``steps_per_execution``; ``training_callbacks`` adds the per-step callbacks
+    of :func:`stnh_tf.training.loop.train` (non-finite guard, progress), which read the step and
+    the loss after every call."""
     import keras
 
     from stnh_tf.training import config as train_config
     from stnh_tf.training import loop as training
     from stnh_tf.training import model_kinds
+    from stnh_tf.training.callbacks import NonFiniteGuard, ProgressLogger
 
     class Ends(keras.callbacks.Callback):
         def __init__(self):
@@ -318,35 +323,60 @@ def time_fit(mode, pair_batches, image_dir, batch_size=64, workers=2, samples_pe
         def on_train_batch_end(self, batch, logs=None):
             self.times.append(time.perf_counter())
 
+    n, k = steps_per_epoch, steps_per_execution
+    if n % k:
+        raise ValueError(f"steps_per_execution ({k}) must divide steps_per_epoch ({n}).")
     cfg = train_config.TrainConfig(image_dir=",".join(image_dir), model_dir="-", seed=seed,
-                                   batch_size=batch_size, mixed_precision=mixed_precision)
+                                   batch_size=batch_size, mixed_precision=mixed_precision,
+                                   steps_per_execution=k)
     keras.mixed_precision.set_global_policy("mixed_bfloat16" if mixed_precision else "float32")
     keras.utils.set_random_seed(seed)
     t0 = time.perf_counter()
-    stream = _fit_inputs(mode, pair_batches, image_dir, batch_size, workers, samples_per_image,
-                         seed, photometric)
+    owned = stream is None
+    if owned:
+        stream = _fit_inputs(mode, pair_batches, image_dir, batch_size, workers,
+                             samples_per_image, seed, photometric)
     ready_s = time.perf_counter() - t0
     model = training.compile_model(model_kinds.build_model(cfg), cfg)
     ends = Ends()
-    n = steps_per_epoch
+    callbacks = [NonFiniteGuard(), ProgressLogger(n, n * (epochs + 1), lambda line: None)] \
+        if training_callbacks else []
     try:
-        model.fit(stream, epochs=epochs + 1, steps_per_epoch=n, callbacks=[ends], verbose=0)
+        model.fit(stream, epochs=epochs + 1, steps_per_epoch=n, callbacks=[*callbacks, ends],
+                  verbose=0)
     finally:
-        if hasattr(stream, "close"):
+        if owned and hasattr(stream, "close"):
             stream.close()
         keras.mixed_precision.set_global_policy("float32")
-    timed = ends.times[n - 1:]  # from the end of the untimed epoch
-    gaps = [b - a for a, b in zip(timed, timed[1:])]
-    return {"steps_per_s": len(gaps) / (timed[-1] - timed[0]),
+    timed = ends.times[n // k - 1:]  # from the end of the untimed epoch; one end per k steps
+    gaps = [(b - a) / k for a, b in zip(timed, timed[1:])]
+    return {"steps_per_s": len(gaps) / (sum(gaps) or 1e-9),
             "step_ms_median": 1e3 * statistics.median(gaps), "step_ms_max": 1e3 * max(gaps),
             "input_ready_s": ready_s}
 
 
+def fit_variants(spes=(1,), callback_sets=("none",)) -> list:
+    """``(key suffix, steps_per_execution, training_callbacks)`` for every combination; the
+    plain combination (1, ``none``) has the empty suffix (the mode's own key)."""
+    out = []
+    for k in spes:
+        for cbs in callback_sets:
+            if cbs not in ("none", "training"):
+                raise ValueError(f"callbacks must be none or training; received {cbs!r}.")
+            suffix = "" if (k, cbs) == (1, "none") else \
+                f"/spe{k}" + ("+callbacks" if cbs == "training" else "")
+            out.append((suffix, int(k), cbs == "training"))
+    return out
+
+
 def stream_benchmark(image_dir, workers=2, samples_per_image=100, batch_size=64,
                      alone_batches=100, modes=("array", "stream", "fresh"), steps_per_epoch=50,
-                     epochs=3, mixed_precision=True, seed=0, photometric=False) -> dict:
+                     epochs=3, mixed_precision=True, seed=0, photometric=False,
+                     steps_per_execution=(1,), callbacks=("none",)) -> dict:
     """Runs every measurement of ``experiments.benchmark_stream`` (``image_dir``: a list of
-    folders) on the current Keras backend and returns the result dict."""
+    folders) on the current Keras backend and returns the result dict; each mode is timed at
+    every ``steps_per_execution`` with each of ``callbacks`` (``none``, ``training``:
+    :func:`fit_variants`)."""
     import keras
 
     from stnh_tf.data import batches, pair_datasets
@@ -358,7 +388,7 @@ def stream_benchmark(image_dir, workers=2, samples_per_image=100, batch_size=64,
     result = {"benchmark": "stream", "image_dir": image_dir, "photometric": photometric,
               "images": len(pair_batches.entries),
               "workers": workers, "samples_per_image": samples_per_image,
-              "batch_size": batch_size, "seed": seed,
+              "batch_size": batch_size, "seed": seed, "backend": keras.backend.backend(),
               "mixed_precision": mixed_precision, "machine": machine_info()}
     result["in_process_ms"] = median_ms(lambda: pair_batches.step_batch(1, fresh=True), 10, 1)
     stream = pair_datasets.PairStream(image_dir, batch_size, workers=workers,
@@ -372,10 +402,16 @@ def stream_benchmark(image_dir, workers=2, samples_per_image=100, batch_size=64,
         result["alone_batches_per_s"] = alone_batches / (time.perf_counter() - t0)
     finally:
         stream.close()
-    result["fit"] = {mode: time_fit(mode, pair_batches, image_dir, batch_size, workers,
-                                    samples_per_image, steps_per_epoch, epochs, mixed_precision,
-                                    seed, photometric)
-                     for mode in modes}
+    variants = fit_variants(steps_per_execution, callbacks)
+    arrays = batches.materialize(pair_batches, workers) if "array" in modes else None
+    result["fit"] = {}
+    for mode in modes:
+        for suffix, k, cbs in variants:
+            given = pair_datasets.ArrayStream(arrays, pair_batches) if mode == "array" else None
+            result["fit"][mode + suffix] = time_fit(
+                mode, pair_batches, image_dir, batch_size, workers, samples_per_image,
+                steps_per_epoch, epochs, mixed_precision, seed, photometric,
+                steps_per_execution=k, training_callbacks=cbs, stream=given)
     return result
 
 

@@ -124,6 +124,11 @@ class TrainConfig:
                                    "with AVX-512 BF16/AMX; emulated, so slow, on other CPUs).")
     checkpoint_every: int = _field(500, "Steps between checkpoints (one Keras epoch).")
     log_every: int = _field(50, "Steps between progress lines / TensorBoard points.")
+    steps_per_execution: int = _field(1, "Training steps per call of the compiled step "
+                                      "(Keras' steps_per_execution): callbacks run once per call, "
+                                      "so the accelerator is not waited for every step; the "
+                                      "updates are the same. Must divide checkpoint_every and "
+                                      "log_every.")
     val_split: str = _field("test", "Split for the validation MACE (monitoring only).")
     val_samples: int = _field(1024, "Validation pairs per checkpoint (0: off).")
     strategy: str = _field("default", "default (one device), mirrored (TensorFlow backend: "
@@ -281,6 +286,10 @@ class TrainConfig:
                    f"checkpoint_every ({self.checkpoint_every}).")
         if self.stage < 1:
             yield (f"stage must be >= 1; received {self.stage}.")
+        for name in ("checkpoint_every", "log_every"):
+            if self.steps_per_execution >= 1 and getattr(self, name) % self.steps_per_execution:
+                yield (f"steps_per_execution ({self.steps_per_execution}) must divide {name} "
+                       f"({getattr(self, name)}).")
         if not (self.weight_decay >= 0 and math.isfinite(self.weight_decay)):
             yield (f"weight_decay must be a finite number >= 0; received "
                    f"{self.weight_decay}.")
@@ -393,11 +402,12 @@ _TUPLE_FIELDS = tuple(f.name for f in dataclasses.fields(TrainConfig) if f.type 
 # The integer fields and their smallest allowed values (TrainConfig.validate).
 _INTEGER_MINIMUMS = {"checkpoint_every": 1, "batch_size": 1, "shuffle_buffer": 1, "log_every": 1,
                      "samples_per_image": 1, "val_samples": 0, "workers": 0, "seed": 0,
-                     "val_seed": 0, "num_processes": 1, "process_id": 0}
+                     "val_seed": 0, "num_processes": 1, "process_id": 0,
+                     "steps_per_execution": 1}
 
 # Fields that may differ between a run and its resumption without changing the result.
 RESUME_FREE_FIELDS = frozenset({"log_every", "model_dir", "data_dir", "image_dir", "val_image_dir",
-                                "workers", "in_memory", "unlabeled_image_dir",
+                                "workers", "in_memory", "unlabeled_image_dir", "steps_per_execution",
                                 "coordinator_address"})
 
 

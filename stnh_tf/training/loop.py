@@ -130,7 +130,7 @@ def compile_model(model, cfg: TrainConfig):
     losses, loss_weights, metrics = model_kinds.loss_spec(cfg)
     optimizer = build_optimizer(cfg)
     model.compile(optimizer=optimizer, loss=losses, loss_weights=loss_weights,
-                  weighted_metrics=metrics)
+                  weighted_metrics=metrics, steps_per_execution=cfg.steps_per_execution)
     return model
 
 
