@@ -44,6 +44,11 @@ NOT_RECORDED = "not recorded"
 SOURCES = {
     "card": "stnh_tf/weights/model_card.json",
     "paper_card": "stnh_tf/weights/paper_recipe/model_card.json",
+    "schedule_card": "stnh_tf/weights/paper_schedule/model_card.json",
+    "schedule_record": "paper_schedule/stage1.json",
+    "schedule_curve": "paper_schedule/stage1_curve.json",
+    "schedule_train_photos": "paper_schedule/stage1_eval_train_photographs.json",
+    "schedule_probe": "paper_schedule/logs/h200_steps_per_execution_probe.json",
     "results": "docs/reproduce_cpu/results.json",
     "table1": "docs/reproduce_cpu/table1.json",
 }
@@ -189,7 +194,8 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
         KeyError: a JSON lacks a field the table shows.
     """
     nr = NOT_RECORDED
-    card, paper_card = (f"`{SOURCES[k]}`" for k in ("card", "paper_card"))
+    card, paper_card, schedule_card = (f"`{SOURCES[k]}`"
+                                       for k in ("card", "paper_card", "schedule_card"))
 
     def card_num(path, digits=2):
         return fixed(value(sources, "card", path), digits)
@@ -254,6 +260,15 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
          f"{_joined(sources, 'paper_card', _stages('evaluation/model'), bold=2)} px",
          "`python -m experiments.evaluate --model_dir=runs/cpu/stage1,runs/cpu/stage2,"
          "runs/cpu/stage3 --data_dir=data/cpu --split=test`", paper_card, nr, nr),
+        ("[Paper's schedule](docs/gpu.md#the-papers-schedule-in-chunks), stage 1 "
+         "(`stnh_tf/weights/paper_schedule/`): the paper's recipe, 91,000 steps, 184,800 pairs "
+         "from 1,848 photographs; 300 coco_mini test pairs",
+         f"MACE {fixed(value(sources, 'schedule_card', 'evaluation/model/mace'))} px (paper "
+         f"5.83; identity {fixed(value(sources, 'schedule_card', 'evaluation/identity/mace'))})",
+         "`python -m experiments.paper_schedule --stage=1` (chunks), then `python -m "
+         "experiments.evaluate --model_dir=paper_schedule/stage1.keras --data_dir=D "
+         "--split=test`", schedule_card, nr,
+         "; ".join(value(sources, "schedule_card", "stages")[0]["machines"])),
         ("Paper recipe's hierarchy, `estimate` on bare patches (default search), 60 bundled pairs",
          f"{_joined(sources, 'paper_card', check('', '123'))} px after 1 / 2 / 3 "
          "stages; after 3 stages the network alone "
@@ -314,34 +329,41 @@ def readme_block(sources: dict[str, dict]) -> str:
     table1, table1_note, paper_table1 = _table1_cells(sources)
     stn = ["STN-Homography 1 stage", "STN-Homography 2 stages", "STN-Homography 3 stages"]
     steps = sum(card_steps(sources))
+    schedule = {1: fixed(value(sources, "schedule_card", "evaluation/model/mace"))}
+    next_ = "not yet"  # trained next, in the order of issue 45 (docs/gpu.md)
     rows = [
-        ("identity", ours("Identity"), f"{IDENTITY_EXPECTED:.2f} (expected)"),
-        ("HomographyNet (DeTone et al.'s network and step schedule)", ours("HomographyNet"),
+        ("identity", ours("Identity"),
+         fixed(value(sources, "schedule_card", "evaluation/identity/mace")),
+         f"{IDENTITY_EXPECTED:.2f} (expected)"),
+        ("HomographyNet (DeTone et al.'s network and step schedule)", ours("HomographyNet"), "-",
          theirs("HomographyNet")),
         ("HomographyNet's 4-point regression on our backbone (`homographynet_gap`, paper's "
-         "recipe)", ours("HomographyNet variant (GAP)"), "-"),
-        ("STN-Homography, 1 stage", ours(stn[0]), theirs(stn[0])),
-        ("hierarchy, 2 stages", ours(stn[1]), theirs(stn[1])),
-        ("hierarchy, 3 stages", ours(stn[2]), theirs(stn[2])),
-        ("sequence model, 2 stages", ours("Sequence 2 stages"), theirs("Sequence 2 stages")),
-        ("ORB + RANSAC (tuned on train photographs)", ours("ORB + RANSAC"), "-"),
-        ("SIFT + RANSAC (tuned on train photographs)", ours("SIFT + RANSAC"), "-"),
+         "recipe)", ours("HomographyNet variant (GAP)"), "-", "-"),
+        ("STN-Homography, 1 stage", ours(stn[0]), schedule[1], theirs(stn[0])),
+        ("hierarchy, 2 stages", ours(stn[1]), next_, theirs(stn[1])),
+        ("hierarchy, 3 stages", ours(stn[2]), next_, theirs(stn[2])),
+        ("sequence model, 2 stages", ours("Sequence 2 stages"), next_,
+         theirs("Sequence 2 stages")),
+        ("ORB + RANSAC (tuned on train photographs)", ours("ORB + RANSAC"), "-", "-"),
+        ("SIFT + RANSAC (tuned on train photographs)", ours("SIFT + RANSAC"), "-", "-"),
         ("Table 1, loss weights L2:L1 = " + " / ".join(label for _, label in TABLE1_ROWS),
-         table1 + table1_note, paper_table1),
+         table1 + table1_note, f"{schedule[1]} / - / - / {next_} / -", paper_table1),
         ("Table 2, batch-1 latency of 1 / 2 / 3 stages in ms (ours: mixed bfloat16, the 2-core "
          "CPU; the paper: its GPU)",
-         _joined(sources, "results", [f"table2_latency_ms/{k}" for k in (1, 2, 3)]),
+         _joined(sources, "results", [f"table2_latency_ms/{k}" for k in (1, 2, 3)]), "-",
          " / ".join(f"{value(sources, 'results', f'paper/table2_gpu_ms/{k}'):g}"
                     for k in (1, 2, 3))),
         (f"**shipped default** (not the CPU budget: the fast recipe, a deviation, {steps:,} "
          f"steps in all, {steps / PAPER_STEPS:.0%} of the paper's), after 1 / 2 / 3 stages",
-         _joined(sources, "card", _stages(_DEFAULT_EVAL), bold=2),
+         _joined(sources, "card", _stages(_DEFAULT_EVAL), bold=2), "-",
          " / ".join(theirs(key) for key in stn)),
         ("shipped default, 3 stages, photometric change of patch_b",
-         fixed(value(sources, "card", "evaluation/photometric_coco_mini_test/model/mace")), "-"),
+         fixed(value(sources, "card", "evaluation/photometric_coco_mini_test/model/mace")), "-",
+         "-"),
     ]
-    lines = ["| method | MACE (px) | paper (full budget) |", "|---|---|---|"]
-    lines += [f"| {a} | {b} | {c} |" for a, b, c in rows]
+    lines = ["| method | MACE (px), CPU budget | paper's schedule | paper (full budget) |",
+             "|---|---|---|---|"]
+    lines += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in rows]
     return "\n".join(lines) + "\n"
 
 

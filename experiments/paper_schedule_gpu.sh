@@ -2,31 +2,42 @@
 # One command on the lent GPU machine for the paper's schedule (docs/gpu.md, "The paper's schedule
 # in chunks"), run from the repository root with the JAX backend and no TensorFlow:
 #
-#   experiments/paper_schedule_gpu.sh probe            # steps/s at several steps_per_execution
-#   experiments/paper_schedule_gpu.sh chunk SECONDS    # resume stage $STAGE, stop before SECONDS
+#   experiments/paper_schedule_gpu.sh stage            # keep the photographs carried this call
+#   experiments/paper_schedule_gpu.sh probe            # + steps/s at several steps_per_execution
+#   experiments/paper_schedule_gpu.sh chunk SECONDS    # + resume stage $STAGE, stop before SECONDS
 #
-# Needs .whl/ (keras, namex, optree wheels for the machine's Python: docs/gpu.md) and the
-# photographs under .devdata/ (coco_mini/train, coco_mini/test, photos_extra: the same files as
-# the CPU chunks read). `probe` leaves its JSON in /tmp/probe.json; a later `chunk` on the same
-# machine trains with the fastest steps_per_execution it measured with the training callbacks
-# (50 without a probe). What comes back is written to $OUT: probe.json, chunk.log and
-# paper_schedule.tgz (the committed checkpoint or finished stage, the ledger and docs/gpu.md).
+# Every mode first copies what this call carried under .devdata/ (made here by
+# `python -m experiments.device_photographs`) into /tmp/stnh-data, which stays on the machine
+# between calls: the photographs travel over several calls (each call carries at most 64 MiB, and
+# a call removes what an earlier one carried). It also installs .whl/ (keras, namex, optree wheels
+# for the machine's Python: docs/gpu.md) once. `probe` leaves its JSON in /tmp/probe.json; a
+# later `chunk` on the same machine trains with the fastest steps_per_execution it measured with
+# the training callbacks (50 without a probe). What comes back is written to $OUT: probe.json,
+# chunk.log and paper_schedule.tgz (the committed checkpoint or finished stage, the ledger and
+# docs/gpu.md).
 set -u -o pipefail
-mode=${1:?probe or chunk}
+mode=${1:?stage, probe or chunk}
 out=${OUT:-/tmp/paper_schedule_out}
-mkdir -p "$out"
+data=/tmp/stnh-data
+mkdir -p "$out" "$data"
+if [ -d .devdata ]; then
+  cp -r .devdata/. "$data/"
+fi
+train=$(find "$data/coco_mini/train" "$data/photos_extra" -type f -name '*.jpg' 2>/dev/null | wc -l)
+test=$(find "$data/coco_mini/test" -type f -name '*.jpg' 2>/dev/null | wc -l)
+echo "photographs on this machine: $train for training (1848 needed), $test for validation (100)"
 if [ ! -d /tmp/site/keras ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-    --target /tmp/site .whl/*.whl || exit 2
+    --target /tmp/site .whl/*.whl || { echo "no .whl/ carried yet"; [ "$mode" = stage ] || exit 2; }
 fi
 export PYTHONPATH=/tmp/site:$PWD KERAS_BACKEND=jax PYTHONUNBUFFERED=1
-export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache  # shared by the probe and the chunk
 workers=$(( $(nproc) - 2 ))
+[ "$mode" = stage ] && exit 0
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 
 if [ "$mode" = probe ]; then
-  timeout 240 python3 -m experiments.benchmark_stream --image_dir=.devdata/photos_extra/urban100 \
-    --workers="$workers" --samples_per_image=20 --alone_batches=20 --modes=array \
+  timeout 240 python3 -m experiments.benchmark_stream --image_dir="$data/photos_extra/imagenet" \
+    --workers="$workers" --samples_per_image=2 --alone_batches=20 --modes=array \
     --steps_per_epoch=100 --epochs=3 --steps_per_execution=1,10,50 --callbacks=none,training \
     --json_out="$out/probe.json" 2>&1 | grep -v -e "^WARNING" -e "^I0000" | tail -20
   cp "$out/probe.json" /tmp/probe.json
@@ -35,10 +46,8 @@ fi
 
 seconds=${2:?chunk needs its time limit in seconds}
 stage=${STAGE:-1}
-train=$(find .devdata/coco_mini/train .devdata/photos_extra -type f -name '*.jpg' | wc -l)
-test=$(find .devdata/coco_mini/test -type f -name '*.jpg' | wc -l)
 if [ "$train" != 1848 ] || [ "$test" != 100 ]; then
-  echo "expected 1848 training and 100 test photographs under .devdata; found $train and $test"
+  echo "expected 1848 training and 100 validation photographs in $data: carry the rest first"
   exit 3
 fi
 spe=$(python3 - <<'EOF'
@@ -55,8 +64,8 @@ EOF
 echo "stage $stage, steps_per_execution $spe, time limit $seconds s, $workers workers"
 timeout $((seconds + 60)) python3 -m experiments.paper_schedule --stage="$stage" \
   --time_limit_s="$seconds" --workers="$workers" --steps_per_execution="$spe" \
-  --image_dir=.devdata/coco_mini/train,.devdata/photos_extra \
-  --val_image_dir=.devdata/coco_mini/test --runs_dir=/tmp/stnh-runs/paper_schedule \
+  --image_dir="$data/coco_mini/train,$data/photos_extra" \
+  --val_image_dir="$data/coco_mini/test" --runs_dir=/tmp/stnh-runs/paper_schedule \
   --device="$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1)" 2>&1 \
   | grep -v -e "^WARNING" -e "^I0000" | tee "$out/chunk.log"
 status=$?

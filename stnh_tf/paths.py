@@ -91,3 +91,13 @@ def check_output_file(path) -> str:
         raise IsADirectoryError(f"output file {path!r} is a directory.")
     check_output_dir(os.path.dirname(path))
     return path
+
+
+def stage_record_path(model_file) -> str:
+    """The record beside a chunked run's finished stage (``stage<k>.keras`` -> ``stage<k>.json``:
+    :func:`stnh_tf.training.chunks.stage_record`), which ``experiments.ship_weights`` reads.
+
+    >>> stage_record_path("paper_schedule/stage1.keras")
+    'paper_schedule/stage1.json'
+    """
+    return os.path.splitext(os.fspath(model_file))[0] + ".json"

@@ -88,7 +88,7 @@ def test_demo_self_check_passes_and_measures_the_stn_against_opencv():
 
 
 SHIPPED = {"shipped default, 1 stage", "shipped default, 3 stages", "paper recipe, 1 stage",
-           "paper recipe, 3 stages"}
+           "paper recipe, 3 stages", "paper's schedule, 1 stage"}
 
 
 @pytest.mark.slow
@@ -106,8 +106,8 @@ def test_demo_runs_offline(tmp_path):
     assert 18 < methods["Identity"]["mace"] < 31
     for name, r in methods.items():
         assert np.isfinite(r["mace"]) and r["ms_per_pair"] >= 0
-    # The package ships both hierarchies (stnh_tf/weights, stnh_tf/weights/paper_recipe): each is
-    # evaluated, beats the identity, and the best of them is drawn.
+    # The package ships three sets of weights (stnh_tf/weights, its paper_recipe and
+    # paper_schedule): each is evaluated, beats the identity, and the best of them is drawn.
     shipped = demo.shipped_models()
     assert set(shipped) == SHIPPED
     assert set(methods) == {"Identity", "ORB + RANSAC", "SIFT + RANSAC"} | SHIPPED

@@ -61,9 +61,36 @@ def share_of_paper(sources):
     return f"{sum(cr.card_steps(sources)) / cr.PAPER_STEPS:.0%}"[:-1]
 
 
+def curve(step):
+    """The validation MACE of the paper schedule's stage 1 at ``step`` (one point per 500)."""
+    return num("schedule_curve", f"curve/{step // 500 - 1}/val_h_bar_mace")
+
+
+def probe(key):
+    """Steps/s of one variant of the GPU probe (its keys hold a slash: read directly)."""
+    return lambda sources: f"{sources['schedule_probe']['fit'][key]['steps_per_s']:.1f}"
+
+
 # (file, regex with one group per number, the expected value of each group). Every match of the
 # regex in the file is checked, and the regex must match at least once.
 PROSE = [
+    ("docs/gpu.md",
+     rf"\*\*MACE {N} px\*\* on the 300 coco_mini test pairs of the tables \(identity {N};",
+     [num("schedule_card", "evaluation/model/mace"),
+      num("schedule_card", "evaluation/identity/mace")]),
+    ("docs/gpu.md",
+     rf"validation MACE\): {N} px at step 500,{S}{N} at 10,000, {N} at 30,000, {N} at 50,000, "
+     rf"{N} at 70,000 and {N} at 91,000",
+     [curve(s) for s in (500, 10_000, 30_000, 50_000, 70_000, 91_000)]),
+    ("docs/gpu.md", rf"photographs give {N} px \(identity {N};",
+     [num("schedule_train_photos", "model/mace"),
+      num("schedule_train_photos", "identity/mace")]),
+    ("docs/gpu.md", rf"without callbacks: {N} / {N} / {N}\.",
+     [probe(k) for k in ("array", "array/spe10", "array/spe50")]),
+    ("docs/gpu.md", rf"GPU: {N} / {N} / {N}\.",
+     [probe(f"array/spe{k}+callbacks") for k in (1, 10, 50)]),
+    ("docs/gpu.md", rf"50 steps per call, {N} steps/s over", [num("schedule_record",
+                                                                  "chunks/1/steps_per_s")]),
     ("docs/weights.md",
      rf"\*\*{N} px\*\* after stage 1, \*\*{N}\*\* after stage 2, \*\*{N}\*\* after stage 3 "
      rf"\({N} without",

@@ -153,8 +153,8 @@ def test_modules_stay_small():
     assert not long, long
 
 
-DOCTEST_MODULES = ("stnh_tf.geometry", "stnh_tf.pixels", "stnh_tf.training.config",
-                   "stnh_tf.data.labels",
+DOCTEST_MODULES = ("stnh_tf.geometry", "stnh_tf.pixels", "stnh_tf.paths",
+                   "stnh_tf.training.config", "stnh_tf.data.labels",
                    "stnh_tf.inference.options", "stnh_tf.inference.checks",
                    "stnh_tf.inference.search", "stnh_tf.inference.ecc")
 

@@ -216,3 +216,40 @@ def test_tables_mark_rows_whose_predictions_were_rejected():
     assert "STN-Homography 1 stage: 12 stage predictions for 12 pairs" in text
     clean = reproduce.tables_markdown({**result, "fig4_rejected": {}}, latency)
     assert "rejected" not in clean
+
+
+def test_tables_show_the_papers_schedule_from_its_card_on_the_same_test_pairs(tmp_path):
+    """The "paper's schedule" column: the shipped card's MACEs under the tables' names, only when
+    the card was evaluated on the tables' test pairs (same identity MACE)."""
+    from stnh_tf.paper import tables
+
+    card = {"stages": [{"file": "stage1.keras"}, {"file": "stage2.keras"}],
+            "evaluation": {"identity": {"mace": 24.1636},
+                           "model": {"mace": 2.5, "stages": {"after_1_stages": {"mace": 6.84},
+                                                             "after_2_stages": {"mace": 2.5}}}}}
+    (tmp_path / "model_card.json").write_text(json.dumps(card))
+    got = tables.schedule_results(24.1636, str(tmp_path))
+    assert got == {"fig4_mace": {"STN-Homography 1 stage": 6.84, "STN-Homography 2 stages": 2.5},
+                   "table1_mace": {"1,1": 6.84}}
+    assert tables.schedule_results(23.0, str(tmp_path)) == {"fig4_mace": {}, "table1_mace": {}}
+    assert tables.schedule_results(24.1636, str(tmp_path / "none")) == {"fig4_mace": {},
+                                                                         "table1_mace": {}}
+    one = {"stages": [{"file": "stage1.keras"}],
+           "evaluation": {"identity": {"mace": 24.1636}, "model": {"mace": 6.84}}}
+    (tmp_path / "model_card.json").write_text(json.dumps(one))
+    assert tables.schedule_results(24.1636, str(tmp_path))["fig4_mace"] == {
+        "STN-Homography 1 stage": 6.84}
+    budget = dataclasses.asdict(reproduce.BUDGETS["tiny"])
+    result = {"budget": budget, "test_pairs": 12,
+              "fig4_mace": {"Identity": 24.16, "STN-Homography 1 stage": 18.32,
+                            "STN-Homography 2 stages": 9.46},
+              "paper": {"fig4_mace": reproduce.PAPER_FIG4, "table1_mace": {"1,1": 5.83},
+                        "table2_gpu_ms": reproduce.PAPER_TABLE2_GPU_MS},
+              "table1_mace_per_seed": {"1,1": [18.0, 18.5]}, "paper_schedule": got,
+              "models": {"stages": [], "homographynet": "h", "sequence2": "s",
+                         "ablation_seeds": {}}, "figures": {}}
+    text = reproduce.tables_markdown(result, {"hierarchy": {}, "policy": "float32"})
+    assert "| STN-Homography 1 stage | 18.32 | 6.84 | 5.83 |" in text
+    assert "| STN-Homography 2 stages | 9.46 | 2.50 | 2.60 |" in text
+    assert "| Identity | 24.16 |  |  |" in text
+    assert "| 1 | 1 | 18.25 | 2 seeds: 18.00-18.50 | 6.84 | 5.83 |" in text

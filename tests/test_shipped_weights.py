@@ -1,5 +1,6 @@
-"""The weights shipped in stnh_tf/weights (the default: the fast recipe's 3-stage hierarchy; and
-the paper recipe's CPU-budget hierarchy in stnh_tf/weights/paper_recipe) load without a network and
+"""The weights shipped in stnh_tf/weights (the default: the fast recipe's 3-stage hierarchy; the
+paper recipe's CPU-budget hierarchy in stnh_tf/weights/paper_recipe; the stages trained at the
+paper's schedule in stnh_tf/weights/paper_schedule) load without a network and
 reproduce the numbers their model cards record on the seeded bundled test pairs (a regression
 guard for the files); the default beats the identity on pairs with a photometric change; the
 implausibility flag follows the corner shift and the alignment of the estimate."""
@@ -18,7 +19,8 @@ from stnh_tf.inference import model_files, shipped_weights
 
 WEIGHTS = model_files.default_weights_dir()
 SHIPPED = {"default": WEIGHTS,
-           "paper_recipe": os.path.join(WEIGHTS, model_files.PAPER_RECIPE_WEIGHTS)}
+           "paper_recipe": os.path.join(WEIGHTS, model_files.PAPER_RECIPE_WEIGHTS),
+           "paper_schedule": os.path.join(WEIGHTS, model_files.PAPER_SCHEDULE_WEIGHTS)}
 CARD = os.path.join(WEIGHTS, "model_card.json")
 pytestmark = pytest.mark.skipif(not os.path.exists(CARD),
                                 reason="no weights shipped in stnh_tf/weights")
@@ -43,8 +45,9 @@ def test_default_load_is_the_shipped_hierarchy(card_and_pairs):
     assert est.num_stages == len(card["stages"])
     for s in card["stages"]:
         assert os.path.getsize(os.path.join(WEIGHTS, s["file"])) < 20 * 2 ** 20
-    paper = inference.HomographyEstimator.load(SHIPPED["paper_recipe"])
-    assert paper.num_stages == len(_card(SHIPPED["paper_recipe"])["stages"])
+    for name in ("paper_recipe", "paper_schedule"):
+        paper = inference.HomographyEstimator.load(SHIPPED[name])
+        assert paper.num_stages == len(_card(SHIPPED[name])["stages"])
 
 
 CARD_TOLERANCE_PX = 0.01

@@ -685,6 +685,17 @@ def test_chunks_stop_at_the_time_limit_and_continue_on_another_machine(tiny_data
         (0, 2, False), (2, 4, False), (4, 6, True)]
     assert not (repo / "resume" / "stage1").exists()
     assert json.loads((repo / "ledger.json").read_text()) == rows
+    record = json.loads((repo / "stage1.json").read_text())
+    assert record["chunks"] == rows and record["final_step"] == 6
+    assert record["config"] == dataclasses.replace(cfg, model_dir=record["config"]["model_dir"]
+                                                   ).to_json()
+    assert record["wall_s"] == pytest.approx(sum(r["wall_s"] for r in rows), abs=0.2)
+    assert record["machines"] == ["machine 0 (tensorflow)", "machine 1 (tensorflow)",
+                                  "machine 2 (tensorflow)"]
+    from stnh_tf.inference import shipped_weights  # the card of a chunked stage: its record
+    card = shipped_weights.ship([str(repo / "stage1.keras")], str(tmp_path / "shipped"))
+    entry = card["stages"][0]
+    assert (entry["config"], entry["chunks"], entry["final_step"]) == (record["config"], rows, 6)
     def optimizer_saved(path):
         with zipfile.ZipFile(path) as z, h5py.File(io.BytesIO(z.read("model.weights.h5"))) as f:
             return "optimizer" in f
@@ -757,3 +768,26 @@ def test_tensorboard_scalars_are_against_the_global_step(tiny_data, tmp_path, na
                                                           checkpoint_every))
     reported = [int(m.group(1)) for m in map(re.compile(r"step (\d+)/").match, lines) if m]
     assert reported == logged
+
+
+def test_fit_timing_counts_the_steps_of_each_call(monkeypatch, narrow):
+    """``benchmark_stream``'s timing: with k steps per compiled call, each callback gap is k
+    steps (a fake clock that ticks 1 s per reading gives exactly k steps/s)."""
+    from stnh_tf.data import batches, pair_datasets, sources
+    from stnh_tf.evaluation import benchmarks
+
+    images = sources.bundled_image_files()[:2]
+    pb = batches.PairBatches(images, 4, samples_per_image=4, seed=0)
+    arrays = batches.materialize(pb, 0)
+    ticks = iter(range(10**6))
+    monkeypatch.setattr(benchmarks.time, "perf_counter", lambda: float(next(ticks)))
+    rates = {}
+    for suffix, k, callbacks in benchmarks.fit_variants((1, 2), ("none", "training")):
+        rates[suffix] = benchmarks.time_fit(
+            "array", pb, ["bundled"], batch_size=4, steps_per_epoch=4, epochs=2,
+            mixed_precision=False, steps_per_execution=k, training_callbacks=callbacks,
+            stream=pair_datasets.ArrayStream(arrays, pb))["steps_per_s"]
+    assert rates == {"": 1.0, "/spe1+callbacks": 1.0, "/spe2": 2.0, "/spe2+callbacks": 2.0}
+    with pytest.raises(ValueError, match="must divide steps_per_epoch"):
+        benchmarks.time_fit("array", pb, ["bundled"], batch_size=4, steps_per_epoch=3,
+                            steps_per_execution=2, stream=pair_datasets.ArrayStream(arrays, pb))

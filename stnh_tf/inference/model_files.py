@@ -47,6 +47,9 @@ DEFAULT_MODEL = "default.keras"
 PAPER_RECIPE_WEIGHTS = "paper_recipe"
 """Folder under :func:`default_weights_dir` of the paper recipe's CPU-budget hierarchy (the default
 before the fast recipe's)."""
+PAPER_SCHEDULE_WEIGHTS = "paper_schedule"
+"""Folder under :func:`default_weights_dir` of the stages trained at the paper's schedule
+(91,000 steps each: ``experiments.paper_schedule``)."""
 
 
 def default_weights_dir() -> str:

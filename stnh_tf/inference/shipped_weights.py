@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import os
 
-from stnh_tf.paths import atomic_write_json
+from stnh_tf.paths import atomic_write_json, stage_record_path
 
 
 def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
@@ -38,11 +38,19 @@ def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
 
 def _copy_stage(model_dir, weights_dir, name) -> dict:
     """Save run ``model_dir``'s model as ``weights_dir/name``; returns its card entry (file,
-    source, the run's config and result without the history)."""
+    source, the run's config and result without the history). ``model_dir`` may also be a
+    chunked run's finished ``stage<k>.keras`` (:mod:`stnh_tf.training.chunks`): its config and
+    chunks then come from the ``stage<k>.json`` beside it."""
     from stnh_tf.modeling import runner
 
     runner.load_model(model_dir).save(os.path.join(weights_dir, name))  # no optimizer state
     entry = {"file": name, "source": os.path.abspath(model_dir)}
+    record = stage_record_path(model_dir)
+    if os.path.isfile(model_dir) and os.path.exists(record):
+        with open(record) as f:
+            doc = json.load(f)
+        entry.update(config=doc["config"], chunks=doc["chunks"], final_step=doc["final_step"],
+                     wall_s=doc["wall_s"], machines=doc["machines"])
     for extra in ("config.json", "result.json"):
         path = os.path.join(model_dir, extra)
         if os.path.exists(path):

@@ -52,14 +52,17 @@ def self_check(seed: int = 0, num_pairs: int = 8) -> dict:
 
 def shipped_models() -> dict:
     """``{name: [stage model paths]}`` of the weights shipped in ``stnh_tf/weights``: the default
-    (its first stage, and all its stages if several) and the paper recipe's weights in
-    ``paper_recipe`` (likewise)."""
+    (its first stage, and all its stages if several), the paper recipe's CPU-budget weights in
+    ``paper_recipe`` and the stages trained at the paper's schedule in ``paper_schedule``
+    (likewise)."""
     from stnh_tf.inference import model_files
 
     d = model_files.default_weights_dir()
     found = {}
     for label, folder in (("shipped default", None),
-                          ("paper recipe", os.path.join(d, model_files.PAPER_RECIPE_WEIGHTS))):
+                          ("paper recipe", os.path.join(d, model_files.PAPER_RECIPE_WEIGHTS)),
+                          ("paper's schedule",
+                           os.path.join(d, model_files.PAPER_SCHEDULE_WEIGHTS))):
         try:
             stages = model_files.resolve_model_paths(folder)
         except FileNotFoundError:

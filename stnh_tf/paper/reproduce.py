@@ -32,8 +32,8 @@ import numpy as np
 
 from stnh_tf.training import config as train_config
 from stnh_tf.paths import atomic_write_json
-from stnh_tf.paper.tables import (SMOKE_NOTE, TABLE1_HEAD, table1_line,  # noqa: F401
-                                  tables_markdown)
+from stnh_tf.paper.tables import (SMOKE_NOTE, TABLE1_HEAD, schedule_results,  # noqa: F401
+                                  table1_line, tables_markdown)
 
 # The paper's numbers (Zhou & Li 2019; the 2-stage sequence model's 2.14 px is in its section 5;
 # the 3-stage sequence latency of 13.85 ms that BENCHMARKS.md quotes is only in the journal
@@ -240,9 +240,10 @@ class Reproduction:
                 rows[(l2, l1)].append(self.train(name, cfg))
         return rows
 
-    def table1(self, rows: dict) -> dict:
-        """Evaluate the ablation rows (:meth:`ablation`'s result); writes ``table1.md`` and
-        ``table1.json``; returns ``{(l2, l1): [MACE per seed]}``."""
+    def table1(self, rows: dict, schedule=None) -> dict:
+        """Evaluate the ablation rows (:meth:`ablation`'s result); writes ``table1.md`` (with the
+        paper's schedule column from ``schedule``: :func:`schedule_results`) and ``table1.json``;
+        returns ``{(l2, l1): [MACE per seed]}``."""
         table = {}
         for (l2, l1), dirs in rows.items():
             table[(l2, l1)] = [self.evaluate("stage1_alone" if d == self.model_dir("stage1")
@@ -252,7 +253,9 @@ class Reproduction:
         lines = [f"# Table 1: loss weights, single stage, {steps} steps per row (budget "
                  f"'{self.budget.name}')", "",
                  *([SMOKE_NOTE, ""] if self.budget.name == "tiny" else []), *TABLE1_HEAD]
-        lines += [table1_line(f"{l2:g}", f"{l1:g}", v, PAPER_TABLE1.get((l2, l1)))
+        schedule = (schedule or {}).get("table1_mace", {})
+        lines += [table1_line(f"{l2:g}", f"{l1:g}", v, PAPER_TABLE1.get((l2, l1)),
+                              schedule.get(f"{l2:g},{l1:g}"))
                   for (l2, l1), v in table.items()]
         with open(os.path.join(self.out, "table1.md"), "w") as f:
             f.write("\n".join(lines) + "\n")
@@ -316,7 +319,8 @@ class Reproduction:
             fig4[name] = hier["stages"][f"after_{k}_stages"]["mace"]
             rejected[name] = sum(sum(r.values()) for r in hier.get("rejected", [])[:k])
         fig4["Sequence 2 stages"] = self.evaluate("sequence2", [seq])["model"]["mace"]
-        table1 = self.table1(rows)
+        schedule = schedule_results(fig4["Identity"])
+        table1 = self.table1(rows, schedule)
         self.printer("[latency] 1/2/3 stages, batch 1")
         lat = self.latency(stages)
         self.printer("[figures]")
@@ -333,7 +337,8 @@ class Reproduction:
                   "models": {"stages": stages, "homographynet": hnet, "sequence2": seq,
                              "ablation": {f"{a:g},{b:g}": d[0] for (a, b), d in rows.items()},
                              "ablation_seeds": {f"{a:g},{b:g}": d for (a, b), d in rows.items()}},
-                  "figures": figs, "wall_s_this_run": time.time() - t0,
+                  "figures": figs, "paper_schedule": schedule,
+                  "wall_s_this_run": time.time() - t0,
                   "timings_this_run_s": self.timings, "paper": {
                       "fig4_mace": PAPER_FIG4,
                       "table1_mace": {f"{a:g},{b:g}": v for (a, b), v in PAPER_TABLE1.items()},

@@ -25,12 +25,16 @@ def tables_markdown(result: dict, latency: dict) -> str:
                if "wall_s_this_run" in result else []),
              *(["", SMOKE_NOTE] if b["name"] == "tiny" else []), "",
              "## Fig. 4: mean corner error on the same test pairs", "",
-             "| method | MACE (px), ours | paper |", "| --- | ---: | ---: |"]
+             f"The paper's schedule: {SCHEDULE_NOTE}", "",
+             "| method | MACE (px), ours | paper's schedule | paper |",
+             "| --- | ---: | ---: | ---: |"]
     rejected = result.get("fig4_rejected", {})
+    schedule = result.get("paper_schedule", {})
     for name, v in result["fig4_mace"].items():
         p = paper["fig4_mace"].get(name)
         mark = " (rejected: see below)" if rejected.get(name) else ""
-        lines.append(f"| {name}{mark} | {v:.2f} | {'' if p is None else f'{p:.2f}'} |")
+        lines.append(f"| {name}{mark} | {v:.2f} | {_cell(schedule.get('fig4_mace', {}), name)} | "
+                     f"{'' if p is None else f'{p:.2f}'} |")
     if rejected:
         lines += ["", "Rejected predictions (the hierarchy's rule: non-finite, singular or leaving "
                   "the context; such a pair keeps the estimate before that stage, the identity at "
@@ -41,7 +45,8 @@ def tables_markdown(result: dict, latency: dict) -> str:
     lines += ["", f"## Table 1: loss weights, single stage ({steps} steps per row)", "",
               *TABLE1_HEAD]
     for key, v in result["table1_mace_per_seed"].items():
-        lines.append(table1_line(*key.split(","), v, paper["table1_mace"].get(key)))
+        lines.append(table1_line(*key.split(","), v, paper["table1_mace"].get(key),
+                                 schedule.get("table1_mace", {}).get(key)))
     lines += ["", f"## Table 2: batch-1 latency ({latency.get('policy', '')}; paper: a GPU)", "",
               "| stages | d_e (ms), ours | formula (l_m + l_w) n | paper GPU (ms) |",
               "| ---: | ---: | ---: | ---: |"]
@@ -60,16 +65,63 @@ def tables_markdown(result: dict, latency: dict) -> str:
     return "\n".join(lines)
 
 
-TABLE1_HEAD = ["| L2 weight | L1 weight | MACE (px), ours | seeds: range | paper |",
-               "| ---: | ---: | ---: | ---: | ---: |"]
+SCHEDULE_NOTE = ("the paper's recipe at its 91,000 steps per model, on the pairs of "
+                 "`experiments.paper_schedule` (not this budget's), evaluated on the same test "
+                 "pairs (`stnh_tf/weights/paper_schedule/model_card.json`; docs/gpu.md); empty: "
+                 "not trained yet, or other test pairs.")
+"""What the "paper's schedule" column of the tables is."""
+
+TABLE1_HEAD = ["| L2 weight | L1 weight | MACE (px), ours | seeds: range | paper's schedule "
+               "| paper |", "| ---: | ---: | ---: | ---: | ---: | ---: |"]
 
 
-def table1_line(l2: str, l1: str, maces, paper) -> str:
-    """One Table 1 row: the mean over seeds, and the range when there are several."""
+def _cell(values: dict, key) -> str:
+    return f"{values[key]:.2f}" if values.get(key) is not None else ""
+
+
+def table1_line(l2: str, l1: str, maces, paper, schedule=None) -> str:
+    """One Table 1 row: the mean over seeds, and the range when there are several; ``schedule``:
+    the row's MACE at the paper's schedule (None: not trained)."""
     spread = (f"{len(maces)} seeds: {min(maces):.2f}-{max(maces):.2f}" if len(maces) > 1
               else "1 seed")
     return (f"| {l2} | {l1} | {float(np.mean(maces)):.2f} | {spread} | "
-            f"{'' if paper is None else f'{paper:.2f}'} |")
+            f"{_cell({0: schedule}, 0)} | {'' if paper is None else f'{paper:.2f}'} |")
+
+
+def schedule_results(identity_mace: float, weights_dir=None) -> dict:
+    """The MACEs of the models trained at the paper's schedule, under the names of the tables:
+    ``{"fig4_mace": {"STN-Homography k stage(s)": MACE}, "table1_mace": {"1,1": MACE}}``, from
+    the model card in ``weights_dir`` (default: the package's ``weights/paper_schedule``; its
+    ``evaluation`` is ``experiments.evaluate``'s JSON of the shipped stages). Empty dicts where
+    nothing is shipped there, or where the card's test pairs are not the tables' (their
+    identity MACE differs from ``identity_mace``).
+
+    Raises:
+      ValueError: the card's evaluation names another number of stages than it ships.
+    """
+    import json
+
+    from stnh_tf.inference import model_files
+
+    folder = weights_dir or os.path.join(model_files.default_weights_dir(),
+                                         model_files.PAPER_SCHEDULE_WEIGHTS)
+    out = {"fig4_mace": {}, "table1_mace": {}}
+    card = os.path.join(folder, "model_card.json")
+    if not os.path.exists(card):
+        return out
+    with open(card) as f:
+        card = json.load(f)
+    if abs(card["evaluation"]["identity"]["mace"] - identity_mace) > 1e-6:
+        return out
+    model, n = card["evaluation"]["model"], len(card["stages"])
+    per_stage = ({1: model["mace"]} if n == 1 and "stages" not in model else
+                 {k: model["stages"][f"after_{k}_stages"]["mace"] for k in range(1, n + 1)})
+    if len(per_stage) != n:
+        raise ValueError(f"{card}: the evaluation has {len(per_stage)} stages, the card {n}.")
+    for k, mace in per_stage.items():
+        out["fig4_mace"][f"STN-Homography {k} stage{'s' if k > 1 else ''}"] = mace
+    out["table1_mace"]["1,1"] = per_stage[1]
+    return out
 
 
 def _model_dirs(models: dict):

@@ -8,7 +8,9 @@ Layout of a chunked run's repository folder ``root`` (e.g. ``paper_schedule/``):
   :class:`~stnh_tf.training.config.TrainConfig`), ``state.json`` (step, RNG states) and the one
   ``ckpt-<step>.weights.h5`` it names (weights and optimizer state); replaced by each chunk and
   removed when the stage is done;
-* ``stage<k>.keras``: a finished stage (weights without optimizer state);
+* ``stage<k>.keras``: a finished stage (weights without optimizer state), and beside it
+  ``stage<k>.json`` (:func:`stage_record`: the run's configuration and its chunks), what
+  ``experiments.ship_weights`` puts in a model card;
 * ``ledger.json``: one row per chunk (stage, steps, machine, steps/s, date).
 
     >>> ledger_table([{"stage": 1, "from_step": 0, "to_step": 500, "device": "2-core CPU",
@@ -24,7 +26,7 @@ import os
 import shutil
 import time
 
-from stnh_tf.paths import atomic_write_json, read_json
+from stnh_tf.paths import atomic_write_json, read_json, stage_record_path
 from stnh_tf.training import run_dir
 from stnh_tf.training.config import TrainConfig
 
@@ -42,6 +44,27 @@ def resume_dir(root: str, stage: int) -> str:
 def finished_model(root: str, stage: int) -> str:
     """Where a finished stage's model is kept (``stage<k>.keras``)."""
     return os.path.join(root, f"stage{stage}.keras")
+
+
+def stage_record(root: str, stage: int, config: dict) -> dict:
+    """Write and return ``stage<k>.json`` beside the finished stage: its run's ``config`` (the
+    ``config.json`` fields), the number of training photographs and pairs, the ledger rows of its
+    chunks, and their totals (steps, wall seconds, machines)."""
+    from stnh_tf.data import sources
+
+    path = os.path.join(root, LEDGER_FILE)
+    rows = [r for r in (read_json(path, "ledger") if os.path.exists(path) else [])
+            if r["stage"] == stage]
+    images = len(sources.scan_image_folders(config["image_dir"]).files) \
+        if config.get("image_dir") else None
+    record = {"format": "stnh_tf.chunked_stage", "stage": stage, "config": config,
+              "training_photographs": images,
+              "training_pairs": images and images * config["samples_per_image"], "chunks": rows,
+              "final_step": max((r["to_step"] for r in rows), default=0),
+              "wall_s": round(sum(r["wall_s"] for r in rows), 1),
+              "machines": sorted({f"{r['device']} ({r['backend']})" for r in rows})}
+    atomic_write_json(stage_record_path(finished_model(root, stage)), record)
+    return record
 
 
 def _step(checkpoint_dir) -> int:
@@ -126,7 +149,6 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
     done = result["final_step"] >= cfg.train_steps and os.path.exists(final)
     if done:
         strip_optimizer(final, finished_model(root, cfg.stage))
-        shutil.rmtree(resume, ignore_errors=True)
     else:
         sync_out(cfg.model_dir, resume)
     steps = result["final_step"] - start_step
@@ -135,6 +157,10 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
            "steps_per_s": round(steps / max(result["wall_s_this_run"], 1e-9), 3),
            "wall_s": round(time.time() - t0, 1), "date": datetime.date.today().isoformat()}
     add_ledger_row(root, row)
+    if done:
+        stage_record(root, cfg.stage,
+                     run_dir.read_run_config(os.path.join(cfg.model_dir, run_dir.CONFIG_FILE)))
+        shutil.rmtree(resume, ignore_errors=True)
     return row
 
 
