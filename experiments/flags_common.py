@@ -106,8 +106,9 @@ def run_training(cfg, binary: str) -> None:
 ESTIMATE_FLAG_HELP = {
     "search": "Where the estimate aligns a pair poorly: ecc (start ECC from the best translations "
               "of it, keep a near-perfect result; a deviation) or none (the network's estimate).",
-    "refine": "After the network: none (the paper) or ecc (ECC alignment started from the "
-              "estimate; a deviation).",
+    "refine": "After the network: none (the paper), ecc (ECC alignment started from the "
+              "estimate; a deviation) or images (ecc, then ECC over the whole images in "
+              "estimate_images; a deviation).",
     "tta": "Test-time augmentation: none (the paper), flips or dihedral (also estimate the pair "
            "mirrored and rotated, keep the best aligned estimate; a deviation).",
     "retry_tta": "Estimate again with this test-time augmentation only the pairs flagged "

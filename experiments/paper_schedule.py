@@ -52,7 +52,7 @@ FLAGS = flags.FLAGS
 
 def main(argv):
     del argv
-    from stnh_tf.evaluation.benchmarks import machine_info
+    from stnh_tf.evaluation.benchmarks import git_commit, machine_info
 
     stage = FLAGS.stage
     cfg = TrainConfig(**SCHEDULE, stage=stage, image_dir=",".join(FLAGS.image_dir),
@@ -62,7 +62,8 @@ def main(argv):
                       prev_stages=tuple(chunks.finished_model(ROOT, k) for k in range(1, stage)))
     device = FLAGS.device or f"{machine_info()['cpu']}, {os.cpu_count()} cores"
     with common.user_errors("paper_schedule"):
-        row = chunks.run_chunk(cfg, ROOT, FLAGS.time_limit_s, str(device), printer=logging.info)
+        row = chunks.run_chunk(cfg, ROOT, FLAGS.time_limit_s, str(device), printer=logging.info,
+                               commit=git_commit())
         chunks.write_ledger_table(ROOT, os.path.join(REPO, "docs", "gpu.md"))
     logging.info("chunk done: %s", row)
     print(row)

@@ -164,17 +164,18 @@ def coarse_pass(run, work_a, work_b, first, options: EstimateOptions, origin):
     return flag(dataclasses.replace(est, homography=total[None]), options)
 
 
-def flag(est, options: EstimateOptions):
+def flag(est, options: EstimateOptions, wide: bool = True):
     """``est`` (an ``Estimate``) with the implausibility rule of the coarse pass: a stage was
     skipped as degenerate, a patch corner moved beyond ``thresholds.coarse_corner_shift`` (not
-    ``implausible_corner_shift``: the pass handles motions beyond the trained range), the
-    alignment NCC is below ``thresholds.min_alignment_ncc`` or undefined, a patch is flat, or
-    (``verify="ecc"``) ECC moved the estimate by more than ``thresholds.max_verify_move``."""
+    ``implausible_corner_shift``: the pass handles motions beyond the trained range; with
+    ``wide=False`` the trained range's ``implausible_corner_shift``), the alignment NCC is below
+    ``thresholds.min_alignment_ncc`` or undefined, a patch is flat, or (``verify="ecc"``) ECC
+    moved the estimate by more than ``thresholds.max_verify_move``."""
     t = options.thresholds
     shift = checks.corner_shift(est.homography)
     move = est.verify_move_px
     moved = ~np.isnan(move) & ~(move <= t.max_verify_move)
-    wide = dataclasses.replace(t, implausible_corner_shift=t.coarse_corner_shift)
+    rule = dataclasses.replace(t, implausible_corner_shift=t.coarse_corner_shift) if wide else t
     implausible = (checks.beyond(est.rejected_stages, shift, est.alignment_ncc,
-                                 t.min_alignment_ncc, wide) | est.flat | moved)
+                                 t.min_alignment_ncc, rule) | est.flat | moved)
     return dataclasses.replace(est, implausible=implausible, max_corner_shift_px=shift)

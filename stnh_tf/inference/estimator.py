@@ -54,7 +54,7 @@ import warnings
 import numpy as np
 
 from stnh_tf import geometry
-from stnh_tf.inference import coarse, pipeline
+from stnh_tf.inference import coarse, image_refine, pipeline
 # Public names of this module before the pipeline was split (stnh_tf.inference.<name>).
 from stnh_tf.inference.checks import alignment_ncc, corner_shift  # noqa: F401
 from stnh_tf.inference.image_input import (PATCH_ORIGIN, PATCH_SIZE, central_patch,  # noqa: F401
@@ -321,6 +321,8 @@ class HomographyEstimator:
             result = coarse.coarse_pass(
                 lambda a, b, contexts, opts: self._run(a, b, contexts, PATCH_ORIGIN, opts, 64),
                 work_a, work_b, result, options, PATCH_ORIGIN)
+        # a deviation (issue 46): refine="images" aligns the whole images
+        result = image_refine.refine_images(result, work_a, work_b, options, PATCH_ORIGIN)
         h = patch_to_image_frames(result.homography[0], size_a, size_b)
         return dataclasses.replace(result, homography=h[None])
 
@@ -341,7 +343,8 @@ class HomographyEstimator:
           options: as in :meth:`estimate` (search and refinement align patch_b with the
             320 x 240 image_a; test-time augmentation transforms image_a with its patch);
             ``options.coarse`` (used here only): the coarse pass for motions beyond the trained
-            range (:mod:`stnh_tf.inference.coarse`).
+            range (:mod:`stnh_tf.inference.coarse`); ``refine="images"``: ECC over the whole images
+            at the end (:mod:`stnh_tf.inference.image_refine`).
           channel_order: "rgb" (NumPy/scikit-image) or "bgr" (``cv2.imread``).
           **legacy: as in :meth:`estimate`; deprecated.
         Returns:

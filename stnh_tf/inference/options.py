@@ -25,10 +25,12 @@ import numbers
 
 from stnh_tf import geometry
 
-REFINES = ("none", "ecc")
-"""What the estimator does after the network: ``"none"`` (the paper) or ``"ecc"`` (polish each
-estimate with OpenCV's ECC alignment started from it, :func:`stnh_tf.inference.search.ecc_refine`;
-a deviation)."""
+REFINES = ("none", "ecc", "images")
+"""What the estimator does after the network: ``"none"`` (the paper), ``"ecc"`` (polish each
+estimate with OpenCV's ECC alignment of patch_b started from it,
+:func:`stnh_tf.inference.search.ecc_refine`; a deviation) or ``"images"`` (as ``"ecc"``; then, in
+``estimate_images``, ECC over the whole 320 x 240 images, :mod:`stnh_tf.inference.image_refine`;
+a deviation, issue 46)."""
 
 SEARCHES = ("none", "ecc")
 """What the estimator does with a pair its estimate aligns poorly: ``"ecc"`` tries
@@ -135,7 +137,9 @@ class EstimateOptions:
         :func:`~stnh_tf.inference.search.search_translations` where one aligns it at
         ``thresholds.verified_ncc`` or better. ``"none"``: the network's estimate.
       refine: a key of :data:`REFINES` (``"ecc"``: ECC started from the final estimate; dropped
-        where it fails or moves the corners by more than ``thresholds.max_refine_move``).
+        where it fails or moves the corners by more than ``thresholds.max_refine_move``;
+        ``"images"``: the same, then in ``estimate_images`` ECC over the whole images, kept where
+        it aligns them better).
       tta: a key of :data:`TTAS`: the stages also run on each pair mirrored (and rotated); each
         pair keeps the estimate, mapped back, that aligns it best.
       retry_tta: a key of :data:`TTAS` with more symmetries than ``tta``: a pair flagged

@@ -124,12 +124,12 @@ def strip_optimizer(src: str, dst: str) -> None:
 
 
 def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
-              printer=print) -> dict:
+              printer=print, commit: str | None = None) -> dict:
     """One chunk of ``cfg``'s run: resume from the newest checkpoint (``cfg.model_dir``'s or the
     one committed under ``root``), train until ``time_limit_s`` (:func:`stnh_tf.training.loop.train`
     stops at a checkpoint before it), then commit the checkpoint back under ``root``, or, once the
     stage is done, its model as ``stage<k>.keras`` (and remove the checkpoint), and add a row to
-    the ledger. Returns the row.
+    the ledger (``commit``: the code's, recorded in the row where given). Returns the row.
 
     Raises:
       ValueError / OSError: as :func:`stnh_tf.training.loop.train`.
@@ -155,7 +155,8 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
     row = {"stage": cfg.stage, "from_step": start_step, "to_step": result["final_step"],
            "done": bool(done), "device": device, "backend": keras.backend.backend(),
            "steps_per_s": round(steps / max(result["wall_s_this_run"], 1e-9), 3),
-           "wall_s": round(time.time() - t0, 1), "date": datetime.date.today().isoformat()}
+           "wall_s": round(time.time() - t0, 1), "date": datetime.date.today().isoformat(),
+           **({"commit": commit} if commit else {})}
     add_ledger_row(root, row)
     if done:
         stage_record(root, cfg.stage,
