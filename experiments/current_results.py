@@ -49,6 +49,10 @@ SOURCES = {
     "schedule_curve": "paper_schedule/stage1_curve.json",
     "schedule_train_photos": "paper_schedule/stage1_eval_train_photographs.json",
     "schedule_probe": "paper_schedule/logs/h200_steps_per_execution_probe.json",
+    "camera0_default": "docs/camera_pairs/seed0_default.json",
+    "camera0_default_estimator": "docs/camera_pairs/seed0_default_estimator.json",
+    "camera0_photographs": "docs/camera_pairs/seed0_photographs.json",
+    "camera1_photographs": "docs/camera_pairs/seed1_photographs.json",
     "results": "docs/reproduce_cpu/results.json",
     "table1": "docs/reproduce_cpu/table1.json",
 }

@@ -78,7 +78,8 @@ def main(argv):
     del argv
     out = FLAGS.output_dir
     counts = {split: gray_copy(os.path.join(FLAGS.coco_dir, split),
-                               os.path.join(out, "coco_mini", split)) for split in ("train", "test")}
+                               os.path.join(out, "coco_mini", split))
+              for split in ("train", "test")}
     extra = []
     for name in sorted(os.listdir(FLAGS.extra_dir)):
         src = os.path.join(FLAGS.extra_dir, name)

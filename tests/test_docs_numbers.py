@@ -66,6 +66,37 @@ def curve(step):
     return num("schedule_curve", f"curve/{step // 500 - 1}/val_h_bar_mace")
 
 
+def cam(source, group, method, field, digits=2):
+    """A number of a camera-pairs benchmark (docs/camera_pairs/): ``field`` of ``method`` in
+    ``group``; ``ok``: the count of successes, ``flag:K``: key K of the flag detector,
+    ``good``: the pairs not more than 5 px off."""
+    def get(sources):
+        e = cr.value(sources, source, f"groups/{group}/{method}")
+        if field == "ok":
+            return str(round(e["success_rate"] * e["count"]))
+        if field == "good":
+            return str(e["count"] - e["flag"]["bad"])
+        if field.startswith("flag:"):
+            return str(e["flag"][field[5:]])
+        if field == "ms":
+            return f"{e['ms_per_pair']:.0f}"
+        return cr.fixed(e[field], digits)
+    return get
+
+
+def cam_row(source, method="estimator", flag=True):
+    """The cells of a row of docs/estimate.md's photographs table."""
+    cells = [cam(source, "within", method, "mace"), cam(source, "within", method, "median"),
+             cam(source, "within", method, "ok"), cam(source, "1-2x", method, "ok"),
+             cam(source, "2-4x", method, "ok")]
+    if flag:
+        cells += [cam(source, "all", method, "flag:flagged_bad"), cam(source, "all", method,
+                                                                      "flag:bad"),
+                  cam(source, "all", method, "flag:flagged_good"),
+                  cam(source, "all", method, "good")]
+    return cells
+
+
 def probe(key):
     """Steps/s of one variant of the GPU probe (its keys hold a slash: read directly)."""
     return lambda sources: f"{sources['schedule_probe']['fit'][key]['steps_per_s']:.1f}"
@@ -74,6 +105,38 @@ def probe(key):
 # (file, regex with one group per number, the expected value of each group). Every match of the
 # regex in the file is checked, and the regex must match at least once.
 PROSE = [
+    ("docs/estimate.md",
+     rf"\| 0, default \| {N} \({N}\) px, (\d+) of 100 \| (\d+) / (\d+) of 100 \| "
+     rf"(\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera0_default")),
+    ("docs/estimate.md",
+     rf"\| 0, `photographs\(\)` \| \*\*{N}\*\* \({N}\) px, (\d+) \| \*\*(\d+)\*\* / "
+     rf"\*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
+     cam_row("camera0_photographs")),
+    ("docs/estimate.md", rf"\| 0, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
+     cam_row("camera0_default", "sift_ransac", flag=False)),
+    ("docs/estimate.md",
+     rf"\| 1, `photographs\(\)` \| \*\*{N}\*\* \({N}\) px, (\d+) \| (\d+) / (\d+) \| "
+     rf"\*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|", cam_row("camera1_photographs")),
+    ("docs/estimate.md", rf"\| 1, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
+     cam_row("camera1_photographs", "sift_ransac", flag=False)),
+    ("BENCHMARKS.md",
+     rf"\| \*\*`photographs\(\)`\*\* \| \*\*{N}\*\* \({N}\), \*\*(\d+)\*\*, (\d+) ms \| "
+     rf"\*\*{N}\*\* \({N}\), \*\*(\d+)\*\*, (\d+) ms \| \*\*{N}\*\* \({N}\), \*\*(\d+)\*\*, "
+     rf"(\d+) ms \| \*\*(\d+) of (\d+), (\d+) of (\d+)\*\* \|",
+     [cam("camera0_photographs", g, "estimator", f) for g in ("within", "1-2x", "2-4x")
+      for f in ("mace", "median", "ok", "ms")]
+     + [cam("camera0_photographs", "all", "estimator", f)
+        for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")]),
+    ("BENCHMARKS.md",
+     rf"\| \*\*`photographs\(\)`\*\* \| \*\*{N}\*\* \({N}\), \*\*(\d+)\*\* \| {N} \({N}\), "
+     rf"(\d+) \| {N} \({N}\), (\d+) \| \*\*(\d+) of (\d+), (\d+) of (\d+)\*\* \|",
+     [cam("camera1_photographs", g, "estimator", f) for g in ("within", "1-2x", "2-4x")
+      for f in ("mace", "median", "ok")]
+     + [cam("camera1_photographs", "all", "estimator", f)
+        for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")]),
+    ("docs/estimate.md", rf"it takes (\d+) against the default's (\d+) ms per pair",
+     [cam("camera0_photographs", "within", "estimator", "ms"),
+      cam("camera0_default_estimator", "within", "estimator", "ms")]),
     ("docs/gpu.md",
      rf"\*\*MACE {N} px\*\* on the 300 coco_mini test pairs of the tables \(identity {N};",
      [num("schedule_card", "evaluation/model/mace"),

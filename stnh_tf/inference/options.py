@@ -2,10 +2,12 @@
 value: :class:`EstimateOptions` (the steps, each named from a table) holding :class:`Thresholds`
 (every number the steps use). Standard library and NumPy only.
 
-Two presets: ``EstimateOptions()``, the estimator's default (the stage gate, the mirror fill and
-the search of poorly aligned pairs: deviations from the paper, docs/estimate.md), and
+Presets: ``EstimateOptions()``, the estimator's default (the stage gate, the mirror fill and the
+search of poorly aligned pairs: deviations from the paper, docs/estimate.md);
 :meth:`EstimateOptions.network_only`, the network's composed estimate alone: what the paper's
-evaluation, the tables and the exported SavedModel compute.
+evaluation, the tables and the exported SavedModel compute; :meth:`EstimateOptions.photographs`,
+for ``estimate_images`` on real photographs (wider motions, whole-image refinement, a stricter
+flag).
 
     >>> EstimateOptions().search, EstimateOptions.network_only().search
     ('ecc', 'none')
@@ -194,6 +196,19 @@ class EstimateOptions:
         """
         return cls(**{"search": "none", "gate_stages": False,
                       "thresholds": Thresholds(min_patch_std=0.0), **changes})
+
+    @classmethod
+    def photographs(cls, **changes) -> "EstimateOptions":
+        """For ``estimate_images`` on real photographs (issue 46; deviations from the paper): the
+        default with the coarse pass (``coarse="rotations"``), the whole-image refinement
+        (``refine="images"``) and the ECC check of the flag (``verify="ecc"``). ``changes``
+        override fields.
+
+        >>> o = EstimateOptions.photographs()
+        >>> o.coarse, o.refine, o.verify, o.search
+        ('rotations', 'images', 'ecc', 'ecc')
+        """
+        return cls(**{"coarse": "rotations", "refine": "images", "verify": "ecc", **changes})
 
     @property
     def tta_symmetries(self) -> tuple:

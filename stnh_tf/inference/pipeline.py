@@ -206,10 +206,11 @@ def search(run: dict, patch_b, sources, origin, options: EstimateOptions) -> dic
 
 
 def refine(run: dict, patch_b, sources, origin, options: EstimateOptions) -> dict:
-    """With ``options.refine`` ``"ecc"`` or ``"images"``: each finite estimate of a pair that is not flat and not
-    found by the search (an ECC optimum already) is replaced by its ECC refinement, unless that
-    fails or moves the corners by more than ``thresholds.max_refine_move`` on average. Adds
-    ``"refined"``; returns a new dict."""
+    """With ``options.refine`` ``"ecc"`` or ``"images"``: each finite estimate of a pair that is
+    not flat and not found by the search (an ECC optimum already) is replaced by its ECC
+    refinement, unless that fails or moves the corners by more than
+    ``thresholds.max_refine_move`` on average (the whole-image step of ``"images"`` is
+    :mod:`stnh_tf.inference.image_refine`'s). Adds ``"refined"``; returns a new dict."""
     t = options.thresholds
     run = dict(run, total=run["total"].copy(), ncc=run["ncc"].copy(),
                refined=np.zeros(len(run["total"]), bool))
