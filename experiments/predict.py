@@ -32,7 +32,7 @@ flags.DEFINE_string("model", None, "Model: .keras file, run directory or hierarc
                     "(default: the weights shipped in stnh_tf/weights).")
 flags.DEFINE_string("output_dir", ".",
                     "Folder for the overlay PNG and the JSON (created if missing).")
-flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search", "coarse"))
+flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search", "coarse", "verify"))
 flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 

@@ -115,7 +115,8 @@ PROSE = [
     ("docs/estimate.md", rf"\| 0, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
      cam_row("camera0_default", "sift_ransac", flag=False)),
     ("docs/estimate.md",
-     rf"\| 1, `photographs\(\)` \| \*\*{N}\*\* \({N}\) px, (\d+) \| (\d+) / (\d+) \| "
+     rf"\| 1, `photographs\(\)` \| \*\*{N}\*\* \({N}\) px, (\d+) \| \*\*(\d+)\*\* / "
+     rf"\*\*(\d+)\*\* \| "
      rf"\*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|", cam_row("camera1_photographs")),
     ("docs/estimate.md", rf"\| 1, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
      cam_row("camera1_photographs", "sift_ransac", flag=False)),
@@ -129,7 +130,8 @@ PROSE = [
         for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")]),
     ("BENCHMARKS.md",
      rf"\| \*\*`photographs\(\)`\*\* \| \*\*{N}\*\* \({N}\), \*\*(\d+)\*\* \| {N} \({N}\), "
-     rf"(\d+) \| {N} \({N}\), (\d+) \| \*\*(\d+) of (\d+), (\d+) of (\d+)\*\* \|",
+     rf"\*\*(\d+)\*\* \| {N} \({N}\), \*\*(\d+)\*\* \| \*\*(\d+) of (\d+), (\d+) of "
+     rf"(\d+)\*\* \|",
      [cam("camera1_photographs", g, "estimator", f) for g in ("within", "1-2x", "2-4x")
       for f in ("mace", "median", "ok")]
      + [cam("camera1_photographs", "all", "estimator", f)

@@ -42,7 +42,7 @@ def _estimator_off_by(shift):
     return HomographyEstimator([constant_stage(h_patch, "off")])
 
 
-@pytest.mark.parametrize("shift", [(3.0, -2.0), (-6.0, 5.0)])
+@pytest.mark.parametrize("shift", [(3.0, -2.0), (-6.0, 5.0), (20.0, 15.0)])
 def test_images_refinement_reaches_the_truth(shift):
     a, b = _pair(TRUTH)
     estimator = _estimator_off_by(shift)
@@ -52,7 +52,7 @@ def test_images_refinement_reaches_the_truth(shift):
     before = image_errors(plain.homography, TRUTH[None])[0]
     after = image_errors(refined.homography, TRUTH[None])[0]
     assert before == pytest.approx(np.hypot(*shift), rel=0.05)  # the stage's own error
-    assert after < 0.1  # measured 0.003 px
+    assert after < 0.1  # measured 0.003-0.004 px
     assert refined.refined[0] and not refined.implausible[0]
     assert refined.alignment_ncc[0] > plain.alignment_ncc[0]
 
@@ -88,3 +88,4 @@ def test_refine_images_keeps_the_estimate_where_it_does_not_apply():
     kept = image_refine.refine_images(exact, work_a, work_b, options, ORIGIN)
     assert image_errors(geometry.patch_to_image(kept.homography[0], *ORIGIN)[None],
                         TRUTH[None])[0] < 0.1
+
