@@ -770,6 +770,7 @@ def test_tensorboard_scalars_are_against_the_global_step(tiny_data, tmp_path, na
     assert reported == logged
 
 
+@pytest.mark.slow  # (8 s; make test-all)
 def test_fit_timing_counts_the_steps_of_each_call(monkeypatch, narrow):
     """``benchmark_stream``'s timing: with k steps per compiled call, each callback gap is k
     steps (a fake clock that ticks 1 s per reading gives exactly k steps/s)."""
