@@ -225,6 +225,7 @@ def test_complete_split_is_not_regenerated_without_overwrite(tmp_path):
     assert after.shape == before.shape and not np.array_equal(after, before)
 
 
+@pytest.mark.slow  # (a binary end to end, 6-15 s; make test-all)
 def test_cli_smoke_two_splits_share_metadata(tmp_path):
     out = str(tmp_path / "cli")
     for split, seed in (("train", 0), ("test", 1)):

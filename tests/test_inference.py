@@ -1123,6 +1123,7 @@ def test_mixed_precision_model_estimates_and_exports_in_float32(pairs, tmp_path)
         est.estimate(a, b, EstimateOptions(search="none"), batch_size=0)
 
 
+@pytest.mark.slow  # (a binary end to end, 6-15 s; make test-all)
 def test_benchmark_estimator_binary(tmp_path):
     """The estimator and the latency benchmark time the model they are given, in the precision
     asked for: a 2-stage hierarchy saved in mixed bfloat16 is reported with its 2 stages and,
@@ -1152,6 +1153,7 @@ def test_benchmark_estimator_binary(tmp_path):
                                             / result["benchmark_d_e_ms"])
 
 
+@pytest.mark.slow  # (a binary end to end, 6-15 s; make test-all)
 def test_predict_binary(identity_model_path, tmp_path):
     image_a = skimage.data.coffee()  # 600 x 400 RGB
     image_b = cv2.resize(image_a, (300, 200), interpolation=cv2.INTER_AREA)

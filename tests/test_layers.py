@@ -373,6 +373,7 @@ def test_keras_policy_is_restored_after_its_block():
 # --------------------------------------------------------------------------------------------
 # Benchmark binary smoke test (subprocess: its absl flags must not clash with other binaries')
 # --------------------------------------------------------------------------------------------
+@pytest.mark.slow  # (a binary end to end, 6-15 s; make test-all)
 def test_benchmark_binary_smoke(tmp_path):
     """The benchmark's inputs are paper-protocol homographies at its size (H_bar recomputed here
     with the paper's M), its reported difference from OpenCV is the one computed here from those

@@ -224,6 +224,7 @@ def test_both_validation_sources_serve_exactly_val_samples_same_pairs(folder, re
     assert sum(len(b[1]["h_bar"]) for b in stored) == expected
 
 
+@pytest.mark.slow  # (a binary end to end, 6-15 s; make test-all)
 def test_stage2_from_image_folder_validates_on_make_stage_dataset_pairs(folder, records, tmp_path,
                                                                        narrow):
     """Stage 2 trains from the folder with the stage-1 model's predictions made in memory; its
