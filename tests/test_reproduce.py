@@ -240,6 +240,10 @@ def test_tables_show_the_papers_schedule_from_its_card_on_the_same_test_pairs(tm
     (tmp_path / "model_card.json").write_text(json.dumps(one))
     assert tables.schedule_results(24.1636, str(tmp_path))["fig4_mace"] == {
         "STN-Homography 1 stage": 6.84}
+    card["stages"].append({"file": "stage3.keras"})  # 3 stages shipped, 2 evaluated
+    (tmp_path / "model_card.json").write_text(json.dumps(card))
+    with pytest.raises(ValueError, match="does not cover the 3 stages"):
+        tables.schedule_results(24.1636, str(tmp_path))
     budget = dataclasses.asdict(reproduce.BUDGETS["tiny"])
     result = {"budget": budget, "test_pairs": 12,
               "fig4_mace": {"Identity": 24.16, "STN-Homography 1 stage": 18.32,

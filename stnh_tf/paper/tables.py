@@ -106,18 +106,20 @@ def schedule_results(identity_mace: float, weights_dir=None) -> dict:
     folder = weights_dir or os.path.join(model_files.default_weights_dir(),
                                          model_files.PAPER_SCHEDULE_WEIGHTS)
     out = {"fig4_mace": {}, "table1_mace": {}}
-    card = os.path.join(folder, "model_card.json")
-    if not os.path.exists(card):
+    path = os.path.join(folder, "model_card.json")
+    if not os.path.exists(path):
         return out
-    with open(card) as f:
+    with open(path) as f:
         card = json.load(f)
     if abs(card["evaluation"]["identity"]["mace"] - identity_mace) > 1e-6:
         return out
     model, n = card["evaluation"]["model"], len(card["stages"])
-    per_stage = ({1: model["mace"]} if n == 1 and "stages" not in model else
-                 {k: model["stages"][f"after_{k}_stages"]["mace"] for k in range(1, n + 1)})
-    if len(per_stage) != n:
-        raise ValueError(f"{card}: the evaluation has {len(per_stage)} stages, the card {n}.")
+    try:
+        per_stage = ({1: model["mace"]} if n == 1 and "stages" not in model else
+                     {k: model["stages"][f"after_{k}_stages"]["mace"] for k in range(1, n + 1)})
+    except KeyError:
+        raise ValueError(f"{path}: the evaluation does not cover the {n} stages the card "
+                         "ships.") from None
     for k, mace in per_stage.items():
         out["fig4_mace"][f"STN-Homography {k} stage{'s' if k > 1 else ''}"] = mace
     out["table1_mace"]["1,1"] = per_stage[1]
