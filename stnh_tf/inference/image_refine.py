@@ -79,8 +79,6 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
 def _whole_image_ecc(work_a, work_b, h_patch, origin, thresholds):
     """ECC over the whole work images started from the patch-frame ``h_patch``: the patch-frame
     result (``[2, 2] = 1``), or ``None`` where ECC does not converge."""
-    to_patch = np.linalg.inv(geometry.translation(*origin))
-    warp = search_lib.ecc_refine(work_a, work_b, coarse.to_work(h_patch, origin), (0, 0),
-                                 thresholds)
-    return None if warp is None else geometry.scale_to_unit(
-        to_patch @ warp @ np.linalg.inv(to_patch))
+    warp = search_lib.ecc_refine(work_a, work_b, geometry.patch_to_image(h_patch, *origin),
+                                 (0, 0), thresholds)
+    return None if warp is None else geometry.image_to_patch(warp, *origin)
