@@ -53,19 +53,12 @@ def starts(name: str) -> np.ndarray:
     return np.stack([start_homography(a, z) for a, z in COARSES[name]])
 
 
-def to_work(h_patch, origin) -> np.ndarray:
-    """A patch-frame ``a_from_b`` ``[3, 3]`` in the frame of the work image holding the patch at
-    ``origin``: ``T @ H @ inv(T)``."""
-    t = geometry.translation(*origin)
-    return t @ np.asarray(h_patch, np.float64) @ np.linalg.inv(t)
-
-
 def warp_context(work_a, start, origin) -> np.ndarray:
     """``work_a`` warped by the patch-frame start ``G``: ``out(q) = work_a(T G inv(T) q)``
     (bilinear, zero outside; same shape and dtype float32). Estimating ``H`` between ``out`` and
     image_b then estimates ``G @ H`` between ``work_a`` and image_b."""
     h, w = np.shape(work_a)[:2]
-    return cv2.warpPerspective(np.asarray(work_a, np.float32), to_work(start, origin), (w, h),
+    return cv2.warpPerspective(np.asarray(work_a, np.float32), geometry.patch_to_image(start, *origin), (w, h),
                                flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
                                borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
 
@@ -77,7 +70,7 @@ def image_ncc(work_a, work_b, h_patch, origin, min_overlap: float) -> float:
     finite (so that it ranks below every defined NCC)."""
     if not np.isfinite(h_patch).all():
         return -math.inf
-    h = to_work(h_patch, origin)
+    h = geometry.patch_to_image(h_patch, *origin)
     size = np.shape(work_b)[1], np.shape(work_b)[0]
     flags = cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR
     warped = cv2.warpPerspective(np.asarray(work_a, np.float32), h, size, flags=flags)
