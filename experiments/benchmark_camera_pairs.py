@@ -6,9 +6,13 @@ estimator's implausibility flag as a detector of estimates more than 5 px off
 
   python -m experiments.benchmark_camera_pairs --pairs_dir=/tmp/camera_pairs
   python -m experiments.benchmark_camera_pairs --pairs_dir=D --methods=sift_ransac,identity
-  python -m experiments.benchmark_camera_pairs --pairs_dir=D --search=none   # the network alone
-  python -m experiments.benchmark_camera_pairs --pairs_dir=D --verify=ecc    # ECC check of flags
-  python -m experiments.benchmark_camera_pairs --pairs_dir=D --coarse=rotations  # wider motions
+  python -m experiments.benchmark_camera_pairs --pairs_dir=D --coarse=none --refine=none \
+      --verify=none                                          # EstimateOptions()
+  python -m experiments.benchmark_camera_pairs --pairs_dir=D --coarse=none --refine=none \
+      --verify=none --search=none                            # the network alone
+
+The estimator runs with ``estimate_images``' default options (``EstimateOptions.photographs()``)
+unless the flags say otherwise.
 
 Prints one JSON object.
 """
@@ -19,6 +23,7 @@ from absl import app, flags
 
 from experiments import common, flags_common
 from stnh_tf.evaluation import camera_pairs
+from stnh_tf.inference.options import EstimateOptions
 
 flags.DEFINE_string("pairs_dir", None, "Folder of pairs (make_camera_pairs).", required=True)
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
@@ -26,8 +31,9 @@ flags.DEFINE_list("methods", list(camera_pairs.METHODS),
                   f"Methods, among {','.join(camera_pairs.METHODS)}.")
 flags.DEFINE_integer("max_pairs", 0, "Only the first this many pairs (0: all).")
 flags.DEFINE_bool("per_pair", False, "Also print each pair's errors and flag.")
-flags_common.define_estimate_flags(("search", "refine", "tta", "retry_tta", "verify",
-                                     "coarse"))
+# estimate_images' default options
+flags_common.define_estimate_flags(("search", "refine", "tta", "retry_tta", "verify", "coarse"),
+                                   EstimateOptions.photographs())
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them

@@ -53,6 +53,7 @@ SOURCES = {
     "camera0_default_estimator": "docs/camera_pairs/seed0_default_estimator.json",
     "camera0_photographs": "docs/camera_pairs/seed0_photographs.json",
     "camera1_photographs": "docs/camera_pairs/seed1_photographs.json",
+    "readme_example": "docs/readme_example.json",
     "results": "docs/reproduce_cpu/results.json",
     "table1": "docs/reproduce_cpu/table1.json",
 }

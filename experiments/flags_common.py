@@ -133,6 +133,10 @@ def _estimate_choices(name):
             "verify": options.VERIFIES, "coarse": tuple(options.COARSES)}.get(name)
 
 
+_FLAG_DEFAULTS = {}
+"""The ``defaults`` each ``FlagValues`` (by id) got from :func:`define_estimate_flags`."""
+
+
 def define_estimate_flags(names=("search", "refine", "tta", "retry_tta"), defaults=None,
                           flag_values=flags.FLAGS):
     """Define a flag for each :class:`~stnh_tf.inference.options.EstimateOptions` field of
@@ -142,6 +146,7 @@ def define_estimate_flags(names=("search", "refine", "tta", "retry_tta"), defaul
     from stnh_tf.inference.options import EstimateOptions
 
     defaults = EstimateOptions() if defaults is None else defaults
+    _FLAG_DEFAULTS[id(flag_values)] = defaults
     for name in names:
         default, help_text = getattr(defaults, name), ESTIMATE_FLAG_HELP[name]
         if isinstance(default, bool):
@@ -153,11 +158,12 @@ def define_estimate_flags(names=("search", "refine", "tta", "retry_tta"), defaul
 
 def options_from_flags(defaults=None, flag_values=flags.FLAGS):
     """The :class:`~stnh_tf.inference.options.EstimateOptions` of the parsed flags of
-    :func:`define_estimate_flags`: ``defaults`` (``None``: ``EstimateOptions()``) with every field
-    that is a defined flag replaced by the flag's value."""
+    :func:`define_estimate_flags`: ``defaults`` (``None``: those the flags were defined with)
+    with every field that is a defined flag replaced by the flag's value."""
     from stnh_tf.inference.options import EstimateOptions
 
-    defaults = EstimateOptions() if defaults is None else defaults
+    if defaults is None:
+        defaults = _FLAG_DEFAULTS.get(id(flag_values)) or EstimateOptions()
     return dataclasses.replace(defaults, **{name: flag_values[name].value
                                             for name in ESTIMATE_FLAG_HELP
                                             if name in flag_values})

@@ -1,8 +1,12 @@
 r"""Estimate the homography between two images and draw the alignment.
 
   python -m experiments.predict --image_a=a.jpg --image_b=b.jpg [--model=runs/stage1] \
-      [--output_dir=out] [--refine=ecc] [--tta=dihedral | --retry_tta=dihedral] [--search=none] \
-      [--coarse=rotations]
+      [--output_dir=out] [--tta=dihedral | --retry_tta=dihedral] [--search=none] \
+      [--coarse=none --refine=none --verify=none]
+
+The estimator's options default to ``estimate_images``' (``EstimateOptions.photographs()``: the
+coarse pass, the whole-image refinement, the ECC check of the flag); ``--coarse=none
+--refine=none --verify=none`` give ``EstimateOptions()``.
 
 Prints a JSON object whose ``homography`` maps image_b pixel coordinates (x, y) to image_a pixel
 coordinates (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``), and writes
@@ -23,6 +27,7 @@ from absl import app, flags
 
 from experiments import flags_common
 from stnh_tf.inference import image_files
+from stnh_tf.inference.options import EstimateOptions
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("image_a", None, "Path of image_a (the reference image).", required=True)
@@ -32,7 +37,9 @@ flags.DEFINE_string("model", None, "Model: .keras file, run directory or hierarc
                     "(default: the weights shipped in stnh_tf/weights).")
 flags.DEFINE_string("output_dir", ".",
                     "Folder for the overlay PNG and the JSON (created if missing).")
-flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search", "coarse", "verify"))
+# estimate_images' default options
+flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search", "coarse", "verify"),
+                                   EstimateOptions.photographs())
 flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 

@@ -106,7 +106,7 @@ def probe(key):
 # regex in the file is checked, and the regex must match at least once.
 PROSE = [
     ("docs/estimate.md",
-     rf"\| 0, default \| {N} \({N}\) px, (\d+) of 100 \| (\d+) / (\d+) of 100 \| "
+     rf"\| 0, `EstimateOptions\(\)` \| {N} \({N}\) px, (\d+) of 100 \| (\d+) / (\d+) of 100 \| "
      rf"(\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera0_default")),
     ("docs/estimate.md",
      rf"\| 0, `photographs\(\)` \| \*\*{N}\*\* \({N}\) px, (\d+) \| \*\*(\d+)\*\* / "
@@ -136,9 +136,15 @@ PROSE = [
       for f in ("mace", "median", "ok")]
      + [cam("camera1_photographs", "all", "estimator", f)
         for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")]),
-    ("docs/estimate.md", rf"it takes (\d+) against the default's (\d+) ms per pair",
+    ("docs/estimate.md", rf"it takes (\d+){S}against the default's (\d+) ms per pair",
      [cam("camera0_photographs", "within", "estimator", "ms"),
       cam("camera0_default_estimator", "within", "estimator", "ms")]),
+    ("docs/estimate.md",
+     rf"is {N} px from `h_true` at the image corners, and {N} px with{S}`EstimateOptions\(\)` "
+     rf"\(identity: {N} px;",
+     [num("readme_example", "default/plain/error_px"),
+      num("readme_example", "estimate_default/plain/error_px"),
+      num("readme_example", "identity_error_px")]),
     ("docs/gpu.md",
      rf"\*\*MACE {N} px\*\* on the 300 coco_mini test pairs of the tables \(identity {N};",
      [num("schedule_card", "evaluation/model/mace"),

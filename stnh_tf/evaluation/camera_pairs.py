@@ -207,7 +207,7 @@ def benchmark_folder(folder, methods=METHODS, model=None, options=None, max_pair
 
         estimator = HomographyEstimator.load(model)
     result = benchmark(pairs, methods, estimator, options, per_pair=per_pair)
-    options = (options or estimator.options) if estimator is not None else None
+    options = (options or estimator.image_options) if estimator is not None else None
     return {"folder": folder, "seed": manifest["seed"], "set_counts": manifest["counts"],
             "model": getattr(estimator, "source", None),
             "options": options.to_json() if options is not None else None, **result,

@@ -115,8 +115,11 @@ class HomographyEstimator:
     Build it with :meth:`load` (from files) or directly from in-memory Keras models:
     ``HomographyEstimator([model])`` (single or sequence model) or
     ``HomographyEstimator([stage1, stage2, ...])`` (hierarchy). ``options``
-    (:class:`~stnh_tf.inference.options.EstimateOptions`, default ``EstimateOptions()``) is what
-    every call does unless it is given other options.
+    (:class:`~stnh_tf.inference.options.EstimateOptions`) is what every call does unless it is
+    given other options; without it, each method has its own default: ``EstimateOptions()`` for
+    patches (``estimate``), :meth:`EstimateOptions.photographs
+    <stnh_tf.inference.options.EstimateOptions.photographs>` for whole images
+    (``estimate_images``), the attributes ``options`` and ``image_options``.
     """
 
     def __init__(self, stages, source=None, options: EstimateOptions | None = None):
@@ -129,6 +132,7 @@ class HomographyEstimator:
         self._predictors = [None] * len(self._stages)
         self.source = source
         self.options = self._check_options(options or EstimateOptions())
+        self.image_options = self._check_options(options or EstimateOptions.photographs())
         self._last = None
 
     @staticmethod
@@ -145,7 +149,8 @@ class HomographyEstimator:
         """Load a single-stage or sequence ``.keras`` model, a training run directory, or a
         hierarchy (manifest or ``stage1, stage2, ...`` directory); ``None`` loads the shipped
         default from ``stnh_tf/weights/``. See :mod:`stnh_tf.inference.model_files` for the
-        layouts. ``options``: what every call does by default (``EstimateOptions()``).
+        layouts. ``options``: what every call does by default (``None``: ``EstimateOptions()``
+        on patches, ``EstimateOptions.photographs()`` on whole images).
 
         ``compute_dtype``: models trained in mixed precision (the shipped ones: mixed bfloat16)
         are rebuilt to compute in float32 by default, so an estimate depends on the batch size
@@ -226,10 +231,12 @@ class HomographyEstimator:
             self._predictors[k] = runner.predictor(self._stages[k], output=self._outputs[k])
         return self._predictors[k](patch_a, patch_b, batch_size)
 
-    def _resolve(self, options, legacy) -> EstimateOptions:
-        """The call's options: ``options``, else the estimator's, with the deprecated keyword
-        options of earlier versions applied over them."""
-        options = self._check_options(self.options if options is None else options)
+    def _resolve(self, options, legacy, default=None) -> EstimateOptions:
+        """The call's options: ``options``, else ``default`` (``None``: the estimator's
+        ``options``), with the deprecated keyword options of earlier versions applied over
+        them."""
+        default = self.options if default is None else default
+        options = self._check_options(default if options is None else options)
         unknown = set(legacy) - set(_LEGACY_OPTIONS)
         if unknown:
             raise TypeError(f"unexpected keyword argument(s) {sorted(unknown)}.")
@@ -311,20 +318,26 @@ class HomographyEstimator:
         images' own pixel frames."""
         # Gate and fill are for bare patches: with the image as context every stage is composed and
         # later stages see zeros beyond the image, as in the paper.
-        options = dataclasses.replace(self._resolve(options, legacy), gate_stages=False,
-                                      fill="zeros")
+        options = dataclasses.replace(self._resolve(options, legacy, self.image_options),
+                                      gate_stages=False, fill="zeros")
         work_a, size_a = work_image(image_a, "image_a", channel_order)
         work_b, size_b = work_image(image_b, "image_b", channel_order)
+        network = options
+        if options.refine == "images":
+            # image_refine makes the patch refinement (scored beside the whole images' ECC) and,
+            # unless a retry needs the flag first, the ECC check from the same start
+            network = dataclasses.replace(options, refine="none",
+                                          verify=options.verify if options.retries else "none")
         result = self._run(central_patch(work_a), central_patch(work_b), [work_a], PATCH_ORIGIN,
-                           options, 64)
+                           network, 64)
         if options.coarse != "none":  # a deviation (issue 46): motions beyond the trained range
             result = coarse.coarse_pass(
                 lambda a, b, contexts, opts: self._run(a, b, contexts, PATCH_ORIGIN, opts, 64),
-                work_a, work_b, result, options, PATCH_ORIGIN)
+                work_a, work_b, result, network, PATCH_ORIGIN)
         # a deviation (issue 46): refine="images" aligns the whole images
         result = image_refine.refine_images(result, work_a, work_b, options, PATCH_ORIGIN)
         h = patch_to_image_frames(result.homography[0], size_a, size_b)
-        return dataclasses.replace(result, homography=h[None])
+        return dataclasses.replace(result, homography=h[None], options=options)
 
     def estimate_images(self, image_a, image_b, options: EstimateOptions | None = None,
                         channel_order: str = "rgb", **legacy) -> np.ndarray:
@@ -342,6 +355,9 @@ class HomographyEstimator:
             the two may differ in size.
           options: as in :meth:`estimate` (search and refinement align patch_b with the
             320 x 240 image_a; test-time augmentation transforms image_a with its patch);
+            ``None``: the estimator's ``image_options`` (by default
+            ``EstimateOptions.photographs()``: the coarse pass, the whole-image refinement and
+            the ECC check of the flag; deviations, docs/estimate.md);
             ``options.coarse`` (used here only): the coarse pass for motions beyond the trained
             range (:mod:`stnh_tf.inference.coarse`); ``refine="images"``: ECC over the whole images
             at the end (:mod:`stnh_tf.inference.image_refine`).

@@ -115,8 +115,8 @@ def deviation_notes(estimate) -> list:
                      f"from the paper; --search=none gives the network's estimate) replaced it "
                      f"with one that aligns them at NCC {ncc:.3f}.")
     if estimate.refined[0]:
-        notes.append("the estimate is the ECC refinement of the network's (--refine=ecc, a "
-                     "deviation from the paper).")
+        notes.append(f"the estimate is the ECC refinement of the network's "
+                     f"(--refine={estimate.options.refine}, a deviation from the paper).")
     if estimate.retried[0]:
         notes.append(f"the estimate was flagged and estimated again with test-time augmentation "
                      f"(--retry_tta={estimate.options.retry_tta}, a deviation from the paper).")
@@ -168,7 +168,8 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
                       options=None, note=_note_stderr):
     """Estimate ``H_ba`` between two image files with ``model`` (what
     ``HomographyEstimator.load`` takes; ``None``: the shipped weights) and ``options`` (an
-    :class:`~stnh_tf.inference.options.EstimateOptions`; ``None``: the default), write
+    :class:`~stnh_tf.inference.options.EstimateOptions`; ``None``: the estimator's default for
+    images, ``EstimateOptions.photographs()``), write
     ``<a>__<b>_overlay.png`` and ``<a>__<b>_homography.json`` into ``output_dir`` (created if
     missing; :func:`output_stem`) and return the JSON's content. ``warn`` receives the warning
     of an implausible estimate, ``note`` each line of :func:`deviation_notes`.

@@ -1,13 +1,14 @@
 """Whole-image refinement of ``estimate_images`` (issue 46; a deviation from the paper, off by
-default: ``EstimateOptions(refine="images")``).
+default on patches: ``EstimateOptions(refine="images")``; part of
+``EstimateOptions.photographs()``, ``estimate_images``' default).
 
 The network and ``refine="ecc"`` align the central 128 x 128 patch of image_b; an error there
-grows towards the corners of the 320 x 240 images. :func:`refine_images` starts OpenCV's ECC
-alignment over the whole work images from the final estimate (and from the nearest optimum of
-patch_b's alignment, where that is far from it) and keeps the result that aligns the work images
-best (:func:`~stnh_tf.inference.coarse.image_ncc`), if better than the estimate; the kept
-estimate's alignment NCC, ``verify="ecc"`` move and implausibility flag are then those of the
-refined homography.
+grows towards the corners of the 320 x 240 images. :func:`refine_images` scores the patch
+refinement and OpenCV's ECC alignment over the whole work images, started from the nearest
+optimum of patch_b's alignment (and from the pipeline's estimate, where that lies far from it),
+and keeps the one that aligns the work images best (:func:`~stnh_tf.inference.coarse.image_ncc`), if
+better than the estimate; the kept estimate's alignment NCC, ``verify="ecc"`` move and
+implausibility flag are then those of the refined homography.
 
 Frames: the estimate is a pixel ``H_ba`` (``a_from_b``) in the patch frame; the patch's top-left
 corner lies at ``origin`` in the work images. NumPy and OpenCV only.
@@ -28,17 +29,27 @@ from stnh_tf.inference.options import EstimateOptions
 
 
 def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
-    """``est`` (the ``Estimate`` of one pair, patch frame) refined over the whole work images
-    with ``options.refine == "images"``; ``est`` itself otherwise, for a flat pair or a non-finite
-    estimate, or where no refinement aligns ``work_a`` onto ``work_b`` better than the estimate.
+    """``est`` (the ``Estimate`` of one pair, patch frame, before any patch refinement) refined
+    over the whole work images with ``options.refine == "images"``; ``est`` itself otherwise, for
+    a flat pair or a non-finite estimate, or where no candidate aligns ``work_a`` onto ``work_b``
+    better than the estimate.
 
-    ECC over the whole images starts from the estimate and, where ECC on patch_b alone moves the
-    estimate by more than ``thresholds.max_verify_move`` (the estimate is off its nearest
-    optimum: ``verify="ecc"``'s signal), also from that patch optimum; the result that aligns the
-    images best (:func:`~stnh_tf.inference.coarse.image_ncc`) is kept. From an estimate beyond
-    ECC's reach the kept result can be further off than the estimate. A refined estimate has
-    ``refined`` set and is flagged by :func:`~stnh_tf.inference.coarse.flag` (the coarse pass's
-    corner rule with ``options.coarse``, the trained range's without), as any estimate.
+    The candidates: the patch refinement of ``refine="ecc"`` (ECC on patch_b started from the
+    estimate, where it moves the corners by at most ``thresholds.max_refine_move``), and ECC over
+    the whole images started from that patch refinement and, where it lies more than
+    ``thresholds.max_verify_move`` from the estimate, from the estimate too (on a blurred, noisy
+    patch_b the patch optimum can be off where the whole images' is not). The one that aligns
+    the images best
+    (:func:`~stnh_tf.inference.coarse.image_ncc`) is kept. Where the kept result is itself that
+    far from patch_b's nearest optimum, another round starts from that optimum (at most
+    ``thresholds.image_refine_rounds`` rounds, while each improves the alignment); as a search's
+    result, a later round's is kept only where it aligns the images at
+    ``thresholds.verified_ncc`` or better. From an estimate beyond ECC's reach the kept result can
+    be further off than the estimate. A refined estimate has ``refined`` set and is flagged by
+    :func:`~stnh_tf.inference.coarse.flag` (the coarse pass's corner rule with
+    ``options.coarse``, the trained range's without), as any estimate. An estimate kept as it
+    is that ``verify="ecc"`` has not checked yet (``verify_move_px`` NaN: ``estimate_images``
+    leaves the check to this step) gets the move to the patch optimum and its flag.
 
     Args:
       est: an ``Estimate`` with B = 1.
@@ -51,29 +62,67 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
         return est
     t = options.thresholds
     patch_b = central_patch(work_b)[0, ..., 0]
+    ncc_of = lambda h: coarse.image_ncc(work_a, work_b, h, origin, t.min_overlap)  # noqa: E731
+    best, best_ncc = h0, ncc_of(h0)
     starts = [h0]
     nearest = search_lib.ecc_refine(work_a, patch_b, h0, origin, t)
-    if nearest is not None and checks.frame_corner_distance(
-            nearest, h0, np.shape(work_a), origin) > t.max_verify_move:
-        starts.append(nearest)
-    best, best_ncc = h0, coarse.image_ncc(work_a, work_b, h0, origin, t.min_overlap)
-    for start in starts:
-        h = _whole_image_ecc(work_a, work_b, start, origin, t)
-        ncc = -math.inf if h is None else coarse.image_ncc(work_a, work_b, h, origin,
-                                                            t.min_overlap)
-        if ncc > best_ncc:
-            best, best_ncc = h, ncc
+    if nearest is not None:
+        if float(geometry.corner_errors(nearest[None], h0[None])[0]) <= t.max_refine_move:
+            ncc = ncc_of(nearest)  # refine="ecc"'s result
+            if ncc > best_ncc:
+                best, best_ncc = nearest, ncc
+        # from the estimate too where the patch optimum lies far from it (else one basin)
+        starts = [nearest, h0] if _far(nearest, h0, work_a, origin, t) else [nearest]
+    checked, checked_for = None, None  # patch_b's ECC optimum nearest to checked_for
+    for round_ in range(t.image_refine_rounds):
+        # a later round starts away from the estimate, like a search: kept only if verified
+        floor = best_ncc if round_ == 0 else max(best_ncc, t.verified_ncc)
+        improved = False
+        for start in starts:
+            h = _whole_image_ecc(work_a, work_b, start, origin, t)
+            ncc = -math.inf if h is None else ncc_of(h)
+            if ncc > floor:
+                best, best_ncc, floor, improved = h, ncc, ncc, True
+        if not improved:
+            break
+        checked, checked_for = search_lib.ecc_refine(work_a, patch_b, best, origin, t), best
+        if checked is None or not _far(checked, best, work_a, origin, t):
+            break
+        starts = [checked]  # still off patch_b's nearest optimum: another round from there
     if best is h0:
-        return est
+        return _verified(est, nearest, work_a, origin, options)
     move = est.verify_move_px
     if options.verify == "ecc":
-        checked = search_lib.ecc_refine(work_a, patch_b, best, origin, t)
+        if checked_for is not best:
+            checked = search_lib.ecc_refine(work_a, patch_b, best, origin, t)
         move = np.array([math.inf if checked is None else checks.frame_corner_distance(
             checked, best, np.shape(work_a), origin)])
     ncc = checks.alignment_ncc(work_a, patch_b, best, origin, t.min_overlap)
     refined = dataclasses.replace(est, homography=best[None], alignment_ncc=np.array([ncc]),
                                   refined=np.array([True]), verify_move_px=move)
     return coarse.flag(refined, options, wide=options.coarse != "none")
+
+
+def _verified(est, nearest, work_a, origin, options: EstimateOptions):
+    """``est`` with ``verify="ecc"``'s move and flag where the pipeline left them to this step
+    (``verify_move_px`` NaN): the move to ``nearest``, patch_b's ECC optimum started from the
+    estimate (``None``: ECC failed, ``inf``)."""
+    unverified = est.verify_move_px is None or np.isnan(est.verify_move_px[0])
+    if options.verify != "ecc" or not unverified:
+        return est
+    h0 = est.homography[0]
+    move = (math.inf if nearest is None
+            else checks.frame_corner_distance(nearest, h0, np.shape(work_a), origin))
+    moved = not move <= options.thresholds.max_verify_move
+    return dataclasses.replace(est, verify_move_px=np.array([move]),
+                               implausible=est.implausible | moved)
+
+
+def _far(h, h_ref, work_a, origin, thresholds) -> bool:
+    """Whether ``h`` lies more than ``thresholds.max_verify_move`` from ``h_ref`` (mean over the
+    work image's corners)."""
+    return checks.frame_corner_distance(h, h_ref, np.shape(work_a),
+                                        origin) > thresholds.max_verify_move
 
 
 def _whole_image_ecc(work_a, work_b, h_patch, origin, thresholds):

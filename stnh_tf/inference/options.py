@@ -2,12 +2,12 @@
 value: :class:`EstimateOptions` (the steps, each named from a table) holding :class:`Thresholds`
 (every number the steps use). Standard library and NumPy only.
 
-Presets: ``EstimateOptions()``, the estimator's default (the stage gate, the mirror fill and the
-search of poorly aligned pairs: deviations from the paper, docs/estimate.md);
-:meth:`EstimateOptions.network_only`, the network's composed estimate alone: what the paper's
-evaluation, the tables and the exported SavedModel compute; :meth:`EstimateOptions.photographs`,
-for ``estimate_images`` on real photographs (wider motions, whole-image refinement, a stricter
-flag).
+Presets: ``EstimateOptions()``, the estimator's default on patches (the stage gate, the mirror
+fill and the search of poorly aligned pairs: deviations from the paper, docs/estimate.md);
+:meth:`EstimateOptions.photographs`, its default on whole images, ``estimate_images`` (also wider
+motions, whole-image refinement, a stricter flag); :meth:`EstimateOptions.network_only`, the
+network's composed estimate alone: what the paper's evaluation, the tables and the exported
+SavedModel compute.
 
     >>> EstimateOptions().search, EstimateOptions.network_only().search
     ('ecc', 'none')
@@ -92,6 +92,11 @@ class Thresholds:
       max_verify_move: with ``verify="ecc"``, an estimate that ECC (the refinement's settings)
         moves by more than this is flagged implausible: px, mean over the corners of the frame
         the estimate is made in (the patch; the 320 x 240 image in ``estimate_images``).
+      image_refine_rounds: with ``refine="images"``, the most rounds of whole-image ECC
+        (:mod:`stnh_tf.inference.image_refine`); a round after the first runs only where the
+        previous one improved the alignment and left the estimate more than
+        ``max_verify_move`` from patch_b's nearest ECC optimum, and its result is kept only
+        where its whole-image NCC reaches ``verified_ncc``.
       coarse_corner_shift: with ``coarse`` other than ``"none"``, this replaces
         ``implausible_corner_shift`` in the implausibility rule (a patch corner moved further is
         beyond what the coarse pass handles: 4x the trained range).
@@ -112,6 +117,7 @@ class Thresholds:
     refine_gaussian: int = 1
     max_refine_move: float = 16.0
     max_verify_move: float = 5.0
+    image_refine_rounds: int = 3
     coarse_corner_shift: float = 4 * geometry.MAX_PERTURBATION
 
     def __post_init__(self):
@@ -199,10 +205,10 @@ class EstimateOptions:
 
     @classmethod
     def photographs(cls, **changes) -> "EstimateOptions":
-        """For ``estimate_images`` on real photographs (issue 46; deviations from the paper): the
-        default with the coarse pass (``coarse="rotations"``), the whole-image refinement
-        (``refine="images"``) and the ECC check of the flag (``verify="ecc"``). ``changes``
-        override fields.
+        """``estimate_images``' default, for real photographs (issue 46; deviations from the
+        paper): ``EstimateOptions()`` with the coarse pass (``coarse="rotations"``), the
+        whole-image refinement (``refine="images"``) and the ECC check of the flag
+        (``verify="ecc"``). ``changes`` override fields.
 
         >>> o = EstimateOptions.photographs()
         >>> o.coarse, o.refine, o.verify, o.search
