@@ -118,3 +118,25 @@ def test_an_estimate_beyond_every_round_stays_flagged():
     est = _estimator_off_by((35.0, -25.0)).estimate_images_with_info(
         a, b, EstimateOptions(search="none", refine="images", verify="ecc"))
     assert image_errors(est.homography, TRUTH[None])[0] > 5.0 and est.implausible[0]
+
+
+def test_estimate_images_defaults_to_photographs_and_estimate_to_the_plain_default():
+    a, b = _pair(TRUTH)
+    stage = constant_stage(geometry.image_to_patch(TRUTH @ geometry.translation(3.0, -2.0),
+                                                   *ORIGIN), "off")
+    estimator = HomographyEstimator([stage])
+    assert estimator.options == EstimateOptions()
+    assert estimator.image_options == EstimateOptions.photographs()
+    default = estimator.estimate_images_with_info(a, b)
+    explicit = estimator.estimate_images_with_info(a, b, EstimateOptions.photographs())
+    assert (default.options.coarse, default.options.refine, default.options.verify) == (
+        "rotations", "images", "ecc")
+    np.testing.assert_array_equal(default.homography, explicit.homography)
+    assert image_errors(default.homography, TRUTH[None])[0] < 0.1  # refined (measured 0.003)
+    # options given at construction apply to both methods
+    network = EstimateOptions(search="none")
+    plain = HomographyEstimator([stage], options=network)
+    assert plain.options == plain.image_options == network
+    np.testing.assert_array_equal(plain.estimate_images_with_info(a, b).homography,
+                                  estimator.estimate_images_with_info(a, b, network).homography)
+    assert image_errors(plain.estimate_images(a, b)[None], TRUTH[None])[0] > 3.0  # the stage's
