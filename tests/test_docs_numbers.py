@@ -153,6 +153,8 @@ PROSE = [
      rf"validation MACE\): {N} px at step 500,{S}{N} at 10,000, {N} at 30,000, {N} at 50,000, "
      rf"{N} at 70,000 and {N} at 91,000",
      [curve(s) for s in (500, 10_000, 30_000, 50_000, 70_000, 91_000)]),
+    ("docs/gpu.md", rf"computed in float32{S}the same model gives {N} px as well",
+     [num("schedule_float32_inference", "model/mace")]),
     ("docs/gpu.md", rf"photographs give {N} px \(identity {N};",
      [num("schedule_train_photos", "model/mace"),
       num("schedule_train_photos", "identity/mace")]),
