@@ -39,9 +39,8 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
     the whole images started from that patch refinement and, where it lies more than
     ``thresholds.max_verify_move`` from the estimate, from the estimate too (on a blurred, noisy
     patch_b the patch optimum can be off where the whole images' is not). The one that aligns
-    the images best
-    (:func:`~stnh_tf.inference.coarse.image_ncc`) is kept. Where the kept result is itself that
-    far from patch_b's nearest optimum, another round starts from that optimum (at most
+    the images best (:func:`~stnh_tf.inference.coarse.image_ncc`) is kept. Where the kept result
+    is itself that far from patch_b's nearest optimum, another round starts from that optimum (at most
     ``thresholds.image_refine_rounds`` rounds, while each improves the alignment); as a search's
     result, a later round's is kept only where it aligns the images at
     ``thresholds.verified_ncc`` or better. From an estimate beyond ECC's reach the kept result can
