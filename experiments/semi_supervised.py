@@ -12,6 +12,10 @@ another with --max_seeds seeds. Resumable (finished models and evaluations are k
 data and models with experiments.reproduce (same OUTPUT_DIR: the 100% row is its stage 1 and
 Table 1's 1:1 seeds). Writes OUTPUT_DIR/semi_supervised.md and semi_supervised.json. See
 stnh_tf/paper/semi_supervised.py.
+
+Across machines: --repo_dir=semi_supervised puts the models committed there into OUTPUT_DIR first
+and writes them back at the end; --save_only writes them back without training (e.g. before a
+session ends, from a run still training).
 """
 
 from absl import app, flags
@@ -27,16 +31,32 @@ flags.DEFINE_float("label_fraction", 0.0, "Labeled share of the two partly label
 flags.DEFINE_float("close_px", semi_supervised.CLOSE_PX, "Rows whose mean MACE is within this "
                    "of another row's are trained with --max_seeds seeds.")
 flags.DEFINE_integer("max_seeds", semi_supervised.MAX_SEEDS, "Seeds of the close rows.")
+flags.DEFINE_string("repo_dir", "", "Repository folder of the experiment's models (finished ones "
+                    "without optimizer state, unfinished ones' checkpoints): restored into "
+                    "OUTPUT_DIR first, written back at the end ('': neither).")
+flags.DEFINE_bool("save_only", False, "Only write OUTPUT_DIR's models into --repo_dir.")
 FLAGS = flags.FLAGS
 
 
 def main(argv):
     del argv
     with common.user_errors("semi_supervised"):
+        if FLAGS.save_only and not FLAGS.repo_dir:
+            raise ValueError("--save_only needs --repo_dir.")
         run = reproduction_from_flags()
-        result = semi_supervised.SemiSupervised(run, FLAGS.label_fraction or None,
-                                                close_px=FLAGS.close_px,
-                                                max_seeds=FLAGS.max_seeds).table()
+        experiment = semi_supervised.SemiSupervised(run, FLAGS.label_fraction or None,
+                                                    close_px=FLAGS.close_px,
+                                                    max_seeds=FLAGS.max_seeds)
+        if FLAGS.save_only:
+            print(f"saved into {FLAGS.repo_dir}: {experiment.save(FLAGS.repo_dir)}")
+            return
+        if FLAGS.repo_dir:
+            print(f"restored from {FLAGS.repo_dir}: {experiment.restore(FLAGS.repo_dir)}")
+        try:
+            result = experiment.table()
+        finally:
+            if FLAGS.repo_dir:
+                print(f"saved into {FLAGS.repo_dir}: {experiment.save(FLAGS.repo_dir)}")
     for row in result["rows"]:
         seeds = (f" (seeds: {', '.join(f'{m:.2f}' for m in row['mace_per_seed'])})"
                  if len(row["mace_per_seed"]) > 1 else "")

@@ -432,3 +432,38 @@ def test_tiny_experiment_writes_the_table_from_the_models(tmp_path):
         reproduce.BUDGETS["tiny"], str(tmp_path), source="bundled", printer=logs.append)).table()
     assert not [line for line in logs if line.startswith("[train]")]
     assert again["rows"] == result["rows"]
+
+
+def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_path, narrow):
+    """A finished model goes to the repository folder without optimizer state (same weights) with
+    its config; an unfinished one as its checkpoint; both come back into a fresh output folder,
+    and a second restore changes nothing."""
+    from stnh_tf.paper import reproduce, semi_supervised
+    from stnh_tf.training import run_dir
+
+    def experiment(out):
+        run = reproduce.Reproduction(reproduce.BUDGETS["tiny"], str(out), printer=_quiet,
+                                     reuse={"data_stage1": tiny_data})
+        return semi_supervised.SemiSupervised(run)
+
+    first, repo = experiment(tmp_path / "a"), str(tmp_path / "repo")
+    done, busy = (first.model_name(first.rows[k], 0) for k in (2, 3))
+    for name in (done, busy):
+        training.train(_cfg(tiny_data, first.run.model_dir(name), batch_size=4, label_fraction=0.5),
+                       printer=_quiet)
+    os.remove(os.path.join(first.run.model_dir(busy), run_dir.FINAL_MODEL))  # checkpoint only
+    assert first.save(repo) == {done: "finished", busy: 1}
+    assert not os.path.exists(os.path.join(repo, "resume", done))
+
+    second = experiment(tmp_path / "b")
+    assert second.restore(repo) == {done: "finished", busy: 1}
+    for a, b in zip(_weights(first.run.model_dir(done)), _weights(second.run.model_dir(done))):
+        np.testing.assert_array_equal(a, b)
+    assert json.load(open(os.path.join(second.run.model_dir(done), "config.json"))) == json.load(
+        open(os.path.join(first.run.model_dir(done), "config.json")))
+    ckpt = [os.path.join(e.run.model_dir(busy), run_dir.CHECKPOINT_DIR) for e in (first, second)]
+    assert run_dir.read_checkpoint_state(ckpt[1])["step"] == 1
+    with open(run_dir.checkpoint_weights_path(ckpt[0]), "rb") as f0, \
+            open(run_dir.checkpoint_weights_path(ckpt[1]), "rb") as f1:
+        assert f0.read() == f1.read()
+    assert second.restore(repo) == {}

@@ -20,12 +20,19 @@ since 10% of its 8 training pairs is less than one batch of 4.
 
 Writes ``semi_supervised.md`` and ``semi_supervised.json`` in the reproduction's folder; every
 model and evaluation is kept, so the same command resumes and, once done, trains nothing.
+
+Across machines (the experiment takes several CPU sessions): :meth:`SemiSupervised.save` copies
+its models into a repository folder (a finished model as ``<name>.keras`` without optimizer state
+and ``<name>.json``, its run's configuration; an unfinished one's newest checkpoint as
+``resume/<name>/``), and :meth:`SemiSupervised.restore` puts them back into a reproduction's
+folder, where training then resumes or finds the model finished.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
+import shutil
 
 import numpy as np
 
@@ -117,6 +124,60 @@ class SemiSupervised:
         d, name = self.train(row, seed), self.model_name(row, seed)
         key = "stage1_alone" if name == "stage1" else name
         return self.run.evaluate(key, [d])["model"]["mace"]
+
+    # -- across machines ------------------------------------------------------------------------
+    def model_names(self) -> list:
+        """Every model folder name the experiment may train (each row, seeds ``0 ..
+        max_seeds - 1``)."""
+        return [self.model_name(r, s) for r in self.rows for s in range(self.max_seeds)]
+
+    def save(self, repo_dir: str) -> dict:
+        """Copy the experiment's models from the reproduction's folder into ``repo_dir``: a
+        finished one as ``<name>.keras`` (weights without optimizer state) and ``<name>.json`` (its
+        ``config.json``), its ``resume/<name>/`` removed; an unfinished one's newest checkpoint as
+        ``resume/<name>/`` (``config.json``, ``state.json``, the weights it names). Returns
+        ``{name: "finished" | step}`` of what was written."""
+        from stnh_tf.training import chunks, run_dir
+
+        out = {}
+        for name in self.model_names():
+            d, resume = self.run.model_dir(name), os.path.join(repo_dir, chunks.RESUME_DIR, name)
+            if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
+                os.makedirs(repo_dir, exist_ok=True)
+                chunks.strip_optimizer(os.path.join(d, run_dir.FINAL_MODEL),
+                                       os.path.join(repo_dir, f"{name}.keras"))
+                shutil.copy2(os.path.join(d, run_dir.CONFIG_FILE),
+                             os.path.join(repo_dir, f"{name}.json"))
+                shutil.rmtree(resume, ignore_errors=True)
+                out[name] = "finished"
+            elif run_dir.checkpoint_weights_path(os.path.join(d, run_dir.CHECKPOINT_DIR)):
+                out[name] = chunks.sync_out(d, resume)
+        return out
+
+    def restore(self, repo_dir: str) -> dict:
+        """Put the models :meth:`save` wrote in ``repo_dir`` into the reproduction's folder where
+        it has none finished: a finished one as ``model.keras`` with its ``config.json``, else a
+        committed checkpoint newer than the folder's own. Returns ``{name: "finished" | step}``
+        of what was put in."""
+        from stnh_tf.training import chunks, run_dir
+
+        out = {}
+        for name in self.model_names():
+            d, keras_file = self.run.model_dir(name), os.path.join(repo_dir, f"{name}.keras")
+            if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
+                continue
+            if os.path.exists(keras_file):
+                os.makedirs(d, exist_ok=True)
+                shutil.copy2(os.path.join(repo_dir, f"{name}.json"),
+                             os.path.join(d, run_dir.CONFIG_FILE))
+                shutil.copy2(keras_file, os.path.join(d, run_dir.FINAL_MODEL))
+                out[name] = "finished"
+                continue
+            resume = os.path.join(repo_dir, chunks.RESUME_DIR, name)
+            step = chunks.sync_in(resume, d) if os.path.isdir(resume) else None
+            if step is not None:
+                out[name] = step
+        return out
 
     # -- the experiment -------------------------------------------------------------------------
     def measure(self) -> dict:
