@@ -55,6 +55,8 @@ SOURCES = {
     "camera0_photographs": "docs/camera_pairs/seed0_photographs.json",
     "camera1_photographs": "docs/camera_pairs/seed1_photographs.json",
     "readme_example": "docs/readme_example.json",
+    "semi_all_seed0": "semi_supervised/eval/stage1_alone.json",
+    "semi_labeled_alone_seed0": "semi_supervised/eval/semi_labels-0.1_drop.json",
     "results": "docs/reproduce_cpu/results.json",
     "table1": "docs/reproduce_cpu/table1.json",
 }

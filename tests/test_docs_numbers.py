@@ -139,6 +139,12 @@ PROSE = [
     ("docs/estimate.md", rf"it takes (\d+){S}against the default's (\d+) ms per pair",
      [cam("camera0_photographs", "within", "estimator", "ms"),
       cam("camera0_default_estimator", "within", "estimator", "ms")]),
+    ("BENCHMARKS.md",
+     rf"\| 100% labels \| 21,900 \| 21,900 \| {N} \| {N} \|\n"
+     rf"\| 10% labels alone \| 2,241 \| 2,241 \| {N} \| {N} \|",
+     [num("semi_all_seed0", "model/mace"), num("semi_all_seed0", "model/median"),
+      num("semi_labeled_alone_seed0", "model/mace"),
+      num("semi_labeled_alone_seed0", "model/median")]),
     ("docs/estimate.md",
      rf"is {N} px from `h_true` at the image corners, and {N} px with{S}`EstimateOptions\(\)` "
      rf"\(identity: {N} px;",
