@@ -453,6 +453,7 @@ def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_pat
                        printer=_quiet)
     os.remove(os.path.join(first.run.model_dir(busy), run_dir.FINAL_MODEL))  # checkpoint only
     assert first.save(repo) == {done: "finished", busy: 1}
+    assert first.save(repo) == {busy: 1}  # a finished model is saved once
     assert not os.path.exists(os.path.join(repo, "resume", done))
 
     second = experiment(tmp_path / "b")

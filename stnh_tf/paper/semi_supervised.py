@@ -136,12 +136,15 @@ class SemiSupervised:
         finished one as ``<name>.keras`` (weights without optimizer state) and ``<name>.json`` (its
         ``config.json``), its ``resume/<name>/`` removed; an unfinished one's newest checkpoint as
         ``resume/<name>/`` (``config.json``, ``state.json``, the weights it names). Returns
-        ``{name: "finished" | step}`` of what was written."""
+        ``{name: "finished" | step}`` of what was written (a model already saved as finished is
+        left as it is)."""
         from stnh_tf.training import chunks, run_dir
 
         out = {}
         for name in self.model_names():
             d, resume = self.run.model_dir(name), os.path.join(repo_dir, chunks.RESUME_DIR, name)
+            if os.path.exists(os.path.join(repo_dir, f"{name}.keras")):
+                continue  # finished and saved before
             if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
                 os.makedirs(repo_dir, exist_ok=True)
                 chunks.strip_optimizer(os.path.join(d, run_dir.FINAL_MODEL),
