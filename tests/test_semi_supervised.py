@@ -452,6 +452,8 @@ def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_pat
         training.train(_cfg(tiny_data, first.run.model_dir(name), batch_size=4, label_fraction=0.5),
                        printer=_quiet)
     os.remove(os.path.join(first.run.model_dir(busy), run_dir.FINAL_MODEL))  # checkpoint only
+    # Evaluated here, on the stored test pairs (as mace() does; these models have no budget).
+    done_mace = first.run.evaluate(done, [first.run.model_dir(done)])["model"]["mace"]
     assert first.save(repo) == {done: "finished", busy: 1}
     assert first.save(repo) == {busy: 1}  # a finished model is saved once
     assert not os.path.exists(os.path.join(repo, "resume", done))
@@ -468,3 +470,37 @@ def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_pat
             open(run_dir.checkpoint_weights_path(ckpt[1]), "rb") as f1:
         assert f0.read() == f1.read()
     assert second.restore(repo) == {}
+    # The evaluation came along: the restored model is not evaluated again.
+    key = os.path.join(second.run.out, "eval", f"{done}.json")
+    assert json.load(open(key))["model"]["mace"] == done_mace
+    os.utime(key, (1e9, 1e9))  # older than the model: evaluated again, to the same value
+    again = second.run.evaluate(done, [second.run.model_dir(done)])["model"]["mace"]
+    assert again == pytest.approx(done_mace, rel=1e-4)
+    assert os.path.getmtime(key) > 1e9
+
+
+def test_a_model_evaluated_elsewhere_is_not_trained_again(tiny_data, tmp_path):
+    """An evaluation committed without its model (Table 1's 1:1 seed 1, trained and evaluated
+    on another machine) is restored and used as the row's MACE; with a checkpoint of that model
+    in the folder, the model is trained and evaluated instead."""
+    from stnh_tf.paper import reproduce, semi_supervised
+    from stnh_tf.training import run_dir
+
+    logs = []
+    run = reproduce.Reproduction(reproduce.BUDGETS["tiny"], str(tmp_path / "out"),
+                                 printer=logs.append, reuse={"data_stage1": tiny_data})
+    exp = semi_supervised.SemiSupervised(run)
+    name = exp.model_name(exp.rows[0], 1)
+    assert name == "ablation_l2-1_l1-1_seed1"
+    repo = tmp_path / "repo"
+    os.makedirs(repo / "eval")
+    with open(repo / "eval" / f"{name}.json", "w") as f:
+        json.dump({"count": 12, "model": {"mace": 17.25}}, f)
+    assert exp.restore(str(repo)) == {}
+    assert exp.evaluated_elsewhere(name) == {"count": 12, "model": {"mace": 17.25}}
+    assert exp.mace(exp.rows[0], 1) == 17.25
+    assert not [line for line in logs if line.startswith("[train]")]
+    # A checkpoint of the model (a run of it started here): trained to the end, evaluated anew.
+    training.train(_cfg(tiny_data, run.model_dir(name), batch_size=4), printer=_quiet)
+    os.remove(os.path.join(run.model_dir(name), run_dir.FINAL_MODEL))
+    assert exp.evaluated_elsewhere(name) is None

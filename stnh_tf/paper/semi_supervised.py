@@ -31,6 +31,7 @@ folder, where training then resumes or finds the model finished.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import shutil
 
@@ -118,12 +119,38 @@ class SemiSupervised:
                              f"the row {row.title!r} needs {want}.")
         return d
 
+    def eval_key(self, name: str) -> str:
+        """The evaluation's key under ``eval/`` of model ``name`` (Table 1's keys)."""
+        return "stage1_alone" if name == "stage1" else name
+
+    def evaluated_elsewhere(self, name: str) -> dict | None:
+        """The evaluation in ``eval/`` of model ``name`` where its folder holds neither the model
+        nor a checkpoint (a model evaluated on another machine, e.g. Table 1's seeds restored by
+        :meth:`restore`); else None."""
+        from stnh_tf.training import run_dir
+
+        d = self.run.model_dir(name)
+        path = os.path.join(self.run.out, "eval", f"{self.eval_key(name)}.json")
+        if (not os.path.exists(path) or os.path.exists(os.path.join(d, run_dir.FINAL_MODEL))
+                or run_dir.checkpoint_weights_path(os.path.join(d, run_dir.CHECKPOINT_DIR))):
+            return None
+        with open(path) as f:
+            return json.load(f)
+
+    def evaluation(self, row: Row, seed: int) -> dict:
+        """``evaluation.evaluate``'s result for the row's model of ``seed`` on the stage-1 test
+        pairs (cached under ``eval/`` with Table 1's keys where the model is shared), training
+        it first if needed. A model evaluated elsewhere (:meth:`evaluated_elsewhere`) is not
+        trained again: remove its evaluation to retrain."""
+        name = self.model_name(row, seed)
+        known = self.evaluated_elsewhere(name)
+        if known is not None:
+            return known
+        return self.run.evaluate(self.eval_key(name), [self.train(row, seed)])
+
     def mace(self, row: Row, seed: int) -> float:
-        """The MACE (px) of the row's model of ``seed`` on the stage-1 test pairs (cached under
-        ``eval/`` with Table 1's keys where the model is shared)."""
-        d, name = self.train(row, seed), self.model_name(row, seed)
-        key = "stage1_alone" if name == "stage1" else name
-        return self.run.evaluate(key, [d])["model"]["mace"]
+        """The MACE (px) of the row's model of ``seed`` (:meth:`evaluation`)."""
+        return self.evaluation(row, seed)["model"]["mace"]
 
     # -- across machines ------------------------------------------------------------------------
     def model_names(self) -> list:
@@ -135,14 +162,20 @@ class SemiSupervised:
         """Copy the experiment's models from the reproduction's folder into ``repo_dir``: a
         finished one as ``<name>.keras`` (weights without optimizer state) and ``<name>.json`` (its
         ``config.json``), its ``resume/<name>/`` removed; an unfinished one's newest checkpoint as
-        ``resume/<name>/`` (``config.json``, ``state.json``, the weights it names). Returns
-        ``{name: "finished" | step}`` of what was written (a model already saved as finished is
-        left as it is)."""
+        ``resume/<name>/`` (``config.json``, ``state.json``, the weights it names); a finished
+        model's evaluation as ``eval/<key>.json``. Returns ``{name: "finished" | step}`` of the
+        models written (a model already saved as finished is left as it is)."""
         from stnh_tf.training import chunks, run_dir
 
         out = {}
         for name in self.model_names():
             d, resume = self.run.model_dir(name), os.path.join(repo_dir, chunks.RESUME_DIR, name)
+            evaluation = f"{self.eval_key(name)}.json"
+            if (os.path.exists(os.path.join(d, run_dir.FINAL_MODEL))
+                    and os.path.exists(os.path.join(self.run.out, "eval", evaluation))):
+                os.makedirs(os.path.join(repo_dir, "eval"), exist_ok=True)
+                shutil.copyfile(os.path.join(self.run.out, "eval", evaluation),
+                                os.path.join(repo_dir, "eval", evaluation))
             if os.path.exists(os.path.join(repo_dir, f"{name}.keras")):
                 continue  # finished and saved before
             if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
@@ -160,8 +193,10 @@ class SemiSupervised:
     def restore(self, repo_dir: str) -> dict:
         """Put the models :meth:`save` wrote in ``repo_dir`` into the reproduction's folder where
         it has none finished: a finished one as ``model.keras`` with its ``config.json``, else a
-        committed checkpoint newer than the folder's own. Returns ``{name: "finished" | step}``
-        of what was put in."""
+        committed checkpoint newer than the folder's own; and the model's evaluation
+        ``eval/<key>.json`` where the reproduction has none (a model evaluated on another machine
+        without its model is then not trained again: :meth:`evaluated_elsewhere`). Returns
+        ``{name: "finished" | step}`` of the models put in."""
         from stnh_tf.training import chunks, run_dir
 
         out = {}
@@ -169,6 +204,11 @@ class SemiSupervised:
             d, keras_file = self.run.model_dir(name), os.path.join(repo_dir, f"{name}.keras")
             if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
                 continue
+            evaluation = f"{self.eval_key(name)}.json"
+            src, dst = (os.path.join(root, "eval", evaluation) for root in (repo_dir, self.run.out))
+            if os.path.exists(src) and not os.path.exists(dst):
+                os.makedirs(os.path.dirname(dst), exist_ok=True)
+                shutil.copyfile(src, dst)  # a new mtime: newer than the model copy2 puts in
             if os.path.exists(keras_file):
                 os.makedirs(d, exist_ok=True)
                 shutil.copy2(os.path.join(repo_dir, f"{name}.json"),
@@ -226,8 +266,7 @@ class SemiSupervised:
         result = {"budget": b.name, "train_steps": b.train_steps, "batch_size": b.batch_size,
                   "label_fraction": self.fraction, "close_px": self.close_px,
                   "train_pairs_total": counts["total"],
-                  "test_pairs": self.run.evaluate("stage1_alone", [self.train(self.rows[0], 0)]
-                                                  )["count"],
+                  "test_pairs": self.evaluation(self.rows[0], 0)["count"],
                   "rows": [], "claim": claim(maces, self.rows)}
         for r in self.rows:
             seeds = list(range(len(maces[r.key])))
@@ -237,7 +276,9 @@ class SemiSupervised:
                 "mace": float(np.mean(maces[r.key])), "mace_per_seed": maces[r.key],
                 "labeled_pairs": [counts[(r.key, s)][0] for s in seeds],
                 "train_pairs": [counts[(r.key, s)][1] for s in seeds],
-                "model_dirs": [self.train(r, s) for s in seeds]})
+                "model_dirs": [self.run.model_dir(self.model_name(r, s)) for s in seeds],
+                "evaluated_elsewhere": [s for s in seeds if self.evaluated_elsewhere(
+                    self.model_name(r, s)) is not None]})
         atomic_write_json(os.path.join(self.run.out, "semi_supervised.json"), result)
         with open(os.path.join(self.run.out, "semi_supervised.md"), "w") as f:
             f.write(markdown(result))
@@ -286,5 +327,10 @@ def markdown(result: dict) -> str:
         delta = "" if r is result["rows"][0] else f"{r['mace'] - full:+.2f}"
         lines.append(f"| {r['row']} | {r['labeled_pairs'][0]:,} | {r['train_pairs'][0]:,} | "
                      f"{r['mace']:.2f} | {spread} | {delta} |")
+    elsewhere = [f"{r['row']} seed {s}" for r in result["rows"]
+                 for s in r.get("evaluated_elsewhere", [])]
+    if elsewhere:
+        lines += ["", f"Evaluations restored without their models (trained and evaluated on the "
+                  f"same test pairs on another machine, e.g. Table 1's): {', '.join(elsewhere)}."]
     lines += ["", result["claim"]["text"], ""]
     return "\n".join(lines)
