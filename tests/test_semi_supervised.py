@@ -500,6 +500,14 @@ def test_a_model_evaluated_elsewhere_is_not_trained_again(tiny_data, tmp_path):
     assert exp.evaluated_elsewhere(name) == {"count": 12, "model": {"mace": 17.25}}
     assert exp.mace(exp.rows[0], 1) == 17.25
     assert not [line for line in logs if line.startswith("[train]")]
+    row = {"row": "100% labels", "mace": 17.5, "mace_per_seed": [17.75, 17.25],
+           "labeled_pairs": [24], "train_pairs": [24], "evaluated_elsewhere": [1]}
+    table = semi_supervised.markdown({"train_steps": 2, "budget": "cpu", "test_pairs": 12,
+                                      "train_pairs_total": 24, "batch_size": 4, "close_px": 1.0,
+                                      "rows": [row], "claim": {"text": "claim"}})
+    assert "| 100% labels | 24 | 24 | 17.50 | 2 seeds: 17.25-17.75 |  |" in table
+    assert "without their models (trained and evaluated on the same test pairs on another " \
+           "machine, e.g. Table 1's): 100% labels seed 1." in table
     # A checkpoint of the model (a run of it started here): trained to the end, evaluated anew.
     training.train(_cfg(tiny_data, run.model_dir(name), batch_size=4), printer=_quiet)
     os.remove(os.path.join(run.model_dir(name), run_dir.FINAL_MODEL))

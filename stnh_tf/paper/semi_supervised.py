@@ -24,8 +24,10 @@ model and evaluation is kept, so the same command resumes and, once done, trains
 Across machines (the experiment takes several CPU sessions): :meth:`SemiSupervised.save` copies
 its models into a repository folder (a finished model as ``<name>.keras`` without optimizer state
 and ``<name>.json``, its run's configuration; an unfinished one's newest checkpoint as
-``resume/<name>/``), and :meth:`SemiSupervised.restore` puts them back into a reproduction's
-folder, where training then resumes or finds the model finished.
+``resume/<name>/``; a finished one's evaluation as ``eval/<key>.json``), and
+:meth:`SemiSupervised.restore` puts them back into a reproduction's folder, where training then
+resumes or finds the model finished. An evaluation restored without its model (Table 1's 1:1
+seed 1, whose model was not kept) stands for that model: it is not trained again.
 """
 
 from __future__ import annotations
