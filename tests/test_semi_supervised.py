@@ -482,7 +482,7 @@ def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_pat
 def test_a_model_evaluated_elsewhere_is_not_trained_again(tiny_data, tmp_path):
     """An evaluation committed without its model (Table 1's 1:1 seed 1, trained and evaluated
     on another machine) is restored and used as the row's MACE; with a checkpoint of that model
-    in the folder, the model is trained and evaluated instead."""
+    in the folder, the evaluation no longer stands for it."""
     from stnh_tf.paper import reproduce, semi_supervised
     from stnh_tf.training import run_dir
 
@@ -508,7 +508,7 @@ def test_a_model_evaluated_elsewhere_is_not_trained_again(tiny_data, tmp_path):
     assert "| 100% labels | 24 | 24 | 17.50 | 2 seeds: 17.25-17.75 |  |" in table
     assert "without their models (trained and evaluated on the same test pairs on another " \
            "machine, e.g. Table 1's): 100% labels seed 1." in table
-    # A checkpoint of the model (a run of it started here): trained to the end, evaluated anew.
+    # A checkpoint of the model (a run of it started here): mace() trains and evaluates it.
     training.train(_cfg(tiny_data, run.model_dir(name), batch_size=4), printer=_quiet)
     os.remove(os.path.join(run.model_dir(name), run_dir.FINAL_MODEL))
     assert exp.evaluated_elsewhere(name) is None

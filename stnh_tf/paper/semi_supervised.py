@@ -121,9 +121,16 @@ class SemiSupervised:
                              f"the row {row.title!r} needs {want}.")
         return d
 
-    def eval_key(self, name: str) -> str:
-        """The evaluation's key under ``eval/`` of model ``name`` (Table 1's keys)."""
+    @staticmethod
+    def eval_key(name: str) -> str:
+        """The evaluation's key of model ``name`` (Table 1's keys)."""
         return "stage1_alone" if name == "stage1" else name
+
+    def eval_file(self, name: str, root: str | None = None) -> str:
+        """Model ``name``'s evaluation file ``root/eval/<key>.json`` (``root``: the reproduction's
+        folder by default, as ``Reproduction.evaluate`` caches it)."""
+        return os.path.join(self.run.out if root is None else root, "eval",
+                            f"{self.eval_key(name)}.json")
 
     def evaluated_elsewhere(self, name: str) -> dict | None:
         """The evaluation in ``eval/`` of model ``name`` where its folder holds neither the model
@@ -131,8 +138,7 @@ class SemiSupervised:
         :meth:`restore`); else None."""
         from stnh_tf.training import run_dir
 
-        d = self.run.model_dir(name)
-        path = os.path.join(self.run.out, "eval", f"{self.eval_key(name)}.json")
+        d, path = self.run.model_dir(name), self.eval_file(name)
         if (not os.path.exists(path) or os.path.exists(os.path.join(d, run_dir.FINAL_MODEL))
                 or run_dir.checkpoint_weights_path(os.path.join(d, run_dir.CHECKPOINT_DIR))):
             return None
@@ -172,12 +178,10 @@ class SemiSupervised:
         out = {}
         for name in self.model_names():
             d, resume = self.run.model_dir(name), os.path.join(repo_dir, chunks.RESUME_DIR, name)
-            evaluation = f"{self.eval_key(name)}.json"
-            if (os.path.exists(os.path.join(d, run_dir.FINAL_MODEL))
-                    and os.path.exists(os.path.join(self.run.out, "eval", evaluation))):
-                os.makedirs(os.path.join(repo_dir, "eval"), exist_ok=True)
-                shutil.copyfile(os.path.join(self.run.out, "eval", evaluation),
-                                os.path.join(repo_dir, "eval", evaluation))
+            src, dst = self.eval_file(name), self.eval_file(name, repo_dir)
+            if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)) and os.path.exists(src):
+                os.makedirs(os.path.dirname(dst), exist_ok=True)
+                shutil.copyfile(src, dst)
             if os.path.exists(os.path.join(repo_dir, f"{name}.keras")):
                 continue  # finished and saved before
             if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
@@ -206,8 +210,7 @@ class SemiSupervised:
             d, keras_file = self.run.model_dir(name), os.path.join(repo_dir, f"{name}.keras")
             if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
                 continue
-            evaluation = f"{self.eval_key(name)}.json"
-            src, dst = (os.path.join(root, "eval", evaluation) for root in (repo_dir, self.run.out))
+            src, dst = self.eval_file(name, repo_dir), self.eval_file(name)
             if os.path.exists(src) and not os.path.exists(dst):
                 os.makedirs(os.path.dirname(dst), exist_ok=True)
                 shutil.copyfile(src, dst)  # a new mtime: newer than the model copy2 puts in
