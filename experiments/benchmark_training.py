@@ -9,9 +9,11 @@ that separately), the median time of a ``model.fit`` training step at ``--batch_
 * ``bare``: the regression network alone with the L2 loss on ``H_bar``,
 
 in float32 and in Keras mixed bfloat16 (optionally also with ``jit_compile``), and reports the
-share of the step spent in the STN and the losses, ``(stn - bare) / stn``. Then the batch-1
-inference latency of the full model (median over ``--latency_runs`` calls of a compiled
-``tf.function`` after warm-up). Prints one JSON object.
+share of the step spent in the STN and the losses, ``(stn - bare) / stn``; with ``--unlabeled``
+also the full model's step on the same batch with every pair unlabeled (``h_mask`` 0, the L1 term
+alone: training with missing labels, docs/training.md) and its ratio to the labeled step. Then
+the batch-1 inference latency of the full model (median over ``--latency_runs`` calls of a
+compiled ``tf.function`` after warm-up). Prints one JSON object.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ flags.DEFINE_list("policies", ["float32", "mixed_bfloat16"], "Keras dtype polici
 flags.DEFINE_bool("jit", False, "Also measure jit_compile=True.")
 flags.DEFINE_integer("latency_runs", 200, "Batch-1 inference calls timed.")
 flags.DEFINE_integer("seed", 0, "Seed of the batches and weights.")
+flags.DEFINE_bool("unlabeled", False, "Also time the full model's step with every pair unlabeled "
+                  "(h_mask 0: the L1 term alone), against the labeled one.")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them
@@ -37,7 +41,7 @@ def main(argv):
     del argv
     result = benchmarks.training_benchmark(FLAGS.batch_size, FLAGS.steps, FLAGS.warmup,
                                            FLAGS.policies, FLAGS.jit, FLAGS.latency_runs,
-                                           FLAGS.seed)
+                                           FLAGS.seed, FLAGS.unlabeled)
     common.emit_json(result, FLAGS.json_out)
 
 
