@@ -162,6 +162,12 @@ PROSE = [
       num("semi_labeled_alone_seed0", "model/mace"),
       num("semi_plus_unlabeled_seed0", "model/mace"),
       difference(("semi_labeled_alone_seed0", "model/mace"), ("semi_all_seed0", "model/mace"))]),
+    ("BENCHMARKS.md",
+     rf"median step takes {N} s with every pair labeled and {N} s with{S}every pair unlabeled "
+     rf"\(`h_mask` 0, the L1 term alone\), a ratio of {N}\.",
+     [num("semi_step_cost", "train_step_s/mixed_bfloat16/stn_homography", 3),
+      num("semi_step_cost", "train_step_s/mixed_bfloat16/stn_homography_unlabeled", 3),
+      num("semi_step_cost", "train_step_s/mixed_bfloat16/unlabeled_over_labeled", 3)]),
     ("docs/estimate.md",
      rf"is {N} px from `h_true` at the image corners, and {N} px with{S}`EstimateOptions\(\)` "
      rf"\(identity: {N} px;",
