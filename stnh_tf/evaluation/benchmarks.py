@@ -107,10 +107,8 @@ class _StepTimer:
 
 
 def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
-    """Median seconds per training step of ``kind``: "stn" (every pair labeled, ``h_mask`` 1),
-    "stn_unlabeled" (every pair ``h_mask`` 0: the L1 term alone) or "bare"."""
+    """Median seconds of a training step of ``kind``: "stn", "stn_unlabeled" (h_mask 0), "bare"."""
     import keras
-    import numpy as np
     import tensorflow as tf
 
     from stnh_tf.training import config as train_config
@@ -138,9 +136,8 @@ def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
         else:
             training.compile_model(model, cfg)
             model.jit_compile = jit
-            # the sample weights of real training (data.batches): h_mask on the L2 term
-            labeled = np.full((batch_size,), 0.0 if kind == "stn_unlabeled" else 1.0, "float32")
-            batch = (x, y, {"h_bar": labeled, "patch_a_warp": np.ones_like(labeled)})
+            h_mask = tf.fill([batch_size], 0.0 if kind == "stn_unlabeled" else 1.0)
+            batch = (x, y, {"h_bar": h_mask, "patch_a_warp": tf.ones_like(h_mask)})  # data.batches
         ds = tf.data.Dataset.from_tensors(batch).repeat()
         timer = _StepTimer().cb
         model.fit(ds, steps_per_epoch=warmup + steps, epochs=1, verbose=0, callbacks=[timer])
@@ -176,10 +173,9 @@ def time_latency(runs, seed):
 
 def training_benchmark(batch_size=64, steps=20, warmup=3, policies=("float32", "mixed_bfloat16"),
                        jit=False, latency_runs=200, seed=0, unlabeled=False) -> dict:
-    """Training-step seconds of the full model (``stn``) and the bare regression network with the
-    L2 loss (``bare``) per policy (and ``jit_compile`` when ``jit``), then batch-1 latency. With
-    ``unlabeled``, also the full model on the same batch with every pair unlabeled
-    (``stn_unlabeled``) and its ratio to ``stn``."""
+    """Training-step seconds of the full model (``stn``; with ``unlabeled`` also with every pair
+    unlabeled, and the ratio) and the bare regression network with the L2 loss (``bare``) per
+    policy (and ``jit_compile`` when ``jit``), then batch-1 latency."""
     import tensorflow as tf  # noqa: F401  (loaded first, so machine_info reports it)
 
     result = {"benchmark": "training_step", "batch_size": batch_size, "steps": steps,
@@ -189,17 +185,15 @@ def training_benchmark(batch_size=64, steps=20, warmup=3, policies=("float32", "
     for policy in policies:
         for jit_compile in ([False, True] if jit else [False]):
             key = policy + ("_jit" if jit_compile else "")
-            stn = time_training("stn", policy, jit_compile, batch_size, steps, warmup, seed)
-            bare = time_training("bare", policy, jit_compile, batch_size, steps, warmup, seed)
-            result["train_step_s"][key] = {
+            args = (policy, jit_compile, batch_size, steps, warmup, seed)
+            stn, bare = time_training("stn", *args), time_training("bare", *args)
+            entry = result["train_step_s"][key] = {
                 "stn_homography": stn, "bare_regression": bare,
                 "stn_and_losses_share": (stn - bare) / stn,
                 "samples_per_s": batch_size / stn}
             if unlabeled:
-                step = time_training("stn_unlabeled", policy, jit_compile, batch_size, steps,
-                                     warmup, seed)
-                result["train_step_s"][key].update(stn_homography_unlabeled=step,
-                                                   unlabeled_over_labeled=step / stn)
+                u = entry["stn_homography_unlabeled"] = time_training("stn_unlabeled", *args)
+                entry["unlabeled_over_labeled"] = u / stn
     result["inference_batch1"] = time_latency(latency_runs, seed)
     result["machine"]["load_average_at_end"] = os.getloadavg()
     return result
