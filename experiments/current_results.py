@@ -49,6 +49,8 @@ SOURCES = {
     "schedule_curve": "paper_schedule/stage1_curve.json",
     "schedule_train_photos": "paper_schedule/stage1_eval_train_photographs.json",
     "schedule_probe": "paper_schedule/logs/h200_steps_per_execution_probe.json",
+    "schedule_probe_h100": "paper_schedule/logs/h100_steps_per_execution_probe.json",
+    "schedule_ledger": "paper_schedule/ledger.json",
     "schedule_float32_inference": "paper_schedule/stage1_eval_float32_inference.json",
     "camera0_default": "docs/camera_pairs/seed0_default.json",
     "camera0_default_estimator": "docs/camera_pairs/seed0_default_estimator.json",

@@ -102,9 +102,9 @@ def cam_row(source, method="estimator", flag=True):
     return cells
 
 
-def probe(key):
-    """Steps/s of one variant of the GPU probe (its keys hold a slash: read directly)."""
-    return lambda sources: f"{sources['schedule_probe']['fit'][key]['steps_per_s']:.1f}"
+def probe(key, source="schedule_probe"):
+    """Steps/s of one variant of a GPU probe (its keys hold a slash: read directly)."""
+    return lambda sources: f"{sources[source]['fit'][key]['steps_per_s']:.1f}"
 
 
 # (file, regex with one group per number, the expected value of each group). Every match of the
@@ -203,6 +203,13 @@ PROSE = [
      [probe(k) for k in ("array", "array/spe10", "array/spe50")]),
     ("docs/gpu.md", rf"GPU: {N} / {N} / {N}\.",
      [probe(f"array/spe{k}+callbacks") for k in (1, 10, 50)]),
+    ("docs/gpu.md", rf"H100 \(2026-11-28, `paper_schedule/logs/h100_steps_per_execution_probe.json`\)"
+     rf"{S}gives, at 1 / 10 / 50 steps per call, {N} / {N} / {N} steps/s without callbacks and"
+     rf"{S}{N} / {N} / {N} with them\.",
+     [probe(k, "schedule_probe_h100") for k in ("array", "array/spe10", "array/spe50")]
+     + [probe(f"array/spe{k}+callbacks", "schedule_probe_h100") for k in (1, 10, 50)]),
+    ("docs/gpu.md", rf"log `paper_schedule/logs/stage2_0-38000_h100.log`\): {N} steps/s,",
+     [num("schedule_ledger", "3/steps_per_s")]),
     ("docs/gpu.md", rf"50 steps per call, {N} steps/s over", [num("schedule_record",
                                                                   "chunks/1/steps_per_s")]),
     ("docs/weights.md",
