@@ -1,13 +1,17 @@
 r"""The paper schedule's photographs, made small enough to carry to the GPU machine (docs/gpu.md).
 
-  python -m experiments.device_photographs          # -> .devdata/ and the carry groups, as JSON
+  python -m experiments.device_photographs          # -> .devdata/part-K/ and the calls, as JSON
 
 Copies photos_extra as it is, and writes the coco_mini photographs as the 320x240 gray images the
 training reads (lossless PNG under the same file names, checked pixel for pixel against the
-originals' decoding), so that the pairs made on the GPU machine are the pairs made here. Then
-splits the folders into groups that each fit one call of the device tool beside the tracked
-working tree (64 MiB a call; the first group also carries ``.whl/``), in the order to carry them
-with ``experiments/paper_schedule_gpu.sh``.
+originals' decoding), so that the pairs made on the GPU machine are the pairs made here. The
+files are split into parts ``.devdata/part-1``, ``part-2``, ... that each fit one call of the
+device tool beside the working tree that travels with it (64 MiB a call, the tree included; the
+first part leaves room for ``.whl/``). Each part holds its files under their paths relative to
+``.devdata/`` (``coco_mini/train/...``, ``photos_extra/imagenet/...``), so the parts copied over
+one folder, as ``experiments/paper_schedule_gpu.sh`` does, rebuild the whole set. Packing by
+file rather than by folder keeps working however large the tracked tree grows: it only adds
+calls.
 """
 
 from __future__ import annotations
@@ -56,48 +60,76 @@ def gray_copy(src: str, dst: str) -> int:
     return len(files)
 
 
-def groups(folders: list, budget: int, first_extra: int) -> list:
-    """Folders packed greedily (largest first) into groups of at most ``budget`` bytes; the
-    first group also holds ``first_extra`` bytes."""
-    out = []
-    for path in sorted(folders, key=size, reverse=True):
-        for g in out:
-            if g["bytes"] + size(path) <= budget:
-                g["paths"].append(path)
-                g["bytes"] += size(path)
-                break
-        else:
-            extra = first_extra if not out else 0
-            if extra + size(path) > budget:
-                raise ValueError(f"{path} ({size(path) / 2 ** 20:.1f} MiB) does not fit one call")
-            out.append({"paths": [path], "bytes": extra + size(path)})
+def next_stage() -> int:
+    """The stage the next chunk trains, from ``paper_schedule/ledger.json``."""
+    with open(os.path.join(REPO, "paper_schedule", "ledger.json")) as f:
+        last = json.load(f)[-1]
+    return last["stage"] + 1 if last["done"] else last["stage"]
+
+
+def parts(files: list, budget: int, first_extra: int) -> list:
+    """``files`` (``(relative path, bytes)``, in order) split into consecutive parts of at most
+    ``budget`` bytes; the first part also holds ``first_extra`` bytes.
+
+    Raises:
+        ValueError: one file (or the first part's extra) does not fit a part.
+    """
+    if budget <= first_extra:
+        raise ValueError(f"no room for photographs: {budget / 2 ** 20:.1f} MiB a call, "
+                         f"{first_extra / 2 ** 20:.1f} MiB of wheels in the first")
+    out = [{"files": [], "bytes": first_extra}]
+    for rel, nbytes in files:
+        if nbytes > budget:
+            raise ValueError(f"{rel} ({nbytes / 2 ** 20:.1f} MiB) does not fit one call")
+        if out[-1]["bytes"] + nbytes > budget:
+            out.append({"files": [], "bytes": 0})
+        out[-1]["files"].append(rel)
+        out[-1]["bytes"] += nbytes
     return out
 
 
 def main(argv):
     del argv
     out = FLAGS.output_dir
+    for name in os.listdir(out) if os.path.isdir(out) else []:  # what an earlier run left
+        if name.startswith("part-") or name == "all":
+            shutil.rmtree(os.path.join(out, name))
+    whole = os.path.join(out, "all")  # the gray coco_mini, written once, then split
     counts = {split: gray_copy(os.path.join(FLAGS.coco_dir, split),
-                               os.path.join(out, "coco_mini", split))
+                               os.path.join(whole, "coco_mini", split))
               for split in ("train", "test")}
-    extra = []
-    for name in sorted(os.listdir(FLAGS.extra_dir)):
-        src = os.path.join(FLAGS.extra_dir, name)
-        if os.path.isdir(src):
-            shutil.copytree(src, os.path.join(out, "photos_extra", name), dirs_exist_ok=True)
-            extra.append(os.path.join(out, "photos_extra", name))
+    source = {}  # path relative to .devdata/ -> the file to copy
+    for root, prefix in ((os.path.join(whole, "coco_mini"), "coco_mini"),
+                         (FLAGS.extra_dir, "photos_extra")):
+        for d, _, fs in os.walk(root):
+            if prefix == "photos_extra" and d == root:
+                continue  # photos_extra's own README: the photographs are in its folders
+            for f in fs:
+                source[os.path.join(prefix, os.path.relpath(os.path.join(d, f), root))] = (
+                    os.path.join(d, f))
+    files = [(rel, os.path.getsize(source[rel])) for rel in sorted(source)]
     tracked = subprocess.run(["git", "ls-files", "-z", "--cached", "--others",  # what travels
                               "--exclude-standard"], cwd=REPO, capture_output=True,
                              check=True).stdout.decode().split("\0")
     tree = sum(size(os.path.join(REPO, p)) for p in tracked if p and os.path.exists(
         os.path.join(REPO, p)))
-    folders = extra + [os.path.join(out, "coco_mini")]
-    packed = groups(folders, CALL_BYTES - tree - 2 ** 20, size(FLAGS.wheels_dir))
-    print(json.dumps({"coco_mini": counts, "tracked_mib": round(tree / 2 ** 20, 1), "carry": [
-        {"paths": [os.path.relpath(p, REPO) for p in g["paths"]]
-         + ([os.path.relpath(FLAGS.wheels_dir, REPO)] if k == 0 else []),
-         "mib": round((g["bytes"] + tree) / 2 ** 20, 1)} for k, g in enumerate(packed)]},
-        indent=1))
+    packed = parts(files, CALL_BYTES - tree - 2 ** 20, size(FLAGS.wheels_dir))
+    calls = []
+    for k, part in enumerate(packed, start=1):
+        folder = os.path.join(out, f"part-{k}")
+        for rel in part["files"]:
+            os.makedirs(os.path.dirname(os.path.join(folder, rel)), exist_ok=True)
+            shutil.copyfile(source[rel], os.path.join(folder, rel))
+        carry = [os.path.relpath(folder, REPO)]
+        if k == 1:
+            carry.append(os.path.relpath(FLAGS.wheels_dir, REPO))
+        command = ("bash experiments/paper_schedule_gpu.sh stage" if k < len(packed) else
+                   f"STAGE={next_stage()} bash experiments/paper_schedule_gpu.sh chunk 535")
+        calls.append({"command": command, "carry": carry, "photographs": len(part["files"]),
+                      "mib": round((part["bytes"] + tree) / 2 ** 20, 1)})
+    shutil.rmtree(whole)
+    print(json.dumps({"coco_mini": counts, "photographs": len(files),
+                      "tracked_mib": round(tree / 2 ** 20, 1), "calls": calls}, indent=1))
 
 
 if __name__ == "__main__":

@@ -6,10 +6,10 @@
 #   experiments/paper_schedule_gpu.sh probe            # + steps/s at several steps_per_execution
 #   experiments/paper_schedule_gpu.sh chunk SECONDS    # + resume stage $STAGE, stop before SECONDS
 #
-# Every mode first copies what this call carried under .devdata/ (made here by
+# Every mode first copies the parts this call carried under .devdata/part-K/ (made here by
 # `python -m experiments.device_photographs`) into /tmp/stnh-data, which stays on the machine
-# between calls: the photographs travel over several calls (each call carries at most 64 MiB, and
-# a call removes what an earlier one carried). It also installs .whl/ (keras, namex, optree wheels
+# between calls: the photographs travel over several calls (each call carries at most 64 MiB, the
+# working tree included, and a call removes what an earlier one carried). It also installs .whl/ (keras, namex, optree wheels
 # for the machine's Python: docs/gpu.md) once. `probe` leaves its JSON in /tmp/probe.json; a
 # later `chunk` on the same machine trains with the fastest steps_per_execution it measured with
 # the training callbacks (50 without a probe). What comes back is written to $OUT: probe.json,
@@ -20,9 +20,9 @@ mode=${1:?stage, probe or chunk}
 out=${OUT:-/tmp/paper_schedule_out}
 data=/tmp/stnh-data
 mkdir -p "$out" "$data"
-if [ -d .devdata ]; then
-  cp -r .devdata/. "$data/"
-fi
+for part in .devdata/part-*/; do  # each holds its files under their paths in the whole set
+  [ -d "$part" ] && cp -r "$part". "$data/"
+done
 train=$(find "$data/coco_mini/train" "$data/photos_extra" -type f -name '*.jpg' 2>/dev/null | wc -l)
 test=$(find "$data/coco_mini/test" -type f -name '*.jpg' 2>/dev/null | wc -l)
 echo "photographs on this machine: $train for training (1848 needed), $test for validation (100)"
