@@ -86,8 +86,23 @@ res = training.train(cfg, printer=lambda *a: None)
 m2 = keras.models.load_model(os.path.join(cfg.model_dir, "model.keras"), compile=False)
 out["trained"] = runner.compiled_forward(m2)(z["a"], z["b"])
 np.savez(os.path.join(work, backend + "_out.npz"), **out)
+tiny_fit = None
+if backend == "jax":  # which calls of fit copy the training state back into the model
+    from stnh_tf.training.callbacks import NonFiniteGuard, ProgressLogger
+    tiny = keras.Sequential([keras.Input((3,)), keras.layers.Dense(1)])
+    tiny.compile(optimizer=keras.optimizers.SGD(keras.optimizers.schedules.CosineDecay(0.1, 20)),
+                 loss="mse", steps_per_execution=2)
+    syncs, lines, sync = [], [], tiny.jax_state_sync
+    def counted():
+        syncs.append(bool(getattr(tiny, "_jax_state", None)) and not tiny._jax_state_synced)
+        sync()
+    tiny.jax_state_sync = counted
+    x = np.linspace(-1, 1, 60, dtype="float32").reshape(20, 3)
+    tiny.fit(x, x[:, :1], batch_size=2, epochs=2, shuffle=False, verbose=0,
+             callbacks=[NonFiniteGuard(), ProgressLogger(4, 20, lines.append)])
+    tiny_fit = {"syncs": sum(syncs), "lines": lines}
 print(json.dumps({"final_step": res["final_step"], "history": res["history"],
-                  "backend": keras.backend.backend()}))
+                  "backend": keras.backend.backend(), "tiny_fit": tiny_fit}))
 """
 
 
@@ -210,6 +225,23 @@ def test_training_steps_under_backend_match_tensorflow(backend_run, tmp_path):
     moved = max(np.abs(w - i).max() for w, i in zip(want, init))
     assert moved > 1e-3
     assert max(np.abs(g - w).max() for g, w in zip(got, want)) <= 1e-4 * moved
+
+
+def test_training_callbacks_copy_the_jax_state_back_only_where_they_print(backend_run):
+    """Under JAX, reading the model inside a callback copies the whole training state back into
+    it. A fit of 2 epochs x 5 calls (2 steps each) with the loop's per-step callbacks, reporting
+    every 4 steps: the state is copied at the 5 reports and at the first epoch's end (the second
+    ends on a report), not after each of the 10 calls; the reported steps and learning rates are
+    the global step's and the schedule's (Keras' CosineDecay under TensorFlow)."""
+    if backend_run["backend"] != "jax":
+        pytest.skip("only the JAX backend copies its training state back into the model")
+    tiny = backend_run["summary"]["tiny_fit"]
+    steps = [4, 8, 12, 16, 20]
+    assert [int(line.split()[1].split("/")[0]) for line in tiny["lines"]] == steps
+    schedule = keras.optimizers.schedules.CosineDecay(0.1, 20)
+    assert [line.split()[2] for line in tiny["lines"]] == [
+        f"lr={float(schedule(s)):.5g}" for s in steps]
+    assert tiny["syncs"] == len(steps) + 1
 
 
 HIDE_TENSORFLOW = '''

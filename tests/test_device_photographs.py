@@ -1,4 +1,5 @@
-"""experiments.device_photographs: the photographs split into parts that each fit one device call."""
+"""experiments.device_photographs: the photographs split into parts that each fit one device
+call."""
 
 import json
 import os

@@ -107,6 +107,12 @@ def probe(key, source="schedule_probe"):
     return lambda sources: f"{sources[source]['fit'][key]['steps_per_s']:.1f}"
 
 
+def callback_cost(source):
+    """The share of steps/s (%) the training callbacks cost a probe at 50 steps per call."""
+    return lambda sources: "%.0f" % (100 * (1 - float(probe("array/spe50+callbacks", source)(
+        sources)) / float(probe("array/spe50", source)(sources))))
+
+
 # (file, regex with one group per number, the expected value of each group). Every match of the
 # regex in the file is checked, and the regex must match at least once.
 PROSE = [
@@ -203,11 +209,15 @@ PROSE = [
      [probe(k) for k in ("array", "array/spe10", "array/spe50")]),
     ("docs/gpu.md", rf"GPU: {N} / {N} / {N}\.",
      [probe(f"array/spe{k}+callbacks") for k in (1, 10, 50)]),
-    ("docs/gpu.md", rf"H100 \(2026-11-28, `paper_schedule/logs/h100_steps_per_execution_probe.json`\)"
-     rf"{S}gives, at 1 / 10 / 50 steps per call, {N} / {N} / {N} steps/s without callbacks and"
+    ("docs/gpu.md", rf"H100 \(2026-11-28,"
+     rf" `paper_schedule/logs/h100_steps_per_execution_probe.json`\){S}gives, at 1 / 10 / 50"
+     rf" steps per call, {N} / {N} / {N} steps/s without callbacks and"
      rf"{S}{N} / {N} / {N} with them\.",
      [probe(k, "schedule_probe_h100") for k in ("array", "array/spe10", "array/spe50")]
      + [probe(f"array/spe{k}+callbacks", "schedule_probe_h100") for k in (1, 10, 50)]),
+    ("docs/gpu.md",
+     rf"at 50 steps per call \((\d+)% of the steps/s on the H200, (\d+)% on the H100\)",
+     [callback_cost("schedule_probe"), callback_cost("schedule_probe_h100")]),
     ("docs/gpu.md", rf"log `paper_schedule/logs/stage2_0-38000_h100.log`\): {N} steps/s,",
      [num("schedule_ledger", "3/steps_per_s")]),
     ("docs/gpu.md", rf"50 steps per call, {N} steps/s over", [num("schedule_record",

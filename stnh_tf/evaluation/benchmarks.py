@@ -313,8 +313,8 @@ def time_fit(mode, pair_batches, image_dir, batch_size=64, workers=2, samples_pe
     """Steps per second of ``model.fit`` fed by ``mode`` (``array``, ``stream`` or ``fresh``;
     or by ``stream`` where given) over ``epochs`` epochs after an untimed one, and the median and
     longest step, at ``steps_per_execution``; ``training_callbacks`` adds the per-step callbacks
-    of :func:`stnh_tf.training.loop.train` (non-finite guard, progress), which read the step and
-    the loss after every call."""
+    of :func:`stnh_tf.training.loop.train` (non-finite guard, progress), which read the loss
+    after every call."""
     import keras
 
     from stnh_tf.training import config as train_config

@@ -43,7 +43,21 @@ def _learning_rate(model) -> float:
     return float(keras.ops.convert_to_numpy(model.optimizer.learning_rate))
 
 
-class ProgressLogger(keras.callbacks.Callback):
+class _GlobalStep(keras.callbacks.Callback):
+    """Knows the global step after each call from Keras' batch index and the optimizer's
+    iterations at the epoch's start, without reading the model mid-epoch: under JAX that read
+    copies the whole training state back into the model (``jax_state_sync``), which Keras
+    itself does only at epoch ends."""
+
+    def on_epoch_begin(self, epoch, logs=None):
+        self._epoch_start = _step(self.model)  # the state is the model's between epochs
+
+    def step_after(self, batch) -> int:
+        """The global step after the call whose last step is ``batch`` of this epoch."""
+        return self._epoch_start + int(batch) + 1
+
+
+class ProgressLogger(_GlobalStep):
     """One console line every ``every`` steps (and at the last, ``total``): step, losses,
     learning rate, steps/s."""
 
@@ -53,7 +67,7 @@ class ProgressLogger(keras.callbacks.Callback):
         self._t0 = self._s0 = None
 
     def on_train_batch_end(self, batch, logs=None):
-        step = _step(self.model)
+        step = self.step_after(batch)
         if self._t0 is None:
             self._t0, self._s0 = time.time(), step
         if step % self.every and step != self.total:
@@ -70,7 +84,7 @@ class ProgressLogger(keras.callbacks.Callback):
                          " ".join(f"{k}={float(v):.5g}" for k, v in sorted(vals.items())))
 
 
-class StepScalars(keras.callbacks.Callback):
+class StepScalars(_GlobalStep):
     """TensorBoard scalars against the global step (the optimizer's iterations): in
     ``log_dir/train`` the batch's losses and metrics and ``learning_rate`` every ``every`` steps
     and at the last (``total``), in ``log_dir/validation`` the validation metrics at every epoch
@@ -95,7 +109,7 @@ class StepScalars(keras.callbacks.Callback):
         self._writers[name].flush()
 
     def on_train_batch_end(self, batch, logs=None):
-        step = _step(self.model)
+        step = self.step_after(batch)
         if step % self.every == 0 or step == self.total:
             self._write("train", {**(logs or {}), "learning_rate": _learning_rate(self.model)},
                         step)
