@@ -9,12 +9,12 @@
 # Every mode first copies the parts this call carried under .devdata/part-K/ (made here by
 # `python -m experiments.device_photographs`) into /tmp/stnh-data, which stays on the machine
 # between calls: the photographs travel over several calls (each call carries at most 64 MiB, the
-# working tree included, and a call removes what an earlier one carried). It also installs .whl/ (keras, namex, optree wheels
-# for the machine's Python: docs/gpu.md) once. `probe` leaves its JSON in /tmp/probe.json; a
-# later `chunk` on the same machine trains with the fastest steps_per_execution it measured with
-# the training callbacks (50 without a probe). What comes back is written to $OUT: probe.json,
-# chunk.log and paper_schedule.tgz (the committed checkpoint or finished stage, the ledger and
-# docs/gpu.md).
+# working tree included, and a call removes what an earlier one carried). It also installs .whl/
+# (keras, namex, optree wheels for the machine's Python: docs/gpu.md) once. `probe` leaves its
+# JSON in /tmp/probe.json; a later `chunk` on the same machine trains with the fastest
+# steps_per_execution it measured with the training callbacks (50 without a probe). What comes
+# back is written to $OUT: probe.json, chunk.log and paper_schedule.tgz (the committed checkpoint
+# or finished stage, the ledger and docs/gpu.md).
 set -u -o pipefail
 mode=${1:?stage, probe or chunk}
 out=${OUT:-/tmp/paper_schedule_out}
