@@ -106,20 +106,54 @@ def stage_pair(context_a: np.ndarray, h_ba: np.ndarray, h_prev: np.ndarray,
     ``H_k* = inv(H_prev) @ H_ba`` as ``h_bar`` (normalized with the paper's ``M``); and
     ``patch_a_t_k`` = ``patch_a_k`` warped by ``H_k*`` (zero outside patch_a_k: what the stage's
     spatial transformer sees, so the L1 target matches it). Patches are rounded to uint8, as
-    stored in TFRecords.
+    stored in TFRecords. One sample of :func:`stage_pairs`.
 
     Returns:
       ``{"patch_a": uint8 [S, S], "patch_a_t": uint8 [S, S], "h_bar": float32 [8]}``.
     """
-    patch_a = crop_warped_context(context_a, h_prev, margin, size)
+    pairs = stage_pairs(np.asarray(context_a)[None], np.asarray(h_ba, np.float64)[None],
+                        np.asarray(h_prev, np.float64)[None], margin, size)
+    return {key: value[0] for key, value in pairs.items()}
+
+
+def stage_pairs(context_a: np.ndarray, h_ba: np.ndarray, h_prev: np.ndarray,
+                margin: int = CONTEXT_MARGIN, size: int = geometry.PATCH_SIZE,
+                out: dict | None = None) -> dict:
+    """:func:`stage_pair` for a batch: the matrix work on the whole batch at once, the two OpenCV
+    warps per pair, the patches written into ``out``.
+
+    Args:
+      context_a: ``[N, S+2m, S+2m]`` (uint8 or float); h_ba, h_prev: ``[N, 3, 3]`` pixel
+        homographies in the patch frame (patch_b -> patch_a).
+      out: arrays to write into (``patch_a``, ``patch_a_t`` uint8 ``[N, S, S]``, ``h_bar``
+        float32 ``[N, 8]``, e.g. row slices of larger arrays); new ones when ``None``.
+    Returns:
+      ``out``: ``{"patch_a": uint8 [N, S, S], "patch_a_t": uint8 [N, S, S], "h_bar": float32
+      [N, 8]}``.
+    """
+    n = len(context_a)
+    if out is None:
+        out = {"patch_a": np.empty((n, size, size), np.uint8),
+               "patch_a_t": np.empty((n, size, size), np.uint8),
+               "h_bar": np.empty((n, 8), np.float32)}
     residual = residual_target(h_prev, h_ba)
-    h_bar = geometry.matrix_to_vector(geometry.normalize_homography(residual, size, size))
-    patch_a_t = cv2.warpPerspective(patch_a, residual, (size, size),
-                                    flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
-                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    to_u8 = lambda x: np.clip(np.rint(x), 0, 255).astype(np.uint8)
-    return {"patch_a": to_u8(patch_a), "patch_a_t": to_u8(patch_a_t),
-            "h_bar": h_bar.astype(np.float32)}
+    out["h_bar"][...] = geometry.matrix_to_vector(
+        geometry.normalize_homography(residual, size, size))
+    for i in range(n):
+        patch_a = crop_warped_context(context_a[i], h_prev[i], margin, size)
+        patch_a_t = cv2.warpPerspective(patch_a, residual[i], (size, size),
+                                        flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
+                                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        _to_uint8(patch_a, out["patch_a"][i])
+        _to_uint8(patch_a_t, out["patch_a_t"][i])
+    return out
+
+
+def _to_uint8(x: np.ndarray, out: np.ndarray) -> None:
+    """``out[...] = clip(rint(x), 0, 255)`` as uint8, as TFRecords store patches."""
+    np.rint(x, out=x)
+    np.clip(x, 0, 255, out=x)
+    out[...] = x
 
 
 def rejection_reason(h_composed: np.ndarray, margin: int = CONTEXT_MARGIN,
@@ -200,15 +234,19 @@ def run_hierarchy(stages: Sequence[PredictFn], context_a: np.ndarray, patch_b: n
     context_a = np.asarray(context_a)
     patch_b = np.asarray(patch_b)
     scale = 255.0 if context_a.dtype == np.uint8 else 1.0
-    patch_b = patch_b.astype(np.float32).reshape(len(context_a), size, size, 1) / (
-        255.0 if patch_b.dtype == np.uint8 else 1.0)
+    # Scaled in place (astype copies): a fresh [N, S, S] float array costs about as much as the
+    # batch's warps on a machine with slow page faults (BENCHMARKS, stage-k pairs).
+    scale_b = 255.0 if patch_b.dtype == np.uint8 else 1.0
+    patch_b = patch_b.astype(np.float32).reshape(len(context_a), size, size, 1)
+    np.divide(patch_b, scale_b, out=patch_b)
     h = (np.repeat(np.eye(3)[None], len(context_a), 0) if h_init is None
          else np.asarray(h_init, np.float64).copy())
     per_stage, rejected = [], []
     for predict in stages:
         patch_a = np.stack([crop_warped_context(c, hp, margin, size)
                             for c, hp in zip(context_a, h)])
-        h_stage = np.asarray(predict(patch_a[..., None] / scale, patch_b), np.float64)
+        np.divide(patch_a, scale, out=patch_a)
+        h_stage = np.asarray(predict(patch_a[..., None], patch_b), np.float64)
         h, reasons = accept_or_reject(h, h_stage, margin, size, clip_to_context)
         per_stage.append(h.copy())
         rejected.append({r: reasons.count(r) for r in REJECT_REASONS})
@@ -217,7 +255,7 @@ def run_hierarchy(stages: Sequence[PredictFn], context_a: np.ndarray, patch_b: n
 
 def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 1024,
                       margin: int = CONTEXT_MARGIN, size: int = geometry.PATCH_SIZE,
-                      threads: int = 0):
+                      threads: int = 0, in_place: bool = False):
     """Stage-``n+1`` training pairs, in memory, from stage-1 pairs and ``n`` trained stages.
 
     The in-memory counterpart of ``data_prep.make_stage_dataset`` chained ``n`` times: the stages
@@ -234,16 +272,18 @@ def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 10
       stages: the trained stages 1..n as :data:`PredictFn`
         (e.g. :func:`stnh_tf.modeling.runner.predictor`).
       chunk: pairs per model call batch; threads: chunks processed at once (0: one per core).
+      in_place: write the new ``patch_a``, ``patch_a_t`` and ``h_bar`` over those of ``arrays``
+        (which the re-making does not read), so no second copy of them is held.
     Returns:
       ``(pairs, rejected)``: ``pairs`` in the compact form (``patch_a``, ``patch_b``,
       ``patch_a_t``, ``h_bar``, ``h_mask``, plus ``h_prev [N, 3, 3]``, the estimate the pair
       starts from); ``rejected`` counts the degenerate-rule cases of every stage by reason.
     """
     n = len(arrays["patch_b"])
-    out = {"patch_a": np.empty_like(arrays["patch_a"]), "patch_b": arrays["patch_b"],
-           "patch_a_t": np.empty_like(arrays["patch_a_t"]),
-           "h_bar": np.empty_like(arrays["h_bar"]), "h_mask": arrays["h_mask"],
-           "h_prev": np.empty((n, 3, 3))}
+    made = ("patch_a", "patch_a_t", "h_bar")
+    out = {key: arrays[key] if in_place or key not in made else np.empty_like(arrays[key])
+           for key in ("patch_a", "patch_b", "patch_a_t", "h_bar", "h_mask")}
+    out["h_prev"] = np.empty((n, 3, 3))
     lock = threading.Lock()
     stages = [_serialized(predict, lock) for predict in stages]
 
@@ -252,10 +292,8 @@ def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 10
         run = run_hierarchy(stages, arrays["context_a"][a:b], arrays["patch_b"][a:b],
                             margin=margin, size=size)
         out["h_prev"][a:b] = run["h"]
-        for i, h_prev in zip(range(a, b), run["h"]):
-            pair = stage_pair(arrays["context_a"][i], arrays["h_ba"][i], h_prev, margin, size)
-            for key, value in pair.items():
-                out[key][i] = value
+        stage_pairs(arrays["context_a"][a:b], arrays["h_ba"][a:b], run["h"], margin, size,
+                    out={key: out[key][a:b] for key in made})
         return run["rejected"]
 
     # Chunks run in threads (OpenCV's warps and NumPy's large array operations release the GIL;

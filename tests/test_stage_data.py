@@ -170,6 +170,11 @@ def test_in_memory_stage_pairs_equal_make_stage_dataset_records(stage1_data, tmp
     serial, _ = hierarchy.next_stage_arrays(arrays, [oracle], chunk=7, threads=1)
     for name in pairs:  # chunks in threads write their own rows: the thread count does not matter
         np.testing.assert_array_equal(pairs[name], serial[name])
+    own = {k: v.copy() for k, v in arrays.items()}  # in place: over the input's own patches
+    in_place, _ = hierarchy.next_stage_arrays(own, [oracle], chunk=7, threads=2, in_place=True)
+    for name in pairs:
+        np.testing.assert_array_equal(in_place[name], pairs[name])
+    assert all(in_place[k] is own[k] for k in ("patch_a", "patch_a_t", "h_bar", "patch_b"))
     assert rejected == {k: v for k, v in meta["degenerate_predictions"].items() if k != "accepted"}
     assert rejected == {"non_finite": 1, "singular": 1,
                         "outside_context": rejected["outside_context"]}

@@ -9,6 +9,7 @@ Every training stream applies the run's label options (``label_fraction``, ``dro
 from __future__ import annotations
 
 import logging
+import time
 
 from stnh_tf.data import batches, pair_datasets
 from stnh_tf.training import model_kinds
@@ -108,13 +109,32 @@ def stage_pairs(cfg: TrainConfig, pair_batches) -> dict:
     from stnh_tf import hierarchy
     from stnh_tf.modeling import runner
 
+    start = time.perf_counter()
     if cfg.stage == 1:
-        return batches.materialize(pair_batches, cfg.workers)
+        pairs = batches.materialize(pair_batches, cfg.workers)
+        _log.info("stage-1 pairs: %d made in %.1f s", len(pairs["patch_b"]),
+                  time.perf_counter() - start)
+        return pairs
     arrays = batches.materialize(pair_batches, cfg.workers, context=True)
+    made = time.perf_counter()
     stages = [runner.predictor(runner.load_model(d), batch_size=256) for d in cfg.prev_stages]
-    pairs, rejected = hierarchy.next_stage_arrays(arrays, stages)
-    _log.info("stage-%d pairs from %d previous stages; degenerate-rule cases %s", cfg.stage,
-              len(stages), rejected)
+    predicting = [0.0]  # seconds inside the stages' model calls
+
+    def timed(predict):
+        def call(patch_a, patch_b):
+            t = time.perf_counter()
+            h = predict(patch_a, patch_b)
+            predicting[0] += time.perf_counter() - t
+            return h
+        return call
+
+    loaded = time.perf_counter()
+    pairs, rejected = hierarchy.next_stage_arrays(arrays, [timed(p) for p in stages],
+                                                  in_place=True)
+    _log.info("stage-%d pairs: %d made with context in %.1f s, %d previous stages loaded in %.1f s"
+              ", pairs re-made from their predictions in %.1f s (%.1f s of it in the model "
+              "calls); degenerate-rule cases %s", cfg.stage, len(pairs["patch_b"]), made - start,
+              len(stages), loaded - made, time.perf_counter() - loaded, predicting[0], rejected)
     pairs.pop("h_prev")
     pairs["h_bar"][pairs["h_mask"] == 0] = 0.0
     return pairs
