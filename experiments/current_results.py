@@ -52,6 +52,8 @@ SOURCES = {
     "schedule_probe_h100": "paper_schedule/logs/h100_steps_per_execution_probe.json",
     "schedule_ledger": "paper_schedule/ledger.json",
     "schedule_float32_inference": "paper_schedule/stage1_eval_float32_inference.json",
+    "stage_pairs_before": "paper_schedule/logs/stage_pairs_benchmark_before_cpu.json",
+    "stage_pairs_after": "paper_schedule/logs/stage_pairs_benchmark_after_cpu.json",
     "camera0_default": "docs/camera_pairs/seed0_default.json",
     "camera0_default_estimator": "docs/camera_pairs/seed0_default_estimator.json",
     "camera0_photographs": "docs/camera_pairs/seed0_photographs.json",

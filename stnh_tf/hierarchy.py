@@ -234,8 +234,7 @@ def run_hierarchy(stages: Sequence[PredictFn], context_a: np.ndarray, patch_b: n
     context_a = np.asarray(context_a)
     patch_b = np.asarray(patch_b)
     scale = 255.0 if context_a.dtype == np.uint8 else 1.0
-    # Scaled in place (astype copies): a fresh [N, S, S] float array costs about as much as the
-    # batch's warps on a machine with slow page faults (BENCHMARKS, stage-k pairs).
+    # Scaled in place (astype already copies): no second [N, S, S] float array per batch.
     scale_b = 255.0 if patch_b.dtype == np.uint8 else 1.0
     patch_b = patch_b.astype(np.float32).reshape(len(context_a), size, size, 1)
     np.divide(patch_b, scale_b, out=patch_b)

@@ -138,6 +138,11 @@ def callback_cost(source):
         sources)) / float(probe("array/spe50", source)(sources))))
 
 
+def stage_pairs_ms(source, threads):
+    """Best ms per re-made stage-k pair of a stage-pairs benchmark at ``threads``."""
+    return lambda sources: f"{sources[source]['best_ms_per_pair'][str(threads)]:.2f}"
+
+
 # (file, regex with one group per number, the expected value of each group). Every match of the
 # regex in the file is checked, and the regex must match at least once.
 PROSE = [
@@ -356,6 +361,22 @@ PROSE = [
     ("BENCHMARKS.md", rf"Without clipping {N} after 3 stages \(previous 0.829\)",
      [num("card", NO_CLIP, 3)]),
     ("BENCHMARKS.md",
+     rf"6799f50, the benchmark's two files copied in; JSON{S}"
+     rf"`paper_schedule/logs/stage_pairs_benchmark_before_cpu.json`\): {N} ms per pair on 1 "
+     rf"thread,{S}{N} on 2\.",
+     [stage_pairs_ms("stage_pairs_before", 1), stage_pairs_ms("stage_pairs_before", 2)]),
+    ("BENCHMARKS.md",
+     rf"`paper_schedule/logs/stage_pairs_benchmark_after_cpu.json`\): {N} ms per pair on 1 "
+     rf"thread,{S}{N} on 2\.",
+     [stage_pairs_ms("stage_pairs_after", 1), stage_pairs_ms("stage_pairs_after", 2)]),
+    ("BENCHMARKS.md", rf"the re-making is about {N} s on these 2 cores",
+     [lambda sources: "%.0f" % (184.8 * sources["stage_pairs_after"]["best_ms_per_pair"]["2"])]),
+    ("BENCHMARKS.md", rf"(\d,\d+) pairs from the 219 coco_mini train photographs \(20 each\), "
+     rf"(\d,\d+) of them clipped",
+     [lambda sources: f"{sources['stage_pairs_after']['pairs']:,}",
+      lambda sources: "{:,}".format(sources["stage_pairs_after"]["runs"][0][
+          "degenerate_rule_cases"]["outside_context"])]),
+    ("BENCHMARKS.md",
      rf"--data_dir=D \[--photometric\]`\): {N}% of ordinary bare coco_mini test pairs \(their MACE "
      rf"{N} px{S}against {N} for the rest",
      [percent("card", f"{FLAG}/flagged"), num("card", f"{FLAG}/mace_flagged"),
@@ -425,3 +446,13 @@ def test_check_names_the_file_whose_number_changed(tmp_path):
         assert "README.md" in str(e)
     else:
         raise AssertionError("a file without markers must be refused")
+
+
+def test_stage_pairs_benchmarks_made_the_same_pairs():
+    """BENCHMARKS says the stage-pairs benchmark made the same pairs before and after the change,
+    for every thread count: the two JSONs' digests."""
+    sources = cr.load_sources(ROOT)
+    digests = {d for name in ("stage_pairs_before", "stage_pairs_after")
+               for d in sources[name]["sha256"].values()}
+    assert len(digests) == 1
+    assert "carry the same SHA-256 of all pairs" in _read("BENCHMARKS.md")

@@ -106,3 +106,69 @@ def data_benchmark(source="bundled", image_dir=None, max_images=0, repeat=0, wor
     finally:
         shutil.rmtree(root, ignore_errors=True)
     return result
+
+
+def stage_pairs_benchmark(images="bundled", samples_per_image=40, threads=(1, 2), repeats=2,
+                          error_px=8.0, seed=0) -> dict:
+    """Times the re-making of stage-2 pairs in memory
+    (:func:`stnh_tf.hierarchy.next_stage_arrays`, what a stage-k > 1 chunk does before training)
+    for the result dict of ``experiments.benchmark_stage_pairs``.
+
+    The stage is an oracle: each pair's true ``H_ba`` composed with a random error moving each
+    corner by up to ``error_px``, so the degenerate-prediction rule's clipping is exercised; the
+    seconds inside the oracle are reported apart and left out of ``ms_per_pair``. The pairs of
+    every thread count must be equal to the bit (``identical_across_threads``).
+    """
+    import cv2
+    import numpy as np
+
+    from stnh_tf import geometry, hierarchy
+    from stnh_tf.data import batches
+
+    sources.quiet_opencv()
+    images = images if images == "bundled" else sources.split_folders(images)
+    t0 = time.perf_counter()
+    arrays = batches.materialize(batches.PairBatches(images, 1, samples_per_image=samples_per_image,
+                                                     seed=seed), context=True)
+    made_s = time.perf_counter() - t0
+    n = len(arrays["patch_b"])
+    rng = np.random.default_rng(seed)
+    corners = geometry.patch_corners().astype(np.float32)
+    table = {}
+    for i in range(n):
+        moved = corners + rng.uniform(-error_px, error_px, (4, 2)).astype(np.float32)
+        key = (arrays["patch_b"][i] / np.float32(255)).astype(np.float32).tobytes()
+        table[key] = arrays["h_ba"][i] @ cv2.getPerspectiveTransform(corners, moved)
+    if len(table) != n:
+        raise ValueError(f"{n - len(table)} pairs share their patch_b; the oracle needs them "
+                         "distinct (use more varied photographs).")
+    inside = [0.0]
+
+    def oracle(patch_a, patch_b):
+        t = time.perf_counter()
+        h = np.stack([table[b[..., 0].tobytes()] for b in patch_b])
+        inside[0] += time.perf_counter() - t
+        return h
+
+    runs, digests = [], {}
+    for t in [int(x) for x in threads]:
+        for _ in range(repeats):
+            inside[0] = 0.0
+            t0 = time.perf_counter()
+            pairs, rejected = hierarchy.next_stage_arrays(arrays, [oracle], threads=t)
+            wall = time.perf_counter() - t0
+            runs.append({"threads": t, "wall_s": round(wall, 3), "oracle_s": round(inside[0], 3),
+                         "ms_per_pair": round(1e3 * (wall - inside[0]) / n, 4),
+                         "degenerate_rule_cases": rejected})
+        digest = hashlib.sha256()
+        for key in sorted(pairs):
+            digest.update(np.ascontiguousarray(pairs[key]).tobytes())
+        digests[t] = digest.hexdigest()
+    return {"benchmark": "stage-2 pairs re-made in memory (hierarchy.next_stage_arrays)",
+            "command": " ".join(shlex.quote(a) for a in getattr(sys, "orig_argv", sys.argv)),
+            "machine": machine_info(), "seed": seed, "images": str(images), "pairs": n,
+            "samples_per_image": samples_per_image, "error_px": error_px,
+            "pairs_with_context_made_s": round(made_s, 3), "runs": runs,
+            "best_ms_per_pair": {t: min(r["ms_per_pair"] for r in runs if r["threads"] == t)
+                                 for t in digests},
+            "identical_across_threads": len(set(digests.values())) == 1, "sha256": digests}
