@@ -1,6 +1,6 @@
 r"""Benchmark the re-making of stage-k pairs in memory (what a stage-k > 1 chunk of
 ``experiments.paper_schedule`` does before it trains): ms per pair with 1 and 2 threads, the
-model replaced by an oracle whose time is left out.
+model replaced by an oracle that looks each pair's answer up.
 
   python -m experiments.benchmark_stage_pairs                   # bundled photographs
   python -m experiments.benchmark_stage_pairs --images=../shared/data/coco_mini/train \

@@ -369,9 +369,9 @@ PROSE = [
      rf"`paper_schedule/logs/stage_pairs_benchmark_after_cpu.json`\): {N} ms per pair on 1 "
      rf"thread,{S}{N} on 2\.",
      [stage_pairs_ms("stage_pairs_after", 1), stage_pairs_ms("stage_pairs_after", 2)]),
-    ("BENCHMARKS.md", rf"the re-making is about {N} s on these 2 cores",
+    ("BENCHMARKS.md", rf"the re-making is about{S}{N} s on these 2 cores",
      [lambda sources: "%.0f" % (184.8 * sources["stage_pairs_after"]["best_ms_per_pair"]["2"])]),
-    ("BENCHMARKS.md", rf"(\d,\d+) pairs from the 219 coco_mini train photographs \(20 each\), "
+    ("BENCHMARKS.md", rf"(\d,\d+) pairs from the 219 coco_mini train{S}photographs \(20 each\), "
      rf"(\d,\d+) of them clipped",
      [lambda sources: f"{sources['stage_pairs_after']['pairs']:,}",
       lambda sources: "{:,}".format(sources["stage_pairs_after"]["runs"][0][

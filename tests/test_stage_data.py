@@ -240,7 +240,7 @@ def test_binary_without_a_trained_model_is_a_clear_error(stage1_data, tmp_path):
 
 def test_stage_pairs_benchmark_reports_equal_pairs_for_every_thread_count():
     """experiments.benchmark_stage_pairs' core: the pairs of 1 and 2 threads are equal to the bit,
-    the oracle's errors reach the clipping rule, and the oracle's time is left out of ms/pair."""
+    the oracle's errors reach the clipping rule, and ms/pair is the wall time per pair."""
     from stnh_tf.evaluation import data_benchmark
 
     r = data_benchmark.stage_pairs_benchmark(samples_per_image=2, threads=(1, 2), repeats=1,
@@ -251,5 +251,4 @@ def test_stage_pairs_benchmark_reports_equal_pairs_for_every_thread_count():
     assert cases[0] == cases[1] and cases[0]["outside_context"] > 0
     for run in r["runs"]:
         assert 0 < run["oracle_s"] < run["wall_s"]
-        assert run["ms_per_pair"] * r["pairs"] == pytest.approx(
-            1e3 * (run["wall_s"] - run["oracle_s"]), abs=1.1)  # both rounded to 1 ms
+        assert run["ms_per_pair"] * r["pairs"] == pytest.approx(1e3 * run["wall_s"], abs=0.6)
