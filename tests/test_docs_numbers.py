@@ -277,6 +277,8 @@ PROSE = [
      [callback_cost("schedule_probe"), callback_cost("schedule_probe_h100")]),
     ("docs/gpu.md", rf"log `paper_schedule/logs/stage2_0-38000_h100.log`\): {N} steps/s,",
      [num("schedule_ledger", "3/steps_per_s")]),
+    ("docs/gpu.md", rf"--workers=2`, TensorFlow, mixed bfloat16\): {N} steps/s in the ledger",
+     [num("schedule_ledger", "4/steps_per_s")]),
     ("docs/gpu.md", rf"50 steps per call, {N} steps/s over", [num("schedule_record",
                                                                   "chunks/1/steps_per_s")]),
     ("docs/weights.md",
