@@ -30,6 +30,11 @@ def difference(a, b, digits=2):
     return lambda sources: cr.fixed(cr.value(sources, *a) - cr.value(sources, *b), digits)
 
 
+def ratio(a, b, digits=2):
+    """Expected text of the number at ``a`` over the one at ``b`` (each ``(source, path)``)."""
+    return lambda sources: cr.fixed(cr.value(sources, *a) / cr.value(sources, *b), digits)
+
+
 def count(source, path):
     return lambda sources: str(cr.value(sources, source, path))
 
@@ -277,6 +282,13 @@ PROSE = [
      [callback_cost("schedule_probe"), callback_cost("schedule_probe_h100")]),
     ("docs/gpu.md", rf"log `paper_schedule/logs/stage2_0-38000_h100.log`\): {N} steps/s,",
      [num("schedule_ledger", "3/steps_per_s")]),
+    ("BENCHMARKS.md",
+     rf"\(batch 64\) takes {N} s in float32 and {N} s in mixed bfloat16: there bfloat16 is {N}x"
+     rf"{S}faster",
+     [num("training_step_zen4", f"train_step_s/{p}/stn_homography") for p in
+      ("float32", "mixed_bfloat16")]
+     + [ratio(("training_step_zen4", "train_step_s/float32/stn_homography"),
+              ("training_step_zen4", "train_step_s/mixed_bfloat16/stn_homography"))]),
     ("docs/gpu.md", rf"--workers=2`, TensorFlow, mixed bfloat16\): {N} steps/s in the ledger",
      [num("schedule_ledger", "4/steps_per_s")]),
     ("docs/gpu.md", rf"50 steps per call, {N} steps/s over", [num("schedule_record",

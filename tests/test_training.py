@@ -487,26 +487,39 @@ def test_overfits_eight_pairs(tmp_path_factory):
     assert l1 < 0.85 * l1_0, (l1, l1_0)
 
 
-CPUINFO = {  # abridged /proc/cpuinfo of four CPUs (two logical CPUs each where x86)
+CPUINFO = {  # abridged /proc/cpuinfo of five CPUs (the Milan with its two logical CPUs), one
+    # without flags
     "epyc_milan": "processor\t: 0\nvendor_id\t: AuthenticAMD\n"
                   "flags\t\t: fpu sse2 avx avx2 fma f16c\n\n"
                   "processor\t: 1\nvendor_id\t: AuthenticAMD\n"
                   "flags\t\t: fpu sse2 avx avx2 fma f16c\n",
     "sapphire_rapids": "processor\t: 0\nflags\t\t: avx2 avx512f avx512_bf16 amx_bf16 amx_tile\n",
-    "xeon_no_amx": "processor\t: 0\nflags\t\t: avx2 avx512f avx512_bf16 avx512_fp16\n",
+    "xeon_no_amx": "processor\t: 0\nvendor_id\t: GenuineIntel\n"
+                   "flags\t\t: avx2 avx512f avx512_bf16 avx512_fp16\n",
+    "epyc_zen4": "processor\t: 0\nvendor_id\t: AuthenticAMD\n"
+                 "flags\t\t: avx2 avx512f avx512_bf16\n",
     "neoverse_v1": "processor\t: 0\nFeatures\t: fp asimd sve bf16 i8mm\nCPU implementer\t: 0x41\n",
     "no_flags": "processor\t: 0\nmodel name\t: something\n",
 }
 
 
 @pytest.mark.parametrize("name, expected", [("epyc_milan", False), ("sapphire_rapids", True),
-                                            ("xeon_no_amx", True),
+                                            ("xeon_no_amx", True), ("epyc_zen4", True),
                                             ("neoverse_v1", True), ("no_flags", None)])
 def test_cpu_has_native_bfloat16_reads_cpu_flags(tmp_path, name, expected):
     path = tmp_path / name
     path.write_text(CPUINFO[name])
     assert precision.cpu_has_native_bfloat16(str(path)) is expected
     assert precision.cpu_has_native_bfloat16(str(tmp_path / "missing")) is None
+
+
+def test_cpu_vendor_reads_vendor_id(tmp_path):
+    expected = {"epyc_milan": "AuthenticAMD", "epyc_zen4": "AuthenticAMD",
+                "xeon_no_amx": "GenuineIntel", "neoverse_v1": None, "no_flags": None}
+    for name, vendor in expected.items():
+        (tmp_path / name).write_text(CPUINFO[name])
+        assert precision.cpu_vendor(str(tmp_path / name)) == vendor, name
+    assert precision.cpu_vendor(str(tmp_path / "missing")) is None
 
 
 def test_mixed_precision_warning_for_emulated_bfloat16_and_no_amx(tmp_path, monkeypatch):
@@ -521,7 +534,7 @@ def test_mixed_precision_warning_for_emulated_bfloat16_and_no_amx(tmp_path, monk
     warning = precision.mixed_precision_warning(mixed, str(tmp_path / "xeon_no_amx"))
     assert "no AMX" in warning and "benchmark_training" in warning
     assert precision.mixed_precision_warning(fp32, str(tmp_path / "xeon_no_amx")) is None
-    for name in ("sapphire_rapids", "neoverse_v1", "no_flags"):
+    for name in ("sapphire_rapids", "neoverse_v1", "no_flags", "epyc_zen4"):
         assert precision.mixed_precision_warning(mixed, str(tmp_path / name)) is None
     monkeypatch.setattr(precision, "accelerator_present", lambda: True)
     assert precision.mixed_precision_warning(mixed, str(tmp_path / "epyc_milan")) is None

@@ -12,20 +12,34 @@ from stnh_tf.training.config import TrainConfig
 BFLOAT16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16", "bf16"})
 
 
-def cpu_flags(cpuinfo: str = "/proc/cpuinfo") -> frozenset | None:
-    """The CPU's instruction flags listed in ``cpuinfo`` (its ``flags`` lines on x86,
-    ``Features`` on Arm); ``None`` if it cannot be read or lists none."""
+def _cpuinfo_fields(cpuinfo: str, keys) -> list[str] | None:
+    """The values of the ``cpuinfo`` lines whose key (lower-cased) is in ``keys``; ``None`` if the
+    file cannot be read."""
     try:
         with open(cpuinfo) as f:
             text = f.read()
     except OSError:
         return None
-    flags = set()
+    values = []
     for line in text.splitlines():
         key, _, value = line.partition(":")
-        if key.strip().lower() in ("flags", "features"):
-            flags.update(value.split())
-    return frozenset(flags) or None
+        if key.strip().lower() in keys:
+            values.append(value.strip())
+    return values
+
+
+def cpu_flags(cpuinfo: str = "/proc/cpuinfo") -> frozenset | None:
+    """The CPU's instruction flags listed in ``cpuinfo`` (its ``flags`` lines on x86,
+    ``Features`` on Arm); ``None`` if it cannot be read or lists none."""
+    values = _cpuinfo_fields(cpuinfo, ("flags", "features"))
+    return frozenset(flag for value in values or () for flag in value.split()) or None
+
+
+def cpu_vendor(cpuinfo: str = "/proc/cpuinfo") -> str | None:
+    """The x86 ``vendor_id`` in ``cpuinfo`` (``"GenuineIntel"``, ``"AuthenticAMD"``, ...);
+    ``None`` if it cannot be read or lists none (as on Arm)."""
+    values = _cpuinfo_fields(cpuinfo, ("vendor_id",))
+    return values[0] if values else None
 
 
 def cpu_has_native_bfloat16(cpuinfo: str = "/proc/cpuinfo") -> bool | None:
@@ -58,8 +72,9 @@ def mixed_precision_warning(cfg: TrainConfig, cpuinfo: str = "/proc/cpuinfo") ->
     """A warning when ``cfg`` asks for mixed bfloat16 on a CPU where it may be slower than
     float32: one with no bfloat16 instructions (emulated, many times slower), or an x86 CPU with
     AVX-512 BF16 but no AMX (slower on the Intel Xeon measured, BENCHMARKS.md "The same benchmark
-    on CPUs without AMX"). ``None`` on an accelerator, with float32, on AMX or Arm BF16, or where
-    the CPU flags cannot be read."""
+    on CPUs without AMX"; on the AMD EPYC Zen 4 measured there, with the same flags, it was faster,
+    so AMD CPUs get no warning). ``None`` on an accelerator, with float32, on AMX or Arm BF16, on
+    AMD, or where the CPU flags cannot be read."""
     if not cfg.mixed_precision or accelerator_present():
         return None
     flags = cpu_flags(cpuinfo)
@@ -69,7 +84,8 @@ def mixed_precision_warning(cfg: TrainConfig, cpuinfo: str = "/proc/cpuinfo") ->
         return ("mixed_precision is on, but this CPU has no bfloat16 instructions (none of "
                 f"{sorted(BFLOAT16_CPU_FLAGS)} in {cpuinfo}): bfloat16 is emulated and training "
                 "is many times slower than in float32 here; consider --nomixed_precision.")
-    if "avx512_bf16" in flags and "amx_bf16" not in flags:
+    if ("avx512_bf16" in flags and "amx_bf16" not in flags
+            and cpu_vendor(cpuinfo) != "AuthenticAMD"):
         return ("mixed_precision is on, and this CPU has AVX-512 BF16 but no AMX (no amx_bf16 in "
                 f"{cpuinfo}): on such an Intel Xeon a bfloat16 step was 1.6x slower than float32; "
                 "time both with experiments.benchmark_training before a long run, and use "
