@@ -55,6 +55,8 @@ SOURCES = {
     "stage_pairs_before": "paper_schedule/logs/stage_pairs_benchmark_before_cpu.json",
     "stage_pairs_after": "paper_schedule/logs/stage_pairs_benchmark_after_cpu.json",
     "training_step_zen4": "paper_schedule/logs/training_step_benchmark_zen4_cpu.json",
+    "device_calls_plain": "paper_schedule/logs/device_calls_plain.json",
+    "device_calls_set_aside": "paper_schedule/logs/device_calls_set_aside.json",
     "camera0_default": "docs/camera_pairs/seed0_default.json",
     "camera0_default_estimator": "docs/camera_pairs/seed0_default_estimator.json",
     "camera0_photographs": "docs/camera_pairs/seed0_photographs.json",

@@ -12,6 +12,16 @@ first part leaves room for ``.whl/``). Each part holds its files under their pat
 one folder, as ``experiments/paper_schedule_gpu.sh`` does, rebuild the whole set. Packing by
 file rather than by folder keeps working however large the tracked tree grows: it only adds
 calls.
+
+  python -m experiments.device_photographs --set_aside   # the same, models set aside first
+  python -m experiments.device_photographs --restore     # after the last call: them back
+
+``--set_aside`` first removes from the working tree the tracked models that no chunk reads
+(:data:`ASIDE_PATTERNS`: the shipped weights and the semi-supervised experiment's models), so
+that each call has room for more photographs and the set travels in fewer calls; they stay in
+git, and ``--restore`` checks them out again. It refuses while any of them differs from HEAD.
+Until they are restored, ``git status`` lists them as deleted: restore them before anything is
+committed.
 """
 
 from __future__ import annotations
@@ -26,12 +36,54 @@ from absl import app, flags
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SHARED = os.path.join(os.path.dirname(REPO), "shared", "data")
 CALL_BYTES = 64 * 2 ** 20  # what one call of the device tool carries
+# Tracked files that no chunk on the GPU machine reads (git pathspecs; ``*`` spans folders).
+ASIDE_PATTERNS = ("semi_supervised/*.keras", "stnh_tf/weights/*.keras")
 
 flags.DEFINE_string("coco_dir", os.path.join(SHARED, "coco_mini"), "coco_mini (train/, test/).")
 flags.DEFINE_string("extra_dir", os.path.join(SHARED, "photos_extra"), "photos_extra.")
 flags.DEFINE_string("output_dir", os.path.join(REPO, ".devdata"), "Where to write them.")
 flags.DEFINE_string("wheels_dir", os.path.join(REPO, ".whl"), "The wheels the first call carries.")
+flags.DEFINE_bool("set_aside", False, "First remove the models of ASIDE_PATTERNS from the "
+                  "working tree (they stay in git), so that each call carries more photographs.")
+flags.DEFINE_bool("restore", False, "Only check the set-aside models out again, and exit.")
 FLAGS = flags.FLAGS
+
+
+def aside_files(repo: str = REPO) -> list:
+    """The tracked files of :data:`ASIDE_PATTERNS` in ``repo`` (relative paths, sorted)."""
+    listing = subprocess.run(["git", "ls-files", "-z", "--", *ASIDE_PATTERNS], cwd=repo,
+                             capture_output=True, check=True).stdout.decode().split("\0")
+    return sorted(p for p in listing if p)
+
+
+def set_aside(repo: str = REPO) -> int:
+    """Remove :func:`aside_files` from ``repo``'s working tree; returns the bytes removed.
+
+    Raises:
+        RuntimeError: one of them differs from HEAD (modified or staged): nothing is removed.
+    """
+    files = aside_files(repo)
+    changed = subprocess.run(["git", "status", "--porcelain", "--", *files], cwd=repo,
+                             capture_output=True, text=True, check=True).stdout.splitlines()
+    changed = [line for line in changed if not line.startswith(" D")]  # set aside already
+    if changed:
+        raise RuntimeError("not setting models aside, these differ from HEAD: "
+                           + "; ".join(changed))
+    removed = 0
+    for rel in files:
+        path = os.path.join(repo, rel)
+        if os.path.exists(path):
+            removed += os.path.getsize(path)
+            os.remove(path)
+    return removed
+
+
+def restore(repo: str = REPO) -> list:
+    """Check the set-aside files out again from HEAD; returns those that were missing."""
+    missing = [p for p in aside_files(repo) if not os.path.exists(os.path.join(repo, p))]
+    if missing:
+        subprocess.run(["git", "checkout", "HEAD", "--", *missing], cwd=repo, check=True)
+    return missing
 
 
 def size(path: str) -> int:
@@ -88,8 +140,9 @@ def parts(files: list, budget: int, first_extra: int) -> list:
     return out
 
 
-def main(argv):
-    del argv
+def plan_calls() -> dict:
+    """Write the parts and return the report: the photographs' counts, the tree's size and the
+    calls (command, what each carries, its MiB)."""
     out = FLAGS.output_dir
     for name in os.listdir(out) if os.path.isdir(out) else []:  # what an earlier run left
         if name.startswith("part-") or name == "all":
@@ -128,8 +181,26 @@ def main(argv):
         calls.append({"command": command, "carry": carry, "photographs": len(part["files"]),
                       "mib": round((part["bytes"] + tree) / 2 ** 20, 1)})
     shutil.rmtree(whole)
-    print(json.dumps({"coco_mini": counts, "photographs": len(files),
-                      "tracked_mib": round(tree / 2 ** 20, 1), "calls": calls}, indent=1))
+    return {"coco_mini": counts, "photographs": len(files),
+            "tracked_mib": round(tree / 2 ** 20, 1), "calls": calls}
+
+
+def main(argv):
+    del argv
+    if FLAGS.restore:
+        print(json.dumps({"restored": restore()}, indent=1))
+        return
+    aside = set_aside() if FLAGS.set_aside else 0
+    try:
+        report = plan_calls()
+    except BaseException:
+        if FLAGS.set_aside:
+            restore()  # no calls planned: nothing stays set aside
+        raise
+    if FLAGS.set_aside:
+        report["set_aside"] = {"mib": round(aside / 2 ** 20, 1), "after_the_calls":
+                               "python -m experiments.device_photographs --restore"}
+    print(json.dumps(report, indent=1))
 
 
 if __name__ == "__main__":

@@ -68,3 +68,73 @@ def test_parts_copied_over_one_folder_rebuild_every_photograph(tmp_path):
         with open(merged[f"photos_extra/set1/p{k}.jpg"], "rb") as a, \
                 open(extra / "set1" / f"p{k}.jpg", "rb") as b:
             assert a.read() == b.read()
+
+
+def _git_repo(root, files):
+    """A git repository at ``root`` holding ``files`` (relative path -> bytes), committed."""
+    for rel, data in files.items():
+        os.makedirs(os.path.dirname(root / rel) or root, exist_ok=True)
+        (root / rel).write_bytes(data)
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t", "-c", "commit.gpgsign=false"]
+    subprocess.run(["git", "init", "-q", str(root)], check=True)
+    subprocess.run(git + ["add", "-A"], cwd=root, check=True)
+    subprocess.run(git + ["commit", "-qm", "files"], cwd=root, check=True)
+
+
+MIB = 2 ** 20
+ASIDE = {"semi_supervised/run.keras": b"a" * 3 * MIB,
+         "stnh_tf/weights/stage1.keras": b"b" * 2 * MIB,
+         "stnh_tf/weights/paper/stage1.keras": b"c" * MIB}
+KEPT = {"semi_supervised/run.json": b"{}", "paper_schedule/stage1.keras": b"d" * 50,
+        "stnh_tf/weights/model_card.json": b"{}"}
+
+
+def test_set_aside_removes_the_unread_models_and_restore_brings_them_back(tmp_path):
+    _git_repo(tmp_path, {**ASIDE, **KEPT})
+    assert dp.aside_files(str(tmp_path)) == sorted(ASIDE)
+    assert dp.set_aside(str(tmp_path)) == 6 * MIB
+    assert not any((tmp_path / rel).exists() for rel in ASIDE)
+    assert all((tmp_path / rel).read_bytes() == data for rel, data in KEPT.items())
+    assert dp.set_aside(str(tmp_path)) == 0  # already aside: nothing more, no error
+    assert dp.restore(str(tmp_path)) == sorted(ASIDE)
+    assert all((tmp_path / rel).read_bytes() == data for rel, data in ASIDE.items())
+    assert subprocess.run(["git", "status", "--porcelain"], cwd=tmp_path, capture_output=True,
+                          text=True, check=True).stdout == ""
+    (tmp_path / "stnh_tf/weights/stage1.keras").write_bytes(b"retrained")
+    with pytest.raises(RuntimeError, match="stnh_tf/weights/stage1.keras"):
+        dp.set_aside(str(tmp_path))
+    assert all((tmp_path / rel).exists() for rel in ASIDE)  # nothing removed
+
+
+def test_set_aside_gives_the_calls_the_models_room(tmp_path):
+    """The binary in a repository of its own: with --set_aside the tree it reports is smaller by
+    the models set aside; a failed planning checks them out again."""
+    repo = tmp_path / "repo"
+    script = open(os.path.join(REPO, "experiments", "device_photographs.py"), "rb").read()
+    ledger = json.dumps([{"stage": 2, "done": False}]).encode()
+    _git_repo(repo, {**ASIDE, **KEPT, "experiments/device_photographs.py": script,
+                     "paper_schedule/ledger.json": ledger})
+    photos = tmp_path / "photos"
+    for folder in ("coco/train", "coco/test", "extra/set1"):
+        (photos / folder).mkdir(parents=True)
+        cv2.imwrite(str(photos / folder / "p.jpg"), np.full((240, 320), 7, np.uint8))
+    (tmp_path / "whl").mkdir()
+    run = [sys.executable, str(repo / "experiments" / "device_photographs.py"),
+           f"--coco_dir={photos / 'coco'}", f"--extra_dir={photos / 'extra'}",
+           f"--output_dir={tmp_path / 'dev'}", f"--wheels_dir={tmp_path / 'whl'}"]
+    env = dict(os.environ, PYTHONPATH=REPO)
+    plain = json.loads(subprocess.run(run, env=env, capture_output=True, text=True,
+                                      check=True).stdout)
+    aside = json.loads(subprocess.run(run + ["--set_aside"], env=env, capture_output=True,
+                                      text=True, check=True).stdout)
+    assert not any((repo / rel).exists() for rel in ASIDE)
+    assert plain["tracked_mib"] - aside["tracked_mib"] == pytest.approx(6.0, abs=0.11)
+    assert aside["set_aside"]["mib"] == 6.0 and "set_aside" not in plain
+    assert aside["calls"][-1]["command"].startswith("STAGE=2 ")
+    back = json.loads(subprocess.run(run[:2] + ["--restore"], env=env, capture_output=True,
+                                     text=True, check=True).stdout)
+    assert back["restored"] == sorted(ASIDE)
+    proc = subprocess.run(run[:2] + ["--set_aside", f"--coco_dir={tmp_path / 'none'}"], env=env,
+                          capture_output=True, text=True)
+    assert proc.returncode != 0 and "none" in proc.stderr
+    assert all((repo / rel).read_bytes() == data for rel, data in ASIDE.items())

@@ -35,6 +35,11 @@ def ratio(a, b, digits=2):
     return lambda sources: cr.fixed(cr.value(sources, *a) / cr.value(sources, *b), digits)
 
 
+def length(source, path):
+    """Expected text of the length of the list at ``path`` of ``source``."""
+    return lambda sources: str(len(cr.value(sources, source, path)))
+
+
 def count(source, path):
     return lambda sources: str(cr.value(sources, source, path))
 
@@ -289,6 +294,10 @@ PROSE = [
       ("float32", "mixed_bfloat16")]
      + [ratio(("training_step_zen4", "train_step_s/float32/stn_homography"),
               ("training_step_zen4", "train_step_s/mixed_bfloat16/stn_homography"))]),
+    ("docs/gpu.md",
+     rf"tree took {N} MiB and the photographs (\d+) calls, without them {N} MiB and (\d+) calls",
+     [num("device_calls_plain", "tracked_mib", 1), length("device_calls_plain", "calls"),
+      num("device_calls_set_aside", "tracked_mib", 1), length("device_calls_set_aside", "calls")]),
     ("docs/gpu.md", rf"--workers=2`, TensorFlow, mixed bfloat16\): {N} steps/s in the ledger",
      [num("schedule_ledger", "4/steps_per_s")]),
     ("docs/gpu.md", rf"50 steps per call, {N} steps/s over", [num("schedule_record",

@@ -165,3 +165,27 @@ def test_doctests(name):
     result = doctest.testmod(importlib.import_module(name), optionflags=doctest.ELLIPSIS)
     assert result.attempted > 0, f"{name} has no doctest"
     assert result.failed == 0, f"{result.failed} of {name}'s doctests failed"
+
+
+def test_each_committed_run_record_has_its_model_beside_it():
+    """A committed run's record ``<name>.json`` (a training configuration or a chunked stage) has
+    its model ``<name>.keras`` beside it (``config.json`` of a checkpoint folder aside): so that
+    models set aside for device calls (``experiments.device_photographs --set_aside``) cannot be
+    committed as deleted unnoticed."""
+    import json
+
+    tracked = subprocess.run(["git", "ls-files", "-z", "*.json"], cwd=ROOT, capture_output=True,
+                             check=True).stdout.decode().split("\0")
+    records = []
+    for rel in tracked:
+        if not rel or os.path.basename(rel) == "config.json":
+            continue
+        with open(os.path.join(ROOT, rel)) as f:
+            record = json.load(f)
+        if isinstance(record, dict) and record.get("format") in (
+                "stnh_tf.train_config", "stnh_tf.chunked_stage"):
+            records.append(rel)
+    assert "paper_schedule/stage1.json" in records and len(records) >= 8
+    missing = [rel for rel in records
+               if not os.path.exists(os.path.join(ROOT, rel[:-len(".json")] + ".keras"))]
+    assert not missing
