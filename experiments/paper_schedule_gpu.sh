@@ -69,5 +69,11 @@ timeout $((seconds + 60)) python3 -m experiments.paper_schedule --stage="$stage"
   --device="$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1)" 2>&1 \
   | grep -v -e "^WARNING" -e "^I0000" | tee "$out/chunk.log"
 status=$?
-tar czf "$out/paper_schedule.tgz" paper_schedule docs/gpu.md
+# What the chunk writes, not the whole folder (a file that comes back holds at most 16 MiB): the
+# ledger, the committed checkpoint with its saved stage estimates, a stage it finished.
+back="paper_schedule/ledger.json docs/gpu.md"
+for f in resume stage"$stage".keras stage"$stage".json; do
+  [ -e paper_schedule/"$f" ] && back="$back paper_schedule/$f"
+done
+tar czf "$out/paper_schedule.tgz" $back
 exit $status

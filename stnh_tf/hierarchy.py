@@ -254,7 +254,8 @@ def run_hierarchy(stages: Sequence[PredictFn], context_a: np.ndarray, patch_b: n
 
 def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 1024,
                       margin: int = CONTEXT_MARGIN, size: int = geometry.PATCH_SIZE,
-                      threads: int = 0, in_place: bool = False):
+                      threads: int = 0, in_place: bool = False, estimates=None,
+                      estimates_dtype=np.float64):
     """Stage-``n+1`` training pairs, in memory, from stage-1 pairs and ``n`` trained stages.
 
     The in-memory counterpart of ``data_prep.make_stage_dataset`` chained ``n`` times: the stages
@@ -273,12 +274,20 @@ def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 10
       chunk: pairs per model call batch; threads: chunks processed at once (0: one per core).
       in_place: write the new ``patch_a``, ``patch_a_t`` and ``h_bar`` over those of ``arrays``
         (which the re-making does not read), so no second copy of them is held.
+      estimates: ``h_prev [N, 3, 3]`` of an earlier call on the same pairs: the pairs are made
+        from it and ``stages`` are not called (``rejected`` then counts nothing).
+      estimates_dtype: the composed estimates are rounded to this dtype before the pairs are made
+        from them (``np.float32``: as saved for a later call with ``estimates``, which then gives
+        the same pairs to the bit).
     Returns:
       ``(pairs, rejected)``: ``pairs`` in the compact form (``patch_a``, ``patch_b``,
       ``patch_a_t``, ``h_bar``, ``h_mask``, plus ``h_prev [N, 3, 3]``, the estimate the pair
       starts from); ``rejected`` counts the degenerate-rule cases of every stage by reason.
     """
     n = len(arrays["patch_b"])
+    if estimates is not None and np.shape(estimates) != (n, 3, 3):
+        raise ValueError(f"estimates of shape {np.shape(estimates)} for {n} pairs; expected "
+                         f"({n}, 3, 3).")
     made = ("patch_a", "patch_a_t", "h_bar")
     out = {key: arrays[key] if in_place or key not in made else np.empty_like(arrays[key])
            for key in ("patch_a", "patch_b", "patch_a_t", "h_bar", "h_mask")}
@@ -288,11 +297,15 @@ def next_stage_arrays(arrays: dict, stages: Sequence[PredictFn], chunk: int = 10
 
     def one_chunk(a):
         b = min(a + chunk, n)
-        run = run_hierarchy(stages, arrays["context_a"][a:b], arrays["patch_b"][a:b],
-                            margin=margin, size=size)
-        out["h_prev"][a:b] = run["h"]
-        stage_pairs(arrays["context_a"][a:b], arrays["h_ba"][a:b], run["h"], margin, size,
-                    out={key: out[key][a:b] for key in made})
+        if estimates is None:
+            run = run_hierarchy(stages, arrays["context_a"][a:b], arrays["patch_b"][a:b],
+                                margin=margin, size=size)
+            out["h_prev"][a:b] = run["h"].astype(estimates_dtype)
+        else:
+            run = {"rejected": []}
+            out["h_prev"][a:b] = estimates[a:b]
+        stage_pairs(arrays["context_a"][a:b], arrays["h_ba"][a:b], out["h_prev"][a:b], margin,
+                    size, out={key: out[key][a:b] for key in made})
         return run["rejected"]
 
     # Chunks run in threads (OpenCV's warps and NumPy's large array operations release the GIL;

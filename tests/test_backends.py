@@ -289,7 +289,7 @@ def test_gpu_recipe_trains_two_stages_without_tensorflow(tmp_path):
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert "TensorFlow is not installed" in proc.stderr  # the hiding took effect
-    assert re.search(r"stage-2 pairs: \d+ made with context .* 1 previous stages loaded",
+    assert re.search(r"stage-2 train pairs: \d+ made with context .* 1 previous stages loaded",
                      proc.stderr), proc.stderr[-4000:]
     for k in (1, 2):
         config = json.loads((out / f"stage{k}" / "config.json").read_text())

@@ -177,7 +177,7 @@ def test_unlabeled_images_add_masked_pairs_and_leave_the_labeled_ones(folders):
     assert u["patch_a"].shape == a["patch_a"].shape and np.any(u["patch_a"] != a["patch_a"])
 
 
-def test_stage_k_in_memory_keeps_the_unlabeled_h_bar_zero(folders, monkeypatch):
+def test_stage_k_in_memory_keeps_the_unlabeled_h_bar_zero(folders, monkeypatch, tmp_path):
     """Stage-2 pairs re-made in memory (here from an identity 'stage 1'): the unlabeled pairs'
     stage-2 H_bar stays zeros, the labeled ones' is what next_stage_arrays makes."""
     from stnh_tf import hierarchy
@@ -187,8 +187,10 @@ def test_stage_k_in_memory_keeps_the_unlabeled_h_bar_zero(folders, monkeypatch):
     monkeypatch.setattr(runner, "predictor",
                         lambda m, batch_size=64: lambda a, b: np.broadcast_to(np.eye(3),
                                                                               (len(a), 3, 3)))
-    cfg = train_config.TrainConfig(image_dir=lab, unlabeled_image_dir=unl, model_dir="m",
-                                   stage=2, in_memory=True, prev_stages=("s1",),
+    (tmp_path / "s1.keras").write_bytes(b"stage 1")  # read for the saved estimates' key
+    cfg = train_config.TrainConfig(image_dir=lab, unlabeled_image_dir=unl,
+                                   model_dir=str(tmp_path / "m"), stage=2, in_memory=True,
+                                   prev_stages=(str(tmp_path / "s1.keras"),),
                                    samples_per_image=2, batch_size=4, label_fraction=0.5)
     cfg.validate()
     pb = batches.PairBatches(lab, 4, samples_per_image=2, seed=0, shuffle=False,

@@ -193,6 +193,38 @@ def test_in_memory_stage_pairs_equal_make_stage_dataset_records(stage1_data, tmp
         np.testing.assert_allclose(pairs["h_prev"][s], a2["h_prev"][k], atol=1e-6)
 
 
+def test_pairs_made_from_saved_estimates_equal_the_pairs_they_were_saved_with(stage1_data):
+    """next_stage_arrays with estimates rounded to float32 (as a run saves them), then again from
+    those estimates without the stages: the same pairs to the bit, degenerate cases included."""
+    from stnh_tf import hierarchy
+
+    a1 = data.load_arrays(stage1_data, "train")
+    idx = [int(i) for i in a1["index"][:2]]
+    oracle = Oracle(a1, override={idx[0]: np.full((3, 3), np.nan),
+                                  idx[1]: geometry.translation(60, 0)})
+    pair_batches = batches.PairBatches("bundled", 4, samples_per_image=3, seed=0, max_images=5)
+    arrays = batches.materialize(pair_batches, workers=0, context=True)
+    first, rejected = hierarchy.next_stage_arrays(arrays, [oracle], chunk=7, threads=2,
+                                                  estimates_dtype=np.float32)
+    exact, _ = hierarchy.next_stage_arrays(arrays, [oracle], chunk=7, threads=2)
+    assert rejected["non_finite"] == 1 and rejected["outside_context"] >= 1
+    saved = first["h_prev"].astype(np.float32)
+    np.testing.assert_array_equal(saved, first["h_prev"])  # rounded before the pairs were made
+    assert not np.array_equal(exact["h_prev"], first["h_prev"])
+    np.testing.assert_allclose(exact["h_prev"], first["h_prev"], rtol=1e-6, atol=1e-6)
+
+    def no_stage(patch_a, patch_b):
+        raise AssertionError("a stage was called")
+
+    again, counts = hierarchy.next_stage_arrays(arrays, [no_stage], chunk=5, threads=1,
+                                                estimates=saved)
+    for name in first:
+        np.testing.assert_array_equal(again[name], first[name])
+    assert sum(counts.values()) == 0
+    with pytest.raises(ValueError, match=r"estimates of shape \(3, 3, 3\)"):
+        hierarchy.next_stage_arrays(arrays, [], estimates=saved[:3])
+
+
 def test_input_must_be_previous_stage(stage1_data, tmp_path):
     a1 = data.load_arrays(stage1_data, "train")
     with pytest.raises(ValueError, match="stage-1 data; stage 3"):

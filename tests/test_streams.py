@@ -224,6 +224,58 @@ def test_both_validation_sources_serve_exactly_val_samples_same_pairs(folder, re
     assert sum(len(b[1]["h_bar"]) for b in stored) == expected
 
 
+def test_stage_pairs_are_made_again_from_the_estimates_saved_in_the_run_folder(folder, tmp_path,
+                                                                               monkeypatch):
+    """Stage-2 pairs in memory: the first call runs the stage and saves its estimates in the run
+    folder; a second call (a resumed run) makes the same pairs from them without the stage; a
+    changed stage file, or other pairs, run the stage again."""
+    import zlib
+
+    from stnh_tf import geometry
+    from stnh_tf.modeling import runner
+
+    calls = []
+
+    def stage(patch_a, patch_b):  # a fixed, pair-dependent estimate, as a trained stage gives
+        calls.append(len(patch_b))
+        out = []
+        for b in patch_b:
+            rng = np.random.default_rng(zlib.crc32(np.asarray(b).tobytes()))
+            out.append(geometry.translation(*rng.uniform(-6, 6, 2)))
+        return np.stack(out)
+
+    monkeypatch.setattr(runner, "load_model", lambda path: path)
+    monkeypatch.setattr(runner, "predictor", lambda model, batch_size: stage)
+    stage1 = tmp_path / "stage1.keras"
+    stage1.write_bytes(b"stage 1")
+    cfg = train_config.TrainConfig(image_dir=folder, model_dir=str(tmp_path / "run"), stage=2,
+                                   prev_stages=(str(stage1),), samples_per_image=PER_IMAGE,
+                                   batch_size=BATCH, in_memory=True, workers=0)
+
+    def make(split="train", **kw):
+        pb = batches.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0, **kw)
+        return train_streams.stage_pairs(cfg, pb, split)
+
+    first = make()
+    assert sum(calls) == N_IMAGES * PER_IMAGE
+    assert (tmp_path / "run" / "stage_estimates_train.npz").exists()
+    calls.clear()
+    again = make()
+    assert calls == []
+    for name in first:
+        np.testing.assert_array_equal(again[name], first[name])
+    make("val")  # the validation pairs: their own file
+    assert sum(calls) == N_IMAGES * PER_IMAGE
+    assert (tmp_path / "run" / "stage_estimates_val.npz").exists()
+    calls.clear()
+    stage1.write_bytes(b"stage 1, trained on")  # another stage
+    make()
+    assert sum(calls) == N_IMAGES * PER_IMAGE
+    calls.clear()
+    make(max_images=2)  # other pairs
+    assert sum(calls) == 2 * PER_IMAGE
+
+
 @pytest.mark.slow  # (a binary end to end, 6-15 s; make test-all)
 def test_stage2_from_image_folder_validates_on_make_stage_dataset_pairs(folder, records, tmp_path,
                                                                        narrow):

@@ -746,6 +746,50 @@ def test_sync_in_keeps_a_newer_local_checkpoint(tmp_path):
     assert (tmp_path / "new" / "config.json").read_text() == "{}"
 
 
+def test_saved_stage_estimates_travel_with_the_committed_checkpoint(tmp_path):
+    """sync_out puts the run folder's saved estimates into the resume folder; sync_in puts them
+    into a run folder that lacks them (a chunk on another machine) and keeps a folder's own."""
+    from stnh_tf.training import chunks, run_dir
+
+    run = tmp_path / "run"
+    (run / "checkpoint").mkdir(parents=True)
+    (run / "checkpoint" / "ckpt-00000004.weights.h5").write_bytes(b"w4")
+    (run / "checkpoint" / "state.json").write_text(json.dumps(
+        {"step": 4, "weights": "ckpt-00000004.weights.h5"}))
+    (run / "config.json").write_text("{}")
+    h = np.random.default_rng(0).normal(size=(5, 3, 3))
+    run_dir.save_estimates(str(run), "train", "key-1", h, {"outside_context": 2})
+    resume = tmp_path / "repo" / "resume" / "stage2"
+    assert chunks.sync_out(str(run), str(resume)) == 4
+    assert sorted(os.listdir(resume)) == ["ckpt-00000004.weights.h5", "config.json",
+                                          "stage_estimates_train.npz", "state.json"]
+    other = tmp_path / "other"
+    assert chunks.sync_in(str(resume), str(other)) == 4
+    got, rejected = run_dir.load_estimates(str(other), "train", "key-1")
+    np.testing.assert_array_equal(got, h.astype(np.float32))
+    assert rejected == {"outside_context": 2}
+    run_dir.save_estimates(str(other), "train", "key-2", h[:1], {})
+    chunks.sync_in(str(resume), str(other))
+    assert run_dir.load_estimates(str(other), "train", "key-2")[0].shape == (1, 3, 3)
+
+
+def test_saved_stage_estimates_are_read_only_under_their_key(tmp_path):
+    from stnh_tf.training import run_dir
+
+    assert run_dir.load_estimates(str(tmp_path), "val", "k") is None  # none saved
+    h = np.random.default_rng(1).normal(size=(3, 3, 3))
+    path = run_dir.save_estimates(str(tmp_path), "val", "k", h, {"singular": 1})
+    assert os.path.basename(path) == run_dir.ESTIMATES_FILES["val"]
+    assert run_dir.load_estimates(str(tmp_path), "train", "k") is None  # another split
+    assert run_dir.load_estimates(str(tmp_path), "val", "other") is None  # other pairs or stages
+    got, rejected = run_dir.load_estimates(str(tmp_path), "val", "k")
+    assert got.dtype == np.float64 and rejected == {"singular": 1}
+    np.testing.assert_array_equal(got, h.astype(np.float32).astype(np.float64))
+    with open(path, "r+b") as f:  # a torn file reads as none saved
+        f.truncate(40)
+    assert run_dir.load_estimates(str(tmp_path), "val", "k") is None
+
+
 def _scalars(folder):
     """{tag: {step: value}} of the TensorBoard event files in ``folder``."""
     out = {}

@@ -6,8 +6,10 @@ Layout of a chunked run's repository folder ``root`` (e.g. ``paper_schedule/``):
 
 * ``resume/stage<k>/``: the checkpoint of the unfinished stage k: ``config.json`` (the
   :class:`~stnh_tf.training.config.TrainConfig`), ``state.json`` (step, RNG states) and the one
-  ``ckpt-<step>.weights.h5`` it names (weights and optimizer state); replaced by each chunk and
-  removed when the stage is done;
+  ``ckpt-<step>.weights.h5`` it names (weights and optimizer state), and for k > 1 the finished
+  stages' estimates its pairs are made from (``stage_estimates_<split>.npz``:
+  :func:`stnh_tf.training.streams.stage_pairs`); replaced by each chunk and removed when the
+  stage is done;
 * ``stage<k>.keras``: a finished stage (weights without optimizer state), and beside it
   ``stage<k>.json`` (:func:`stage_record`: the run's configuration and its chunks), what
   ``experiments.ship_weights`` puts in a model card;
@@ -88,11 +90,22 @@ def _copy_checkpoint(src_dir, dst_dir, extra_files=()):
     shutil.rmtree(old, ignore_errors=True)
 
 
+def _estimates(folder: str) -> list:
+    """The saved stage estimates (:data:`stnh_tf.training.run_dir.ESTIMATES_FILES`) in
+    ``folder``."""
+    return [os.path.join(folder, name) for name in run_dir.ESTIMATES_FILES.values()
+            if os.path.exists(os.path.join(folder, name))]
+
+
 def sync_in(resume: str, model_dir: str) -> int | None:
     """Copy the committed checkpoint in ``resume`` into the run folder ``model_dir`` where it is
-    newer than the folder's own (or the folder has none). Returns the step copied in, else
-    ``None``."""
+    newer than the folder's own (or the folder has none), with the saved stage estimates beside
+    it that the folder lacks. Returns the step copied in, else ``None``."""
     ckpt = os.path.join(model_dir, run_dir.CHECKPOINT_DIR)
+    for path in _estimates(resume) if os.path.isdir(resume) else []:
+        if not os.path.exists(os.path.join(model_dir, os.path.basename(path))):
+            os.makedirs(model_dir, exist_ok=True)
+            shutil.copy2(path, model_dir)
     if _step(resume) <= _step(ckpt):
         return None
     os.makedirs(model_dir, exist_ok=True)
@@ -104,11 +117,12 @@ def sync_in(resume: str, model_dir: str) -> int | None:
 
 
 def sync_out(model_dir: str, resume: str) -> int:
-    """Replace ``resume`` by the run folder's committed checkpoint and ``config.json``. Returns
-    its step."""
+    """Replace ``resume`` by the run folder's committed checkpoint, ``config.json`` and saved
+    stage estimates. Returns its step."""
     ckpt = os.path.join(model_dir, run_dir.CHECKPOINT_DIR)
     os.makedirs(os.path.dirname(resume), exist_ok=True)
-    _copy_checkpoint(ckpt, resume, [os.path.join(model_dir, run_dir.CONFIG_FILE)])
+    _copy_checkpoint(ckpt, resume,
+                     [os.path.join(model_dir, run_dir.CONFIG_FILE), *_estimates(model_dir)])
     return _step(resume)
 
 

@@ -3,17 +3,20 @@ a run is started, resumed or overwritten there.
 
 Layout of ``model_dir``: ``config.json`` (the :class:`~stnh_tf.training.config.TrainConfig` with
 :data:`CONFIG_MARKER`), ``checkpoint/`` (``ckpt-<step>.weights.h5`` committed by ``state.json``),
-``logs/`` (TensorBoard), and when finished ``model.keras`` and ``result.json``; while a run
+``logs/`` (TensorBoard), for an in-memory stage-k run ``stage_estimates_<split>.npz``
+(:func:`save_estimates`), and when finished ``model.keras`` and ``result.json``; while a run
 trains, its lock (:class:`RunLock`, ``.stnh_tf_run.lock``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import numbers
 import os
 import shutil
 import time
+import zipfile
 
 import keras
 import numpy as np
@@ -31,8 +34,10 @@ CHECKPOINT_DIR = "checkpoint"
 CHECKPOINT_WEIGHTS = "ckpt.weights.h5"  # legacy single-file name, still read
 CHECKPOINT_WEIGHTS_PATTERN = "ckpt-{step:08d}.weights.h5"
 CHECKPOINT_STATE = "state.json"
+# The finished stages' estimates of an in-memory stage-k run's pairs, per split (save_estimates).
+ESTIMATES_FILES = {"train": "stage_estimates_train.npz", "val": "stage_estimates_val.npz"}
 # What a run writes in model_dir besides config.json: all that --overwrite deletes (remove_run).
-RUN_ENTRIES = (FINAL_MODEL, RESULT_FILE, CHECKPOINT_DIR, LOGS_DIR)
+RUN_ENTRIES = (FINAL_MODEL, RESULT_FILE, CHECKPOINT_DIR, LOGS_DIR, *ESTIMATES_FILES.values())
 # The fields by which a config.json written before CONFIG_MARKER is recognised as a run's (with
 # their values: _legacy_config_problem).
 _LEGACY_CONFIG_KEYS = frozenset({"model", "model_dir", "stage", "train_steps", "warmup_steps",
@@ -392,3 +397,30 @@ class RunLock:
 
     def __exit__(self, *exc):
         self.release()
+
+
+def save_estimates(model_dir: str, split: str, key: str, h_prev: np.ndarray,
+                   rejected: dict) -> str:
+    """Keep the finished stages' estimates of a stage-k run's in-memory pairs of ``split`` in
+    ``model_dir`` (``h_prev [N, 3, 3]`` as float32, the degenerate-rule counts, and ``key``, what
+    they are the estimates of), written through a temporary file. Returns the path."""
+    path = os.path.join(model_dir, ESTIMATES_FILES[split])
+    tmp = f"{path}.tmp-{os.getpid()}.npz"
+    np.savez_compressed(tmp, h_prev=np.asarray(h_prev, np.float32), key=np.array(key),
+                        rejected=np.array(json.dumps(rejected, sort_keys=True)))
+    fsync_replace(tmp, path)
+    return path
+
+
+def load_estimates(model_dir: str, split: str, key: str):
+    """``(h_prev, rejected)`` saved by :func:`save_estimates` for ``split`` under the same
+    ``key``; ``None`` where there are none, they are unreadable, or they are of other pairs or
+    stages (another key)."""
+    path = os.path.join(model_dir, ESTIMATES_FILES[split])
+    try:
+        with np.load(path) as saved:
+            if str(saved["key"]) != key:
+                return None
+            return saved["h_prev"].astype(np.float64), json.loads(str(saved["rejected"]))
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
+        return None

@@ -8,8 +8,12 @@ Every training stream applies the run's label options (``label_fraction``, ``dro
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import os
 import time
+
+import numpy as np
 
 from stnh_tf.data import batches, pair_datasets
 from stnh_tf.training import model_kinds
@@ -99,15 +103,22 @@ def check_labels(cfg: TrainConfig) -> None:
                              f"seed {cfg.seed}), fewer than one batch of {cfg.batch_size}.")
 
 
-def stage_pairs(cfg: TrainConfig, pair_batches) -> dict:
+def stage_pairs(cfg: TrainConfig, pair_batches, split: str = "train") -> dict:
     """``pair_batches``' pairs (``stnh_tf.data.batches.PairBatches``, epoch 0) for stage
     ``cfg.stage``, in the compact form (:func:`stnh_tf.data.batches.stack_samples`), generated with
     ``cfg.workers`` processes. Stage 1: as generated; stage k > 1: re-made in memory from the
     predictions of ``cfg.prev_stages`` (:func:`stnh_tf.hierarchy.next_stage_arrays`, the paper's
     offline re-generation without TFRecords), the pairs without ground truth (``h_mask`` 0)
-    keeping ``h_bar`` zeros (their stage-k target is not kept)."""
+    keeping ``h_bar`` zeros (their stage-k target is not kept).
+
+    Stage k > 1 keeps the stages' estimates (rounded to float32, as the TFRecord path stores
+    them) in ``cfg.model_dir`` (:func:`stnh_tf.training.run_dir.save_estimates`, one file per
+    ``split``: ``"train"`` or ``"val"``): a resumed run, on this machine or another, makes the
+    same pairs from them without calling the stages, as long as its pairs and stages are those
+    they were made for (:func:`estimates_key`)."""
     from stnh_tf import hierarchy
     from stnh_tf.modeling import runner
+    from stnh_tf.training import run_dir
 
     start = time.perf_counter()
     if cfg.stage == 1:
@@ -117,27 +128,61 @@ def stage_pairs(cfg: TrainConfig, pair_batches) -> dict:
         return pairs
     arrays = batches.materialize(pair_batches, cfg.workers, context=True)
     made = time.perf_counter()
-    stages = [runner.predictor(runner.load_model(d), batch_size=256) for d in cfg.prev_stages]
-    predicting = [0.0]  # seconds inside the stages' model calls
+    key = estimates_key(arrays, cfg.prev_stages)
+    saved = run_dir.load_estimates(cfg.model_dir, split, key)
+    if saved is not None:
+        pairs, _ = hierarchy.next_stage_arrays(arrays, [], in_place=True, estimates=saved[0])
+        _log.info("stage-%d %s pairs: %d made with context in %.1f s, re-made in %.1f s from "
+                  "the stages' estimates saved in %s (degenerate-rule cases then %s)", cfg.stage,
+                  split, len(pairs["patch_b"]), made - start, time.perf_counter() - made,
+                  cfg.model_dir, saved[1])
+    else:
+        stages = [runner.predictor(runner.load_model(d), batch_size=256)
+                  for d in cfg.prev_stages]
+        predicting = [0.0]  # seconds inside the stages' model calls
 
-    def timed(predict):
-        def call(patch_a, patch_b):
-            t = time.perf_counter()
-            h = predict(patch_a, patch_b)
-            predicting[0] += time.perf_counter() - t
-            return h
-        return call
+        def timed(predict):
+            def call(patch_a, patch_b):
+                t = time.perf_counter()
+                h = predict(patch_a, patch_b)
+                predicting[0] += time.perf_counter() - t
+                return h
+            return call
 
-    loaded = time.perf_counter()
-    pairs, rejected = hierarchy.next_stage_arrays(arrays, [timed(p) for p in stages],
-                                                  in_place=True)
-    _log.info("stage-%d pairs: %d made with context in %.1f s, %d previous stages loaded in %.1f s"
-              ", pairs re-made from their predictions in %.1f s (%.1f s of it in the model "
-              "calls); degenerate-rule cases %s", cfg.stage, len(pairs["patch_b"]), made - start,
-              len(stages), loaded - made, time.perf_counter() - loaded, predicting[0], rejected)
+        loaded = time.perf_counter()
+        pairs, rejected = hierarchy.next_stage_arrays(
+            arrays, [timed(p) for p in stages], in_place=True, estimates_dtype=np.float32)
+        _log.info("stage-%d %s pairs: %d made with context in %.1f s, %d previous stages loaded "
+                  "in %.1f s, pairs re-made from their predictions in %.1f s (%.1f s of it in "
+                  "the model calls); degenerate-rule cases %s", cfg.stage, split,
+                  len(pairs["patch_b"]), made - start, len(stages), loaded - made,
+                  time.perf_counter() - loaded, predicting[0], rejected)
+        if cfg.model_dir:
+            os.makedirs(cfg.model_dir, exist_ok=True)
+            run_dir.save_estimates(cfg.model_dir, split, key, pairs["h_prev"], rejected)
     pairs.pop("h_prev")
     pairs["h_bar"][pairs["h_mask"] == 0] = 0.0
     return pairs
+
+
+def estimates_key(arrays: dict, prev_stages) -> str:
+    """What a stage-k run's saved estimates are of (sha256, hex): the stage-1 pairs (their count,
+    their ``h_ba`` rounded to 1e-6, the context of 64 of them spread over the set) and the
+    finished stages (their model files' bytes)."""
+    from stnh_tf.training import run_dir
+
+    n = len(arrays["patch_b"])
+    digest = hashlib.sha256(str(n).encode())
+    digest.update((np.round(np.asarray(arrays["h_ba"], np.float64), 6) + 0.0).tobytes())
+    digest.update(np.ascontiguousarray(arrays["context_a"][::max(1, n // 64)]).tobytes())
+    for stage in prev_stages:
+        path = os.path.join(stage, run_dir.FINAL_MODEL) if os.path.isdir(stage) else stage
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"stage-k pairs need the finished stage {path!r}: no such "
+                                    "file.")
+        with open(path, "rb") as f:
+            digest.update(hashlib.sha256(f.read()).digest())
+    return digest.hexdigest()
 
 
 def generated_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0):
@@ -174,7 +219,7 @@ def generated_validation(cfg: TrainConfig):
                                        shuffle=False, drop_remainder=False,
                                        max_images=-(-cfg.val_samples // per_image))
     n = validation_count(cfg, pair_batches.num_samples)
-    arrays = {k: v[:n] for k, v in stage_pairs(cfg, pair_batches).items()}
+    arrays = {k: v[:n] for k, v in stage_pairs(cfg, pair_batches, "val").items()}
     return pair_datasets.ArraySequence(arrays, cfg.batch_size, mapper=model_kinds.targets_for(cfg))
 
 
