@@ -129,7 +129,7 @@ def stage_pairs(cfg: TrainConfig, pair_batches, split: str = "train") -> dict:
     arrays = batches.materialize(pair_batches, cfg.workers, context=True)
     made = time.perf_counter()
     key = estimates_key(arrays, cfg.prev_stages)
-    saved = run_dir.load_estimates(cfg.model_dir, split, key)
+    saved = run_dir.load_estimates(cfg.model_dir, split, key) if cfg.model_dir else None
     if saved is not None:
         pairs, _ = hierarchy.next_stage_arrays(arrays, [], in_place=True, estimates=saved[0])
         _log.info("stage-%d %s pairs: %d made with context in %.1f s, re-made in %.1f s from "
