@@ -14,6 +14,7 @@ import re
 import shutil
 
 from experiments import current_results as cr
+from stnh_tf.training.config import TrainConfig
 
 ROOT = cr.default_root()
 N = r"([\d.]+)"  # one number in a phrase
@@ -148,9 +149,10 @@ def callback_cost(source):
         sources)) / float(probe("array/spe50", source)(sources))))
 
 
-def schedule_steps_left(stage, total=91_000):
-    """The steps of ``stage`` left after the last chunk in the paper schedule's ledger."""
-    return lambda sources: "{:,}".format(total - max(
+def schedule_steps_left(stage):
+    """The steps of ``stage`` left after the last chunk in the paper schedule's ledger (the
+    schedule trains ``TrainConfig``'s default steps, the paper's)."""
+    return lambda sources: "{:,}".format(TrainConfig().train_steps - max(
         r["to_step"] for r in sources["schedule_ledger"] if r["stage"] == stage))
 
 
