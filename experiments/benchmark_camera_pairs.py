@@ -14,7 +14,10 @@ estimator's implausibility flag as a detector of estimates more than 5 px off
 The estimator runs with ``estimate_images``' default options (``EstimateOptions.photographs()``)
 unless the flags say otherwise.
 
-Prints one JSON object.
+Prints a short table per group and over all pairs (:func:`stnh_tf.evaluation.summaries.
+camera_pairs_table`: MACE, median, pairs worse than the identity, "worse than the identity" where a
+mean is above the identity's); --json_out=FILE writes the full JSON, --json_out=- prints it
+instead.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common, flags_common
-from stnh_tf.evaluation import camera_pairs
+from stnh_tf.evaluation import camera_pairs, summaries
 from stnh_tf.inference.options import EstimateOptions
 
 flags.DEFINE_string("pairs_dir", None, "Folder of pairs (make_camera_pairs).", required=True)
@@ -32,9 +35,10 @@ flags.DEFINE_list("methods", list(camera_pairs.METHODS),
 flags.DEFINE_integer("max_pairs", 0, "Only the first this many pairs (0: all).")
 flags.DEFINE_bool("per_pair", False, "Also print each pair's errors and flag.")
 # estimate_images' default options
-flags_common.define_estimate_flags(("search", "refine", "tta", "retry_tta", "verify", "coarse"),
+flags_common.define_estimate_flags(("search", "refine", "tta", "retry_tta", "verify", "coarse",
+                                    "features"),
                                    EstimateOptions.photographs())
-flags_common.define_json_out()
+flags.DEFINE_string("json_out", None, summaries.JSON_OUT_HELP)
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them
 
@@ -42,10 +46,11 @@ flags.adopt_module_key_flags(flags_common)  # --help lists them
 def main(argv):
     del argv
     with common.user_errors("benchmark_camera_pairs"):
+        summaries.check_json_out(FLAGS.json_out)
         result = camera_pairs.benchmark_folder(
             FLAGS.pairs_dir, tuple(FLAGS.methods), FLAGS.model, flags_common.options_from_flags(),
             FLAGS.max_pairs, FLAGS.per_pair)
-    common.emit_json(result, FLAGS.json_out)
+    summaries.emit(result, summaries.camera_pairs_table(result), FLAGS.json_out)
 
 
 if __name__ == "__main__":

@@ -10,8 +10,9 @@ that separately), the median time of a ``model.fit`` training step at ``--batch_
 
 in float32 and in Keras mixed bfloat16 (optionally also with ``jit_compile``), and reports the
 share of the step spent in the STN and the losses, ``(stn - bare) / stn``; with ``--unlabeled``
-also the full model's step on the same batch with every pair unlabeled (``h_mask`` 0, the L1 term
-alone: training with missing labels, docs/training.md) and its ratio to the labeled step. Then
+also the step of a run with unlabeled pairs (its model has the output of their L1 term against
+patch_b: training with missing labels, docs/training.md) on the same batch with every pair
+unlabeled (``h_mask`` 0) and its ratio to the labeled step. Then
 the batch-1 inference latency of the full model (median over ``--latency_runs`` calls of a
 compiled ``tf.function`` after warm-up). Prints one JSON object.
 """
@@ -30,8 +31,9 @@ flags.DEFINE_list("policies", ["float32", "mixed_bfloat16"], "Keras dtype polici
 flags.DEFINE_bool("jit", False, "Also measure jit_compile=True.")
 flags.DEFINE_integer("latency_runs", 200, "Batch-1 inference calls timed.")
 flags.DEFINE_integer("seed", 0, "Seed of the batches and weights.")
-flags.DEFINE_bool("unlabeled", False, "Also time the full model's step with every pair unlabeled "
-                  "(h_mask 0: the L1 term alone), against the labeled one.")
+flags.DEFINE_bool("unlabeled", False, "Also time the step of a run with unlabeled pairs, every "
+                  "pair unlabeled (h_mask 0: the L1 term against patch_b alone), against the "
+                  "labeled one.")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them

@@ -8,7 +8,9 @@ was not trained on (another photograph, patch_b rotated 180 degrees, motion of 8
   python -m experiments.check_implausible --retry_tta=dihedral  # ... of the flagged pairs only
   python -m experiments.check_implausible --search=none         # the network's estimates only
 
-Prints one JSON object (:func:`stnh_tf.evaluation.mace.implausibility_check`).
+Prints a short table (:func:`stnh_tf.evaluation.summaries.implausibility_table`: the estimator
+and the identity on the ordinary pairs, the share flagged per case); --json_out=FILE writes the
+JSON of :func:`stnh_tf.evaluation.mace.implausibility_check`, --json_out=- prints it instead.
 """
 
 from __future__ import annotations
@@ -16,14 +18,14 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common, flags_common
-from stnh_tf.evaluation import mace
+from stnh_tf.evaluation import mace, summaries
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
 flags.DEFINE_string("data_dir", None, "Stage-1 pairs (default: the model card's bundled pairs).")
 flags.DEFINE_string("split", "test", "Split of --data_dir.")
 flags.DEFINE_bool("photometric", False, "Bundled pairs with a photometric change of patch_b.")
 flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search"))
-flags_common.define_json_out()
+flags.DEFINE_string("json_out", None, summaries.JSON_OUT_HELP)
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them
 
@@ -31,10 +33,11 @@ flags.adopt_module_key_flags(flags_common)  # --help lists them
 def main(argv):
     del argv
     with common.user_errors("check_implausible"):
+        summaries.check_json_out(FLAGS.json_out)
         result = mace.implausibility_check(FLAGS.model, FLAGS.data_dir, FLAGS.split,
                                            photometric=FLAGS.photometric,
                                            options=flags_common.options_from_flags())
-    common.emit_json(result, FLAGS.json_out)
+    summaries.emit(result, summaries.implausibility_table(result), FLAGS.json_out)
 
 
 if __name__ == "__main__":

@@ -22,6 +22,10 @@ that each call has room for more photographs and the set travels in fewer calls;
 git, and ``--restore`` checks them out again. It refuses while any of them differs from HEAD.
 Until they are restored, ``git status`` lists them as deleted: restore them before anything is
 committed.
+
+Every file it writes under ``--output_dir`` is listed first in ``--output_dir/``:data:`MARKER`; a
+later run removes exactly those (:func:`clear_output`), and refuses a non-empty folder without
+that list (one it did not make), so that nothing else there is ever deleted.
 """
 
 from __future__ import annotations
@@ -33,11 +37,17 @@ import subprocess
 
 from absl import app, flags
 
+from experiments import common
+from stnh_tf.paths import inside
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SHARED = os.path.join(os.path.dirname(REPO), "shared", "data")
 CALL_BYTES = 64 * 2 ** 20  # what one call of the device tool carries
 # Tracked files that no chunk on the GPU machine reads (git pathspecs; ``*`` spans folders).
 ASIDE_PATTERNS = ("semi_supervised/*.keras", "stnh_tf/weights/*.keras")
+# The list of the files a run wrote under --output_dir, one relative path a line (OutputFiles).
+MARKER = ".device_photographs_files"
+MARKER_HEADER = "# written by experiments.device_photographs; its next run removes these files\n"
 
 flags.DEFINE_string("coco_dir", os.path.join(SHARED, "coco_mini"), "coco_mini (train/, test/).")
 flags.DEFINE_string("extra_dir", os.path.join(SHARED, "photos_extra"), "photos_extra.")
@@ -86,25 +96,106 @@ def restore(repo: str = REPO) -> list:
     return missing
 
 
+class OutputFiles:
+    """The files a run writes under ``out``: each one's path relative to ``out`` is appended to
+    ``out/``:data:`MARKER` before the file is written (so that a run killed midway still lists
+    what it wrote), and a path that already holds something (not this tool's: :func:`clear_output`
+    removed its own) is refused. Made by :func:`clear_output`::
+
+        files = clear_output(out)
+        shutil.copyfile(src, files.claim(os.path.join(out, "part-1", "a.png")))
+    """
+
+    def __init__(self, out: str):
+        self.out = out
+        self.written = []
+
+    def claim(self, path: str) -> str:
+        """List ``path`` (inside ``out``) as written; returns it, its folder made.
+
+        Raises:
+          FileExistsError: something is at ``path`` already (nothing is listed or written)."""
+        if os.path.lexists(path):
+            raise FileExistsError(f"{path} exists and was not written by device_photographs: "
+                                  "not replacing it; move it away.")
+        rel = os.path.relpath(path, self.out)
+        with open(os.path.join(self.out, MARKER), "a") as f:
+            f.write(rel + "\n")
+        self.written.append(rel)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        return path
+
+
+def _remove_files(out: str, rels) -> None:
+    """Remove the files ``rels`` (relative to ``out``) that are there, then every folder between
+    them and ``out`` that this leaves empty."""
+    folders = set()
+    for rel in rels:
+        path = inside(out, rel, f"{os.path.join(out, MARKER)!r}, a listed file")
+        if os.path.isfile(path) or os.path.islink(path):
+            os.remove(path)
+        parent = os.path.dirname(os.path.normpath(rel))
+        while parent:
+            folders.add(parent)
+            parent = os.path.dirname(parent)
+    for rel in sorted(folders, key=lambda r: -r.count(os.sep)):  # deepest first
+        path = os.path.join(out, rel)
+        if os.path.isdir(path) and not os.path.islink(path) and not os.listdir(path):
+            os.rmdir(path)
+
+
+def clear_output(out: str) -> OutputFiles:
+    """Make ``out`` ready for a run: create it, or remove what an earlier run wrote there (the
+    files its :data:`MARKER` lists, and the folders that leaves empty) and nothing else; then
+    start a new, empty list. Returns the :class:`OutputFiles` of the new run.
+
+    Raises:
+      FileExistsError: ``out`` is not empty and holds no :data:`MARKER` (a folder this tool did
+        not make): nothing there is removed or written.
+      NotADirectoryError: ``out`` is a file.
+    """
+    marker = os.path.join(out, MARKER)
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise NotADirectoryError(f"--output_dir {out} exists and is not a folder.")
+    if os.path.isdir(out) and not os.path.isfile(marker):
+        if os.listdir(out):
+            raise FileExistsError(
+                f"--output_dir {out} is not empty and holds no {MARKER} (the list of what "
+                "device_photographs wrote): nothing there is removed; choose a new or empty "
+                "folder, or move its files away.")
+    elif os.path.isfile(marker):
+        with open(marker) as f:
+            listed = [line.rstrip("\n") for line in f if line.strip() and
+                      not line.startswith("#")]
+        _remove_files(out, listed)
+    os.makedirs(out, exist_ok=True)
+    tmp = f"{marker}.tmp-{os.getpid()}"
+    with open(tmp, "w") as f:
+        f.write(MARKER_HEADER)
+    os.replace(tmp, marker)
+    return OutputFiles(out)
+
+
 def size(path: str) -> int:
     if os.path.isfile(path):
         return os.path.getsize(path)
     return sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(path) for f in fs)
 
 
-def gray_copy(src: str, dst: str) -> int:
-    """Write every image of ``src`` as the gray 320x240 PNG the training reads, same names."""
+def gray_copy(src: str, dst: str, claim=lambda path: path) -> int:
+    """Write every image of ``src`` as the gray 320x240 PNG the training reads, same names
+    (each output path passed through ``claim`` first: :meth:`OutputFiles.claim`)."""
     import cv2
     import numpy as np
 
     from stnh_tf.data import sources
 
-    os.makedirs(dst, exist_ok=True)
     files = sources.scan_image_folder(src).files
     for path in files:
         gray = sources.load_gray_320x240(path)
         ok, buf = cv2.imencode(".png", gray, [cv2.IMWRITE_PNG_COMPRESSION, 9])
-        out = os.path.join(dst, os.path.relpath(path, src))
+        out = claim(os.path.join(dst, os.path.relpath(path, src)))
+        os.makedirs(os.path.dirname(out), exist_ok=True)
         with open(out, "wb") as f:
             f.write(buf.tobytes())
         if not ok or not np.array_equal(sources.load_gray_320x240(out), gray):
@@ -144,13 +235,12 @@ def plan_calls() -> dict:
     """Write the parts and return the report: the photographs' counts, the tree's size and the
     calls (command, what each carries, its MiB)."""
     out = FLAGS.output_dir
-    for name in os.listdir(out) if os.path.isdir(out) else []:  # what an earlier run left
-        if name.startswith("part-") or name == "all":
-            shutil.rmtree(os.path.join(out, name))
+    written = clear_output(out)  # what an earlier run wrote, and nothing else
     whole = os.path.join(out, "all")  # the gray coco_mini, written once, then split
     counts = {split: gray_copy(os.path.join(FLAGS.coco_dir, split),
-                               os.path.join(whole, "coco_mini", split))
+                               os.path.join(whole, "coco_mini", split), written.claim)
               for split in ("train", "test")}
+    gray = list(written.written)
     source = {}  # path relative to .devdata/ -> the file to copy
     for root, prefix in ((os.path.join(whole, "coco_mini"), "coco_mini"),
                          (FLAGS.extra_dir, "photos_extra")):
@@ -171,8 +261,7 @@ def plan_calls() -> dict:
     for k, part in enumerate(packed, start=1):
         folder = os.path.join(out, f"part-{k}")
         for rel in part["files"]:
-            os.makedirs(os.path.dirname(os.path.join(folder, rel)), exist_ok=True)
-            shutil.copyfile(source[rel], os.path.join(folder, rel))
+            shutil.copyfile(source[rel], written.claim(os.path.join(folder, rel)))
         carry = [os.path.relpath(folder, REPO)]
         if k == 1:
             carry.append(os.path.relpath(FLAGS.wheels_dir, REPO))
@@ -180,7 +269,7 @@ def plan_calls() -> dict:
                    f"STAGE={next_stage()} bash experiments/paper_schedule_gpu.sh chunk 535")
         calls.append({"command": command, "carry": carry, "photographs": len(part["files"]),
                       "mib": round((part["bytes"] + tree) / 2 ** 20, 1)})
-    shutil.rmtree(whole)
+    _remove_files(out, gray)
     return {"coco_mini": counts, "photographs": len(files),
             "tracked_mib": round(tree / 2 ** 20, 1), "calls": calls}
 
@@ -190,13 +279,14 @@ def main(argv):
     if FLAGS.restore:
         print(json.dumps({"restored": restore()}, indent=1))
         return
-    aside = set_aside() if FLAGS.set_aside else 0
-    try:
-        report = plan_calls()
-    except BaseException:
-        if FLAGS.set_aside:
-            restore()  # no calls planned: nothing stays set aside
-        raise
+    with common.user_errors("device_photographs", (ValueError, OSError, RuntimeError)):
+        aside = set_aside() if FLAGS.set_aside else 0
+        try:
+            report = plan_calls()
+        except BaseException:
+            if FLAGS.set_aside:
+                restore()  # no calls planned: nothing stays set aside
+            raise
     if FLAGS.set_aside:
         report["set_aside"] = {"mib": round(aside / 2 ** 20, 1), "after_the_calls":
                                "python -m experiments.device_photographs --restore"}

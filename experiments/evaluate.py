@@ -6,17 +6,18 @@ r"""Evaluate models, hierarchies and classical baselines on stored test pairs (M
 
 One model directory: its final estimate (every stage's for a sequence model). Several: a
 hierarchy, reported after 1, 2, ..., n stages; --no_clip reports it without the clipping of
-predicted corners onto the context border (post-processing that is not the paper's). Prints JSON
-(mean/median/p90/p99 MACE, the identity baseline on the same pairs, the number of pairs; for the
-model, also the pairs it estimates worse than the identity, ``worse_than_identity``), or writes it
-to --json_out.
+predicted corners onto the context border (post-processing that is not the paper's). Prints a
+short table (:func:`stnh_tf.evaluation.summaries.evaluation_table`): the identity, the model
+(after each stage), the baselines, each with its MACE, median and the pairs it estimates worse
+than the identity, and "worse than the identity" where its mean is above the identity's.
+--json_out=FILE writes the full JSON (mean/median/p90/p99 MACE, the identity on the same pairs,
+the number of pairs, ``worse_than_identity``); --json_out=- prints it instead of the table.
 """
-
-import json
 
 from absl import app, flags
 
 from experiments import common
+from stnh_tf.evaluation import summaries
 
 flags.DEFINE_list("model_dir", [], "Model directory, or several (comma-separated) for a hierarchy.")
 flags.DEFINE_string("data_dir", None, "Dataset directory (data_prep output).", required=True)
@@ -32,30 +33,24 @@ flags.DEFINE_bool("no_clip", False, "Hierarchy only: keep estimates whose corner
                   "stored context as predicted, instead of clipping them onto its border (the "
                   "degenerate-prediction rule's post-processing, which uses the knowledge that "
                   "true corners move at most 32 px).")
-flags.DEFINE_string("json_out", None, "Write the JSON here instead of stdout (its folder is "
-                    "created if missing, and checked before the evaluation starts).")
+flags.DEFINE_string("json_out", None, summaries.JSON_OUT_HELP)
 FLAGS = flags.FLAGS
 
 
 def main(argv):
     del argv
-    from stnh_tf import paths
     from stnh_tf.evaluation import mace as evaluation
+    from stnh_tf.provenance import machine_info
 
     if not FLAGS.model_dir and not FLAGS.baselines:
         raise SystemExit("evaluate: give --model_dir and/or --baselines.")
     with common.user_errors("evaluate"):
-        if FLAGS.json_out:  # before the evaluation: its result must not be lost at the end
-            paths.check_output_file(FLAGS.json_out)
+        summaries.check_json_out(FLAGS.json_out)  # before: the result must not be lost at the end
         result = evaluation.evaluate(FLAGS.model_dir, FLAGS.data_dir, FLAGS.split, FLAGS.baselines,
                                      FLAGS.max_samples, FLAGS.batch_size,
                                      FLAGS.compute_dtype, clip_to_context=not FLAGS.no_clip)
-    text = json.dumps(result, indent=2, sort_keys=True)
-    if FLAGS.json_out:
-        with open(FLAGS.json_out, "w") as f:
-            f.write(text + "\n")
-    else:
-        print(text)
+    result["machine"] = machine_info()  # the commit, the machine and the library versions
+    summaries.emit(result, summaries.evaluation_table(result), FLAGS.json_out)
 
 
 if __name__ == "__main__":

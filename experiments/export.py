@@ -6,7 +6,10 @@ Signature ``serving_default``: ``patch_a``, ``patch_b`` uint8 ``[B, 128, 128, 1]
 ``homography`` float32 ``[B, 3, 3]`` (pixel ``H_ba``: patch_b -> patch_a). After writing, the
 SavedModel is reloaded and run on ``--check_pairs`` photograph patch pairs; the JSON summary
 (printed on stdout) gives the max abs difference from the Keras model, and the exit status is
-nonzero if it exceeds ``--tolerance``. Library code: ``stnh_tf.inference.export``.
+nonzero if it exceeds ``--tolerance``. The export holds ``--output``'s lock from its checks
+through the verification: a second export to the same folder is refused at once, and the hidden
+staging folders a killed export left beside it are removed. Library code:
+``stnh_tf.inference.export`` (``export_and_verify``).
 """
 
 import json
@@ -38,9 +41,9 @@ def main(argv):
                          f"{FLAGS.tolerance}.")
     with common.user_errors("export"):
         estimator = HomographyEstimator.load(FLAGS.model)
-        export.export_saved_model(estimator, FLAGS.output, overwrite=FLAGS.overwrite)
-    patch_a, patch_b = export.verification_pairs(FLAGS.check_pairs)
-    report = export.verify_export(FLAGS.output, estimator, patch_a, patch_b, FLAGS.tolerance)
+        report = export.export_and_verify(estimator, FLAGS.output, overwrite=FLAGS.overwrite,
+                                          check_pairs=FLAGS.check_pairs,
+                                          tolerance=FLAGS.tolerance)
     report.update(model=estimator.source, output=FLAGS.output)
     print(json.dumps(report, indent=2))
     print(f"max abs difference, reloaded SavedModel vs Keras model: {report['max_abs_diff']:.3g} "

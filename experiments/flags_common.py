@@ -48,9 +48,20 @@ def define_training_flags(scope: str, choices=None, flag_values=flags.FLAGS):
                       "resumed). Only what a run wrote is deleted, and only after every flag and "
                       "the data are checked; a folder that is not a training run is never "
                       "touched.", flag_values=flag_values)
-    flags.DEFINE_float("time_limit_s", 0.0, "Stop at the last checkpoint before this many seconds "
-                       "and leave the run unfinished: the same command resumes it (0: no limit; "
-                       "for runs trained in chunks).", flag_values=flag_values)
+    flags.DEFINE_float("time_limit_s", 0.0, "Stop within one step of this many seconds, saving a "
+                       "checkpoint of that step, and leave the run unfinished: the same command "
+                       "resumes it from there (0: no limit; for runs trained in chunks).",
+                       flag_values=flag_values)
+    flags.register_validator("time_limit_s", _check_time_limit, flag_values=flag_values)
+
+
+def _check_time_limit(value) -> bool:
+    """absl validator of ``--time_limit_s`` (:func:`stnh_tf.training.config.time_limit_problems`):
+    refused at parsing, with the flag named, before anything starts."""
+    problems = train_config.time_limit_problems(value)
+    if problems:
+        raise flags.ValidationError(problems[0])
+    return True
 
 
 def config_from_flags(scope: str, flag_values=flags.FLAGS, **overrides) -> TrainConfig:
@@ -90,12 +101,55 @@ def run_training(cfg, binary: str) -> None:
     """Train (or resume) ``cfg``; user errors exit with ``{binary}: message``, not a traceback."""
     from absl import logging
 
+    logging.info(schedule_line(cfg, flags.FLAGS["train_steps"].present))  # before TensorFlow
     from stnh_tf.training import loop as training
 
     with common.user_errors(binary, (ValueError, OSError, training.TrainingDiverged)):
         result = training.train(cfg, overwrite=flags.FLAGS.overwrite, printer=logging.info,
                                 time_limit_s=flags.FLAGS.time_limit_s or None)
-    logging.info("finished at step %d", result["final_step"])
+    logging.info(final_line(result, cfg.train_steps))
+    if result.get("stopped_by") not in (None, "time limit"):  # a signal: not what was asked
+        raise SystemExit(f"{binary}: {final_line(result, cfg.train_steps)}")
+
+
+SMOKE_FLAGS = ("--train_steps=20 --warmup_steps=2 --checkpoint_every=10 --batch_size=4 "
+               "--learning_rate=0.005")
+"""The flags of a smoke run of a training binary (docs/quickstart.md, docs/training.md)."""
+
+
+def schedule_line(cfg, given: bool) -> str:
+    """The first line a training binary logs: the steps it trains to, and, when ``--train_steps``
+    was not ``given``, that this is the paper's schedule (or DeTone et al.'s), many hours on a
+    CPU, with the flags of a smoke run instead (:data:`SMOKE_FLAGS`).
+
+    >>> print(schedule_line(TrainConfig(train_steps=20), given=True))
+    training to step 20 (--train_steps)
+    >>> print(schedule_line(TrainConfig(), given=False))  # doctest: +ELLIPSIS
+    training to step 91,000: the paper's schedule, the default of --train_steps: hours to days ...
+    """
+    if given:
+        return f"training to step {cfg.train_steps:,} (--train_steps)"
+    schedule = {"sequence": "the paper's schedule of the sequence model",
+                "homographynet": "DeTone et al.'s schedule"}.get(cfg.model, "the paper's schedule")
+    return (f"training to step {cfg.train_steps:,}: {schedule}, the default of --train_steps: "
+            "hours to days on a CPU (each progress line gives the steps/s and the time left); "
+            f"a smoke run instead: {SMOKE_FLAGS} (docs/quickstart.md)")
+
+
+def final_line(result: dict, train_steps: int) -> str:
+    """The last log line of a training binary, from :func:`stnh_tf.training.loop.train`'s result:
+    finished, or stopped (by the time limit, or a signal) before ``train_steps``.
+
+    >>> final_line({"final_step": 6}, 6)
+    'finished at step 6'
+    >>> final_line({"final_step": 2, "stopped_by": "time limit"}, 6)
+    'stopped by the time limit at step 2 of 6, not finished: the same command resumes it'
+    """
+    by = result.get("stopped_by")
+    if by is None:
+        return f"finished at step {result['final_step']}"
+    return (f"stopped by {'the time limit' if by == 'time limit' else by} at step "
+            f"{result['final_step']} of {train_steps}, not finished: the same command resumes it")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -121,6 +175,9 @@ ESTIMATE_FLAG_HELP = {
               "more than Thresholds.max_verify_move; a deviation).",
     "coarse": "estimate_images only: none, or rotations (try a poorly aligned pair again from "
               "coarse rotations and zooms, for motions beyond the trained range; a deviation).",
+    "features": "estimate_images only: none, fallback (where the network's estimate aligns "
+                "poorly, also start from SIFT + MAGSAC matches, refined by the network; a "
+                "deviation) or always (that start for every pair, kept where it aligns better).",
 }
 
 
@@ -130,7 +187,8 @@ def _estimate_choices(name):
 
     return {"search": options.SEARCHES, "refine": options.REFINES, "tta": tuple(options.TTAS),
             "retry_tta": tuple(options.TTAS), "fill": geometry.FILLS,
-            "verify": options.VERIFIES, "coarse": tuple(options.COARSES)}.get(name)
+            "verify": options.VERIFIES, "coarse": tuple(options.COARSES),
+            "features": options.FEATURES}.get(name)
 
 
 _FLAG_DEFAULTS = {}
@@ -167,6 +225,17 @@ def options_from_flags(defaults=None, flag_values=flags.FLAGS):
     return dataclasses.replace(defaults, **{name: flag_values[name].value
                                             for name in ESTIMATE_FLAG_HELP
                                             if name in flag_values})
+
+
+MAX_IMAGES_HELP = ("Use only the first N photographs of the folder's sorted listing (several "
+                   "folders: folder after folder), the same ones on every machine (0: all).")
+
+
+def define_max_images(flag_values=flags.FLAGS, help_text: str = MAX_IMAGES_HELP):
+    """``--max_images`` (an integer >= 0; 0: every photograph) of a binary that reads a
+    photograph folder: :func:`stnh_tf.data.sources.scan_image_folders`' ``max_images``. The
+    training binaries take it from :class:`~stnh_tf.training.config.TrainConfig` instead."""
+    flags.DEFINE_integer("max_images", 0, help_text, lower_bound=0, flag_values=flag_values)
 
 
 def define_json_out(flag_values=flags.FLAGS):

@@ -4,24 +4,40 @@ of a plane, in-plane rotation; blur, exposure change, sensor noise and JPEG on i
 
   python -m experiments.make_camera_pairs --output_dir=/tmp/camera_pairs
   python -m experiments.make_camera_pairs --output_dir=D --image_dir=F --pairs_per_image=3 --seed=0
+  python -m experiments.make_camera_pairs --output_dir=D --motion_set=wide   # wide baseline
 
 Writes ``D/{k:05d}_a.png``, ``D/{k:05d}_b.png`` and ``D/pairs.json`` (every parameter, per pair
-``h_ba``, group, kind, motion and degradation); prints the manifest without its pairs as JSON.
+``h_ba``, group, kind, motion and degradation, the SHA-256 of its PNG files); prints the manifest
+without its pairs as JSON, and to stderr one line counting the photographs used, skipped (by
+reason: a symbolic link leading out of the folder is not followed, an unreadable file, ...) and
+left out by ``--max_images``. ``pairs.json`` is marked incomplete before the first PNG and written
+whole after the last: a run cut short (or a file of another set put in) is refused by
+``load_pairs`` (``benchmark_camera_pairs``) until the set is made again with ``--overwrite``.
 """
 
 from __future__ import annotations
+
+import sys
 
 from absl import app, flags
 
 from experiments import common, flags_common
 from stnh_tf.data import camera_pair_files
+from stnh_tf.data.folder_counts import FolderCounts
 
 flags.DEFINE_string("output_dir", None, "Folder of the pairs (created).", required=True)
 flags.DEFINE_string("image_dir", "../shared/data/coco_mini/test",
-                    "Photographs (every image file below it, sorted).")
+                    "Photographs (every image file below it, sorted). The default is this "
+                    "project's own test photographs, beside its repository (what BENCHMARKS.md "
+                    "measured); give your folder.")
+flags_common.define_max_images()
 flags.DEFINE_integer("pairs_per_image", 3, "Pairs per photograph (groups cycle over the pairs).")
 flags.DEFINE_integer("seed", 0, "Seed: photograph i draws from default_rng([seed, i]).")
 flags.DEFINE_bool("overwrite", False, "Replace a set already in --output_dir.")
+flags.DEFINE_enum("motion_set", "size", ["size", "wide"],
+                  "size: groups within / 1-2x / 2-4x the trained range; wide: zoom 0.3-3.0, "
+                  "rotation up to 180 deg, a plane's viewpoint up to 60 deg, groups wide and "
+                  "wide_low_light (issue 64; stnh_tf.data.camera_motions.MOTION_SETS).")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 
@@ -31,7 +47,10 @@ def main(argv):
     with common.user_errors("make_camera_pairs"):
         result = camera_pair_files.write_pairs(FLAGS.image_dir, FLAGS.output_dir,
                                             FLAGS.pairs_per_image, FLAGS.seed,
-                                            overwrite=FLAGS.overwrite)
+                                            overwrite=FLAGS.overwrite,
+                                            motion_set=FLAGS.motion_set,
+                                            max_images=FLAGS.max_images)
+    print(FolderCounts(**result["photographs"]).line(), file=sys.stderr)
     common.emit_json({"output_dir": FLAGS.output_dir, **result}, FLAGS.json_out)
 
 

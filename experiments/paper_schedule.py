@@ -8,8 +8,10 @@ otherwise (docs/gpu.md, "The paper's schedule in chunks").
 Each call resumes stage ``--stage`` in ``--runs_dir/stage<k>`` from the newest checkpoint (the
 folder's own, or the one committed in ``paper_schedule/resume/stage<k>/``), trains until
 ``--time_limit_s`` (0: to the end), and commits the checkpoint back there; a finished stage is kept
-as ``paper_schedule/stage<k>.keras``. Each chunk adds a row to ``paper_schedule/ledger.json`` and
-to the ledger table of docs/gpu.md. The data (:data:`SCHEDULE`): pairs from the coco_mini train
+as ``paper_schedule/stage<k>.keras`` (and is then refused: it is never trained again, nor its model
+replaced). Nothing is copied into the run folder before its lock and its configuration are checked
+(:func:`stnh_tf.training.chunks.sync_in`). Each chunk adds a row to ``paper_schedule/ledger.json``
+and to the ledger table of docs/gpu.md. The data (:data:`SCHEDULE`): pairs from the coco_mini train
 photographs and photos_extra (1,848 photographs, not COCO 2014's 82,783), 100 squares per image
 made once in memory (184,800 pairs), validation on 300 coco_mini test pairs; stage k > 1 trains on
 pairs re-made from the finished stages' predictions.

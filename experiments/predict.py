@@ -9,7 +9,12 @@ coarse pass, the whole-image refinement, the ECC check of the flag); ``--coarse=
 --refine=none --verify=none`` give ``EstimateOptions()``.
 
 Prints a JSON object whose ``homography`` maps image_b pixel coordinates (x, y) to image_a pixel
-coordinates (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``), and writes
+coordinates (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``) and
+``network_homography``, the network's own estimate, then (on stderr) one line with the final
+estimate's alignment NCC and how far the steps beyond the network (search, ECC refinement,
+coarse pass, ...) moved the network's own estimate, with the flags that give the network alone
+(``stnh_tf.inference.image_files.summary_line``): the NCC of the default is high even for a
+model worse than the identity, the move is not small then. It writes
 to ``--output_dir`` (default: the current directory) ``<a>__<b>_overlay.png`` and the same JSON as
 ``<a>__<b>_homography.json`` (``<a>__<b>-2_...`` and so on when the folder holds the outputs of
 another pair of images with the same base names; a re-run of the same pair replaces its own).
@@ -18,6 +23,10 @@ image_b (green channel) over image_a warped onto image_b by the estimate (magent
 regions look gray. ``--model`` takes what
 ``HomographyEstimator.load`` takes (``.keras`` file, run directory, hierarchy manifest); without
 it the shipped default weights are used. Resizing rule: see ``stnh_tf.inference.image_input``.
+The files are read as ``make_dataset`` reads them (``stnh_tf.inference.image_files``): a
+truncated or corrupt file is refused, an alpha channel is composited onto black, pixel frames
+are the files' stored pixel order (EXIF orientation ignored); an image under 20 x 15 px is
+refused (too small for the patch).
 """
 
 import json
@@ -38,7 +47,8 @@ flags.DEFINE_string("model", None, "Model: .keras file, run directory or hierarc
 flags.DEFINE_string("output_dir", ".",
                     "Folder for the overlay PNG and the JSON (created if missing).")
 # estimate_images' default options
-flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search", "coarse", "verify"),
+flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search", "coarse", "verify",
+                                    "features"),
                                    EstimateOptions.photographs())
 flags.adopt_module_key_flags(flags_common)  # --help lists them
 
@@ -54,6 +64,7 @@ def main(argv):
     except image_files.AlignmentError as e:
         raise SystemExit(f"predict: {e}") from None
     print(json.dumps(result, indent=2))
+    print(f"predict: {image_files.summary_line(result)}", file=sys.stderr)
 
 
 if __name__ == "__main__":

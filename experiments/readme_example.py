@@ -16,7 +16,8 @@ import re
 
 from absl import app, flags
 
-from experiments import common, current_results, flags_common
+from experiments import common, flags_common
+from stnh_tf.paper import current_results
 
 flags_common.define_json_out()
 FLAGS = flags.FLAGS

@@ -12,20 +12,29 @@ results.json and figures/. Models trained elsewhere at the same budget are used 
 --reuse=stage1=runs/cpu/stage1,homographynet=...; their recorded configuration must match the
 budget. --train_only=homographynet trains that part alone (resumable) and stops, to spread the
 training over several sessions. See stnh_tf/paper/reproduce.py for the steps and budgets.
+--budget=tiny is the smoke test: it judges no claim, and keeps its output small (no checkpoints
+of finished models; HomographyNet's model.keras removed once evaluated).
 --train_only=semi_supervised runs the semi-supervised table (experiments.semi_supervised with its
 defaults: trains its rows, evaluates them, writes semi_supervised.md and .json).
 """
 
+import dataclasses
+
 from absl import app, flags
 
-from experiments import common
+from experiments import common, flags_common
 from stnh_tf.paper import reproduce, semi_supervised
 
-flags.DEFINE_enum("budget", "cpu", sorted(reproduce.BUDGETS), "Training budget of every model.")
+flags.DEFINE_enum("budget", "cpu", sorted(reproduce.BUDGETS), "Training budget of every model: "
+                  "cpu (the default: 4,000 steps each, hours on a CPU), tiny (the smoke test: 2 "
+                  "steps each, no verdict) or paper (91,000 steps each).")
 flags.DEFINE_string("output_dir", None, "Where data, models, tables and figures go.", required=True)
 flags.DEFINE_enum("source", "folder", ["folder", "bundled", "coco2014"], "Image source.")
 flags.DEFINE_string("image_dir", "", "Training images (--source=folder).")
 flags.DEFINE_string("test_image_dir", "", "Test images (--source=folder).")
+flags_common.define_max_images(help_text="Use only the first N photographs of --image_dir and of "
+                               "--test_image_dir (sorted; the same ones on every machine); 0: "
+                               "the budget's (every one; 4 at --budget=tiny).")
 flags.DEFINE_list("reuse", [], "name=dir pairs of finished models / datasets to use in place "
                   "(stage1, stage2, stage3, homographynet, sequence2, ablation_l2-10_l1-1, ..., "
                   "data_stage1, data_stage2, data_stage3).")
@@ -50,10 +59,35 @@ def reproduction_from_flags(budget=None, **kwargs):
     """The :class:`~stnh_tf.paper.reproduce.Reproduction` of the shared flags (``--budget``,
     ``--output_dir``, ``--source``, ``--image_dir``, ``--test_image_dir``, ``--reuse``), which
     experiments.loss_weight_ablation and experiments.semi_supervised take too; ``budget`` replaces
-    ``--budget``'s and ``kwargs`` go to the constructor."""
-    return reproduce.Reproduction(budget or reproduce.BUDGETS[FLAGS.budget], FLAGS.output_dir,
+    ``--budget``'s, ``--max_images`` replaces its ``max_images`` and ``test_max_images``, and
+    ``kwargs`` go to the constructor. Prints :func:`budget_line` first."""
+    budget = budget or reproduce.BUDGETS[FLAGS.budget]
+    if FLAGS.max_images:
+        budget = dataclasses.replace(budget, max_images=FLAGS.max_images,
+                                     test_max_images=FLAGS.max_images)
+    print(budget_line(budget, FLAGS["budget"].present), flush=True)
+    return reproduce.Reproduction(budget, FLAGS.output_dir,
                                   image_dir=FLAGS.image_dir, test_image_dir=FLAGS.test_image_dir,
                                   source=FLAGS.source, reuse=parse_reuse(FLAGS.reuse), **kwargs)
+
+
+def budget_line(budget, given: bool) -> str:
+    """The first line of a reproduction: its budget's steps per model, what that means in time,
+    and, when ``--budget`` was not ``given``, the smoke test's flags.
+
+    >>> print(budget_line(reproduce.BUDGETS["tiny"], True))  # doctest: +ELLIPSIS
+    budget tiny: 2 steps per model, the smoke test (no verdict on any claim); ...
+    """
+    share = budget.train_steps / reproduce.BUDGETS["paper"].train_steps
+    what = {"tiny": "the smoke test (no verdict on any claim)",
+            "paper": "the paper's schedule: days per model on a CPU"}.get(
+        budget.name, f"{share:.1%} of the paper's schedule: hours on a CPU")
+    images = (f"; the first {budget.max_images:,} photographs of each folder"
+              if budget.max_images else "")
+    default = (" (the default of --budget; --budget=tiny --source=bundled is the smoke test)"
+               if not given and budget.name != "tiny" else "")
+    return (f"budget {budget.name}: {budget.train_steps:,} steps per model, {what}{images}"
+            f"{default}")
 
 
 def main(argv):

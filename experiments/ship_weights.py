@@ -6,8 +6,9 @@ r"""Copy trained stage models into the package as its shipped weights, with a mo
 Writes ``stnh_tf/weights/stage{k}.keras`` (weights and architecture only, no optimizer state), the
 manifest ``default.json`` naming them in order (the default of ``HomographyEstimator.load()``),
 and ``model_card.json`` with each stage's training configuration, its final step, the given
-evaluation results and the bundled check (MACE on seeded bundled pairs, which
-``tests/test_shipped_weights.py`` re-computes).
+evaluation results, the bundled check (MACE on seeded bundled pairs, which
+``tests/test_shipped_weights.py`` re-computes) and, under ``machine``, the commit, machine and
+library versions of the run that wrote the card (:func:`stnh_tf.provenance.machine_info`).
 
   python -m experiments.ship_weights --replace_stage=2 --model_dir=runs/cpu/stage2_more \
       --init_from_previous --eval_json=runs/cpu/eval_hierarchy.json

@@ -3,8 +3,9 @@ r"""Justify the settings of the classical baselines (ORB/SIFT + RANSAC) on paper
 Generates ``--num_pairs`` synthetic pairs (DeTone et al. protocol, as in
 ``docs/conventions.md``) from the photographs in ``--image_dir`` (or, without it, from
 scikit-image's bundled photographs), evaluates identity, the registered baselines and a small grid
-of ORB and SIFT settings around them, and prints one JSON object (MACE, median, p90, p99, failure
-rate, ms per pair for each).
+of ORB and SIFT settings around them, and prints a short table (MACE, median, pairs worse than
+the identity: :func:`stnh_tf.evaluation.summaries.tuning_table`); --json_out=FILE writes the full
+JSON (also p90, p99, failure rate, ms per pair for each), --json_out=- prints it instead.
 
   python -m experiments.tune_baselines --image_dir=../shared/data/coco_mini/train \
       --num_pairs=300 --seed=0 --json_out=/tmp/tune_baselines.json
@@ -17,24 +18,25 @@ from __future__ import annotations
 
 from absl import app, flags
 
-from experiments import common, flags_common
-from stnh_tf.evaluation import baseline_tuning
+from experiments import common
+from stnh_tf.evaluation import baseline_tuning, summaries
 
 flags.DEFINE_string("image_dir", None, "Folder of photographs (jpg/png). Default: scikit-image's.")
 flags.DEFINE_integer("num_pairs", 300, "Number of synthetic pairs.")
 flags.DEFINE_integer("seed", 0, "Seed of the pair generator.")
 flags.DEFINE_enum("grid", "small", ["none", "small"],
                   "Settings grid: none (registered baselines only) or small.")
-flags_common.define_json_out()
+flags.DEFINE_string("json_out", None, summaries.JSON_OUT_HELP)
 
 FLAGS = flags.FLAGS
-flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 
 def main(argv):
     del argv
+    with common.user_errors("tune_baselines"):
+        summaries.check_json_out(FLAGS.json_out)
     result = baseline_tuning.run_tuning(FLAGS.image_dir, FLAGS.num_pairs, FLAGS.seed, FLAGS.grid)
-    common.emit_json(result, FLAGS.json_out)
+    summaries.emit(result, summaries.tuning_table(result), FLAGS.json_out)
 
 
 if __name__ == "__main__":

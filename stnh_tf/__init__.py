@@ -18,8 +18,6 @@ a deep-learning backend.
 
 import importlib
 
-from stnh_tf import _compat
-
 __version__ = "0.1.0"
 
 _LAZY = {
@@ -27,44 +25,14 @@ _LAZY = {
     "HomographyMerge": "stnh_tf.modeling.layers",
     "HomographyEstimator": "stnh_tf.inference.estimator",
 }
+_SUBPACKAGES = ("geometry", "data", "training", "evaluation", "inference")
 
 __all__ = ["geometry", *_LAZY]
-
-# Modules of the flat layout before 0.2 and where they are now (importable for one release).
-_compat.install({
-    "stnh_tf.layers": "stnh_tf.modeling.layers",
-    "stnh_tf.models": "stnh_tf.modeling.models",
-    "stnh_tf.losses": "stnh_tf.modeling.losses",
-    "stnh_tf.model_kinds": "stnh_tf.training.model_kinds",
-    "stnh_tf.runner": "stnh_tf.modeling.runner",
-    "stnh_tf.sources": "stnh_tf.data.sources",
-    "stnh_tf.pairs": "stnh_tf.data.pairs",
-    "stnh_tf.batches": "stnh_tf.data.batches",
-    "stnh_tf.pair_datasets": "stnh_tf.data.pair_datasets",
-    "stnh_tf.features": "stnh_tf.data.features",
-    "stnh_tf.train_config": "stnh_tf.training.config",
-    "stnh_tf.run_dir": "stnh_tf.training.run_dir",
-    "stnh_tf.train_streams": "stnh_tf.training.streams",
-    "stnh_tf.baselines": "stnh_tf.evaluation.baselines",
-    "stnh_tf.baseline_tuning": "stnh_tf.evaluation.baseline_tuning",
-    "stnh_tf.benchmarks": "stnh_tf.evaluation.benchmarks",
-    "stnh_tf.search_stability": "stnh_tf.evaluation.search_stability",
-    "stnh_tf.image_input": "stnh_tf.inference.image_input",
-    "stnh_tf.model_files": "stnh_tf.inference.model_files",
-    "stnh_tf.export": "stnh_tf.inference.export",
-    "stnh_tf.alignment": "stnh_tf.inference.image_files",
-    "stnh_tf.ecc": "stnh_tf.inference.ecc",
-    "stnh_tf.shipped_weights": "stnh_tf.inference.shipped_weights",
-    "stnh_tf.reproduce": "stnh_tf.paper.reproduce",
-    "stnh_tf.figures": "stnh_tf.paper.figures",
-    "stnh_tf.demo": "stnh_tf.paper.demo",
-})
 
 
 def __getattr__(name):
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
-    old = f"stnh_tf.{name}"
-    if old in _compat.MOVED or name in ("geometry", "data", "training", "evaluation", "inference"):
-        return importlib.import_module(_compat.MOVED.get(old, old))
+    if name in _SUBPACKAGES:
+        return importlib.import_module(f"stnh_tf.{name}")
     raise AttributeError(f"module 'stnh_tf' has no attribute {name!r}")

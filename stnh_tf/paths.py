@@ -1,12 +1,13 @@
 """Files the package reads and writes: JSON parsed with errors naming the file and written
 atomically, paths read from files kept inside their folder, output folders checked before any
-work.
+work, one writer at a time (:func:`exclusive_lock`).
 
 Standard library only (data-generation workers and the TF-free pipelines import it).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 
@@ -101,3 +102,36 @@ def stage_record_path(model_file) -> str:
     'paper_schedule/stage1.json'
     """
     return os.path.splitext(os.fspath(model_file))[0] + ".json"
+
+
+@contextlib.contextmanager
+def exclusive_lock(lock_path, busy: str):
+    """Hold ``fcntl.flock`` on the file ``lock_path`` (created if missing, never removed) for one
+    writer: a second holder, in this process or another, fails at once with
+    ``FileExistsError(busy)`` instead of waiting or writing over the first one's files. The lock
+    goes with the process, so a killed writer leaves none held (its lock file stays and is
+    reused). make_dataset's split lock (:func:`stnh_tf.data.metadata.split_lock`) and the
+    SavedModel export's (:func:`stnh_tf.inference.export.export_saved_model`) are this lock.
+
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     path = os.path.join(folder, ".lock")
+        ...     with exclusive_lock(path, "busy"):
+        ...         try:
+        ...             with exclusive_lock(path, "busy: another writer holds it"):
+        ...                 pass
+        ...         except FileExistsError as e:
+        ...             print(e)
+        busy: another writer holds it
+    """
+    import fcntl
+
+    with open(lock_path, "a") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise FileExistsError(busy) from None
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)

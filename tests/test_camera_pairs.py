@@ -17,6 +17,7 @@ import skimage.data
 from stnh_tf import geometry
 from stnh_tf.data import camera_motions as cm
 from stnh_tf.data import camera_pair_files
+from stnh_tf.data import wide_motions as wm
 from stnh_tf.evaluation import camera_pairs
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -246,7 +247,7 @@ def test_benchmark_with_the_shipped_estimator(pair_set):
     assert result["options"]["search"] == "ecc" and result["model"]
 
 
-@pytest.mark.parametrize("module", [cm, camera_pairs])
+@pytest.mark.parametrize("module", [cm, wm, camera_pairs])
 def test_doctests(module):
     import doctest
 
@@ -285,3 +286,122 @@ def test_verify_ecc_flags_estimates_away_from_the_alignment_optimum():
     assert EstimateOptions.network_only().verify == EstimateOptions().verify == "none"
     with pytest.raises(ValueError, match="verify must be one of"):
         EstimateOptions(verify="sift")
+
+
+# --------------------------------------------------------------------------------------------
+# Issue 64, item 1: the wide-baseline set (motion_set="wide")
+# --------------------------------------------------------------------------------------------
+def test_wide_motions_are_within_the_stated_ranges_and_warp_as_opencv_does():
+    """Wide draws: zoom 0.3-3.0, roll up to +-180, a plane's viewpoint up to 60 degrees (the
+    set's ranges, all reached: zooms below 0.5 and above 2, rolls beyond 120), the views overlap;
+    an in-plane motion is T(shift) @ cv2.getRotationMatrix2D(centre, roll, 1 / zoom); image_b
+    rendered from the source is cv2.warpPerspective(image_a, h_ba, WARP_INVERSE_MAP) where
+    h_ba @ p lies inside image_a."""
+    rng = np.random.default_rng(0)
+    draws = [wm.draw_wide_motion(rng) for _ in range(45)]
+    zooms = [p["zoom"] for _, p, _ in draws]
+    rolls = [abs(p["roll_deg"]) for _, p, _ in draws]
+    assert min(zooms) >= 0.3 and max(zooms) <= 3.0 and max(rolls) <= 180.0
+    assert min(zooms) < 0.5 and max(zooms) > 2.0 and max(rolls) > 120.0
+    assert {k for k, _, _ in draws} == set(cm.KINDS)
+    source = _textured_source()
+    centre = ((320 - 1) / 2, (240 - 1) / 2)
+    for kind, p, h in draws:
+        assert cm.in_front(h) and wm.overlap(h) >= wm.MIN_OVERLAP
+        if kind == "plane_viewpoint":
+            assert 0 <= p["view_deg"] <= 60.0
+        if kind == "camera_rotation":
+            assert max(abs(p["yaw_deg"]), abs(p["pitch_deg"])) <= 15.0
+        if kind == "inplane_rotation":
+            rot = np.vstack([cv2.getRotationMatrix2D(centre, p["roll_deg"], 1 / p["zoom"]),
+                             [0, 0, 1]])
+            np.testing.assert_allclose(h, geometry.translation(p["shift_x"], p["shift_y"]) @ rot,
+                                       atol=1e-9)
+    for kind, p, h in draws[:6]:
+        image_a, image_b = cm.render_pair(source, h)
+        ref = cv2.warpPerspective(image_a, h, cm.WORK_SIZE,
+                                  flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+        ys, xs = np.mgrid[0:240, 0:320]
+        mapped = cv2.perspectiveTransform(
+            np.stack([xs, ys], -1).reshape(-1, 1, 2).astype(float), h).reshape(240, 320, 2)
+        inside = ((mapped[..., 0] > 1) & (mapped[..., 0] < 318) & (mapped[..., 1] > 1)
+                  & (mapped[..., 1] < 238))
+        assert inside.mean() > 0.05, kind
+        diff = np.abs(image_b - ref)[inside]
+        assert np.median(diff) < 1e-3 and diff.max() < 2.0, (kind, np.median(diff), diff.max())
+
+
+def test_wide_set_alternates_plain_and_low_light_groups():
+    """make_image_pairs(motion_set="wide"): groups wide / wide_low_light by the pair's index,
+    low light drawn from LOW_LIGHT (darker image_b than image_a), the rest from the set's
+    degradation; same seed, same pairs; an unknown set is a clear error."""
+    photo = _photos()[0]
+    pairs = cm.make_image_pairs(photo, 1, "camera", 4, seed=0, motion_set="wide")
+    again = cm.make_image_pairs(photo, 1, "camera", 4, seed=0, motion_set="wide")
+    assert [p.group for p in pairs] == ["wide", "wide_low_light"] * 2
+    for p, q in zip(pairs, again):
+        np.testing.assert_array_equal(p.image_b, q.image_b)
+        ranges = wm.LOW_LIGHT if p.group == "wide_low_light" else cm.Degradation()
+        for name in ("blur_sigma", "exposure_ev", "read_noise", "shot_noise", "jpeg_quality"):
+            assert ranges.__getattribute__(name)[0] <= p.photometric[name] <= \
+                ranges.__getattribute__(name)[1], (p.group, name)
+        assert 0.3 <= p.motion["zoom"] <= 3.0 and p.motion["overlap"] >= wm.MIN_OVERLAP
+    dark = [p for p in pairs if p.group == "wide_low_light"]
+    assert all(p.image_b.mean() < 0.8 * p.image_a.mean() for p in dark)
+    with pytest.raises(ValueError, match="motion_set must be one of"):
+        cm.make_image_pairs(photo, 1, "camera", 2, seed=0, motion_set="huge")
+
+
+class _ShiftedOnOddPairs:
+    """A stand-in estimator: the true H on even pairs, the true H after a 60-px shift in x on odd
+    ones (never flagged)."""
+
+    def __init__(self, pairs):
+        self.index = {id(p.image_b): i for i, p in enumerate(pairs)}
+        self.truth = [p.h_ba for p in pairs]
+
+    def estimate_images_with_info(self, image_a, image_b, options=None):
+        from types import SimpleNamespace
+
+        i = self.index[id(image_b)]
+        h = self.truth[i] @ (geometry.translation(60.0, 0.0) if i % 2 else np.eye(3))
+        return SimpleNamespace(homography=h[None], implausible=np.array([False]),
+                               searched=np.array([False]), found=np.array([False]),
+                               alignment_ncc=np.array([0.9]))
+
+
+def test_benchmark_counts_pairs_worse_than_the_identity_and_prints_them(pair_set):
+    """Issue 62, item 2: each method's ``worse_than_identity`` (its image-corner error above the
+    identity's, written out here), the identity run as the reference although not asked for, and
+    the printed table of every group showing the JSON's numbers."""
+    import re
+
+    from stnh_tf.evaluation import summaries
+
+    _, out, _ = pair_set
+    _, pairs = camera_pair_files.load_pairs(out)
+    result = camera_pairs.benchmark(pairs, ("estimator",), estimator=_ShiftedOnOddPairs(pairs))
+    corners = np.array([[0, 0, 1], [320, 0, 1], [320, 240, 1], [0, 240, 1]], np.float64).T
+
+    def errors(h):
+        p, q = h @ corners, np.stack([p.h_ba for p in pairs]) @ corners
+        return np.linalg.norm(p[:, :2] / p[:, 2:] - q[:, :2] / q[:, 2:], axis=1).mean(axis=1)
+
+    h_est = np.stack([p.h_ba @ (geometry.translation(60.0, 0.0) if i % 2 else np.eye(3))
+                      for i, p in enumerate(pairs)])
+    worse = errors(h_est) > errors(np.broadcast_to(np.eye(3), h_est.shape))
+    groups = np.array([p.group for p in pairs])
+    assert 0 < worse.sum() < 3  # (odd pairs only, and not all of them)
+    text = summaries.camera_pairs_table(result)
+    for g, methods in result["groups"].items():
+        sel = np.ones(len(pairs), bool) if g == "all" else groups == g
+        assert set(methods) == {"estimator", "identity"}
+        est, ident = methods["estimator"], methods["identity"]
+        assert est["worse_than_identity"] == int(worse[sel].sum()), g
+        assert "worse_than_identity" not in ident
+        section = text.split(f"\n{g} ({ident['count']} pairs)\n")[1].split("\n\n")[0]
+        assert re.search(rf"^identity\s+{ident['mace']:.2f}\s+{ident['median']:.2f}\s+-$",
+                         section, re.M), g
+        assert re.search(rf"^estimator\s+{est['mace']:.2f}\s+{est['median']:.2f}\s+"
+                         rf"{est['worse_than_identity']} of {est['count']}$", section, re.M), g
+        assert ("worse than the identity: estimator" in section) == (est["mace"] > ident["mace"])

@@ -630,7 +630,9 @@ def test_evaluate_json_out_folder_is_made_before_the_evaluation(dataset, tmp_pat
                            "--split=train", "--baselines=identity", f"--json_out={out}"],
                           cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert json.loads(out.read_text())["count"] == 9
+    record = json.loads(out.read_text())
+    assert record["count"] == 9
+    assert record["machine"]["numpy"] == np.__version__ and "git_commit" in record["machine"]
     proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", f"--data_dir={dataset}",
                            "--split=train", "--baselines=identity", f"--json_out={tmp_path}"],
                           cwd=REPO, capture_output=True, text=True, timeout=300)

@@ -1220,6 +1220,10 @@ def test_predict_binary(identity_model_path, tmp_path):
     assert np.abs(np.array(result["homography"]) - np.eye(3)).max() < 0.05
     assert "predict: note: the network's estimate aligned the images poorly; the search" \
         in proc.stderr
+    # issue 64: the network's own estimate (8 px in the 320 x 240 work frame, 8 x 600 / 320 px
+    # in image_a's) and how far the result is from it at the work image's corners
+    assert result["network_homography"][0][2] == pytest.approx(8.0 * 600 / 320, abs=1e-3)
+    assert result["network_move_px"] == pytest.approx(8.0, abs=0.5)
 
     (tmp_path / "junk.png").write_text("not an image")
     for bad, what in ((tmp_path / "junk.png", "cannot read image_a"),
@@ -1354,3 +1358,48 @@ def test_legacy_keywords_warn_and_equal_the_options(identity_model_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error", DeprecationWarning)
         est.estimate(a, b, EstimateOptions(search="none"), batch_size=1)
+
+
+# --------------------------------------------------------------------------------------------
+# Issue 64, item 4: what the network did (Estimate.network_homography / network_move_px)
+# --------------------------------------------------------------------------------------------
+def _cv2_corner_distance(h1, h2, width, height):
+    """Mean distance between where h1 and h2 map the corners (0,0), (w,0), (w,h), (0,h):
+    cv2.perspectiveTransform (independent of stnh_tf.geometry)."""
+    corners = np.array([[[0, 0], [width, 0], [width, height], [0, height]]], np.float64)
+    p1 = cv2.perspectiveTransform(corners, np.asarray(h1, np.float64))[0]
+    p2 = cv2.perspectiveTransform(corners, np.asarray(h2, np.float64))[0]
+    return float(np.linalg.norm(p1 - p2, axis=1).mean())
+
+
+def test_estimate_says_how_far_the_result_is_from_the_networks_own(pairs):
+    """Patches: a network 3-5 px off the true H, refined by ECC: network_homography is the
+    network's output and network_move_px the mean distance (cv2.perspectiveTransform) at the
+    patch corners between it and the refined result (several px); without refinement both are
+    the network's and the move is 0. Whole images: a network 8 px off on identical images, the
+    search finds the identity: the move is measured at the 320 x 240 work image's corners."""
+    a, b, hs = pairs
+    off = geometry.translation(3.0, -2.0) @ np.array([[1.02, 0.01, 0], [-0.01, 0.99, 0],
+                                                      [0, 0, 1]])
+    starts = np.stack([h @ off for h in hs])
+    starts = starts / starts[:, 2:, 2:]
+    est = HomographyEstimator([constant_stage(np.eye(3))])
+    est._predict_stage = lambda k, pa, pb, bs: starts.copy()
+    got = est.estimate_with_info(a, b, EstimateOptions(refine="ecc", search="none"))
+    assert got.refined.all()
+    np.testing.assert_allclose(got.network_homography, starts, atol=1e-12)
+    want = [_cv2_corner_distance(h, n, S, S) for h, n in zip(got.homography, starts)]
+    assert min(want) > 2.0
+    np.testing.assert_allclose(got.network_move_px, want, rtol=1e-9)
+    plain = est.estimate_with_info(a, b, EstimateOptions.network_only())
+    np.testing.assert_array_equal(plain.network_move_px, np.zeros(len(a)))
+
+    image = skimage.data.camera()[100:340, 80:400]  # 320 x 240: work frame = image frame
+    est = HomographyEstimator([constant_stage(geometry.translation(8.0, 0.0))])
+    res = est.estimate_images_with_info(image, image, EstimateOptions())
+    assert res.found[0] and np.abs(res.homography[0] - np.eye(3)).max() < 0.05
+    np.testing.assert_allclose(res.network_homography[0], geometry.translation(8.0, 0.0),
+                               atol=1e-4)
+    assert res.network_move_px[0] == pytest.approx(
+        _cv2_corner_distance(res.homography[0], res.network_homography[0], 320, 240), rel=1e-6)
+    assert res.network_move_px[0] == pytest.approx(8.0, abs=0.5)

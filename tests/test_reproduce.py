@@ -73,7 +73,7 @@ def test_every_table_and_figure_is_written(tiny_run):
         os.path.join(out, "table1.md")).read()
     assert set(result["table1_mace"]) == {"1,1", "1,10", "1,0.1", "10,1", "0.1,1"}
     # The rows the paper's claim compares have the budget's seeds (tiny: 2), the others one.
-    assert re.search(r"\| 10 \| 1 \| \d+\.\d\d \| 2 seeds: \d+\.\d\d-\d+\.\d\d \| [^|]* "
+    assert re.search(r"\| 10 \| 1 \| \d+\.\d\d \| 2 seeds: \d+\.\d\d, \d+\.\d\d \| [^|]* "
                      r"\| 4\.85 \|", tables)
     assert re.search(r"\| 1 \| 10 \| \d+\.\d\d \| 1 seed \| [^|]* \| 21\.86 \|", tables)
     assert {k: len(v) for k, v in result["table1_mace_per_seed"].items()} == {
@@ -83,7 +83,8 @@ def test_every_table_and_figure_is_written(tiny_run):
     for name in ("fig1_hbar_histogram.png", "fig4_mace_bars.png", "fig5_prediction_examples.png"):
         with open(os.path.join(out, "figures", name), "rb") as f:
             assert f.read(8) == PNG
-    assert open(os.path.join(out, "table1.md")).read().count("\n| ") == 7  # header, rule, 5 rows
+    # header, rule, the identity and 5 rows
+    assert open(os.path.join(out, "table1.md")).read().count("\n| ") == 8
 
 
 @pytest.mark.slow
@@ -257,4 +258,143 @@ def test_tables_show_the_papers_schedule_from_its_card_on_the_same_test_pairs(tm
     assert "| STN-Homography 1 stage | 18.32 | 6.84 | 5.83 |" in text
     assert "| STN-Homography 2 stages | 9.46 | 2.50 | 2.60 |" in text
     assert "| Identity | 24.16 |  |  |" in text
-    assert "| 1 | 1 | 18.25 | 2 seeds: 18.00-18.50 | 6.84 | 5.83 |" in text
+    assert "| 1 | 1 | 18.25 | 2 seeds: 18.00, 18.50 | 6.84 | 5.83 |" in text
+
+
+# ------------------------------------------------------------------------------------------------
+# Issue 62, item 1: verdicts, the identity row, rejected rows marked, one number per model, and
+# the smoke run's size
+# ------------------------------------------------------------------------------------------------
+def test_fig4_hatches_and_notes_the_rows_whose_predictions_were_rejected():
+    """The data Fig. 4 draws: a rejected row's bar hatched with its count (and "at the identity"
+    where its MACE is the identity's), the others plain; the identity a dashed line."""
+    from stnh_tf.paper import figures
+
+    results = {"Identity": 23.53, "STN-Homography 1 stage": 294.92,
+               "STN-Homography 2 stages": 23.53, "STN-Homography 3 stages": 20.0}
+    bars = figures.fig4_bars(results, reproduce.PAPER_FIG4,
+                             rejected={"STN-Homography 2 stages": 24,
+                                       "STN-Homography 3 stages": 5},
+                             predictions={"STN-Homography 2 stages": 24,
+                                          "STN-Homography 3 stages": 36})
+    assert [(b.name, b.value, b.hatched, b.note) for b in bars] == [
+        ("Identity", 23.53, False, ""), ("STN-Homography 1 stage", 294.92, False, ""),
+        ("STN-Homography 2 stages", 23.53, True, "rejected: 24 of 24\nat the identity"),
+        ("STN-Homography 3 stages", 20.0, True, "rejected: 5 of 36")]
+    assert [b.paper for b in bars] == [None, 5.83, 2.6, 1.57]
+    fig = figures.mace_bars_figure(bars)
+    try:
+        ax = fig.axes[0]
+        ours = [p for p in ax.patches if p.get_label() != "paper"][:4]
+        assert [p.get_height() for p in ours] == pytest.approx([23.53, 294.92, 23.53, 20.0])
+        assert [p.get_hatch() or "" for p in ours] == ["", "", "//", "//"]
+        notes = [t.get_text() for t in ax.texts if t.get_text().startswith("rejected")]
+        assert notes == ["rejected: 24 of 24\nat the identity", "rejected: 5 of 36"]
+        dashed = [line for line in ax.lines if line.get_linestyle() == "--"]
+        assert len(dashed) == 1 and dashed[0].get_ydata()[0] == pytest.approx(23.53)
+    finally:
+        import matplotlib.pyplot as plt
+
+        plt.close(fig)
+
+
+def _result(budget_name, per_seed, identity=24.16):
+    budget = dataclasses.asdict(reproduce.BUDGETS[budget_name])
+    return {"budget": budget, "test_pairs": 12,
+            "fig4_mace": {"Identity": identity, "STN-Homography 1 stage": per_seed["1,1"][0]},
+            "paper": {"fig4_mace": reproduce.PAPER_FIG4, "table1_mace": {"1,1": 5.83},
+                      "table2_gpu_ms": reproduce.PAPER_TABLE2_GPU_MS},
+            "table1_mace_per_seed": per_seed,
+            "table1_claim": reproduce.table1_claim(per_seed, identity,
+                                                   reproduce.BUDGETS[budget_name].verdicts),
+            "models": {"stages": [], "homographynet": "h", "sequence2": "s",
+                       "ablation_seeds": {}}, "figures": {}}
+
+
+def test_table1_has_the_identity_row_and_a_verdict_only_where_the_budget_supports_one():
+    """At the cpu budget the claim is judged from the seeds; at tiny, never (the same numbers);
+    and not where a compared row is no better than the identity."""
+    per_seed = {"1,1": [18.34, 18.30, 17.74], "10,1": [17.44, 16.12, 17.08], "1,10": [25.47]}
+    latency = {"hierarchy": {"1": {"d_e_ms": 3.78, "formula_ms": 3.85}}, "policy": "float32",
+               "l_m_ms": 3.1, "l_w_ms": 0.75}
+    cpu = reproduce.tables_markdown(_result("cpu", per_seed), latency)
+    assert "| identity (no model) |  | 24.16 |  |  |  |" in cpu
+    assert ("The paper's claim (L2:L1 = 10:1 gives a lower MACE than 1:1): holds at this budget: "
+            "every seed of 10:1 (16.12-17.44 px) is below every seed of 1:1 (17.74-18.34 px)."
+            ) in cpu
+    assert "| 1 | 1 | 18.13 | 3 seeds: 18.34, 18.30, 17.74 |" in cpu
+    tiny = reproduce.tables_markdown(_result("tiny", per_seed), latency)
+    assert "| identity (no model) |  | 24.16 |  |  |  |" in tiny
+    assert "no verdict at this budget" in tiny and "holds" not in tiny
+    assert reproduce.BUDGETS["tiny"].verdicts is False and reproduce.BUDGETS["cpu"].verdicts
+    above = reproduce.table1_claim({"1,1": [294.9, 280.1], "10,1": [250.0, 260.0]}, 23.53)
+    assert above["verdict"] == "none" and "not below the identity's 23.53 px" in above["text"]
+    overlap = reproduce.table1_claim({"1,1": [5.0, 6.0], "10,1": [5.5, 5.6]}, 23.53)
+    assert overlap["verdict"] == "unresolved"
+    worse = reproduce.table1_claim({"1,1": [5.0, 5.1], "10,1": [5.5, 5.6]}, 23.53)
+    assert worse["verdict"] == "does not hold"
+    # Table 2's caption says what the formula column is, with this run's l_m and l_w.
+    assert "d_e = (l_m + l_w) n" in cpu and "l_m = 3.10 ms, l_w = 0.75 ms" in cpu
+    # Fig. 4's caption says which quantity its 1-stage row is.
+    assert "STN-Homography 1 stage is the stage-1 network's own estimate" in cpu
+
+
+def test_tiny_drops_homographynet_after_its_evaluation_and_never_retrains_it(tmp_path):
+    """tiny: HomographyNet's model.keras goes once evaluated (its config, result and evaluation
+    stay) and the next run counts it as finished; a reused model and other budgets keep theirs."""
+    tiny = reproduce.BUDGETS["tiny"]
+    logs = []
+    run = reproduce.Reproduction(tiny, str(tmp_path / "out"), source="bundled",
+                                 printer=logs.append)
+    cfg = run.config("homographynet", data_dir=str(tmp_path / "data"), model="homographynet",
+                     **{**reproduce.train_config.MODEL_DEFAULTS["homographynet"],
+                        "train_steps": tiny.train_steps})
+    run_dir.prepare_model_dir(cfg)
+    d = cfg.model_dir
+    for name in (run_dir.FINAL_MODEL, run_dir.RESULT_FILE):
+        with open(os.path.join(d, name), "w") as f:
+            f.write("{}")
+    os.makedirs(os.path.join(d, run_dir.CHECKPOINT_DIR))
+    assert not run.dropped("homographynet")  # not evaluated yet
+    with open(os.path.join(run.out, "eval", "homographynet.json"), "w") as f:
+        json.dump({"model": {"mace": 300.0}}, f)
+    run.drop_model("homographynet")
+    left = set(os.listdir(d))
+    assert {run_dir.CONFIG_FILE, run_dir.RESULT_FILE} <= left
+    assert not left & {run_dir.FINAL_MODEL, run_dir.CHECKPOINT_DIR}
+    assert logs and logs[-1].startswith("[drop] homographynet")
+    assert run.dropped("homographynet")
+    assert run.train("homographynet", cfg) == d and "train_homographynet" not in run.timings
+    # The cached evaluation stands for the model that is gone.
+    assert run.evaluate("homographynet", [d]) == {"model": {"mace": 300.0}}
+    # Another budget, or a reused model: nothing is removed.
+    for budget, reuse in ((reproduce.BUDGETS["cpu"], {}), (tiny, {"homographynet": d})):
+        with open(os.path.join(d, run_dir.FINAL_MODEL), "w") as f:
+            f.write("{}")
+        other = reproduce.Reproduction(budget, str(tmp_path / "other"), printer=logs.append,
+                                       reuse=reuse)
+        other.drop_model("homographynet")
+        assert os.path.exists(os.path.join(d, run_dir.FINAL_MODEL))
+
+
+@pytest.mark.slow
+def test_one_number_per_model_no_verdict_and_a_small_smoke_run(tiny_run):
+    """Fig. 4's stage-1 bar is Table 1's 1:1 seed 0 (the same evaluation); no verdict at tiny;
+    the output keeps no checkpoints nor the HomographyNet file and stays under 100 MB."""
+    out, result, _ = tiny_run
+    assert result["fig4_mace"]["STN-Homography 1 stage"] == result["table1_mace_per_seed"]["1,1"][0]
+    assert "STN-Homography 1 stage" not in result["fig4_rejected"]
+    assert result["table1_claim"]["verdict"] == "none"
+    tables = open(os.path.join(out, "tables.md")).read()
+    assert "no verdict at this budget" in tables and "| identity (no model) |" in tables
+    assert "no verdict at this budget" in open(os.path.join(out, "table1.md")).read()
+    for name in result["fig4_rejected"]:
+        assert 0 < result["fig4_rejected"][name] <= result["fig4_rejected_of"][name]
+    models = os.path.join(out, "models")
+    assert not [m for m in os.listdir(models)
+                if os.path.exists(os.path.join(models, m, run_dir.CHECKPOINT_DIR))]
+    assert not os.path.exists(os.path.join(result["models"]["homographynet"], run_dir.FINAL_MODEL))
+    assert os.path.exists(os.path.join(result["models"]["stages"][0], run_dir.FINAL_MODEL))
+    size = sum(os.path.getsize(os.path.join(root, f)) for root, _, files in os.walk(out)
+               for f in files)
+    assert size < 100e6, size

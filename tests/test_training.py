@@ -676,18 +676,30 @@ def test_checkpoint_state_cannot_name_weights_outside_its_folder(tmp_path):
 
 @pytest.mark.slow  # (make test-all)
 def test_chunks_stop_at_the_time_limit_and_continue_on_another_machine(tiny_data, straight_run,
-                                                                       tmp_path, narrow):
-    """Three chunks of the 6-step run, each stopped by the time limit after one checkpoint, each
-    on a fresh run folder (another machine) resuming from the checkpoint committed in the
-    repository folder: the finished model (without optimizer state) equals the uninterrupted
-    run's, the committed checkpoint is gone, and the ledger has one row per chunk."""
-    from stnh_tf.training import chunks
+                                                                       tmp_path, narrow,
+                                                                       monkeypatch):
+    """Three chunks of the 6-step run, each stopped by the time limit after one checkpoint (steps
+    of 1,000 s on a fake clock, a limit of 2,500 s: two steps), each on a fresh run folder
+    (another machine) resuming from the checkpoint committed in the repository folder: the
+    finished model (without optimizer state) equals the uninterrupted run's, the committed
+    checkpoint is gone, and the ledger has one row per chunk."""
+    from stnh_tf.training import callbacks, chunks
 
+    class Ticking(callbacks.TimeLimit):  # each step ends 1,000 s after it began
+        def __init__(self, *args, **kwargs):
+            self.offset = 0.0
+            super().__init__(*args, clock=lambda: time.monotonic() + self.offset, **kwargs)
+
+        def on_train_batch_end(self, batch, logs=None):
+            self.offset += 1000.0
+            super().on_train_batch_end(batch, logs)
+
+    monkeypatch.setattr(training, "TimeLimit", Ticking)
     repo = tmp_path / "repo"
     rows = []
     for k in range(3):
         cfg = _cfg(tiny_data, tmp_path / f"machine{k}")
-        rows.append(chunks.run_chunk(cfg, str(repo), 1e-9, f"machine {k}", printer=_quiet))
+        rows.append(chunks.run_chunk(cfg, str(repo), 2500.0, f"machine {k}", printer=_quiet))
         resume = repo / "resume" / "stage1"
         if k < 2:
             assert json.loads((resume / "state.json").read_text())["step"] == 2 * (k + 1)
@@ -698,6 +710,9 @@ def test_chunks_stop_at_the_time_limit_and_continue_on_another_machine(tiny_data
         (0, 2, False), (2, 4, False), (4, 6, True)]
     assert not (repo / "resume" / "stage1").exists()
     assert json.loads((repo / "ledger.json").read_text()) == rows
+    from stnh_tf.provenance import machine_info  # each row: the commit, machine and versions
+    assert all(r["machine"]["keras"] == keras.__version__
+               and r["machine"]["git_commit"] == machine_info()["git_commit"] for r in rows)
     record = json.loads((repo / "stage1.json").read_text())
     assert record["chunks"] == rows and record["final_step"] == 6
     assert record["config"] == dataclasses.replace(cfg, model_dir=record["config"]["model_dir"]

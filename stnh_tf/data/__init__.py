@@ -10,7 +10,13 @@ files (:mod:`~stnh_tf.data.camera_motions`, :mod:`~stnh_tf.data.camera_pair_file
 Importing a submodule imports no deep-learning backend unless that submodule needs one.
 """
 
-from stnh_tf import _compat
+__all__ = ["load_split"]
 
-# Before 0.2 ``stnh_tf.data`` was the TFRecord reader: its names stay reachable here.
-__getattr__ = _compat.delegate(__name__, "stnh_tf.data.tfrecords")
+
+def __getattr__(name):
+    # ``load_split`` is imported on first use: the TFRecord reader imports TensorFlow, the pair
+    # generators must not (tests/test_layout.py).
+    if name == "load_split":
+        from stnh_tf.data.tfrecords import load_split
+        return load_split
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

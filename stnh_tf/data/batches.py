@@ -20,8 +20,9 @@ import numpy as np
 
 from stnh_tf import pixels
 from stnh_tf.data import labels, pairs, sources
+from stnh_tf.data.folder_counts import FolderCounts
 from stnh_tf.data.sources import (ImageDecodeError, SourceError, bundled_image_files,
-                                  scan_image_folder, scan_image_folders)
+                                  scan_image_folders)
 
 _log = logging.getLogger(__name__)
 
@@ -107,16 +108,14 @@ class PairBatches:
         self.shuffle, self.drop_remainder = shuffle, drop_remainder
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1; received {batch_size}.")
-        entries = _image_entries(images)
-        if max_images > 0:
-            entries = entries[:max_images]
+        entries, listing = _image_entries(images, max_images)
         self.unlabeled_from = max((e[0] for e in entries), default=-1) + 1
         if unlabeled_images is not None:
             entries = entries + _unlabeled_entries(unlabeled_images, entries,
                                                    self.unlabeled_from)
         self.label_fraction = float(label_fraction)
         labels.threshold(self.label_fraction)  # raises for a fraction outside [0, 1]
-        self.skipped = []
+        self.skipped = list(listing.unreadable) if listing else []  # (links outside a folder)
         self._cache = {}
         if cache_images:
             kept = []
@@ -128,6 +127,9 @@ class PairBatches:
                     self.skipped.append((image_id, str(e)))
                     _log.warning("PairBatches: skipped %s: %s", image_id, e)
             entries = kept
+            if listing is not None:
+                _log.info("%s", FolderCounts.of(len(entries), [r for _, r in self.skipped],
+                                                listing, max_images).line())
         if not entries:
             raise SourceError(f"no usable images in {images!r}.")
         self.entries = entries
@@ -252,7 +254,7 @@ def _unlabeled_entries(images, labeled_entries: list, first_index: int) -> list:
     Raises:
       SourceError: ``images`` lists no image.
     """
-    entries = _image_entries(images)
+    entries = _image_entries(images)[0]
     if not entries:
         raise SourceError(f"no images in the unlabeled image source {images!r}.")
 
@@ -264,24 +266,26 @@ def _unlabeled_entries(images, labeled_entries: list, first_index: int) -> list:
             if path(p) not in taken]
 
 
-def _image_entries(images) -> list:
-    """``[(image_index, image_id, payload)]`` from the accepted ``images`` forms."""
+def _image_entries(images, max_images: int = 0) -> tuple:
+    """``([(image_index, image_id, payload)], listing)`` from the accepted ``images`` forms, the
+    first ``max_images`` (0: all); ``listing``: the folders' :class:`sources.FolderListing`
+    (None for other forms)."""
     if isinstance(images, str) and images == "bundled":
-        return [(i, image_id, p) for i, (image_id, p) in enumerate(bundled_image_files())]
-    if isinstance(images, (str, os.PathLike)):
-        listing = scan_image_folder(os.fspath(images))
-        return [(i, listing.image_id(p), p) for i, p in enumerate(listing.files)]
-    images = list(images)
-    if images and all(isinstance(x, (str, os.PathLike)) and os.path.isdir(x) for x in images):
-        listing = scan_image_folders(images)
-        return [(i, listing.image_id(p), p) for i, p in enumerate(listing.files)]
+        out = [(i, image_id, p) for i, (image_id, p) in enumerate(bundled_image_files())]
+        return (out[:max_images] if max_images > 0 else out), None
+    one_folder = isinstance(images, (str, os.PathLike))  # (SourceError if not a folder)
+    images = [os.fspath(images)] if one_folder else list(images)
+    if one_folder or images and all(isinstance(x, (str, os.PathLike)) and os.path.isdir(x)
+                                    for x in images):
+        listing = scan_image_folders([os.fspath(x) for x in images], max_images)
+        return [(i, listing.image_id(p), p) for i, p in enumerate(listing.files)], listing
     out = []
     for i, item in enumerate(images):
         if isinstance(item, tuple) and len(item) == 2:
             out.append((i, str(item[0]), item[1]))
         else:
             out.append((i, os.fspath(item), os.fspath(item)))
-    return out
+    return (out[:max_images] if max_images > 0 else out), None
 
 
 # ------------------------------------------------------------------------------------------------

@@ -35,6 +35,11 @@ drawn from ``np.random.default_rng([seed, i])`` and belongs to group ``GROUPS[k 
 balanced); its motion is drawn from :class:`MotionRanges` and scaled towards the identity
 (:func:`draw_motion`) so that its size is uniform in the group's interval. Sets of pairs on
 disk: :mod:`stnh_tf.data.camera_pair_files`.
+
+The wide-baseline set (issue 64; ``motion_set="wide"``, :data:`MOTION_SETS`): its motions and
+low-light degradation are :mod:`stnh_tf.data.wide_motions`'; pair ``k`` belongs to
+``WIDE_GROUPS[k % 2]``: ``"wide"`` (the :class:`Degradation` of the other groups) or
+``"wide_low_light"`` (dim, blurred, noisy).
 """
 
 from __future__ import annotations
@@ -110,6 +115,20 @@ class Degradation:
     read_noise: tuple = (0.5, 3.0)
     shot_noise: tuple = (0.0, 0.1)
     jpeg_quality: tuple = (40, 95)
+
+
+WIDE_GROUPS = ("wide", "wide_low_light")
+"""The groups of the wide-baseline set (:mod:`stnh_tf.data.wide_motions`): pair ``k`` is in
+``WIDE_GROUPS[k % 2]``; the second gets ``wide_motions.LOW_LIGHT`` instead of the set's
+degradation."""
+
+MOTION_SETS = {"size": tuple(GROUPS), "wide": WIDE_GROUPS}
+"""The kinds of set :func:`make_image_pairs` makes, with their groups: ``"size"`` (motions scaled
+to a group by size, :func:`draw_motion`) and ``"wide"``
+(:func:`stnh_tf.data.wide_motions.draw_wide_motion`)."""
+
+ALL_GROUPS = tuple(GROUPS) + WIDE_GROUPS
+"""Every group a pair can belong to, in the order they are reported."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -315,6 +334,7 @@ def draw_motion(rng: np.random.Generator, group: str, ranges: MotionRanges = Mot
     raise RuntimeError(f"no motion of group {group!r} in {max_draws} draws.")
 
 
+
 # --------------------------------------------------------------------------------------------
 # Rendering and degradation
 # --------------------------------------------------------------------------------------------
@@ -375,20 +395,44 @@ def degrade(image: np.ndarray, p: dict) -> np.ndarray:
 # Sets of pairs
 # --------------------------------------------------------------------------------------------
 def make_image_pairs(gray, image_index: int, image_id: str, pairs_per_image: int, seed: int,
-                     motions: MotionRanges = MotionRanges(),
-                     degradation: Degradation = Degradation()) -> list:
+                     motions: MotionRanges | None = None,
+                     degradation: Degradation = Degradation(),
+                     motion_set: str = "size") -> list:
     """The :class:`CameraPair` s of one photograph (gray ``uint8 [h, w]``, any size): pair ``j``
-    has index ``k = image_index * pairs_per_image + j`` and group ``GROUPS[k % 3]``; every draw
-    from ``np.random.default_rng([seed, image_index])``, motion then degradation, pair by pair."""
+    has index ``k = image_index * pairs_per_image + j`` and group ``groups[k % len(groups)]``
+    (``groups = MOTION_SETS[motion_set]``); every draw from
+    ``np.random.default_rng([seed, image_index])``, motion then degradation, pair by pair.
+    ``motions``: ``None``, the set's (:func:`set_motions`); ``"wide_low_light"`` pairs get
+    ``wide_motions.LOW_LIGHT`` instead of ``degradation``.
+
+    Raises:
+      ValueError: an unknown ``motion_set``.
+    """
+    if motion_set not in MOTION_SETS:
+        raise ValueError(f"motion_set must be one of {tuple(MOTION_SETS)}; received "
+                         f"{motion_set!r}.")
+    from stnh_tf.data import wide_motions  # (it builds on this module)
+
+    motions = set_motions(motion_set) if motions is None else motions
+    groups = MOTION_SETS[motion_set]
     rng = np.random.default_rng([int(seed), int(image_index)])
     source, out = source_image(gray), []
     for j in range(pairs_per_image):
         k = image_index * pairs_per_image + j
-        group = tuple(GROUPS)[k % len(GROUPS)]
-        kind, motion, h = draw_motion(rng, group, motions)
-        photometric = draw_degradation(rng, degradation)
+        group = groups[k % len(groups)]
+        kind, motion, h = (wide_motions.draw_wide_motion(rng, motions) if motion_set == "wide"
+                           else draw_motion(rng, group, motions))
+        photometric = draw_degradation(rng, wide_motions.LOW_LIGHT if group == "wide_low_light"
+                                       else degradation)
         image_a, image_b = render_pair(source, h)
         out.append(CameraPair(k, image_id, group, kind, h, float(motion_offset(h)), motion,
                               photometric, np.clip(np.rint(image_a), 0, 255).astype(np.uint8),
                               degrade(image_b, photometric)))
     return out
+
+
+def set_motions(motion_set: str) -> MotionRanges:
+    """The :class:`MotionRanges` a set of ``motion_set`` draws from by default."""
+    from stnh_tf.data import wide_motions
+
+    return wide_motions.WIDE_MOTIONS if motion_set == "wide" else MotionRanges()

@@ -5,12 +5,16 @@ read by :func:`load_pairs`. NumPy/OpenCV only.
 Layout: ``{k:05d}_a.png`` and ``{k:05d}_b.png`` (8-bit gray, 320 x 240) for pair ``k``, and
 :data:`MANIFEST`: the set's parameters (seed, ranges, groups, counts, skipped files) and per pair
 its ``h_ba`` (image_b -> image_a pixels), group, kind, motion offset, motion and degradation
-parameters.
+parameters, and the SHA-256 of its two PNG files. The manifest is the set's commit point: it is
+replaced by an incomplete one (``"complete": false``) before any PNG is written and written whole
+(atomically) after the last, and :func:`load_pairs` refuses a set that is incomplete or whose
+files are not the ones its manifest lists (e.g. a rewrite under another seed cut short).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 
@@ -18,34 +22,78 @@ import cv2
 import numpy as np
 
 from stnh_tf.data import sources
-from stnh_tf.data.camera_motions import (GROUPS, MARGIN, SOURCE_SIZE, TRAINED_OFFSET,
-                                         CameraPair, Degradation, MotionRanges,
-                                         make_image_pairs)
+from stnh_tf.data.folder_counts import FolderCounts, no_photograph_message
+from stnh_tf.data.camera_motions import (GROUPS, MARGIN, MOTION_SETS, SOURCE_SIZE,
+                                         TRAINED_OFFSET, CameraPair, Degradation, MotionRanges,
+                                         make_image_pairs, set_motions)
+from stnh_tf.data.wide_motions import LOW_LIGHT
+from stnh_tf.paths import atomic_write_json, inside
 
 FORMAT = "stnh_tf.camera_pairs"
+VERSION = 2  # 2: each pair's "sha256" of its PNG files, and "complete"
 MANIFEST = "pairs.json"
 
 
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _read_manifest(path: str) -> dict:
+    """The camera-pair manifest at ``path`` (``ValueError`` naming it if it is not one)."""
+    try:
+        with open(path) as f:
+            manifest = json.load(f)
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"no camera-pair manifest in {os.path.dirname(path)}: {e}") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise ValueError(f"{path} is not a {FORMAT} manifest.")
+    return manifest
+
+
 def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
-                motions: MotionRanges = MotionRanges(),
-                degradation: Degradation = Degradation(), overwrite: bool = False) -> dict:
+                motions: MotionRanges | None = None,
+                degradation: Degradation = Degradation(), overwrite: bool = False,
+                motion_set: str = "size", max_images: int = 0) -> dict:
     """Pairs of every photograph below ``image_dir`` (:func:`stnh_tf.data.sources.scan_image_folder`
-    order) into ``output_dir``: ``{k:05d}_a.png``, ``{k:05d}_b.png`` and :data:`MANIFEST` (every
-    parameter, each pair's ``h_ba``, group, kind, motion and degradation; undecodable files
-    listed in ``skipped``). Returns the manifest without its ``pairs``.
+    order; the first ``max_images`` of them, 0: all) into ``output_dir``: ``{k:05d}_a.png``,
+    ``{k:05d}_b.png`` and :data:`MANIFEST` (every parameter, each pair's ``h_ba``, group, kind,
+    motion and degradation; the files left out listed in ``skipped`` with their reasons, links
+    leading out of the folder and undecodable files, and counted by kind in ``photographs``:
+    :class:`~stnh_tf.data.folder_counts.FolderCounts`). Returns the manifest without its
+    ``pairs``. ``motion_set`` and
+    ``motions``: as :func:`~stnh_tf.data.camera_motions.make_image_pairs` takes them (``"wide"``:
+    the wide-baseline set, issue 64).
+
+    Before the first PNG, :data:`MANIFEST` is replaced by an incomplete one (``"complete":
+    false``, which :func:`load_pairs` refuses); the whole manifest is written atomically after
+    the last, so that a run cut short never leaves a manifest beside files it does not list.
 
     Raises:
-      ValueError: ``pairs_per_image < 1``, no readable photograph, or a manifest already in
-        ``output_dir`` without ``overwrite``. ``SourceError``: ``image_dir`` is not a folder.
+      ValueError: ``pairs_per_image < 1``, no readable photograph (the message counts the
+        reasons and names the first file skipped), a manifest already in
+        ``output_dir`` without ``overwrite``, or a ``pairs.json`` there that is not a camera-pair
+        manifest (not replaced). ``SourceError``: ``image_dir`` is not a folder.
     """
     if pairs_per_image < 1:
         raise ValueError(f"pairs_per_image must be >= 1; received {pairs_per_image}.")
+    if motion_set not in MOTION_SETS:
+        raise ValueError(f"motion_set must be one of {tuple(MOTION_SETS)}; received "
+                         f"{motion_set!r}.")
+    motions = set_motions(motion_set) if motions is None else motions
     path = os.path.join(output_dir, MANIFEST)
-    if os.path.exists(path) and not overwrite:
-        raise ValueError(f"{path} exists; pass overwrite to replace the set.")
-    listing = sources.scan_image_folder(image_dir)
+    if os.path.exists(path):
+        if not overwrite:
+            raise ValueError(f"{path} exists; pass overwrite to replace the set.")
+        _read_manifest(path)  # someone else's pairs.json is not replaced
+    listing = sources.scan_image_folders([image_dir], max_images)
+    skipped = [[listing.image_id(p), reason] for p, reason in listing.unreadable]
+    if not listing.files:  # (nothing written)
+        raise ValueError(no_photograph_message(
+            image_dir, FolderCounts.of(0, [r for _, r in skipped], listing), skipped))
     os.makedirs(output_dir, exist_ok=True)
-    records, skipped, index = [], [], 0
+    atomic_write_json(path, {"format": FORMAT, "version": VERSION, "complete": False,
+                             "seed": int(seed), "pairs": []})  # invalid until the end
+    records, index = [], 0
     for path_in in listing.files:
         try:
             gray = sources.decode_gray(open(path_in, "rb").read())
@@ -53,31 +101,42 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
             skipped.append([listing.image_id(path_in), str(e)])
             continue
         for p in make_image_pairs(gray, index, listing.image_id(path_in), pairs_per_image, seed,
-                                  motions, degradation):
-            names = (f"{p.index:05d}_a.png", f"{p.index:05d}_b.png")
+                                  motions, degradation, motion_set):
+            names, sha256 = (f"{p.index:05d}_a.png", f"{p.index:05d}_b.png"), []
             for name, image in zip(names, (p.image_a, p.image_b)):
-                cv2.imwrite(os.path.join(output_dir, name), image)
+                data = cv2.imencode(".png", image)[1].tobytes()
+                with open(os.path.join(output_dir, name), "wb") as f:
+                    f.write(data)
+                sha256.append(_sha256(data))
             records.append({"index": p.index, "image_a": names[0], "image_b": names[1],
-                            "image_id": p.image_id, "group": p.group, "kind": p.kind,
-                            "offset_px": p.offset_px, "h_ba": p.h_ba.tolist(),
+                            "sha256": sha256, "image_id": p.image_id, "group": p.group,
+                            "kind": p.kind, "offset_px": p.offset_px, "h_ba": p.h_ba.tolist(),
                             "motion": p.motion, "photometric": p.photometric})
         index += 1
+    counts = FolderCounts.of(index, [r for _, r in skipped], listing, max_images)
     if not records:
-        raise ValueError(f"no readable photograph in {image_dir}.")
+        raise ValueError(no_photograph_message(image_dir, counts, skipped))
     manifest = {
-        "format": FORMAT, "version": 1, "seed": int(seed), "pairs_per_image": pairs_per_image,
+        "format": FORMAT, "version": VERSION, "complete": True, "seed": int(seed),
+        "pairs_per_image": pairs_per_image,
         "image_dir": listing.root, "images": index, "skipped": skipped,
+        "max_images": max_images, "photographs": counts.as_dict(),
         "frame": "h_ba maps image_b pixels to image_a pixels, 320 x 240, pixel centres at "
                  "integers; image_b(p) = image_a(h_ba @ p) before the degradation",
         "source_size": list(SOURCE_SIZE), "margin": list(MARGIN),
-        "groups": {g: [lo * TRAINED_OFFSET, hi * TRAINED_OFFSET] for g, (lo, hi) in GROUPS.items()},
+        "groups": ({g: [lo * TRAINED_OFFSET, hi * TRAINED_OFFSET] for g, (lo, hi) in GROUPS.items()}
+                   if motion_set == "size" else {g: None for g in MOTION_SETS[motion_set]}),
         "group_measure": "largest corner offset (per coordinate, px) of the central 128 x 128 "
                          "patch at (96, 56) in the patch frame",
-        "counts": {g: sum(r["group"] == g for r in records) for g in GROUPS},
+        "counts": {g: sum(r["group"] == g for r in records) for g in MOTION_SETS[motion_set]},
         "motions": dataclasses.asdict(motions), "degradation": dataclasses.asdict(degradation),
+        "motion_set": motion_set,
+        **({"wide": "every motion at the full range of motions, kept where the views overlap "
+                    "(camera_motions.overlap >= MIN_OVERLAP); pair k in wide_low_light when k is "
+                    "odd, with the degradation low_light",
+            "low_light": dataclasses.asdict(LOW_LIGHT)} if motion_set == "wide" else {}),
     }
-    with open(os.path.join(output_dir, MANIFEST), "w") as f:
-        json.dump({**manifest, "pairs": records}, f, indent=1)
+    atomic_write_json(path, {**manifest, "pairs": records})  # the commit point
     return manifest
 
 
@@ -86,20 +145,33 @@ def load_pairs(folder) -> tuple:
     :class:`CameraPair` per record (images read from their PNGs).
 
     Raises:
-      ValueError: no manifest of this format, or an image that cannot be read.
+      ValueError: naming the file: no manifest of this format, an incomplete one (a
+        :func:`write_pairs` cut short) or one of another version, or an image that cannot be
+        read or is not the file the manifest lists (its SHA-256 differs).
     """
     path = os.path.join(folder, MANIFEST)
-    try:
-        with open(path) as f:
-            manifest = json.load(f)
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"no camera-pair manifest in {folder}: {e}") from None
-    if manifest.get("format") != FORMAT:
-        raise ValueError(f"{path} is not a {FORMAT} manifest.")
+    manifest = _read_manifest(path)
+    if manifest.get("version") != VERSION:
+        raise ValueError(f"{path} has version {manifest.get('version')!r} (without the files' "
+                         f"checksums); this version reads {VERSION}: make the set again "
+                         "(make_camera_pairs --overwrite, same seed).")
+    if manifest.get("complete") is not True:
+        raise ValueError(f"{path} is of an incomplete set (its writing was cut short): make it "
+                         "again (make_camera_pairs --overwrite).")
     pairs = []
     for r in manifest["pairs"]:
-        images = [cv2.imread(os.path.join(folder, r[k]), cv2.IMREAD_GRAYSCALE)
-                  for k in ("image_a", "image_b")]
+        images = []
+        for key, sha256 in zip(("image_a", "image_b"), r["sha256"]):
+            file = inside(folder, r[key], f"{path!r}, pair {r['index']}")
+            try:
+                with open(file, "rb") as f:
+                    data = f.read()
+            except OSError as e:
+                raise ValueError(f"cannot read {file} ({path} lists it): {e}") from None
+            if _sha256(data) != sha256:
+                raise ValueError(f"{file} is not the file {path} lists (its SHA-256 differs: "
+                                 "a set written over this one?): make the set again.")
+            images.append(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE))
         if any(i is None for i in images):
             raise ValueError(f"cannot read the images of pair {r['index']} in {folder}.")
         pairs.append(CameraPair(r["index"], r["image_id"], r["group"], r["kind"],

@@ -21,7 +21,7 @@ import re
 from typing import Optional
 
 from stnh_tf.data.tfrecords import METADATA_FILE
-from stnh_tf.paths import atomic_write_json, read_json
+from stnh_tf.paths import atomic_write_json, exclusive_lock, read_json
 
 LOCK_FILE = ".metadata.lock"
 METADATA_MARKER = {"format": "stnh_tf.dataset", "format_version": 1}
@@ -136,18 +136,9 @@ def split_lock(output_dir: str, split: str):
     """Hold ``output_dir``'s lock of ``split`` (``.{split}.lock``, ``fcntl.flock``) for one
     writer: a second writer of the same split, in this process or another, fails at once with
     ``FileExistsError`` instead of deleting the first one's temporary shards. The lock goes with
-    the process (nothing stale is left by a killed run)."""
-    import fcntl
-
+    the process (nothing stale is left by a killed run): :func:`stnh_tf.paths.exclusive_lock`."""
     path = os.path.join(output_dir, f".{split}.lock")
-    with open(path, "a") as f:
-        try:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise FileExistsError(f"another process is writing split {split!r} in {output_dir} "
-                                  f"(it holds {path}); wait for it to finish, or write to "
-                                  "another --output_dir or --split.") from None
-        try:
-            yield
-        finally:
-            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    with exclusive_lock(path, f"another process is writing split {split!r} in {output_dir} (it "
+                              f"holds {path}); wait for it to finish, or write to another "
+                              "--output_dir or --split."):
+        yield

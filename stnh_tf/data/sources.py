@@ -60,6 +60,14 @@ class SourceError(ValueError):
     """A source that cannot be used at all (missing folder, no images, no download possible)."""
 
 
+LINK_OUTSIDE = "symbolic link to a file outside the image folder"
+LINK_OUTSIDE_WHY = (
+    "not followed: data are made of the folder's own files, so that the image ids recorded "
+    "with them (paths inside the folder) name what was read, and a folder from elsewhere "
+    "cannot pull in files from anywhere on the disk; copy the files in (cp -L), or give the "
+    "folder they are in as an image folder too")
+"""Why a symbolic link leading out of an image folder is left out (:func:`scan_image_folder`)."""
+
 # ------------------------------------------------------------------------------------------------
 # Listing
 # ------------------------------------------------------------------------------------------------
@@ -74,6 +82,8 @@ class FolderListing:
       unreadable: ``(path, reason)`` for directories that could not be listed and for symbolic
         links leading outside the folder (left out).
       ignored: number of files skipped because of their extension (not image files).
+      beyond_max_images: image files left out because they come after the first ``max_images``
+        of the sorted listing (:func:`scan_image_folders`; 0 without a limit).
     """
 
     root: str
@@ -81,6 +91,7 @@ class FolderListing:
     unreadable: list
     ignored: int
     ids: dict | None = None  # path -> id, for listings of several folders
+    beyond_max_images: int = 0
 
     def image_id(self, path: str) -> str:
         """The id stored with each sample: the path relative to ``root``, POSIX separators (for
@@ -91,39 +102,81 @@ class FolderListing:
 
 
 def split_folders(spec) -> list:
-    """Folders from a comma-separated string (as absl list flags take them) or a sequence.
+    """Image folders from a comma-separated string (as absl list flags take them, e.g.
+    ``--image_dir``) or a sequence, each an existing directory (:func:`check_folder`), so that
+    a list of them is never read as a list of image files.
 
     Raises:
-      SourceError: no folder named (an empty string or list).
+      SourceError: no folder named (an empty string or list), or an entry that does not exist
+        or is not a directory (the first such, named).
     """
     folders = spec.split(",") if isinstance(spec, str) else [os.fspath(f) for f in spec]
     folders = [f.strip() for f in folders if f.strip()]
     if not folders:
         raise SourceError(f"no image folder given (received {spec!r}).")
+    for folder in folders:
+        check_folder(folder)
     return folders
 
 
-def scan_image_folders(folders) -> FolderListing:
+def check_folder(folder: str) -> str:
+    """``folder``'s absolute path, if it is an existing directory.
+
+    Raises:
+      SourceError: "image folder does not exist: PATH", or "... is not a folder: PATH" (a file).
+
+        >>> try:
+        ...     check_folder("/no/such/place")
+        ... except SourceError as e:
+        ...     print(e)
+        image folder does not exist: /no/such/place
+    """
+    root = os.path.abspath(folder)
+    if not os.path.exists(root):
+        raise SourceError(f"image folder does not exist: {root}")
+    if not os.path.isdir(root):
+        raise SourceError(f"image folder is not a folder (a file, not a directory): {root}")
+    return root
+
+
+def scan_image_folders(folders, max_images: int = 0) -> FolderListing:
     """Every image file below each of ``folders`` (a list, or a comma-separated string), folder
     after folder, each sorted as :func:`scan_image_folder` sorts. One folder gives exactly
     :func:`scan_image_folder`'s listing; with several, ``root`` is their absolute paths joined by
-    commas and the id of an image is ``"<k>:<path relative to folder k>"``.
+    commas and the id of an image is ``"<k>:<path relative to folder k>"``. ``max_images`` > 0
+    keeps the first ``max_images`` files of that order (the same ones on every machine) and
+    counts the others in ``beyond_max_images``.
+
+        >>> import tempfile
+        >>> folder = tempfile.mkdtemp()
+        >>> for name in ("c.png", "a.jpg", "b.png", "notes.txt"):
+        ...     open(os.path.join(folder, name), "wb").close()
+        >>> listing = scan_image_folders(folder, max_images=2)
+        >>> [listing.image_id(p) for p in listing.files], listing.beyond_max_images
+        (['a.jpg', 'b.png'], 1)
 
     Raises:
       SourceError: no folder given, or one that is not an existing directory.
+      ValueError: ``max_images`` < 0.
     """
+    if max_images < 0:
+        raise ValueError(f"max_images must be >= 0 (0: every image); received {max_images}.")
     folders = split_folders(folders)
     listings = [scan_image_folder(f) for f in folders]
     if len(listings) == 1:
-        return listings[0]
-    merged = FolderListing(root=",".join(x.root for x in listings), files=[], unreadable=[],
-                           ignored=sum(x.ignored for x in listings), ids={})
-    for k, listing in enumerate(listings):
-        for path in listing.files:
-            if path not in merged.ids:  # a folder given twice, or nested: list each image once
-                merged.files.append(path)
-                merged.ids[path] = f"{k}:{listing.image_id(path)}"
-        merged.unreadable.extend(listing.unreadable)
+        merged = listings[0]
+    else:
+        merged = FolderListing(root=",".join(x.root for x in listings), files=[], unreadable=[],
+                               ignored=sum(x.ignored for x in listings), ids={})
+        for k, listing in enumerate(listings):
+            for path in listing.files:
+                if path not in merged.ids:  # a folder given twice, or nested: list each once
+                    merged.files.append(path)
+                    merged.ids[path] = f"{k}:{listing.image_id(path)}"
+            merged.unreadable.extend(listing.unreadable)
+    if 0 < max_images < len(merged.files):
+        merged.beyond_max_images = len(merged.files) - max_images
+        merged.files = merged.files[:max_images]
     return merged
 
 
@@ -131,14 +184,13 @@ def scan_image_folder(folder: str) -> FolderListing:
     """Every image file below ``folder`` (recursively; extensions in :data:`IMAGE_EXTENSIONS`).
 
     Symbolic links to directories are not entered; a symbolic link to a file outside ``folder``
-    is left out and listed in ``unreadable`` with the reason (one inside it is listed).
+    is left out and listed in ``unreadable`` with the reason (one inside it is listed):
+    :data:`LINK_OUTSIDE_WHY`.
 
     Raises:
-      SourceError: if ``folder`` is not an existing directory.
+      SourceError: if ``folder`` is not an existing directory (:func:`check_folder`).
     """
-    root = os.path.abspath(folder)
-    if not os.path.isdir(root):
-        raise SourceError(f"image folder {root!r} does not exist or is not a directory.")
+    root = check_folder(folder)
     files, unreadable, ignored = [], [], 0
 
     def onerror(err: OSError):
@@ -155,8 +207,8 @@ def scan_image_folder(folder: str) -> FolderListing:
             path = os.path.join(dirpath, name)
             if os.path.islink(path) and os.path.commonpath(
                     [real_root, os.path.realpath(path)]) != real_root:
-                unreadable.append((path, "symbolic link to a file outside the image folder "
-                                         f"({os.path.realpath(path)}): not followed"))
+                unreadable.append((path, f"{LINK_OUTSIDE} ({os.path.realpath(path)}): "
+                                         f"{LINK_OUTSIDE_WHY}"))
                 continue
             files.append(path)
     listing = FolderListing(root=root, files=[], unreadable=sorted(unreadable), ignored=ignored)
@@ -203,24 +255,21 @@ def bundled_images() -> list:
     return [(i, load_gray_320x240(p)) for i, p in bundled_image_files()]
 
 
-def load_gray_images(image_dir=None) -> list:
+def load_gray_images(image_dir=None, max_images: int = 0) -> list:
     """uint8 ``[240, 320]`` grayscale images (:func:`load_gray_320x240`): every image file below
-    ``image_dir`` (sorted; unreadable files skipped) or, without it, the bundled photographs.
+    ``image_dir`` (sorted; unreadable files skipped and counted:
+    :func:`stnh_tf.data.folder_counts.read_gray_folder`) or, without it, the bundled
+    photographs; the first ``max_images`` of them (0: all).
 
     Raises:
-      ValueError: no readable image in ``image_dir``.
+      ValueError: no readable image in ``image_dir`` (``SourceError``: the reasons counted).
     """
     if not image_dir:
-        return [img for _, img in bundled_images()]
-    images = []
-    for path in list_image_files(image_dir):
-        try:
-            images.append(load_gray_320x240(path))
-        except (ImageDecodeError, OSError):
-            pass
-    if not images:
-        raise ValueError(f"no readable images in {image_dir}.")
-    return images
+        images = [img for _, img in bundled_images()]
+        return images[:max_images] if max_images > 0 else images
+    from stnh_tf.data import folder_counts
+
+    return folder_counts.read_gray_folder(image_dir, max_images)[0]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -333,8 +382,10 @@ def resize_to_protocol(gray: np.ndarray, width: int = geometry.IMAGE_WIDTH,
     return cv2.resize(gray, (width, height), interpolation=interp)
 
 
-def load_gray_320x240(path_or_bytes) -> np.ndarray:
-    """Read an image file (path) or encoded bytes -> ``uint8 [240, 320]`` gray.
+def read_gray(path_or_bytes) -> np.ndarray:
+    """Read an image file (path) or encoded bytes -> ``uint8 [h, w]`` gray at the file's own size
+    (:func:`decode_gray`: the module docstring's rules, a truncated file refused). The one reading
+    of image files: make_dataset's (:func:`load_gray_320x240`) and ``experiments.predict``'s.
 
     Raises:
       ImageDecodeError: the file cannot be read or decoded (message = reason).
@@ -348,7 +399,17 @@ def load_gray_320x240(path_or_bytes) -> np.ndarray:
         except OSError as e:
             reason = f"unreadable file: {type(e).__name__}: {e.strerror or e}"
             raise ImageDecodeError(reason) from None
-    return resize_to_protocol(decode_gray(data))
+    return decode_gray(data)
+
+
+def load_gray_320x240(path_or_bytes) -> np.ndarray:
+    """Read an image file (path) or encoded bytes -> ``uint8 [240, 320]`` gray
+    (:func:`read_gray`, then :func:`resize_to_protocol`).
+
+    Raises:
+      ImageDecodeError: the file cannot be read or decoded (message = reason).
+    """
+    return resize_to_protocol(read_gray(path_or_bytes))
 
 
 def as_gray_320x240(image) -> np.ndarray:

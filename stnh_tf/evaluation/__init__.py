@@ -5,7 +5,13 @@ benchmarks' library cores (:mod:`~stnh_tf.evaluation.benchmarks`,
 :mod:`~stnh_tf.evaluation.data_benchmark`, :mod:`~stnh_tf.evaluation.search_stability`,
 :mod:`~stnh_tf.evaluation.camera_pairs`)."""
 
-from stnh_tf import _compat
+__all__ = ["evaluate"]
 
-# Before 0.2 ``stnh_tf.evaluation`` was the MACE module: its names stay reachable here.
-__getattr__ = _compat.delegate(__name__, "stnh_tf.evaluation.mace")
+
+def __getattr__(name):
+    # ``evaluate`` is imported on first use, as the other packages' names are: importing one
+    # module of the package (the baselines, say) loads only what that module needs.
+    if name == "evaluate":
+        from stnh_tf.evaluation.mace import evaluate
+        return evaluate
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

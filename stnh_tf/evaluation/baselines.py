@@ -405,8 +405,8 @@ def evaluate_baseline(name, patches_a, patches_b, h_true, **settings) -> dict:
     Returns:
       dict with ``mace`` (mean of :func:`geometry.corner_errors`, px), ``median``, ``p90``,
       ``p99``, ``failure_rate`` (fraction of pairs where the estimator fell back to identity),
-      ``ms_per_pair`` (wall time of the estimation per pair, milliseconds, this process) and
-      ``count``.
+      ``ms_per_pair`` (wall time of the estimation per pair, milliseconds, this process),
+      ``count`` and ``worse_than_identity`` (pairs whose error exceeds the identity's).
     """
     est = name if isinstance(name, _Estimator) else make_baseline(name, **settings)
     h_true = geometry.as_matrix(np.asarray(h_true, np.float64))
@@ -420,6 +420,7 @@ def evaluate_baseline(name, patches_a, patches_b, h_true, **settings) -> dict:
     h_pred, ok = est.estimate_batch(patches_a, patches_b)
     elapsed = time.perf_counter() - t0
     errors = np.asarray(geometry.corner_errors(h_pred, h_true), np.float64)
+    identity = np.asarray(geometry.corner_errors(np.broadcast_to(np.eye(3), h_true.shape), h_true))
     return {
         "mace": float(errors.mean()),
         "median": float(np.median(errors)),
@@ -428,4 +429,5 @@ def evaluate_baseline(name, patches_a, patches_b, h_true, **settings) -> dict:
         "failure_rate": float(1.0 - ok.mean()),
         "ms_per_pair": 1e3 * elapsed / len(errors),
         "count": int(len(errors)),
+        "worse_than_identity": int((errors > identity).sum()),
     }

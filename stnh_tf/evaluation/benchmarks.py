@@ -1,6 +1,6 @@
 """Benchmarks of the model side, library core of the ``experiments.benchmark_*`` binaries (each
 binary's docstring says what it measures and how to run it), and the description of the machine
-that every benchmark's JSON carries (:func:`machine_info`).
+that every benchmark's JSON carries (:func:`stnh_tf.provenance.machine_info`).
 
 * :func:`training_benchmark`: training-step time of STN-Homography beside the bare regression
   network, and batch-1 inference latency (``experiments.benchmark_training``);
@@ -17,60 +17,11 @@ Each returns the binary's JSON object as a dict. Deep-learning libraries are imp
 from __future__ import annotations
 
 import os
-import platform
 import statistics
-import subprocess
-import sys
 import time
 
-
-def git_commit() -> str | None:
-    """Short commit of the checkout the code runs from (``+dirty`` if modified), or ``None``."""
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, check=True,
-                                capture_output=True, text=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               check=True, capture_output=True, text=True).stdout.strip()
-        return commit + ("+dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
-def machine_info() -> dict:
-    """CPU model and count, load average, library versions and visible GPUs (for benchmark JSON).
-
-    Imports nothing heavy that is not already imported (TensorFlow and Keras are reported only if
-    the caller loaded them)."""
-    model = platform.processor()
-    try:
-        with open("/proc/cpuinfo") as f:
-            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")),
-                         model)
-    except OSError:
-        pass
-    import cv2
-    import numpy as np
-
-    info = {"platform": platform.platform(), "cpu": model or None, "cpu_count": os.cpu_count(),
-            "python": platform.python_version(), "numpy": np.__version__, "opencv": cv2.__version__,
-            "git_commit": git_commit(),
-            "command": " ".join([os.path.basename(sys.executable)] + sys.argv)}
-    if hasattr(os, "getloadavg"):
-        info["loadavg_at_start"] = [round(x, 2) for x in os.getloadavg()]
-    tf = sys.modules.get("tensorflow")  # (None also where an import of it was blocked)
-    if tf is not None:
-        info["tensorflow"] = tf.__version__
-        info["gpus"] = [d.name for d in tf.config.list_physical_devices("GPU")]
-    if "jax" in sys.modules:
-        jax = sys.modules["jax"]
-        info["jax"] = jax.__version__
-        info["jax_devices"] = [str(d.device_kind) for d in jax.devices()]
-    if "keras" in sys.modules:
-        keras = sys.modules["keras"]
-        info["keras"] = keras.__version__
-        info["keras_backend"] = keras.backend.backend()
-    return info
+# The description of the machine (the NumPy core's), named here too for the benchmarks' callers.
+from stnh_tf.provenance import git_commit, machine_info  # noqa: F401
 
 
 # ------------------------------------------------------------------------------------------------
@@ -107,7 +58,8 @@ class _StepTimer:
 
 
 def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
-    """Median seconds of a training step of ``kind``: "stn", "stn_unlabeled" (h_mask 0), "bare"."""
+    """Median seconds of a training step of ``kind``: "stn", "stn_unlabeled" (the model of a run
+    with unlabeled pairs, every pair of the batch unlabeled: h_mask 0), "bare"."""
     import keras
     import tensorflow as tf
 
@@ -119,7 +71,8 @@ def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
     keras.utils.set_random_seed(seed)
     try:
         cfg = train_config.TrainConfig(data_dir="-", model_dir="-", train_steps=10_000,
-                                       warmup_steps=100)
+                                       warmup_steps=100,
+                                       label_fraction=0.5 if kind == "stn_unlabeled" else 1.0)
         model = model_kinds.build_model(cfg)
         x, y = _random_batch(batch_size, seed)
         if kind == "bare":
@@ -138,6 +91,8 @@ def time_training(kind, policy, jit, batch_size, steps, warmup, seed):
             model.jit_compile = jit
             h_mask = tf.fill([batch_size], 0.0 if kind == "stn_unlabeled" else 1.0)
             batch = (x, y, {"h_bar": h_mask, "patch_a_warp": tf.ones_like(h_mask)})  # data.batches
+            mapper = model_kinds.targets_for(cfg)  # the run's (with unlabeled pairs: patch_b's)
+            batch = mapper(*batch) if mapper is not None else batch
         ds = tf.data.Dataset.from_tensors(batch).repeat()
         timer = _StepTimer().cb
         model.fit(ds, steps_per_epoch=warmup + steps, epochs=1, verbose=0, callbacks=[timer])

@@ -120,15 +120,18 @@ def flag_detection(flagged, errors, flag_error_px=FLAG_ERROR_PX) -> dict:
 
 
 def summarize(run: dict, errors, patch_errs, success_px=SUCCESS_PX,
-              flag_error_px=FLAG_ERROR_PX) -> dict:
+              flag_error_px=FLAG_ERROR_PX, identity_errors=None) -> dict:
     """One method's numbers on a set of pairs (``run``: :func:`run_estimator`'s or
-    :func:`run_baseline`'s arrays restricted to the set)."""
+    :func:`run_baseline`'s arrays restricted to the set); given the identity's errors on the same
+    pairs, also ``worse_than_identity`` (the pairs whose error exceeds the identity's)."""
     out = {"count": int(len(errors)), "mace": float(np.mean(errors)),
            "median": float(np.median(errors)),
            "success_rate": float(np.mean(errors < success_px)),
            "patch_mace": float(np.mean(patch_errs)),
            "ms_per_pair": 1e3 * float(np.mean(run["seconds"])),
            "median_ms_per_pair": 1e3 * float(np.median(run["seconds"]))}
+    if identity_errors is not None:
+        out["worse_than_identity"] = int((np.asarray(errors) > identity_errors).sum())
     if "ok" in run:
         out["failure_rate"] = float(1.0 - np.mean(run["ok"]))
     if "implausible" in run:
@@ -141,8 +144,9 @@ def summarize(run: dict, errors, patch_errs, success_px=SUCCESS_PX,
 def benchmark(pairs, methods=METHODS, estimator=None, options=None, success_px=SUCCESS_PX,
               flag_error_px=FLAG_ERROR_PX, per_pair=False) -> dict:
     """Every method of ``methods`` on ``pairs`` (:class:`~stnh_tf.data.camera_motions.CameraPair`),
-    summarized per group (:data:`stnh_tf.data.camera_motions.GROUPS`, those present) and over
-    ``"all"`` (:func:`summarize`).
+    summarized per group (:data:`stnh_tf.data.camera_motions.ALL_GROUPS`, those present) and over
+    ``"all"`` (:func:`summarize`, with ``worse_than_identity``). The identity, the reference of
+    every summary, is run whether ``methods`` names it or not.
 
     Args:
       estimator: what ``"estimator"`` runs (an object with ``estimate_images_with_info``;
@@ -159,7 +163,7 @@ def benchmark(pairs, methods=METHODS, estimator=None, options=None, success_px=S
     h_true = np.stack([p.h_ba for p in pairs])
     groups = np.array([p.group for p in pairs])
     runs = {}
-    for m in methods:
+    for m in list(methods) + ([] if "identity" in methods else ["identity"]):
         if m == "estimator":
             if estimator is None:
                 from stnh_tf.inference.estimator import HomographyEstimator
@@ -174,10 +178,11 @@ def benchmark(pairs, methods=METHODS, estimator=None, options=None, success_px=S
               "error_frame": "320 x 240 image frame: mean over the image's 4 corners (patch_mace:"
                              " the central 128 x 128 patch's corners, patch frame)",
               "groups": {}}
-    for g in [g for g in camera_motions.GROUPS if g in groups] + ["all"]:
+    for g in [g for g in camera_motions.ALL_GROUPS if g in groups] + ["all"]:
         sel = np.ones(len(pairs), bool) if g == "all" else groups == g
         result["groups"][g] = {m: summarize({k: v[sel] for k, v in r.items()}, errors[m][sel],
-                                            patch[m][sel], success_px, flag_error_px)
+                                            patch[m][sel], success_px, flag_error_px,
+                                            None if m == "identity" else errors["identity"][sel])
                                for m, r in runs.items()}
     if per_pair:
         result["pairs"] = [

@@ -256,8 +256,8 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
       "alignment_ncc_median",
       "ms_per_pair" (wall time of the batched ``estimate`` call)}}``;
       ``ordinary`` also has ``mace``, ``mace_median``, ``mace_flagged`` and ``mace_kept`` (NaN
-      where no pair falls in it) and ``worse_than_identity`` (pairs whose corner error exceeds
-      the identity's).
+      where no pair falls in it), ``worse_than_identity`` (pairs whose corner error exceeds
+      the identity's) and the identity's ``identity_mace`` and ``identity_median``.
     """
     from stnh_tf.inference import shipped_weights
     from stnh_tf.data import tfrecords as data
@@ -297,6 +297,7 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
             identity = geometry.corner_errors(np.broadcast_to(np.eye(3), h_true.shape), h_true)
             out[case].update(
                 mace=float(errors.mean()), mace_median=float(np.median(errors)),
+                identity_mace=float(identity.mean()), identity_median=float(np.median(identity)),
                 worse_than_identity=int((errors > identity).sum()),
                 mace_flagged=float(errors[flagged].mean()) if flagged.any() else float("nan"),
                 mace_kept=float(errors[~flagged].mean()) if not flagged.all() else float("nan"))

@@ -9,11 +9,18 @@ the SavedModel export (:mod:`~stnh_tf.inference.export`) and the shipped weights
     >>> h_ba = HomographyEstimator.load().estimate(patch_a, patch_b)  # doctest: +SKIP
 """
 
-from stnh_tf import _compat
-
-from stnh_tf.inference.options import EstimateOptions, Thresholds  # noqa: E402
+from stnh_tf.inference.options import EstimateOptions, Thresholds
 
 __all__ = ["HomographyEstimator", "EstimateOptions", "Thresholds", "Estimate"]
 
-# Before 0.2 ``stnh_tf.inference`` was the estimator's module: its names stay reachable here.
-__getattr__ = _compat.delegate(__name__, "stnh_tf.inference.estimator")
+
+def __getattr__(name):
+    # Imported on first use: the estimator imports Keras, and the pipeline OpenCV; the options,
+    # checks, search and pipeline must load without a backend (tests/test_layout.py).
+    if name == "HomographyEstimator":
+        from stnh_tf.inference.estimator import HomographyEstimator
+        return HomographyEstimator
+    if name == "Estimate":
+        from stnh_tf.inference.pipeline import Estimate
+        return Estimate
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -65,11 +65,28 @@ def warp_context(work_a, start, origin) -> np.ndarray:
 
 def image_ncc(work_a, work_b, h_patch, origin, min_overlap: float) -> float:
     """NCC between the whole ``work_b`` and ``work_a`` warped onto it by the patch-frame
-    ``a_from_b`` ``h_patch``, over the pixels whose source lies inside ``work_a``; ``-inf`` where
-    fewer than ``min_overlap`` of them do, either side is constant there, or ``h_patch`` is not
-    finite (so that it ranks below every defined NCC)."""
-    if not np.isfinite(h_patch).all():
+    ``a_from_b`` ``h_patch``, over the pixels whose source lies inside ``work_a``; where fewer
+    than ``min_overlap`` of them do (image_b sees image_a small: a zoom out), the same the other
+    way (``work_a`` and ``work_b`` warped onto it by ``inv(h_patch)``; issue 64); ``-inf`` where
+    neither way overlaps enough, either side is constant there, or ``h_patch`` is not finite or
+    singular (so that it ranks below every defined NCC)."""
+    forward = _one_way_ncc(work_a, work_b, h_patch, origin, min_overlap)
+    if forward is not None:
+        return forward
+    try:
+        b_from_a = np.linalg.inv(np.asarray(h_patch, np.float64))
+    except np.linalg.LinAlgError:
         return -math.inf
+    backward = _one_way_ncc(work_b, work_a, b_from_a, origin, min_overlap)
+    return -math.inf if backward is None else backward
+
+
+def _one_way_ncc(work_a, work_b, h_patch, origin, min_overlap: float):
+    """:func:`image_ncc` one way: ``None`` where fewer than ``min_overlap`` of work_b's pixels
+    have their source inside work_a (or ``h_patch`` is not finite), ``-inf`` where a side is
+    constant there."""
+    if not np.isfinite(h_patch).all():
+        return None
     h = geometry.patch_to_image(h_patch, *origin)
     size = np.shape(work_b)[1], np.shape(work_b)[0]
     flags = cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR
@@ -77,7 +94,7 @@ def image_ncc(work_a, work_b, h_patch, origin, min_overlap: float) -> float:
     inside = cv2.warpPerspective(np.ones(np.shape(work_a), np.float32), h, size,
                                  flags=flags) > 0.999
     if inside.mean() < min_overlap:
-        return -math.inf
+        return None
     x = warped[inside].astype(np.float64)
     y = np.asarray(work_b, np.float64)[inside]
     x, y = x - x.mean(), y - y.mean()
@@ -161,7 +178,8 @@ def flag(est, options: EstimateOptions, wide: bool = True):
     """``est`` (an ``Estimate``) with the implausibility rule of the coarse pass: a stage was
     skipped as degenerate, a patch corner moved beyond ``thresholds.coarse_corner_shift`` (not
     ``implausible_corner_shift``: the pass handles motions beyond the trained range; with
-    ``wide=False`` the trained range's ``implausible_corner_shift``), the alignment NCC is below
+    ``wide=False`` the trained range's ``implausible_corner_shift``; none for an estimate made
+    from the feature start, ``est.feature_start``), the alignment NCC is below
     ``thresholds.min_alignment_ncc`` or undefined, a patch is flat, or (``verify="ecc"``) ECC
     moved the estimate by more than ``thresholds.max_verify_move``."""
     t = options.thresholds
@@ -169,6 +187,10 @@ def flag(est, options: EstimateOptions, wide: bool = True):
     move = est.verify_move_px
     moved = ~np.isnan(move) & ~(move <= t.max_verify_move)
     rule = dataclasses.replace(t, implausible_corner_shift=t.coarse_corner_shift) if wide else t
-    implausible = (checks.beyond(est.rejected_stages, shift, est.alignment_ncc,
+    featured = (np.zeros(len(shift), bool) if est.feature_start is None
+                else np.asarray(est.feature_start, bool))
+    # the feature start handles any motion: only the alignment's checks confirm it
+    shift_rule = np.where(featured & np.isfinite(shift), 0.0, shift)
+    implausible = (checks.beyond(est.rejected_stages, shift_rule, est.alignment_ncc,
                                  t.min_alignment_ncc, rule) | est.flat | moved)
     return dataclasses.replace(est, implausible=implausible, max_corner_shift_px=shift)

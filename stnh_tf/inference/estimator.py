@@ -54,7 +54,7 @@ import warnings
 import numpy as np
 
 from stnh_tf import geometry
-from stnh_tf.inference import coarse, image_refine, pipeline
+from stnh_tf.inference import coarse, features, image_refine, pipeline
 # Public names of this module before the pipeline was split (stnh_tf.inference.<name>).
 from stnh_tf.inference.checks import alignment_ncc, corner_shift  # noqa: F401
 from stnh_tf.inference.image_input import (PATCH_ORIGIN, PATCH_SIZE, central_patch,  # noqa: F401
@@ -100,6 +100,19 @@ def _check_model(model, where):
     if out not in _output_names(model):
         raise ValueError(f"{where}: expected a model with an 'h_bar' (or 'h_bar_k') output; "
                          f"received outputs {_output_names(model)}.")
+    try:  # issue 61: a foreign body behind the right names failed later with a TypeError
+        structure = model.output
+    except (AttributeError, ValueError):
+        structure = None
+    h_bar = structure.get(out) if isinstance(structure, dict) else None
+    if h_bar is None or tuple(h_bar.shape) != (None, 8):
+        shapes = [tuple(t.shape) for t in getattr(model, "outputs", None) or []]
+        got = (f"output {out!r} of shape {tuple(h_bar.shape)}" if h_bar is not None else
+               f"a list of unnamed outputs of shapes {shapes}"
+               if isinstance(structure, (list, tuple)) else
+               f"unnamed outputs of shapes {shapes}")
+        raise ValueError(f"{where}: expected a model whose outputs are named, {out!r} of shape "
+                         f"[None, 8] (H_bar, as this project's models give); received {got}.")
     return out
 
 
@@ -173,6 +186,7 @@ class HomographyEstimator:
             except Exception as e:  # a corrupt or foreign file
                 raise ValueError(f"cannot load a Keras model from {p}: {type(e).__name__}: "
                                  f"{e}") from None
+            _check_model(models[-1], p)  # naming the file
         return cls(models, source=os.fspath(path) if path is not None else default_source(),
                    options=options)
 
@@ -330,14 +344,23 @@ class HomographyEstimator:
                                           verify=options.verify if options.retries else "none")
         result = self._run(central_patch(work_a), central_patch(work_b), [work_a], PATCH_ORIGIN,
                            network, 64)
-        if options.coarse != "none":  # a deviation (issue 46): motions beyond the trained range
-            result = coarse.coarse_pass(
-                lambda a, b, contexts, opts: self._run(a, b, contexts, PATCH_ORIGIN, opts, 64),
-                work_a, work_b, result, network, PATCH_ORIGIN)
+        network_h = result.network_homography
+        run = lambda a, b, contexts, opts: self._run(a, b, contexts, PATCH_ORIGIN, opts, 64)  # noqa
+        # a deviation (issue 64): a start from SIFT matches for wide baselines
+        result = features.feature_pass(run, work_a, work_b, result, network, PATCH_ORIGIN)
+        confirmed = bool(result.feature_start[0] and not result.implausible[0])
+        if options.coarse != "none" and not confirmed:
+            # a deviation (issue 46): motions beyond the trained range
+            result = coarse.coarse_pass(run, work_a, work_b, result, network, PATCH_ORIGIN)
         # a deviation (issue 46): refine="images" aligns the whole images
         result = image_refine.refine_images(result, work_a, work_b, options, PATCH_ORIGIN)
         h = patch_to_image_frames(result.homography[0], size_a, size_b)
-        return dataclasses.replace(result, homography=h[None], options=options)
+        # what the network alone gave from the identity start, and how far the result is from it
+        move = pipeline.network_moves(result.homography, network_h, [np.shape(work_a)],
+                                      PATCH_ORIGIN)
+        return dataclasses.replace(
+            result, homography=h[None], options=options, network_move_px=move,
+            network_homography=patch_to_image_frames(network_h[0], size_a, size_b)[None])
 
     def estimate_images(self, image_a, image_b, options: EstimateOptions | None = None,
                         channel_order: str = "rgb", **legacy) -> np.ndarray:
@@ -366,6 +389,9 @@ class HomographyEstimator:
         Returns:
           float64 ``[3, 3]`` ``H_ba`` mapping image_b pixel coordinates to image_a pixel
           coordinates (``[2, 2] = 1``).
+        Raises:
+          ValueError: an image of another shape or dtype, or one too small for the patch
+            (under 20 x 15 px: :func:`~stnh_tf.inference.image_input.check_image_size`).
         """
         return self.estimate_images_with_info(image_a, image_b, options, channel_order,
                                               **legacy).homography[0]

@@ -26,17 +26,35 @@ float32 as ``HomographyEstimator.load`` rebuilds them by default; one kept in bf
 between eager and graph runs by bfloat16 rounding and fails ``verify_export``'s default
 tolerance). One difference remains: the estimator skips a stage whose prediction makes the
 composition non-finite or singular; the SavedModel returns such a composition as it is.
+
+Writing (:func:`export_saved_model`; :func:`export_and_verify` for ``experiments.export``):
+
+* **One export at a time per output.** The export holds the output folder's lock
+  (``<output>/.stnh_tf_export.lock``, :func:`stnh_tf.paths.exclusive_lock`, as make_dataset
+  holds its split's) from its checks to its end (with :func:`export_and_verify`, through the
+  verification too): a second export to the same output, in this process or another, is
+  refused at once with ``FileExistsError`` naming the folder, so neither can report success
+  with the other's files.
+* **Atomic.** The SavedModel is written to a hidden folder beside the output
+  (``.<output name>.xxxxxxxx``, holding the marker file ``.stnh_tf_export_staging``) and moved
+  in when complete. One left by a killed export (``kill -9``) is removed by the next export to
+  the same output, under the lock (so no live export owns it): a folder with that name pattern
+  holding the marker, or (left before the marker existed) nothing but SavedModel entries. No
+  other folder is touched.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
+import re
 import shutil
 import tempfile
 
 import numpy as np
 
-from stnh_tf import geometry
+from stnh_tf import geometry, paths
 
 SIGNATURE = "serving_default"
 OUTPUT = "homography"
@@ -98,35 +116,127 @@ def serving_function(estimator):
 SAVED_MODEL_ENTRIES = ("saved_model.pb", "fingerprint.pb", "variables", "assets")
 """What a SavedModel export writes into its folder: ``overwrite`` replaces these and nothing
 else."""
+LOCK_FILE = ".stnh_tf_export.lock"
+"""The output folder's lock file (module docstring); not part of the export (a folder holding
+only it counts as empty)."""
+STAGING_MARKER = ".stnh_tf_export_staging"
+"""The file inside an export's hidden staging folder that marks it as the export's (its JSON
+names the output)."""
+
+
+def _check_output(output_dir, overwrite):
+    """``FileExistsError`` unless ``output_dir`` is missing, empty (its lock file aside), or a
+    SavedModel with ``overwrite``."""
+    if not os.path.lexists(output_dir):
+        return
+    if not os.path.isdir(output_dir):
+        raise FileExistsError(f"{output_dir} exists and is not a folder; choose another path.")
+    if not set(os.listdir(output_dir)) - {LOCK_FILE}:
+        return
+    is_saved_model = os.path.isfile(os.path.join(output_dir, "saved_model.pb"))
+    if not overwrite or not is_saved_model:
+        why = ("pass overwrite=True (--overwrite) to replace it" if is_saved_model
+               else "it is not a SavedModel; choose another path")
+        raise FileExistsError(f"{output_dir} exists and is not empty; {why}.")
+
+
+def _staging_pattern(output_dir):
+    """The names ``tempfile.mkdtemp(prefix=".<output name>.")`` gives the staging folders."""
+    return re.compile(re.escape(f".{os.path.basename(os.path.abspath(output_dir))}.")
+                      + r"[a-z0-9_]{8}")
+
+
+def _is_stale_staging(folder, output_dir) -> bool:
+    """Whether ``folder`` (named by :func:`_staging_pattern`) is a staging folder of an export
+    to ``output_dir``: it holds :data:`STAGING_MARKER` naming it, or (left by the code before the
+    marker) nothing but :data:`SAVED_MODEL_ENTRIES`."""
+    if os.path.islink(folder) or not os.path.isdir(folder):
+        return False
+    entries = set(os.listdir(folder))
+    if STAGING_MARKER in entries:
+        try:
+            owner = paths.read_json(os.path.join(folder, STAGING_MARKER)).get("output")
+        except (OSError, ValueError, AttributeError):
+            return False
+        return owner == os.path.abspath(output_dir)
+    return entries <= set(SAVED_MODEL_ENTRIES)
+
+
+def _remove_stale_staging(output_dir) -> list:
+    """Remove the staging folders that killed exports to ``output_dir`` left beside it (call
+    with the output's lock held: no live export owns one then); returns their paths."""
+    parent = os.path.dirname(os.path.abspath(output_dir))
+    pattern, removed = _staging_pattern(output_dir), []
+    for name in sorted(os.listdir(parent)):
+        folder = os.path.join(parent, name)
+        if pattern.fullmatch(name) and _is_stale_staging(folder, output_dir):
+            shutil.rmtree(folder)
+            removed.append(folder)
+    return removed
+
+
+@contextlib.contextmanager
+def output_lock(output_dir, overwrite: bool = False):
+    """Check ``output_dir`` (as :func:`export_saved_model`), create it, and hold its lock
+    (:data:`LOCK_FILE`) inside the ``with``, with the checks made again under the lock and the
+    staging folders killed exports left removed (module docstring).
+
+    Raises:
+      FileExistsError: ``output_dir`` cannot be written (see :func:`export_saved_model`), or
+        another export holds its lock (naming the folder).
+    """
+    output_dir = os.fspath(output_dir)
+    _check_output(output_dir, overwrite)  # before anything is created in a user's folder
+    os.makedirs(output_dir, exist_ok=True)
+    lock = os.path.join(output_dir, LOCK_FILE)
+    with paths.exclusive_lock(lock, f"another export is writing to {output_dir} (it holds "
+                                    f"{lock}); wait for it to finish, or export to another "
+                                    "--output."):
+        _check_output(output_dir, overwrite)  # another export may have finished meanwhile
+        _remove_stale_staging(output_dir)
+        yield output_dir
 
 
 def export_saved_model(estimator, output_dir, overwrite: bool = False) -> str:
     """Write ``estimator`` as a SavedModel to ``output_dir`` (see the module docstring).
 
     An existing ``output_dir`` is replaced only with ``overwrite=True`` and only if it is a
-    SavedModel (holds ``saved_model.pb``) or empty; otherwise ``FileExistsError``. The new export
-    is written to a temporary folder beside ``output_dir`` and moved in only when complete; then
-    only the entries an export writes (:data:`SAVED_MODEL_ENTRIES`) are replaced, so the user's
-    own files in the folder stay, and a failed write (e.g. a full disk) leaves the old export as
-    it was and raises ``OSError`` naming the path and the cause.
+    SavedModel (holds ``saved_model.pb``) or empty; otherwise ``FileExistsError``; another
+    export writing to it holds its lock, and this one is refused with ``FileExistsError``
+    (:func:`output_lock`). The new export is written to a temporary folder beside ``output_dir``
+    and moved in only when complete; then only the entries an export writes
+    (:data:`SAVED_MODEL_ENTRIES`) are replaced, so the user's own files in the folder stay, and a
+    failed write (e.g. a full disk) leaves the old export as it was and raises ``OSError``
+    naming the path and the cause.
     """
-    output_dir = os.fspath(output_dir)
-    if os.path.exists(output_dir) and (not os.path.isdir(output_dir) or os.listdir(output_dir)):
-        is_saved_model = os.path.isfile(os.path.join(output_dir, "saved_model.pb"))
-        if not overwrite or not is_saved_model:
-            why = ("pass overwrite=True (--overwrite) to replace it" if is_saved_model
-                   else "it is not a SavedModel; choose another path")
-            raise FileExistsError(f"{output_dir} exists and is not empty; {why}.")
+    with output_lock(output_dir, overwrite):
+        return _write_export(estimator, os.fspath(output_dir))
+
+
+def export_and_verify(estimator, output_dir, overwrite: bool = False, check_pairs: int = 8,
+                      tolerance: float = 1e-3) -> dict:
+    """:func:`export_saved_model`, then :func:`verify_export` on :func:`verification_pairs`
+    (``check_pairs`` of them), holding the output's lock through both, so the report is about
+    this export's files. Returns ``verify_export``'s dict. Raises as ``export_saved_model``."""
+    with output_lock(output_dir, overwrite):
+        _write_export(estimator, os.fspath(output_dir))
+        patch_a, patch_b = verification_pairs(check_pairs)
+        return verify_export(output_dir, estimator, patch_a, patch_b, tolerance)
+
+
+def _write_export(estimator, output_dir) -> str:
+    """The write of :func:`export_saved_model`, its output's lock held."""
     parent = os.path.dirname(os.path.abspath(output_dir))
-    os.makedirs(parent, exist_ok=True)
-    staging = tempfile.mkdtemp(prefix=f".{os.path.basename(output_dir)}.", dir=parent)
+    staging = tempfile.mkdtemp(prefix=f".{os.path.basename(os.path.abspath(output_dir))}.",
+                               dir=parent)
     try:
+        with open(os.path.join(staging, STAGING_MARKER), "w") as f:
+            json.dump({"output": os.path.abspath(output_dir)}, f)
         try:
             _write_archive(estimator, staging)
         except Exception as e:  # TensorFlow's write errors are not OSErrors
             raise OSError(f"cannot write the SavedModel to {output_dir}: "
                           f"{type(e).__name__}: {e}") from None
-        os.makedirs(output_dir, exist_ok=True)
         for name in SAVED_MODEL_ENTRIES:  # the old export's entries, then the new ones moved in
             old = os.path.join(output_dir, name)
             if os.path.isdir(old) and not os.path.islink(old):
@@ -134,7 +244,8 @@ def export_saved_model(estimator, output_dir, overwrite: bool = False) -> str:
             elif os.path.lexists(old):
                 os.remove(old)
         for name in os.listdir(staging):
-            os.replace(os.path.join(staging, name), os.path.join(output_dir, name))
+            if name != STAGING_MARKER:
+                os.replace(os.path.join(staging, name), os.path.join(output_dir, name))
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return output_dir
@@ -167,16 +278,37 @@ def load_serving_signature(path):
     return fn
 
 
+def signature_inputs(patch_a, patch_b):
+    """The patches :meth:`HomographyEstimator.estimate` accepts (one pair ``[128, 128]`` or
+    ``[128, 128, 1]``, or a batch; uint8 0..255 or float in [0, 1]; checked by
+    :func:`~stnh_tf.inference.image_input.check_patch_pair`, ``ValueError`` as there) as the
+    signature's uint8 ``[B, 128, 128, 1]``: floats rounded to the nearest of the 256 levels
+    (``round(255 x)``: exact for uint8 / 255, else within 0.5 / 255 of what ``estimate`` feeds
+    the network).
+
+        >>> a = np.full((128, 128), 0.5)
+        >>> signature_inputs(a, a)[0].shape, signature_inputs(a, a)[0][0, 0, 0, 0]
+        ((1, 128, 128, 1), np.uint8(128))
+    """
+    from stnh_tf import pixels
+    from stnh_tf.inference.image_input import check_patch_pair
+
+    return tuple(p if p.dtype == np.uint8 else pixels.to_uint8(p)
+                 for p in check_patch_pair(patch_a, patch_b))
+
+
 def run_saved_model(signature_or_path, patch_a, patch_b) -> np.ndarray:
-    """Run a SavedModel signature (or the one at a path) on uint8 ``[B, 128, 128, 1]`` patches;
+    """Run a SavedModel signature (or the one at a path) on patches as
+    :meth:`HomographyEstimator.estimate` takes them (:func:`signature_inputs`: uint8, or float in
+    [0, 1] rounded to uint8; ``ValueError`` for anything else, e.g. float on the 0..255 scale);
     returns float32 ``[B, 3, 3]``."""
     import tensorflow as tf
 
+    patch_a, patch_b = signature_inputs(patch_a, patch_b)
     fn = signature_or_path
     if isinstance(fn, (str, os.PathLike)):
         fn = load_serving_signature(fn)
-    out = fn(patch_a=tf.constant(np.asarray(patch_a, np.uint8)),
-             patch_b=tf.constant(np.asarray(patch_b, np.uint8)))
+    out = fn(patch_a=tf.constant(patch_a), patch_b=tf.constant(patch_b))
     return np.asarray(out[OUTPUT])
 
 
@@ -208,8 +340,8 @@ def verification_pairs(n: int = 8, seed: int = 0):
 
 
 def verify_export(path, estimator, patch_a=None, patch_b=None, tolerance: float = 1e-3) -> dict:
-    """Reload the SavedModel at ``path`` and compare it with ``estimator`` on uint8 patch pairs
-    (default: :func:`verification_pairs`).
+    """Reload the SavedModel at ``path`` and compare it with ``estimator`` on patch pairs
+    (:func:`signature_inputs`; default: :func:`verification_pairs`).
 
     Returns a dict with ``max_abs_diff`` (SavedModel vs the same TensorFlow computation run on the
     in-memory Keras models), ``max_abs_diff_estimate`` (SavedModel vs
@@ -224,7 +356,7 @@ def verify_export(path, estimator, patch_a=None, patch_b=None, tolerance: float 
 
     if patch_a is None or patch_b is None:
         patch_a, patch_b = verification_pairs()
-    patch_a, patch_b = np.asarray(patch_a, np.uint8), np.asarray(patch_b, np.uint8)
+    patch_a, patch_b = signature_inputs(patch_a, patch_b)
     saved = run_saved_model(path, patch_a, patch_b).astype(np.float64)
     eager = np.asarray(
         serving_function(estimator)(tf.constant(patch_a), tf.constant(patch_b))[OUTPUT],

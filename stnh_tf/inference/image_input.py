@@ -15,6 +15,14 @@ patches are the pixels ``data_prep.make_dataset`` would crop from it, and a larg
 one uint8 gray copy at most (a 10000 x 10000 colour image converted to float first cost 2 GB).
 A float image (in [0, 1]) is converted and resized in float32.
 
+Images too thin for the patch are refused (:func:`check_image_size`): the central 128 x 128
+square of the 320 x 240 version covers ``0.4 w x 0.533 h`` pixels of a ``w x h`` image, and
+below :data:`MIN_PATCH_SPAN_PX` = 8 of them on a side (``w < 20`` or ``h < 15``) the patch is a
+handful of pixels (one row of a ``5120 x 1`` image) stretched 16 times or more: its motion
+along that side is not observable, and the estimate is meaningless (the shipped weights'
+errors by image size: ``docs/small_images.json``, written by
+``python -m experiments.benchmark_small_images``).
+
 The patch estimate is mapped back with ``H_img = inv(S_a) @ T @ H_patch @ inv(T) @ S_b`` where
 ``T`` is the translation by ``(96, 56)`` and ``S_x`` maps pixels of image x to pixels of its
 320 x 240 version. With pixel centres at integer coordinates a resize by ``s`` maps
@@ -37,6 +45,9 @@ WORK_SIZE = (geometry.IMAGE_WIDTH, geometry.IMAGE_HEIGHT)
 """``(width, height)`` every image is resized to by ``estimate_images``."""
 PATCH_ORIGIN = ((WORK_SIZE[0] - PATCH_SIZE) // 2, (WORK_SIZE[1] - PATCH_SIZE) // 2)
 """Top-left corner ``(x0, y0) = (96, 56)`` of the central patch in the 320 x 240 frame."""
+MIN_PATCH_SPAN_PX = 8
+"""Fewest pixels of an image the central patch may cover on each side (:func:`check_image_size`:
+images of at least 20 x 15 px)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -79,6 +90,41 @@ def _as_array(x, name):
         raise ValueError(f"{name} is not a numeric image array; received dtype {arr.dtype} with "
                          f"shape {arr.shape}.")
     return arr
+
+
+def check_image_size(size, name="image") -> None:
+    """``ValueError`` (one line naming ``name`` and the size) unless an image of ``size = (w,
+    h)`` is large enough for ``estimate_images``: its central patch, resized as the module
+    docstring says, covers at least :data:`MIN_PATCH_SPAN_PX` of its pixels on each side
+    (``w >= 20`` and ``h >= 15``).
+
+        >>> check_image_size((20, 15))
+        >>> check_image_size((5120, 1))  # doctest: +ELLIPSIS +NORMALIZE_WHITESPACE
+        Traceback (most recent call last):
+        ...
+        ValueError: image is 5120 x 1 px: too small to estimate a homography from; ...
+        would cover 2048.0 x 0.5 of its pixels, ... (an image of at least 20 x 15 px).
+    """
+    w, h = size
+    span = (w * PATCH_SIZE / WORK_SIZE[0], h * PATCH_SIZE / WORK_SIZE[1])
+    if min(span) < MIN_PATCH_SPAN_PX:
+        least = [-(-MIN_PATCH_SPAN_PX * side // PATCH_SIZE) for side in WORK_SIZE]
+        raise ValueError(f"{name} is {w} x {h} px: too small to estimate a homography from; its "
+                         f"central {PATCH_SIZE} x {PATCH_SIZE} patch, after the resize to "
+                         f"{WORK_SIZE[0]} x {WORK_SIZE[1]}, would cover {span[0]:.1f} x "
+                         f"{span[1]:.1f} of its pixels, and at least {MIN_PATCH_SPAN_PX} x "
+                         f"{MIN_PATCH_SPAN_PX} are needed (an image of at least {least[0]} x "
+                         f"{least[1]} px).")
+
+
+def check_patch_pair(patch_a, patch_b):
+    """Both of a pair of patch batches checked by :func:`check_patches` (``[B, S, S, 1]`` each),
+    and ``ValueError`` unless they hold the same number of patches."""
+    a, b = check_patches(patch_a, "patch_a"), check_patches(patch_b, "patch_b")
+    if len(a) != len(b):
+        raise ValueError(f"patch_a and patch_b must hold the same number of patches; received "
+                         f"shapes {np.shape(patch_a)} and {np.shape(patch_b)}.")
+    return a, b
 
 
 def prepare_patches(x, name="patch") -> np.ndarray:
@@ -174,11 +220,13 @@ def work_image(x, name="image", channel_order: str = "rgb"):
     time) and resized (:func:`~stnh_tf.data.sources.resize_to_protocol`) in uint8, as the
     training data was made, and only then converted to float; a float image goes through
     :func:`prepare_image` and :func:`resize_to_work_size`. Raises ``ValueError`` as
-    :func:`prepare_image`."""
+    :func:`prepare_image`, and for an image too small for the patch (:func:`check_image_size`).
+    """
     from stnh_tf.data import sources
 
     arr = _check_image(x, name, channel_order)
     size = (arr.shape[1], arr.shape[0])
+    check_image_size(size, name)
     if arr.dtype != np.uint8:
         return resize_to_work_size(prepare_image(arr, name, channel_order)), size
     if arr.ndim == 2 or arr.shape[2] == 1:

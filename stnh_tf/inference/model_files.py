@@ -101,7 +101,10 @@ def read_manifest(path) -> list:
     """The stage model paths (absolute, in order) named by the hierarchy manifest at ``path``.
 
     Every stage must be a relative path inside the manifest's folder (beside it or below it);
-    absolute paths and ``../`` escapes raise ``ValueError`` (:func:`stnh_tf.paths.inside`)."""
+    absolute paths and ``../`` escapes raise ``ValueError`` (:func:`stnh_tf.paths.inside`). A
+    stage that exists must be a ``.keras`` file or a folder (a training run): the manifest
+    itself, another manifest or any other file raises ``ValueError`` naming the manifest and
+    the stage (a missing one is left to the loader, which names it)."""
     path = os.fspath(path)
     doc = read_json(path, "hierarchy manifest")
     if not isinstance(doc, dict) or doc.get("format") != MANIFEST_FORMAT:
@@ -116,8 +119,16 @@ def read_manifest(path) -> list:
         raise ValueError(f"hierarchy manifest {path}: \"stages\" must be a non-empty list of "
                          f"paths; received {stages!r}.")
     folder = os.path.dirname(os.path.abspath(path))
-    return [inside(folder, s, f"hierarchy manifest {path}, stage {k}")
-            for k, s in enumerate(stages, start=1)]
+    stage_paths = [inside(folder, s, f"hierarchy manifest {path}, stage {k}")
+                   for k, s in enumerate(stages, start=1)]
+    for k, (name, stage) in enumerate(zip(stages, stage_paths), start=1):
+        if not os.path.isfile(stage) or stage.endswith(".keras"):
+            continue
+        what = ("the manifest itself" if os.path.samefile(stage, path) else
+                "not a .keras model or a run folder (a manifest's stages are models; a "
+                "manifest cannot name another)")
+        raise ValueError(f"hierarchy manifest {path}, stage {k}: {name!r} is {what}.")
+    return stage_paths
 
 
 # --------------------------------------------------------------------------------------------

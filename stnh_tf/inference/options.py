@@ -57,6 +57,14 @@ multiples of 15 degrees up to 45 and zooms 0.7 / 1 / 1.4, 21 starts; a motion in
 is at most 7.5 degrees and a zoom factor of 1.2 from a start, which moves the patch corners by
 about 12 and 18 px: inside the trained range (32 px)."""
 
+FEATURES = ("none", "fallback", "always")
+"""A feature-based start in ``estimate_images`` (:mod:`stnh_tf.inference.features`; a deviation,
+issue 64): ``"none"``; ``"fallback"``: where the network's estimate fails the coarse pass's
+trigger (:func:`stnh_tf.inference.coarse.needs_pass`), OpenCV SIFT matched with
+``cv2.USAC_MAGSAC`` gives a start ``G``, the network's stages estimate the rest from image_a
+warped by ``G``, and the result replaces the network's where it aligns the work images better;
+``"always"``: the same for every pair, as one more candidate scored by the same measure."""
+
 TTAS = {"none": ("identity",),
         "flips": ("identity", "flip_x", "flip_y", "rotate_180"),
         "dihedral": tuple(geometry.DIHEDRAL)}
@@ -99,7 +107,8 @@ class Thresholds:
         where its whole-image NCC reaches ``verified_ncc``.
       coarse_corner_shift: with ``coarse`` other than ``"none"``, this replaces
         ``implausible_corner_shift`` in the implausibility rule (a patch corner moved further is
-        beyond what the coarse pass handles: 4x the trained range).
+        beyond what the coarse pass handles: 4x the trained range). An estimate made from the
+        feature start (``features``) has no corner rule: its checks are the alignment's.
     """
 
     implausible_corner_shift: float = 1.5 * geometry.MAX_PERTURBATION
@@ -169,6 +178,11 @@ class EstimateOptions:
         and zooms (:mod:`stnh_tf.inference.coarse`), for motions beyond the trained range; where
         the pass ran, the flag's corner rule uses ``thresholds.coarse_corner_shift``.
         ``"none"`` (default): no coarse pass.
+      features: a key of :data:`FEATURES`, used by ``estimate_images`` only (a deviation, issue
+        64): a start from OpenCV SIFT matches (:mod:`stnh_tf.inference.features`) refined by the
+        network's stages, kept where it aligns the work images better; ``"fallback"`` for pairs
+        the network's estimate aligns poorly, ``"always"`` for every pair. ``"none"``
+        (default): none.
     """
 
     search: str = "ecc"
@@ -180,11 +194,13 @@ class EstimateOptions:
     thresholds: Thresholds = Thresholds()
     verify: str = "none"
     coarse: str = "none"
+    features: str = "none"
 
     def __post_init__(self):
         for name, table in (("search", SEARCHES), ("refine", REFINES), ("tta", tuple(TTAS)),
                             ("retry_tta", tuple(TTAS)), ("fill", geometry.FILLS),
-                            ("verify", VERIFIES), ("coarse", tuple(COARSES))):
+                            ("verify", VERIFIES), ("coarse", tuple(COARSES)),
+                            ("features", FEATURES)):
             value = getattr(self, name)
             if not isinstance(value, str) or value not in table:
                 raise ValueError(f"{name} must be one of {tuple(table)}; received {value!r}.")

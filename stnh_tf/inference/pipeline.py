@@ -56,6 +56,17 @@ class Estimate:
       verify_move_px: with ``verify="ecc"``, how far ECC started from the estimate moved it
         (mean over the corners of the patch, or of the 320 x 240 image in
         ``estimate_images_with_info``; ``inf``: it did not converge); NaN where not verified.
+      network_homography: float64 ``[B, 3, 3]``: the network's own estimate (the stages
+        composed, with ``options.tta``; before the flat rule, the search, the refinement, the
+        coarse pass and the feature start), in the frame of ``homography``.
+      network_move_px: how far ``homography`` lies from ``network_homography``: the mean
+        distance (px) between where the two map the corners of the frame the estimate is made in
+        (the 128 x 128 patch; the 320 x 240 work image in ``estimate_images_with_info``;
+        :func:`~stnh_tf.inference.checks.frame_corner_distance`); 0 where nothing beyond the
+        network changed the estimate, ``inf`` where a corner maps to infinity. What the steps
+        beyond the paper's network contributed, in one number.
+      feature_start: the estimate was made from the feature start (``options.features``,
+        :mod:`stnh_tf.inference.features`): its flag has no corner rule.
     """
 
     homography: np.ndarray
@@ -73,6 +84,9 @@ class Estimate:
     gated_stages: np.ndarray
     options: EstimateOptions
     verify_move_px: np.ndarray = None
+    network_homography: np.ndarray = None
+    network_move_px: np.ndarray = None
+    feature_start: np.ndarray = None
 
     def __len__(self):
         return len(self.homography)
@@ -256,6 +270,9 @@ def finish(run: dict, options: EstimateOptions) -> Estimate:
     rejected = run["non_finite"] + run["singular"]
     move = run.get("verify_move", np.full(len(shift), np.nan))
     moved = ~np.isnan(move) & ~(move <= t.max_verify_move)
+    # a run that did not record the network's own estimate: the final one (patch frames)
+    network = run.get("network", run["total"])
+    frames = run.get("frames", [(geometry.PATCH_SIZE,) * 2] * len(shift))
     return Estimate(
         homography=run["total"], alignment_ncc=ncc, max_corner_shift_px=shift,
         implausible=(checks.beyond(rejected, shift, ncc, t.min_alignment_ncc, t) | run["flat"]
@@ -264,7 +281,24 @@ def finish(run: dict, options: EstimateOptions) -> Estimate:
         retried=np.zeros(len(shift), bool),
         tta_choice=np.array(options.tta_symmetries)[run["choice"]],
         non_finite_stages=run["non_finite"], singular_stages=run["singular"],
-        gated_stages=run["gated"], options=options, verify_move_px=move)
+        gated_stages=run["gated"], options=options, verify_move_px=move,
+        network_homography=network,
+        network_move_px=network_moves(run["total"], network, frames, run.get("origin", (0, 0))),
+        feature_start=np.zeros(len(shift), bool))
+
+
+def network_moves(a_from_b, network, frame_shapes, origin) -> np.ndarray:
+    """``Estimate.network_move_px``: per pair, the mean distance (px) between where the final
+    ``a_from_b`` and the network's own estimate ``network`` (``[B, 3, 3]``, patch frame) map the
+    corners of its ``(h, w)`` frame of ``frame_shapes`` holding the patch at ``origin``
+    (:func:`~stnh_tf.inference.checks.frame_corner_distance`). Returns float64 ``[B]``.
+
+    >>> network_moves(np.eye(3)[None], geometry.translation(3.0, 4.0)[None], [(128, 128)], (0, 0))
+    array([5.])
+    """
+    return np.array([checks.frame_corner_distance(h, n, shape, origin)
+                     for h, n, shape in zip(a_from_b, network, frame_shapes)],
+                    np.float64).reshape(-1)
 
 
 def estimate_once(predict: PredictStage, num_stages, patch_a, patch_b, sources, origin,
@@ -272,6 +306,10 @@ def estimate_once(predict: PredictStage, num_stages, patch_a, patch_b, sources, 
     """The network (with ``options.tta``) -> checks -> search -> refinement -> verification,
     without retry."""
     run = run_network(predict, num_stages, patch_a, patch_b, sources, origin, options)
+    # the network's own estimate, and the frame its move is measured in (the source's: the patch,
+    # or the 320 x 240 image holding it)
+    run = dict(run, network=run["total"].copy(), origin=origin,
+               frames=[np.shape(src)[:2] for src in sources])
     run = check(run, patch_a, patch_b, sources, origin, options)
     run = search(run, patch_b, sources, origin, options)
     run = refine(run, patch_b, sources, origin, options)

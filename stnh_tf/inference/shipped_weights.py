@@ -14,6 +14,7 @@ import json
 import os
 
 from stnh_tf.paths import atomic_write_json, stage_record_path
+from stnh_tf.provenance import machine_info
 
 
 def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
@@ -190,8 +191,11 @@ def _shipped_card(weights_dir=None):
 
 
 def _write_rechecked(weights_dir, card) -> dict:
-    """Write ``card`` into ``weights_dir`` (atomically) with its bundled check re-computed."""
+    """Write ``card`` into ``weights_dir`` (atomically) with its bundled check re-computed, and
+    under ``machine`` the commit, machine and library versions of this run
+    (:func:`stnh_tf.provenance.machine_info`)."""
     card["bundled_check"] = bundled_check([os.path.join(weights_dir, s["file"])
                                            for s in card["stages"]])
+    card["machine"] = machine_info()
     atomic_write_json(os.path.join(weights_dir, "model_card.json"), card)
     return card

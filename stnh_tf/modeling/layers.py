@@ -1,6 +1,7 @@
-"""Keras layers of STN-Homography: the projective spatial transformer and the Homography Merge.
+"""Keras layers of STN-Homography: the projective spatial transformer (and where its warp is
+defined, :class:`WarpValidity`) and the Homography Merge.
 
-Both are written with ``keras.ops`` only, so they run under the TensorFlow and JAX backends.
+They are written with ``keras.ops`` only, so they run under the TensorFlow and JAX backends.
 Conventions (direction, the paper's ``M``) are those of :mod:`stnh_tf.geometry`.
 """
 
@@ -112,24 +113,7 @@ class SpatialTransformer(keras.layers.Layer):
                 and images.shape[0] != h_bar.shape[0]):
             raise ValueError(f"images and homography batch sizes differ: {tuple(images.shape)} vs "
                              f"{tuple(h_bar.shape)}.")
-        m = geometry.normalization_matrix(width, height)
-        # H_pix = inv(M) @ H_bar @ M, applied to the pixel grid of the output; not scaled to
-        # [2,2] = 1 (geometry.denormalize_homography does), which would move the w threshold below.
-        m = ops.convert_to_tensor(m.astype(dtype))
-        m_inv = ops.convert_to_tensor(
-            np.linalg.inv(geometry.normalization_matrix(width, height)).astype(dtype))
-        h_pix = ops.matmul(ops.matmul(m_inv, h_bar), m)  # [B, 3, 3]
-
-        xs, ys = np.meshgrid(np.arange(width), np.arange(height))
-        grid = np.stack([xs.ravel(), ys.ravel(), np.ones(height * width)], axis=0)
-        grid = ops.convert_to_tensor(grid.astype(dtype))  # [3, N]
-        src = ops.matmul(h_pix, grid)  # [B, 3, N]
-        # A point on the homography's line at infinity (w = 0) is sent far away, not to inf/NaN,
-        # and the gradient stays finite (the safe denominator is chosen before dividing).
-        w = src[:, 2]
-        w = ops.where(ops.abs(w) < 1e-6, 1e-6, w)
-        x = src[:, 0] / w
-        y = src[:, 1] / w
+        x, y = _source_points(h_bar, width, height, dtype)
         if self.fill == "reflect":
             x, y = _reflect_101(x, width), _reflect_101(y, height)
         values = _bilinear_sample(ops.cast(images, dtype), x, y)  # [B, N, C]
@@ -138,6 +122,30 @@ class SpatialTransformer(keras.layers.Layer):
 
     def compute_output_shape(self, input_shape):
         return tuple(input_shape[0])
+
+
+def _source_points(h_bar, width: int, height: int, dtype):
+    """Where the warp samples: ``(x, y)``, each ``[B, h * w]`` in ``dtype``, the pixel
+    coordinates ``H_ba @ p`` in the input of every output pixel ``p`` (row-major), with
+    ``H_ba = inv(M) @ H_bar @ M`` and ``h_bar`` ``[B, 3, 3]`` normalized (``M`` of ``width`` x
+    ``height``). The one computation of :class:`SpatialTransformer` and :class:`WarpValidity`."""
+    m = geometry.normalization_matrix(width, height)
+    # H_pix = inv(M) @ H_bar @ M, applied to the pixel grid of the output; not scaled to
+    # [2,2] = 1 (geometry.denormalize_homography does), which would move the w threshold below.
+    m = ops.convert_to_tensor(m.astype(dtype))
+    m_inv = ops.convert_to_tensor(
+        np.linalg.inv(geometry.normalization_matrix(width, height)).astype(dtype))
+    h_pix = ops.matmul(ops.matmul(m_inv, h_bar), m)  # [B, 3, 3]
+
+    xs, ys = np.meshgrid(np.arange(width), np.arange(height))
+    grid = np.stack([xs.ravel(), ys.ravel(), np.ones(height * width)], axis=0)
+    grid = ops.convert_to_tensor(grid.astype(dtype))  # [3, N]
+    src = ops.matmul(h_pix, grid)  # [B, 3, N]
+    # A point on the homography's line at infinity (w = 0) is sent far away, not to inf/NaN,
+    # and the gradient stays finite (the safe denominator is chosen before dividing).
+    w = src[:, 2]
+    w = ops.where(ops.abs(w) < 1e-6, 1e-6, w)
+    return src[:, 0] / w, src[:, 1] / w
 
 
 def _reflect_101(x, size: int):
@@ -193,6 +201,48 @@ def _bilinear_sample(images, x, y):
     top = v00 + fx * (v01 - v00)
     bottom = v10 + fx * (v11 - v10)
     return top + fy * (bottom - top)
+
+
+@keras.saving.register_keras_serializable(package="stnh_tf")
+class WarpValidity(keras.layers.Layer):
+    """Where :class:`SpatialTransformer`'s warp (``fill="zeros"``) is defined: 1 at the output
+    pixels ``p`` whose ``H_ba @ p`` falls inside the input, ``0 <= x <= w - 1`` and
+    ``0 <= y <= h - 1`` (every bilinear neighbour with a weight lies in the image, so the warp
+    there is made of input pixels alone, none of the zeros outside), else 0.
+
+    Called as ``WarpValidity()([images, h_bar])`` with :class:`SpatialTransformer`'s inputs
+    (``images`` ``[B, h, w, C]`` gives the size; ``h_bar`` ``[B, 8]`` or ``[B, 3, 3]``); returns
+    ``[B, h, w, 1]`` float32 of 0 and 1, with no gradient (a mask, constant for the loss that
+    uses it). The same coordinates as the warp (:func:`_source_points`).
+
+    >>> shift = np.array([[1, 0, 2 * 3 / 8, 0, 1, 0, 0, 0]], "float32")  # H_ba: x + 3 px
+    >>> mask = WarpValidity()([np.zeros((1, 8, 8, 1), "float32"), shift])
+    >>> np.asarray(mask)[0, 0, :, 0].tolist()
+    [1.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]
+    """
+
+    def __init__(self, **kwargs):
+        kwargs.setdefault("autocast", False)  # coordinates in float32 under mixed precision
+        kwargs.setdefault("dtype", "float32")
+        super().__init__(**kwargs)
+
+    def call(self, inputs):
+        if not isinstance(inputs, (list, tuple)) or len(inputs) != 2:
+            raise ValueError("WarpValidity expects [images, homography].")
+        images, h_bar = inputs
+        if len(images.shape) != 4 or images.shape[1] is None or images.shape[2] is None:
+            raise ValueError(f"images must have shape [B, h, w, C] with static h and w; received "
+                             f"shape {tuple(images.shape)}.")
+        height, width = images.shape[1], images.shape[2]
+        h_bar = _homography_matrix(ops.cast(h_bar, "float32"))
+        x, y = _source_points(h_bar, width, height, "float32")
+        inside = ops.logical_and(ops.logical_and(x >= 0.0, x <= float(width - 1)),
+                                 ops.logical_and(y >= 0.0, y <= float(height - 1)))
+        mask = ops.stop_gradient(ops.cast(inside, "float32"))
+        return ops.reshape(mask, (-1, height, width, 1))
+
+    def compute_output_shape(self, input_shape):
+        return tuple(input_shape[0][:3]) + (1,)
 
 
 @keras.saving.register_keras_serializable(package="stnh_tf")

@@ -19,9 +19,15 @@ import numpy as np
 from keras import layers, ops
 
 from stnh_tf import geometry
-from stnh_tf.modeling.layers import HomographyMerge, PatchStandardization, SpatialTransformer
+from stnh_tf.modeling.layers import (HomographyMerge, PatchStandardization, SpatialTransformer,
+                                     WarpValidity)
 
 IDENTITY_H_BAR = np.array([1, 0, 0, 0, 1, 0, 0, 0], dtype=np.float32)
+WARP_VALID = "patch_a_warp_valid"
+"""The output a model trained with pairs without ground truth has beside ``patch_a_warp``
+(``unlabeled_output=True``; ``patch_a_warp_valid_k`` per sequence stage): ``[B, S, S, 2]``,
+``patch_a_warp`` and its validity mask, what :func:`stnh_tf.modeling.losses.photometric_l1_valid`
+compares with patch_b."""
 CONV_FILTERS = (64, 64, 64, 64, 128, 128, 128, 128)
 BATCH_NORM_CHOICES = ("none", "conv")
 HEAD_CHOICES = ("gap", "flatten")
@@ -130,15 +136,24 @@ def _stage(patch_a_in, patch_b, regressor, stage_name):
     return regressor(pair)
 
 
+def _warp_valid(patch_a, h_bar, warp, name):
+    """``[B, S, S, 2]``: ``warp`` and its :class:`WarpValidity` mask (layer ``{name}_mask``),
+    concatenated in float32 (layer ``name``)."""
+    mask = WarpValidity(name=f"{name}_mask")([patch_a, h_bar])
+    return layers.Concatenate(axis=-1, name=name, dtype="float32")([warp, mask])
+
+
 def build_stn_homography(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 0.5,
                          size: int = geometry.PATCH_SIZE, name: str = "stn_homography",
-                         input_norm: str = "unit") -> keras.Model:
+                         input_norm: str = "unit", unlabeled_output: bool = False) -> keras.Model:
     """Single STN-Homography stage.
 
     Inputs ``{"patch_a", "patch_b"}`` (``[B, S, S, 1]`` float in [0, 1]); outputs
     ``{"h_bar": [B, 8] float32, "patch_a_warp": [B, S, S, 1]}`` where ``patch_a_warp`` is patch_a
     warped by the predicted ``H_ba`` (sampled at ``H_ba @ p``). ``batch_norm``, ``dropout`` and
-    ``input_norm`` are :func:`regression_network`'s.
+    ``input_norm`` are :func:`regression_network`'s. ``unlabeled_output``: also
+    :data:`WARP_VALID` ``[B, S, S, 2]`` (the warp and where it is defined), the output that
+    trains the pairs without ground truth; the weights are the same either way.
     """
     patch_a, patch_b = _patch_inputs(size)
     regressor = regression_network(batch_norm=batch_norm, dropout=dropout, size=size,
@@ -146,8 +161,10 @@ def build_stn_homography(batch_norm: str = DEFAULT_BATCH_NORM, dropout: float = 
     h_bar = _stage(patch_a, patch_b, regressor, "stage1")
     h_bar = layers.Identity(name="h_bar", dtype="float32")(h_bar)
     warp = SpatialTransformer(name="patch_a_warp", dtype="float32")([patch_a, h_bar])
-    return keras.Model({"patch_a": patch_a, "patch_b": patch_b},
-                       {"h_bar": h_bar, "patch_a_warp": warp}, name=name)
+    outputs = {"h_bar": h_bar, "patch_a_warp": warp}
+    if unlabeled_output:
+        outputs[WARP_VALID] = _warp_valid(patch_a, h_bar, warp, WARP_VALID)
+    return keras.Model({"patch_a": patch_a, "patch_b": patch_b}, outputs, name=name)
 
 
 def sequence_output_names(num_stages: int):
@@ -163,7 +180,8 @@ def _check_num_stages(num_stages):
     return int(num_stages)
 
 
-def sequence_stages(patch_a, patch_b, num_stages: int, regress) -> dict:
+def sequence_stages(patch_a, patch_b, num_stages: int, regress,
+                    unlabeled_output: bool = False) -> dict:
     """The wiring of Sequence STN-Homography (paper section 5; conventions section 3), on tensors.
 
     The single implementation used by :func:`build_sequence_stn_homography`; tests call it with
@@ -181,6 +199,8 @@ def sequence_stages(patch_a, patch_b, num_stages: int, regress) -> dict:
       regress: ``regress(k, pair, h_prev) -> [B, 8]`` normalized ``H_k'``; ``pair`` is the stage's
         ``[B, S, S, 2]`` input, ``h_prev`` the merged ``[B, 8]`` ``H_{k-1}`` (``None`` for k = 1).
         A real stage uses only ``pair``.
+      unlabeled_output: also ``patch_a_warp_valid_k`` ``[B, S, S, 2]`` for every k (the warp
+        and where it is defined: :data:`WARP_VALID`).
     Returns:
       ``{"h_bar_k": [B, 8] float32, "patch_a_warp_k": [B, S, S, 1]}`` for k = 1..n.
     """
@@ -195,6 +215,8 @@ def sequence_stages(patch_a, patch_b, num_stages: int, regress) -> dict:
         warp = SpatialTransformer(name=f"patch_a_warp_{k}", dtype="float32")([patch_a, h_k])
         outputs[f"h_bar_{k}"] = h_k
         outputs[f"patch_a_warp_{k}"] = warp
+        if unlabeled_output:
+            outputs[f"{WARP_VALID}_{k}"] = _warp_valid(patch_a, h_k, warp, f"{WARP_VALID}_{k}")
         h_prev = h_k
     return outputs
 
@@ -202,7 +224,8 @@ def sequence_stages(patch_a, patch_b, num_stages: int, regress) -> dict:
 def build_sequence_stn_homography(num_stages: int = 2, batch_norm: str = DEFAULT_BATCH_NORM,
                                   dropout: float = 0.5, size: int = geometry.PATCH_SIZE,
                                   name: str | None = None,
-                                  regressor_factory=None, input_norm: str = "unit") -> keras.Model:
+                                  regressor_factory=None, input_norm: str = "unit",
+                                  unlabeled_output: bool = False) -> keras.Model:
     """Sequence STN-Homography (paper section 5), trained end to end. Also
     :data:`SequenceSTNHomography`.
 
@@ -220,6 +243,7 @@ def build_sequence_stn_homography(num_stages: int = 2, batch_norm: str = DEFAULT
       regressor_factory: optional ``factory(k) -> layer`` mapping the pair ``[B, S, S, 2]`` to
         ``[B, 8]`` (e.g. a small network in tests); default :func:`regression_network` named
         ``regression_k`` with ``batch_norm``, ``dropout`` and ``input_norm``.
+      unlabeled_output: also ``patch_a_warp_valid_k`` (:func:`sequence_stages`).
     """
     num_stages = _check_num_stages(num_stages)
     if regressor_factory is None:
@@ -229,7 +253,7 @@ def build_sequence_stn_homography(num_stages: int = 2, batch_norm: str = DEFAULT
     regressors = {k: regressor_factory(k) for k in range(1, num_stages + 1)}
     patch_a, patch_b = _patch_inputs(size)
     outputs = sequence_stages(patch_a, patch_b, num_stages,
-                              lambda k, pair, h_prev: regressors[k](pair))
+                              lambda k, pair, h_prev: regressors[k](pair), unlabeled_output)
     return keras.Model({"patch_a": patch_a, "patch_b": patch_b}, outputs,
                        name=name or f"sequence_stn_homography_{num_stages}")
 

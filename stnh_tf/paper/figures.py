@@ -4,12 +4,15 @@
   context around the square) with patch_b's true quadrilateral in green and the predicted one in
   red, and image_b around the square (:func:`image_b_window`) with the true one (the square) in
   green.
-* :func:`mace_bars`: the paper's Fig. 4, MACE of several methods as bars.
+* :func:`mace_bars`: the paper's Fig. 4, MACE of several methods as bars (:func:`fig4_bars`: what
+  each bar shows: its value, the paper's, its rejected-prediction mark; the identity as a dashed
+  line).
 * :func:`hbar_histogram`: the paper's Fig. 1, value histograms of the eight entries of H_bar.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import numpy as np
@@ -81,12 +84,30 @@ def image_b_window(context_a, a_from_b, patch_b=None,
     return window
 
 
+def example_title(h_true, h_pred, title: str = "") -> str:
+    """The title of one pair of Fig. 5: its MACE beside the identity's, and ``rejected: drawn at
+    the identity`` where the prediction is exactly the identity (what the hierarchy keeps when
+    the degenerate-prediction rule rejects every stage's prediction; a network's own output never
+    is).
+
+    >>> example_title(np.diag([1.0, 1.0, 1.0]) + [[0, 0, 3], [0, 0, 4], [0, 0, 0]], np.eye(3))
+    'image_a, MACE 5.0 px (identity 5.0)\\nrejected: drawn at the identity'
+    """
+    h_true, h_pred = np.asarray(h_true, np.float64), np.asarray(h_pred, np.float64)
+    err = float(geometry.corner_errors(h_pred, h_true))
+    identity = float(geometry.corner_errors(np.eye(3), h_true))
+    text = (title + "\n" if title else "") + f"image_a, MACE {err:.1f} px (identity {identity:.1f})"
+    return text + ("\nrejected: drawn at the identity" if np.array_equal(h_pred, np.eye(3))
+                   else "")
+
+
 def prediction_figure(context_a, patch_b, h_true, h_pred, titles=None,
                       margin: int = geometry.MAX_PERTURBATION):
     """The matplotlib figure of :func:`prediction_examples` (2 rows x N columns of axes): row 0
     image_a (``context_a``) with the true (green, ``lime``) and predicted (red) quadrilaterals
-    ``H_ba @ c``; row 1 image_b around the square (:func:`image_b_window`) with the true one, the
-    square itself, in green. The caller closes it."""
+    ``H_ba @ c``, titled by :func:`example_title`; row 1 image_b around the square
+    (:func:`image_b_window`) with the true one, the square itself, in green. The caller closes
+    it."""
     plt = _pyplot()
     n = len(context_a)
     fig, axes = plt.subplots(2, n, figsize=(2.6 * n, 5.4), squeeze=False)
@@ -96,8 +117,7 @@ def prediction_figure(context_a, patch_b, h_true, h_pred, titles=None,
         for h, colour in ((h_true[i], "lime"), (h_pred[i], "red")):
             q = quadrilateral(h, margin)
             ax.plot(q[:, 0], q[:, 1], color=colour, linewidth=1.5)
-        err = float(geometry.corner_errors(np.asarray(h_pred[i]), np.asarray(h_true[i])))
-        ax.set_title((titles[i] + "\n" if titles else "") + f"image_a, MACE {err:.1f} px",
+        ax.set_title(example_title(h_true[i], h_pred[i], titles[i] if titles else ""),
                      fontsize=8)
         ax.axis("off")
         ax = axes[1, i]
@@ -132,26 +152,89 @@ def prediction_examples(context_a, patch_b, h_true, h_pred, path: str, titles=No
     return path
 
 
-def mace_bars(results: dict, path: str, paper: dict | None = None,
-              title: str = "Mean corner error (px)") -> str:
-    """Fig. 4: one bar per method (``{name: mace}``), the paper's value beside it where given."""
+@dataclasses.dataclass(frozen=True)
+class Bar:
+    """One method's bar of Fig. 4: its MACE (px), the paper's (``None``: none), and where the
+    hierarchy's degenerate-prediction rule rejected some of its stage predictions, the ``note``
+    written over it and ``hatched``."""
+
+    name: str
+    value: float
+    paper: float | None = None
+    note: str = ""
+    hatched: bool = False
+
+
+def fig4_bars(results: dict, paper: dict | None = None, rejected: dict | None = None,
+              predictions: dict | None = None) -> list:
+    """What :func:`mace_bars` draws, one :class:`Bar` per method of ``results`` (``{name: mace}``)
+    in order. A method with ``rejected[name] > 0`` stage predictions rejected (of
+    ``predictions[name]``) is hatched and noted ``rejected: n of m``, plus ``at the identity``
+    where its MACE is the identity's (drawn at the identity's height; the identity's method: the
+    one named ``identity``, any case).
+
+    >>> [b.note for b in fig4_bars({"Identity": 23.5, "2 stages": 23.5, "1 stage": 9.0},
+    ...                            rejected={"2 stages": 8}, predictions={"2 stages": 8})]
+    ['', 'rejected: 8 of 8\\nat the identity', '']
+    """
+    rejected, predictions, paper = rejected or {}, predictions or {}, paper or {}
+    identity = next((v for n, v in results.items() if n.lower() == "identity"), None)
+    bars = []
+    for name, value in results.items():
+        n, note = rejected.get(name, 0), ""
+        if n:
+            note = f"rejected: {n}" + (f" of {predictions[name]}" if name in predictions else "")
+            if identity is not None and abs(value - identity) < 1e-6:
+                note += "\nat the identity"
+        bars.append(Bar(name, float(value), paper.get(name), note, bool(n)))
+    return bars
+
+
+def mace_bars_figure(bars, title: str = "Mean corner error (px)"):
+    """The matplotlib figure of :func:`mace_bars` for :func:`fig4_bars`' ``bars``: this run's
+    bars (hatched ``//`` where noted, the note above the method's pair of bars), the paper's in
+    grey beside them where any is given, and the identity's MACE as a dashed line. The caller
+    closes it."""
     plt = _pyplot()
-    names = list(results)
+    names = [b.name for b in bars]
     x = np.arange(len(names))
-    fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(names)), 3.6))
-    width = 0.4 if paper else 0.7
-    bars = ax.bar(x - (width / 2 if paper else 0), [results[n] for n in names], width,
-                  label="this run")
-    ax.bar_label(bars, fmt="%.1f", fontsize=7)
-    if paper:
-        vals = [paper.get(n, np.nan) for n in names]
-        pbars = ax.bar(x + width / 2, vals, width, label="paper", color="grey")
+    has_paper = any(b.paper is not None for b in bars)
+    fig, ax = plt.subplots(figsize=(max(6, 1.2 * len(names)), 3.8))
+    width = 0.4 if has_paper else 0.7
+    drawn = ax.bar(x - (width / 2 if has_paper else 0), [b.value for b in bars], width,
+                   label="this run", hatch=["//" if b.hatched else "" for b in bars],
+                   edgecolor="black", linewidth=0.3)
+    ax.bar_label(drawn, fmt="%.1f", fontsize=7)
+    for xi, b in zip(x, bars):
+        if b.note:
+            ax.annotate(b.note, (xi, b.value), xytext=(0, 10),
+                        textcoords="offset points", ha="center", va="bottom", fontsize=6,
+                        color="darkred")
+    if has_paper:
+        pbars = ax.bar(x + width / 2, [np.nan if b.paper is None else b.paper for b in bars],
+                       width, label="paper", color="grey")
         ax.bar_label(pbars, fmt="%.2f", fontsize=7)
-        ax.legend(fontsize=8)
+    identity = next((b.value for b in bars if b.name.lower() == "identity"), None)
+    if identity is not None:
+        ax.axhline(identity, color="black", linestyle="--", linewidth=0.8, label="identity")
+    top = max([b.value for b in bars if np.isfinite(b.value)] + [1.0])
+    ax.set_ylim(0, top * (1.35 if any(b.note for b in bars) else 1.12))
+    ax.legend(fontsize=8)
     ax.set_xticks(x, names, rotation=20, ha="right", fontsize=8)
     ax.set_ylabel("MACE (px)")
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
+    return fig
+
+
+def mace_bars(results: dict, path: str, paper: dict | None = None,
+              title: str = "Mean corner error (px)", rejected: dict | None = None,
+              predictions: dict | None = None) -> str:
+    """Fig. 4: one bar per method (``{name: mace}``), the paper's value beside it where given,
+    rows whose predictions the degenerate rule rejected marked (:func:`fig4_bars`), the
+    identity's MACE as a dashed line; writes a PNG to ``path`` and returns it."""
+    plt = _pyplot()
+    fig = mace_bars_figure(fig4_bars(results, paper, rejected, predictions), title)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

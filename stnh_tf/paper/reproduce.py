@@ -26,14 +26,16 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import shutil
 import time
 
 import numpy as np
 
 from stnh_tf.training import config as train_config
 from stnh_tf.paths import atomic_write_json
+from stnh_tf.provenance import machine_info
 from stnh_tf.paper.tables import (SMOKE_NOTE, TABLE1_HEAD, schedule_results,  # noqa: F401
-                                  table1_line, tables_markdown)
+                                  table1_claim, table1_line, table1_lines, tables_markdown)
 
 # The paper's numbers (Zhou & Li 2019; the 2-stage sequence model's 2.14 px is in its section 5;
 # the 3-stage sequence latency of 13.85 ms that BENCHMARKS.md quotes is only in the journal
@@ -74,6 +76,11 @@ class Budget:
     num_workers: int = 1             # data-generation processes
     sequence_steps: int = 0          # the sequence model's total steps; 0: as train_steps
     table1_seeds: int = 1            # seeds of the SPREAD_ROWS of Table 1
+    verdicts: bool = True            # False: no claim is judged at this budget (the smoke test)
+    keep_checkpoints: bool = True    # False: a finished model's checkpoint/ is removed
+    # Models whose model.keras is removed once evaluated (their config.json, result.json and
+    # evaluation stay, and a re-run does not train them again).
+    drop_after_eval: tuple = ()
 
     @property
     def ablation_train_steps(self) -> int:
@@ -94,10 +101,14 @@ BUDGETS = {
     # 100 pairs per image (coco_mini has 219 training images; 3 per image would be memorized).
     "cpu": Budget("cpu", 4_000, 100, samples_per_image=100, mixed_precision=True,
                   checkpoint_every=500, val_samples=300, num_workers=2, table1_seeds=3),
-    # The smoke test (SMOKE_NOTE): 2 steps of every model, batch 4, on the first 4 images.
+    # The smoke test (SMOKE_NOTE): 2 steps of every model, batch 4, on the first 4 images; no
+    # verdict, and it keeps its output small: no checkpoints of finished models, and no
+    # HomographyNet file once evaluated (DeTone's network has 34.2 M parameters, 33.6 M of them
+    # in its fully connected layer; its files hold them with the optimizer's state).
     "tiny": Budget("tiny", 2, 1, samples_per_image=2, batch_size=4, checkpoint_every=2,
                    val_samples=4, max_images=4, latency_runs=3, latency_warmup=1,
-                   table1_seeds=2),
+                   table1_seeds=2, verdicts=False, keep_checkpoints=False,
+                   drop_after_eval=("homographynet",)),
 }
 
 
@@ -190,17 +201,47 @@ class Reproduction:
         return train_config.TrainConfig(**base)
 
     def train(self, name: str, cfg) -> str:
-        """Train ``cfg`` unless ``cfg.model_dir`` already holds a finished model of this budget."""
+        """Train ``cfg`` unless ``cfg.model_dir`` already holds a finished model of this budget
+        (or held one, evaluated and dropped: :meth:`dropped`). Where the budget keeps no
+        checkpoints, a model trained here has its ``checkpoint/`` removed once finished."""
         from stnh_tf.training import run_dir
         from stnh_tf.training import loop as training
 
         final = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
-        if os.path.exists(final):
+        if os.path.exists(final) or self.dropped(name):
             check_budget(cfg.model_dir, cfg)
             return cfg.model_dir
         self.printer(f"[train] {name} ({cfg.model}, {cfg.train_steps} steps) -> {cfg.model_dir}")
         self._timed(f"train_{name}", lambda: training.train(cfg, printer=lambda *a: None))
+        if (not self.budget.keep_checkpoints and os.path.exists(final)
+                and name not in self.reuse):
+            shutil.rmtree(os.path.join(cfg.model_dir, run_dir.CHECKPOINT_DIR), ignore_errors=True)
         return cfg.model_dir
+
+    def dropped(self, name: str) -> bool:
+        """Whether model ``name`` was trained, evaluated (``eval/<name>.json``) and its file then
+        removed (:attr:`Budget.drop_after_eval`): it counts as finished."""
+        from stnh_tf.training import run_dir
+
+        d = self.model_dir(name)
+        return (name in self.budget.drop_after_eval and name not in self.reuse
+                and os.path.exists(os.path.join(d, run_dir.RESULT_FILE))
+                and not os.path.exists(os.path.join(d, run_dir.FINAL_MODEL))
+                and os.path.exists(os.path.join(self.out, "eval", f"{name}.json")))
+
+    def drop_model(self, name: str) -> None:
+        """Remove model ``name``'s ``model.keras`` (and checkpoints) where the budget drops it
+        after its evaluation (:attr:`Budget.drop_after_eval`; never a reused model)."""
+        from stnh_tf.training import run_dir
+
+        if name not in self.budget.drop_after_eval or name in self.reuse:
+            return
+        d = self.model_dir(name)
+        shutil.rmtree(os.path.join(d, run_dir.CHECKPOINT_DIR), ignore_errors=True)
+        if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
+            os.remove(os.path.join(d, run_dir.FINAL_MODEL))
+            self.printer(f"[drop] {name}: model.keras removed after its evaluation (budget "
+                         f"'{self.budget.name}' keeps only its evaluation)")
 
     def hierarchy(self, stages: int = 3) -> list:
         dirs = []
@@ -243,20 +284,26 @@ class Reproduction:
     def table1(self, rows: dict, schedule=None) -> dict:
         """Evaluate the ablation rows (:meth:`ablation`'s result); writes ``table1.md`` (with the
         paper's schedule column from ``schedule``: :func:`schedule_results`) and ``table1.json``;
-        returns ``{(l2, l1): [MACE per seed]}``."""
-        table = {}
+        returns ``{(l2, l1): [MACE per seed]}``. The table has the identity's row and, where
+        the budget supports a verdict, the paper's claim judged (:func:`table1_claim`)."""
+        table, identity = {}, None
         for (l2, l1), dirs in rows.items():
-            table[(l2, l1)] = [self.evaluate("stage1_alone" if d == self.model_dir("stage1")
-                                             else ablation_name(l2, l1, seed), [d])["model"]["mace"]
-                               for seed, d in enumerate(dirs)]
+            table[(l2, l1)] = []
+            for seed, d in enumerate(dirs):
+                result = self.evaluate("stage1_alone" if d == self.model_dir("stage1")
+                                       else ablation_name(l2, l1, seed), [d])
+                table[(l2, l1)].append(result["model"]["mace"])
+                identity = result["identity"]["mace"]
+        per_seed = {f"{a:g},{b:g}": v for (a, b), v in table.items()}
         steps = self.budget.ablation_train_steps
         lines = [f"# Table 1: loss weights, single stage, {steps} steps per row (budget "
                  f"'{self.budget.name}')", "",
-                 *([SMOKE_NOTE, ""] if self.budget.name == "tiny" else []), *TABLE1_HEAD]
-        schedule = (schedule or {}).get("table1_mace", {})
-        lines += [table1_line(f"{l2:g}", f"{l1:g}", v, PAPER_TABLE1.get((l2, l1)),
-                              schedule.get(f"{l2:g},{l1:g}"))
-                  for (l2, l1), v in table.items()]
+                 *([SMOKE_NOTE, ""] if self.budget.name == "tiny" else []),
+                 *table1_lines(per_seed, identity,
+                               {f"{a:g},{b:g}": v for (a, b), v in PAPER_TABLE1.items()},
+                               (schedule or {}).get("table1_mace", {}),
+                               table1_claim(per_seed, identity, self.budget.verdicts).get(
+                                   "text", ""))]
         with open(os.path.join(self.out, "table1.md"), "w") as f:
             f.write("\n".join(lines) + "\n")
         atomic_write_json(os.path.join(self.out, "table1.json"), {
@@ -269,14 +316,14 @@ class Reproduction:
     # -- evaluation -----------------------------------------------------------------------------
     def evaluate(self, key: str, model_dirs=(), baselines=()) -> dict:
         """``evaluation.evaluate`` on the stage-1 test pairs, cached in ``eval/{key}.json`` (kept
-        while it is newer than every model it evaluated)."""
+        while it is newer than every model it evaluated that is still there)."""
         from stnh_tf.evaluation import mace as evaluation
         from stnh_tf.training import run_dir
 
         path = os.path.join(self.out, "eval", f"{key}.json")
         finals = [os.path.join(d, run_dir.FINAL_MODEL) for d in model_dirs]
         if os.path.exists(path) and all(os.path.getmtime(f) < os.path.getmtime(path)
-                                        for f in finals):
+                                        for f in finals if os.path.exists(f)):
             with open(path) as f:
                 return json.load(f)
         result = self._timed("evaluate", lambda: evaluation.evaluate(
@@ -312,24 +359,33 @@ class Reproduction:
         base = self.evaluate("baselines", baselines=tuple(FIGURE_BASELINES))
         fig4 = {label: base["baselines"][k]["mace"] for k, label in FIGURE_BASELINES.items()}
         fig4["HomographyNet"] = self.evaluate("homographynet", [hnet])["model"]["mace"]
+        self.drop_model("homographynet")
         hier = self.evaluate("hierarchy", stages)["model"]
-        rejected = {}
-        for k in range(1, len(stages) + 1):
-            name = f"STN-Homography {k} stage{'s' if k > 1 else ''}"
+        # 1 stage: the network's own estimate, Table 1's quantity (the same evaluation as its 1:1
+        # row's seed 0); 2 and 3 stages: the hierarchy with its degenerate-prediction rule.
+        fig4["STN-Homography 1 stage"] = self.evaluate("stage1_alone",
+                                                       stages[:1])["model"]["mace"]
+        rejected, predictions = {}, {}
+        for k in range(2, len(stages) + 1):
+            name = f"STN-Homography {k} stages"
             fig4[name] = hier["stages"][f"after_{k}_stages"]["mace"]
             rejected[name] = sum(sum(r.values()) for r in hier.get("rejected", [])[:k])
+            predictions[name] = k * hier["count"]
         fig4["Sequence 2 stages"] = self.evaluate("sequence2", [seq])["model"]["mace"]
+        rejected = {k: v for k, v in rejected.items() if v}
         schedule = schedule_results(fig4["Identity"])
         table1 = self.table1(rows, schedule)
+        per_seed = {f"{l2:g},{l1:g}": v for (l2, l1), v in table1.items()}
         self.printer("[latency] 1/2/3 stages, batch 1")
         lat = self.latency(stages)
         self.printer("[figures]")
-        figs = self.figures(fig4, stages)
+        figs = self.figures(fig4, stages, rejected, predictions)
         result = {"budget": dataclasses.asdict(self.budget), "fig4_mace": fig4,
-                  "fig4_rejected": {k: v for k, v in rejected.items() if v},
-                  "table1_mace": {f"{l2:g},{l1:g}": float(np.mean(v))
-                                  for (l2, l1), v in table1.items()},
-                  "table1_mace_per_seed": {f"{l2:g},{l1:g}": v for (l2, l1), v in table1.items()},
+                  "fig4_rejected": rejected,
+                  "fig4_rejected_of": {k: predictions[k] for k in rejected},
+                  "table1_mace": {k: float(np.mean(v)) for k, v in per_seed.items()},
+                  "table1_mace_per_seed": per_seed,
+                  "table1_claim": table1_claim(per_seed, fig4["Identity"], self.budget.verdicts),
                   "table2_latency_ms": {k: v["d_e_ms"] for k, v in lat["hierarchy"].items()},
                   "sequence_latency_ms": {k: v["forward_ms"]
                                           for k, v in lat.get("sequence", {}).items()},
@@ -338,7 +394,7 @@ class Reproduction:
                              "ablation": {f"{a:g},{b:g}": d[0] for (a, b), d in rows.items()},
                              "ablation_seeds": {f"{a:g},{b:g}": d for (a, b), d in rows.items()}},
                   "figures": figs, "paper_schedule": schedule,
-                  "wall_s_this_run": time.time() - t0,
+                  "wall_s_this_run": time.time() - t0, "machine": machine_info(),
                   "timings_this_run_s": self.timings, "paper": {
                       "fig4_mace": PAPER_FIG4,
                       "table1_mace": {f"{a:g},{b:g}": v for (a, b), v in PAPER_TABLE1.items()},
@@ -349,7 +405,9 @@ class Reproduction:
         self.printer(f"[done] {os.path.join(self.out, 'tables.md')}")
         return result
 
-    def figures(self, fig4: dict, stages) -> dict:
+    def figures(self, fig4: dict, stages, rejected=None, predictions=None) -> dict:
+        """Fig. 1, 4 and 5 into ``figures/``; Fig. 4 marks the rows with ``rejected`` stage
+        predictions (of ``predictions``: :func:`stnh_tf.paper.figures.fig4_bars`)."""
         from stnh_tf import hierarchy
         from stnh_tf.paper import figures
         from stnh_tf.data import tfrecords as data
@@ -364,7 +422,8 @@ class Reproduction:
         out["fig4"] = figures.mace_bars(fig4, os.path.join(fdir, "fig4_mace_bars.png"),
                                         paper=PAPER_FIG4,
                                         title=f"MACE on the same test pairs, budget "
-                                              f"'{self.budget.name}'")
+                                              f"'{self.budget.name}'",
+                                        rejected=rejected, predictions=predictions)
         samples = data.load_arrays(self.data_dir(1), "test", max_samples=64)
         run = hierarchy.run_hierarchy([runner.predictor(runner.load_model(d)) for d in stages],
                                       samples["context_a"], samples["patch_b"])

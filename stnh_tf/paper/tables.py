@@ -25,6 +25,7 @@ def tables_markdown(result: dict, latency: dict) -> str:
                if "wall_s_this_run" in result else []),
              *(["", SMOKE_NOTE] if b["name"] == "tiny" else []), "",
              "## Fig. 4: mean corner error on the same test pairs", "",
+             FIG4_NOTE, "",
              f"The paper's schedule: {SCHEDULE_NOTE}", "",
              "| method | MACE (px), ours | paper's schedule | paper |",
              "| --- | ---: | ---: | ---: |"]
@@ -38,16 +39,17 @@ def tables_markdown(result: dict, latency: dict) -> str:
     if rejected:
         lines += ["", "Rejected predictions (the hierarchy's rule: non-finite, singular or leaving "
                   "the context; such a pair keeps the estimate before that stage, the identity at "
-                  "stage 1, so the row's MACE is not the network's): " + "; ".join(
+                  "stage 1, or is clipped onto the context, so the row's MACE is not the "
+                  "networks' alone; Fig. 4 hatches these bars): " + "; ".join(
                       f"{name}: {n} stage predictions for {result['test_pairs']} pairs"
                       for name, n in rejected.items()) + "."]
     steps = b["ablation_steps"] or b["train_steps"]
     lines += ["", f"## Table 1: loss weights, single stage ({steps} steps per row)", "",
-              *TABLE1_HEAD]
-    for key, v in result["table1_mace_per_seed"].items():
-        lines.append(table1_line(*key.split(","), v, paper["table1_mace"].get(key),
-                                 schedule.get("table1_mace", {}).get(key)))
+              *table1_lines(result["table1_mace_per_seed"], result["fig4_mace"].get("Identity"),
+                            paper["table1_mace"], schedule.get("table1_mace", {}),
+                            result.get("table1_claim", {}).get("text", ""))]
     lines += ["", f"## Table 2: batch-1 latency ({latency.get('policy', '')}; paper: a GPU)", "",
+              latency_note(latency), "",
               "| stages | d_e (ms), ours | formula (l_m + l_w) n | paper GPU (ms) |",
               "| ---: | ---: | ---: | ---: |"]
     for k, v in latency["hierarchy"].items():
@@ -58,8 +60,12 @@ def tables_markdown(result: dict, latency: dict) -> str:
             f"{k} stage{'s' if k != '1' else ''} {v['forward_ms']:.2f} ms"
             for k, v in latency["sequence"].items()) + "."]
     lines += ["", "## Models", "", "| model | directory | trained on |", "| --- | --- | --- |"]
+    dropped = b.get("drop_after_eval", ())
     for name, d in _model_dirs(result["models"]):
-        lines.append(f"| {name} | `{d}` | {_trained_on(d)} |")
+        gone = (" (model file removed after its evaluation at this budget)"
+                if os.path.basename(d) in dropped and not os.path.exists(
+                    os.path.join(d, "model.keras")) else "")
+        lines.append(f"| {name}{gone} | `{d}` | {_trained_on(d)} |")
     lines += ["", "Figures: " + ", ".join(f"[{k}](figures/{os.path.basename(v)})"
                                           for k, v in result["figures"].items()), ""]
     return "\n".join(lines)
@@ -71,8 +77,91 @@ SCHEDULE_NOTE = ("the paper's recipe at its 91,000 steps per model, on the pairs
                  "not trained yet, or other test pairs.")
 """What the "paper's schedule" column of the tables is."""
 
-TABLE1_HEAD = ["| L2 weight | L1 weight | MACE (px), ours | seeds: range | paper's schedule "
+FIG4_NOTE = ("MACE (px) of each method on the same test pairs. STN-Homography 1 stage is the "
+             "stage-1 network's own estimate, the quantity of Table 1 (its 1:1 row's seed 0 is "
+             "this model); 2 and 3 stages are the hierarchy, whose degenerate-prediction rule "
+             "acts on each stage's prediction (rows where it acted are marked).")
+"""The caption of Fig. 4's table: which quantity each row is."""
+
+TABLE1_NOTE = ("MACE (px) on the same test pairs of each model's own estimate (no "
+               "degenerate-prediction rule: the quantity of Fig. 4's STN-Homography 1 stage, which "
+               "is the 1:1 row's seed 0); the mean over the row's seeds, and each seed's MACE in "
+               "seed order.")
+"""The caption of Table 1."""
+
+TABLE1_HEAD = ["| L2 weight | L1 weight | MACE (px), ours | per seed | paper's schedule "
                "| paper |", "| ---: | ---: | ---: | ---: | ---: | ---: |"]
+
+CLAIM_ROWS = ("10,1", "1,1")
+"""The Table 1 rows the paper's claim compares: L2:L1 = 10:1 gives a lower MACE than 1:1."""
+
+
+def table1_lines(per_seed: dict, identity, paper: dict, schedule: dict, claim: str = "") -> list:
+    """Table 1 as Markdown lines: :data:`TABLE1_NOTE`, the header, the identity's row (the MACE
+    of no estimate on the same pairs; ``None``: left out), one :func:`table1_line` per row of
+    ``per_seed`` (``{"l2,l1": [MACE per seed]}``, the paper's and the paper's schedule's values
+    from ``paper`` and ``schedule`` under the same keys) and the ``claim`` line
+    (:func:`table1_claim`'s text; empty: none)."""
+    lines = [TABLE1_NOTE, "", *TABLE1_HEAD]
+    if identity is not None:
+        lines.append(f"| identity (no model) |  | {identity:.2f} |  |  |  |")
+    lines += [table1_line(*key.split(","), v, paper.get(key), schedule.get(key))
+              for key, v in per_seed.items()]
+    return lines + (["", claim] if claim else [])
+
+
+def table1_claim(per_seed: dict, identity, verdicts: bool = True) -> dict:
+    """The paper's Table 1 claim (L2:L1 = 10:1 below 1:1, :data:`CLAIM_ROWS`) judged on
+    ``per_seed`` (``{"l2,l1": [MACE per seed]}``): ``{"verdict", "text"}`` with ``verdict`` one
+    of ``"holds"`` (every seed of 10:1 below every seed of 1:1), ``"does not hold"`` (every seed
+    above), ``"unresolved"`` (the seeds overlap) or ``"none"``: no verdict where the budget
+    cannot support one (``verdicts=False``: the smoke test) or where a compared row's mean is not
+    below the ``identity``'s MACE. ``{}`` where a compared row is missing.
+
+    >>> table1_claim({"10,1": [4.8, 4.9], "1,1": [5.8, 5.9]}, 24.0)["verdict"]
+    'holds'
+    >>> table1_claim({"10,1": [4.8, 4.9], "1,1": [5.8, 5.9]}, 24.0, verdicts=False)["verdict"]
+    'none'
+    """
+    better, base = CLAIM_ROWS
+    if better not in per_seed or base not in per_seed:
+        return {}
+    a, b = per_seed[better], per_seed[base]
+
+    def span(v):
+        return (f"{min(v):.2f}-{max(v):.2f}" if len(v) > 1 else f"{v[0]:.2f}") + " px"
+
+    above = [k for k in CLAIM_ROWS if identity is not None and np.mean(per_seed[k]) >= identity]
+    if not verdicts:
+        verdict, text = "none", ("no verdict at this budget: its models are not trained enough "
+                                 "for one.")
+    elif above:
+        verdict, text = "none", ("no verdict: " + ", ".join(
+            f"the {k.replace(',', ':')} row (mean {np.mean(per_seed[k]):.2f} px)" for k in above)
+            + f" not below the identity's {identity:.2f} px.")
+    elif max(a) < min(b):
+        verdict, text = "holds", (f"holds at this budget: every seed of 10:1 ({span(a)}) is "
+                                  f"below every seed of 1:1 ({span(b)}).")
+    elif min(a) > max(b):
+        verdict, text = "does not hold", (f"does not hold at this budget: every seed of 10:1 "
+                                          f"({span(a)}) is above every seed of 1:1 ({span(b)}).")
+    else:
+        verdict, text = "unresolved", (f"unresolved at this budget: the seeds overlap (10:1 "
+                                       f"{span(a)}, 1:1 {span(b)}).")
+    return {"verdict": verdict,
+            "text": "The paper's claim (L2:L1 = 10:1 gives a lower MACE than 1:1): " + text}
+
+
+def latency_note(latency: dict) -> str:
+    """The caption of Table 2: what ``d_e`` and the formula column are, with this run's ``l_m``
+    and ``l_w`` (:func:`stnh_tf.evaluation.mace.latency`'s result)."""
+    terms = (f" (here l_m = {latency['l_m_ms']:.2f} ms, l_w = {latency['l_w_ms']:.2f} ms)"
+             if "l_m_ms" in latency and "l_w_ms" in latency else "")
+    return ("d_e: the measured end-to-end time of n stages on one pair (median of repeated runs). "
+            "Formula: the paper's model of it, d_e = (l_m + l_w) n, from l_m, one stage's "
+            "network forward pass, and l_w, the warp of the context and crop of the next "
+            "patch_a between stages with the degenerate-prediction rule, each timed alone"
+            f"{terms}. Paper GPU: the paper's Table 2.")
 
 
 def _cell(values: dict, key) -> str:
@@ -80,9 +169,9 @@ def _cell(values: dict, key) -> str:
 
 
 def table1_line(l2: str, l1: str, maces, paper, schedule=None) -> str:
-    """One Table 1 row: the mean over seeds, and the range when there are several; ``schedule``:
-    the row's MACE at the paper's schedule (None: not trained)."""
-    spread = (f"{len(maces)} seeds: {min(maces):.2f}-{max(maces):.2f}" if len(maces) > 1
+    """One Table 1 row: the mean over seeds, and each seed's MACE (in seed order) when there are
+    several; ``schedule``: the row's MACE at the paper's schedule (None: not trained)."""
+    spread = (f"{len(maces)} seeds: " + ", ".join(f"{m:.2f}" for m in maces) if len(maces) > 1
               else "1 seed")
     return (f"| {l2} | {l1} | {float(np.mean(maces)):.2f} | {spread} | "
             f"{_cell({0: schedule}, 0)} | {'' if paper is None else f'{paper:.2f}'} |")

@@ -4,7 +4,13 @@ checkpoints (:mod:`~stnh_tf.training.run_dir`), its input streams
 (:mod:`~stnh_tf.training.model_kinds`), and the loop that fits every model kind with the paper's
 recipe (:mod:`~stnh_tf.training.loop`, :func:`~stnh_tf.training.loop.train`)."""
 
-from stnh_tf import _compat
+__all__ = ["train"]
 
-# Before 0.2 ``stnh_tf.training`` was the loop's module: its names stay reachable here.
-__getattr__ = _compat.delegate(__name__, "stnh_tf.training.loop")
+
+def __getattr__(name):
+    # ``train`` is imported on first use: the loop imports Keras, and importing
+    # ``stnh_tf.training.config`` must not (tests/test_layout.py).
+    if name == "train":
+        from stnh_tf.training.loop import train
+        return train
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

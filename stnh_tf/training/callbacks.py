@@ -1,11 +1,14 @@
 """The training loop's own Keras callbacks: a guard against a non-finite loss, console progress,
-TensorBoard scalars against the global step, and a time limit for runs trained in chunks (what
-Keras' built-in callbacks do not offer)."""
+TensorBoard scalars against the global step, and a time limit (and stop signals) for runs trained
+in chunks (what Keras' built-in callbacks do not offer)."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import signal
+import threading
 import time
 
 import keras
@@ -59,7 +62,8 @@ class _GlobalStep(keras.callbacks.Callback):
 
 class ProgressLogger(_GlobalStep):
     """One console line every ``every`` steps (and at the last, ``total``): step, losses,
-    learning rate, steps/s."""
+    learning rate, steps/s and, before the last, the time the steps left take at that rate
+    (:func:`time_left`)."""
 
     def __init__(self, every, total, printer=print):
         super().__init__()
@@ -75,7 +79,23 @@ class ProgressLogger(_GlobalStep):
         rate = (step - self._s0) / max(time.time() - self._t0, 1e-9)
         lr = _learning_rate(self.model)
         parts = " ".join(f"{k}={float(v):.5g}" for k, v in sorted((logs or {}).items()))
-        self.printer(f"step {step}/{self.total} lr={lr:.5g} {parts} ({rate:.2f} steps/s)")
+        left = time_left(self.total - step, rate)
+        self.printer(f"step {step}/{self.total} lr={lr:.5g} {parts} ({rate:.2f} steps/s"
+                     + (f", {left} left" if left else "") + ")")
+
+
+def time_left(steps: int, steps_per_s: float) -> str:
+    """``steps`` at ``steps_per_s`` as a short duration ('' for none, or no rate yet).
+
+    >>> time_left(91_000 - 50, 2.0), time_left(450, 2.0), time_left(0, 2.0)
+    ('12.6 h', '3.8 min', '')
+    """
+    if steps <= 0 or not steps_per_s > 0:
+        return ""
+    seconds = steps / steps_per_s
+    if seconds >= 5_400:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 60:.1f} min" if seconds >= 90 else f"{seconds:.0f} s"
 
     def on_epoch_end(self, epoch, logs=None):
         vals = {k: v for k, v in (logs or {}).items() if k.startswith("val_")}
@@ -125,25 +145,104 @@ class StepScalars(_GlobalStep):
         self._writers = None
 
 
-class TimeLimit(keras.callbacks.Callback):
-    """Stops training at an epoch end (just after its checkpoint, which an earlier callback
-    writes) when another epoch, as long as the last one, would end more than ``seconds`` after
-    ``start`` (``time.monotonic()``; default: when training began). ``stopped_step`` is the step it
-    stopped at (``None`` if it did not)."""
+class TimeLimit(_GlobalStep):
+    """Stops training within one step of a time limit, or at a stop signal, so that the run's
+    state at that step is saved: the stop ends the Keras epoch early, and Keras still runs the
+    epoch's end (validation, then the checkpoint that
+    :class:`~stnh_tf.training.run_dir.AtomicCheckpoint` writes of the step reached), from which
+    :func:`stnh_tf.training.loop.train` resumes.
 
-    def __init__(self, seconds: float, start: float | None = None, clock=time.monotonic):
+    * ``seconds`` (``None``: no time limit): after each step (each call of the compiled step:
+      ``steps_per_execution`` steps), stop if another one, as long as it, would end more than
+      ``seconds`` after ``start`` (``clock()`` time; default: when training began). At least one
+      step runs. ``per_step=False``: decide at epoch ends only (after their checkpoint), when
+      another epoch as long as the last one would end past the limit; for several processes,
+      which must stop at the same step (:class:`~stnh_tf.training.distribute.SyncStop` shares
+      the chief's decision at epoch ends).
+    * :meth:`request_stop` (what :func:`stop_on_signals` calls for a SIGTERM): stop after the
+      current step, ``stopped_by`` naming the reason.
+
+    ``stopped_step``: the step it stopped at (``None`` if it did not); ``stopped_by``:
+    ``"time limit"``, the signal's name, or ``None``.
+
+        >>> limit = TimeLimit(480)            # a GPU chunk of 8 minutes
+        >>> limit.stopped_step, limit.stopped_by
+        (None, None)
+    """
+
+    def __init__(self, seconds: float | None, start: float | None = None, clock=None,
+                 per_step: bool = True):
         super().__init__()
-        self.seconds, self.start, self.clock = float(seconds), start, clock
-        self.stopped_step = None
-        self._last = None
+        self.seconds = None if seconds is None else float(seconds)
+        self.start, self.clock = start, clock or time.monotonic
+        self.per_step = per_step
+        self.stopped_step = self.stopped_by = None
+        self._requested = None
+        self._last = self._began = None
+
+    def request_stop(self, reason: str) -> None:
+        """Stop after the current step (the first reason given is kept)."""
+        self._requested = self._requested or reason
+
+    def _over(self, now, took) -> bool:
+        return self.seconds is not None and now - self.start + took > self.seconds
+
+    def _stop(self, step, reason):
+        self.model.stop_training = True
+        self.stopped_step, self.stopped_by = step, reason
 
     def on_train_begin(self, logs=None):
         self.start = self.clock() if self.start is None else self.start
         self._last = self.clock()
 
+    def on_train_batch_begin(self, batch, logs=None):
+        if self.per_step:
+            self._began = self.clock()
+
+    def on_train_batch_end(self, batch, logs=None):
+        if not self.per_step:
+            return
+        now = self.clock()
+        if self._requested:
+            self._stop(self.step_after(batch), self._requested)
+        elif self._over(now, now - self._began):
+            self._stop(self.step_after(batch), "time limit")
+
     def on_epoch_end(self, epoch, logs=None):
         now = self.clock()
-        if now - self.start + (now - self._last) > self.seconds:
-            self.model.stop_training = True
-            self.stopped_step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
+        if not self.model.stop_training:
+            if self._requested:
+                self._stop(_step(self.model), self._requested)
+            elif not self.per_step and self._over(now, now - self._last):
+                self._stop(_step(self.model), "time limit")
         self._last = now
+
+
+@contextlib.contextmanager
+def stop_on_signals(limit: TimeLimit | None, signals=(signal.SIGTERM,)):
+    """While inside, the first of ``signals`` (default SIGTERM: what ``timeout`` and a plain
+    ``kill`` send) asks ``limit`` to stop after the current step (:meth:`TimeLimit.request_stop`,
+    the checkpoint of that step then saved) and puts the previous handler back, so that a second
+    one acts as it did before; leaving restores every handler. Does nothing without a ``limit``
+    or outside the main thread (where Python cannot handle signals).
+
+        >>> with stop_on_signals(TimeLimit(None)):
+        ...     pass   # model.fit(...)
+    """
+    if limit is None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) or signal.SIG_DFL  # (None: not set from Python)
+                for sig in signals}
+
+    def handler(signum, frame):
+        signal.signal(signum, previous[signum])
+        limit.request_stop(signal.Signals(signum).name)
+
+    try:
+        for sig in signals:
+            signal.signal(sig, handler)
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)

@@ -29,6 +29,7 @@ import shutil
 import time
 
 from stnh_tf.paths import atomic_write_json, read_json, stage_record_path
+from stnh_tf.provenance import machine_info
 from stnh_tf.training import run_dir
 from stnh_tf.training.config import TrainConfig
 
@@ -57,7 +58,8 @@ def stage_record(root: str, stage: int, config: dict) -> dict:
     path = os.path.join(root, LEDGER_FILE)
     rows = [r for r in (read_json(path, "ledger") if os.path.exists(path) else [])
             if r["stage"] == stage]
-    images = len(sources.scan_image_folders(config["image_dir"]).files) \
+    images = len(sources.scan_image_folders(config["image_dir"],
+                                            config.get("max_images", 0)).files) \
         if config.get("image_dir") else None
     record = {"format": "stnh_tf.chunked_stage", "stage": stage, "config": config,
               "training_photographs": images,
@@ -70,19 +72,22 @@ def stage_record(root: str, stage: int, config: dict) -> dict:
 
 
 def _step(checkpoint_dir) -> int:
-    state = run_dir.read_checkpoint_state(checkpoint_dir)
-    return -1 if state is None or run_dir.checkpoint_weights_path(checkpoint_dir) is None \
-        else int(state["step"])
+    """The step of the checkpoint of ``checkpoint_dir`` (-1: none; errors as
+    :func:`stnh_tf.training.run_dir.find_checkpoint`)."""
+    found = run_dir.find_checkpoint(checkpoint_dir)
+    return -1 if found is None else int(found[1])
 
 
 def _copy_checkpoint(src_dir, dst_dir, extra_files=()):
-    """Copy the committed checkpoint of ``src_dir`` (state and the weights it names) and
-    ``extra_files`` into ``dst_dir``, replaced whole (written beside it, then swapped in)."""
+    """Copy the checkpoint of ``src_dir`` (the weights :func:`run_dir.find_checkpoint` finds and
+    the state naming them, where there is one) and ``extra_files`` into ``dst_dir``, replaced
+    whole (written beside it, then swapped in)."""
     tmp, old = f"{dst_dir}.tmp-{os.getpid()}", f"{dst_dir}.old-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     os.makedirs(tmp)
-    for path in (run_dir.checkpoint_weights_path(src_dir),
-                 os.path.join(src_dir, run_dir.CHECKPOINT_STATE), *extra_files):
+    weights, _, state = run_dir.find_checkpoint(src_dir)
+    state = [os.path.join(src_dir, run_dir.CHECKPOINT_STATE)] if state is not None else []
+    for path in (weights, *state, *extra_files):
         shutil.copy2(path, os.path.join(tmp, os.path.basename(path)))
     if os.path.exists(dst_dir):
         os.rename(dst_dir, old)
@@ -97,23 +102,36 @@ def _estimates(folder: str) -> list:
             if os.path.exists(os.path.join(folder, name))]
 
 
-def sync_in(resume: str, model_dir: str) -> int | None:
+def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int | None:
     """Copy the committed checkpoint in ``resume`` into the run folder ``model_dir`` where it is
     newer than the folder's own (or the folder has none), with the saved stage estimates beside
-    it that the folder lacks. Returns the step copied in, else ``None``."""
-    ckpt = os.path.join(model_dir, run_dir.CHECKPOINT_DIR)
-    for path in _estimates(resume) if os.path.isdir(resume) else []:
-        if not os.path.exists(os.path.join(model_dir, os.path.basename(path))):
-            os.makedirs(model_dir, exist_ok=True)
-            shutil.copy2(path, model_dir)
-    if _step(resume) <= _step(ckpt):
+    it that the folder lacks. Returns the step copied in, else ``None``.
+
+    Checks first, copies after, holding ``model_dir``'s lock
+    (:class:`~stnh_tf.training.run_dir.RunLock`): nothing is copied while another run holds it
+    (``FileExistsError``), nor into a folder that is not a run, or is a run of another
+    configuration than the committed one or than ``cfg`` where given (``ValueError``:
+    :func:`~stnh_tf.training.run_dir.check_same_run`); ``cfg`` is then checked even when
+    nothing is to be copied."""
+    if not os.path.isdir(resume):
         return None
-    os.makedirs(model_dir, exist_ok=True)
-    config = os.path.join(model_dir, run_dir.CONFIG_FILE)
-    if not os.path.exists(config):
-        shutil.copy2(os.path.join(resume, run_dir.CONFIG_FILE), config)
-    _copy_checkpoint(resume, ckpt)
-    return _step(ckpt)
+    ckpt = os.path.join(model_dir, run_dir.CHECKPOINT_DIR)
+    with run_dir.RunLock(model_dir):  # no other run there while this checks and copies
+        newer = _step(resume) > _step(ckpt)
+        estimates = [p for p in _estimates(resume)
+                     if not os.path.exists(os.path.join(model_dir, os.path.basename(p)))]
+        if not (newer or estimates or cfg is not None):
+            return None
+        run_dir.check_same_run(model_dir, os.path.join(resume, run_dir.CONFIG_FILE), cfg)
+        for path in estimates:
+            shutil.copy2(path, model_dir)
+        if not newer:
+            return None
+        config = os.path.join(model_dir, run_dir.CONFIG_FILE)
+        if not os.path.exists(config):
+            shutil.copy2(os.path.join(resume, run_dir.CONFIG_FILE), config)
+        _copy_checkpoint(resume, ckpt)
+        return _step(ckpt)
 
 
 def sync_out(model_dir: str, resume: str) -> int:
@@ -143,17 +161,25 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
     one committed under ``root``), train until ``time_limit_s`` (:func:`stnh_tf.training.loop.train`
     stops at a checkpoint before it), then commit the checkpoint back under ``root``, or, once the
     stage is done, its model as ``stage<k>.keras`` (and remove the checkpoint), and add a row to
-    the ledger (``commit``: the code's, recorded in the row where given). Returns the row.
+    the ledger (``commit``: the code's, recorded in the row where given; ``machine``: the commit,
+    machine and library versions, :func:`stnh_tf.provenance.machine_info`). Returns the row.
 
     Raises:
-      ValueError / OSError: as :func:`stnh_tf.training.loop.train`.
+      FileExistsError: the stage is finished (``stage<k>.keras`` under ``root``): nothing is
+        trained or written. ``ValueError`` / ``OSError``: as :func:`sync_in` (before anything is
+        copied) and :func:`stnh_tf.training.loop.train`.
     """
     import keras
 
     from stnh_tf.training import loop
 
+    finished = finished_model(root, cfg.stage)
+    if os.path.exists(finished):
+        raise FileExistsError(f"stage {cfg.stage} is finished: {finished} exists; it is not "
+                              f"trained again (move it and {stage_record_path(finished)} away "
+                              "to train it anew).")
     resume = resume_dir(root, cfg.stage)
-    copied = sync_in(resume, cfg.model_dir)
+    copied = sync_in(resume, cfg.model_dir, cfg)
     if copied is not None:
         printer(f"resuming from the committed checkpoint at step {copied} ({resume})")
     start_step = max(_step(os.path.join(cfg.model_dir, run_dir.CHECKPOINT_DIR)), 0)
@@ -170,7 +196,7 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
            "done": bool(done), "device": device, "backend": keras.backend.backend(),
            "steps_per_s": round(steps / max(result["wall_s_this_run"], 1e-9), 3),
            "wall_s": round(time.time() - t0, 1), "date": datetime.date.today().isoformat(),
-           **({"commit": commit} if commit else {})}
+           **({"commit": commit} if commit else {}), "machine": machine_info()}
     add_ledger_row(root, row)
     if done:
         stage_record(root, cfg.stage,

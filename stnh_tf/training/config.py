@@ -155,6 +155,9 @@ class TrainConfig:
                                 "(comma-separated).", comma_list=True)
     samples_per_image: int = _field(3, "With --image_dir: squares per image per data epoch (as "
                                     "make_dataset).")
+    max_images: int = _field(0, "With --image_dir: train on the first N images of the folders' "
+                             "sorted listing only, the same ones on every machine (0: all; as "
+                             "make_dataset --max_images).")
     fresh_pairs: bool = _field(False, "With --image_dir: new pairs every data epoch (else the "
                                "fixed set make_dataset would write, reshuffled).")
     val_seed: int = _field(1, "With --image_dir: seed of the validation pairs (1: make_dataset's "
@@ -173,24 +176,30 @@ class TrainConfig:
                                    "H_bar: pair i keeps it iff a hash of (seed, i) falls below "
                                    "the share (stnh_tf.data.labels: the same pairs on resume, "
                                    "from TFRecords or generated pairs); the others get h_mask 0 "
-                                   "and H_bar zeroed, and train on the L1 photometric loss alone "
-                                   "(the paper's semi-supervised training). 1: every pair.")
+                                   "and H_bar zeroed, and train on the L1 photometric loss against "
+                                   "patch_b alone (the paper's semi-supervised training). 1: all.")
     drop_unlabeled: bool = _field(False, "Train on the labeled pairs alone (the others left out): "
                                   "with --label_fraction=F, F of the data, fully supervised.")
     unlabeled_image_dir: str = _field("", "With --image_dir: folders of images (comma-separated) "
                                       "whose pairs (--samples_per_image each) are mixed into "
                                       "training without labels: h_mask 0, H_bar zeroed, the L1 "
-                                      "photometric loss alone.", comma_list=True)
+                                      "photometric loss against patch_b alone.", comma_list=True)
+    unlabeled_pairs_dir: str = _field("", "Folders of real image pairs without any H (NAME_a.EXT "
+                                      "beside NAME_b.EXT; sub-folders of video frames), mixed "
+                                      "into every batch without labels (docs/training.md).",
+                                      comma_list=True)
     recipe: str = _field("paper", "Preset of the recipe flags: paper (the paper's, default) or "
                          "fast (a deviation: " + ", ".join(f"{k}={v}" for k, v in
                                                            RECIPES["fast"].items())
                          + "); flags given explicitly override the preset.",
                          choices=tuple(sorted(RECIPES)))
 
-    def validate(self):
+    def validate(self, time_limit_s=None):
         """Raise ``ValueError`` naming every field and value training cannot use, all of them in
-        one message (:meth:`problems`): checked here, in one place, before anything is written."""
-        problems = self.problems()
+        one message (:meth:`problems`): checked here, in one place, before anything is written;
+        with ``time_limit_s`` (not a field: a run's chunks may have different limits) checked
+        too (:func:`time_limit_problems`)."""
+        problems = self.problems() + time_limit_problems(time_limit_s)
         if len(problems) == 1:
             raise ValueError(problems[0])
         if problems:
@@ -301,11 +310,14 @@ class TrainConfig:
                    f"{self.learning_rate}.")
 
     def _folder_problems(self):
-        for name in ("image_dir", "val_image_dir", "unlabeled_image_dir"):
+        for name in ("image_dir", "val_image_dir", "unlabeled_image_dir", "unlabeled_pairs_dir"):
             spec = getattr(self, name)
             if spec and not [f for f in spec.split(",") if f.strip()]:
                 yield (f"{name} names no folder (received {spec!r}); give one or "
                        "more comma-separated folders.")
+        if self.max_images and not self.image_dir:
+            yield ("max_images limits the images of image_dir; TFRecords hold the pairs of the "
+                   "images they were made from (data_prep.make_dataset --max_images).")
         if self.photometric and not self.image_dir:
             yield ("photometric changes pairs generated from image_dir; for TFRecords, "
                    "write them with data_prep.make_dataset --photometric.")
@@ -329,14 +341,15 @@ class TrainConfig:
             return
         if self.drop_unlabeled and fraction == 0:
             yield "drop_unlabeled with label_fraction 0 leaves no pair to train on."
-        unlabeled = (fraction < 1 and not self.drop_unlabeled) or self.unlabeled_image_dir
+        unlabeled = ((fraction < 1 and not self.drop_unlabeled) or self.unlabeled_image_dir
+                     or self.unlabeled_pairs_dir)
         if unlabeled and self.model in FOUR_POINT_KINDS:
             yield (f"model={self.model!r} has no photometric loss: its unlabeled pairs would "
                    "train nothing; give drop_unlabeled (label_fraction < 1) or an stn model.")
         elif unlabeled and self.l1_weight == 0:
             yield ("l1_weight is 0: the unlabeled pairs (label_fraction < 1, "
-                   "unlabeled_image_dir) would train nothing; give l1_weight > 0 or "
-                   "drop_unlabeled.")
+                   "unlabeled_image_dir, unlabeled_pairs_dir) would train nothing; give "
+                   "l1_weight > 0 or drop_unlabeled.")
 
     def _distribution_problems(self):
         n, k = self.num_processes, self.process_id
@@ -401,14 +414,30 @@ _TUPLE_FIELDS = tuple(f.name for f in dataclasses.fields(TrainConfig) if f.type 
 
 # The integer fields and their smallest allowed values (TrainConfig.validate).
 _INTEGER_MINIMUMS = {"checkpoint_every": 1, "batch_size": 1, "shuffle_buffer": 1, "log_every": 1,
-                     "samples_per_image": 1, "val_samples": 0, "workers": 0, "seed": 0,
-                     "val_seed": 0, "num_processes": 1, "process_id": 0,
+                     "samples_per_image": 1, "max_images": 0, "val_samples": 0, "workers": 0,
+                     "seed": 0, "val_seed": 0, "num_processes": 1, "process_id": 0,
                      "steps_per_execution": 1}
 
 # Fields that may differ between a run and its resumption without changing the result.
 RESUME_FREE_FIELDS = frozenset({"log_every", "model_dir", "data_dir", "image_dir", "val_image_dir",
-                                "workers", "in_memory", "unlabeled_image_dir", "steps_per_execution",
+                                "workers", "in_memory", "unlabeled_image_dir",
+                                "unlabeled_pairs_dir", "steps_per_execution",
                                 "coordinator_address"})
+
+
+def time_limit_problems(seconds) -> list:
+    """The problems of a run's time limit (``loop.train(time_limit_s=...)``, ``--time_limit_s``):
+    None or 0 is no limit; else a finite number of seconds > 0 (inf refused: 0 says "no limit").
+
+    >>> time_limit_problems(0), time_limit_problems(None), time_limit_problems(480)
+    ([], [], [])
+    >>> time_limit_problems(float("nan"))
+    ['time_limit_s must be a finite number of seconds > 0 (0: no limit); received nan.']
+    """
+    ok = seconds is None or (isinstance(seconds, numbers.Real) and not isinstance(seconds, bool)
+                             and (seconds == 0 or (math.isfinite(seconds) and seconds > 0)))
+    return [] if ok else [f"time_limit_s must be a finite number of seconds > 0 (0: no limit); "
+                          f"received {seconds!r}."]
 
 
 def preset_fields(recipe: str, model: str) -> dict:

@@ -12,7 +12,9 @@ it on the TFRecord dataset in ``config.data_dir`` with:
   (:data:`stnh_tf.training.config.MODEL_DEFAULTS`).
 * Atomic periodic checkpoints (model + optimizer + RNG state) every ``checkpoint_every`` steps; a
   killed run restarted with the same command resumes at the last checkpoint, repositions the data
-  stream at that step, and follows the same schedule to the same final step.
+  stream at that step, and follows the same schedule to the same final step. A run stopped by its
+  time limit or a SIGTERM saves the checkpoint of the step it stopped at (between two periodic
+  ones if need be) and resumes from there the same way.
 * TensorBoard scalars against the global step (both loss terms, learning rate, validation MACE)
   and console progress, every ``log_every`` steps and at least ten times a run.
 * A non-finite loss stops training with an error naming the step and the last good checkpoint.
@@ -35,7 +37,8 @@ The pieces, one module per concern: :mod:`stnh_tf.training.config` (the fields a
 :mod:`stnh_tf.training.model_kinds` (build, losses and targets of each model kind),
 :mod:`stnh_tf.training.run_dir` (the run's folder and checkpoints),
 :mod:`stnh_tf.training.streams` (inputs), :mod:`stnh_tf.training.callbacks` (non-finite guard,
-progress, time limit), :mod:`stnh_tf.training.precision` (mixed precision on this machine).
+progress, time limit), :mod:`stnh_tf.training.fit_calls` (the ``model.fit`` calls of a run),
+:mod:`stnh_tf.training.precision` (mixed precision on this machine).
 A run trained in chunks across machines: :mod:`stnh_tf.training.chunks`.
 """
 
@@ -43,6 +46,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import math
 import os
 import time
 
@@ -50,10 +54,10 @@ import keras
 
 from stnh_tf.modeling import runner
 from stnh_tf.paths import atomic_write_json, fsync_replace
-from stnh_tf.training import distribute, model_kinds, run_dir
+from stnh_tf.training import distribute, fit_calls, model_kinds, run_dir
 from stnh_tf.training import streams as train_streams
 from stnh_tf.training.callbacks import (NonFiniteGuard, ProgressLogger, StepScalars, TimeLimit,
-                                        report_every)
+                                        report_every, stop_on_signals)
 from stnh_tf.training.config import OPTIMIZER_NAMES, TrainConfig
 from stnh_tf.training.precision import mixed_precision_warning
 
@@ -139,10 +143,11 @@ def compile_model(model, cfg: TrainConfig):
 # ------------------------------------------------------------------------------------------------
 
 
-def check_start(cfg: TrainConfig) -> None:
+def check_start(cfg: TrainConfig, time_limit_s: float | None = None) -> None:
     """Every check of ``cfg``'s flags and data that can fail before training, run by
     :func:`train` before ``model_dir`` is touched, so that a bad flag never costs a finished run
-    under ``--overwrite`` nor leaves files behind: the fields (:meth:`TrainConfig.validate`),
+    under ``--overwrite`` nor leaves files behind: the fields and ``time_limit_s``
+    (:meth:`TrainConfig.validate`),
     the losses (:func:`loss_spec`), the backend's strategy; the dataset (a ``train`` split of
     this stage holding at least one batch, its shards and the validation split's present with
     their recorded sizes) or the image folders (at least one batch of pairs); the data of the
@@ -157,14 +162,15 @@ def check_start(cfg: TrainConfig) -> None:
     from stnh_tf.data import tfrecords as data
     from stnh_tf.data import sources
 
-    cfg.validate()
+    cfg.validate(time_limit_s=time_limit_s)
     model_kinds.loss_spec(cfg)
     distribute.check(cfg)  # data_parallel: the JAX backend
     if keras.backend.backend() != "tensorflow":
         _strategy(cfg)
     if cfg.image_dir:
         batches.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
-                         samples_per_image=cfg.samples_per_image, cache_images=False)
+                         samples_per_image=cfg.samples_per_image, cache_images=False,
+                         max_images=cfg.max_images)
         if cfg.val_samples and cfg.val_image_dir:
             batches.PairBatches(sources.split_folders(cfg.val_image_dir), cfg.batch_size,
                              shuffle=False, drop_remainder=False, cache_images=False)
@@ -232,7 +238,8 @@ def initialize_from(model, stage_dirs):
                          f"{len(stage_dirs)}.")
     for k, d in enumerate(stage_dirs, start=1):
         src = runner.load_model(d)
-        if sorted(src.output_names) != ["h_bar", "patch_a_warp"]:
+        # (a run with unlabeled pairs adds models.WARP_VALID, "patch_a_warp_valid")
+        if sorted(set(src.output_names) - {"patch_a_warp_valid"}) != ["h_bar", "patch_a_warp"]:
             raise ValueError(f"{d} is not a single-stage STN-Homography model (its outputs are "
                              f"{sorted(src.output_names)}); init_from takes train_stage "
                              "--model=stn runs.")
@@ -256,9 +263,18 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
           extra_callbacks=(), time_limit_s: float | None = None):
     """Train (or resume) the model described by ``cfg``. Returns a dict of final results.
 
-    ``time_limit_s``: stop at the last checkpoint that leaves time for none more within this many
-    seconds of the call (:class:`~stnh_tf.training.callbacks.TimeLimit`); the result then has
-    ``stopped_at_time_limit`` and no final model is written: the same call resumes the run.
+    ``time_limit_s`` (None or 0: no limit; else a finite number > 0, checked with the fields):
+    stop within one step of this many seconds after the call, after the step past which another
+    as long would end beyond it (:class:`~stnh_tf.training.callbacks.TimeLimit`), and save the
+    checkpoint of that step, between the ``checkpoint_every`` ones if need be. A SIGTERM while
+    training stops the same way after the current step (on one process, in the main thread:
+    :func:`~stnh_tf.training.callbacks.stop_on_signals`), so ``timeout`` loses no work. The
+    result then has ``stopped_by`` (``"time limit"`` or ``"SIGTERM"``; with the time limit also
+    ``stopped_at_time_limit``) and no final model is written: the same call resumes the run from
+    that step, its first ``fit`` call a short epoch to the next multiple of ``checkpoint_every``
+    (:func:`stnh_tf.training.fit_calls.calls`), and ends with the weights of an uninterrupted
+    run. Several processes stop by the time limit alone, at an epoch end (the chief's decision,
+    shared).
 
     ``stream_fn(cfg, split, start_step)`` may replace the TFRecord stream (tests, generators);
     ``extra_callbacks`` run after the built-in ones (checkpointing comes first).
@@ -280,7 +296,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
 
     t_call = time.monotonic()
     cluster = distribute.join(cfg)  # first: before any JAX computation (metrics in check_start)
-    check_start(cfg)
+    check_start(cfg, time_limit_s)
     warning = mixed_precision_warning(cfg)
     if warning:
         printer(f"warning: {warning}")
@@ -315,19 +331,21 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             printer(f"resuming {cfg.model_dir} from step {start_step}")
         if start_step >= cfg.train_steps:
             printer("checkpoint already at the final step")
-        train_ds = distribute.train_stream(cluster, cfg, start_step, stream_fn)  # this share
+        mapper = None if generated else model_kinds.targets_for(cfg)  # (tf.data streams)
+
+        def stream_at(step):  # this process's share of the training stream, from ``step``
+            stream = distribute.train_stream(cluster, cfg, step, stream_fn)
+            return stream.map(mapper) if mapper is not None else stream
+
+        train_ds = stream_at(start_step)
         val_ds = val_steps = None
         if generated:
             if cfg.val_samples and cfg.val_image_dir:
                 val_ds = train_streams.generated_validation(cfg)
                 val_steps = len(val_ds)
-        else:
-            mapper = model_kinds.targets_for(cfg)
-            if cfg.val_samples and data.has_split(cfg.data_dir, cfg.val_split):
-                val_ds, val_steps = train_streams.validation_stream(cfg, cfg.val_split)
-            if mapper is not None:
-                train_ds = train_ds.map(mapper)
-                val_ds = val_ds.map(mapper) if val_ds is not None else None
+        elif cfg.val_samples and data.has_split(cfg.data_dir, cfg.val_split):
+            val_ds, val_steps = train_streams.validation_stream(cfg, cfg.val_split)
+            val_ds = val_ds.map(mapper) if mapper is not None else val_ds
         val_ds, val_steps = distribute.validation_share(cluster, val_ds, val_steps)
         guard = NonFiniteGuard()
         every = report_every(cfg.log_every, cfg.train_steps)
@@ -341,21 +359,39 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             else:
                 printer("TensorFlow is not installed: no TensorBoard logs (console progress only)")
         callbacks.extend(extra_callbacks)
-        limit = TimeLimit(time_limit_s, start=t_call) if time_limit_s else None
+        # The time limit and SIGTERM stop a run on one process after any step (its checkpoint
+        # saved); several processes stop together at an epoch end (SyncStop), by the limit alone.
+        limit = (TimeLimit(time_limit_s, start=t_call, per_step=not cluster.multi)
+                 if time_limit_s or not cluster.multi else None)
         callbacks += [limit] if limit else []
         callbacks += distribute.callbacks(cluster, limit)  # the chief's stop decision, to all
-        epochs = cfg.train_steps // cfg.checkpoint_every
         t0 = time.time()
+        histories, stream_start = [], start_step  # the step of the stream's first item
         try:
-            history = model.fit(train_ds, epochs=epochs,
-                                initial_epoch=start_step // cfg.checkpoint_every,
-                                steps_per_epoch=cfg.checkpoint_every, validation_data=val_ds,
-                                validation_steps=val_steps, callbacks=callbacks, verbose=0,
-                                shuffle=False)  # (the streams are shuffled themselves)
+            with stop_on_signals(None if cluster.multi else limit):
+                for step_0, first_epoch, epochs, steps in fit_calls.calls(
+                        start_step, cfg.checkpoint_every, cfg.train_steps):
+                    if step_0 != stream_start:  # each call reads its stream from the start
+                        train_ds = fit_calls.advance_stream(train_ds, step_0 - stream_start,
+                                                            lambda: stream_at(step_0))
+                        stream_start = step_0
+                    spe = math.gcd(cfg.steps_per_execution, steps)  # (a short epoch: may differ)
+                    with fit_calls.steps_per_execution(model, spe):
+                        histories.append(model.fit(
+                            train_ds, epochs=epochs, initial_epoch=first_epoch,
+                            steps_per_epoch=steps, validation_data=val_ds,
+                            validation_steps=val_steps, callbacks=callbacks, verbose=0,
+                            shuffle=False))  # (the streams are shuffled themselves)
+                    if model.stop_training:
+                        break
         except Exception as e:
             if not generated:
                 train_streams.raise_shard_error(cfg, e)
             raise
+        history = {}
+        for h in histories:
+            for k, v in h.history.items():
+                history.setdefault(k, []).extend(v)
         if guard.bad_step is not None:
             last = run_dir.checkpoint_weights_path(ckpt_dir)
             last_step = run_dir.read_checkpoint_state(ckpt_dir)["step"] if last is not None else 0
@@ -366,10 +402,12 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
                 "--learning_rate (a new --model_dir, or --overwrite).")
         step = int(keras.ops.convert_to_numpy(model.optimizer.iterations))
         if limit is not None and limit.stopped_step is not None and step < cfg.train_steps:
-            printer(f"stopped at step {step} of {cfg.train_steps} by the time limit "
-                    f"({time_limit_s:g} s); the same command resumes from there")
-            return {"final_step": step, "stopped_at_time_limit": True,
-                    "wall_s_this_run": time.time() - t0}
+            by = limit.stopped_by or "time limit"
+            printer(f"stopped at step {step} of {cfg.train_steps} by "
+                    + (f"the time limit ({time_limit_s:g} s)" if by == "time limit" else by)
+                    + "; its checkpoint is saved: the same command resumes from there")
+            return {"final_step": step, "stopped_at_time_limit": by == "time limit",
+                    "stopped_by": by, "wall_s_this_run": time.time() - t0}
         final_path = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
         tmp = os.path.join(cfg.model_dir, f"tmp-{os.getpid()}-{run_dir.FINAL_MODEL}")
         if cluster.is_chief:
@@ -378,7 +416,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             fsync_replace(tmp, final_path)
         result = {"final_step": int(keras.ops.convert_to_numpy(model.optimizer.iterations)),
                   "wall_s_this_run": time.time() - t0,
-                  "history": {k: [float(x) for x in v] for k, v in history.history.items()}}
+                  "history": {k: [float(x) for x in v] for k, v in history.items()}}
         if cluster.is_chief:
             atomic_write_json(os.path.join(cfg.model_dir, run_dir.RESULT_FILE), result)
         return result

@@ -1,6 +1,14 @@
 """The model kinds a run can train, each defined once: how to build it, its losses and metrics,
 and how the dataset's targets map onto its outputs (:data:`KINDS`, keyed like
 :data:`stnh_tf.training.config.MODEL_KINDS`, which the binaries' ``--model`` flag offers).
+
+A run with pairs without ground truth (:func:`has_unlabeled_pairs`) builds its STN
+model with the output :data:`~stnh_tf.modeling.models.WARP_VALID` and trains each pair on its own
+target (:func:`_unlabeled_targets`): a labeled pair (``h_mask`` 1) on the paper's L2 and L1
+losses against ``H_bar`` and ``patch_a_t``, exactly as in a fully labeled run; a pair without
+(``h_mask`` 0) on :func:`~stnh_tf.modeling.losses.photometric_l1_valid` against ``patch_b``
+alone, with nothing made from its ``H``. A fully labeled run builds and trains the paper's model
+unchanged.
 """
 
 from __future__ import annotations
@@ -15,17 +23,51 @@ from stnh_tf.modeling import losses as losses_lib
 from stnh_tf.modeling import models
 from stnh_tf.training.config import MODEL_KINDS, TrainConfig
 
+def has_unlabeled_pairs(cfg: TrainConfig) -> bool:
+    """Whether the run trains pairs without ground truth (``h_mask`` 0): ``label_fraction`` < 1
+    without ``drop_unlabeled``, ``unlabeled_image_dir`` or ``unlabeled_pairs_dir``. Such a run's
+    STN model has the output :data:`~stnh_tf.modeling.models.WARP_VALID` that trains them; a run
+    without trains the paper's model.
+
+    >>> has_unlabeled_pairs(TrainConfig(label_fraction=0.1))
+    True
+    >>> has_unlabeled_pairs(TrainConfig(label_fraction=0.1, drop_unlabeled=True))
+    False
+    """
+    return bool((cfg.label_fraction < 1 and not cfg.drop_unlabeled) or cfg.unlabeled_image_dir
+                or cfg.unlabeled_pairs_dir)
+
+
 def l2_term_weight(cfg: TrainConfig) -> float:
     """The loss weight of :func:`stnh_tf.modeling.losses.h_bar_l2` (a mean over H_bar's 8 entries):
     ``l2_weight``, times 8 with ``l2_reduction="sum"`` (a sum over the 8 entries)."""
     return cfg.l2_weight * (8.0 if cfg.l2_reduction == "sum" else 1.0)
 
 
+# -- pairs without ground truth ---------------------------------------------------------------
+def _unlabeled_targets(x, y, w):
+    """The dataset's ``(x, y, w)`` (keys ``h_bar``, ``patch_a_warp``; ``w["h_bar"]`` is
+    ``h_mask``) onto a model with :data:`~stnh_tf.modeling.models.WARP_VALID` (NumPy or
+    TensorFlow arrays): ``h_bar`` and ``patch_a_warp`` (``patch_a_t``) keep their targets with
+    weight ``h_mask`` (a labeled pair's are the paper's, times 1; an unlabeled pair's
+    ``patch_a_t`` is zeroed, its ``H_bar`` already is, and both weigh 0); ``WARP_VALID`` gets
+    ``patch_b`` with weight ``1 - h_mask``. So an unlabeled pair's loss reads nothing made from
+    its ``H``."""
+    h_mask = w["h_bar"]
+    y = {"h_bar": y["h_bar"], "patch_a_warp": y["patch_a_warp"] * h_mask[:, None, None, None],
+         models.WARP_VALID: x["patch_b"]}
+    w = {"h_bar": h_mask, "patch_a_warp": h_mask, models.WARP_VALID: 1.0 - h_mask}
+    return x, y, w
+
+
 # -- stn: the paper's single stage -------------------------------------------------------------
 def _stn_losses(cfg):
-    return ({"h_bar": losses_lib.h_bar_l2, "patch_a_warp": losses_lib.photometric_l1},
-            {"h_bar": l2_term_weight(cfg), "patch_a_warp": cfg.l1_weight},
-            {"h_bar": [losses_lib.MeanCornerError()]})
+    losses = {"h_bar": losses_lib.h_bar_l2, "patch_a_warp": losses_lib.photometric_l1}
+    weights = {"h_bar": l2_term_weight(cfg), "patch_a_warp": cfg.l1_weight}
+    if has_unlabeled_pairs(cfg):
+        losses[models.WARP_VALID] = losses_lib.photometric_l1_valid
+        weights[models.WARP_VALID] = cfg.l1_weight
+    return losses, weights, {"h_bar": [losses_lib.MeanCornerError()]}
 
 
 # -- sequence: stages chained by the merge layer, every stage supervised -----------------------
@@ -38,14 +80,26 @@ def _sequence_losses(cfg):
         losses[hn], loss_weights[hn] = losses_lib.h_bar_l2, l2 * weights[k]
         losses[wn], loss_weights[wn] = losses_lib.photometric_l1, cfg.l1_weight * weights[k]
         metrics[hn] = [losses_lib.MeanCornerError()]
+        if has_unlabeled_pairs(cfg):
+            vn = f"{models.WARP_VALID}_{k + 1}"
+            losses[vn] = losses_lib.photometric_l1_valid
+            loss_weights[vn] = cfg.l1_weight * weights[k]
     return losses, loss_weights, metrics
 
 
-def _sequence_targets(x, y, w, num_stages):
+def _sequence_targets(x, y, w, num_stages, unlabeled=False):
+    """Every stage's outputs get the dataset's targets (``h_bar_k``, ``patch_a_warp_k``; with
+    ``unlabeled``, :func:`_unlabeled_targets`' ``patch_a_warp_valid_k`` too)."""
+    if unlabeled:
+        x, y, w = _unlabeled_targets(x, y, w)
     ys, ws = {}, {}
     for hn, wn in zip(*models.sequence_output_names(num_stages)):
         ys[hn], ys[wn] = y["h_bar"], y["patch_a_warp"]
         ws[hn], ws[wn] = w["h_bar"], w["patch_a_warp"]
+    if unlabeled:
+        for k in range(1, num_stages + 1):
+            ys[f"{models.WARP_VALID}_{k}"] = y[models.WARP_VALID]
+            ws[f"{models.WARP_VALID}_{k}"] = w[models.WARP_VALID]
     return x, ys, ws
 
 
@@ -80,16 +134,18 @@ class ModelKind:
 
 KINDS = {
     "stn": ModelKind(
-        build=lambda cfg: models.build_stn_homography(batch_norm=cfg.batch_norm,
-                                                      dropout=cfg.dropout,
-                                                      input_norm=cfg.input_norm),
-        losses=_stn_losses, targets=lambda cfg: None),
+        build=lambda cfg: models.build_stn_homography(
+            batch_norm=cfg.batch_norm, dropout=cfg.dropout, input_norm=cfg.input_norm,
+            unlabeled_output=has_unlabeled_pairs(cfg)),
+        losses=_stn_losses,
+        targets=lambda cfg: _unlabeled_targets if has_unlabeled_pairs(cfg) else None),
     "sequence": ModelKind(
         build=lambda cfg: models.build_sequence_stn_homography(
             cfg.num_stages, batch_norm=cfg.batch_norm, dropout=cfg.dropout,
-            input_norm=cfg.input_norm),
+            input_norm=cfg.input_norm, unlabeled_output=has_unlabeled_pairs(cfg)),
         losses=_sequence_losses,
-        targets=lambda cfg: functools.partial(_sequence_targets, num_stages=cfg.num_stages)),
+        targets=lambda cfg: functools.partial(_sequence_targets, num_stages=cfg.num_stages,
+                                              unlabeled=has_unlabeled_pairs(cfg))),
     # DeTone's network: BatchNorm always, dropout twice.
     "homographynet": ModelKind(
         build=lambda cfg: models.build_homographynet(dropout=cfg.dropout),

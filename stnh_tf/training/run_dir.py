@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import numbers
 import os
+import re
 import shutil
 import time
 import zipfile
@@ -23,6 +25,7 @@ import numpy as np
 
 from stnh_tf.paths import atomic_write_json, fsync_replace, inside, read_json
 from stnh_tf.training.config import MODEL_KINDS, RESUME_FREE_FIELDS, TrainConfig
+from stnh_tf.training.run_lock import LOCK_FILE, RunLock  # noqa: F401 (the run's lock)
 
 FINAL_MODEL = "model.keras"
 CONFIG_FILE = "config.json"
@@ -34,6 +37,8 @@ CHECKPOINT_DIR = "checkpoint"
 CHECKPOINT_WEIGHTS = "ckpt.weights.h5"  # legacy single-file name, still read
 CHECKPOINT_WEIGHTS_PATTERN = "ckpt-{step:08d}.weights.h5"
 CHECKPOINT_STATE = "state.json"
+_WEIGHTS_NAME = re.compile(r"ckpt-(\d{8,})\.weights\.h5")  # CHECKPOINT_WEIGHTS_PATTERN's names
+_log = logging.getLogger(__name__)
 # The finished stages' estimates of an in-memory stage-k run's pairs, per split (save_estimates).
 ESTIMATES_FILES = {"train": "stage_estimates_train.npz", "val": "stage_estimates_val.npz"}
 # What a run writes in model_dir besides config.json: all that --overwrite deletes (remove_run).
@@ -45,9 +50,6 @@ _LEGACY_CONFIG_KEYS = frozenset({"model", "model_dir", "stage", "train_steps", "
 # The smallest value of the integer ones among them (as TrainConfig.validate has always checked).
 _LEGACY_MINIMUMS = {"stage": 1, "train_steps": 1, "warmup_steps": 0, "batch_size": 1,
                     "checkpoint_every": 1, "seed": 0}
-LOCK_FILE = ".stnh_tf_run.lock"
-"""The lock file of a run's folder (:class:`RunLock`); not part of the run (never deleted by
-:func:`remove_run`, ignored when a folder is checked for being empty)."""
 
 
 def _seed_variables(model):
@@ -136,21 +138,62 @@ def checkpoint_weights_path(directory) -> str | None:
     return path if os.path.isfile(path) else None
 
 
-def load_checkpoint(model, directory) -> int:
-    """Restore the latest checkpoint in ``directory`` into a compiled ``model``; returns its step
-    (0 if there is none)."""
-    weights = checkpoint_weights_path(directory)
-    state_path = os.path.join(directory, CHECKPOINT_STATE)
-    if weights is None:
-        return 0
+def find_checkpoint(directory) -> tuple | None:
+    """``(weights_path, step, state)`` of the checkpoint in ``directory`` to resume from (None if
+    there is none): the file the committed ``state.json`` names, with its step and state; or,
+    without a ``state.json`` (deleted, or a kill between a first checkpoint's two files), the
+    newest complete ``ckpt-<step>.weights.h5``, its step read from its name, and ``state`` None.
+
+    Raises:
+      FileNotFoundError: ``state.json`` names a file that is missing (both named; a restart from
+        step 0 would replace the checkpoint). ``ValueError``: as :func:`read_checkpoint_state`.
+    """
     state = read_checkpoint_state(directory)
+    if state is not None:
+        state_path = os.path.join(directory, CHECKPOINT_STATE)
+        path = inside(directory, state.get("weights", CHECKPOINT_WEIGHTS),
+                      f"{state_path!r}, its 'weights'")
+        if not os.path.isfile(path):
+            raise FileNotFoundError(
+                f"checkpoint state {state_path} names {path}, which is missing: not restarting "
+                "from step 0 over it; put the file back, or move the folder away to train anew.")
+        return path, state["step"], state
+    found = sorted((int(m.group(1)), m.group(0)) for m in map(
+        _WEIGHTS_NAME.fullmatch, os.listdir(directory) if os.path.isdir(directory) else ()) if m)
+    return (os.path.join(directory, found[-1][1]), found[-1][0], None) if found else None
+
+
+def load_checkpoint(model, directory) -> int:
+    """Restore the checkpoint of ``directory`` (:func:`find_checkpoint`) into a compiled
+    ``model``; returns its step (0 if there is none). One found without ``state.json`` is
+    resumed with a logged warning (its dropout random state starts afresh).
+
+    Raises:
+      ValueError: naming the weights file, when it cannot be read (truncated, not HDF5, another
+        model's) or holds another step than its state (or name) says; nothing is deleted.
+      FileNotFoundError: as :func:`find_checkpoint`.
+    """
+    found = find_checkpoint(directory)
+    if found is None:
+        return 0
+    weights, want, state = found
+    state_path = os.path.join(directory, CHECKPOINT_STATE)
     model.optimizer.build(model.trainable_variables)
-    model.load_weights(weights)
-    _restore_seed_states(model, state.get("seed_states", []))
+    try:
+        model.load_weights(weights)
+    except (OSError, ValueError, KeyError) as e:
+        raise ValueError(f"cannot load the checkpoint {weights} ({type(e).__name__}: {e}); it is "
+                         "kept: put a complete copy back, or move the folder away to train "
+                         "anew.") from None
+    if state is None:
+        _log.warning("%s is missing: resuming from %s, step %d read from its name (the dropout "
+                     "random state starts afresh).", state_path, weights, want)
+    else:
+        _restore_seed_states(model, state.get("seed_states", []))
     step = int(keras.ops.convert_to_numpy(model.optimizer.iterations))
-    if step != state["step"]:
-        raise RuntimeError(f"checkpoint {weights} holds step {step} but {state_path} says "
-                           f"{state['step']}.")
+    if step != want:
+        raise ValueError(f"checkpoint {weights} holds step {step} but "
+                         f"{state_path if state else 'its name'} says {want}.")
     return step
 
 
@@ -250,6 +293,45 @@ def _config_diff(cfg: TrainConfig, config_path: str) -> dict:
     return diff
 
 
+def _check_run_folder(model_dir: str) -> None:
+    """``model_dir`` is missing, empty (but for its lock) or holds a ``config.json``; else
+    ``NotADirectoryError`` / ``FileExistsError`` naming it."""
+    if os.path.exists(model_dir) and not os.path.isdir(model_dir):
+        raise NotADirectoryError(f"model_dir {model_dir} exists and is not a folder.")
+    if os.path.isdir(model_dir) and set(os.listdir(model_dir)) - {LOCK_FILE} \
+            and not os.path.isfile(os.path.join(model_dir, CONFIG_FILE)):
+        raise FileExistsError(f"model_dir {model_dir} is not empty and holds no training run "
+                              f"(no {CONFIG_FILE}); it is not trained into or deleted, with or "
+                              "without --overwrite: choose a new or empty folder.")
+
+
+def check_same_run(model_dir: str, config_path: str, cfg: TrainConfig | None = None) -> None:
+    """Before the checkpoint of the run whose ``config.json`` is ``config_path`` (a copy kept
+    elsewhere: :func:`stnh_tf.training.chunks.sync_in`) is put into ``model_dir``: that folder
+    is missing, empty or a run, and its ``config.json`` (where it has one) is of the same run as
+    ``config_path`` and as ``cfg`` where given (no difference that matters: as
+    :func:`prepare_model_dir` compares them). Reads only.
+
+    Raises:
+      ValueError: naming the configuration that differs and the fields (or one that is not a
+        run's); ``FileExistsError`` / ``NotADirectoryError``: as :func:`prepare_model_dir`.
+    """
+    _check_run_folder(model_dir)
+    own = os.path.join(model_dir, CONFIG_FILE)
+    if cfg is None:
+        if not (os.path.exists(config_path) and os.path.exists(own)):
+            return  # nothing to compare
+        cfg, what = TrainConfig.from_json(read_run_config(config_path)), config_path
+    else:
+        what = "this run's flags"
+    for path in (config_path, own):
+        diff = _config_diff(cfg, path)
+        if diff:
+            raise ValueError(f"{path} is the configuration of another run than {what}: {diff} "
+                             f"(old, new); nothing was copied into {model_dir}: use the same "
+                             "flags, or another folder.")
+
+
 def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
     """Make ``model_dir`` ready for training and write its ``config.json`` (with
     :data:`CONFIG_MARKER`). Returns True when this starts a new run there (there was no
@@ -266,13 +348,7 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
     before this."""
     final = os.path.join(cfg.model_dir, FINAL_MODEL)
     config_path = os.path.join(cfg.model_dir, CONFIG_FILE)
-    if os.path.exists(cfg.model_dir) and not os.path.isdir(cfg.model_dir):
-        raise NotADirectoryError(f"model_dir {cfg.model_dir} exists and is not a folder.")
-    if os.path.isdir(cfg.model_dir) and set(os.listdir(cfg.model_dir)) - {LOCK_FILE} \
-            and not os.path.isfile(config_path):
-        raise FileExistsError(f"model_dir {cfg.model_dir} is not empty and holds no training run "
-                              f"(no {CONFIG_FILE}); it is not trained into or deleted, with or "
-                              "without --overwrite: choose a new or empty folder.")
+    _check_run_folder(cfg.model_dir)
     diff = _config_diff(cfg, config_path)
     if os.path.exists(final) and not overwrite:
         raise FileExistsError(f"{cfg.model_dir} holds a finished model ({final}); pass --overwrite "
@@ -317,86 +393,6 @@ def undo_new_run(model_dir: str, made_dir: bool) -> None:
     remove_run(model_dir)
     if made_dir and not os.listdir(model_dir):
         os.rmdir(model_dir)
-
-
-class RunLock:
-    """The lock of a training run's folder: one run at a time in ``model_dir``.
-
-    Made before :func:`prepare_model_dir` and released when the run ends (:meth:`release`, or
-    as a context manager), it holds ``fcntl.flock`` on ``model_dir/.stnh_tf_run.lock``
-    (:data:`LOCK_FILE`; ``model_dir`` is created if missing). A second run in the same folder,
-    in this process or another, is refused at once, before it reads or deletes anything there;
-    the lock goes with the process, so a killed run leaves none held. The lock file is removed on
-    release if this lock created it (a stale one left by a killed run stays, and is reused).
-
-    Raises:
-      FileExistsError: another run holds the lock (the message names the folder).
-      NotADirectoryError: ``model_dir`` exists and is not a folder.
-      PermissionError: ``model_dir`` cannot be created or written.
-    """
-
-    def __init__(self, model_dir: str):
-        import fcntl
-
-        self.model_dir = os.fspath(model_dir)
-        self.path = os.path.join(self.model_dir, LOCK_FILE)
-        if os.path.exists(self.model_dir) and not os.path.isdir(self.model_dir):
-            raise NotADirectoryError(f"model_dir {self.model_dir} exists and is not a folder.")
-        self.made_dir = not os.path.exists(self.model_dir)
-        self._fd = None
-        try:
-            os.makedirs(self.model_dir, exist_ok=True)
-            for _ in range(10):  # retried only when the holder removed the file meanwhile
-                try:
-                    fd, self.created = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL,
-                                               0o644), True
-                except FileExistsError:
-                    try:
-                        fd, self.created = os.open(self.path, os.O_RDWR), False
-                    except FileNotFoundError:
-                        continue
-                try:
-                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                except BlockingIOError:
-                    os.close(fd)
-                    raise FileExistsError(
-                        f"another training run is using model_dir {self.model_dir} (it holds "
-                        f"{self.path}); wait for it to finish, or choose another "
-                        "--model_dir.") from None
-                if self._same_file(fd):
-                    self._fd = fd
-                    return
-                os.close(fd)  # locked a file its holder had just removed: try again
-        except PermissionError:
-            raise PermissionError(f"model_dir {self.model_dir} is not writable.") from None
-        raise FileExistsError(f"cannot lock model_dir {self.model_dir}: {self.path} keeps being "
-                              "replaced by another process.")
-
-    def _same_file(self, fd) -> bool:
-        try:
-            return os.stat(self.path).st_ino == os.fstat(fd).st_ino
-        except FileNotFoundError:
-            return False
-
-    def release(self) -> None:
-        """Unlock (idempotent); remove the lock file if this lock created it, and ``model_dir``
-        if this lock created it and nothing else is in it."""
-        if self._fd is None:
-            return
-        try:
-            if self.created and self._same_file(self._fd):
-                os.remove(self.path)
-        finally:
-            os.close(self._fd)  # releases the flock
-            self._fd = None
-        if self.made_dir and os.path.isdir(self.model_dir) and not os.listdir(self.model_dir):
-            os.rmdir(self.model_dir)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.release()
 
 
 def save_estimates(model_dir: str, split: str, key: str, h_prev: np.ndarray,

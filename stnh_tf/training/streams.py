@@ -3,7 +3,9 @@ generated from ``image_dir`` (streamed, or made once in memory, for stage k > 1 
 stages' predictions), and the validation pairs.
 
 Every training stream applies the run's label options (``label_fraction``, ``drop_unlabeled``,
-``unlabeled_image_dir``: :mod:`stnh_tf.data.labels`); the validation pairs are always labeled.
+``unlabeled_image_dir``: :mod:`stnh_tf.data.labels`) and mixes in the real pairs of
+``unlabeled_pairs_dir`` (:mod:`stnh_tf.data.unlabeled_pairs`); the validation pairs are always
+labeled.
 """
 
 from __future__ import annotations
@@ -55,11 +57,33 @@ def training_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0,
     (:func:`stnh_tf.data.tfrecords.load_split`; :mod:`stnh_tf.training.distribute`).
     """
     from stnh_tf.data import tfrecords as data
+    from stnh_tf.data import unlabeled_pairs
 
-    return data.load_split(cfg.data_dir, split, cfg.batch_size, shuffle=True, seed=cfg.seed,
-                           repeat=True, shuffle_buffer=cfg.shuffle_buffer, cycle_length=64,
-                           skip_batches=start_step, label_fraction=cfg.label_fraction,
-                           drop_unlabeled=cfg.drop_unlabeled, share=share)
+    pairs, rows = real_pairs(cfg, lambda: data.split_info(cfg.data_dir, split)["num_samples"])
+    ds = data.load_split(cfg.data_dir, split, cfg.batch_size - rows, shuffle=True, seed=cfg.seed,
+                         repeat=True, shuffle_buffer=cfg.shuffle_buffer, cycle_length=64,
+                         skip_batches=start_step, label_fraction=cfg.label_fraction,
+                         drop_unlabeled=cfg.drop_unlabeled, share=share)
+    if pairs is None:
+        return ds
+    return unlabeled_pairs.mixed_dataset(ds, pairs, rows, cfg.seed, start_step)
+
+
+def real_pairs(cfg: TrainConfig, others) -> tuple:
+    """``(pairs, rows)``: the :class:`~stnh_tf.data.unlabeled_pairs.UnlabeledPairs` of
+    ``cfg.unlabeled_pairs_dir`` and the rows of every batch they take
+    (:func:`~stnh_tf.data.unlabeled_pairs.rows_per_batch` beside ``others()`` pairs of the
+    run's own set); ``(None, 0)`` without that folder."""
+    from stnh_tf.data import unlabeled_pairs
+
+    if not cfg.unlabeled_pairs_dir:
+        return None, 0
+    pairs = unlabeled_pairs.UnlabeledPairs(cfg.unlabeled_pairs_dir)
+    count = others()
+    rows = unlabeled_pairs.rows_per_batch(cfg.batch_size, len(pairs), count)
+    _log.info("unlabeled pairs: %d real pairs (%d skipped) beside %d pairs: %d of every %d "
+              "rows", len(pairs), len(pairs.skipped), count, rows, cfg.batch_size)
+    return pairs, rows
 
 
 def label_options(cfg: TrainConfig) -> dict:
@@ -76,7 +100,8 @@ def label_options(cfg: TrainConfig) -> dict:
 
 def check_labels(cfg: TrainConfig) -> None:
     """The data checks of ``cfg``'s label options (part of the training loop's ``check_start``,
-    run before ``model_dir`` is touched): the folders of ``unlabeled_image_dir`` list images;
+    run before ``model_dir`` is touched): ``unlabeled_pairs_dir`` with options it can train with
+    and holding pairs; the folders of ``unlabeled_image_dir`` list images;
     with ``drop_unlabeled`` the labeled pairs fill at least one batch (generated pairs: counted
     from their indices; TFRecords: counted by reading every record's ``index``,
     :func:`stnh_tf.data.tfrecords.count_labeled`). Nothing to check (returns at once) for the
@@ -87,12 +112,27 @@ def check_labels(cfg: TrainConfig) -> None:
     """
     from stnh_tf.data import sources
 
+    if cfg.unlabeled_pairs_dir:
+        from stnh_tf.data import unlabeled_pairs
+
+        problems = [text for bad, text in (
+            (cfg.drop_unlabeled, "drop_unlabeled would leave out every pair of "
+                                 "unlabeled_pairs_dir; give one of them"),
+            (cfg.stage != 1, "unlabeled_pairs_dir trains stage 1 or the sequence model (a stage "
+                             "k > 1 trains on pairs re-made from the earlier stages' predictions, "
+                             "which real pairs without context cannot give)"),
+            (cfg.num_processes != 1, "unlabeled_pairs_dir trains on one process"),
+            (cfg.batch_size < 2, "unlabeled_pairs_dir shares every batch between its pairs and "
+                                 "the others: batch_size must be >= 2")) if bad]
+        if problems:
+            raise ValueError("; ".join(problems) + ".")
+        unlabeled_pairs.list_pairs(cfg.unlabeled_pairs_dir)  # a folder of pairs
     if cfg.label_fraction == 1.0 and not cfg.drop_unlabeled and not cfg.unlabeled_image_dir:
         return
     if cfg.image_dir:
         batches.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
                             samples_per_image=cfg.samples_per_image, seed=cfg.seed,
-                            cache_images=False, **label_options(cfg))
+                            cache_images=False, max_images=cfg.max_images, **label_options(cfg))
     elif cfg.drop_unlabeled:
         from stnh_tf.data import tfrecords as data
 
@@ -188,23 +228,38 @@ def estimates_key(arrays: dict, prev_stages) -> str:
 def generated_stream(cfg: TrainConfig, split: str = "train", start_step: int = 0):
     """The endless stream of pairs generated from ``cfg.image_dir`` (mapped onto the model's
     outputs), positioned at ``start_step`` (:class:`stnh_tf.data.pair_datasets.PairStream`, or with
-    ``in_memory`` :class:`stnh_tf.data.pair_datasets.ArrayStream` over :func:`stage_pairs`)."""
-    from stnh_tf.data import sources
+    ``in_memory`` :class:`stnh_tf.data.pair_datasets.ArrayStream` over :func:`stage_pairs`), with
+    ``cfg.unlabeled_pairs_dir``'s pairs mixed in (:func:`real_pairs`)."""
+    from stnh_tf.data import sources, unlabeled_pairs
 
     del split
+    pairs, rows = real_pairs(cfg, lambda: batches.PairBatches(
+        sources.split_folders(cfg.image_dir), 1, samples_per_image=cfg.samples_per_image,
+        seed=cfg.seed, cache_images=False, max_images=cfg.max_images,
+        **label_options(cfg)).num_samples)
+    mapper = model_kinds.targets_for(cfg)
+    inner_mapper = mapper if pairs is None else None
     if cfg.in_memory:
         if cfg.fresh_pairs:
             raise ValueError("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
-        pair_batches = batches.PairBatches(sources.split_folders(cfg.image_dir), cfg.batch_size,
+        pair_batches = batches.PairBatches(sources.split_folders(cfg.image_dir),
+                                           cfg.batch_size - rows,
                                            samples_per_image=cfg.samples_per_image, seed=cfg.seed,
-                                           photometric=cfg.photometric, **label_options(cfg))
-        return pair_datasets.ArrayStream(stage_pairs(cfg, pair_batches), pair_batches,
-                                         start_step=start_step, mapper=model_kinds.targets_for(cfg))
-    return pair_datasets.PairStream(sources.split_folders(cfg.image_dir), cfg.batch_size,
-                                    samples_per_image=cfg.samples_per_image, seed=cfg.seed,
-                                    start_step=start_step, fresh_pairs=cfg.fresh_pairs,
-                                    mapper=model_kinds.targets_for(cfg), workers=cfg.workers,
-                                    photometric=cfg.photometric, **label_options(cfg))
+                                           photometric=cfg.photometric,
+                                           max_images=cfg.max_images, **label_options(cfg))
+        stream = pair_datasets.ArrayStream(stage_pairs(cfg, pair_batches), pair_batches,
+                                           start_step=start_step, mapper=inner_mapper)
+    else:
+        stream = pair_datasets.PairStream(sources.split_folders(cfg.image_dir),
+                                          cfg.batch_size - rows,
+                                          samples_per_image=cfg.samples_per_image, seed=cfg.seed,
+                                          start_step=start_step, fresh_pairs=cfg.fresh_pairs,
+                                          mapper=inner_mapper, workers=cfg.workers,
+                                          photometric=cfg.photometric, max_images=cfg.max_images,
+                                          **label_options(cfg))
+    if pairs is None:
+        return stream
+    return unlabeled_pairs.mixed_stream(stream, pairs, rows, cfg.seed, start_step, mapper)
 
 
 def generated_validation(cfg: TrainConfig):

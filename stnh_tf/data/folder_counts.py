@@ -1,0 +1,122 @@
+"""What became of the files of a photograph folder: each skipped file counted by the kind of its
+reason (a link leading out of the folder, an unreadable, empty, corrupt or truncated file, ...),
+the non-image files ignored and the images left out by ``--max_images``, in one line a binary
+prints (:class:`FolderCounts`). NumPy / OpenCV only, as :mod:`stnh_tf.data.sources`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from stnh_tf.data import sources
+
+SKIP_KINDS = (
+    ("link outside the folder", sources.LINK_OUTSIDE),
+    ("unreadable folder", "unreadable directory"),
+    ("unreadable file", "unreadable file"),
+    ("empty file", "empty file"),
+    ("corrupt or truncated", "corrupt or truncated"),
+    ("not an image", "not a decodable image"),
+    ("unsupported image", "unsupported "),
+)
+"""``(kind, start of the reason)``: the kinds a skipped file is counted under (:func:`skip_kind`),
+from the reasons :mod:`stnh_tf.data.sources` gives (:class:`~stnh_tf.data.sources.ImageDecodeError`,
+:func:`~stnh_tf.data.sources.scan_image_folder`)."""
+
+
+def skip_kind(reason: str) -> str:
+    """The kind (:data:`SKIP_KINDS`) a skipped file's ``reason`` is counted under; ``"other"``
+    for a reason of no known kind.
+
+    >>> skip_kind("corrupt or truncated image: image file is truncated")
+    'corrupt or truncated'
+    """
+    for kind, start in SKIP_KINDS:
+        if str(reason).startswith(start):
+            return kind
+    return "other"
+
+
+@dataclasses.dataclass(frozen=True)
+class FolderCounts:
+    """What became of the files of a photograph folder: how many were used, skipped (by kind,
+    :func:`skip_kind`), ignored (not image files) and left out by ``max_images``. :meth:`line` is
+    the one line a binary prints; :meth:`of` counts them from a listing and the skip reasons.
+
+    >>> FolderCounts(used=3, skipped={"corrupt or truncated": 1}, ignored=2).line()
+    'photographs: 3 used; 1 skipped (1 corrupt or truncated); 2 non-image files ignored'
+    """
+
+    used: int
+    skipped: dict = dataclasses.field(default_factory=dict)  # kind -> count
+    ignored: int = 0
+    beyond_max_images: int = 0
+    max_images: int = 0
+
+    @classmethod
+    def of(cls, used: int, reasons, listing: "sources.FolderListing | None" = None,
+           max_images: int = 0) -> "FolderCounts":
+        """``used`` images, the skip ``reasons`` (every one: decoding, and ``listing``'s
+        ``unreadable`` when the caller lists them), the ``ignored`` and ``beyond_max_images``
+        counts of ``listing``."""
+        skipped = {}
+        for reason in reasons:
+            kind = skip_kind(reason)
+            skipped[kind] = skipped.get(kind, 0) + 1
+        return cls(int(used), skipped, listing.ignored if listing else 0,
+                   listing.beyond_max_images if listing else 0, int(max_images))
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def line(self, what: str = "photographs") -> str:
+        """One line: used, skipped by kind (with why links are not followed), ignored, left out
+        by ``--max_images``."""
+        parts = [f"{what}: {self.used} used"]
+        if self.skipped:
+            kinds = ", ".join(f"{n} {k}" for k, n in sorted(self.skipped.items(),
+                                                             key=lambda kv: (-kv[1], kv[0])))
+            parts.append(f"{sum(self.skipped.values())} skipped ({kinds})")
+        if self.ignored:
+            parts.append(f"{self.ignored} non-image files ignored")
+        if self.beyond_max_images:
+            parts.append(f"{self.beyond_max_images} left out by --max_images={self.max_images}")
+        if self.skipped.get("link outside the folder"):
+            parts.append(f"links outside the folder are {sources.LINK_OUTSIDE_WHY}")
+        return "; ".join(parts)
+
+
+def read_gray_folder(image_dir, max_images: int = 0) -> tuple:
+    """``(images, counts)``: uint8 ``[240, 320]`` gray images (``sources.load_gray_320x240``) of
+    the first ``max_images`` image files below ``image_dir`` (``sources.scan_image_folders``; 0:
+    all),
+    the unreadable ones skipped, and their :class:`FolderCounts` (skips counted by kind).
+
+    Raises:
+      SourceError: ``image_dir`` is not a folder, or no image of it could be read (the
+        message counts the reasons, naming the first skipped file).
+    """
+    listing = sources.scan_image_folders(image_dir, max_images)
+    images, skipped = [], list(listing.unreadable)
+    for path in listing.files:
+        try:
+            images.append(sources.load_gray_320x240(path))
+        except sources.ImageDecodeError as e:
+            skipped.append((path, str(e)))
+    counts = FolderCounts.of(len(images), [r for _, r in skipped], listing, max_images)
+    if not images:
+        raise sources.SourceError(no_photograph_message(image_dir, counts, skipped))
+    return images, counts
+
+
+def no_photograph_message(image_dir, counts: FolderCounts, skipped=()) -> str:
+    """The error of a photograph folder none of whose files could be used: its counts, and the
+    first skipped file with its reason.
+
+    >>> print(no_photograph_message("photos", FolderCounts(0, {"empty file": 1}),
+    ...                             [("photos/a.png", "empty file (0 bytes)")]))
+    no readable photograph in photos: photographs: 0 used; 1 skipped (1 empty file); first: ...
+    """
+    first = (f"; first: {skipped[0][0]}: {skipped[0][1]}" if skipped
+             else f"; image files end in {', '.join(sources.IMAGE_EXTENSIONS)}")
+    return f"no readable photograph in {image_dir}: {counts.line()}{first}"

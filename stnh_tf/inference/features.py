@@ -1,0 +1,152 @@
+"""The feature-based start of ``estimate_images`` (issue 64; a deviation from the paper, off by
+default: ``EstimateOptions(features="fallback")`` or ``"always"``).
+
+The network was trained on corners moved by up to 32 px in the 128 x 128 patch; the coarse pass
+(:mod:`stnh_tf.inference.coarse`) reaches rotations up to 45 degrees and zooms 0.7-1.4. For wider
+baselines (zoom 0.3-3, any rotation, strong viewpoint changes) the start comes from classical
+matching: OpenCV SIFT keypoints of the two 320 x 240 work images, Lowe's ratio test and
+``cv2.findHomography`` with ``cv2.USAC_MAGSAC`` (:func:`feature_start`, the SIFT baseline's
+settings). image_a is
+warped by that start ``G`` (:func:`stnh_tf.inference.coarse.warp_context`), the estimator's
+pipeline (the network's stages, the search and refinement its options ask for) estimates the
+rest ``H`` from it, and the better of ``G @ H`` and ``G`` by the whole work images' alignment
+(:func:`stnh_tf.inference.coarse.image_ncc`) replaces the network's estimate where it aligns the
+work images better (:func:`feature_pass`). The whole-image ECC of ``refine="images"`` follows
+as for any estimate.
+
+The flag stays the alignment's: an estimate made from the feature start has
+``Estimate.feature_start`` set and no corner rule (the motion may be anything), but is flagged
+where its alignment NCC is below ``thresholds.min_alignment_ncc`` or ECC moves it by more than
+``thresholds.max_verify_move`` (:func:`stnh_tf.inference.coarse.flag`).
+
+Frames: ``G`` and ``H`` are pixel ``H_ba`` (``a_from_b``) in the patch frame
+(:mod:`stnh_tf.geometry`), the patch's top-left corner at ``origin`` in the work images;
+:func:`feature_start` returns the work images' frame. NumPy and OpenCV only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import cv2
+import numpy as np
+
+from stnh_tf import geometry, pixels
+from stnh_tf.data import camera_motions
+from stnh_tf.inference import checks, coarse
+from stnh_tf.inference import search as search_lib
+from stnh_tf.inference.image_input import central_patch
+from stnh_tf.inference.options import EstimateOptions
+
+SIFT = {"nOctaveLayers": 3, "contrastThreshold": 0.01, "edgeThreshold": 10.0, "sigma": 1.6}
+"""``cv2.SIFT_create``'s arguments: those of the SIFT baseline
+(:data:`stnh_tf.evaluation.baselines.SIFT_SETTINGS`, tuned on training photographs; the
+inference layer does not import the evaluation layer)."""
+
+RATIO = 0.8
+"""Lowe's ratio test: a match is kept where its distance is below ``RATIO`` times the second's."""
+
+MAGSAC = {"ransacReprojThreshold": 3.0, "maxIters": 2000, "confidence": 0.995}
+"""``cv2.findHomography``'s arguments with ``cv2.USAC_MAGSAC``."""
+
+MIN_INLIERS = 6
+"""Fewer inliers: no start."""
+
+
+@functools.lru_cache(maxsize=1)
+def _sift():
+    return cv2.SIFT_create(**SIFT)
+
+
+def feature_start(work_a, work_b):
+    """``H_ba`` ``[3, 3]`` (work_b pixel -> work_a pixel, ``[2, 2] = 1``) of SIFT matches of two
+    gray work images (float in [0, 1] or uint8): keypoints and descriptors (:data:`SIFT`),
+    brute-force L2 matches of work_b's to work_a's passing Lowe's ratio test (:data:`RATIO`),
+    ``cv2.findHomography`` with ``cv2.USAC_MAGSAC`` (:data:`MAGSAC`); ``None`` where there are
+    fewer than :data:`MIN_INLIERS` inliers, or the result is not finite or maps a corner of
+    work_b behind camera a.
+
+    >>> a = cv2.GaussianBlur(np.random.default_rng(0).random((240, 320)), (0, 0), 1.5)
+    >>> a = (a - a.min()) / np.ptp(a)
+    >>> h = geometry.translation(7.0, -5.0)
+    >>> b = cv2.warpPerspective(a, h, (320, 240), flags=cv2.WARP_INVERSE_MAP)
+    >>> bool(np.abs(feature_start(a, b) - h).max() < 0.05)
+    True
+    """
+    to_u8 = lambda x: (np.asarray(x) if np.asarray(x).dtype == np.uint8  # noqa: E731
+                       else pixels.to_uint8(np.asarray(x, np.float32)))
+    (kp_a, desc_a), (kp_b, desc_b) = (_sift().detectAndCompute(to_u8(x), None)
+                                      for x in (work_a, work_b))
+    if desc_a is None or desc_b is None or len(desc_a) < 2 or len(desc_b) < 2:
+        return None
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc_b, desc_a, k=2)  # query b, train a
+    good = [m[0] for m in knn if len(m) == 2 and m[0].distance < RATIO * m[1].distance]
+    if len(good) < MIN_INLIERS:
+        return None
+    pts_b = np.float32([kp_b[m.queryIdx].pt for m in good]).reshape(-1, 1, 2)
+    pts_a = np.float32([kp_a[m.trainIdx].pt for m in good]).reshape(-1, 1, 2)
+    try:
+        h, mask = cv2.findHomography(pts_b, pts_a, cv2.USAC_MAGSAC, **MAGSAC)
+    except cv2.error:
+        return None
+    if h is None or mask is None or int(mask.sum()) < MIN_INLIERS or not np.isfinite(h).all() \
+            or abs(h[2, 2]) < 1e-12:
+        return None
+    h = geometry.scale_to_unit(h)
+    return h if camera_motions.in_front(h, np.shape(work_b)[::-1]) else None
+
+
+def wanted(first, options: EstimateOptions) -> bool:
+    """Whether :func:`feature_pass` tries the feature start for ``first`` (the network's
+    ``Estimate`` of one pair): ``features="always"``, or ``"fallback"`` where the coarse pass's
+    trigger holds (:func:`stnh_tf.inference.coarse.needs_pass`: not flat and poorly aligned,
+    beyond the trained range, or a stage skipped)."""
+    if options.features == "none" or first.flat[0]:
+        return False
+    return options.features == "always" or coarse.needs_pass(first, options)
+
+
+def feature_pass(run, work_a, work_b, first, options: EstimateOptions, origin):
+    """The estimate of one pair with ``options.features``: ``first`` (the pipeline's
+    ``Estimate`` from the identity) where the feature start is not :func:`wanted` or fails, or
+    where neither ``G @ H`` (``H``: ``run(patch_a, patch_b, contexts, options)``, the pipeline on
+    the central patches of work_a warped by ``G`` and of work_b) nor ``G`` aligns the work images
+    better (:func:`stnh_tf.inference.coarse.image_ncc`) than ``first``; else the better of the
+    two: homography in the patch frame (``[2, 2] = 1``), ``alignment_ncc`` measured in work_a,
+    ``feature_start`` set, the other fields those of the rest ``H``, flagged by
+    :func:`stnh_tf.inference.coarse.flag` (no corner rule).
+
+    Args:
+      run: the estimator's pipeline on ``[1, S, S, 1]`` patches with their contexts.
+      work_a, work_b: the ``[240, 320]`` float work images.
+      first: an ``Estimate`` with B = 1 (patch frame).
+      options: the options of ``run``.
+      origin: ``(x0, y0)`` of the central patch in the work images.
+    """
+    if not wanted(first, options):
+        return first
+    h_image = feature_start(work_a, work_b)
+    if h_image is None:
+        return first
+    g = geometry.image_to_patch(h_image, *origin)
+    context = coarse.warp_context(work_a, g, origin)
+    est = run(central_patch(context), central_patch(work_b), [context], options)
+    t = options.thresholds
+    score = lambda h: coarse.image_ncc(work_a, work_b, h, origin, t.min_overlap)  # noqa: E731
+    refined = geometry.scale_to_unit(g @ est.homography[0])
+    total = max((refined, g), key=score)  # the network's rest first on a tie
+    if not score(total) > score(first.homography[0]):
+        return first
+    patch_b = central_patch(work_b)[0, ..., 0]
+    ncc = checks.alignment_ncc(work_a, patch_b, total, origin, t.min_overlap)
+    move = est.verify_move_px
+    if total is not refined:  # G itself: the check of verify="ecc" from it
+        move = np.array([np.nan])
+        if options.verify == "ecc":
+            optimum = search_lib.ecc_refine(work_a, patch_b, total, origin, t)
+            move[0] = (np.inf if optimum is None else checks.frame_corner_distance(
+                optimum, total, np.shape(work_a), origin))
+    featured = dataclasses.replace(est, homography=total[None], alignment_ncc=np.array([ncc]),
+                                   feature_start=np.array([True]), verify_move_px=move)
+    return coarse.flag(featured, options)

@@ -1,0 +1,75 @@
+"""What produced a result: the code's commit, the machine and the library versions, recorded
+under ``"machine"`` in the JSON of every binary that writes results (the benchmarks,
+``experiments.evaluate``, ``experiments.reproduce``'s ``results.json``, the model card of
+``experiments.ship_weights``, the ledger rows of ``experiments.paper_schedule``).
+
+NumPy core: imports nothing heavy at module level, and :func:`machine_info` reports TensorFlow,
+JAX and Keras only where the caller has imported them (call it after the work, so that they are).
+
+    >>> info = machine_info()
+    >>> sorted(k for k in ("git_commit", "cpu", "python", "numpy", "stnh_tf") if k in info)
+    ['cpu', 'git_commit', 'numpy', 'python', 'stnh_tf']
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+import sys
+
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the checkout, if any
+
+
+def git_commit() -> str | None:
+    """Short commit of the checkout the code runs from (``+dirty`` if tracked files are modified),
+    or ``None`` outside a git checkout (an installed package) or without git."""
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=_ROOT, check=True,
+                                capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=_ROOT, check=True, capture_output=True, text=True).stdout.strip()
+        return commit + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def machine_info() -> dict:
+    """The commit, the machine and the library versions, as a JSON object.
+
+    Keys: ``git_commit`` (:func:`git_commit`), ``platform``, ``cpu`` (``/proc/cpuinfo``'s model
+    name), ``cpu_count``, ``loadavg_at_start`` (where the OS has one), ``command``, and the
+    versions ``python``, ``numpy``, ``opencv``, ``stnh_tf``; where the caller imported them,
+    ``tensorflow`` and ``gpus``, ``jax`` and ``jax_devices``, ``keras`` and ``keras_backend``.
+    """
+    model = platform.processor()
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")),
+                         model)
+    except OSError:
+        pass
+    import cv2
+    import numpy as np
+
+    from stnh_tf import __version__
+
+    info = {"platform": platform.platform(), "cpu": model or None, "cpu_count": os.cpu_count(),
+            "python": platform.python_version(), "numpy": np.__version__, "opencv": cv2.__version__,
+            "stnh_tf": __version__, "git_commit": git_commit(),
+            "command": " ".join([os.path.basename(sys.executable)] + sys.argv)}
+    if hasattr(os, "getloadavg"):
+        info["loadavg_at_start"] = [round(x, 2) for x in os.getloadavg()]
+    tf = sys.modules.get("tensorflow")  # (None also where an import of it was blocked)
+    if tf is not None:
+        info["tensorflow"] = tf.__version__
+        info["gpus"] = [d.name for d in tf.config.list_physical_devices("GPU")]
+    if "jax" in sys.modules:
+        jax = sys.modules["jax"]
+        info["jax"] = jax.__version__
+        info["jax_devices"] = [str(d.device_kind) for d in jax.devices()]
+    if "keras" in sys.modules:
+        keras = sys.modules["keras"]
+        info["keras"] = keras.__version__
+        info["keras_backend"] = keras.backend.backend()
+    return info

@@ -1,0 +1,105 @@
+"""The feature-based start of ``estimate_images`` (``EstimateOptions(features=...)``, issue 64,
+:mod:`stnh_tf.inference.features`), with a stage model that outputs the identity whatever its
+input (a network that cannot estimate anything): what the estimator finds beyond the identity is
+then the feature start, refined by ECC. References: the homography the pair was made with
+(``cv2.warpPerspective``) and corner errors from ``cv2.perspectiveTransform``."""
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+import skimage.data
+
+from conftest import constant_stage
+from stnh_tf import geometry
+from stnh_tf.inference import features, image_input
+from stnh_tf.inference.estimator import HomographyEstimator
+from stnh_tf.inference.options import EstimateOptions
+
+W, H = image_input.WORK_SIZE
+
+
+@pytest.fixture(scope="module")
+def estimator():
+    return HomographyEstimator([constant_stage(np.eye(3), "identity")])
+
+
+def _wide_motion(angle_deg, scale, tilt=0.0):
+    """Image-frame a_from_b: rotation by angle_deg and scaling by ``scale`` about the image
+    centre (b sees a zoomed by 1 / scale), with a perspective term ``tilt``."""
+    c = geometry.translation((W - 1) / 2, (H - 1) / 2)
+    m = np.vstack([cv2.getRotationMatrix2D((0.0, 0.0), angle_deg, scale), [0.0, 0.0, 1.0]])
+    m[2, 0] = tilt
+    return c @ m @ np.linalg.inv(c)
+
+
+def _pair(h_ba):
+    """(image_a, image_b) 320 x 240 gray uint8 from astronaut(): b(q) = a(h_ba q) (OpenCV warp of
+    the 512 x 512 photograph, so b sees a's surroundings)."""
+    big = cv2.cvtColor(skimage.data.astronaut(), cv2.COLOR_RGB2GRAY)
+    o = geometry.translation((512 - W) / 2, (512 - H) / 2)
+    flags = cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR
+    return (cv2.warpPerspective(big, o, (W, H), flags=flags),
+            cv2.warpPerspective(big, o @ h_ba, (W, H), flags=flags))
+
+
+def _corner_error(h, h_true):
+    """Mean distance (px) at the 320 x 240 image's corners (cv2.perspectiveTransform)."""
+    corners = np.array([[[0, 0], [W, 0], [W, H], [0, H]]], np.float64)
+    return float(np.linalg.norm(cv2.perspectiveTransform(corners, h)[0]
+                                - cv2.perspectiveTransform(corners, h_true)[0], axis=1).mean())
+
+
+# photographs() without the coarse pass (slow with a network that cannot estimate the rest)
+WHOLE = EstimateOptions(refine="images", verify="ecc")
+
+
+@pytest.mark.parametrize("motion", [(-100.0, 2.2), (60.0, 0.45), (-170.0, 1.6, 4e-4)])
+def test_feature_start_recovers_wide_motions_and_the_flag_stays_honest(estimator, motion):
+    """Rotations of 60-170 degrees with zooms 0.45-2.2: without the feature start the estimate is
+    far off and flagged; with features="fallback" (and "always") it is within 0.5 px of the true
+    homography at the image corners, made from the feature start, not flagged, and its
+    network_move_px is its distance from the network's own estimate (the identity here)."""
+    h_true = _wide_motion(*motion)
+    a, b = _pair(h_true)
+    plain = estimator.estimate_images_with_info(a, b, WHOLE)
+    assert _corner_error(plain.homography[0], h_true) > 50 and plain.implausible[0]
+    assert not plain.feature_start[0]
+    for mode in ("fallback", "always"):
+        est = estimator.estimate_images_with_info(a, b, dataclasses.replace(WHOLE,
+                                                                            features=mode))
+        assert _corner_error(est.homography[0], h_true) < 0.5, mode
+        assert est.feature_start[0] and not est.implausible[0], mode
+        assert est.network_move_px[0] == pytest.approx(
+            _corner_error(est.homography[0], est.network_homography[0]), rel=1e-6)
+
+
+def test_feature_start_that_cannot_be_confirmed_is_flagged(estimator):
+    """Unrelated photographs: whatever the feature start gives is not kept as a plausible
+    estimate (flagged, or the network's own kept); a flat image_b gets no feature start."""
+    a = _pair(np.eye(3))[0]
+    other = cv2.resize(skimage.data.camera(), (W, H), interpolation=cv2.INTER_AREA)
+    est = estimator.estimate_images_with_info(a, other,
+                                              dataclasses.replace(WHOLE, features="always"))
+    assert est.implausible[0]
+    flat = np.full((H, W), 128, np.uint8)
+    est = estimator.estimate_images_with_info(a, flat, EstimateOptions(features="always"))
+    assert est.flat[0] and est.implausible[0] and not est.feature_start[0]
+
+
+def test_feature_start_alone_matches_opencv_warp():
+    """features.feature_start on an OpenCV-warped pair (rotation 120 degrees, zoom 1.8) returns
+    the homography it was warped with, to 1 px at the image corners; on a flat image, None."""
+    h_true = _wide_motion(120.0, 1.8)
+    a, b = _pair(h_true)
+    assert _corner_error(features.feature_start(a, b), h_true) < 1.0
+    assert features.feature_start(a, np.full_like(b, 90)) is None
+
+
+def test_the_papers_path_has_no_feature_start():
+    """network_only() and EstimateOptions() leave it off; an unknown mode is a clear error."""
+    assert EstimateOptions.network_only().features == "none"
+    assert EstimateOptions().features == "none"
+    with pytest.raises(ValueError, match="features must be one of"):
+        EstimateOptions(features="orb")

@@ -1,0 +1,92 @@
+"""stnh_tf.provenance (issue 62, item 7): the commit, machine and library versions that the result
+JSON of ship_weights, evaluate, reproduce and paper_schedule record, checked against git, the
+packages' own metadata and /proc/cpuinfo; and the model card of ship_weights records them."""
+
+import importlib.metadata
+import json
+import os
+import platform
+import re
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from stnh_tf import provenance
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+IN_GIT = os.path.isdir(os.path.join(ROOT, ".git"))
+
+
+def _git(*args):
+    return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True)
+
+
+def test_machine_info_names_the_commit_the_cpu_and_the_versions():
+    info = provenance.machine_info()
+    assert info["python"] == platform.python_version()
+    assert info["numpy"] == np.__version__ and info["opencv"] == cv2.__version__
+    assert info["stnh_tf"] == importlib.metadata.version("stnh-tf")
+    assert info["cpu_count"] == os.cpu_count()
+    if os.path.exists("/proc/cpuinfo"):
+        with open("/proc/cpuinfo") as f:
+            names = re.findall(r"^model name\s*:\s*(.*)$", f.read(), re.M)
+        if names:
+            assert info["cpu"] == names[0].strip()
+    for name in ("keras", "tensorflow", "jax"):  # reported only where the caller imported them
+        assert (name in info) == (name in sys.modules)
+        if name in info:
+            assert info[name] == sys.modules[name].__version__
+    json.dumps(info)  # a JSON object as it is
+    if not IN_GIT:
+        assert info["git_commit"] is None
+        return
+    head = _git("log", "-1", "--format=%H").stdout.strip()
+    commit = info["git_commit"]
+    assert len(commit.split("+")[0]) >= 7 and head.startswith(commit.split("+")[0])
+    # tracked files changed (git diff exits 1) <=> "+dirty"
+    assert commit.endswith("+dirty") == (_git("diff", "--quiet", "HEAD").returncode == 1)
+
+
+def test_the_model_card_records_the_run_that_wrote_it(tmp_path, monkeypatch):
+    """ship_weights (here --refresh_check, whose card write every ship_weights command shares)
+    records machine_info under ``machine``, on disk as returned; the rest of the card is kept."""
+    from stnh_tf.inference import shipped_weights
+
+    monkeypatch.setattr(shipped_weights, "bundled_check", lambda paths: {"count": len(paths)})
+    (tmp_path / "model_card.json").write_text(json.dumps({"stages": [], "note": "kept"}))
+    card = shipped_weights.refresh_check(str(tmp_path))
+    assert card == json.loads((tmp_path / "model_card.json").read_text())
+    assert card["note"] == "kept" and card["bundled_check"] == {"count": 0}
+    expected = provenance.machine_info()
+    for key in ("git_commit", "cpu", "python", "numpy", "stnh_tf"):
+        assert card["machine"][key] == expected[key]
+
+
+def test_current_results_show_the_commit_and_machine_a_json_records():
+    """BENCHMARKS' "Current results" shows the commit and machine of each JSON that records
+    machine_info, "not recorded" in the rows whose JSON does not."""
+    import copy
+
+    from stnh_tf.paper import current_results as cr
+
+    sources = cr.load_sources(cr.default_root())
+    before = cr.benchmarks_rows(sources)
+    sources = copy.deepcopy(sources)
+    sources["card"]["machine"] = {"git_commit": "abc1234", "cpu": "Some CPU", "cpu_count": 2,
+                                  "keras_backend": "jax", "jax_devices": ["cpu"]}
+    sources["results"]["machine"] = {"git_commit": "def5678+dirty", "cpu": "Other CPU",
+                                     "cpu_count": 16, "gpus": ["/physical_device:GPU:0"],
+                                     "keras_backend": "tensorflow"}
+    after = cr.benchmarks_rows(sources)
+    changed = {b[2]: (a[4:], b[4:]) for a, b in zip(before, after) if a != b}
+    assert changed == {
+        "`python -m experiments.ship_weights --refresh_check`": (
+            (cr.NOT_RECORDED, cr.NOT_RECORDED), ("abc1234", "Some CPU, 2 cores (jax)")),
+        "`python -m experiments.reproduce --budget=cpu ...` ([how](docs/reproduce.md))": (
+            (cr.NOT_RECORDED, cr.NOT_RECORDED),
+            ("def5678+dirty", "Other CPU, 16 cores; /physical_device:GPU:0 (tensorflow)"))}
+    # (Fig. 4 and Table 2 both read results.json: both rows changed, Table 1's did not)
+    assert sum(a != b for a, b in zip(before, after)) == 3
