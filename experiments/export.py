@@ -3,9 +3,13 @@ r"""Export a trained model as a TensorFlow SavedModel and check the export.
   python -m experiments.export --model=runs/stage1 --output=exports/stage1 [--overwrite]
 
 Signature ``serving_default``: ``patch_a``, ``patch_b`` uint8 ``[B, 128, 128, 1]`` ->
-``homography`` float32 ``[B, 3, 3]`` (pixel ``H_ba``: patch_b -> patch_a). After writing, the
-SavedModel is reloaded and run on ``--check_pairs`` photograph patch pairs; the JSON summary
-(printed on stdout) gives the max abs difference from the Keras model, and the exit status is
+``homography`` float32 ``[B, 3, 3]`` (pixel ``H_ba``: patch_b -> patch_a). Beside
+``saved_model.pb`` it writes ``README.md`` and ``signature.json``: the signature, the output's
+frame, how to cut patches from photographs (a snippet) and the model card's numbers
+(``stnh_tf.inference.export_contract``; docs/estimate.md, "The SavedModel export"). After
+writing, the SavedModel is reloaded and run on ``--check_pairs`` photograph patch pairs; the JSON
+summary (printed on stdout) gives the max abs difference from the same computation on the Keras
+model, one line on stderr says what was compared and whether it passed, and the exit status is
 nonzero if it exceeds ``--tolerance``. The export holds ``--output``'s lock from its checks
 through the verification: a second export to the same folder is refused at once, and the hidden
 staging folders a killed export left beside it are removed. Library code:
@@ -46,16 +50,13 @@ def main(argv):
                                           tolerance=FLAGS.tolerance)
     report.update(model=estimator.source, output=FLAGS.output)
     print(json.dumps(report, indent=2))
-    print(f"max abs difference, reloaded SavedModel vs Keras model: {report['max_abs_diff']:.3g} "
-          f"(vs HomographyEstimator.estimate: {report['max_abs_diff_estimate']:.3g}; tolerance "
-          f"{FLAGS.tolerance:.3g})", file=sys.stderr)
+    for path in report["kept_user_files"]:
+        print(f"export: warning: kept your {path} (not written by an export); the export's own "
+              "is not written there", file=sys.stderr)
+    print(f"export: {export.verification_line(report)}", file=sys.stderr)
     if not report["ok"]:
-        raise SystemExit(f"export: the reloaded SavedModel differs from the Keras model by "
-                         f"{report['max_abs_diff']:.3g} (vs estimate: "
-                         f"{report['max_abs_diff_estimate']:.3g}); "
-                         f"tolerance {FLAGS.tolerance:.3g}. "
-                         f"It is left at {FLAGS.output} for inspection; "
-                         f"re-export with --overwrite.")
+        raise SystemExit(f"export: the check failed (above). The SavedModel is left at "
+                         f"{FLAGS.output} for inspection; re-export with --overwrite.")
 
 
 if __name__ == "__main__":

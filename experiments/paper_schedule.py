@@ -7,7 +7,8 @@ otherwise (docs/gpu.md, "The paper's schedule in chunks").
 
 Each call resumes stage ``--stage`` in ``--runs_dir/stage<k>`` from the newest checkpoint (the
 folder's own, or the one committed in ``paper_schedule/resume/stage<k>/``), trains until
-``--time_limit_s`` (0: to the end), and commits the checkpoint back there; a finished stage is kept
+``--time_limit_s`` (0: to the end; it stops within one step of the limit, or on SIGTERM, and saves
+that step's checkpoint), and commits the checkpoint back there; a finished stage is kept
 as ``paper_schedule/stage<k>.keras`` (and is then refused: it is never trained again, nor its model
 replaced). Nothing is copied into the run folder before its lock and its configuration are checked
 (:func:`stnh_tf.training.chunks.sync_in`). Each chunk adds a row to ``paper_schedule/ledger.json``
@@ -23,7 +24,7 @@ import os
 
 from absl import app, flags, logging
 
-from experiments import common
+from experiments import common, flags_common
 from stnh_tf.training import chunks
 from stnh_tf.training.config import TrainConfig
 
@@ -43,8 +44,9 @@ flags.DEFINE_list("val_image_dir", [os.path.join(SHARED, "coco_mini", "test")],
                   "Validation photographs.")
 flags.DEFINE_string("runs_dir", os.path.expanduser("~/stnh-runs/paper_schedule"),
                     "Where the run folders are (outside the repository).")
-flags.DEFINE_float("time_limit_s", 0.0, "Stop at the last checkpoint before this many seconds "
-                   "(0: train to the end).")
+flags.DEFINE_float("time_limit_s", 0.0, "Stop within one step of this many seconds, saving a "
+                   "checkpoint of that step, which is committed back (0: train to the end).")
+flags.register_validator("time_limit_s", flags_common.check_time_limit)
 flags.DEFINE_integer("workers", max((os.cpu_count() or 1) - 2, 1), "Pair-generator processes.")
 flags.DEFINE_integer("steps_per_execution", 1, "Training steps per compiled call (the same "
                      "updates; fewer waits for the accelerator: docs/gpu.md). Divides 500.")
@@ -54,7 +56,7 @@ FLAGS = flags.FLAGS
 
 def main(argv):
     del argv
-    from stnh_tf.evaluation.benchmarks import git_commit, machine_info
+    from stnh_tf.provenance import git_commit, machine_info
 
     stage = FLAGS.stage
     cfg = TrainConfig(**SCHEDULE, stage=stage, image_dir=",".join(FLAGS.image_dir),

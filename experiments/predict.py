@@ -19,8 +19,9 @@ to ``--output_dir`` (default: the current directory) ``<a>__<b>_overlay.png`` an
 ``<a>__<b>_homography.json`` (``<a>__<b>-2_...`` and so on when the folder holds the outputs of
 another pair of images with the same base names; a re-run of the same pair replaces its own).
 The PNG has two panels: image_a with the quadrilateral where image_b's border lands (green), and
-image_b (green channel) over image_a warped onto image_b by the estimate (magenta): aligned
-regions look gray. ``--model`` takes what
+image_b (green channel) over image_a warped onto image_b by the estimate (magenta), image_a's
+gray levels matched to image_b's over their overlap: aligned regions look gray, also across an
+exposure change; the captions wrap to fit their panels. ``--model`` takes what
 ``HomographyEstimator.load`` takes (``.keras`` file, run directory, hierarchy manifest); without
 it the shipped default weights are used. Resizing rule: see ``stnh_tf.inference.image_input``.
 The files are read as ``make_dataset`` reads them (``stnh_tf.inference.image_files``): a

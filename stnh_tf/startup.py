@@ -16,7 +16,9 @@ By default it
 * while ``tensorflow`` is first imported, drops the C++ lines logged before TensorFlow sets up its
   logging, which ``TF_CPP_MIN_LOG_LEVEL`` does not reach (absl's pre-init notice, and lines below
   that level: the oneDNN and CUDA-driver notices); any other output of the import passes through;
-* drops the retracing warning of the ``tensorflow`` Python logger and JAX's INFO lines about
+* drops the retracing warning of the ``tensorflow`` Python logger, the INFO lines TensorFlow's
+  Python modules log through it or absl's logger (:class:`TensorFlowInfoFilter`: the SavedModel
+  writer's "Assets written to ...", "Writing fingerprint ...") and JAX's INFO lines about
   backends it could not start.
 
 To see all of it: ``STNH_VERBOSE=1`` in the environment (nothing is changed), or absl's
@@ -109,6 +111,18 @@ class RetracingFilter(logging.Filter):
         return RETRACING_MESSAGE not in record.getMessage()
 
 
+class TensorFlowInfoFilter(RetracingFilter):
+    """:class:`RetracingFilter`, and drops records below WARNING logged from TensorFlow's own
+    Python modules (a ``tensorflow`` folder in the caller's path), which log through absl's
+    logger as well as ``tensorflow``; the binaries' own absl INFO lines stay."""
+
+    _PART = os.sep + "tensorflow" + os.sep
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return super().filter(record) and (record.levelno >= logging.WARNING
+                                           or self._PART not in record.pathname)
+
+
 def _min_log_level(environ: Mapping[str, str]) -> int:
     try:
         return int(environ.get("TF_CPP_MIN_LOG_LEVEL", "0"))
@@ -187,8 +201,11 @@ def quiet_startup() -> StartupSettings:
         sys.meta_path.insert(0, _QuietTensorFlowImport())
     if settings.python_filters:
         tf_logger = logging.getLogger("tensorflow")
-        if not any(isinstance(f, RetracingFilter) for f in tf_logger.filters):
-            tf_logger.addFilter(RetracingFilter())
+        from absl import logging as absl_logging  # its own logger class: import it first
+
+        for logger in (tf_logger, absl_logging.get_absl_logger()):
+            if not any(isinstance(f, RetracingFilter) for f in logger.filters):
+                logger.addFilter(TensorFlowInfoFilter())
         for name, level in QUIET_LOGGERS.items():
             logging.getLogger(name).setLevel(level)
     return settings

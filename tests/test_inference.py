@@ -960,7 +960,7 @@ def test_export_binary_reports_agreement(exported):
     _, report, proc = exported
     assert report["ok"] is True and report["kind"] == "single" and report["pairs"] == 3
     assert report["max_abs_diff"] <= 1e-3 and report["max_abs_diff_estimate"] <= 1e-3
-    assert "max abs difference" in proc.stderr
+    assert "export: export check passed" in proc.stderr  # issue 62: the wording
 
 
 def test_saved_model_matches_keras_model(exported, saved, pairs):
@@ -1403,3 +1403,31 @@ def test_estimate_says_how_far_the_result_is_from_the_networks_own(pairs):
     assert res.network_move_px[0] == pytest.approx(
         _cv2_corner_distance(res.homography[0], res.network_homography[0], 320, 240), rel=1e-6)
     assert res.network_move_px[0] == pytest.approx(8.0, abs=0.5)
+
+
+# --------------------------------------------------------------------------------------------
+# Issue 62, item 3: the export binary's documents, its check line and its quiet log
+# --------------------------------------------------------------------------------------------
+def test_export_binary_writes_its_documents_and_one_plain_check_line(exported, saved):
+    """The export binary (the module's export of a single-stage model without a model card)
+    writes README.md and signature.json beside saved_model.pb, says in one line on stderr what
+    it compared and that the check passed, and prints none of TensorFlow's INFO lines (the
+    SavedModel writer's "Assets written to ..." in absl's format, shown before the fix)."""
+    import re
+
+    path, report, proc = exported
+    assert sorted(report["documents"]) == [str(path / "README.md"), str(path / "signature.json")]
+    assert report["kept_user_files"] == []
+    document = json.loads((path / "signature.json").read_text())
+    assert document["model"] == {"source": str(saved["root"] / "single.keras"), "kind": "single",
+                                 "num_stages": 1}
+    assert document["model_card"] is None
+    assert "No model card" in (path / "README.md").read_text()
+    lines = [line for line in proc.stderr.splitlines() if "export check" in line]
+    assert len(lines) == 1 and lines[0].startswith("export: export check passed: ")
+    assert f"max |dH| {report['max_abs_diff']:.2g} <= tolerance 0.001: ok." in lines[0]
+    # INFO lines in absl's format (_run sets TF_CPP_MIN_LOG_LEVEL=2: C++ errors such as cuInit's
+    # may show; the Python INFO lines did, whatever that level)
+    assert re.findall(r"^I\d{4} \d\d:\d\d:\d+\.\d+ +\d+ \S+:\d+\]", proc.stderr,
+                      re.MULTILINE) == [], proc.stderr[-3000:]
+

@@ -8,6 +8,12 @@ The SavedModel has one serving signature (``serving_default``, also reachable as
 * output ``homography``: ``float32`` ``[B, 3, 3]`` pixel ``H_ba`` (maps patch_b pixel coordinates
   to patch_a pixel coordinates, ``[2, 2] = 1``; see :mod:`stnh_tf.geometry`).
 
+Beside ``saved_model.pb`` the export writes ``signature.json`` and ``README.md``
+(:mod:`stnh_tf.inference.export_contract`): the signature, the output's frame, how to cut patches
+from photographs (with a runnable snippet) and the model card's numbers. On ``overwrite`` an
+earlier export's copies are replaced; files of those names that no export wrote are kept (and
+the export's own not written; a warning says so).
+
 It is self-contained TensorFlow (no stnh_tf or OpenCV needed to serve it)::
 
     fn = tf.saved_model.load(path).signatures["serving_default"]
@@ -52,9 +58,14 @@ import re
 import shutil
 import tempfile
 
+import logging
+
 import numpy as np
 
 from stnh_tf import geometry, paths
+from stnh_tf.inference import export_contract
+
+_log = logging.getLogger(__name__)
 
 SIGNATURE = "serving_default"
 OUTPUT = "homography"
@@ -210,22 +221,30 @@ def export_saved_model(estimator, output_dir, overwrite: bool = False) -> str:
     naming the path and the cause.
     """
     with output_lock(output_dir, overwrite):
-        return _write_export(estimator, os.fspath(output_dir))
+        _write_export(estimator, os.fspath(output_dir))
+        return os.fspath(output_dir)
 
 
 def export_and_verify(estimator, output_dir, overwrite: bool = False, check_pairs: int = 8,
                       tolerance: float = 1e-3) -> dict:
     """:func:`export_saved_model`, then :func:`verify_export` on :func:`verification_pairs`
     (``check_pairs`` of them), holding the output's lock through both, so the report is about
-    this export's files. Returns ``verify_export``'s dict. Raises as ``export_saved_model``."""
+    this export's files. Returns ``verify_export``'s dict with ``documents`` (the paths of the
+    ``README.md`` and ``signature.json`` written) and ``kept_user_files`` (files of those names
+    that the export did not write, kept in their place). Raises as ``export_saved_model``."""
     with output_lock(output_dir, overwrite):
-        _write_export(estimator, os.fspath(output_dir))
+        kept = _write_export(estimator, os.fspath(output_dir))
         patch_a, patch_b = verification_pairs(check_pairs)
-        return verify_export(output_dir, estimator, patch_a, patch_b, tolerance)
+        report = verify_export(output_dir, estimator, patch_a, patch_b, tolerance)
+    written = [os.path.join(os.fspath(output_dir), name) for name in export_contract.DOC_FILES
+               if os.path.join(os.fspath(output_dir), name) not in kept]
+    return {**report, "documents": written, "kept_user_files": kept}
 
 
-def _write_export(estimator, output_dir) -> str:
-    """The write of :func:`export_saved_model`, its output's lock held."""
+def _write_export(estimator, output_dir) -> list:
+    """The write of :func:`export_saved_model`, its output's lock held; returns the paths of the
+    files named like the export's documents (``README.md``, ``signature.json``) that an export
+    did not write, kept in place of the export's own (a warning is logged for each)."""
     parent = os.path.dirname(os.path.abspath(output_dir))
     staging = tempfile.mkdtemp(prefix=f".{os.path.basename(os.path.abspath(output_dir))}.",
                                dir=parent)
@@ -234,6 +253,7 @@ def _write_export(estimator, output_dir) -> str:
             json.dump({"output": os.path.abspath(output_dir)}, f)
         try:
             _write_archive(estimator, staging)
+            export_contract.write_files(estimator, staging)
         except Exception as e:  # TensorFlow's write errors are not OSErrors
             raise OSError(f"cannot write the SavedModel to {output_dir}: "
                           f"{type(e).__name__}: {e}") from None
@@ -243,12 +263,25 @@ def _write_export(estimator, output_dir) -> str:
                 shutil.rmtree(old)
             elif os.path.lexists(old):
                 os.remove(old)
+        kept = []
+        for name in export_contract.DOC_FILES:  # an earlier export's replaced, a user's kept
+            old = os.path.join(output_dir, name)
+            if os.path.lexists(old):
+                if os.path.isfile(old) and not os.path.islink(old) \
+                        and export_contract.written_by_export(old):
+                    os.remove(old)
+                else:
+                    kept.append(old)
+                    os.remove(os.path.join(staging, name))
         for name in os.listdir(staging):
             if name != STAGING_MARKER:
                 os.replace(os.path.join(staging, name), os.path.join(output_dir, name))
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    return output_dir
+    for path in kept:
+        _log.warning("export: kept %s (not written by an export); the export's own %s is not "
+                     "written", path, os.path.basename(path))
+    return kept
 
 
 def _write_archive(estimator, path):
@@ -345,8 +378,9 @@ def verify_export(path, estimator, patch_a=None, patch_b=None, tolerance: float 
 
     Returns a dict with ``max_abs_diff`` (SavedModel vs the same TensorFlow computation run on the
     in-memory Keras models), ``max_abs_diff_estimate`` (SavedModel vs
-    :meth:`HomographyEstimator.estimate` with ``EstimateOptions.network_only()``), ``tolerance`` and
-    ``ok``.
+    :meth:`HomographyEstimator.estimate` with ``EstimateOptions.network_only()``) and
+    ``max_corner_diff_px_estimate`` (the same comparison as the largest mean distance of the patch
+    corners, px), ``tolerance`` and ``ok``.
     ``ok`` requires ``max_abs_diff <= tolerance``, and for single-stage and sequence models
     (where both compute the same thing) also ``max_abs_diff_estimate <= tolerance``; for a
     hierarchy the latter measures OpenCV-vs-TensorFlow interpolation and is reported only.
@@ -366,6 +400,36 @@ def verify_export(path, estimator, patch_a=None, patch_b=None, tolerance: float 
     estimate = estimator.estimate(patch_a, patch_b, EstimateOptions.network_only())
     diff = float(np.max(np.abs(saved - eager)))
     diff_estimate = float(np.max(np.abs(saved - estimate)))
+    corners_estimate = float(np.max(geometry.corner_errors(saved, estimate)))
     ok = diff <= tolerance and (estimator.kind == "hierarchy" or diff_estimate <= tolerance)
-    return {"max_abs_diff": diff, "max_abs_diff_estimate": diff_estimate, "tolerance": tolerance,
+    return {"max_abs_diff": diff, "max_abs_diff_estimate": diff_estimate,
+            "max_corner_diff_px_estimate": corners_estimate, "tolerance": tolerance,
             "pairs": int(len(patch_a)), "kind": estimator.kind, "ok": bool(ok)}
+
+
+def verification_line(report) -> str:
+    """One line that says what :func:`verify_export` (``report``) compared and whether the
+    export passed.
+
+        >>> print(verification_line({"max_abs_diff": 7.72e-05, "max_abs_diff_estimate": 0.0533,
+        ...     "max_corner_diff_px_estimate": 0.021, "tolerance": 1e-3, "pairs": 8,
+        ...     "kind": "hierarchy", "ok": True}))  # doctest: +NORMALIZE_WHITESPACE
+        export check passed: the reloaded SavedModel vs the same TensorFlow computation on the
+        Keras models, 8 photograph pairs: max |dH| 7.7e-05 <= tolerance 0.001: ok. Against
+        HomographyEstimator.estimate(EstimateOptions.network_only()): max |dH| 0.053 (0.021 px at
+        the patch corners), not checked for a hierarchy: OpenCV's warp between its stages samples
+        on a 1/32 px grid, the SavedModel's TensorFlow warp does not.
+    """
+    tol, diff, other = report["tolerance"], report["max_abs_diff"], report["max_abs_diff_estimate"]
+    head = ("export check passed" if report["ok"] else "export check FAILED") + (
+        f": the reloaded SavedModel vs the same TensorFlow computation on the Keras models, "
+        f"{report['pairs']} photograph pairs: max |dH| {diff:.2g} "
+        f"{'<=' if diff <= tol else '>'} tolerance {tol:.3g}: "
+        f"{'ok' if diff <= tol else 'too large'}. Against "
+        f"HomographyEstimator.estimate(EstimateOptions.network_only()): max |dH| {other:.2g} "
+        f"({report.get('max_corner_diff_px_estimate', float('nan')):.2g} px at the patch corners)")
+    if report["kind"] == "hierarchy":
+        return head + (", not checked for a hierarchy: OpenCV's warp between its stages samples "
+                       "on a 1/32 px grid, the SavedModel's TensorFlow warp does not.")
+    return head + (f" {'<=' if other <= tol else '>'} tolerance {tol:.3g}: "
+                   f"{'ok' if other <= tol else 'too large'}.")

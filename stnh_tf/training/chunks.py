@@ -158,8 +158,8 @@ def strip_optimizer(src: str, dst: str) -> None:
 def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
               printer=print, commit: str | None = None) -> dict:
     """One chunk of ``cfg``'s run: resume from the newest checkpoint (``cfg.model_dir``'s or the
-    one committed under ``root``), train until ``time_limit_s`` (:func:`stnh_tf.training.loop.train`
-    stops at a checkpoint before it), then commit the checkpoint back under ``root``, or, once the
+    one committed under ``root``), train until ``time_limit_s`` or a SIGTERM (:func:`stnh_tf.training.loop.train`
+    stops within one step and saves that step's checkpoint), then commit the checkpoint back under ``root``, or, once the
     stage is done, its model as ``stage<k>.keras`` (and remove the checkpoint), and add a row to
     the ledger (``commit``: the code's, recorded in the row where given; ``machine``: the commit,
     machine and library versions, :func:`stnh_tf.provenance.machine_info`). Returns the row.
