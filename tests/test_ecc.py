@@ -99,3 +99,17 @@ def test_failures_return_none(scene):
     assert ecc.ecc_homography(source, -_exact_warp(source, TRUE, (128, 128)), TRUE) is None
     # a flat template has no correlation to maximise
     assert ecc.ecc_homography(source, np.zeros((128, 128)), TRUE) is None
+
+
+def test_bilinear_is_scipys_order_1_sampling_of_every_image_at_once():
+    # issue 64 (speed): one gather for the image and its two gradients instead of three
+    # map_coordinates calls; the same products summed in the same order, so equal up to float64
+    # rounding (measured: identical on 100,000 random points, 1 ulp on a few near the first row)
+    rng = np.random.default_rng(5)
+    images = rng.random((3, 30, 45))
+    u = np.concatenate([rng.uniform(0, 44, 20000), [44.0, 0.0, 44.0, 7.5]])
+    v = np.concatenate([rng.uniform(0, 29, 20000), [29.0, 0.0, 0.25, 29.0]])  # the far edges
+    got = ecc.bilinear(images, u, v)
+    want = np.stack([ndimage.map_coordinates(im, [v, u], order=1) for im in images])
+    assert got.shape == (3, len(u))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)

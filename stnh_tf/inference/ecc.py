@@ -30,10 +30,37 @@ def _homography_update(dp: np.ndarray) -> np.ndarray:
     return np.array([[dp[0], dp[1], dp[2]], [dp[3], dp[4], dp[5]], [dp[6], dp[7], 0.0]])
 
 
+def bilinear(images, u, v) -> np.ndarray:
+    """``images`` ``[C, h, w]`` (float64, ``h, w >= 2``) sampled at the points ``(u, v)``
+    (``[N]`` each, x and y, inside ``[0, w - 1] x [0, h - 1]``) with bilinear weights: ``[C, N]``,
+    bit for bit what ``scipy.ndimage.map_coordinates(image, [v, u], order=1)`` gives for each
+    image (the same products summed in the same order), in one gather for all C images (issue
+    64: three such calls were a third of the search's time).
+
+    >>> img = np.arange(12.0).reshape(1, 3, 4)
+    >>> bilinear(img, np.array([0.5, 3.0]), np.array([1.25, 2.0]))
+    array([[ 5.5, 11. ]])
+    """
+    height, width = images.shape[1:]
+    # the last row / column (u = w - 1) as the far corner of the cell before it, weight 1
+    x0 = np.minimum(np.floor(u), width - 2)
+    y0 = np.minimum(np.floor(v), height - 2)
+    wx1, wy1 = u - x0, v - y0
+    wx0, wy0 = 1.0 - wx1, 1.0 - wy1
+    flat = images.reshape(len(images), -1)
+    top = (y0 * width + x0).astype(np.intp)
+    # scipy's order: (c * w_y) * w_x, the x neighbour fastest
+    out = flat.take(top, axis=1) * wy0 * wx0
+    out += flat.take(top + 1, axis=1) * wy0 * wx1
+    out += flat.take(top + width, axis=1) * wy1 * wx0
+    out += flat.take(top + width + 1, axis=1) * wy1 * wx1
+    return out
+
+
 def ecc_homography(source, template, source_from_template, iterations: int = 100,
                    eps: float = 1e-6):
     """ECC maximisation of the correlation of ``template`` and ``source`` warped onto it, in float64
-    with exact bilinear sampling (``scipy.ndimage.map_coordinates``, order 1).
+    with exact bilinear sampling (:func:`bilinear`).
 
     The update is ``cv2.findTransformECC``'s (forward additive, ``MOTION_HOMOGRAPHY``, Sobel
     gradients, no pre-filter), run on the template pixels whose position lies inside the source;
@@ -57,8 +84,8 @@ def ecc_homography(source, template, source_from_template, iterations: int = 100
     """
     src = np.asarray(source, np.float64)
     tpl = np.asarray(template, np.float64)
-    gradients = (cv2.Sobel(src, cv2.CV_64F, 1, 0, ksize=3) / 8.0,
-                 cv2.Sobel(src, cv2.CV_64F, 0, 1, ksize=3) / 8.0)
+    stack = np.stack([src, cv2.Sobel(src, cv2.CV_64F, 1, 0, ksize=3) / 8.0,
+                      cv2.Sobel(src, cv2.CV_64F, 0, 1, ksize=3) / 8.0])
     ys, xs = np.mgrid[0:tpl.shape[0], 0:tpl.shape[1]].astype(np.float64)
     xs, ys, tpl = xs.ravel(), ys.ravel(), tpl.ravel()
     h = np.asarray(source_from_template, np.float64)
@@ -73,16 +100,18 @@ def ecc_homography(source, template, source_from_template, iterations: int = 100
                   & (v <= src.shape[0] - 1))
         if inside.mean() < MIN_INSIDE:
             return None
-        x, y, u, v, w = xs[inside], ys[inside], u[inside], v[inside], w[inside]
-        warped, gx, gy = (ndimage.map_coordinates(img, [v, u], order=1)
-                          for img in (src, *gradients))
+        if inside.all():  # (the same values without copying them)
+            x, y, t = xs, ys, tpl
+        else:
+            x, y, u, v, w, t = (a[inside] for a in (xs, ys, u, v, w, tpl))
+        warped, gx, gy = bilinear(stack, u, v)
         # d warped / d parameters, chain rule through the projective division
         gw = -(gx * u + gy * v)
         jac = np.stack([gx * x, gx * y, gx, gy * x, gy * y, gy, gw * x, gw * y],
                        axis=1) / w[:, None]
         jac -= jac.mean(axis=0)
         warped -= warped.mean()
-        t = tpl[inside] - tpl[inside].mean()
+        t = t - t.mean()
         warped_norm, t_norm = np.linalg.norm(warped), np.linalg.norm(t)
         if warped_norm < 1e-12 or t_norm < 1e-12:
             return None
