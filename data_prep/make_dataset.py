@@ -17,8 +17,8 @@ import os
 
 from absl import app, flags, logging
 
-from experiments import common
-from stnh_tf.data import sources, stage1
+from experiments import common, flags_common
+from stnh_tf.data import folder_counts, sources, stage1
 
 flags.DEFINE_enum("source", "folder", stage1.SOURCES,
                   "folder: every image file below --image_dir (recursive); bundled: photographs "
@@ -36,7 +36,7 @@ flags.DEFINE_integer("seed", 0, "Seed; image i uses np.random.default_rng([seed,
 flags.DEFINE_integer("num_shards", 0, "Number of shards; 0 = about 128 MiB each, at least 8.")
 flags.DEFINE_integer("num_workers", os.cpu_count() or 1,
                      "Generation processes (<= 1: in-process). Does not change the output.")
-flags.DEFINE_integer("max_images", 0, "Use only the first N images of the sorted list (0 = all).")
+flags_common.define_max_images()
 flags.DEFINE_string("tfds_data_dir", None, "tensorflow-datasets data_dir for --source=coco2014.")
 flags.DEFINE_string("tfds_split", None, "tfds split for coco2014 (default: train -> "
                     "train+validation, test -> test, as in the paper).")
@@ -50,13 +50,14 @@ def main(argv):
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     sources.quiet_opencv()
     with common.user_errors("make_dataset", (sources.SourceError, ValueError, OSError)):
-        stage1.make_dataset(FLAGS.source, FLAGS.output_dir, FLAGS.split,
-                            image_dir=FLAGS.image_dir, samples_per_image=FLAGS.samples_per_image,
-                            seed=FLAGS.seed, num_shards=FLAGS.num_shards,
-                            num_workers=FLAGS.num_workers, max_images=FLAGS.max_images,
-                            tfds_data_dir=FLAGS.tfds_data_dir, tfds_split=FLAGS.tfds_split,
-                            chunk_size=FLAGS.chunk_size, log=logging.info,
-                            overwrite=FLAGS.overwrite, photometric=FLAGS.photometric)
+        split = stage1.make_dataset(
+            FLAGS.source, FLAGS.output_dir, FLAGS.split, image_dir=FLAGS.image_dir,
+            samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed,
+            num_shards=FLAGS.num_shards, num_workers=FLAGS.num_workers,
+            max_images=FLAGS.max_images, tfds_data_dir=FLAGS.tfds_data_dir,
+            tfds_split=FLAGS.tfds_split, chunk_size=FLAGS.chunk_size, log=logging.info,
+            overwrite=FLAGS.overwrite, photometric=FLAGS.photometric)
+    logging.info(folder_counts.split_counts(split).line())
 
 
 if __name__ == "__main__":

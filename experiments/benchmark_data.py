@@ -22,7 +22,7 @@ from experiments import common, flags_common
 
 flags.DEFINE_enum("source", "bundled", ["bundled", "folder"], "Image source.")
 flags.DEFINE_string("image_dir", None, "Folder for --source=folder.")
-flags.DEFINE_integer("max_images", 0, "First N images only (0 = all).")
+flags_common.define_max_images()
 flags.DEFINE_integer("repeat", 0, "Use the image list this many times as distinct items "
                      "(0 = enough for about 1,500 samples), so the timing is not all start-up.")
 flags.DEFINE_list("workers", ["1", "2"], "Worker counts to time.")

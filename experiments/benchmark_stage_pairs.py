@@ -17,6 +17,7 @@ from experiments import common, flags_common
 from stnh_tf.evaluation import data_benchmark as benchmark
 
 flags.DEFINE_string("images", "bundled", "Photographs: 'bundled' or folders (comma-separated).")
+flags_common.define_max_images()
 flags.DEFINE_integer("samples_per_image", 40, "Pairs made from each photograph.")
 flags.DEFINE_list("threads", ["1", "2"], "Thread counts to time.")
 flags.DEFINE_integer("repeats", 2, "Timings per thread count.")
@@ -32,7 +33,7 @@ def main(argv):
     with common.user_errors("benchmark_stage_pairs"):
         result = benchmark.stage_pairs_benchmark(FLAGS.images, FLAGS.samples_per_image,
                                                  FLAGS.threads, FLAGS.repeats, FLAGS.error_px,
-                                                 FLAGS.seed)
+                                                 FLAGS.seed, FLAGS.max_images)
     common.emit_json(result, FLAGS.json_out)
 
 

@@ -8,6 +8,7 @@ from absl import flags
 
 from experiments import common
 from stnh_tf.training import config as train_config
+from stnh_tf.training import worker_log
 from stnh_tf.training.config import TrainConfig
 
 
@@ -52,10 +53,10 @@ def define_training_flags(scope: str, choices=None, flag_values=flags.FLAGS):
                        "checkpoint of that step, and leave the run unfinished: the same command "
                        "resumes it from there (0: no limit; for runs trained in chunks).",
                        flag_values=flag_values)
-    flags.register_validator("time_limit_s", _check_time_limit, flag_values=flag_values)
+    flags.register_validator("time_limit_s", check_time_limit, flag_values=flag_values)
 
 
-def _check_time_limit(value) -> bool:
+def check_time_limit(value) -> bool:
     """absl validator of ``--time_limit_s`` (:func:`stnh_tf.training.config.time_limit_problems`):
     refused at parsing, with the flag named, before anything starts."""
     problems = train_config.time_limit_problems(value)
@@ -97,16 +98,20 @@ def config_from_flags(scope: str, flag_values=flags.FLAGS, **overrides) -> Train
     return cfg
 
 
-def run_training(cfg, binary: str) -> None:
-    """Train (or resume) ``cfg``; user errors exit with ``{binary}: message``, not a traceback."""
+def run_training(cfg, binary: str, flag_values=flags.FLAGS) -> None:
+    """Train (or resume) ``cfg`` (the parsed ``flag_values`` give ``--overwrite`` and
+    ``--time_limit_s``), after logging :func:`schedule_line`; user errors exit with
+    ``{binary}: message``, not a traceback."""
     from absl import logging
 
-    logging.info(schedule_line(cfg, flags.FLAGS["train_steps"].present))  # before TensorFlow
+    f = flag_values
+    worker_log.prefix_logs(cfg.num_processes, cfg.process_id)  # [worker k/N] on every line
+    logging.info(schedule_line(cfg, f["train_steps"].present))  # before TensorFlow starts
     from stnh_tf.training import loop as training
 
     with common.user_errors(binary, (ValueError, OSError, training.TrainingDiverged)):
-        result = training.train(cfg, overwrite=flags.FLAGS.overwrite, printer=logging.info,
-                                time_limit_s=flags.FLAGS.time_limit_s or None)
+        result = training.train(cfg, overwrite=f.overwrite, printer=logging.info,
+                                time_limit_s=f.time_limit_s or None)
     logging.info(final_line(result, cfg.train_steps))
     if result.get("stopped_by") not in (None, "time limit"):  # a signal: not what was asked
         raise SystemExit(f"{binary}: {final_line(result, cfg.train_steps)}")

@@ -10,18 +10,26 @@ JSON (also p90, p99, failure rate, ms per pair for each), --json_out=- prints it
   python -m experiments.tune_baselines --image_dir=../shared/data/coco_mini/train \
       --num_pairs=300 --seed=0 --json_out=/tmp/tune_baselines.json
 
+(``../shared/data/coco_mini/train``: this project's own training photographs, what BENCHMARKS.md
+measured; give your folder, and ``--max_images=N`` for its first N photographs.)
+
 Pairs come from the data generator's own protocol (:mod:`stnh_tf.data.sources` decoding and
 resizing, :mod:`stnh_tf.data.pairs`), drawn in memory with one seeded generator.
 """
 
 from __future__ import annotations
 
+import sys
+
 from absl import app, flags
 
-from experiments import common
+from experiments import common, flags_common
+from stnh_tf.data.folder_counts import FolderCounts
+from stnh_tf.data.sources import SourceError
 from stnh_tf.evaluation import baseline_tuning, summaries
 
 flags.DEFINE_string("image_dir", None, "Folder of photographs (jpg/png). Default: scikit-image's.")
+flags_common.define_max_images()
 flags.DEFINE_integer("num_pairs", 300, "Number of synthetic pairs.")
 flags.DEFINE_integer("seed", 0, "Seed of the pair generator.")
 flags.DEFINE_enum("grid", "small", ["none", "small"],
@@ -35,7 +43,11 @@ def main(argv):
     del argv
     with common.user_errors("tune_baselines"):
         summaries.check_json_out(FLAGS.json_out)
-    result = baseline_tuning.run_tuning(FLAGS.image_dir, FLAGS.num_pairs, FLAGS.seed, FLAGS.grid)
+    with common.user_errors("tune_baselines", (SourceError,)):  # (no photograph there)
+        result = baseline_tuning.run_tuning(FLAGS.image_dir, FLAGS.num_pairs, FLAGS.seed,
+                                            FLAGS.grid, FLAGS.max_images)
+    if result["photographs"]:
+        print(FolderCounts(**result["photographs"]).line(), file=sys.stderr)
     summaries.emit(result, summaries.tuning_table(result), FLAGS.json_out)
 
 

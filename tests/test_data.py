@@ -647,3 +647,124 @@ def test_evaluate_refuses_bad_numbers_before_reading():
         evaluation.evaluate([], "no_such_dataset", batch_size=0)
     with pytest.raises(ValueError, match="max_samples must be >= 1"):
         evaluation.evaluate([], "no_such_dataset", max_samples=-1)
+
+
+# ------------------------------------------------------------------------------------------------
+# Issue 62, item 5: --max_images wherever a binary reads a photograph folder; skipped files
+# counted by reason (a link leading out of the folder named, not dropped)
+# ------------------------------------------------------------------------------------------------
+def _photo_folder(root, names):
+    root.mkdir(parents=True, exist_ok=True)
+    photo = sources.bundled_image_files()[0][1]
+    for name in names:
+        shutil.copy(photo, root / name)
+    return root
+
+
+def test_max_images_keeps_the_first_n_of_the_sorted_listing(tmp_path):
+    """The first N of the listing's order (path relative to the folder, folder after folder),
+    the same whatever order the files were made in; the others counted, not listed."""
+    one = _photo_folder(tmp_path / "one", ["z.png", "b.jpg", "sub_a.png", "m.png"])
+    (one / "sub").mkdir()
+    shutil.copy(one / "m.png", one / "sub" / "a.png")
+    two = _photo_folder(tmp_path / "two", ["c.png", "a.png"])
+    every = sorted(os.path.relpath(os.path.join(d, f), one).replace(os.sep, "/")
+                   for d, _, fs in os.walk(one) for f in fs)
+    listing = sources.scan_image_folders(str(one), max_images=3)
+    assert [listing.image_id(p) for p in listing.files] == every[:3]
+    assert listing.beyond_max_images == len(every) - 3
+    both = sources.scan_image_folders([str(one), str(two)], max_images=len(every) + 1)
+    assert [both.image_id(p) for p in both.files] == [f"0:{n}" for n in every] + ["1:a.png"]
+    assert both.beyond_max_images == 1
+    assert sources.scan_image_folders(str(one), max_images=0).files == \
+        sources.scan_image_folder(str(one)).files  # 0: every image
+    with pytest.raises(ValueError, match="max_images must be >= 0"):
+        sources.scan_image_folders(str(one), max_images=-1)
+    from stnh_tf.data import batches  # the generated training pairs take the same first N
+
+    pb = batches.PairBatches(str(one), 1, samples_per_image=1, max_images=2, shuffle=False)
+    assert [e[1] for e in pb.entries] == every[:2]
+
+
+@pytest.fixture
+def counted_folder(messy_folder, tmp_path):
+    """messy_folder's files (8 photographs, a truncated JPEG, an empty PNG, two undecodable
+    files, a text file) and a symbolic link to a photograph outside the folder."""
+    root = tmp_path / "messy"
+    shutil.copytree(messy_folder[0], root, ignore=shutil.ignore_patterns("locked"))
+    elsewhere = _photo_folder(tmp_path / "elsewhere", ["photo.png"])
+    os.symlink(elsewhere / "photo.png", root / "link.png")
+    return root
+
+
+WANT_SKIPPED = {"corrupt or truncated": 1, "empty file": 1, "not an image": 2,
+                "link outside the folder": 1}
+
+
+def test_skipped_files_are_counted_by_reason(counted_folder, tmp_path):
+    from stnh_tf.data import folder_counts
+
+    images, counts = folder_counts.read_gray_folder(str(counted_folder))
+    assert len(images) == counts.used == 8
+    assert counts.skipped == WANT_SKIPPED and counts.ignored == 1
+    line = counts.line()
+    assert line.startswith("photographs: 8 used; skipped 5 (not an image: 2, corrupt or "
+                           "truncated: 1, empty file: 1, link outside the folder: 1); "
+                           "non-image files ignored: 1; symbolic links leading out")
+    assert "not followed" in line and "cp -L" in line
+    # the first 3 of the sorted listing: color.tif, corrupt.tif, empty.png
+    _, first3 = folder_counts.read_gray_folder(str(counted_folder), max_images=3)
+    assert (first3.used, first3.beyond_max_images) == (1, 9)
+    assert first3.skipped == {"not an image": 1, "empty file": 1, "link outside the folder": 1}
+    assert "left out by --max_images=3: 9" in first3.line()
+    # make_dataset's split records the same reasons: the same counts
+    info = stage1.make_dataset("folder", str(tmp_path / "out"), "train",
+                               image_dir=str(counted_folder), num_workers=1, num_shards=1,
+                               log=lambda m: None)
+    assert folder_counts.split_counts(info) == counts
+
+
+def test_a_folder_of_links_outside_it_says_why_and_writes_nothing(tmp_path):
+    """make_camera_pairs on a folder of symbolic links said "no readable photograph" and dropped
+    the reason; it now counts them and says why links out of a folder are not followed."""
+    from stnh_tf.data import camera_pair_files
+
+    real = _photo_folder(tmp_path / "real", ["a.png", "b.png"])
+    links = tmp_path / "links"
+    links.mkdir()
+    for name in ("a.png", "b.png"):
+        os.symlink(real / name, links / name)
+    out = tmp_path / "pairs"
+    with pytest.raises(ValueError) as e:
+        camera_pair_files.write_pairs(str(links), str(out), pairs_per_image=1)
+    message = str(e.value)
+    assert "skipped 2 (link outside the folder: 2)" in message and "not followed" in message
+    assert f"first: a.png: symbolic link to a file outside the image folder ({real / 'a.png'})" \
+        in message
+    assert not out.exists()
+    manifest = camera_pair_files.write_pairs(str(real), str(out), pairs_per_image=1,
+                                             max_images=1)
+    assert manifest["images"] == 1 and manifest["photographs"]["beyond_max_images"] == 1
+    assert {p.image_id for p in camera_pair_files.load_pairs(str(out))[1]} == {"a.png"}
+
+
+def test_make_camera_pairs_prints_the_counts_line(tmp_path):
+    real = _photo_folder(tmp_path / "real", ["a.png", "b.png"])
+    (real / "0broken.jpg").write_bytes(b"not a jpeg")  # first of the sorted listing
+    proc = subprocess.run([sys.executable, "-m", "experiments.make_camera_pairs",
+                           f"--image_dir={real}", f"--output_dir={tmp_path / 'pairs'}",
+                           "--pairs_per_image=1", "--max_images=2"],
+                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stderr.strip().splitlines()[-1] == (
+        "photographs: 1 used; skipped 1 (not an image: 1); left out by --max_images=2: 1")
+    assert json.loads(proc.stdout)["images"] == 1
+
+
+@pytest.mark.parametrize("name", ["stnh_tf.data.sources", "stnh_tf.data.folder_counts"])
+def test_listing_and_counting_doctests(name):
+    import doctest
+    import importlib
+
+    result = doctest.testmod(importlib.import_module(name), optionflags=doctest.ELLIPSIS)
+    assert result.attempted > 0 and result.failed == 0

@@ -223,6 +223,22 @@ PROSE = [
          cam("camera0_wide_features", g, "estimator", "flag:bad"),
          cam("camera0_wide_features", g, "estimator", "flag:flagged_good"),
          cam("camera0_wide_features", g, "estimator", "good"))]),
+    ("BENCHMARKS.md",  # issue 64, item 3: the speed table
+     rf"\| within \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \|\n"
+     rf"\| 1-2x \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \|\n"
+     rf"\| 2-4x \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \|",
+     [f for g in ("within", "1-2x", "2-4x") for f in (
+         cam("camera0_speed", g, "estimator", "ok"),
+         lambda sources, g=g: str(cr.value(sources, "camera0_speed",
+                                           f"groups/{g}/estimator")["count"]),
+         cam("camera0_speed", g, "estimator", "mace"), cam("camera0_speed", g, "estimator", "ms"),
+         cam("camera0_speed", g, "sift_ransac", "ok"), cam("camera0_speed", g, "sift_ransac", "mace"),
+         cam("camera0_speed", g, "sift_ransac", "ms"))]),
+    ("BENCHMARKS.md", rf"load average {N} at the start\): only the ratio",
+     [lambda sources: f"{cr.value(sources, 'camera0_speed', 'machine/loadavg_at_start')[0]:.2f}"]),
+    ("BENCHMARKS.md", rf"the estimator took {N}x SIFT's time",
+     [ratio(("camera0_speed", "groups/within/estimator/ms_per_pair"),
+            ("camera0_speed", "groups/within/sift_ransac/ms_per_pair"))]),
     ("docs/estimate.md", rf"it takes (\d+){S}against the default's (\d+) ms per pair",
      [cam("camera0_photographs", "within", "estimator", "ms"),
       cam("camera0_default_estimator", "within", "estimator", "ms")]),

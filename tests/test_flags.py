@@ -2,6 +2,7 @@
 a binary, and every flag given on the command line reaches the config unchanged."""
 
 import dataclasses
+import json
 import os
 import subprocess
 import sys
@@ -114,3 +115,116 @@ def test_every_flag_problem_in_one_message_before_tensorflow_starts():
     assert lines[-1] == "False False", out.stderr[-2000:]
     assert lines[0].startswith("train_stage: 3 problems: (1) need 0 <= warmup_steps")
     assert "dropout must be in [0, 1)" in lines[0] and "multiple of checkpoint_every" in lines[0]
+
+
+# ------------------------------------------------------------------------------------------------
+# Issue 62: --max_images wherever a binary reads a photograph folder (item 5); the training
+# binaries say up front how many steps they train, and that the default is the paper's schedule
+# ------------------------------------------------------------------------------------------------
+PHOTO_FOLDER_BINARIES = (
+    "data_prep.make_dataset", "experiments.make_camera_pairs", "experiments.tune_baselines",
+    "experiments.benchmark_data", "experiments.benchmark_stage_pairs", "experiments.reproduce",
+    "experiments.semi_supervised", "experiments.loss_weight_ablation", "experiments.train_stage",
+    "experiments.train_sequence")
+
+
+def test_every_binary_that_reads_a_photograph_folder_takes_max_images():
+    code = ("import importlib, json, sys\nfrom absl import flags\n"
+            "importlib.import_module(sys.argv[1])\n"
+            "print(json.dumps({n: flags.FLAGS[n].default for n in ('max_images',) "
+            "if n in flags.FLAGS}))\n")
+    procs = {m: subprocess.Popen([sys.executable, "-c", code, m], cwd=REPO, text=True,
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+             for m in PHOTO_FOLDER_BINARIES}
+    found = {}
+    for module, proc in procs.items():
+        out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 0, err[-2000:]
+        found[module] = json.loads(out.strip().splitlines()[-1]).get("max_images")
+    assert found == {m: 0 for m in PHOTO_FOLDER_BINARIES}  # defined everywhere, 0: every image
+
+
+def test_max_images_refuses_a_negative_number():
+    flag_values = flags.FlagValues()
+    flags_common.define_max_images(flag_values=flag_values)
+    flag_values(["binary", "--max_images=3"])
+    assert flag_values.max_images == 3
+    with pytest.raises(flags.IllegalFlagValueError, match="max_images"):
+        flag_values(["binary", "--max_images=-1"])
+    with pytest.raises(ValueError, match="max_images must be an integer >= 0"):
+        TrainConfig(model_dir="m", image_dir="p", max_images=-1).validate()
+    with pytest.raises(ValueError, match="max_images limits the images of image_dir"):
+        TrainConfig(model_dir="m", data_dir="d", max_images=4).validate()
+
+
+def _run_training_lines(monkeypatch, argv):
+    """The lines ``run_training`` logs for ``argv`` (train_stage's flags), training replaced by
+    a stand-in that records its config."""
+    import types
+
+    from absl import logging
+
+    import stnh_tf.training
+
+    lines, trained = [], []
+    fake = types.SimpleNamespace(TrainingDiverged=RuntimeError,
+                                 train=lambda cfg, **kw: trained.append(cfg) or
+                                 {"final_step": cfg.train_steps})
+    monkeypatch.setitem(sys.modules, "stnh_tf.training.loop", fake)
+    monkeypatch.setattr(stnh_tf.training, "loop", fake, raising=False)
+    monkeypatch.setattr(logging, "info", lambda msg, *a: lines.append(msg % a if a else msg))
+    flag_values = flags.FlagValues()
+    flags_common.define_training_flags(STAGE, flag_values=flag_values)
+    flag_values(["train_stage", "--model_dir=m", "--data_dir=d", *argv])
+    cfg = flags_common.config_from_flags(STAGE, flag_values=flag_values)
+    flags_common.run_training(cfg, "train_stage", flag_values=flag_values)
+    assert [c.train_steps for c in trained] == [cfg.train_steps]
+    return lines
+
+
+def test_training_says_first_that_the_default_is_the_papers_91000_steps(monkeypatch):
+    lines = _run_training_lines(monkeypatch, [])
+    assert lines[0].startswith("training to step 91,000: the paper's schedule, the default of "
+                               "--train_steps: hours to days on a CPU")
+    assert lines[0].endswith(f"a smoke run instead: {flags_common.SMOKE_FLAGS} "
+                             "(docs/quickstart.md)")
+    assert lines[-1] == "finished at step 91000"
+    lines = _run_training_lines(monkeypatch, ["--model=homographynet"])
+    assert lines[0].startswith("training to step 90,000: DeTone et al.'s schedule")
+    lines = _run_training_lines(monkeypatch, flags_common.SMOKE_FLAGS.split())
+    assert lines[0] == "training to step 20 (--train_steps)"
+
+
+def test_the_smoke_flags_are_a_valid_config():
+    flag_values = flags.FlagValues()
+    flags_common.define_training_flags(STAGE, flag_values=flag_values)
+    flag_values(["train_stage", "--model_dir=m", "--data_dir=d",
+                 *flags_common.SMOKE_FLAGS.split()])
+    flags_common.config_from_flags(STAGE, flag_values=flag_values).validate()
+
+
+def test_flags_common_doctests():
+    import doctest
+
+    result = doctest.testmod(flags_common, optionflags=doctest.ELLIPSIS)
+    assert result.attempted >= 4 and result.failed == 0
+
+
+def test_progress_lines_give_the_time_left_at_the_measured_rate(monkeypatch):
+    """Each progress line ends with the time the steps left take at its steps/s."""
+    from stnh_tf.training import callbacks
+
+    assert callbacks.time_left(91_000 - 50, 2.0) == f"{(91_000 - 50) / 2.0 / 3600:.1f} h"
+    assert callbacks.time_left(450, 2.0) == f"{450 / 2.0 / 60:.1f} min"
+    assert callbacks.time_left(18, 2.0) == "9 s"
+    assert callbacks.time_left(0, 2.0) == callbacks.time_left(10, 0.0) == ""
+    lines = []
+    logger = callbacks.ProgressLogger(2, 6, lines.append)
+    logger._epoch_start = 0
+    ticks = iter([100.0, 101.0, 102.0])  # the clock starts at step 1; 1 s per reading after
+    monkeypatch.setattr(callbacks.time, "time", lambda: next(ticks))
+    monkeypatch.setattr(callbacks, "_learning_rate", lambda model: 0.01)
+    for batch in range(4):  # steps 1..4
+        logger.on_train_batch_end(batch, {"loss": 1.0})
+    assert lines == ["step 2/6 lr=0.01 loss=1 (1.00 steps/s, 4 s left)",
+                     "step 4/6 lr=0.01 loss=1 (1.50 steps/s, 1 s left)"]

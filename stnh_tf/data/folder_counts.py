@@ -44,7 +44,7 @@ class FolderCounts:
     the one line a binary prints; :meth:`of` counts them from a listing and the skip reasons.
 
     >>> FolderCounts(used=3, skipped={"corrupt or truncated": 1}, ignored=2).line()
-    'photographs: 3 used; 1 skipped (1 corrupt or truncated); 2 non-image files ignored'
+    'photographs: 3 used; skipped 1 (corrupt or truncated: 1); non-image files ignored: 2'
     """
 
     used: int
@@ -74,16 +74,27 @@ class FolderCounts:
         by ``--max_images``."""
         parts = [f"{what}: {self.used} used"]
         if self.skipped:
-            kinds = ", ".join(f"{n} {k}" for k, n in sorted(self.skipped.items(),
-                                                             key=lambda kv: (-kv[1], kv[0])))
-            parts.append(f"{sum(self.skipped.values())} skipped ({kinds})")
+            kinds = ", ".join(f"{k}: {n}" for k, n in sorted(self.skipped.items(),
+                                                              key=lambda kv: (-kv[1], kv[0])))
+            parts.append(f"skipped {sum(self.skipped.values())} ({kinds})")
         if self.ignored:
-            parts.append(f"{self.ignored} non-image files ignored")
+            parts.append(f"non-image files ignored: {self.ignored}")
         if self.beyond_max_images:
-            parts.append(f"{self.beyond_max_images} left out by --max_images={self.max_images}")
+            parts.append(f"left out by --max_images={self.max_images}: {self.beyond_max_images}")
         if self.skipped.get("link outside the folder"):
-            parts.append(f"links outside the folder are {sources.LINK_OUTSIDE_WHY}")
+            parts.append(sources.LINK_OUTSIDE_WHY)
         return "; ".join(parts)
+
+
+def split_counts(split: dict) -> FolderCounts:
+    """The :class:`FolderCounts` of a split ``data_prep.make_dataset`` wrote (its section of
+    ``metadata.json``: :func:`stnh_tf.data.stage1.make_dataset`'s result)."""
+    listed, items = split.get("num_files_listed", 0), split.get("num_items", 0)
+    return FolderCounts(
+        used=split["num_items_used"],
+        skipped=FolderCounts.of(0, [s["reason"] for s in split.get("skipped", [])]).skipped,
+        ignored=split.get("num_non_image_files_ignored", 0),
+        beyond_max_images=max(0, listed - items), max_images=split.get("max_images", 0))
 
 
 def read_gray_folder(image_dir, max_images: int = 0) -> tuple:
@@ -115,7 +126,7 @@ def no_photograph_message(image_dir, counts: FolderCounts, skipped=()) -> str:
 
     >>> print(no_photograph_message("photos", FolderCounts(0, {"empty file": 1}),
     ...                             [("photos/a.png", "empty file (0 bytes)")]))
-    no readable photograph in photos: photographs: 0 used; 1 skipped (1 empty file); first: ...
+    no readable photograph in photos: photographs: 0 used; skipped 1 (empty file: 1); first: ...
     """
     first = (f"; first: {skipped[0][0]}: {skipped[0][1]}" if skipped
              else f"; image files end in {', '.join(sources.IMAGE_EXTENSIONS)}")

@@ -62,9 +62,9 @@ class SourceError(ValueError):
 
 LINK_OUTSIDE = "symbolic link to a file outside the image folder"
 LINK_OUTSIDE_WHY = (
-    "not followed: data are made of the folder's own files, so that the image ids recorded "
-    "with them (paths inside the folder) name what was read, and a folder from elsewhere "
-    "cannot pull in files from anywhere on the disk; copy the files in (cp -L), or give the "
+    "symbolic links leading out of an image folder are not followed, so that the data are the "
+    "folder's own files (the image ids recorded with them name what was read, and a folder "
+    "cannot pull in files from elsewhere on the disk): copy the files in (cp -L), or give the "
     "folder they are in as an image folder too")
 """Why a symbolic link leading out of an image folder is left out (:func:`scan_image_folder`)."""
 
@@ -207,8 +207,8 @@ def scan_image_folder(folder: str) -> FolderListing:
             path = os.path.join(dirpath, name)
             if os.path.islink(path) and os.path.commonpath(
                     [real_root, os.path.realpath(path)]) != real_root:
-                unreadable.append((path, f"{LINK_OUTSIDE} ({os.path.realpath(path)}): "
-                                         f"{LINK_OUTSIDE_WHY}"))
+                unreadable.append((path, f"{LINK_OUTSIDE} ({os.path.realpath(path)}): not "
+                                         "followed"))
                 continue
             files.append(path)
     listing = FolderListing(root=root, files=[], unreadable=sorted(unreadable), ignored=ignored)

@@ -54,16 +54,23 @@ def settings_grid(grid="small"):
     return runs + orb + sift
 
 
-def run_tuning(image_dir=None, num_pairs=300, seed=0, grid="small"):
-    """Generate the pairs, evaluate every entry of :func:`settings_grid`; returns the result
-    dict."""
+def run_tuning(image_dir=None, num_pairs=300, seed=0, grid="small", max_images=0):
+    """Generate the pairs (from the first ``max_images`` photographs of ``image_dir``, 0: all;
+    without it the bundled ones), evaluate every entry of :func:`settings_grid`; returns the
+    result dict, with ``photographs``: the folder's
+    :class:`~stnh_tf.data.folder_counts.FolderCounts` (None for the bundled ones)."""
     import cv2
 
     from stnh_tf.evaluation import baselines
     from stnh_tf.data import pairs, sources
     from stnh_tf.evaluation.benchmarks import machine_info
 
-    images = sources.load_gray_images(image_dir)
+    from stnh_tf.data import folder_counts
+
+    if image_dir:
+        images, counts = folder_counts.read_gray_folder(image_dir, max_images)
+    else:
+        images, counts = sources.load_gray_images(None, max_images), None
     pa, pb, h = pairs.make_pair_arrays(images, num_pairs, seed)
     results = {}
     for label, name, overrides in settings_grid(grid):
@@ -73,7 +80,8 @@ def run_tuning(image_dir=None, num_pairs=300, seed=0, grid="small"):
     return {
         "experiment": "tune_baselines",
         "image_dir": image_dir, "num_images": len(images), "num_pairs": num_pairs, "seed": seed,
-        "grid": grid,
+        "grid": grid, "max_images": max_images,
+        "photographs": counts.as_dict() if counts else None,
         "settings": {"orb_ransac": baselines.ORB_SETTINGS, "sift_ransac": baselines.SIFT_SETTINGS,
                      "orb_default": baselines.ORB_DEFAULT_SETTINGS},
         "machine": {**machine_info(), "opencv_threads": cv2.getNumThreads()},

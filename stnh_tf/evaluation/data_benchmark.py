@@ -109,7 +109,7 @@ def data_benchmark(source="bundled", image_dir=None, max_images=0, repeat=0, wor
 
 
 def stage_pairs_benchmark(images="bundled", samples_per_image=40, threads=(1, 2), repeats=2,
-                          error_px=8.0, seed=0) -> dict:
+                          error_px=8.0, seed=0, max_images=0) -> dict:
     """Times the re-making of stage-2 pairs in memory
     (:func:`stnh_tf.hierarchy.next_stage_arrays`, what a stage-k > 1 chunk does before training)
     for the result dict of ``experiments.benchmark_stage_pairs``.
@@ -118,7 +118,7 @@ def stage_pairs_benchmark(images="bundled", samples_per_image=40, threads=(1, 2)
     corner by up to ``error_px``, so the degenerate-prediction rule's clipping is exercised.
     ``ms_per_pair`` is the wall time per pair, the oracle's look-ups included (their seconds are
     reported apart as ``oracle_s``). The pairs of every thread count must be equal to the bit
-    (``identical_across_threads``).
+    (``identical_across_threads``). ``max_images``: the first N photographs only (0: all).
     """
     import cv2
     import numpy as np
@@ -130,7 +130,8 @@ def stage_pairs_benchmark(images="bundled", samples_per_image=40, threads=(1, 2)
     images = images if images == "bundled" else sources.split_folders(images)
     t0 = time.perf_counter()
     arrays = batches.materialize(batches.PairBatches(images, 1, samples_per_image=samples_per_image,
-                                                     seed=seed), context=True)
+                                                     seed=seed, max_images=max_images),
+                                 context=True)
     made_s = time.perf_counter() - t0
     n = len(arrays["patch_b"])
     rng = np.random.default_rng(seed)

@@ -35,6 +35,7 @@ SOURCES = {
     "camera0_photographs": "docs/camera_pairs/seed0_photographs.json",
     "camera1_photographs": "docs/camera_pairs/seed1_photographs.json",
     "camera0_wide_features": "docs/camera_pairs/wide_seed0_features.json",
+    "camera0_speed": "docs/camera_pairs/speed_seed0_photographs.json",
     "readme_example": "docs/readme_example.json",
     "semi_all_seed0": "semi_supervised/eval/stage1_alone.json",
     "semi_labeled_alone_seed0": "semi_supervised/eval/semi_labels-0.1_drop.json",
