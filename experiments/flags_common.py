@@ -98,13 +98,13 @@ def config_from_flags(scope: str, flag_values=flags.FLAGS, **overrides) -> Train
     return cfg
 
 
-def run_training(cfg, binary: str, flag_values=flags.FLAGS) -> None:
+def run_training(cfg, binary: str, flag_values=None) -> None:
     """Train (or resume) ``cfg`` (the parsed ``flag_values`` give ``--overwrite`` and
-    ``--time_limit_s``), after logging :func:`schedule_line`; user errors exit with
-    ``{binary}: message``, not a traceback."""
+    ``--time_limit_s``; default: ``flags.FLAGS`` as it is at the call), after logging
+    :func:`schedule_line`; user errors exit with ``{binary}: message``, not a traceback."""
     from absl import logging
 
-    f = flag_values
+    f = flags.FLAGS if flag_values is None else flag_values
     worker_log.prefix_logs(cfg.num_processes, cfg.process_id)  # [worker k/N] on every line
     logging.info(schedule_line(cfg, f["train_steps"].present))  # before TensorFlow starts
     from stnh_tf.training import loop as training

@@ -5,6 +5,7 @@ The normalization matrix and the OpenCV reference are written out here independe
 """
 
 import contextlib
+import os
 
 import cv2
 import numpy as np
@@ -183,3 +184,25 @@ def constant_stage(h_pix, name="constant"):
     kernel, _ = fc2.get_weights()
     fc2.set_weights([np.zeros_like(kernel), to_bar(h_pix).ravel()[:8].astype("float32")])
     return model
+
+
+def binary_flags(modules) -> dict:
+    """Each binary module's absl flags and their defaults, ``{module: {flag: default}}``, read by
+    importing it in a fresh interpreter (its flags register at import), all modules at once."""
+    import json
+    import subprocess
+    import sys
+
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    code = ("import importlib, json, sys\nfrom absl import flags\n"
+            "importlib.import_module(sys.argv[1])\n"
+            "print(json.dumps({n: flags.FLAGS[n].default for n in flags.FLAGS}, default=str))\n")
+    procs = {m: subprocess.Popen([sys.executable, "-c", code, m], cwd=repo, text=True,
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+             for m in modules}
+    found = {}
+    for module, proc in procs.items():
+        out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 0, err[-2000:]
+        found[module] = json.loads(out.strip().splitlines()[-1])
+    return found

@@ -2,7 +2,6 @@
 a binary, and every flag given on the command line reaches the config unchanged."""
 
 import dataclasses
-import json
 import os
 import subprocess
 import sys
@@ -10,6 +9,7 @@ import sys
 import pytest
 from absl import flags
 
+from conftest import binary_flags
 from experiments import flags_common
 from stnh_tf.training import config as train_config
 from stnh_tf.training.config import SEQUENCE, STAGE, TrainConfig
@@ -129,18 +129,7 @@ PHOTO_FOLDER_BINARIES = (
 
 
 def test_every_binary_that_reads_a_photograph_folder_takes_max_images():
-    code = ("import importlib, json, sys\nfrom absl import flags\n"
-            "importlib.import_module(sys.argv[1])\n"
-            "print(json.dumps({n: flags.FLAGS[n].default for n in ('max_images',) "
-            "if n in flags.FLAGS}))\n")
-    procs = {m: subprocess.Popen([sys.executable, "-c", code, m], cwd=REPO, text=True,
-                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-             for m in PHOTO_FOLDER_BINARIES}
-    found = {}
-    for module, proc in procs.items():
-        out, err = proc.communicate(timeout=120)
-        assert proc.returncode == 0, err[-2000:]
-        found[module] = json.loads(out.strip().splitlines()[-1]).get("max_images")
+    found = {m: f.get("max_images") for m, f in binary_flags(PHOTO_FOLDER_BINARIES).items()}
     assert found == {m: 0 for m in PHOTO_FOLDER_BINARIES}  # defined everywhere, 0: every image
 
 

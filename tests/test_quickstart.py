@@ -6,7 +6,6 @@ numbers, spacing and absl's log prefixes left out of the comparison (they vary b
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import shlex
@@ -16,6 +15,7 @@ import time
 
 import pytest
 
+from conftest import binary_flags
 from experiments import flags_common
 from stnh_tf.training.config import TrainConfig
 
@@ -49,16 +49,7 @@ def test_the_commands_are_the_binaries_own_flags():
     modules = sorted({c[0] for c in cmds})
     assert {"experiments.predict", "data_prep.make_dataset", "experiments.train_stage",
             "experiments.evaluate", "experiments.reproduce"} <= set(modules)
-    code = ("import importlib, json, sys\nfrom absl import flags\n"
-            "importlib.import_module(sys.argv[1])\nprint(json.dumps(list(flags.FLAGS)))\n")
-    procs = {m: subprocess.Popen([sys.executable, "-c", code, m], cwd=REPO, text=True,
-                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-             for m in modules}
-    defined = {}
-    for module, proc in procs.items():
-        out, err = proc.communicate(timeout=120)
-        assert proc.returncode == 0, err[-2000:]
-        defined[module] = set(json.loads(out.strip().splitlines()[-1]))
+    defined = {m: set(f) for m, f in binary_flags(modules).items()}
     for module, *args in cmds:
         given = {a[2:].split("=")[0] for a in args if a.startswith("--")}
         assert given and given <= defined[module], (module, given - defined[module])
