@@ -4,18 +4,22 @@
 Fast tests check the pure logic: each process's share of a global batch (generated pairs,
 TFRecords by file and by data), who writes, and the flags' checks. The slow tests start two
 worker processes on 127.0.0.1 (free ports, CPU only, JAX backend, conftest's narrow network):
-both finish, the chief's run equals one process's with the same global batch and data order,
-the second worker writes nothing, and a run killed mid-way and restarted ends with the
-uninterrupted run's weights.
+both finish, each line they log starts with its ``[worker k/2]``, the chief's run equals one
+process's with the same global batch and data order, the second worker writes nothing, and when
+worker 1 is killed mid-way the chief logs the line that says how to resume within the heartbeat
+timeout, after which the restarted run ends with the uninterrupted run's weights. The watchdog's
+rounds, the lost-worker line and the log prefix are checked fast, without processes.
 """
 
 import json
 import os
+import shlex
 import shutil
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -26,7 +30,7 @@ from stnh_tf.data import batches, pair_datasets, sources, stage1
 from stnh_tf.data import tfrecords as data
 from stnh_tf.modeling import runner
 from stnh_tf.training import config as train_config
-from stnh_tf.training import distribute
+from stnh_tf.training import distribute, watchdog, worker_log
 from stnh_tf.training import loop as training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -178,6 +182,166 @@ def test_tfrecord_shares(records, layout):
         assert sorted(map(tuple, rows)) == sorted(map(tuple, stored[6 * k:6 * (k + 1)]))
 
 
+class Store:
+    """A stand-in for the key-value store of JAX's distributed service (a dict), that can fail
+    like an unreachable coordinator."""
+
+    def __init__(self):
+        self.values, self.down = {}, False
+
+    def key_value_set(self, key, value, allow_overwrite=False):
+        if self.down:
+            raise RuntimeError("UNAVAILABLE: failed to connect to the coordination service")
+        assert allow_overwrite or key not in self.values
+        self.values[key] = value
+
+    def key_value_try_get(self, key):
+        if self.down:
+            raise RuntimeError("UNAVAILABLE: failed to connect to the coordination service")
+        if key not in self.values:
+            raise RuntimeError(f"NOT_FOUND: Config key {key} not found")
+        return self.values[key]
+
+
+def _watchdogs(n, store, clock):
+    return [watchdog.Watchdog(n, k, store, on_lost=None, timeout_s=20, every_s=1, clock=clock)
+            for k in range(n)]
+
+
+def test_watchdog_finds_the_process_whose_beats_stop():
+    """Three processes beat each second of a common fake clock; process 2 stops at t = 5: the
+    others, which read its last beat at t = 6, find it lost at the first round more than 20 s
+    later (t = 27), not before; a process marked done is never lost; the store unreachable means
+    the chief is lost (for a non-chief; the chief, which holds the store, decides nothing)."""
+    now, store = [0.0], Store()
+    dogs = _watchdogs(3, store, lambda: now[0])
+    found = {}
+    for t in range(40):
+        now[0] = float(t)
+        for k, dog in enumerate(dogs):
+            if k == 2 and t > 5:
+                continue  # killed
+            lost = dog.check()
+            if lost and k not in found:
+                found[k] = (t, lost)
+    assert found == {0: (27, [2]), 1: (27, [2])}
+    assert store.values[watchdog._BEAT_KEY.format(0)] == "40"
+    assert dogs[0].beaten_since(38.0) is False and dogs[1].beaten_since(38.0) is False
+    dogs = _watchdogs(2, store, lambda: now[0])  # (process 1 beats each round: seen by 0)
+    for t in (40.0, 41.0):
+        now[0] = t
+        dogs[1].check()
+        dogs[0].check()
+    assert dogs[0].beaten_since(40.5) and not dogs[0].beaten_since(41.0)
+
+    now[0], store = 0.0, Store()  # a process done with its work (at exit) is no longer watched
+    dogs = _watchdogs(2, store, lambda: now[0])
+    dogs[1].check()
+    dogs[1].finish()  # (its thread not started: returns at once)
+    dogs[1].check()  # no beat after done
+    assert store.values[watchdog._BEAT_KEY.format(1)] == "done"
+    for t in range(60):
+        now[0] = float(t)
+        assert dogs[0].check() is None
+    assert dogs[0].all_done.is_set() and not dogs[1].all_done.is_set()
+
+    now[0], store = 0.0, Store()  # a failing process stops beating: the others find it lost
+    dogs = _watchdogs(2, store, lambda: now[0])
+    dogs[1].stop_beating()
+    dogs[1].finish()  # (and is not marked done)
+    verdicts = []
+    for t in (0.0, 20.0, 21.0):
+        now[0] = t
+        verdicts.append(dogs[0].check())
+    assert verdicts == [None, None, [1]]
+
+    store.down = True
+    assert (dogs[0].check(), _watchdogs(2, store, lambda: 0.0)[1].check()) == (None, [0])
+
+
+def test_watchdog_thread_calls_on_lost_once_and_at_exit_waits_for_the_others():
+    """The thread calls ``on_lost`` once, then ends; at exit (``finish``) a process waits while
+    another works on, returns when it is done, or after it is found lost."""
+    store, calls = Store(), []
+    store.values[watchdog._BEAT_KEY.format(1)] = "7"  # never changes: lost after 0.2 s
+    dog = watchdog.Watchdog(2, 0, store, on_lost=calls.append, timeout_s=0.2, every_s=0.05)
+    dog.start()
+    dog.finish(wait_s=5)
+    assert calls == [[1]] and dog.lost == [1] and dog.verdict.is_set() and not dog.is_alive()
+    assert 0 < dog.max_gap_s < 1
+
+    store = Store()
+    dogs = [watchdog.Watchdog(2, k, store, on_lost=calls.append, timeout_s=2, every_s=0.02)
+            for k in range(2)]
+    for d in dogs:
+        d.start()
+    first = threading.Thread(target=dogs[0].finish)
+    first.start()
+    time.sleep(0.5)
+    assert first.is_alive()  # process 1 still at work
+    dogs[1].finish()
+    first.join(5)
+    assert not first.is_alive() and not any(d.is_alive() for d in dogs)
+    assert calls == [[1]] and all(d.all_done.is_set() for d in dogs)
+
+
+def test_lost_line_names_the_lost_worker_and_the_command_that_resumes(tmp_path):
+    """The line of the chief names the lost worker, the step of its last checkpoint and the
+    command of each worker (``--process_id`` made K, the backend's variables first, shell-quoted
+    so that it can be pasted); without ``--process_id`` on the command line, this worker's own
+    command."""
+    run = tmp_path / "run"
+    (run / "checkpoint").mkdir(parents=True)
+    (run / "checkpoint" / "state.json").write_text(json.dumps({"step": 4}))
+    argv = ["python", "-m", "experiments.train_stage", "--image_dir=my photos",
+            "--process_id=0", "--model_dir", str(run)]
+    line = watchdog.lost_line(2, 0, [1], str(run), 20, argv, {"KERAS_BACKEND": "jax",
+                                                              "HOME": "/root"})
+    assert line == (
+        f"lost worker 1 of 2: no heartbeat for 20 s (killed, crashed or cut off); this worker "
+        f"stops too (exit status 75). To resume the run from its last checkpoint (step 4 in "
+        f"{run}), start the 2 workers again, on each worker K = 0..1: KERAS_BACKEND=jax python -m "
+        f"experiments.train_stage '--image_dir=my photos' --process_id=K --model_dir {run}")
+    words = shlex.split(line.split("K = 0..1: ")[1].replace("=K", "=1"))
+    assert words == ["KERAS_BACKEND=jax", *argv[:4], "--process_id=1", *argv[5:]]
+    line = watchdog.lost_line(3, 2, [0, 1], "unused", 20,
+                              ["python", "-m", "experiments.train_stage", "--process_id", "2"], {})
+    assert line.startswith("lost worker 0 (the chief), worker 1 of 3: ")
+    assert "from its last checkpoint, start the 3 workers again, on each worker K = 0..2: python "\
+           "-m experiments.train_stage --process_id K" in line
+    assert watchdog.resume_command(2, ["python", "w.py", "{}"], {}) == \
+        "each with its own command (this worker's: python w.py '{}')"
+
+
+def test_log_lines_carry_the_worker_prefix(monkeypatch):
+    """After :func:`worker_log.prefix_logs`, every logger's records (absl's and any other) start
+    with ``[worker k/N]``; one process gets no prefix; another prefix later is refused."""
+    import logging
+
+    factory = logging.getLogRecordFactory()
+    monkeypatch.setattr(worker_log, "_PREFIX", None)
+    records = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            records.append(self.format(record))
+
+    handler = Keep()
+    logging.getLogger("stnh_test").addHandler(handler)
+    try:
+        worker_log.prefix_logs(1, 0)
+        logging.getLogger("stnh_test").warning("one %s", "process")
+        worker_log.prefix_logs(2, 1)
+        worker_log.prefix_logs(2, 1)  # once: no double prefix
+        logging.getLogger("stnh_test").warning("step %d", 3)
+        with pytest.raises(RuntimeError, match="worker 1/2"):
+            worker_log.prefix_logs(2, 0)
+    finally:
+        logging.setLogRecordFactory(factory)
+        logging.getLogger("stnh_test").removeHandler(handler)
+    assert records == ["one process", "[worker 1/2] step 3"]
+
+
 # ------------------------------------------------------------------------------------------------
 # Slow: two worker processes
 # ------------------------------------------------------------------------------------------------
@@ -187,8 +351,10 @@ spec = json.loads(sys.argv[1])
 from stnh_tf.modeling import models
 models.CONV_FILTERS = tuple(spec.pop("filters"))  # conftest's narrow network
 import keras
+from absl import logging
 from stnh_tf.training import config as train_config
 from stnh_tf.training import loop, streams
+logging.set_verbosity(logging.INFO)  # the binaries' printer (absl, as under app.run)
 sleep = spec.pop("sleep_per_step", 0.0)
 shares = spec.pop("reference_shares", 0)
 if spec.pop("mask_odd", False):  # pairs of odd index without H_bar: the masked L2 term
@@ -214,7 +380,7 @@ if shares:  # one process reading the concatenated shares of `shares` processes
                  for k in range(shares)]
         cat = lambda *b: tf.nest.map_structure(lambda *t: tf.concat(t, 0), *b)
         return tf.data.Dataset.zip(tuple(parts)).map(cat)
-res = loop.train(train_config.TrainConfig(**spec), printer=print, stream_fn=stream_fn,
+res = loop.train(train_config.TrainConfig(**spec), printer=logging.info, stream_fn=stream_fn,
                  extra_callbacks=[Slow()] if sleep else ())
 print("RESULT " + json.dumps({"final_step": res["final_step"], "history": res["history"]}),
       flush=True)
@@ -229,10 +395,18 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _command(spec, log_path):
+    """The command line of a worker of ``spec`` (its script written beside ``log_path``)."""
+    script = os.path.join(os.path.dirname(log_path), "worker.py")
+    if not os.path.exists(script):
+        with open(script, "w") as f:
+            f.write(WORKER)
+    return [sys.executable, script, json.dumps({"filters": list(NARROW_FILTERS), **spec})]
+
+
 def _start(spec, log_path, cwd):
-    spec = {"filters": list(NARROW_FILTERS), **spec}
     log = open(log_path, "w")
-    return subprocess.Popen([sys.executable, "-c", WORKER, json.dumps(spec)], cwd=cwd, env=ENV,
+    return subprocess.Popen(_command(spec, log_path), cwd=cwd, env=ENV,
                             stdout=log, stderr=subprocess.STDOUT, text=True)
 
 
@@ -292,9 +466,10 @@ def generated_runs(images, tmp_path_factory):
     base = dict(image_dir=images, val_image_dir=images, samples_per_image=2, train_steps=8,
                 warmup_steps=1, batch_size=4, checkpoint_every=2, val_samples=6,
                 learning_rate=0.01, log_every=1, seed=5, mask_odd=True)
-    two = _finish(*_two_workers(tmp, "two", base))
+    procs, logs = _two_workers(tmp, "two", base)
+    two = _finish(procs, logs)
     one = _one(tmp, "one", base)
-    return {"tmp": tmp, "base": base, "one": one[0], "two": two}
+    return {"tmp": tmp, "base": base, "one": one[0], "two": two, "two_logs": logs}
 
 
 @pytest.mark.slow
@@ -306,9 +481,15 @@ def test_two_workers_equal_one_process_and_only_the_chief_writes(generated_runs)
     5e-7 relative, the validation MACE within 1.6e-5 relative (1561.776 against 1561.801 px in a
     run without the mask: estimates near a degenerate homography amplify the difference); hence
     the bounds 1e-5 on the weights and the losses, 1e-4 on the MACE. Process 1 wrote nothing:
-    neither in its own model_dir nor in its working folder."""
+    neither in its own model_dir nor in its working folder. Every line the workers log (absl's,
+    as the binaries' printer) starts with its ``[worker k/2]``, the one process's with none."""
     r = generated_runs
     tmp = r["tmp"]
+    for k, log in enumerate(r["two_logs"]):
+        lines = [ln for ln in open(log).read().splitlines() if ln.startswith("INFO:absl:")]
+        assert len([ln for ln in lines if " step 8/8 " in ln]) == 1, lines
+        assert all(ln.startswith(f"INFO:absl:[worker {k}/2] ") for ln in lines), lines
+    assert "[worker" not in open(tmp / "one.log").read()
     assert [w["final_step"] for w in r["two"]] == [8, 8]
     assert r["two"][0]["history"] == r["two"][1]["history"]  # both report the global step
     for key, rtol in (("loss", 1e-5), ("h_bar_loss", 1e-5), ("patch_a_warp_loss", 1e-5),
@@ -327,9 +508,11 @@ def test_two_workers_equal_one_process_and_only_the_chief_writes(generated_runs)
 
 @pytest.mark.slow
 def test_two_workers_resume_after_a_kill(generated_runs):
-    """Kill process 1 after the chief's first checkpoint, then the chief (process 1's death
-    would end it only after JAX's heartbeat timeout, ~100 s); the same two commands restarted
-    finish with the uninterrupted two-process run's weights."""
+    """Kill process 1 after the chief's first checkpoint: the chief logs one line (prefixed)
+    naming the lost worker, the step of its last checkpoint and its own command, and ends with
+    exit status 75 within the heartbeat timeout (not before it: the watchdog's verdict; not the
+    JAX service's abort, 55-100 s later, nor a traceback). The same two commands restarted resume
+    from that step and finish with the uninterrupted two-process run's weights."""
     r = generated_runs
     tmp = r["tmp"]
     procs, logs = _two_workers(tmp, "killed", r["base"], sleep_per_step=1.0)
@@ -339,17 +522,32 @@ def test_two_workers_resume_after_a_kill(generated_runs):
         if state.exists() and json.load(open(state))["step"] >= 2:
             break
         time.sleep(0.2)
-    step = json.load(open(state))["step"] if state.exists() else None
     assert all(p.poll() is None for p in procs), [open(g).read()[-2000:] for g in logs]
+    killed = time.monotonic()
     procs[1].send_signal(signal.SIGKILL)
-    procs[0].send_signal(signal.SIGKILL)
-    for p in procs:
-        p.wait()
-    assert step is not None and 2 <= step < 8, step
-    assert not (tmp / "killed" / "model.keras").exists()
+    try:
+        procs[0].wait(timeout=watchdog.HEARTBEAT_TIMEOUT_S + 60)
+    except subprocess.TimeoutExpired:
+        procs[0].kill()
+    waited = time.monotonic() - killed
+    procs[1].wait()
+    chief = open(logs[0]).read()
+    step = json.load(open(state))["step"]
+    assert procs[0].returncode == watchdog.LOST_EXIT_STATUS, chief[-3000:]
+    assert 2 <= step < 8 and not (tmp / "killed" / "model.keras").exists(), step
+    lost = [ln for ln in chief.splitlines() if "lost worker" in ln]
+    assert len(lost) == 1 and lost[0].startswith("ERROR:absl:[worker 0/2] lost worker 1 of 2: "), \
+        lost
+    command = ["KERAS_BACKEND=jax", "JAX_PLATFORMS=cpu", *procs[0].args]  # as ENV, _start
+    assert lost[0].endswith(f"from its last checkpoint (step {step} in {tmp / 'killed'}), start "
+                            f"the 2 workers again, each with its own command (this worker's: "
+                            f"{shlex.join(command)})"), lost[0]
+    assert "Traceback" not in chief and "Terminating process" not in chief, chief[-3000:]
+    timeout = watchdog.HEARTBEAT_TIMEOUT_S
+    assert timeout - 2 * watchdog.HEARTBEAT_EVERY_S <= waited <= timeout + 10, waited
     done = _finish(*_two_workers(tmp, "killed", r["base"]))
     assert [d["final_step"] for d in done] == [8, 8]
-    assert any(f"resuming {tmp / 'killed'} from step" in open(g).read() for g in
+    assert any(f"resuming {tmp / 'killed'} from step {step}" in open(g).read() for g in
                tmp.glob("killed-0-*.log"))
     np.testing.assert_array_equal(np.concatenate([w.ravel() for w in _weights(tmp / "killed")]),
                                   np.concatenate([w.ravel() for w in _weights(tmp / "two")]))

@@ -468,7 +468,20 @@ PROSE = [
       fig4("STN-Homography 2 stages"), fig4("STN-Homography 3 stages"),
       fig4("Sequence 2 stages"), fig4("ORB + RANSAC"), fig4("SIFT + RANSAC"),
       fig4("Identity")]),
+    # issue 62 item 4: a lost worker (docs/scale/*.json, from experiments.benchmark_workers)
+    ("docs/scale.md", rf"the chief's line came {N} s and {N} s after the kill",
+     [lambda sources, k=k: cr.fixed(_scale("lost_worker")["kills"][k]["line_after_s"])
+      for k in (0, 1)]),
+    ("docs/scale.md", rf"on the busy 2-core machine \({N} s for a beat due every second",
+     [lambda sources: cr.fixed(max(w["beat_max_gap_s"]
+                                   for w in _scale("workers_batch8")["two"]))]),
 ]
+
+
+def _scale(name):
+    """docs/scale/``name``.json (written by ``experiments.benchmark_workers``)."""
+    with open(os.path.join(ROOT, "docs", "scale", f"{name}.json")) as f:
+        return json.load(f)
 
 
 def _read(name, root=ROOT):

@@ -25,9 +25,15 @@ A run with ``strategy="data_parallel"`` (JAX backend) trains under
   nothing there, and read no checkpoint: the chief loads the checkpoint (or ``init_from``) and
   :func:`load_state` sends every model and optimizer variable and the step to the others, so
   ``model_dir`` need not be on a shared filesystem.
-* **Resume.** Killing any process stops the run (process 0's death ends the others within a
-  second; another's, after JAX's heartbeat timeout, about 100 s); restarting all of them with the
-  same command continues from the chief's last checkpoint with the same final weights.
+* **Logs.** Every Python log line of process k of N starts with ``[worker k/N]``
+  (:func:`stnh_tf.training.worker_log.prefix_logs`).
+* **A lost process.** Each process beats every second (:mod:`stnh_tf.training.watchdog`); when
+  one is killed, crashes or is cut off, each of the others logs one line 20 s after its last
+  beat, naming it, the chief's last checkpoint and the command that resumes, and ends with exit
+  status 75. The chief's death ends the others within a second, by JAX (its distributed service
+  is gone), before any line.
+* **Resume.** Restarting all of them with the same command continues from the chief's last
+  checkpoint with the same final weights.
 * **Stopping.** A non-finite loss stops every process at the same step (the loss is global);
   the time limit is read on the chief's clock and sent to all at each epoch end
   (:class:`SyncStop`).
@@ -41,9 +47,10 @@ import dataclasses
 import keras
 import numpy as np
 
+from stnh_tf.training import watchdog, worker_log
 from stnh_tf.training.config import TrainConfig
 
-CHIEF = 0
+CHIEF = watchdog.CHIEF  # 0
 """The process that writes the run's folder and whose checkpoint, clock and start decide."""
 
 
@@ -121,7 +128,10 @@ def join(cfg: TrainConfig) -> Cluster:
     """This process's :class:`Cluster`; with ``num_processes`` > 1, first joins the others at
     ``coordinator_address`` (``keras.distribution.initialize``; once a process: before any JAX
     computation, and a later call must name the same cluster). Returns at once for other
-    strategies.
+    strategies. On joining, this process's log lines get their ``[worker k/N]`` prefix
+    (:func:`stnh_tf.training.worker_log.prefix_logs`) and its watchdog starts
+    (:func:`stnh_tf.training.watchdog.watch`: a lost process ends the others with one line saying
+    how to resume).
 
     Raises:
       ValueError: ``cfg`` is not valid (:meth:`TrainConfig.validate`), another backend
@@ -139,9 +149,11 @@ def join(cfg: TrainConfig) -> Cluster:
     if cluster.multi:
         key = (cfg.coordinator_address, cluster.num_processes, cluster.process_id)
         if _JOINED is None:
+            worker_log.prefix_logs(cluster.num_processes, cluster.process_id)
             keras.distribution.initialize(cfg.coordinator_address, cluster.num_processes,
                                           cluster.process_id)
             _JOINED = key
+            watchdog.watch(cluster.num_processes, cluster.process_id, cfg.model_dir)
         elif _JOINED != key:
             raise RuntimeError(f"this process joined the cluster {_JOINED} (coordinator, "
                                f"processes, id) before; it cannot join {key}.")
