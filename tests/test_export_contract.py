@@ -145,6 +145,7 @@ def test_docs_estimate_md_holds_the_exports_contract():
     assert block == export_contract.contract_markdown()
 
 
+@pytest.mark.slow  # a few seconds of training or export: the full suite runs it
 def test_an_overwrite_replaces_the_exports_documents_and_keeps_a_users(tmp_path, caplog):
     """With --overwrite the earlier export's signature.json (here edited after it was written,
     its format kept) is replaced; a README.md the user wrote in place of the export's stays as

@@ -760,6 +760,7 @@ def test_i61_7_images_too_thin_for_the_patch_are_refused(size, refused, tmp_path
         assert str(path) in str(info.value) and f"{w} x {h}" in str(info.value)
 
 
+@pytest.mark.slow  # a few seconds of training or export: the full suite runs it
 def test_i61_8_two_exports_to_one_output_are_serialized(tmp_path, monkeypatch):
     """Item 8: two exports to one new --output were not serialized (one model won; one run
     could report success with the other's files). The export holds the output's lock
@@ -1049,6 +1050,7 @@ def test_a_run_stopped_between_checkpoints_resumes_to_the_uninterrupted_weights(
     assert moved > 1e-3 and diff <= 1e-4 * moved, (diff, moved)
 
 
+@pytest.mark.slow  # a few seconds of training or export: the full suite runs it
 def test_a_sigterm_while_training_stops_after_the_step_and_saves_it(tiny_data, tmp_path, narrow):
     """Item 10, a chunk killed by the machine's limit (``timeout`` sends SIGTERM): the run stops
     after the step it is in, saves that step's checkpoint (between checkpoints), reports it, and
@@ -1078,6 +1080,7 @@ def test_a_sigterm_while_training_stops_after_the_step_and_saves_it(tiny_data, t
     assert not (tmp_path / "run" / "model.keras").exists()
 
 
+@pytest.mark.slow  # a few seconds of training or export: the full suite runs it
 def test_after_a_time_limit_stop_the_binary_does_not_say_finished(tiny_data, tmp_path, narrow,
                                                                   monkeypatch, caplog):
     """Item 19: "finished at step N" was logged after a time-limit stop (here at the checkpoint
@@ -1090,10 +1093,25 @@ def test_after_a_time_limit_stop_the_binary_does_not_say_finished(tiny_data, tmp
                  "--train_steps=4", "--warmup_steps=1", "--batch_size=4", "--checkpoint_every=2",
                  "--val_samples=0", "--learning_rate=0.01", "--time_limit_s=1e-9"])
     monkeypatch.setattr(absl_flags, "FLAGS", flag_values)  # what run_training reads
-    caplog.set_level(logging.INFO)
-    flags_common.run_training(flags_common.config_from_flags(train_config.STAGE, flag_values),
-                              "train_stage")
-    messages = [r.getMessage() for r in caplog.records]
+    from absl import logging as absl_logging
+
+    class Lines(logging.Handler):  # the binary's own lines, on absl's logger itself: caplog's
+        def __init__(self):        # root handler misses them once a test before stopped
+            super().__init__()     # absl's propagation
+            self.messages = []
+
+        def emit(self, record):
+            self.messages.append(record.getMessage())
+
+    lines, absl_logger = Lines(), absl_logging.get_absl_logger()
+    caplog.set_level(logging.INFO, logger=absl_logger.name)
+    absl_logger.addHandler(lines)
+    try:
+        flags_common.run_training(flags_common.config_from_flags(train_config.STAGE, flag_values),
+                                  "train_stage")
+    finally:
+        absl_logger.removeHandler(lines)
+    messages = lines.messages
     step = json.loads((tmp_path / "run" / "checkpoint" / "state.json").read_text())["step"]
     assert not any(m.startswith("finished") for m in messages), messages
     assert messages[-1] == (f"stopped by the time limit at step {step} of 4, not finished: the "
@@ -1401,6 +1419,7 @@ def test_a_damaged_checkpoint_is_refused_naming_its_files(_first_checkpoint, tmp
     assert _files(folder) == before
 
 
+@pytest.mark.slow  # a few seconds of training or export: the full suite runs it
 def test_a_checkpoint_without_its_state_is_resumed_not_deleted(_first_checkpoint, tmp_path,
                                                                narrow, caplog):
     """Item 18: with state.json deleted, the run restarted from step 0 and deleted the complete

@@ -283,6 +283,7 @@ def test_an_all_unlabeled_run_is_the_l1_loss_alone(tiny_data, tmp_path, narrow):
         assert any(not np.array_equal(a, b) for a, b in zip(runs["unlabeled"], runs[other]))
 
 
+@pytest.mark.slow  # a few seconds of training or export: the full suite runs it
 def test_unlabeled_pairs_cost_the_same_computation(tiny_data, narrow):
     """The streams' batches have the same structure, shapes and dtypes with or without labels,
     and one traced training step (forward, every loss, gradients, update) of a run with
@@ -351,6 +352,7 @@ def test_an_unlabeled_pairs_true_h_never_reaches_the_step(tiny_data, narrow):
     assert logs["patch_a_warp_valid_loss"] > 0  # the unlabeled pairs did train
 
 
+@pytest.mark.slow  # a few seconds of training or export: the full suite runs it
 def test_labeled_pairs_train_exactly_as_in_the_papers_recipe(tiny_data, narrow):
     """A fully labeled run builds the paper's model and losses (outputs h_bar and patch_a_warp,
     L2 on H_bar and L1 against patch_a_t; the losses of the first step equal NumPy's for the
