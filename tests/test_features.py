@@ -103,3 +103,13 @@ def test_the_papers_path_has_no_feature_start():
     assert EstimateOptions().features == "none"
     with pytest.raises(ValueError, match="features must be one of"):
         EstimateOptions(features="orb")
+
+
+def test_the_feature_start_uses_the_tuned_sift_baselines_settings():
+    """features.SIFT / RATIO are a copy of the tuned baseline's (the inference layer may not
+    import the evaluation layer): the two stay the same numbers."""
+    from stnh_tf.evaluation import baselines
+
+    tuned = baselines.SIFT_SETTINGS
+    assert features.SIFT == {k: tuned[k] for k in features.SIFT}
+    assert features.RATIO == tuned["ratio"]
