@@ -228,11 +228,20 @@ def test_watchdog_finds_the_process_whose_beats_stop():
     assert store.values[watchdog._BEAT_KEY.format(0)] == "40"
     assert dogs[0].beaten_since(38.0) is False and dogs[1].beaten_since(38.0) is False
     dogs = _watchdogs(2, store, lambda: now[0])  # (process 1 beats each round: seen by 0)
-    for t in (40.0, 41.0):
+    for t in (40.0, 41.0, 42.0):
         now[0] = t
         dogs[1].check()
         dogs[0].check()
     assert dogs[0].beaten_since(40.5) and not dogs[0].beaten_since(41.0)
+    now[0] = 43.0  # process 1 beats, then is killed; process 0 fails at 43.2 and reads it at 43.5
+    dogs[1].check()
+    now[0] = 43.5
+    dogs[0].check()
+    assert not dogs[0].beaten_since(43.2)  # one change after 43.2: the beat came before it
+    for t in (44.5, 45.5, 70.0):
+        now[0] = t
+        assert dogs[0].check() == ([1] if t == 70.0 else None)
+    assert not dogs[0].beaten_since(43.2)
 
     now[0], store = 0.0, Store()  # a process done with its work (at exit) is no longer watched
     dogs = _watchdogs(2, store, lambda: now[0])

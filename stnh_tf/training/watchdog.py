@@ -141,8 +141,8 @@ class Watchdog(threading.Thread):
         self.all_done = threading.Event()  # set when every other process is done
         self._lock, self._exiting, self._last_round = threading.Lock(), False, None
         start = clock()
-        self._seen = {j: (None, start) for j in range(self.num_processes)
-                      if j != self.process_id}  # id: (its last value, when it changed)
+        self._seen = {j: (None, start, -float("inf")) for j in range(self.num_processes)
+                      if j != self.process_id}  # id: (last value, when it changed, change before)
 
     def check(self):
         """One round: beat (unless stopped or done), read the others' beats; the ids of the lost
@@ -162,11 +162,11 @@ class Watchdog(threading.Thread):
                 return None if self.process_id == CHIEF else [CHIEF]
             lost = []
             for j, value in values.items():
-                last, since = self._seen[j]
+                last, since, _ = self._seen[j]
                 if value == _DONE:
                     del self._seen[j]
                 elif value != last:
-                    self._seen[j] = (value, now)
+                    self._seen[j] = (value, now, since)
                 elif now - since > self.timeout_s:
                     lost.append(j)
             if not self._seen:
@@ -186,10 +186,12 @@ class Watchdog(threading.Thread):
         self.verdict.set()
 
     def beaten_since(self, t: float) -> bool:
-        """Whether every other process not done has beaten after time ``t`` of :attr:`clock`
-        (as seen by :meth:`check`): none of them is lost."""
+        """Whether every other process not done was alive after time ``t`` of :attr:`clock`: two
+        changes of its beat seen by :meth:`check` after ``t`` (one is not enough: a process killed
+        just before ``t`` may have written a beat that the first round after ``t`` reads; a second
+        change needs a write after that round)."""
         with self._lock:
-            return all(since > t for _, since in self._seen.values())
+            return all(before > t for _, _, before in self._seen.values())
 
     def stop_beating(self) -> None:
         """Beat no more (this process is failing): the others will find it lost."""
@@ -245,7 +247,7 @@ def watch(num_processes: int, process_id: int, model_dir: str | None = None,
     others (:meth:`Watchdog.finish`): a collective that lost a peer raises at once (a
     ``JaxRuntimeError``, or a ``ValueError`` from ``multihost_utils``), and the binary or script
     then ends, but the line still comes. An uncaught exception (``sys.excepthook``) first waits
-    until every other process has beaten again (about a round), or one is lost (its line then
+    until every other process has beaten twice (about two rounds), or one is lost (its line then
     comes instead of the traceback), then stops the beats, prints the traceback and ends the
     process at once (exit status 1: the others, maybe stuck in a collective with it, then find it
     lost). The watchdog, or None on one process or without JAX's service.
