@@ -30,7 +30,7 @@ from stnh_tf.inference.options import EstimateOptions
 
 flags.DEFINE_string("pairs_dir", None, "Folder of pairs (make_camera_pairs).", required=True)
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
-flags.DEFINE_list("methods", list(camera_pairs.METHODS),
+flags.DEFINE_list("methods", list(camera_pairs.DEFAULT_METHODS),
                   f"Methods, among {','.join(camera_pairs.METHODS)}.")
 flags.DEFINE_integer("max_pairs", 0, "Only the first this many pairs (0: all).")
 flags.DEFINE_bool("per_pair", False, "Also print each pair's errors and flag.")

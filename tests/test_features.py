@@ -73,6 +73,7 @@ def test_feature_start_recovers_wide_motions_and_the_flag_stays_honest(estimator
         assert est.feature_start[0] and not est.implausible[0], mode
         assert est.network_move_px[0] == pytest.approx(
             _corner_error(est.homography[0], est.network_homography[0]), rel=1e-6)
+        np.testing.assert_allclose(est.network_homography[0], np.eye(3), atol=1e-12)  # its own
 
 
 def test_feature_start_that_cannot_be_confirmed_is_flagged(estimator):
@@ -113,3 +114,45 @@ def test_the_feature_start_uses_the_tuned_sift_baselines_settings():
     tuned = baselines.SIFT_SETTINGS
     assert features.SIFT == {k: tuned[k] for k in features.SIFT}
     assert features.RATIO == tuned["ratio"]
+
+
+def _pipeline(estimator, calls):
+    """``run(patch_a, patch_b, contexts, options)`` of ``estimate_images`` (the estimator's
+    pipeline at the central patch's origin), recording each call's ``options.search`` and whether
+    it started from the identity (its context is work_a itself)."""
+    def run(a, b, contexts, options):
+        calls.append(options.search)
+        return estimator._run(a, b, contexts, image_input.PATCH_ORIGIN, options, 64)
+    return run
+
+
+def _work(image):
+    return image_input.work_image(image, "image", "rgb")[0]
+
+
+def test_fallback_tries_the_feature_start_before_the_search(estimator):
+    """With features="fallback" the pipeline from the identity runs without the search; a
+    confirmed feature start is kept and the search from the identity never runs (two pipeline
+    calls: the network alone, then from the start). Where the start is not confirmed (unrelated
+    photographs), the result is the same, bit for bit, as the feature pass after the pipeline
+    with the search, which then runs."""
+    options = dataclasses.replace(WHOLE, features="fallback", refine="none", verify="none")
+    a, b = (_work(x) for x in _pair(_wide_motion(-100.0, 2.2)))
+    calls = []
+    est = features.estimate(_pipeline(estimator, calls), a, b, options, image_input.PATCH_ORIGIN)
+    assert est.feature_start[0] and not est.implausible[0] and calls == ["none", "ecc"]
+
+    other = _work(cv2.resize(skimage.data.camera(), (W, H), interpolation=cv2.INTER_AREA))
+    other[:100, :110] = a[20:120, 30:140]  # a corner of work_a, shifted: matches there only
+    calls = []
+    est = features.estimate(_pipeline(estimator, calls), a, other, options,
+                            image_input.PATCH_ORIGIN)
+    assert calls == ["none", "ecc", "ecc"]  # the network alone, from the start, the search
+    assert not features.confirmed(features.candidate(_pipeline(estimator, []), a, other, options,
+                                                     image_input.PATCH_ORIGIN), options)
+    run = _pipeline(estimator, [])
+    first = run(image_input.central_patch(a), image_input.central_patch(other), [a], options)
+    ref = features.feature_pass(run, a, other, first, options, image_input.PATCH_ORIGIN)
+    for field in ("homography", "implausible", "alignment_ncc", "feature_start", "searched",
+                  "network_homography"):
+        np.testing.assert_array_equal(getattr(est, field), getattr(ref, field), err_msg=field)

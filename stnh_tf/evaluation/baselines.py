@@ -370,11 +370,22 @@ def _orb_default(**settings):
     return OrbRansac(**{**ORB_DEFAULT_SETTINGS, **settings})
 
 
+SIFT_WIDE_SETTINGS = {**SIFT_SETTINGS, "ransac_method": "USAC_MAGSAC", "max_area_ratio": 16.0}
+"""SIFT for wide baselines (issue 64): the tuned SIFT with ``cv2.USAC_MAGSAC`` (the estimator's
+feature start's) and area changes up to 16x (zooms up to 4x) instead of 4x, which the tuned
+plausibility rule refuses. Not tuned."""
+
+
+def _sift_wide(**settings):
+    return SiftRansac(**{**SIFT_WIDE_SETTINGS, **settings})
+
+
 BASELINES = {
     "identity": IdentityBaseline,
     "orb_ransac": OrbRansac,
     "sift_ransac": SiftRansac,
     "orb_default": _orb_default,
+    "sift_wide": _sift_wide,
 }
 """Name -> constructor (keyword settings override the defaults)."""
 

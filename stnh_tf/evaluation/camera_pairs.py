@@ -32,8 +32,11 @@ from stnh_tf import geometry
 from stnh_tf.data import camera_motions, camera_pair_files
 from stnh_tf.evaluation import baselines
 
-METHODS = ("estimator", "sift_ransac", "orb_ransac", "identity")
-"""The methods :func:`benchmark` can run."""
+METHODS = ("estimator", "sift_ransac", "orb_ransac", "identity", "sift_wide")
+"""The methods :func:`benchmark` can run (``sift_wide``:
+:data:`stnh_tf.evaluation.baselines.SIFT_WIDE_SETTINGS`, for the wide-baseline groups)."""
+DEFAULT_METHODS = METHODS[:4]
+"""The methods :func:`benchmark` runs by default."""
 SUCCESS_PX = 3.0
 FLAG_ERROR_PX = 5.0
 
@@ -141,7 +144,7 @@ def summarize(run: dict, errors, patch_errs, success_px=SUCCESS_PX,
     return out
 
 
-def benchmark(pairs, methods=METHODS, estimator=None, options=None, success_px=SUCCESS_PX,
+def benchmark(pairs, methods=DEFAULT_METHODS, estimator=None, options=None, success_px=SUCCESS_PX,
               flag_error_px=FLAG_ERROR_PX, per_pair=False) -> dict:
     """Every method of ``methods`` on ``pairs`` (:class:`~stnh_tf.data.camera_motions.CameraPair`),
     summarized per group (:data:`stnh_tf.data.camera_motions.ALL_GROUPS`, those present) and over
@@ -196,7 +199,7 @@ def benchmark(pairs, methods=METHODS, estimator=None, options=None, success_px=S
     return result
 
 
-def benchmark_folder(folder, methods=METHODS, model=None, options=None, max_pairs: int = 0,
+def benchmark_folder(folder, methods=DEFAULT_METHODS, model=None, options=None, max_pairs: int = 0,
                      per_pair: bool = False) -> dict:
     """:func:`benchmark` on the pairs of a folder written by
     :func:`stnh_tf.data.camera_motions.write_pairs` (the first ``max_pairs``; 0: all), the

@@ -342,12 +342,10 @@ class HomographyEstimator:
             # unless a retry needs the flag first, the ECC check from the same start
             network = dataclasses.replace(options, refine="none",
                                           verify=options.verify if options.retries else "none")
-        result = self._run(central_patch(work_a), central_patch(work_b), [work_a], PATCH_ORIGIN,
-                           network, 64)
-        network_h = result.network_homography
         run = lambda a, b, contexts, opts: self._run(a, b, contexts, PATCH_ORIGIN, opts, 64)  # noqa
         # a deviation (issue 64): a start from SIFT matches for wide baselines
-        result = features.feature_pass(run, work_a, work_b, result, network, PATCH_ORIGIN)
+        result = features.estimate(run, work_a, work_b, network, PATCH_ORIGIN)
+        network_h = result.network_homography
         confirmed = bool(result.feature_start[0] and not result.implausible[0])
         if options.coarse != "none" and not confirmed:
             # a deviation (issue 46): motions beyond the trained range

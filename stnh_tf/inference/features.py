@@ -107,28 +107,18 @@ def wanted(first, options: EstimateOptions) -> bool:
     return options.features == "always" or coarse.needs_pass(first, options)
 
 
-def feature_pass(run, work_a, work_b, first, options: EstimateOptions, origin):
-    """The estimate of one pair with ``options.features``: ``first`` (the pipeline's
-    ``Estimate`` from the identity) where the feature start is not :func:`wanted` or fails, or
-    where neither ``G @ H`` (``H``: ``run(patch_a, patch_b, contexts, options)``, the pipeline on
-    the central patches of work_a warped by ``G`` and of work_b) nor ``G`` aligns the work images
-    better (:func:`stnh_tf.inference.coarse.image_ncc`) than ``first``; else the better of the
-    two: homography in the patch frame (``[2, 2] = 1``), ``alignment_ncc`` measured in work_a,
-    ``feature_start`` set, the other fields those of the rest ``H``, flagged by
-    :func:`stnh_tf.inference.coarse.flag` (no corner rule).
-
-    Args:
-      run: the estimator's pipeline on ``[1, S, S, 1]`` patches with their contexts.
-      work_a, work_b: the ``[240, 320]`` float work images.
-      first: an ``Estimate`` with B = 1 (patch frame).
-      options: the options of ``run``.
-      origin: ``(x0, y0)`` of the central patch in the work images.
-    """
-    if not wanted(first, options):
-        return first
+def candidate(run, work_a, work_b, options: EstimateOptions, origin):
+    """The feature start's estimate of one pair, or ``None`` where :func:`feature_start` finds no
+    start: ``G @ H`` (``H``: ``run(patch_a, patch_b, contexts, options)``, the pipeline on the
+    central patches of work_a warped by ``G`` and of work_b) or ``G`` itself, whichever aligns the
+    work images better (:func:`stnh_tf.inference.coarse.image_ncc`; ``G @ H`` on a tie): an
+    ``Estimate`` (B = 1) with that homography in the patch frame (``[2, 2] = 1``),
+    ``alignment_ncc`` measured in work_a, ``feature_start`` set, the other fields those of ``H``,
+    flagged by :func:`stnh_tf.inference.coarse.flag` (no corner rule). Arguments as in
+    :func:`feature_pass`."""
     h_image = feature_start(work_a, work_b)
     if h_image is None:
-        return first
+        return None
     g = geometry.image_to_patch(h_image, *origin)
     context = coarse.warp_context(work_a, g, origin)
     est = run(central_patch(context), central_patch(work_b), [context], options)
@@ -136,8 +126,6 @@ def feature_pass(run, work_a, work_b, first, options: EstimateOptions, origin):
     score = lambda h: coarse.image_ncc(work_a, work_b, h, origin, t.min_overlap)  # noqa: E731
     refined = geometry.scale_to_unit(g @ est.homography[0])
     total = max((refined, g), key=score)  # the network's rest first on a tie
-    if not score(total) > score(first.homography[0]):
-        return first
     patch_b = central_patch(work_b)[0, ..., 0]
     ncc = checks.alignment_ncc(work_a, patch_b, total, origin, t.min_overlap)
     move = est.verify_move_px
@@ -150,3 +138,71 @@ def feature_pass(run, work_a, work_b, first, options: EstimateOptions, origin):
     featured = dataclasses.replace(est, homography=total[None], alignment_ncc=np.array([ncc]),
                                    feature_start=np.array([True]), verify_move_px=move)
     return coarse.flag(featured, options)
+
+
+def confirmed(est, options: EstimateOptions) -> bool:
+    """Whether ``est`` (an ``Estimate`` of one pair) is a feature start's estimate that needs no
+    search: made from the feature start, not flagged, and aligned at least at
+    ``thresholds.search_below_ncc`` (the search's trigger)."""
+    return bool(est.feature_start is not None and est.feature_start[0]
+                and not est.implausible[0]
+                and est.alignment_ncc[0] >= options.thresholds.search_below_ncc)
+
+
+def better(made, first, work_a, work_b, options: EstimateOptions, origin) -> bool:
+    """Whether the feature start's estimate ``made`` (:func:`candidate`; ``None``: none) aligns
+    the work images better than ``first`` (:func:`stnh_tf.inference.coarse.image_ncc`)."""
+    if made is None:
+        return False
+    t = options.thresholds
+    score = lambda h: coarse.image_ncc(work_a, work_b, h, origin, t.min_overlap)  # noqa: E731
+    return score(made.homography[0]) > score(first.homography[0])
+
+
+NOT_MADE = object()
+"""The ``made`` of :func:`feature_pass` when the feature start was not tried yet."""
+
+
+def feature_pass(run, work_a, work_b, first, options: EstimateOptions, origin, made=NOT_MADE):
+    """The estimate of one pair with ``options.features``: ``first`` (the pipeline's
+    ``Estimate`` from the identity) where the feature start is not :func:`wanted` or fails, or
+    where its estimate (:func:`candidate`) does not align the work images better than ``first``
+    (:func:`better`); else that estimate.
+
+    Args:
+      run: the estimator's pipeline on ``[1, S, S, 1]`` patches with their contexts.
+      work_a, work_b: the ``[240, 320]`` float work images.
+      first: an ``Estimate`` with B = 1 (patch frame).
+      options: the options of ``run``.
+      origin: ``(x0, y0)`` of the central patch in the work images.
+      made: :func:`candidate`'s result for this pair if already made (not made again).
+    """
+    if not wanted(first, options):
+        return first
+    if made is NOT_MADE:
+        made = candidate(run, work_a, work_b, options, origin)
+    return made if better(made, first, work_a, work_b, options, origin) else first
+
+
+def estimate(run, work_a, work_b, options: EstimateOptions, origin):
+    """The estimate of one pair from its central patches with ``options.features``:
+    ``run(patch_a, patch_b, [work_a], options)``, then :func:`feature_pass`. With
+    ``"fallback"`` (and a search, no retry) the feature start comes before the search: the
+    pipeline runs first without the search; where the feature start is :func:`wanted`, its
+    estimate (:func:`candidate`) is kept if :func:`confirmed` and :func:`better` than that;
+    otherwise the pipeline runs again with the search and :func:`feature_pass` follows as
+    without the early start (the same result, one network pass later). Its
+    ``network_homography`` is always the network's own estimate from the identity start.
+    Arguments as in :func:`feature_pass`."""
+    patches = (central_patch(work_a), central_patch(work_b), [work_a])
+    early = options.features == "fallback" and options.search != "none" and not options.retries
+    first = run(*patches, dataclasses.replace(options, search="none") if early else options)
+    made = NOT_MADE
+    if early and wanted(first, options):
+        made = candidate(run, work_a, work_b, options, origin)
+        if made is not None and confirmed(made, options) and better(made, first, work_a, work_b,
+                                                                    options, origin):
+            return dataclasses.replace(made, network_homography=first.network_homography)
+        first = run(*patches, options)  # the search, as without the early start
+    result = feature_pass(run, work_a, work_b, first, options, origin, made)
+    return dataclasses.replace(result, network_homography=first.network_homography)
