@@ -6,10 +6,12 @@ estimator's implausibility flag as a detector of estimates more than 5 px off
 
   python -m experiments.benchmark_camera_pairs --pairs_dir=/tmp/camera_pairs
   python -m experiments.benchmark_camera_pairs --pairs_dir=D --methods=sift_ransac,identity
-  python -m experiments.benchmark_camera_pairs --pairs_dir=D --coarse=none --refine=none \
-      --verify=none                                          # EstimateOptions()
-  python -m experiments.benchmark_camera_pairs --pairs_dir=D --coarse=none --refine=none \
-      --verify=none --search=none                            # the network alone
+  python -m experiments.benchmark_camera_pairs --pairs_dir=D --features=none --coarse=none \
+      --refine=none --verify=none                            # EstimateOptions()
+  python -m experiments.benchmark_camera_pairs --pairs_dir=D --features=none --coarse=none \
+      --refine=none --verify=none --search=none              # the network alone
+  python -m experiments.benchmark_camera_pairs --pairs_dir=D \
+      --methods=estimator,sift_ransac,sift_wide,orb_ransac,identity   # SIFT for wide baselines too
 
 The estimator runs with ``estimate_images``' default options (``EstimateOptions.photographs()``)
 unless the flags say otherwise.

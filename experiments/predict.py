@@ -5,8 +5,8 @@ r"""Estimate the homography between two images and draw the alignment.
       [--coarse=none --refine=none --verify=none]
 
 The estimator's options default to ``estimate_images``' (``EstimateOptions.photographs()``: the
-coarse pass, the whole-image refinement, the ECC check of the flag); ``--coarse=none
---refine=none --verify=none`` give ``EstimateOptions()``.
+feature start, the coarse pass, the whole-image refinement, the ECC check of the flag);
+``--features=none --coarse=none --refine=none --verify=none`` give ``EstimateOptions()``.
 
 Prints a JSON object whose ``homography`` maps image_b pixel coordinates (x, y) to image_a pixel
 coordinates (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``) and

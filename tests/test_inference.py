@@ -1185,14 +1185,15 @@ def test_predict_binary(identity_model_path, tmp_path):
     # A model whose estimate moves a patch corner by 60 px (trained range: 32) gets a warning;
     # with --retry_tta it is estimated again (each symmetry's estimate moves a corner 60 px too).
     # --search=none: the network's estimate is what is tested (the search could align the pair);
-    # --coarse=none --refine=none --verify=none: EstimateOptions()' path, not photographs()'.
+    # --features=none --coarse=none --refine=none --verify=none: EstimateOptions()' path, not
+    # photographs()' (whose feature start would align the pair: a with itself).
     far = np.eye(3)
     far[0, 2] = 60.0
     constant_stage(far, "far").save(tmp_path / "far.keras")
     proc = _run("experiments.predict", f"--image_a={tmp_path / 'a.png'}",
                 f"--image_b={tmp_path / 'a.png'}", f"--model={tmp_path / 'far.keras'}",
                 f"--output_dir={tmp_path / 'far'}", "--retry_tta=flips", "--search=none",
-                "--coarse=none", "--refine=none", "--verify=none")
+                "--features=none", "--coarse=none", "--refine=none", "--verify=none")
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads(proc.stdout)
     assert result["implausible"] is True and result["retried"] is True

@@ -377,8 +377,8 @@ class HomographyEstimator:
           options: as in :meth:`estimate` (search and refinement align patch_b with the
             320 x 240 image_a; test-time augmentation transforms image_a with its patch);
             ``None``: the estimator's ``image_options`` (by default
-            ``EstimateOptions.photographs()``: the coarse pass, the whole-image refinement and
-            the ECC check of the flag; deviations, docs/estimate.md);
+            ``EstimateOptions.photographs()``: the feature start, the coarse pass, the
+            whole-image refinement and the ECC check of the flag; deviations, docs/estimate.md);
             ``options.coarse`` (used here only): the coarse pass for motions beyond the trained
             range (:mod:`stnh_tf.inference.coarse`); ``refine="images"``: ECC over the whole images
             at the end (:mod:`stnh_tf.inference.image_refine`).

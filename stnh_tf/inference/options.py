@@ -63,7 +63,9 @@ issue 64): ``"none"``; ``"fallback"``: where the network's estimate fails the co
 trigger (:func:`stnh_tf.inference.coarse.needs_pass`), OpenCV SIFT matched with
 ``cv2.USAC_MAGSAC`` gives a start ``G``, the network's stages estimate the rest from image_a
 warped by ``G``, and the result replaces the network's where it aligns the work images better;
-``"always"``: the same for every pair, as one more candidate scored by the same measure."""
+``"always"``: the same for every pair, as one more candidate scored by the same measure.
+``EstimateOptions.photographs()`` (``estimate_images``' default) uses ``"fallback"``, which
+tries the start before the search (:func:`stnh_tf.inference.features.estimate`)."""
 
 TTAS = {"none": ("identity",),
         "flips": ("identity", "flip_x", "flip_y", "rotate_180"),
@@ -182,7 +184,7 @@ class EstimateOptions:
         64): a start from OpenCV SIFT matches (:mod:`stnh_tf.inference.features`) refined by the
         network's stages, kept where it aligns the work images better; ``"fallback"`` for pairs
         the network's estimate aligns poorly, ``"always"`` for every pair. ``"none"``
-        (default): none.
+        (default; ``photographs()``: ``"fallback"``): none.
     """
 
     search: str = "ecc"
@@ -221,16 +223,18 @@ class EstimateOptions:
 
     @classmethod
     def photographs(cls, **changes) -> "EstimateOptions":
-        """``estimate_images``' default, for real photographs (issue 46; deviations from the
-        paper): ``EstimateOptions()`` with the coarse pass (``coarse="rotations"``), the
-        whole-image refinement (``refine="images"``) and the ECC check of the flag
-        (``verify="ecc"``). ``changes`` override fields.
+        """``estimate_images``' default, for real photographs (issues 46 and 64; deviations from
+        the paper): ``EstimateOptions()`` with the coarse pass (``coarse="rotations"``), the
+        whole-image refinement (``refine="images"``), the ECC check of the flag
+        (``verify="ecc"``) and the feature start where the network's estimate aligns poorly
+        (``features="fallback"``). ``changes`` override fields.
 
         >>> o = EstimateOptions.photographs()
-        >>> o.coarse, o.refine, o.verify, o.search
-        ('rotations', 'images', 'ecc', 'ecc')
+        >>> o.coarse, o.refine, o.verify, o.search, o.features
+        ('rotations', 'images', 'ecc', 'ecc', 'fallback')
         """
-        return cls(**{"coarse": "rotations", "refine": "images", "verify": "ecc", **changes})
+        return cls(**{"coarse": "rotations", "refine": "images", "verify": "ecc",
+                      "features": "fallback", **changes})
 
     @property
     def tta_symmetries(self) -> tuple:
