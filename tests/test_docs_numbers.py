@@ -114,6 +114,29 @@ def cam_row(source, method="estimator", flag=True):
     return cells
 
 
+def wide_rows(seed):
+    """The two rows (wide, wide_low_light) of a wide-baseline table of BENCHMARKS.md."""
+    method = rf"(\d+) of \d+, {N} px, (\d+) ms"
+    return (rf"\| seed {seed} \| wide \| (\d+) of (\d+), {N} px, (\d+) ms \| {method} \| "
+            rf"{method} \| {method} \| (\d+) of \d+, {N} px \| (\d+) of (\d+), (\d+) of (\d+) \|\n"
+            rf"\| seed {seed} \| wide_low_light \| (\d+) of (\d+), {N} px, (\d+) ms \| {method} \| "
+            rf"{method} \| {method} \| (\d+) of \d+, {N} px \| (\d+) of (\d+), (\d+) of (\d+) \|")
+
+
+def wide_cells(source):
+    """The numbers of :func:`wide_rows` from ``source``."""
+    def count(g):
+        return lambda sources: str(cr.value(sources, source, f"groups/{g}/estimator")["count"])
+    return [f for g in ("wide", "wide_low_light") for f in (
+        cam(source, g, "estimator", "ok"), count(g), cam(source, g, "estimator", "mace"),
+        cam(source, g, "estimator", "ms"),
+        *[cam(source, g, m, f) for m in ("sift_ransac", "sift_wide", "orb_ransac")
+          for f in ("ok", "mace", "ms")],
+        cam(source, g, "identity", "ok"), cam(source, g, "identity", "mace"),
+        *[cam(source, g, "estimator", f)
+          for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")])]
+
+
 def probe(key, source="schedule_probe"):
     """Steps/s of one variant of a GPU probe (its keys hold a slash: read directly)."""
     return lambda sources: f"{sources[source]['fit'][key]['steps_per_s']:.1f}"
@@ -172,15 +195,21 @@ PROSE = [
      rf"\| 0, `EstimateOptions\(\)` \| {N} \({N}\) px, (\d+) of 100 \| (\d+) / (\d+) of 100 \| "
      rf"(\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera0_default")),
     ("docs/estimate.md",
-     rf"\| 0, `photographs\(\)` \| \*\*{N}\*\* \({N}\) px, (\d+) \| \*\*(\d+)\*\* / "
-     rf"\*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
-     cam_row("camera0_photographs")),
+     rf"\| 0, `photographs\(features=\"none\"\)` \(issue 46\) \| {N} \({N}\) px, (\d+) \| "
+     rf"(\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera0_photographs")),
+    ("docs/estimate.md",
+     rf"\| 0, \*\*`photographs\(\)`\*\*, with the feature start \| \*\*{N}\*\* \({N}\) px, (\d+) "
+     rf"\| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
+     cam_row("camera0_features")),
     ("docs/estimate.md", rf"\| 0, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
      cam_row("camera0_default", "sift_ransac", flag=False)),
     ("docs/estimate.md",
-     rf"\| 1, `photographs\(\)` \| \*\*{N}\*\* \({N}\) px, (\d+) \| \*\*(\d+)\*\* / "
-     rf"\*\*(\d+)\*\* \| "
-     rf"\*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|", cam_row("camera1_photographs")),
+     rf"\| 1, `photographs\(features=\"none\"\)` \(issue 46\) \| {N} \({N}\) px, (\d+) \| "
+     rf"(\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera1_photographs")),
+    ("docs/estimate.md",
+     rf"\| 1, \*\*`photographs\(\)`\*\*, with the feature start \| \*\*{N}\*\* \({N}\) px, (\d+) "
+     rf"\| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
+     cam_row("camera1_features")),
     ("docs/estimate.md", rf"\| 1, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
      cam_row("camera1_photographs", "sift_ransac", flag=False)),
     ("BENCHMARKS.md",
@@ -199,30 +228,8 @@ PROSE = [
       for f in ("mace", "median", "ok")]
      + [cam("camera1_photographs", "all", "estimator", f)
         for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")]),
-    ("BENCHMARKS.md",  # issue 64: the wide-baseline group
-     rf"\| wide \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \| "
-     rf"(\d+) of \d+, {N} px, (\d+) ms \| (\d+) of \d+, {N} px \| (\d+) of (\d+), (\d+) of "
-     rf"(\d+) \|\n\| wide_low_light \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, "
-     rf"(\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \| (\d+) of \d+, {N} px \| (\d+) of (\d+), "
-     rf"(\d+) of (\d+) \|",
-     [f for g in ("wide", "wide_low_light") for f in (
-         cam("camera0_wide_features", g, "estimator", "ok"),
-         lambda sources, g=g: str(cr.value(sources, "camera0_wide_features",
-                                           f"groups/{g}/estimator")["count"]),
-         cam("camera0_wide_features", g, "estimator", "mace"),
-         cam("camera0_wide_features", g, "estimator", "ms"),
-         cam("camera0_wide_features", g, "sift_ransac", "ok"),
-         cam("camera0_wide_features", g, "sift_ransac", "mace"),
-         cam("camera0_wide_features", g, "sift_ransac", "ms"),
-         cam("camera0_wide_features", g, "orb_ransac", "ok"),
-         cam("camera0_wide_features", g, "orb_ransac", "mace"),
-         cam("camera0_wide_features", g, "orb_ransac", "ms"),
-         cam("camera0_wide_features", g, "identity", "ok"),
-         cam("camera0_wide_features", g, "identity", "mace"),
-         cam("camera0_wide_features", g, "estimator", "flag:flagged_bad"),
-         cam("camera0_wide_features", g, "estimator", "flag:bad"),
-         cam("camera0_wide_features", g, "estimator", "flag:flagged_good"),
-         cam("camera0_wide_features", g, "estimator", "good"))]),
+    *[("BENCHMARKS.md", wide_rows(seed), wide_cells(f"camera{seed}_wide_features"))
+      for seed in (0, 1)],  # issue 64: the wide-baseline groups
     ("BENCHMARKS.md",  # issue 64, item 3: the speed table
      rf"\| within \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \|\n"
      rf"\| 1-2x \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \|\n"

@@ -1,5 +1,6 @@
-"""The feature-based start of ``estimate_images`` (issue 64; a deviation from the paper, off by
-default: ``EstimateOptions(features="fallback")`` or ``"always"``).
+"""The feature-based start of ``estimate_images`` (issue 64; a deviation from the paper:
+``EstimateOptions(features="fallback")``, part of ``EstimateOptions.photographs()``,
+``estimate_images``' default, or ``"always"``; off in ``EstimateOptions()``).
 
 The network was trained on corners moved by up to 32 px in the 128 x 128 patch; the coarse pass
 (:mod:`stnh_tf.inference.coarse`) reaches rotations up to 45 degrees and zooms 0.7-1.4. For wider
@@ -11,8 +12,9 @@ warped by that start ``G`` (:func:`stnh_tf.inference.coarse.warp_context`), the 
 pipeline (the network's stages, the search and refinement its options ask for) estimates the
 rest ``H`` from it, and the better of ``G @ H`` and ``G`` by the whole work images' alignment
 (:func:`stnh_tf.inference.coarse.image_ncc`) replaces the network's estimate where it aligns the
-work images better (:func:`feature_pass`). The whole-image ECC of ``refine="images"`` follows
-as for any estimate.
+work images better (:func:`feature_pass`). With ``"fallback"`` the start is tried before the
+search, which runs only where the start's estimate is not confirmed (:func:`estimate`). The
+whole-image ECC of ``refine="images"`` follows as for any estimate.
 
 The flag stays the alignment's: an estimate made from the feature start has
 ``Estimate.feature_start`` set and no corner rule (the motion may be anything), but is flagged
