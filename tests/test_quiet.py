@@ -34,6 +34,7 @@ def _binary_stderr(env, *args):
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+@pytest.mark.slow
 def test_a_binary_that_starts_tensorflow_is_quiet_unless_asked(tmp_path):
     """``export`` refusing a non-empty --output after loading the shipped model (TensorFlow
     imported, its CPU/GPU devices set up): by default stderr holds the refusal and none of

@@ -768,6 +768,7 @@ def test_no_verdict_at_the_smoke_budget_nor_from_rows_worse_than_the_identity(tm
     assert tiny["text"] in table and "claim holds" not in table
 
 
+@pytest.mark.slow
 def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_path, narrow):
     """A finished model goes to the repository folder without optimizer state (same weights) with
     its config; an unfinished one as its checkpoint; both come back into a fresh output folder,

@@ -108,6 +108,7 @@ def straight_run(tiny_data, tmp_path_factory):
     return model_dir
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("where", ["after_checkpoint", "inside_checkpoint"])
 def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, straight_run, tmp_path,
                                                              monkeypatch, narrow, where):
@@ -817,8 +818,10 @@ def _scalars(folder):
 
 @pytest.mark.parametrize("log_every, checkpoint_every, train_steps, logged", [
     (1, 2, 6, [1, 2, 3, 4, 5, 6]),
-    (50, 3, 6, [1, 2, 3, 4, 5, 6]),   # a run shorter than log_every: at least ten reports
-    (4, 3, 12, [2, 4, 6, 8, 10, 12]),  # checkpoint_every not a multiple of log_every
+    pytest.param(50, 3, 6, [1, 2, 3, 4, 5, 6],  # a run shorter than log_every: >= ten reports
+                 marks=pytest.mark.slow),
+    pytest.param(4, 3, 12, [2, 4, 6, 8, 10, 12],  # checkpoint_every not a multiple of log_every
+                 marks=pytest.mark.slow),
 ])
 def test_tensorboard_scalars_are_against_the_global_step(tiny_data, tmp_path, narrow, log_every,
                                                           checkpoint_every, train_steps, logged):
