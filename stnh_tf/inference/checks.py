@@ -6,6 +6,7 @@ the pair (:func:`alignment_ncc`), flat patches, and the rule that flags an estim
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from stnh_tf import geometry, hierarchy
@@ -46,6 +47,86 @@ def frame_corner_distance(a_from_b, other, source_shape, origin=(0, 0)) -> float
         d = (geometry.warp_points(t @ np.asarray(a_from_b, np.float64) @ np.linalg.inv(t), corners)
              - geometry.warp_points(t @ np.asarray(other, np.float64) @ np.linalg.inv(t), corners))
         out = float(np.linalg.norm(d, axis=-1).mean())
+    return out if np.isfinite(out) else float("inf")
+
+
+def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100) -> float:
+    """How precisely the two images fix ``a_from_b`` at ``image_b``'s corners: the predicted
+    standard deviation (px, mean over the corners ``(0, 0), (w, 0), (w, h), (0, h)`` of
+    ``image_b``'s ``[h, w]`` frame) of where the homography maps them, from the Gauss-Newton
+    covariance of the least-squares alignment of ``image_b`` with ``source_a`` warped by it.
+
+    Over every pixel ``q`` of ``image_b`` that lands inside ``source_a`` (1 px from its border),
+    ``image_b(q) ~ g source_a(H q) + o`` (gain and offset fitted); the residual variance
+    ``s2`` and the Jacobian ``J`` of the warped intensities with respect to the 8 entries of
+    ``H`` (``H[2, 2] = 1``; image gradients by a 3 x 3 Sobel filter / 8) give the covariance
+    ``s2 (J^T J)^-1``, propagated to the corners. Where image_a covers little of image_b, or is
+    featureless there, a small alignment error at the overlap becomes a large one at the corners:
+    the number says so. A statistical lower bound, not the error (independent pixel noise).
+
+    Args:
+      source_a: ``[h_a, w_a]`` image holding patch_a with its top-left corner at ``origin``.
+      image_b: ``[h, w]`` image holding patch_b at ``origin`` (the same frame convention).
+      a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame.
+      min_pixels: fewer pixels of image_b inside source_a: ``inf``.
+    Returns:
+      The predicted standard deviation (px); ``inf`` where it is undefined (too few pixels, a
+      singular system, a corner mapped to infinity).
+
+    >>> a = cv2.GaussianBlur(np.random.default_rng(0).random((240, 320)), (0, 0), 2)
+    >>> noisy = a + np.random.default_rng(1).normal(0, 0.01, a.shape)
+    >>> bool(corner_std(a, a, np.eye(3)) < 1e-6 < corner_std(a, noisy, np.eye(3)) < 0.1)
+    True
+    """
+    a = np.asarray(source_a, np.float64)
+    b = np.asarray(image_b, np.float64)
+    t = geometry.translation(*origin)
+    with np.errstate(all="ignore"):
+        h = t @ np.asarray(a_from_b, np.float64) @ np.linalg.inv(t)
+    if not np.isfinite(h).all() or abs(h[2, 2]) < 1e-12:
+        return float("inf")
+    h = h / h[2, 2]
+    height, width = b.shape[:2]
+    ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
+    u, v = xs.ravel(), ys.ravel()
+    p = h @ np.stack([u, v, np.ones_like(u)])
+    w = p[2]
+    inside = w > 1e-9
+    with np.errstate(all="ignore"):
+        x, y = p[0] / w, p[1] / w
+    inside &= (x >= 1) & (x < a.shape[1] - 2) & (y >= 1) & (y < a.shape[0] - 2)
+    if inside.sum() < min_pixels:
+        return float("inf")
+    maps = [np.where(inside, c, -10.0).astype(np.float32).reshape(height, width) for c in (x, y)]
+
+    def sample(img):
+        return cv2.remap(img.astype(np.float32), *maps, cv2.INTER_LINEAR).ravel()[inside]
+
+    grad_x = cv2.Sobel(a, cv2.CV_64F, 1, 0, ksize=3) / 8.0
+    grad_y = cv2.Sobel(a, cv2.CV_64F, 0, 1, ksize=3) / 8.0
+    a_q, gx, gy = (sample(img).astype(np.float64) for img in (a, grad_x, grad_y))
+    b_q = b.ravel()[inside]
+    (gain, offset), *_ = np.linalg.lstsq(np.stack([a_q, np.ones_like(a_q)], 1), b_q, rcond=None)
+    s2 = float(np.var(b_q - gain * a_q - offset))
+    u, v, x, y, w = u[inside], v[inside], x[inside], y[inside], w[inside]
+    zero, one = np.zeros_like(u), np.ones_like(u)
+    d_x = np.stack([u, v, one, zero, zero, zero, -x * u, -x * v], 1) / w[:, None]
+    d_y = np.stack([zero, zero, zero, u, v, one, -y * u, -y * v], 1) / w[:, None]
+    jac = gain * (gx[:, None] * d_x + gy[:, None] * d_y)
+    try:
+        cov = s2 * np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    stds = []
+    for cu, cv in ((0.0, 0.0), (width, 0.0), (width, height), (0.0, height)):
+        pc = h @ [cu, cv, 1.0]
+        if abs(pc[2]) < 1e-12:
+            return float("inf")
+        cx, cy = pc[0] / pc[2], pc[1] / pc[2]
+        j_x = np.array([cu, cv, 1.0, 0.0, 0.0, 0.0, -cx * cu, -cx * cv]) / pc[2]
+        j_y = np.array([0.0, 0.0, 0.0, cu, cv, 1.0, -cy * cu, -cy * cv]) / pc[2]
+        stds.append(np.sqrt(max(float(j_x @ cov @ j_x), 0.0) + max(float(j_y @ cov @ j_y), 0.0)))
+    out = float(np.mean(stds))
     return out if np.isfinite(out) else float("inf")
 
 

@@ -54,7 +54,7 @@ import warnings
 import numpy as np
 
 from stnh_tf import geometry
-from stnh_tf.inference import coarse, features, image_refine, pipeline
+from stnh_tf.inference import checks, coarse, features, image_refine, pipeline
 # Public names of this module before the pipeline was split (stnh_tf.inference.<name>).
 from stnh_tf.inference.checks import alignment_ncc, corner_shift  # noqa: F401
 from stnh_tf.inference.image_input import (PATCH_ORIGIN, PATCH_SIZE, central_patch,  # noqa: F401
@@ -352,6 +352,12 @@ class HomographyEstimator:
             result = coarse.coarse_pass(run, work_a, work_b, result, network, PATCH_ORIGIN)
         # a deviation (issue 46): refine="images" aligns the whole images
         result = image_refine.refine_images(result, work_a, work_b, options, PATCH_ORIGIN)
+        if options.verify == "ecc" and not result.flat[0]:
+            # the flag's check (issue 64): how precisely the whole images fix the estimate
+            std = checks.corner_std(work_a, work_b, result.homography[0], PATCH_ORIGIN)
+            result = dataclasses.replace(
+                result, corner_std_px=np.array([std]),
+                implausible=result.implausible | (std > options.thresholds.max_corner_std))
         h = patch_to_image_frames(result.homography[0], size_a, size_b)
         # what the network alone gave from the identity start, and how far the result is from it
         move = pipeline.network_moves(result.homography, network_h, [np.shape(work_a)],

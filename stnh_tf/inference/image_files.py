@@ -311,7 +311,9 @@ def _estimate_json(estimate, shape_b, quad) -> dict:
             # how far the steps beyond the network moved its own estimate (work image's corners)
             "network_homography": np.asarray(estimate.network_homography[0],
                                              np.float64).tolist(),
-            "network_move_px": _finite_or_none(estimate.network_move_px[0])}
+            "network_move_px": _finite_or_none(estimate.network_move_px[0]),
+            # how precisely the two images fix it at image_b's corners (verify="ecc")
+            "corner_std_px": _finite_or_none(estimate.corner_std_px[0])}
 
 
 BEYOND_NETWORK = ("search", "refine", "coarse", "features", "retry_tta")

@@ -111,6 +111,11 @@ class Thresholds:
         ``implausible_corner_shift`` in the implausibility rule (a patch corner moved further is
         beyond what the coarse pass handles: 4x the trained range). An estimate made from the
         feature start (``features``) has no corner rule: its checks are the alignment's.
+      max_corner_std: with ``verify="ecc"`` in ``estimate_images``, an estimate that the two
+        work images fix less precisely than this at image_b's corners (the predicted standard
+        deviation, px, :func:`stnh_tf.inference.checks.corner_std`) is flagged implausible:
+        where image_a covers little of image_b (a zoom out), a good alignment of the overlap
+        can be far off at the corners.
     """
 
     implausible_corner_shift: float = 1.5 * geometry.MAX_PERTURBATION
@@ -130,6 +135,7 @@ class Thresholds:
     max_verify_move: float = 5.0
     image_refine_rounds: int = 3
     coarse_corner_shift: float = 4 * geometry.MAX_PERTURBATION
+    max_corner_std: float = 1.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):

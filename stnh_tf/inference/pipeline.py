@@ -67,6 +67,10 @@ class Estimate:
         beyond the paper's network contributed, in one number.
       feature_start: the estimate was made from the feature start (``options.features``,
         :mod:`stnh_tf.inference.features`): its flag has no corner rule.
+      corner_std_px: in ``estimate_images_with_info`` with ``verify="ecc"``, how precisely the
+        two work images fix the estimate at image_b's corners (the predicted standard deviation,
+        px, :func:`~stnh_tf.inference.checks.corner_std`); above
+        ``thresholds.max_corner_std`` the estimate is flagged. NaN elsewhere.
     """
 
     homography: np.ndarray
@@ -87,6 +91,7 @@ class Estimate:
     network_homography: np.ndarray = None
     network_move_px: np.ndarray = None
     feature_start: np.ndarray = None
+    corner_std_px: np.ndarray = None
 
     def __len__(self):
         return len(self.homography)
@@ -284,7 +289,7 @@ def finish(run: dict, options: EstimateOptions) -> Estimate:
         gated_stages=run["gated"], options=options, verify_move_px=move,
         network_homography=network,
         network_move_px=network_moves(run["total"], network, frames, run.get("origin", (0, 0))),
-        feature_start=np.zeros(len(shift), bool))
+        feature_start=np.zeros(len(shift), bool), corner_std_px=np.full(len(shift), np.nan))
 
 
 def network_moves(a_from_b, network, frame_shapes, origin) -> np.ndarray:
