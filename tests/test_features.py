@@ -156,3 +156,26 @@ def test_fallback_tries_the_feature_start_before_the_search(estimator):
     for field in ("homography", "implausible", "alignment_ncc", "feature_start", "searched",
                   "network_homography"):
         np.testing.assert_array_equal(getattr(est, field), getattr(ref, field), err_msg=field)
+
+
+def test_the_flag_reads_how_precisely_the_images_fix_the_estimate(estimator):
+    """With verify="ecc", estimate_images reports checks.corner_std of its final estimate (in
+    the 320 x 240 images' frame here, which is the work frame), flags the estimate where it is
+    above Thresholds.max_corner_std (the same homography), and reports NaN without the check."""
+    from stnh_tf.inference import checks
+
+    a, b = _pair(_wide_motion(-100.0, 2.2))
+    options = dataclasses.replace(WHOLE, features="fallback")
+    est = estimator.estimate_images_with_info(a, b, options)
+    std = est.corner_std_px[0]
+    assert 0 < std < options.thresholds.max_corner_std and not est.implausible[0]
+    assert std == pytest.approx(checks.corner_std(_work(a), _work(b), est.homography[0]),
+                                rel=1e-9)
+    strict = dataclasses.replace(options, thresholds=dataclasses.replace(
+        options.thresholds, max_corner_std=std / 2))
+    flagged = estimator.estimate_images_with_info(a, b, strict)
+    assert flagged.implausible[0]
+    np.testing.assert_array_equal(flagged.homography, est.homography)
+    unchecked = estimator.estimate_images_with_info(a, b, dataclasses.replace(options,
+                                                                              verify="none"))
+    assert np.isnan(unchecked.corner_std_px[0])
