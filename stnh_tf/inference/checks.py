@@ -106,13 +106,17 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
     grad_y = cv2.Sobel(a, cv2.CV_64F, 0, 1, ksize=3) / 8.0
     a_q, gx, gy = (sample(img).astype(np.float64) for img in (a, grad_x, grad_y))
     b_q = b.ravel()[inside]
-    (gain, offset), *_ = np.linalg.lstsq(np.stack([a_q, np.ones_like(a_q)], 1), b_q, rcond=None)
-    s2 = float(np.var(b_q - gain * a_q - offset))
+    a_c = a_q - a_q.mean()
+    gain = float(a_c @ (b_q - b_q.mean())) / max(float(a_c @ a_c), 1e-300)  # least squares
+    s2 = float(np.var(b_q - b_q.mean() - gain * a_c))
     u, v, x, y, w = u[inside], v[inside], x[inside], y[inside], w[inside]
-    zero, one = np.zeros_like(u), np.ones_like(u)
-    d_x = np.stack([u, v, one, zero, zero, zero, -x * u, -x * v], 1) / w[:, None]
-    d_y = np.stack([zero, zero, zero, u, v, one, -y * u, -y * v], 1) / w[:, None]
-    jac = gain * (gx[:, None] * d_x + gy[:, None] * d_y)
+    # d(intensity)/d(H entries): the image gradient times d(x, y)/dH (H[2, 2] = 1)
+    gx, gy = gain * gx / w, gain * gy / w
+    radial = -(gx * x + gy * y)
+    jac = np.empty((len(u), 8))
+    for k, (grad, coord) in enumerate(((gx, u), (gx, v), (gx, None), (gy, u), (gy, v),
+                                       (gy, None), (radial, u), (radial, v))):
+        jac[:, k] = grad if coord is None else grad * coord
     try:
         cov = s2 * np.linalg.inv(jac.T @ jac)
     except np.linalg.LinAlgError:
