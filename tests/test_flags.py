@@ -217,3 +217,17 @@ def test_progress_lines_give_the_time_left_at_the_measured_rate(monkeypatch):
         logger.on_train_batch_end(batch, {"loss": 1.0})
     assert lines == ["step 2/6 lr=0.01 loss=1 (1.00 steps/s, 4 s left)",
                      "step 4/6 lr=0.01 loss=1 (1.50 steps/s, 1 s left)"]
+
+
+def test_progress_logger_prints_the_validation_metrics_at_each_epoch_end(monkeypatch):
+    """At an epoch end with validation metrics, one line with the global step and each ``val_``
+    metric (the training metrics left out); none without them. (A paper-schedule chunk logged
+    no validation line for 3,831 steps when this method had slipped out of the class.)"""
+    from stnh_tf.training import callbacks
+
+    lines = []
+    logger = callbacks.ProgressLogger(2, 6, lines.append)
+    monkeypatch.setattr(callbacks, "_step", lambda model: 500)
+    logger.on_epoch_end(0, {"loss": 1.0, "val_loss": 0.5, "val_h_bar_mace": 2.25})
+    logger.on_epoch_end(1, {"loss": 1.0})
+    assert lines == ["step 500 validation val_h_bar_mace=2.25 val_loss=0.5"]

@@ -83,6 +83,12 @@ class ProgressLogger(_GlobalStep):
         self.printer(f"step {step}/{self.total} lr={lr:.5g} {parts} ({rate:.2f} steps/s"
                      + (f", {left} left" if left else "") + ")")
 
+    def on_epoch_end(self, epoch, logs=None):
+        vals = {k: v for k, v in (logs or {}).items() if k.startswith("val_")}
+        if vals:
+            self.printer(f"step {_step(self.model)} validation " +
+                         " ".join(f"{k}={float(v):.5g}" for k, v in sorted(vals.items())))
+
 
 def time_left(steps: int, steps_per_s: float) -> str:
     """``steps`` at ``steps_per_s`` as a short duration ('' for none, or no rate yet).
@@ -96,12 +102,6 @@ def time_left(steps: int, steps_per_s: float) -> str:
     if seconds >= 5_400:
         return f"{seconds / 3600:.1f} h"
     return f"{seconds / 60:.1f} min" if seconds >= 90 else f"{seconds:.0f} s"
-
-    def on_epoch_end(self, epoch, logs=None):
-        vals = {k: v for k, v in (logs or {}).items() if k.startswith("val_")}
-        if vals:
-            self.printer(f"step {_step(self.model)} validation " +
-                         " ".join(f"{k}={float(v):.5g}" for k, v in sorted(vals.items())))
 
 
 class StepScalars(_GlobalStep):
