@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry, hierarchy
+from stnh_tf.inference import ecc
 from stnh_tf.inference.options import Thresholds
 
 _DEFAULT = Thresholds()
@@ -59,8 +60,8 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
     Over every pixel ``q`` of ``image_b`` that lands inside ``source_a`` (1 px from its border),
     ``image_b(q) ~ g source_a(H q) + o`` (gain and offset fitted); the residual variance
     ``s2`` and the Jacobian ``J`` of the warped intensities with respect to the 8 entries of
-    ``H`` (``H[2, 2] = 1``; image gradients by a 3 x 3 Sobel filter / 8) give the covariance
-    ``s2 (J^T J)^-1``, propagated to the corners. Where image_a covers little of image_b, or is
+    ``H`` (``H[2, 2] = 1``; ECC's gradients and Jacobian, :mod:`stnh_tf.inference.ecc`) give
+    the covariance ``s2 (J^T J)^-1``, propagated to the corners. Where image_a covers little of image_b, or is
     featureless there, a small alignment error at the overlap becomes a large one at the corners:
     the number says so. A statistical lower bound, not the error (independent pixel noise).
 
@@ -102,21 +103,13 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
     def sample(img):
         return cv2.remap(img.astype(np.float32), *maps, cv2.INTER_LINEAR).ravel()[inside]
 
-    grad_x = cv2.Sobel(a, cv2.CV_64F, 1, 0, ksize=3) / 8.0
-    grad_y = cv2.Sobel(a, cv2.CV_64F, 0, 1, ksize=3) / 8.0
-    a_q, gx, gy = (sample(img).astype(np.float64) for img in (a, grad_x, grad_y))
+    a_q, gx, gy = (sample(img).astype(np.float64) for img in (a, *ecc.gradients(a)))
     b_q = b.ravel()[inside]
     a_c = a_q - a_q.mean()
     gain = float(a_c @ (b_q - b_q.mean())) / max(float(a_c @ a_c), 1e-300)  # least squares
     s2 = float(np.var(b_q - b_q.mean() - gain * a_c))
     u, v, x, y, w = u[inside], v[inside], x[inside], y[inside], w[inside]
-    # d(intensity)/d(H entries): the image gradient times d(x, y)/dH (H[2, 2] = 1)
-    gx, gy = gain * gx / w, gain * gy / w
-    radial = -(gx * x + gy * y)
-    jac = np.empty((len(u), 8))
-    for k, (grad, coord) in enumerate(((gx, u), (gx, v), (gx, None), (gy, u), (gy, v),
-                                       (gy, None), (radial, u), (radial, v))):
-        jac[:, k] = grad if coord is None else grad * coord
+    jac = gain * ecc.homography_jacobian(gx, gy, u, v, x, y, w)  # (b's points map to a's)
     try:
         cov = s2 * np.linalg.inv(jac.T @ jac)
     except np.linalg.LinAlgError:

@@ -30,6 +30,27 @@ def _homography_update(dp: np.ndarray) -> np.ndarray:
     return np.array([[dp[0], dp[1], dp[2]], [dp[3], dp[4], dp[5]], [dp[6], dp[7], 0.0]])
 
 
+def gradients(image) -> np.ndarray:
+    """The x and y gradients ``[2, h, w]`` (float64) of ``image`` that ECC uses: 3 x 3 Sobel / 8
+    (``cv2.findTransformECC``'s)."""
+    image = np.asarray(image, np.float64)
+    return np.stack([cv2.Sobel(image, cv2.CV_64F, 1, 0, ksize=3) / 8.0,
+                     cv2.Sobel(image, cv2.CV_64F, 0, 1, ksize=3) / 8.0])
+
+
+def homography_jacobian(gx, gy, x, y, u, v, w) -> np.ndarray:
+    """``[N, 8]``: the derivative of the source's intensity at ``H p`` with respect to the 8
+    entries ``[h00, h01, h02, h10, h11, h12, h20, h21]`` of ``H`` (``H[2, 2] = 1``), for template
+    points ``p = (x, y)`` mapped to source points ``(u, v)`` with projective divisor ``w``, where
+    the source's gradients there are ``(gx, gy)`` (chain rule through the projective division).
+
+    >>> homography_jacobian(*(np.array([v]) for v in (1.0, 0.0, 2.0, 3.0, 2.0, 3.0, 1.0)))[0]
+    array([ 2.,  3.,  1.,  0.,  0.,  0., -4., -6.])
+    """
+    gw = -(gx * u + gy * v)
+    return np.stack([gx * x, gx * y, gx, gy * x, gy * y, gy, gw * x, gw * y], axis=1) / w[:, None]
+
+
 def bilinear(images, u, v) -> np.ndarray:
     """``images`` ``[C, h, w]`` (float64, ``h, w >= 2``) sampled at the points ``(u, v)``
     (``[N]`` each, x and y, inside ``[0, w - 1] x [0, h - 1]``) with bilinear weights: ``[C, N]``,
@@ -84,8 +105,7 @@ def ecc_homography(source, template, source_from_template, iterations: int = 100
     """
     src = np.asarray(source, np.float64)
     tpl = np.asarray(template, np.float64)
-    stack = np.stack([src, cv2.Sobel(src, cv2.CV_64F, 1, 0, ksize=3) / 8.0,
-                      cv2.Sobel(src, cv2.CV_64F, 0, 1, ksize=3) / 8.0])
+    stack = np.concatenate([src[None], gradients(src)])
     ys, xs = np.mgrid[0:tpl.shape[0], 0:tpl.shape[1]].astype(np.float64)
     xs, ys, tpl = xs.ravel(), ys.ravel(), tpl.ravel()
     h = np.asarray(source_from_template, np.float64)
@@ -105,10 +125,7 @@ def ecc_homography(source, template, source_from_template, iterations: int = 100
         else:
             x, y, u, v, w, t = (a[inside] for a in (xs, ys, u, v, w, tpl))
         warped, gx, gy = bilinear(stack, u, v)
-        # d warped / d parameters, chain rule through the projective division
-        gw = -(gx * u + gy * v)
-        jac = np.stack([gx * x, gx * y, gx, gy * x, gy * y, gy, gw * x, gw * y],
-                       axis=1) / w[:, None]
+        jac = homography_jacobian(gx, gy, x, y, u, v, w)  # d warped / d parameters
         jac -= jac.mean(axis=0)
         warped -= warped.mean()
         t = t - t.mean()
