@@ -5,6 +5,7 @@
 #   experiments/paper_schedule_gpu.sh stage            # keep the photographs carried this call
 #   experiments/paper_schedule_gpu.sh probe            # + steps/s at several steps_per_execution
 #   experiments/paper_schedule_gpu.sh chunk SECONDS    # + resume stage $STAGE, stop before SECONDS
+#   experiments/paper_schedule_gpu.sh semi SECONDS     # + issue 63's rows, stop at SECONDS
 #
 # Every mode first copies the parts this call carried under .devdata/part-K/ (made here by
 # `python -m experiments.device_photographs`) into /tmp/stnh-data, which stays on the machine
@@ -14,7 +15,11 @@
 # JSON in /tmp/probe.json; a later `chunk` on the same machine trains with the fastest
 # steps_per_execution it measured with the training callbacks (50 without a probe). What comes
 # back is written to $OUT: probe.json, chunk.log and paper_schedule.tgz (the committed checkpoint
-# or finished stage, the ledger and docs/gpu.md).
+# or finished stage, the ledger and docs/gpu.md). `semi` trains and evaluates the semi-supervised
+# experiment's rows (experiments.semi_supervised --in_memory at the CPU budget; SEMI_BUDGET=tiny
+# for a try) from the coco_mini photographs, resuming from semi_supervised/in_memory/, and sends
+# back semi.log and semi_supervised.tgz (that folder without model files: configurations,
+# evaluations, an unfinished model's checkpoint, the table).
 set -u -o pipefail
 mode=${1:?stage, probe or chunk}
 out=${OUT:-/tmp/paper_schedule_out}
@@ -42,6 +47,29 @@ if [ "$mode" = probe ]; then
     --json_out="$out/probe.json" 2>&1 | grep -v -e "^WARNING" -e "^I0000" | tail -20
   cp "$out/probe.json" /tmp/probe.json
   exit 0
+fi
+
+if [ "$mode" = semi ]; then
+  seconds=${2:?semi needs its time limit in seconds}
+  budget=${SEMI_BUDGET:-cpu}
+  coco=$(find "$data/coco_mini/train" -type f -name '*.jpg' 2>/dev/null | wc -l)
+  if [ "$budget" = cpu ] && { [ "$coco" != 219 ] || [ "$test" != 100 ]; }; then
+    echo "expected the 219 + 100 coco_mini photographs in $data: carry them first"
+    exit 3
+  fi
+  semi=(python3 -m experiments.semi_supervised --budget="$budget" --in_memory
+        --image_dir="$data/coco_mini/train" --test_image_dir="$data/coco_mini/test"
+        --output_dir=/tmp/stnh-runs/semi --repo_dir=semi_supervised/in_memory)
+  spe=50; [ "$budget" = cpu ] || spe=1  # 50 divides the CPU budget's intervals (500, 100)
+  echo "semi-supervised rows, budget $budget, time limit $seconds s, $workers workers"
+  timeout "$seconds" "${semi[@]}" --workers="$workers" --steps_per_execution="$spe" 2>&1 \
+    | grep -v -e "^WARNING" -e "^I0000" | tee "$out/semi.log"
+  status=$?
+  "${semi[@]}" --save_only 2>&1 | tail -1 | tee -a "$out/semi.log"  # after a stop at the limit
+  cp /tmp/stnh-runs/semi/semi_supervised.md /tmp/stnh-runs/semi/semi_supervised.json \
+    semi_supervised/in_memory/ 2>/dev/null
+  tar czf "$out/semi_supervised.tgz" --exclude='*.keras' semi_supervised/in_memory
+  exit $status
 fi
 
 seconds=${2:?chunk needs its time limit in seconds}

@@ -6,6 +6,8 @@ of Fig. 4 and Table 1):
   python -m experiments.semi_supervised --budget=cpu --image_dir=../shared/data/coco_mini/train \
       --test_image_dir=../shared/data/coco_mini/test --output_dir=runs/reproduce_cpu
   python -m experiments.semi_supervised --budget=tiny --source=bundled --output_dir=/tmp/smoke
+  python -m experiments.semi_supervised --budget=cpu --in_memory --image_dir=TRAIN \
+      --test_image_dir=TEST --output_dir=runs/semi_in_memory --repo_dir=semi_supervised/in_memory
 
 Rows: 100% labels; 10% labels alone (--label_fraction=0.1 --drop_unlabeled); 10% labels + 90%
 unlabeled (--label_fraction=0.1); 0% labels (L1 only). Seed 0 each; rows within --close_px of
@@ -36,6 +38,15 @@ flags.DEFINE_integer("max_seeds", semi_supervised.MAX_SEEDS, "Seeds of the close
 flags.DEFINE_string("repo_dir", "", "Repository folder of the experiment's models (finished ones "
                     "without optimizer state, unfinished ones' checkpoints): restored into "
                     "OUTPUT_DIR first, written back at the end ('': neither).")
+flags.DEFINE_bool("in_memory", False, "Make the stage-1 pairs in memory from --image_dir and "
+                  "--test_image_dir instead of writing TFRecords (no TensorFlow needed: the GPU "
+                  "machine under JAX); every row is trained and evaluated on them, in an "
+                  "--output_dir and --repo_dir of their own.")
+flags.DEFINE_integer("workers", 0, "With --in_memory: pair-generator processes (0: the "
+                     "budget's); changes no result.")
+flags.DEFINE_integer("steps_per_execution", 1, "Training steps per call of the compiled step "
+                     "(an accelerator's speed; must divide the budget's checkpoint and log "
+                     "intervals); changes no result.")
 flags.DEFINE_bool("save_only", False, "Only write OUTPUT_DIR's models into --repo_dir.")
 FLAGS = flags.FLAGS
 
@@ -45,7 +56,9 @@ def main(argv):
     with common.user_errors("semi_supervised"):
         if FLAGS.save_only and not FLAGS.repo_dir:
             raise ValueError("--save_only needs --repo_dir.")
-        run = reproduction_from_flags()
+        speed = {"steps_per_execution": FLAGS.steps_per_execution,
+                 **({"workers": FLAGS.workers} if FLAGS.workers else {})}
+        run = reproduction_from_flags(in_memory=FLAGS.in_memory, speed=speed)
         experiment = semi_supervised.SemiSupervised(run, FLAGS.label_fraction or None,
                                                     close_px=FLAGS.close_px,
                                                     max_seeds=FLAGS.max_seeds)

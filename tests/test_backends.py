@@ -300,3 +300,45 @@ def test_gpu_recipe_trains_two_stages_without_tensorflow(tmp_path):
                                  capture_output=True, text=True).stdout.split()
         assert f"stage{k}/model.keras" in listing
         assert not any("checkpoint" in name for name in listing)
+
+
+@pytest.mark.slow
+@_needs("jax")
+def test_semi_supervised_rows_run_in_memory_without_tensorflow(tmp_path):
+    """experiments.semi_supervised --in_memory under JAX with TensorFlow hidden, as its rows run
+    on the GPU machine (docs/gpu.md): the smoke budget's four rows train and are evaluated on
+    pairs made in memory, and go to the repository folder."""
+    hide = tmp_path / "hide"
+    hide.mkdir()
+    (hide / "sitecustomize.py").write_text(HIDE_TENSORFLOW)
+    files = [path for _, path in sources.bundled_image_files()[:6]]
+    for name, chosen in (("train", files[:4]), ("test", files[4:])):
+        (tmp_path / name).mkdir()
+        for k, path in enumerate(chosen):
+            shutil.copy(path, tmp_path / name / f"{k}{os.path.splitext(path)[1]}")
+    env = dict(os.environ, PYTHONPATH=f"{hide}{os.pathsep}{ROOT}", JAX_PLATFORMS="cpu",
+               KERAS_BACKEND="jax")
+    args = ["--budget=tiny", "--in_memory", f"--image_dir={tmp_path / 'train'}",
+            f"--test_image_dir={tmp_path / 'test'}", f"--output_dir={tmp_path / 'out'}",
+            f"--repo_dir={tmp_path / 'repo'}"]
+    run_hidden = ("import importlib.util, runpy, sys\n"
+                  "assert importlib.util.find_spec('tensorflow') is None  # hidden\n"
+                  f"sys.argv = ['semi_supervised', *{args!r}]\n"
+                  "runpy.run_module('experiments.semi_supervised', run_name='__main__')\n")
+    proc = subprocess.run([sys.executable, "-c", run_hidden], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+    result = json.loads((tmp_path / "out" / "semi_supervised.json").read_text())
+    assert result["pairs"] == "in memory" and result["test_pairs"] == 6
+    assert result["train_pairs_total"] == 8 and result["claim"]["verdict"] == "none"
+    assert not (tmp_path / "out" / "data").exists()
+    for row in result["rows"]:
+        for d in row["model_dirs"]:
+            config = json.loads((tmp_path / "out" / "models" / os.path.basename(d)
+                                 / "config.json").read_text())
+            assert config["in_memory"] and config["image_dir"] == str(tmp_path / "train")
+            name = os.path.basename(d)
+            assert (tmp_path / "repo" / f"{name}.keras").exists()
+            assert json.loads((tmp_path / "repo" / "eval"
+                               / f"{'stage1_alone' if name == 'stage1' else name}.json"
+                               ).read_text())["in_memory"]

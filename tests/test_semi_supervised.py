@@ -154,16 +154,23 @@ def test_fresh_pairs_keep_the_slots_decision_every_epoch():
                        if int(s) in first and expect[s])
 
 
+def _bundled_folders(root, counts: dict) -> list:
+    """Folders ``root/<name>`` holding the next ``counts[name]`` bundled photographs each (named
+    ``<name's first letter><k>``); returns their paths."""
+    files = iter(path for _, path in sources.bundled_image_files())
+    for name, count in counts.items():
+        (root / name).mkdir()
+        for k in range(count):
+            path = next(files)
+            shutil.copyfile(path, root / name / f"{name[0]}{k}{os.path.splitext(path)[1]}")
+    return [str(root / name) for name in counts]
+
+
 @pytest.fixture(scope="module")
 def folders(tmp_path_factory):
     """Two folders of bundled photographs: ``labeled`` (2 images) and ``unlabeled`` (2 others)."""
-    root = tmp_path_factory.mktemp("folders")
-    files = [path for _, path in sources.bundled_image_files()[:4]]
-    for name, chosen in (("labeled", files[:2]), ("unlabeled", files[2:])):
-        (root / name).mkdir()
-        for k, path in enumerate(chosen):
-            shutil.copyfile(path, root / name / f"{name[0]}{k}{os.path.splitext(path)[1]}")
-    return str(root / "labeled"), str(root / "unlabeled")
+    return tuple(_bundled_folders(tmp_path_factory.mktemp("folders"),
+                                  {"labeled": 2, "unlabeled": 2}))
 
 
 def test_unlabeled_images_add_masked_pairs_and_leave_the_labeled_ones(folders):
@@ -847,3 +854,101 @@ def test_a_model_evaluated_elsewhere_is_not_trained_again(tiny_data, tmp_path):
     training.train(_cfg(tiny_data, run.model_dir(name), batch_size=4), printer=_quiet)
     os.remove(os.path.join(run.model_dir(name), run_dir.FINAL_MODEL))
     assert exp.evaluated_elsewhere(name) is None
+
+
+# -- the experiment on pairs made in memory (no TensorFlow: the GPU machine) --------------------
+@pytest.fixture(scope="module")
+def image_folders(tmp_path_factory):
+    """``(train, test, records)``: 4 bundled photographs, 2 others, and the TFRecords that
+    make_dataset writes of them at the smoke budget's protocol (train: 2 pairs per image, seed
+    0; test: 3 per image, seed 1)."""
+    root = tmp_path_factory.mktemp("in_memory")
+    train, test = _bundled_folders(root, {"train": 4, "test": 2})
+    records = str(root / "records")
+    stage1.make_dataset("folder", records, "train", image_dir=train, seed=0,
+                        samples_per_image=2, num_shards=1, log=_quiet)
+    stage1.make_dataset("folder", records, "test", image_dir=test, seed=1,
+                        samples_per_image=3, num_shards=1, log=_quiet)
+    return train, test, records
+
+
+def _in_memory_experiment(out, image_folders, **kw):
+    from stnh_tf.paper import reproduce, semi_supervised
+
+    train, test, _ = image_folders
+    run = reproduce.Reproduction(reproduce.BUDGETS["tiny"], str(out), image_dir=train,
+                                 test_image_dir=test, printer=_quiet, in_memory=True, **kw)
+    return semi_supervised.SemiSupervised(run)
+
+
+def test_an_in_memory_experiment_uses_the_records_pairs_without_writing_them(image_folders,
+                                                                             tmp_path):
+    """``--in_memory``: the test pairs are make_dataset's test split, value for value; the rows
+    train from the image folder in memory with the budget's protocol; the labeled counts are the
+    label draw over the records' indices; nothing is written as TFRecords, and a TFRecord
+    reproduction's evaluation or model in its folder is refused."""
+    from stnh_tf.paper import reproduce
+
+    train, test, records = image_folders
+    exp = _in_memory_experiment(tmp_path / "out", image_folders)
+    got, want = exp.run.test_pairs(), data.load_arrays(records, "test")
+    assert len(got["h_ba"]) == 6
+    for name in ("patch_a", "patch_b", "patch_a_t", "context_a", "h_bar", "h_ba", "h_prev",
+                 "h_mask"):
+        assert got[name].dtype == want[name].dtype, name
+        np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+    cfg = exp.config(exp.rows[2], 1)
+    assert (cfg.data_dir, cfg.image_dir, cfg.in_memory, cfg.samples_per_image, cfg.max_images,
+            cfg.val_image_dir, cfg.val_seed, cfg.label_fraction, cfg.seed) == (
+        "", train, True, 2, 4, test, 1, 0.75, 1)
+    cfg.validate()
+    fast = _in_memory_experiment(tmp_path / "fast", image_folders,
+                                 speed={"steps_per_execution": 2, "workers": 3})
+    cfg = fast.config(fast.rows[0], 0)
+    assert (cfg.steps_per_execution, cfg.workers, cfg.train_steps) == (2, 3, 2)
+    with pytest.raises(ValueError, match="speed takes"):
+        _in_memory_experiment(tmp_path / "c", image_folders, speed={"train_steps": 9})
+    index = data.load_arrays(records, "train")["index"]
+    counts = exp.labeled_counts(2)
+    assert counts["total"] == len(index) == 8
+    for r in exp.rows:
+        for seed in (0, 1):
+            n = int(labels.labeled(seed, index, r.label_fraction).sum())
+            assert counts[(r.key, seed)] == (n, n if r.drop_unlabeled else len(index))
+    assert not os.path.exists(tmp_path / "out" / "data")
+    with pytest.raises(ValueError, match="writes no TFRecords"):
+        exp.run.stage1_data()
+    with pytest.raises(ValueError, match="needs source 'folder' with image_dir and test_image"):
+        reproduce.Reproduction(reproduce.BUDGETS["tiny"], str(tmp_path / "b"), source="bundled",
+                               in_memory=True)
+    # An evaluation of a TFRecord reproduction, left in this folder, is refused, not used.
+    path = tmp_path / "out" / "eval" / "stage1_alone.json"
+    path.write_text(json.dumps({"data_dir": records, "split": "test", "count": 6,
+                                "identity": {"mace": 1.0}, "model": {"mace": 2.0}}))
+    with pytest.raises(ValueError, match="evaluation on TFRecords; this reproduction evaluates "
+                                         "on pairs made in memory"):
+        exp.mace(exp.rows[0], 0)
+
+
+@pytest.mark.slow
+def test_an_in_memory_model_scores_as_on_the_records(image_folders, tmp_path, narrow):
+    """A row trained on pairs made in memory (2 steps, narrow network) gets the MACE that
+    ``evaluation.evaluate`` gives its model on make_dataset's records of the test pairs; its
+    configuration says in_memory, and a model trained from TFRecords is refused in its place."""
+    from stnh_tf.evaluation import mace as evaluation
+
+    _, _, records = image_folders
+    exp = _in_memory_experiment(tmp_path / "out", image_folders)
+    got = exp.evaluation(exp.rows[3], 0)
+    d = exp.run.model_dir(exp.model_name(exp.rows[3], 0))
+    want = evaluation.evaluate([d], records, "test")
+    assert got["in_memory"] and got["count"] == want["count"] == 6
+    assert got["model"]["mace"] == pytest.approx(want["model"]["mace"], rel=1e-6)
+    assert got["identity"]["mace"] == pytest.approx(want["identity"]["mace"], rel=1e-12)
+    saved = json.load(open(os.path.join(d, "config.json")))
+    assert saved["in_memory"] and saved["image_dir"] and not saved["data_dir"]
+    saved.update(in_memory=False, image_dir="", data_dir=records)
+    with open(os.path.join(d, "config.json"), "w") as f:
+        json.dump(saved, f)
+    with pytest.raises(ValueError, match="trained from TFRecords"):
+        exp.train(exp.rows[3], 0)

@@ -362,6 +362,25 @@ def step_batch_async(pool, step: int, fresh: bool = False):
     return pool.apply_async(_worker_step, (int(step), bool(fresh)))
 
 
+def stored_arrays(batches: PairBatches, workers: int = 0) -> dict:
+    """Every sample of ``batches`` (epoch 0, stored order), made in memory without TensorFlow, in
+    the form :func:`stnh_tf.data.tfrecords.load_arrays` reads back from the TFRecords that
+    ``make_dataset`` writes of the same images, seed and protocol (for evaluation; 260 KB a pair).
+
+    Returns:
+      ``patch_a``, ``patch_b``, ``patch_a_t``: float32 ``[N, 128, 128, 1]`` in [0, 1];
+      ``context_a`` uint8 ``[N, 192, 192]``; ``h_bar`` float32 ``[N, 8]``; ``h_ba`` float64
+      ``[N, 3, 3]``, rounded to float32 as the records store it; ``h_prev`` the identity, float64
+      ``[N, 3, 3]``; ``h_mask`` float32 ``[N]``.
+    """
+    out = materialize(batches, workers, context=True)
+    for name in ("patch_a", "patch_b", "patch_a_t"):
+        out[name] = pixels.to_unit(out[name])[..., None]
+    out["h_ba"] = out["h_ba"].astype(np.float32).astype(np.float64)
+    out["h_prev"] = np.broadcast_to(np.eye(3), out["h_ba"].shape).copy()
+    return out
+
+
 def materialize(batches: PairBatches, workers: int = 0, chunk: int = 256,
                 context: bool = False) -> dict:
     """Every sample of ``batches`` (epoch 0, stored order: sample ``s`` at row ``s``) in

@@ -92,21 +92,13 @@ def evaluate_hierarchy(models, samples: dict, batch_size=64, clip_to_context: bo
 def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(),
              max_samples=None, batch_size=64, compute_dtype=None,
              clip_to_context: bool = True) -> dict:
-    """The library core of ``experiments.evaluate``.
+    """The library core of ``experiments.evaluate``: :func:`evaluate_arrays` on the stored pairs.
 
     Args:
-      model_dirs: one model directory (single stage, sequence or HomographyNet; on a stage-k
-        dataset its estimate is composed with the stored ``h_prev``), or several single-stage
-        directories forming a hierarchy (run on stage-1 pairs with the context warp between
-        stages), or none.
+      model_dirs, baselines, batch_size, compute_dtype, clip_to_context: as
+        :func:`evaluate_arrays`.
       data_dir, split: the stored pairs (``stnh_tf.data.tfrecords``).
-      baselines: names from :data:`stnh_tf.evaluation.baselines.BASELINES`, evaluated on the same
-        pairs.
       max_samples: evaluate the first N pairs only (reported as ``count``; default all).
-      compute_dtype: see :func:`stnh_tf.modeling.runner.load_model` (``"float32"`` scores
-        mixed-precision models as ``HomographyEstimator.load`` runs them; default: as saved).
-      clip_to_context: for a hierarchy, the degenerate-prediction rule's clipping of corners onto
-        the context border (:func:`evaluate_hierarchy`); ``False`` reports MACE without it.
     Returns:
       ``{"data_dir", "split", "count", "identity", "model" (if any), "baselines" (if any)}``.
     Raises:
@@ -114,21 +106,60 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
         without a hierarchy (checked before anything is read); a missing split, a model or
         baseline that does not fit the data.
     """
-    from stnh_tf.evaluation import baselines as baselines_lib
     from stnh_tf.data import tfrecords as data
 
-    if batch_size < 1:
-        raise ValueError(f"batch_size must be >= 1; received {batch_size}.")
+    check_evaluation(model_dirs, batch_size, clip_to_context)
     if max_samples is not None and max_samples < 1:
         raise ValueError(f"max_samples must be >= 1 (or unset: all pairs); received {max_samples}.")
+    samples = data.load_arrays(data_dir, split, max_samples=max_samples)
+    return {"data_dir": data_dir, "split": split,
+            **evaluate_arrays(samples, model_dirs, baselines, batch_size, compute_dtype,
+                              clip_to_context, source=data_dir)}
+
+
+def check_evaluation(model_dirs, batch_size: int, clip_to_context: bool) -> None:
+    """The argument checks of :func:`evaluate_arrays` (``ValueError`` naming the argument)."""
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1; received {batch_size}.")
     if not clip_to_context and len([d for d in (model_dirs or ()) if d]) < 2:
         raise ValueError("clip_to_context=False (--no_clip) changes only a hierarchy (several "
                          "model dirs), whose degenerate-prediction rule clips corners onto the "
                          "context; a single model or a baseline is evaluated without that rule.")
-    samples = data.load_arrays(data_dir, split, max_samples=max_samples)
+
+
+def evaluate_arrays(samples: dict, model_dirs=(), baselines=(), batch_size=64,
+                    compute_dtype=None, clip_to_context: bool = True,
+                    source: str = "the pairs") -> dict:
+    """Models and baselines on pairs in memory, in the form of
+    :func:`stnh_tf.data.tfrecords.load_arrays` (read from TFRecords, or made without them:
+    :func:`stnh_tf.data.batches.stored_arrays`).
+
+    Args:
+      samples: the pairs (``patch_a``, ``patch_b``, ``h_ba``, ``h_prev``; ``context_a`` for a
+        hierarchy).
+      model_dirs: one model directory (single stage, sequence or HomographyNet; on stage-k pairs
+        its estimate is composed with the stored ``h_prev``), or several single-stage
+        directories forming a hierarchy (run on stage-1 pairs with the context warp between
+        stages), or none.
+      baselines: names from :data:`stnh_tf.evaluation.baselines.BASELINES`, evaluated on the same
+        pairs.
+      compute_dtype: see :func:`stnh_tf.modeling.runner.load_model` (``"float32"`` scores
+        mixed-precision models as ``HomographyEstimator.load`` runs them; default: as saved).
+      clip_to_context: for a hierarchy, the degenerate-prediction rule's clipping of corners onto
+        the context border (:func:`evaluate_hierarchy`); ``False`` reports MACE without it.
+      source: what the pairs are, for error messages.
+    Returns:
+      ``{"count", "identity", "model" (if any), "baselines" (if any)}``.
+    Raises:
+      ValueError: ``batch_size`` < 1, or ``clip_to_context=False`` without a hierarchy; a model
+        or baseline that does not fit the pairs.
+    """
+    from stnh_tf.evaluation import baselines as baselines_lib
+
+    check_evaluation(model_dirs, batch_size, clip_to_context)
     h_true = np.asarray(samples["h_ba"], np.float64)
     h_prev = np.asarray(samples["h_prev"], np.float64)
-    out = {"data_dir": data_dir, "split": split, "count": int(len(h_true)),
+    out = {"count": int(len(h_true)),
            "identity": error_summary(geometry.corner_errors(
                np.broadcast_to(np.eye(3), h_true.shape), h_true))}
     model_dirs = [d for d in (model_dirs or ()) if d]
@@ -138,14 +169,14 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
         out["model"]["model_dir"] = model_dirs[0]
     elif len(model_dirs) > 1:
         if not np.allclose(h_prev, np.eye(3)):
-            raise ValueError(f"a hierarchy is evaluated on stage-1 pairs; {data_dir} holds pairs "
+            raise ValueError(f"a hierarchy is evaluated on stage-1 pairs; {source} holds pairs "
                              "with earlier-stage estimates (h_prev != identity).")
         out["model"] = evaluate_hierarchy([runner.load_model(d, compute_dtype) for d in model_dirs],
                                           samples, batch_size, clip_to_context)
         out["model"]["model_dirs"] = list(model_dirs)
     if baselines:
         if not np.allclose(h_prev, np.eye(3)):
-            raise ValueError(f"baselines are evaluated on stage-1 pairs; {data_dir} holds pairs "
+            raise ValueError(f"baselines are evaluated on stage-1 pairs; {source} holds pairs "
                              "with earlier-stage estimates (h_prev != identity).")
         pa = pixels.to_uint8(samples["patch_a"][..., 0])
         pb = pixels.to_uint8(samples["patch_b"][..., 0])

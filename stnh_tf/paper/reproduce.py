@@ -34,6 +34,8 @@ import numpy as np
 from stnh_tf.training import config as train_config
 from stnh_tf.paths import atomic_write_json
 from stnh_tf.provenance import machine_info
+from stnh_tf.paper.budgets import (BUDGETS, SPEED_FIELDS, Budget,  # noqa: F401
+                                   check_budget)
 from stnh_tf.paper.tables import (SMOKE_NOTE, TABLE1_HEAD, schedule_results,  # noqa: F401
                                   table1_claim, table1_line, table1_lines, tables_markdown)
 
@@ -49,69 +51,6 @@ PAPER_FIG4 = {"HomographyNet": 9.2, "STN-Homography 1 stage": 5.83,
 ABLATION_WEIGHTS = tuple(PAPER_TABLE1)
 # Table 1 rows trained with several seeds: the paper's claim (10:1 beats 1:1) compares these two.
 SPREAD_ROWS = ((1.0, 1.0), (10.0, 1.0))
-# Configuration fields a reused model must share with the budget.
-_BUDGET_FIELDS = ("model", "stage", "seed", "train_steps", "warmup_steps", "batch_size",
-                  "learning_rate", "lr_schedule", "momentum", "l2_weight", "l1_weight",
-                  "batch_norm", "dropout")
-
-
-@dataclasses.dataclass(frozen=True)
-class Budget:
-    """A training budget: the schedule every model of a reproduction is trained with."""
-
-    name: str
-    train_steps: int
-    warmup_steps: int
-    samples_per_image: int           # stage-1 training pairs per image
-    batch_size: int = 64
-    mixed_precision: bool = False
-    checkpoint_every: int = 1000
-    val_samples: int = 1024
-    ablation_steps: int = 0          # 0: as train_steps
-    test_samples_per_image: int = 3
-    max_images: int = 0              # training images; 0: every image
-    test_max_images: int | None = None  # test images; None: as max_images
-    latency_runs: int = 200
-    latency_warmup: int = 20
-    num_workers: int = 1             # data-generation processes
-    sequence_steps: int = 0          # the sequence model's total steps; 0: as train_steps
-    table1_seeds: int = 1            # seeds of the SPREAD_ROWS of Table 1
-    verdicts: bool = True            # False: no claim is judged at this budget (the smoke test)
-    keep_checkpoints: bool = True    # False: a finished model's checkpoint/ is removed
-    # Models whose model.keras is removed once evaluated (their config.json, result.json and
-    # evaluation stay, and a re-run does not train them again).
-    drop_after_eval: tuple = ()
-
-    @property
-    def ablation_train_steps(self) -> int:
-        return self.ablation_steps or self.train_steps
-
-    @property
-    def sequence_train_steps(self) -> int:
-        return self.sequence_steps or self.train_steps
-
-
-BUDGETS = {
-    # The paper: 1,000 warm-up + 90,000 cosine steps (the sequence model: 90,000 in total), 3
-    # pairs per image of 118,000 COCO 2014 trainval and 10,000 test images (354,000 and 30,000
-    # pairs).
-    "paper": Budget("paper", 91_000, 1_000, samples_per_image=3, checkpoint_every=1_000,
-                    max_images=118_000, test_max_images=10_000, sequence_steps=90_000),
-    # The 2-core CPU budget of BENCHMARKS.md: 4.4% of the paper's steps, mixed bfloat16,
-    # 100 pairs per image (coco_mini has 219 training images; 3 per image would be memorized).
-    "cpu": Budget("cpu", 4_000, 100, samples_per_image=100, mixed_precision=True,
-                  checkpoint_every=500, val_samples=300, num_workers=2, table1_seeds=3),
-    # The smoke test (SMOKE_NOTE): 2 steps of every model, batch 4, on the first 4 images; no
-    # verdict, and it keeps its output small: no checkpoints of finished models, and no
-    # HomographyNet file once evaluated (DeTone's network has 34.2 M parameters, 33.6 M of them
-    # in its fully connected layer; its files hold them with the optimizer's state).
-    "tiny": Budget("tiny", 2, 1, samples_per_image=2, batch_size=4, checkpoint_every=2,
-                   val_samples=4, max_images=4, latency_runs=3, latency_warmup=1,
-                   table1_seeds=2, verdicts=False, keep_checkpoints=False,
-                   drop_after_eval=("homographynet",)),
-}
-
-
 def ablation_name(l2: float, l1: float, seed: int = 0) -> str:
     return f"ablation_l2-{l2:g}_l1-{l1:g}" + (f"_seed{seed}" if seed else "")
 
@@ -126,9 +65,19 @@ class Reproduction:
 
     def __init__(self, budget: Budget, output_dir: str, *, image_dir: str = "",
                  test_image_dir: str = "", source: str = "folder", reuse: dict | None = None,
-                 ablation_weights=ABLATION_WEIGHTS, printer=print):
+                 ablation_weights=ABLATION_WEIGHTS, printer=print, in_memory: bool = False,
+                 speed: dict | None = None):
         self.budget, self.out, self.printer = budget, output_dir, printer
         self.image_dir, self.test_image_dir, self.source = image_dir, test_image_dir, source
+        self.in_memory, self._test_pairs = bool(in_memory), None
+        self.speed = {k: int(v) for k, v in (speed or {}).items()}
+        if set(self.speed) - set(SPEED_FIELDS):
+            raise ValueError(f"speed takes {list(SPEED_FIELDS)}; received {sorted(self.speed)}.")
+        if self.in_memory and (source != "folder" or not image_dir or not test_image_dir):
+            raise ValueError("in_memory makes the stage-1 pairs from image folders: it needs "
+                             f"source 'folder' with image_dir and test_image_dir (received "
+                             f"source={source!r}, image_dir={image_dir!r}, "
+                             f"test_image_dir={test_image_dir!r}).")
         self.reuse = dict(reuse or {})
         self.ablation_weights = tuple((float(a), float(b)) for a, b in ablation_weights)
         unknown = set(self.reuse) - {"data_stage1", "data_stage2", "data_stage3", "stage1",
@@ -156,16 +105,27 @@ class Reproduction:
         return result
 
     # -- data -----------------------------------------------------------------------------------
+    def stage1_protocol(self, split: str) -> tuple:
+        """``(image_dir, samples_per_image, seed, max_images)`` of the stage-1 ``split``:
+        ``"train"`` (the budget's pairs per image, seed 0) or ``"test"`` (3 per image, seed 1)."""
+        b = self.budget
+        if split == "train":
+            return self.image_dir, b.samples_per_image, 0, b.max_images
+        test_max = b.max_images if b.test_max_images is None else b.test_max_images
+        return self.test_image_dir, b.test_samples_per_image, 1, test_max
+
     def stage1_data(self):
         from stnh_tf.data import stage1
         from stnh_tf.data import tfrecords as data
 
+        if self.in_memory:
+            raise ValueError(f"{self.out} is a reproduction with its pairs made in memory "
+                             "(in_memory): it writes no TFRecords, so it trains and evaluates "
+                             "stage-1 models only (the semi-supervised rows).")
         d, b = self.data_dir(1), self.budget
         quiet = lambda *a, **k: None  # noqa: E731
-        test_max = b.max_images if b.test_max_images is None else b.test_max_images
-        for split, image_dir, per_image, seed, max_images in (
-                ("train", self.image_dir, b.samples_per_image, 0, b.max_images),
-                ("test", self.test_image_dir, b.test_samples_per_image, 1, test_max)):
+        for split in ("train", "test"):
+            image_dir, per_image, seed, max_images = self.stage1_protocol(split)
             if data.has_split(d, split):
                 continue
             self.printer(f"[data] stage-1 {split} pairs -> {d}")
@@ -173,6 +133,36 @@ class Reproduction:
                 self.source, d, split, image_dir=image_dir or None, samples_per_image=per_image,
                 seed=seed, max_images=max_images, num_workers=b.num_workers, log=quiet))
         return d
+
+    def stage1_source(self) -> dict:
+        """The stage-1 training pairs as :class:`~stnh_tf.training.config.TrainConfig` fields:
+        the TFRecords of :meth:`stage1_data`, or with ``in_memory`` the same pairs made in memory
+        from ``image_dir`` (``PairBatches`` draws a run's pairs with its own seed: seed 0's are
+        the TFRecords' pairs, another seed's are a set of their own) and validated on
+        ``test_image_dir``'s pairs (seed 1, as the test split)."""
+        if not self.in_memory:
+            return {"data_dir": self.stage1_data()}
+        image_dir, per_image, _, max_images = self.stage1_protocol("train")
+        return {"image_dir": image_dir, "in_memory": True, "samples_per_image": per_image,
+                "max_images": max_images, "val_image_dir": self.test_image_dir,
+                "val_seed": self.stage1_protocol("test")[2], "workers": self.budget.num_workers}
+
+    def test_pairs(self) -> dict:
+        """The stage-1 test pairs made in memory (with ``in_memory``; made once), in
+        :func:`stnh_tf.data.tfrecords.load_arrays`' form: :func:`stnh_tf.data.batches.stored_arrays`
+        of the test split's protocol (:meth:`stage1_protocol`)."""
+        from stnh_tf.data import batches, sources
+
+        if self._test_pairs is None:
+            image_dir, per_image, seed, max_images = self.stage1_protocol("test")
+            pair_batches = batches.PairBatches(sources.split_folders(image_dir), 64,
+                                               samples_per_image=per_image, seed=seed,
+                                               shuffle=False, drop_remainder=False,
+                                               max_images=max_images)
+            self.printer(f"[data] stage-1 test pairs in memory from {image_dir}")
+            self._test_pairs = self._timed("data", lambda: batches.stored_arrays(
+                pair_batches, self.speed.get("workers", self.budget.num_workers)))
+        return self._test_pairs
 
     def stage_data(self, stage: int):
         from stnh_tf.data import stage_k
@@ -198,6 +188,7 @@ class Reproduction:
                     mixed_precision=b.mixed_precision, checkpoint_every=b.checkpoint_every,
                     val_samples=b.val_samples, log_every=max(b.checkpoint_every // 5, 1))
         base.update(kw)
+        base.update(self.speed)
         return train_config.TrainConfig(**base)
 
     def train(self, name: str, cfg) -> str:
@@ -315,8 +306,14 @@ class Reproduction:
 
     # -- evaluation -----------------------------------------------------------------------------
     def evaluate(self, key: str, model_dirs=(), baselines=()) -> dict:
-        """``evaluation.evaluate`` on the stage-1 test pairs, cached in ``eval/{key}.json`` (kept
-        while it is newer than every model it evaluated that is still there)."""
+        """``evaluation.evaluate`` on the stage-1 test pairs (with ``in_memory``,
+        ``evaluation.evaluate_arrays`` on :meth:`test_pairs`), cached in ``eval/{key}.json``
+        (kept while it is newer than every model it evaluated that is still there).
+
+        Raises:
+          ValueError: the cached evaluation was made on pairs of the other kind (TFRecords
+            against pairs made in memory).
+        """
         from stnh_tf.evaluation import mace as evaluation
         from stnh_tf.training import run_dir
 
@@ -325,9 +322,16 @@ class Reproduction:
         if os.path.exists(path) and all(os.path.getmtime(f) < os.path.getmtime(path)
                                         for f in finals if os.path.exists(f)):
             with open(path) as f:
-                return json.load(f)
-        result = self._timed("evaluate", lambda: evaluation.evaluate(
-            list(model_dirs), self.data_dir(1), "test", list(baselines)))
+                return check_pairs_kind(json.load(f), path, self.in_memory)
+        if self.in_memory:
+            pairs = self.test_pairs()
+            result = {"image_dir": self.test_image_dir, "split": "test", "in_memory": True,
+                      **self._timed("evaluate", lambda: evaluation.evaluate_arrays(
+                          pairs, list(model_dirs), list(baselines),
+                          source=f"the test pairs of {self.test_image_dir}"))}
+        else:
+            result = self._timed("evaluate", lambda: evaluation.evaluate(
+                list(model_dirs), self.data_dir(1), "test", list(baselines)))
         atomic_write_json(path, result)
         return result
 
@@ -436,18 +440,16 @@ class Reproduction:
         return out
 
 
-def check_budget(model_dir: str, cfg) -> None:
-    """Raise ``ValueError`` unless the finished model in ``model_dir`` was trained with ``cfg``'s
-    budget (model kind, schedule, loss weights, network options)."""
-    from stnh_tf.training import run_dir
+def check_pairs_kind(result: dict, path: str, in_memory: bool) -> dict:
+    """``result``, an evaluation read from ``path``, after checking it was made on the pairs of
+    the kind a reproduction uses: made in memory (``in_memory``) or read from TFRecords.
 
-    saved = run_dir.read_run_config(os.path.join(model_dir, run_dir.CONFIG_FILE))
-    # A field the saved run predates had its default value then (e.g. lr_schedule="cosine").
-    saved = {**train_config.TrainConfig().to_json(), **saved}
-    want = cfg.to_json()
-    diff = {k: (saved.get(k), want[k]) for k in _BUDGET_FIELDS if saved.get(k) != want[k]}
-    if cfg.model == "sequence" and saved.get("num_stages") != cfg.num_stages:
-        diff["num_stages"] = (saved.get("num_stages"), cfg.num_stages)
-    if diff:
-        raise ValueError(f"{model_dir} holds a model trained with a different budget {diff} "
-                         "(saved, wanted); reuse only models of the same budget.")
+    Raises:
+      ValueError: naming ``path`` and the two kinds.
+    """
+    if bool(result.get("in_memory")) != bool(in_memory):
+        kinds = ("pairs made in memory", "TFRecords")
+        made, wanted = (kinds[0], kinds[1]) if result.get("in_memory") else (kinds[1], kinds[0])
+        raise ValueError(f"{path} is an evaluation on {made}; this reproduction evaluates on "
+                         f"{wanted}: give it an output folder of its own.")
+    return result

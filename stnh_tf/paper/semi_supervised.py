@@ -29,6 +29,14 @@ since 10% of its 8 training pairs is less than one batch of 4.
 Writes ``semi_supervised.md`` and ``semi_supervised.json`` in the reproduction's folder; every
 model and evaluation is kept, so the same command resumes and, once done, trains nothing.
 
+In a reproduction made with ``in_memory`` (``--in_memory``: a machine without TensorFlow, such as
+the GPU machine under JAX), every row trains on stage-1 pairs made in memory from the image
+folder and is evaluated on test pairs made the same way (:meth:`Reproduction.stage1_source`,
+:meth:`Reproduction.test_pairs`): seed 0's pairs, training and test, are those of the TFRecords;
+a run of seed 1 trains on a pair set of its own (seed 1's draw). Its models and evaluations are
+never mixed with a TFRecord reproduction's: it needs an output folder and repository folder of
+its own.
+
 Across machines (the experiment takes several CPU sessions): :meth:`SemiSupervised.save` copies
 its models into a repository folder (a finished model as ``<name>.keras`` without optimizer state
 and ``<name>.json``, its run's configuration; an unfinished one's newest checkpoint as
@@ -56,6 +64,9 @@ LABEL_FRACTIONS = {"tiny": 0.75}
 """The labeled share of the two partly labeled rows at a budget (0.1 unless listed here)."""
 NO_VERDICT_BUDGETS = ("tiny",)
 """Budgets whose models cannot support a verdict on the claim (the smoke test's 2 steps)."""
+PAIRS_NOTE = {"in memory": " (the pairs made in memory, not written as TFRecords: seed 0's are "
+                           "the TFRecords' pairs, seed 1 trains on a pair set of its own)"}
+"""What the table says of its pairs (``result["pairs"]``) where they are not the TFRecords."""
 UNLABELED_TAG = "l1b"
 """The suffix of the models whose unlabeled pairs train on the L1 loss against ``patch_b``
 (issue 63): ``semi_labels-0.1_l1b``, ``semi_labels-0_l1b_seed1``."""
@@ -115,7 +126,7 @@ class SemiSupervised:
 
     def config(self, row: Row, seed: int):
         """The row's :class:`~stnh_tf.training.config.TrainConfig` for ``seed``."""
-        return self.run.config(self.model_name(row, seed), data_dir=self.run.stage1_data(),
+        return self.run.config(self.model_name(row, seed), **self.run.stage1_source(),
                                seed=seed, label_fraction=row.label_fraction,
                                drop_unlabeled=row.drop_unlabeled)
 
@@ -160,7 +171,7 @@ class SemiSupervised:
                 or run_dir.checkpoint_weights_path(os.path.join(d, run_dir.CHECKPOINT_DIR))):
             return None
         with open(path) as f:
-            return json.load(f)
+            return reproduce.check_pairs_kind(json.load(f), path, self.run.in_memory)
 
     def evaluation(self, row: Row, seed: int) -> dict:
         """``evaluation.evaluate``'s result for the row's model of ``seed`` on the stage-1 test
@@ -269,6 +280,21 @@ class SemiSupervised:
         that keep their label, and the pairs a step draws from (all, or the labeled ones with
         ``drop_unlabeled``); plus ``"total"``."""
         from stnh_tf.data import labels
+
+        if self.run.in_memory:  # each seed's own pairs: PairBatches' label draw of them
+            from stnh_tf.data import batches, sources
+
+            image_dir, per_image, _, max_images = self.run.stage1_protocol("train")
+            out = {}
+            for r in self.rows:
+                for seed in range(seeds):
+                    pair_batches = batches.PairBatches(
+                        sources.split_folders(image_dir), 1, samples_per_image=per_image,
+                        seed=seed, max_images=max_images, label_fraction=r.label_fraction)
+                    n, total = int(pair_batches.labeled.sum()), len(pair_batches.labeled)
+                    out["total"] = total
+                    out[(r.key, seed)] = (n, n if r.drop_unlabeled else total)
+            return out
         from stnh_tf.data import tfrecords as data
 
         index, h_mask = data.read_index(self.run.stage1_data(), "train")
@@ -289,6 +315,7 @@ class SemiSupervised:
         identity = first["identity"]["mace"]
         result = {"budget": b.name, "train_steps": b.train_steps, "batch_size": b.batch_size,
                   "label_fraction": self.fraction, "close_px": self.close_px,
+                  "pairs": "in memory" if self.run.in_memory else "TFRecords",
                   "train_pairs_total": counts["total"], "test_pairs": first["count"],
                   "identity": {"mace": identity, "median": first["identity"]["median"]},
                   "rows": [], "claim": claim(maces, self.rows, b.name, identity)}
@@ -351,7 +378,8 @@ def markdown(result: dict) -> str:
              f"(budget '{result['budget']}')", "",
              *([reproduce.SMOKE_NOTE, ""] if result["budget"] == "tiny" else []),
              f"MACE on the same {result['test_pairs']} stage-1 test pairs as Fig. 4 and Table 1; "
-             f"{result['train_pairs_total']} training pairs, batch {result['batch_size']}. A pair "
+             f"{result['train_pairs_total']} training pairs, batch {result['batch_size']}"
+             f"{PAIRS_NOTE.get(result.get('pairs'), '')}. A pair "
              "without a label (h_mask 0) trains on the L1 photometric loss alone, patch_a_warp "
              "against patch_b where the warp is defined (nothing made from its H); rows within "
              f"{result['close_px']:g} px of another have several seeds.", "",
