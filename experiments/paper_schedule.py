@@ -5,7 +5,9 @@ otherwise (docs/gpu.md, "The paper's schedule in chunks").
   python -m experiments.paper_schedule --stage=1 --time_limit_s=480        # a GPU chunk
   nohup nice -n 19 python -m experiments.paper_schedule --stage=1 > log &  # CPU, background
 
-Each call resumes stage ``--stage`` in ``--runs_dir/stage<k>`` from the newest checkpoint (the
+Each call resumes stage ``--stage`` (and, with ``--last_stage``, goes on with the next stages in
+the time a finished stage leaves: :func:`stnh_tf.training.chunks.run_stages`) in
+``--runs_dir/stage<k>`` from the newest checkpoint (the
 folder's own, or the one committed in ``paper_schedule/resume/stage<k>/``), trains until
 ``--time_limit_s`` (0: to the end; it stops within one step of the limit, or on SIGTERM, and saves
 that step's checkpoint), and commits the checkpoint back there; a finished stage is kept
@@ -50,6 +52,8 @@ flags.register_validator("time_limit_s", flags_common.check_time_limit)
 flags.DEFINE_integer("workers", max((os.cpu_count() or 1) - 2, 1), "Pair-generator processes.")
 flags.DEFINE_integer("steps_per_execution", 1, "Training steps per compiled call (the same "
                      "updates; fewer waits for the accelerator: docs/gpu.md). Divides 500.")
+flags.DEFINE_integer("last_stage", 0, "Where --stage finishes within the time limit, go on with "
+                     "the next stages up to this one in the time left (0: --stage only).")
 flags.DEFINE_string("device", None, "The machine, for the ledger (default: described here).")
 FLAGS = flags.FLAGS
 
@@ -58,19 +62,25 @@ def main(argv):
     del argv
     from stnh_tf.provenance import git_commit, machine_info
 
-    stage = FLAGS.stage
-    cfg = TrainConfig(**SCHEDULE, stage=stage, image_dir=",".join(FLAGS.image_dir),
-                      val_image_dir=",".join(FLAGS.val_image_dir), workers=FLAGS.workers,
-                      steps_per_execution=FLAGS.steps_per_execution,
-                      model_dir=os.path.join(FLAGS.runs_dir, f"stage{stage}"),
-                      prev_stages=tuple(chunks.finished_model(ROOT, k) for k in range(1, stage)))
+    def config(stage):
+        return TrainConfig(**SCHEDULE, stage=stage, image_dir=",".join(FLAGS.image_dir),
+                           val_image_dir=",".join(FLAGS.val_image_dir), workers=FLAGS.workers,
+                           steps_per_execution=FLAGS.steps_per_execution,
+                           model_dir=os.path.join(FLAGS.runs_dir, f"stage{stage}"),
+                           prev_stages=tuple(chunks.finished_model(ROOT, k)
+                                             for k in range(1, stage)))
+
     device = FLAGS.device or f"{machine_info()['cpu']}, {os.cpu_count()} cores"
     with common.user_errors("paper_schedule"):
-        row = chunks.run_chunk(cfg, ROOT, FLAGS.time_limit_s, str(device), printer=logging.info,
-                               commit=git_commit())
-        chunks.write_ledger_table(ROOT, os.path.join(REPO, "docs", "gpu.md"))
-    logging.info("chunk done: %s", row)
-    print(row)
+        try:
+            rows = chunks.run_stages(config, FLAGS.stage, max(FLAGS.stage, FLAGS.last_stage),
+                                     ROOT, FLAGS.time_limit_s, str(device),
+                                     printer=logging.info, commit=git_commit())
+        finally:
+            chunks.write_ledger_table(ROOT, os.path.join(REPO, "docs", "gpu.md"))
+    for row in rows:
+        logging.info("chunk done: %s", row)
+        print(row)
 
 
 if __name__ == "__main__":

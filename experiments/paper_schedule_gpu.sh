@@ -14,14 +14,16 @@
 # (keras, namex, optree wheels for the machine's Python: docs/gpu.md) once. `probe` leaves its
 # JSON in /tmp/probe.json; a later `chunk` on the same machine trains with the fastest
 # steps_per_execution it measured with the training callbacks (50 without a probe). What comes
-# back is written to $OUT: probe.json, chunk.log and paper_schedule.tgz (the committed checkpoint
-# or finished stage, the ledger and docs/gpu.md). `semi` trains and evaluates the semi-supervised
-# experiment's rows (experiments.semi_supervised --in_memory at the CPU budget; SEMI_BUDGET=tiny
-# for a try) from the coco_mini photographs, resuming from semi_supervised/in_memory/, and sends
-# back semi.log and semi_supervised.tgz (that folder without model files: configurations,
-# evaluations, an unfinished model's checkpoint, the table).
+# back is written to $OUT: probe.json, chunk.log, paper_schedule.tgz (the ledger, docs/gpu.md and
+# the finished stages) and resume_stageK.tgz (an unfinished stage's committed checkpoint). A chunk
+# that finishes its stage goes on with the next one, up to stage 3, in the time left. `semi`
+# trains and evaluates the semi-supervised experiment's rows (experiments.semi_supervised
+# --in_memory at the CPU budget; SEMI_BUDGET=tiny for a try) from the coco_mini photographs,
+# resuming from semi_supervised/in_memory/, and sends back semi.log and semi_supervised.tgz (that
+# folder without model files: configurations, evaluations, an unfinished model's checkpoint,
+# the table).
 set -u -o pipefail
-mode=${1:?stage, probe or chunk}
+mode=${1:?stage, probe, chunk or semi}
 out=${OUT:-/tmp/paper_schedule_out}
 data=/tmp/stnh-data
 mkdir -p "$out" "$data"
@@ -90,18 +92,22 @@ print(best[1])
 EOF
 )
 echo "stage $stage, steps_per_execution $spe, time limit $seconds s, $workers workers"
-timeout $((seconds + 60)) python3 -m experiments.paper_schedule --stage="$stage" \
+timeout $((seconds + 60)) python3 -m experiments.paper_schedule --stage="$stage" --last_stage=3 \
   --time_limit_s="$seconds" --workers="$workers" --steps_per_execution="$spe" \
   --image_dir="$data/coco_mini/train,$data/photos_extra" \
   --val_image_dir="$data/coco_mini/test" --runs_dir=/tmp/stnh-runs/paper_schedule \
   --device="$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1)" 2>&1 \
   | grep -v -e "^WARNING" -e "^I0000" | tee "$out/chunk.log"
 status=$?
-# What the chunk writes, not the whole folder (a file that comes back holds at most 16 MiB): the
-# ledger, the committed checkpoint with its saved stage estimates, a stage it finished.
+# What the chunks write, not the whole folder, in archives of at most 16 MiB each (what comes
+# back): the ledger and the finished stages in paper_schedule.tgz, each unfinished stage's
+# committed checkpoint with its saved estimates (12 MiB) in resume_stageK.tgz.
 back="paper_schedule/ledger.json docs/gpu.md"
-for f in resume stage"$stage".keras stage"$stage".json; do
-  [ -e paper_schedule/"$f" ] && back="$back paper_schedule/$f"
+for k in 1 2 3; do
+  for f in stage$k.keras stage$k.json; do
+    [ -e paper_schedule/$f ] && back="$back paper_schedule/$f"
+  done
+  [ -d paper_schedule/resume/stage$k ] && tar czf "$out/resume_stage$k.tgz" paper_schedule/resume/stage$k
 done
 tar czf "$out/paper_schedule.tgz" $back
 exit $status

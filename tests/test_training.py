@@ -744,6 +744,44 @@ def test_chunks_stop_at_the_time_limit_and_continue_on_another_machine(tiny_data
     assert not chunks.write_ledger_table(str(repo), str(doc))  # unchanged the second time
 
 
+def test_a_chunk_goes_on_with_the_next_stage_in_the_time_it_leaves(monkeypatch):
+    """run_stages: where a chunk finishes its stage, the next stage's chunk gets the time left
+    (on a fake clock); it stops at an unfinished stage, at the last stage, and where less than
+    min_next_s is left; with no limit every stage trains to its end."""
+    from stnh_tf.training import chunks
+
+    clock, calls, plan = [0.0], [], {}
+
+    def chunk(stage, root, left, device, printer, commit):  # a chunk: its time and whether done
+        calls.append((stage, left))
+        spent, done = plan[stage]
+        clock[0] += spent
+        return {"stage": stage, "done": done}
+
+    monkeypatch.setattr(chunks, "run_chunk", chunk)
+
+    def run(limit, stages, first=1, last=3):
+        clock[0], lines = 0.0, []
+        calls.clear()
+        plan.clear()
+        plan.update(stages)
+        rows = chunks.run_stages(lambda k: k, first, last, "repo", limit, "machine",
+                                 printer=lines.append, clock=lambda: clock[0])
+        assert [r["stage"] for r in rows] == [stage for stage, _ in calls]
+        return list(calls), lines
+
+    done3 = {1: (400.0, True), 2: (300.0, True), 3: (200.0, True)}
+    assert run(1000.0, done3)[0] == [(1, 1000.0), (2, 600.0), (3, 300.0)]
+    calls, lines = run(800.0, done3)
+    assert calls == [(1, 800.0), (2, 400.0)]  # 100 s left: under 120, stage 3 not started
+    assert lines[-1] == "stage 3 not started: 100 s left, under 120 s"
+    assert run(1000.0, {1: (400.0, False)})[0] == [(1, 1000.0)]  # stage 1 not finished
+    assert run(0.0, done3)[0] == [(1, 0.0), (2, 0.0), (3, 0.0)]  # no limit: each to its end
+    assert run(1000.0, done3, first=2, last=2)[0] == [(2, 1000.0)]
+    with pytest.raises(ValueError, match="first stage"):
+        run(1000.0, done3, first=3, last=2)
+
+
 def test_sync_in_keeps_a_newer_local_checkpoint(tmp_path):
     from stnh_tf.training import chunks
 

@@ -205,6 +205,42 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
     return row
 
 
+MIN_NEXT_STAGE_S = 120.0
+"""Seconds a chunk must have left, after finishing its stage, to start the next stage (whose
+pairs are first re-made from the finished stages' predictions)."""
+
+
+def run_stages(make_config, first: int, last: int, root: str, time_limit_s: float, device: str,
+               printer=print, commit: str | None = None,
+               min_next_s: float = MIN_NEXT_STAGE_S, clock=time.monotonic) -> list:
+    """:func:`run_chunk` of stage ``first`` (``make_config(k)``: stage k's configuration), then,
+    where that chunk finished its stage and ``last`` is further on, the next stage's chunk in the
+    time left, and so on: a stage's leftover minutes are spent on the next one. With
+    ``time_limit_s`` 0 (no limit) each stage trains to its end. Returns the chunks' ledger rows.
+
+    A stage is not started with less than ``min_next_s`` of ``time_limit_s`` left (``clock``:
+    seconds, for the time spent).
+
+    Raises:
+      ValueError: ``first`` > ``last``. Otherwise as :func:`run_chunk`.
+    """
+    if first > last:
+        raise ValueError(f"the first stage ({first}) comes after the last ({last}).")
+    start, rows = clock(), []
+    for stage in range(first, last + 1):
+        left = time_limit_s - (clock() - start) if time_limit_s else 0.0
+        if rows and not rows[-1]["done"]:
+            break
+        if rows and time_limit_s and left < min_next_s:
+            printer(f"stage {stage} not started: {left:.0f} s left, under {min_next_s:.0f} s")
+            break
+        if rows:
+            printer(f"stage {stage - 1} is finished; stage {stage} in the {left:.0f} s left"
+                    if time_limit_s else f"stage {stage - 1} is finished; stage {stage} next")
+        rows.append(run_chunk(make_config(stage), root, left, device, printer, commit))
+    return rows
+
+
 def add_ledger_row(root: str, row: dict) -> list:
     """Append ``row`` to ``root``'s ledger; returns the ledger."""
     path = os.path.join(root, LEDGER_FILE)
