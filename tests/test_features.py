@@ -161,7 +161,8 @@ def test_fallback_tries_the_feature_start_before_the_search(estimator):
 def test_the_flag_reads_how_precisely_the_images_fix_the_estimate(estimator):
     """With verify="ecc", estimate_images reports checks.corner_std of its final estimate (in
     the 320 x 240 images' frame here, which is the work frame), flags the estimate where it is
-    above Thresholds.max_corner_std (the same homography), and reports NaN without the check."""
+    above Thresholds.max_corner_std (the same homography), returns the identity (flagged,
+    undetermined) above Thresholds.undetermined_corner_std, and reports NaN without the check."""
     from stnh_tf.inference import checks
 
     a, b = _pair(_wide_motion(-100.0, 2.2))
@@ -176,6 +177,15 @@ def test_the_flag_reads_how_precisely_the_images_fix_the_estimate(estimator):
     flagged = estimator.estimate_images_with_info(a, b, strict)
     assert flagged.implausible[0]
     np.testing.assert_array_equal(flagged.homography, est.homography)
+    assert not est.undetermined[0] and not flagged.undetermined[0]
+    # Where the images leave the estimate undetermined (here: a threshold under its std), the
+    # identity takes its place, flagged, as SIFT + RANSAC returns the identity without a model.
+    lost = estimator.estimate_images_with_info(a, b, dataclasses.replace(
+        options, thresholds=dataclasses.replace(options.thresholds,
+                                                undetermined_corner_std=std / 2)))
+    assert lost.undetermined[0] and lost.implausible[0] and lost.corner_std_px[0] == std
+    np.testing.assert_array_equal(lost.homography[0], np.eye(3))  # 320 x 240: the work frame
+    np.testing.assert_array_equal(lost.network_homography, est.network_homography)
     unchecked = estimator.estimate_images_with_info(a, b, dataclasses.replace(options,
                                                                               verify="none"))
-    assert np.isnan(unchecked.corner_std_px[0])
+    assert np.isnan(unchecked.corner_std_px[0]) and not unchecked.undetermined[0]

@@ -353,11 +353,15 @@ class HomographyEstimator:
         # a deviation (issue 46): refine="images" aligns the whole images
         result = image_refine.refine_images(result, work_a, work_b, options, PATCH_ORIGIN)
         if options.verify == "ecc" and not result.flat[0]:
-            # the flag's check (issue 64): how precisely the whole images fix the estimate
+            # the flag's check (issue 64): how precisely the whole images fix the estimate;
+            # where not even at their own scale, the identity takes its place
             std = checks.corner_std(work_a, work_b, result.homography[0], PATCH_ORIGIN)
+            undetermined = std > options.thresholds.undetermined_corner_std
             result = dataclasses.replace(
-                result, corner_std_px=np.array([std]),
-                implausible=result.implausible | (std > options.thresholds.max_corner_std))
+                result, corner_std_px=np.array([std]), undetermined=np.array([undetermined]),
+                homography=np.eye(3)[None] if undetermined else result.homography,
+                implausible=(result.implausible | undetermined
+                             | (std > options.thresholds.max_corner_std)))
         h = patch_to_image_frames(result.homography[0], size_a, size_b)
         # what the network alone gave from the identity start, and how far the result is from it
         move = pipeline.network_moves(result.homography, network_h, [np.shape(work_a)],

@@ -313,7 +313,9 @@ def _estimate_json(estimate, shape_b, quad) -> dict:
                                              np.float64).tolist(),
             "network_move_px": _finite_or_none(estimate.network_move_px[0]),
             # how precisely the two images fix it at image_b's corners (verify="ecc")
-            "corner_std_px": _finite_or_none(estimate.corner_std_px[0])}
+            "corner_std_px": _finite_or_none(estimate.corner_std_px[0]),
+            # above Thresholds.undetermined_corner_std: the identity in the estimate's place
+            "undetermined": bool(estimate.undetermined[0])}
 
 
 BEYOND_NETWORK = ("search", "refine", "coarse", "features", "retry_tta")

@@ -116,6 +116,11 @@ class Thresholds:
         deviation, px, :func:`stnh_tf.inference.checks.corner_std`) is flagged implausible:
         where image_a covers little of image_b (a zoom out), a good alignment of the overlap
         can be far off at the corners.
+      undetermined_corner_std: with ``verify="ecc"`` in ``estimate_images``, where that
+        predicted standard deviation exceeds this (the 400 px diagonal of the 320 x 240 work
+        image), the images leave the estimate undetermined at their own scale: the identity is
+        returned in its place, flagged (``Estimate.undetermined``), as SIFT + RANSAC returns
+        the identity where it finds no model.
     """
 
     implausible_corner_shift: float = 1.5 * geometry.MAX_PERTURBATION
@@ -136,6 +141,7 @@ class Thresholds:
     image_refine_rounds: int = 3
     coarse_corner_shift: float = 4 * geometry.MAX_PERTURBATION
     max_corner_std: float = 1.0
+    undetermined_corner_std: float = 400.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):

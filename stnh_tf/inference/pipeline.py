@@ -71,6 +71,9 @@ class Estimate:
         two work images fix the estimate at image_b's corners (the predicted standard deviation,
         px, :func:`~stnh_tf.inference.checks.corner_std`); above
         ``thresholds.max_corner_std`` the estimate is flagged. NaN elsewhere.
+      undetermined: in ``estimate_images_with_info`` with ``verify="ecc"``, the corner standard
+        deviation exceeded ``thresholds.undetermined_corner_std``: ``homography`` is the
+        identity in place of the estimate (flagged); False elsewhere.
     """
 
     homography: np.ndarray
@@ -92,6 +95,7 @@ class Estimate:
     network_move_px: np.ndarray = None
     feature_start: np.ndarray = None
     corner_std_px: np.ndarray = None
+    undetermined: np.ndarray = None
 
     def __len__(self):
         return len(self.homography)
@@ -289,7 +293,8 @@ def finish(run: dict, options: EstimateOptions) -> Estimate:
         gated_stages=run["gated"], options=options, verify_move_px=move,
         network_homography=network,
         network_move_px=network_moves(run["total"], network, frames, run.get("origin", (0, 0))),
-        feature_start=np.zeros(len(shift), bool), corner_std_px=np.full(len(shift), np.nan))
+        feature_start=np.zeros(len(shift), bool), corner_std_px=np.full(len(shift), np.nan),
+        undetermined=np.zeros(len(shift), bool))
 
 
 def network_moves(a_from_b, network, frame_shapes, origin) -> np.ndarray:
