@@ -38,6 +38,7 @@ SOURCES = {
     "camera1_features": "docs/camera_pairs/seed1_photographs_features.json",
     "camera1_wide_features": "docs/camera_pairs/wide_seed1_features.json",
     "camera0_wide_features": "docs/camera_pairs/wide_seed0_features.json",
+    "camera2_wide_features": "docs/camera_pairs/wide_seed2_features.json",
     "camera0_speed": "docs/camera_pairs/speed_seed0_photographs.json",
     "readme_example": "docs/readme_example.json",
     "semi_all_seed0": "semi_supervised/eval/stage1_alone.json",
