@@ -331,6 +331,38 @@ def test_bad_files_are_skipped_with_reasons(messy_folder, tmp_path, monkeypatch)
     assert data.read_metadata(out)["splits"]["train"]["skipped"] == info["skipped"]
 
 
+def test_images_too_small_for_a_patch_are_skipped_by_name(tmp_path):
+    """One rule with estimate_images (sources.check_image_size): an image under 20 x 15 px,
+    whose 128 x 128 patches would cover fewer than 8 of its pixels on a side (a 1 x 1 image made
+    flat pairs), is refused when read, and skipped with its reason by make_dataset and by the
+    generated pairs; 20 x 15 px is used."""
+    from stnh_tf.data import batches, folder_counts
+
+    root = tmp_path / "small"
+    root.mkdir()
+    rng = np.random.default_rng(0)
+    for name, (w, h) in {"dot.png": (1, 1), "narrow.png": (19, 240), "low.png": (320, 14),
+                         "least.png": (20, 15), "photo.png": (320, 240)}.items():
+        cv2.imwrite(str(root / name), (rng.random((h, w)) * 255).astype(np.uint8))
+    with pytest.raises(sources.ImageTooSmallError, match="image is 1 x 1 px: too small"):
+        sources.load_gray_320x240(str(root / "dot.png"))
+    with pytest.raises(ValueError, match="image is 19 x 15 px: too small"):
+        sources.as_gray_320x240(np.zeros((15, 19), np.uint8))
+    least = cv2.imread(str(root / "least.png"), cv2.IMREAD_GRAYSCALE)
+    np.testing.assert_array_equal(sources.load_gray_320x240(str(root / "least.png")),
+                                  cv2.resize(least, (320, 240), interpolation=cv2.INTER_LINEAR))
+    out = str(tmp_path / "out")
+    info = stage1.make_dataset("folder", out, "train", image_dir=str(root), num_workers=1,
+                               num_shards=1, samples_per_image=1, log=lambda m: None)
+    skipped = {s["item_id"]: s["reason"] for s in info["skipped"]}
+    assert set(skipped) == {"dot.png", "narrow.png", "low.png"}
+    assert {folder_counts.skip_kind(r) for r in skipped.values()} == {"too small"}
+    assert set(data.load_arrays(out, "train")["image_id"]) == {"least.png", "photo.png"}
+    pair_batches = batches.PairBatches(str(root), 1, samples_per_image=1)
+    assert sorted(e[1] for e in pair_batches.entries) == ["least.png", "photo.png"]
+    assert sorted(i for i, _ in pair_batches.skipped) == ["dot.png", "low.png", "narrow.png"]
+
+
 def test_empty_source_and_unwritable_output_fail_before_work(tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()

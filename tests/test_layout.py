@@ -141,6 +141,7 @@ def test_modules_stay_small():
 
 
 DOCTEST_MODULES = ("stnh_tf.geometry", "stnh_tf.pixels", "stnh_tf.paths", "stnh_tf.provenance",
+                   "stnh_tf.data.sources",
                    "stnh_tf.training.config", "stnh_tf.data.labels",
                    "stnh_tf.inference.options", "stnh_tf.inference.checks",
                    "stnh_tf.inference.search", "stnh_tf.inference.ecc")

@@ -18,6 +18,7 @@ SKIP_KINDS = (
     ("corrupt or truncated", "corrupt or truncated"),
     ("not an image", "not a decodable image"),
     ("unsupported image", "unsupported "),
+    ("too small", "image is "),  # sources.check_image_size: under 20 x 15 px
 )
 """``(kind, start of the reason)``: the kinds a skipped file is counted under (:func:`skip_kind`),
 from the reasons :mod:`stnh_tf.data.sources` gives (:class:`~stnh_tf.data.sources.ImageDecodeError`,

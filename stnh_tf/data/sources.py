@@ -15,7 +15,8 @@ Every source image becomes ``uint8 [240, 320]`` (height, width) through :func:`l
 * an alpha channel is composited onto black (``gray * alpha``), so that hidden colour values of
   transparent pixels never leak into the data;
 * resized to exactly 320x240 (aspect ratio not kept, as in the paper): ``cv2.INTER_AREA`` when
-  both sides shrink, ``cv2.INTER_LINEAR`` otherwise (small images are enlarged, never skipped).
+  both sides shrink, ``cv2.INTER_LINEAR`` otherwise (small images are enlarged; those under 20 x
+  15 px refused, as by ``estimate_images``: :func:`check_image_size`).
 
 Files that cannot be turned into an image raise :class:`ImageDecodeError`, whose message is the
 reason recorded in a dataset's ``metadata.json``.
@@ -54,6 +55,10 @@ _SKLEARN_PHOTOS = ("china.jpg", "flower.jpg")
 
 class ImageDecodeError(ValueError):
     """A file that cannot be turned into an 8-bit gray image; ``str(e)`` is the reason."""
+
+
+class ImageTooSmallError(ImageDecodeError):
+    """An image too small for the protocol's patches (:func:`check_image_size`)."""
 
 
 class SourceError(ValueError):
@@ -228,25 +233,21 @@ def bundled_image_files() -> list:
     scikit-learn's two sample images when scikit-learn is installed. Sorted by id; ids look like
     ``"skimage/camera.png"``.
     """
-    found = []
+    import importlib
+
     import skimage
 
-    sk_dir = os.path.join(os.path.dirname(skimage.__file__), "data")
-    found += [(f"skimage/{n}", os.path.join(sk_dir, n)) for n in _SKIMAGE_PHOTOS]
-    try:
-        import matplotlib
-
-        mpl_dir = os.path.join(matplotlib.get_data_path(), "sample_data")
-        found += [(f"matplotlib/{n}", os.path.join(mpl_dir, n)) for n in _MATPLOTLIB_PHOTOS]
-    except ImportError:
-        pass
-    try:
-        import sklearn  # optional: not a dependency of this project
-
-        sl_dir = os.path.join(os.path.dirname(sklearn.__file__), "datasets", "images")
-        found += [(f"sklearn/{n}", os.path.join(sl_dir, n)) for n in _SKLEARN_PHOTOS]
-    except ImportError:
-        pass
+    found = [(f"skimage/{n}", os.path.join(os.path.dirname(skimage.__file__), "data", n))
+             for n in _SKIMAGE_PHOTOS]
+    for package, names, folder in (  # optional: scikit-learn is not a dependency of this project
+            ("matplotlib", _MATPLOTLIB_PHOTOS, lambda m: (m.get_data_path(), "sample_data")),
+            ("sklearn", _SKLEARN_PHOTOS, lambda m: (os.path.dirname(m.__file__), "datasets",
+                                                    "images"))):
+        try:
+            module = importlib.import_module(package)
+        except ImportError:
+            continue
+        found += [(f"{package}/{n}", os.path.join(*folder(module), n)) for n in names]
     return sorted((i, p) for i, p in found if os.path.isfile(p))
 
 
@@ -372,6 +373,32 @@ def _decode_with_pillow(data: bytes) -> np.ndarray:
     return to_gray_uint8(arr, "rgb")
 
 
+MIN_PATCH_SPAN_PX = 8
+"""Fewest pixels of an image a 128 x 128 patch of its 320 x 240 version may cover on a side."""
+
+
+def check_image_size(size, name="image") -> None:
+    """:class:`ImageTooSmallError` (naming ``name``) unless a 128 x 128 patch of the 320 x 240
+    version of a ``size = (w, h)`` image covers :data:`MIN_PATCH_SPAN_PX` of its pixels a side
+    (``w >= 20``, ``h >= 15``; below, its motion is not observable: training pairs skip it).
+
+        >>> check_image_size((5120, 1))  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        stnh_tf.data.sources.ImageTooSmallError: image is 5120 x 1 px: too small ... 20 x 15 px).
+    """
+    work, patch = (geometry.IMAGE_WIDTH, geometry.IMAGE_HEIGHT), geometry.PATCH_SIZE
+    span = tuple(side * patch / w for side, w in zip(size, work))
+    if min(span) < MIN_PATCH_SPAN_PX:
+        least = [-(-MIN_PATCH_SPAN_PX * side // patch) for side in work]
+        raise ImageTooSmallError(
+            f"{name} is {size[0]} x {size[1]} px: too small to estimate a homography from; its "
+            f"central {patch} x {patch} patch, after the resize to {work[0]} x {work[1]}, would "
+            f"cover {span[0]:.1f} x {span[1]:.1f} of its pixels, and at least "
+            f"{MIN_PATCH_SPAN_PX} x {MIN_PATCH_SPAN_PX} are needed (an image of at least "
+            f"{least[0]} x {least[1]} px).")
+
+
 def resize_to_protocol(gray: np.ndarray, width: int = geometry.IMAGE_WIDTH,
                        height: int = geometry.IMAGE_HEIGHT) -> np.ndarray:
     """``uint8 [h, w]`` -> ``uint8 [height, width]`` (area when shrinking, else bilinear)."""
@@ -404,19 +431,23 @@ def read_gray(path_or_bytes) -> np.ndarray:
 
 def load_gray_320x240(path_or_bytes) -> np.ndarray:
     """Read an image file (path) or encoded bytes -> ``uint8 [240, 320]`` gray
-    (:func:`read_gray`, then :func:`resize_to_protocol`).
+    (:func:`read_gray`, :func:`check_image_size`, then :func:`resize_to_protocol`).
 
     Raises:
-      ImageDecodeError: the file cannot be read or decoded (message = reason).
+      ImageDecodeError: unreadable, undecodable, or under 20 x 15 px (message = reason).
     """
-    return resize_to_protocol(read_gray(path_or_bytes))
+    gray = read_gray(path_or_bytes)
+    check_image_size(gray.shape[1::-1])
+    return resize_to_protocol(gray)
 
 
 def as_gray_320x240(image) -> np.ndarray:
     """Path, encoded bytes, or an already decoded array (any dtype/channels, BGR order) ->
     ``uint8 [240, 320]``."""
     if isinstance(image, np.ndarray):
-        return resize_to_protocol(to_gray_uint8(image, "bgr"))
+        gray = to_gray_uint8(image, "bgr")
+        check_image_size(gray.shape[1::-1])
+        return resize_to_protocol(gray)
     return load_gray_320x240(image)
 
 

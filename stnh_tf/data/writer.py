@@ -106,8 +106,9 @@ def _run_chunk(worker_fn: Callable, items: list) -> list:
             samples = worker_fn(item)
             out.append(([features.serialize_example(s) for s in samples], None))
         except Exception as e:  # noqa: BLE001 - bad input must never stop the run
-            msg = str(e) if isinstance(e, SkipItem) or type(e).__name__ == "ImageDecodeError" \
-                else f"{type(e).__name__}: {e}"
+            plain = isinstance(e, SkipItem) or any(c.__name__ == "ImageDecodeError"
+                                                   for c in type(e).__mro__)  # its subclasses too
+            msg = str(e) if plain else f"{type(e).__name__}: {e}"
             out.append((None, msg or type(e).__name__))
     return out
 

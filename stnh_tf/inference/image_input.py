@@ -39,15 +39,13 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry, pixels
+from stnh_tf.data.sources import MIN_PATCH_SPAN_PX, check_image_size  # noqa: F401 (one rule)
 
 PATCH_SIZE = geometry.PATCH_SIZE
 WORK_SIZE = (geometry.IMAGE_WIDTH, geometry.IMAGE_HEIGHT)
 """``(width, height)`` every image is resized to by ``estimate_images``."""
 PATCH_ORIGIN = ((WORK_SIZE[0] - PATCH_SIZE) // 2, (WORK_SIZE[1] - PATCH_SIZE) // 2)
 """Top-left corner ``(x0, y0) = (96, 56)`` of the central patch in the 320 x 240 frame."""
-MIN_PATCH_SPAN_PX = 8
-"""Fewest pixels of an image the central patch may cover on each side (:func:`check_image_size`:
-images of at least 20 x 15 px)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -90,31 +88,6 @@ def _as_array(x, name):
         raise ValueError(f"{name} is not a numeric image array; received dtype {arr.dtype} with "
                          f"shape {arr.shape}.")
     return arr
-
-
-def check_image_size(size, name="image") -> None:
-    """``ValueError`` (one line naming ``name`` and the size) unless an image of ``size = (w,
-    h)`` is large enough for ``estimate_images``: its central patch, resized as the module
-    docstring says, covers at least :data:`MIN_PATCH_SPAN_PX` of its pixels on each side
-    (``w >= 20`` and ``h >= 15``).
-
-        >>> check_image_size((20, 15))
-        >>> check_image_size((5120, 1))  # doctest: +ELLIPSIS +NORMALIZE_WHITESPACE
-        Traceback (most recent call last):
-        ...
-        ValueError: image is 5120 x 1 px: too small to estimate a homography from; ...
-        would cover 2048.0 x 0.5 of its pixels, ... (an image of at least 20 x 15 px).
-    """
-    w, h = size
-    span = (w * PATCH_SIZE / WORK_SIZE[0], h * PATCH_SIZE / WORK_SIZE[1])
-    if min(span) < MIN_PATCH_SPAN_PX:
-        least = [-(-MIN_PATCH_SPAN_PX * side // PATCH_SIZE) for side in WORK_SIZE]
-        raise ValueError(f"{name} is {w} x {h} px: too small to estimate a homography from; its "
-                         f"central {PATCH_SIZE} x {PATCH_SIZE} patch, after the resize to "
-                         f"{WORK_SIZE[0]} x {WORK_SIZE[1]}, would cover {span[0]:.1f} x "
-                         f"{span[1]:.1f} of its pixels, and at least {MIN_PATCH_SPAN_PX} x "
-                         f"{MIN_PATCH_SPAN_PX} are needed (an image of at least {least[0]} x "
-                         f"{least[1]} px).")
 
 
 def check_patch_pair(patch_a, patch_b):
