@@ -43,6 +43,7 @@ flags.DEFINE_list("steps_per_execution", ["1"], "Keras steps_per_execution value
                   "mode at (each must divide --steps_per_epoch).")
 flags.DEFINE_list("callbacks", ["none"], "Callbacks to time each mode with: none, training (the "
                   "training loop's per-step non-finite guard and progress logger).")
+flags_common.define_max_images()
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them
@@ -55,7 +56,7 @@ def main(argv):
         FLAGS.alone_batches, FLAGS.modes, FLAGS.steps_per_epoch, FLAGS.epochs,
         FLAGS.mixed_precision, FLAGS.seed, FLAGS.photometric,
         steps_per_execution=[int(k) for k in FLAGS.steps_per_execution],
-        callbacks=FLAGS.callbacks)
+        callbacks=FLAGS.callbacks, max_images=FLAGS.max_images)
     common.emit_json(result, FLAGS.json_out)
 
 

@@ -125,7 +125,7 @@ PHOTO_FOLDER_BINARIES = (
     "data_prep.make_dataset", "experiments.make_camera_pairs", "experiments.tune_baselines",
     "experiments.benchmark_data", "experiments.benchmark_stage_pairs", "experiments.reproduce",
     "experiments.semi_supervised", "experiments.loss_weight_ablation", "experiments.train_stage",
-    "experiments.train_sequence")
+    "experiments.train_sequence", "experiments.benchmark_stream")
 
 
 def test_every_binary_that_reads_a_photograph_folder_takes_max_images():

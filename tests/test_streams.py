@@ -331,3 +331,18 @@ def test_evaluate_scores_mixed_precision_models_in_float32_on_request(records, t
     h2 = evaluation.evaluate([m, m], records, "test", compute_dtype="float32")["model"]["stages"]
     h2_ref = evaluation.evaluate([r, r], records, "test")["model"]["stages"]
     assert h2["after_2_stages"]["mace"] == pytest.approx(h2_ref["after_2_stages"]["mace"], abs=1e-4)
+
+
+def test_the_stream_benchmark_reads_the_first_max_images_photographs(folder):
+    """experiments.benchmark_stream --max_images: the pairs it times (in process, from the
+    stream alone, and the inputs of model.fit) come from the first N photographs only."""
+    from stnh_tf.evaluation import benchmarks
+
+    result = benchmarks.stream_benchmark([folder], workers=0, samples_per_image=2, batch_size=2,
+                                         alone_batches=1, modes=(), max_images=2)
+    assert (result["images"], result["max_images"]) == (2, 2)
+    pb = batches.PairBatches([folder], 2, samples_per_image=2, max_images=2)
+    for mode in ("stream", "fresh"):
+        stream = benchmarks._fit_inputs(mode, pb, [folder], 2, 0, 2, 0, False, max_images=2)
+        assert [e[1] for e in stream.batches.entries] == [e[1] for e in pb.entries]
+        assert len(pb.entries) == 2

@@ -252,10 +252,11 @@ def stn_benchmark(batch_size=64, size=128, iterations=30, warmup=3, seed=0, jit_
 # Pair generation alone and inside model.fit
 # ------------------------------------------------------------------------------------------------
 def _fit_inputs(mode, pair_batches, image_dir, batch_size, workers, samples_per_image, seed,
-                photometric):
+                photometric, max_images=0):
     from stnh_tf.data import batches, pair_datasets
 
-    common_args = dict(samples_per_image=samples_per_image, seed=seed, photometric=photometric)
+    common_args = dict(samples_per_image=samples_per_image, seed=seed, photometric=photometric,
+                       max_images=max_images)
     if mode == "array":
         return pair_datasets.ArrayStream(batches.materialize(pair_batches, workers), pair_batches)
     return pair_datasets.PairStream(image_dir, batch_size, fresh_pairs=mode == "fresh",
@@ -264,12 +265,13 @@ def _fit_inputs(mode, pair_batches, image_dir, batch_size, workers, samples_per_
 
 def time_fit(mode, pair_batches, image_dir, batch_size=64, workers=2, samples_per_image=100,
              steps_per_epoch=50, epochs=3, mixed_precision=True, seed=0, photometric=False,
-             steps_per_execution=1, training_callbacks=False, stream=None) -> dict:
+             steps_per_execution=1, training_callbacks=False, stream=None,
+             max_images=0) -> dict:
     """Steps per second of ``model.fit`` fed by ``mode`` (``array``, ``stream`` or ``fresh``;
     or by ``stream`` where given) over ``epochs`` epochs after an untimed one, and the median and
     longest step, at ``steps_per_execution``; ``training_callbacks`` adds the per-step callbacks
     of :func:`stnh_tf.training.loop.train` (non-finite guard, progress), which read the loss
-    after every call."""
+    after every call. ``max_images``: the first N photographs of ``image_dir`` only (0: all)."""
     import keras
 
     from stnh_tf.training import config as train_config
@@ -297,7 +299,7 @@ def time_fit(mode, pair_batches, image_dir, batch_size=64, workers=2, samples_pe
     owned = stream is None
     if owned:
         stream = _fit_inputs(mode, pair_batches, image_dir, batch_size, workers,
-                             samples_per_image, seed, photometric)
+                             samples_per_image, seed, photometric, max_images)
     ready_s = time.perf_counter() - t0
     model = training.compile_model(model_kinds.build_model(cfg), cfg)
     ends = Ends()
@@ -334,11 +336,11 @@ def fit_variants(spes=(1,), callback_sets=("none",)) -> list:
 def stream_benchmark(image_dir, workers=2, samples_per_image=100, batch_size=64,
                      alone_batches=100, modes=("array", "stream", "fresh"), steps_per_epoch=50,
                      epochs=3, mixed_precision=True, seed=0, photometric=False,
-                     steps_per_execution=(1,), callbacks=("none",)) -> dict:
+                     steps_per_execution=(1,), callbacks=("none",), max_images=0) -> dict:
     """Runs every measurement of ``experiments.benchmark_stream`` (``image_dir``: a list of
-    folders) on the current Keras backend and returns the result dict; each mode is timed at
-    every ``steps_per_execution`` with each of ``callbacks`` (``none``, ``training``:
-    :func:`fit_variants`)."""
+    folders, of which the first ``max_images`` photographs, 0: all) on the current Keras backend
+    and returns the result dict; each mode is timed at every ``steps_per_execution`` with each of
+    ``callbacks`` (``none``, ``training``: :func:`fit_variants`)."""
     import keras
 
     from stnh_tf.data import batches, pair_datasets
@@ -346,16 +348,17 @@ def stream_benchmark(image_dir, workers=2, samples_per_image=100, batch_size=64,
 
     __import__({"tensorflow": "tensorflow", "jax": "jax"}.get(keras.backend.backend(), "keras"))
     pair_batches = batches.PairBatches(image_dir, batch_size, samples_per_image=samples_per_image,
-                                       seed=seed, photometric=photometric)
+                                       seed=seed, photometric=photometric, max_images=max_images)
     result = {"benchmark": "stream", "image_dir": image_dir, "photometric": photometric,
-              "images": len(pair_batches.entries),
+              "images": len(pair_batches.entries), "max_images": max_images,
               "workers": workers, "samples_per_image": samples_per_image,
               "batch_size": batch_size, "seed": seed, "backend": keras.backend.backend(),
               "mixed_precision": mixed_precision, "machine": machine_info()}
     result["in_process_ms"] = median_ms(lambda: pair_batches.step_batch(1, fresh=True), 10, 1)
     stream = pair_datasets.PairStream(image_dir, batch_size, workers=workers,
                                       samples_per_image=samples_per_image, seed=seed,
-                                      fresh_pairs=True, photometric=photometric)
+                                      fresh_pairs=True, photometric=photometric,
+                                      max_images=max_images)
     try:
         stream[0]
         t0 = time.perf_counter()
@@ -373,7 +376,8 @@ def stream_benchmark(image_dir, workers=2, samples_per_image=100, batch_size=64,
             result["fit"][mode + suffix] = time_fit(
                 mode, pair_batches, image_dir, batch_size, workers, samples_per_image,
                 steps_per_epoch, epochs, mixed_precision, seed, photometric,
-                steps_per_execution=k, training_callbacks=cbs, stream=given)
+                steps_per_execution=k, training_callbacks=cbs, stream=given,
+                max_images=max_images)
     return result
 
 
