@@ -39,7 +39,8 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry, pixels
-from stnh_tf.data.sources import MIN_PATCH_SPAN_PX, check_image_size  # noqa: F401 (one rule)
+from stnh_tf.data.sources import (MIN_PATCH_SPAN_PX,  # noqa: F401 (one rule with the data)
+                                  check_image_size, resize_to_protocol)
 
 PATCH_SIZE = geometry.PATCH_SIZE
 WORK_SIZE = (geometry.IMAGE_WIDTH, geometry.IMAGE_HEIGHT)
@@ -226,14 +227,10 @@ def resize_matrix(src_size, dst_size) -> np.ndarray:
 
 
 def resize_to_work_size(gray: np.ndarray) -> np.ndarray:
-    """Grayscale ``[h, w]`` -> ``[240, 320]`` as the training data was made (``cv2.INTER_AREA``
-    when both sides shrink, else ``cv2.INTER_LINEAR``; both keep the geometry of
-    :func:`resize_matrix`)."""
-    h, w = gray.shape[:2]
-    if (w, h) == WORK_SIZE:
-        return np.ascontiguousarray(gray)
-    interp = cv2.INTER_AREA if (w >= WORK_SIZE[0] and h >= WORK_SIZE[1]) else cv2.INTER_LINEAR
-    return cv2.resize(gray, WORK_SIZE, interpolation=interp)
+    """Grayscale ``[h, w]`` (uint8 or float) -> ``[240, 320]`` as the training data was made:
+    :func:`stnh_tf.data.sources.resize_to_protocol` (``cv2.INTER_AREA`` when both sides shrink,
+    else ``cv2.INTER_LINEAR``; both keep the geometry of :func:`resize_matrix`)."""
+    return resize_to_protocol(gray, *WORK_SIZE)
 
 
 def central_patch(work: np.ndarray) -> np.ndarray:
