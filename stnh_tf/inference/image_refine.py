@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import cv2
 import numpy as np
 
 from stnh_tf import geometry
@@ -60,6 +61,11 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
     if options.refine != "images" or est.flat[0] or not np.isfinite(h0).all():
         return est
     t = options.thresholds
+    # ECC (whole images and patch) and the scores that choose between its results see the two
+    # images at one resolution; the reported alignment NCC (the flag's) sees them as they are
+    plain_a, plain_patch_b = work_a, central_patch(work_b)[0, ..., 0]
+    work_a, work_b = equal_resolution(work_a, work_b, geometry.patch_to_image(h0, *origin),
+                                      t.resolution_sigma)
     patch_b = central_patch(work_b)[0, ..., 0]
     ncc_of = lambda h: coarse.image_ncc(work_a, work_b, h, origin, t.min_overlap)  # noqa: E731
     best, best_ncc = h0, ncc_of(h0)
@@ -95,10 +101,60 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
         if checked_for is not best:
             checked = search_lib.ecc_refine(work_a, patch_b, best, origin, t)
         move = np.array([_move(checked, best, work_a, origin)])
-    ncc = checks.alignment_ncc(work_a, patch_b, best, origin, t.min_overlap)
+    ncc = checks.alignment_ncc(plain_a, plain_patch_b, best, origin, t.min_overlap)
     refined = dataclasses.replace(est, homography=best[None], alignment_ncc=np.array([ncc]),
                                   refined=np.array([True]), verify_move_px=move)
     return coarse.flag(refined, options, wide=options.coarse != "none")
+
+
+def centre_scale(a_from_b, size_b) -> float:
+    """The linear scale at which the image-frame ``a_from_b`` (``[3, 3]``, image_b pixel ->
+    image_a pixel) maps the centre of an image_b of ``size_b = (w, h)``: ``sqrt(|det J|)`` of
+    ``p -> a_from_b(p)`` there (``det J = det(H) / w**3``, ``w`` the homogeneous coordinate);
+    above 1 image_b sees image_a smaller (a zoom out); NaN where not finite or behind the camera.
+
+    >>> round(centre_scale(np.diag([2.0, 2.0, 1.0]), (320, 240)), 6)
+    2.0
+    """
+    h = np.asarray(a_from_b, np.float64)
+    centre = np.array([(size_b[0] - 1) / 2, (size_b[1] - 1) / 2, 1.0])
+    with np.errstate(all="ignore"):
+        w = float(h[2] @ centre)
+        det = float(np.linalg.det(h)) if np.isfinite(h).all() else math.nan
+        scale = math.sqrt(abs(det / w ** 3)) if w > 0 and math.isfinite(det) else math.nan
+    return scale if math.isfinite(scale) else math.nan
+
+
+def resolution_blurs(a_from_b, size_b, sigma: float) -> tuple:
+    """``(sigma_a, sigma_b)``: the Gaussian blurs (px, each in its own image) that bring image_a
+    and image_b to one resolution under the image-frame ``a_from_b``: at the scale ``s`` of
+    :func:`centre_scale`, ``sigma * sqrt(s**2 - 1)`` on image_a where ``s > 1`` (image_a is
+    the sharper: one pixel of image_b spans ``s`` of image_a's), ``sigma * sqrt(1 / s**2 - 1)``
+    on image_b where ``s < 1``; ``(0, 0)`` at ``s = 1``, for ``sigma = 0`` or an undefined
+    scale.
+
+    >>> [round(x, 3) for x in resolution_blurs(np.diag([2.0, 2.0, 1.0]), (320, 240), 0.8)]
+    [1.386, 0.0]
+    """
+    s = centre_scale(a_from_b, size_b)
+    if sigma <= 0 or not s > 0:
+        return 0.0, 0.0
+    if s >= 1:
+        return sigma * math.sqrt(s * s - 1), 0.0
+    return 0.0, sigma * math.sqrt(1 / (s * s) - 1)
+
+
+def equal_resolution(work_a, work_b, a_from_b, sigma: float) -> tuple:
+    """``(work_a, work_b)`` with the sharper one blurred by :func:`resolution_blurs`
+    (``cv2.GaussianBlur``, mirrored border; a blur under 0.1 px is left out and the image
+    returned as it is). ECC samples image_a at ``a_from_b(p)``: where image_b is a zoom out,
+    one of its pixels spans several of image_a's, and sampling image_a there without this blur
+    aliases its fine detail into the alignment (issue 64's zoom-outs). Frames as in
+    :func:`resolution_blurs`; a deviation from the paper (``Thresholds.resolution_sigma``)."""
+    sigma_a, sigma_b = resolution_blurs(a_from_b, np.shape(work_b)[::-1], sigma)
+    blur = lambda x, s: (x if s < 0.1 else cv2.GaussianBlur(  # noqa: E731
+        x, (0, 0), s, borderType=cv2.BORDER_REFLECT_101))
+    return blur(work_a, sigma_a), blur(work_b, sigma_b)
 
 
 def _verified(est, nearest, work_a, origin, options: EstimateOptions):

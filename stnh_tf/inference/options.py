@@ -116,6 +116,11 @@ class Thresholds:
         deviation, px, :func:`stnh_tf.inference.checks.corner_std`) is flagged implausible:
         where image_a covers little of image_b (a zoom out), a good alignment of the overlap
         can be far off at the corners.
+      resolution_sigma: with ``refine="images"``, the whole-image refinement first brings the two
+        work images to one resolution (:func:`stnh_tf.inference.image_refine.equal_resolution`):
+        where the estimate maps image_b's centre at scale ``s`` (a zoom), the sharper image is
+        blurred by ``resolution_sigma * sqrt(s**2 - 1)`` px (``s`` or ``1 / s``): a camera's
+        blur of this many px, as seen at the other zoom. 0: off.
       undetermined_corner_std: with ``verify="ecc"`` in ``estimate_images``, where that
         predicted standard deviation exceeds this (the 400 px diagonal of the 320 x 240 work
         image), the images leave the estimate undetermined at their own scale: the identity is
@@ -142,6 +147,7 @@ class Thresholds:
     coarse_corner_shift: float = 4 * geometry.MAX_PERTURBATION
     max_corner_std: float = 1.0
     undetermined_corner_std: float = 400.0
+    resolution_sigma: float = 0.8
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
