@@ -61,13 +61,12 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
     if options.refine != "images" or est.flat[0] or not np.isfinite(h0).all():
         return est
     t = options.thresholds
-    # ECC (whole images and patch) and the scores that choose between its results see the two
-    # images at one resolution; the reported alignment NCC (the flag's) sees them as they are
-    plain_a, plain_patch_b = work_a, central_patch(work_b)[0, ..., 0]
-    work_a, work_b = equal_resolution(work_a, work_b, geometry.patch_to_image(h0, *origin),
-                                      t.resolution_sigma)
+    # the whole-image ECC and the scores that choose between its results see the two images at
+    # one resolution; the patch ECC and the flag's measures see them as they are
     patch_b = central_patch(work_b)[0, ..., 0]
-    ncc_of = lambda h: coarse.image_ncc(work_a, work_b, h, origin, t.min_overlap)  # noqa: E731
+    equal_a, equal_b = equal_resolution(work_a, work_b, geometry.patch_to_image(h0, *origin),
+                                        t.resolution_sigma)
+    ncc_of = lambda h: coarse.image_ncc(equal_a, equal_b, h, origin, t.min_overlap)  # noqa: E731
     best, best_ncc = h0, ncc_of(h0)
     starts = [h0]
     nearest = search_lib.ecc_refine(work_a, patch_b, h0, origin, t)
@@ -84,7 +83,7 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
         floor = best_ncc if round_ == 0 else max(best_ncc, t.verified_ncc)
         improved = False
         for start in starts:
-            h = _whole_image_ecc(work_a, work_b, start, origin, t)
+            h = _whole_image_ecc(equal_a, equal_b, start, origin, t)
             ncc = -math.inf if h is None else ncc_of(h)
             if ncc > floor:
                 best, best_ncc, floor, improved = h, ncc, ncc, True
@@ -101,10 +100,15 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
         if checked_for is not best:
             checked = search_lib.ecc_refine(work_a, patch_b, best, origin, t)
         move = np.array([_move(checked, best, work_a, origin)])
-    ncc = checks.alignment_ncc(plain_a, plain_patch_b, best, origin, t.min_overlap)
+    ncc = checks.alignment_ncc(work_a, patch_b, best, origin, t.min_overlap)
     refined = dataclasses.replace(est, homography=best[None], alignment_ncc=np.array([ncc]),
                                   refined=np.array([True]), verify_move_px=move)
     return coarse.flag(refined, options, wide=options.coarse != "none")
+
+
+MIN_BLUR = math.sqrt(1 / 6)
+"""px: :func:`equal_resolution` leaves out a blur under this, the standard deviation of bilinear
+interpolation's own triangle kernel (0.41 px), which ECC's sampling applies anyway."""
 
 
 def centre_scale(a_from_b, size_b) -> float:
@@ -146,13 +150,13 @@ def resolution_blurs(a_from_b, size_b, sigma: float) -> tuple:
 
 def equal_resolution(work_a, work_b, a_from_b, sigma: float) -> tuple:
     """``(work_a, work_b)`` with the sharper one blurred by :func:`resolution_blurs`
-    (``cv2.GaussianBlur``, mirrored border; a blur under 0.1 px is left out and the image
-    returned as it is). ECC samples image_a at ``a_from_b(p)``: where image_b is a zoom out,
+    (``cv2.GaussianBlur``, mirrored border; a blur under :data:`MIN_BLUR` is left out and the
+    image returned as it is). ECC samples image_a at ``a_from_b(p)``: where image_b is a zoom out,
     one of its pixels spans several of image_a's, and sampling image_a there without this blur
     aliases its fine detail into the alignment (issue 64's zoom-outs). Frames as in
     :func:`resolution_blurs`; a deviation from the paper (``Thresholds.resolution_sigma``)."""
     sigma_a, sigma_b = resolution_blurs(a_from_b, np.shape(work_b)[::-1], sigma)
-    blur = lambda x, s: (x if s < 0.1 else cv2.GaussianBlur(  # noqa: E731
+    blur = lambda x, s: (x if s < MIN_BLUR else cv2.GaussianBlur(  # noqa: E731
         x, (0, 0), s, borderType=cv2.BORDER_REFLECT_101))
     return blur(work_a, sigma_a), blur(work_b, sigma_b)
 

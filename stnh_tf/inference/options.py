@@ -119,8 +119,11 @@ class Thresholds:
       resolution_sigma: with ``refine="images"``, the whole-image refinement first brings the two
         work images to one resolution (:func:`stnh_tf.inference.image_refine.equal_resolution`):
         where the estimate maps image_b's centre at scale ``s`` (a zoom), the sharper image is
-        blurred by ``resolution_sigma * sqrt(s**2 - 1)`` px (``s`` or ``1 / s``): a camera's
-        blur of this many px, as seen at the other zoom. 0: off.
+        blurred by ``resolution_sigma * sqrt(s**2 - 1)`` px (``s`` or ``1 / s``; under 0.41 px,
+        bilinear interpolation's own blur, left out): a camera's blur of this many px, as seen
+        at the other zoom. The whole-image ECC and the scores that choose between its results
+        see the blurred pair; the patch ECC and the flag's measures the images as they are.
+        0: off.
       undetermined_corner_std: with ``verify="ecc"`` in ``estimate_images``, where that
         predicted standard deviation exceeds this (the 400 px diagonal of the 320 x 240 work
         image), the images leave the estimate undetermined at their own scale: the identity is
