@@ -12,6 +12,7 @@ estimator's implausibility flag as a detector of estimates more than 5 px off
       --refine=none --verify=none --search=none              # the network alone
   python -m experiments.benchmark_camera_pairs --pairs_dir=D \
       --methods=estimator,sift_ransac,sift_wide,orb_ransac,identity   # SIFT for wide baselines too
+  python -m experiments.benchmark_camera_pairs --pairs_dir=D --thresholds=resolution_sigma=0
 
 The estimator runs with ``estimate_images``' default options (``EstimateOptions.photographs()``)
 unless the flags say otherwise.
@@ -39,7 +40,7 @@ flags.DEFINE_bool("per_pair", False, "Also print each pair's errors and flag.")
 # estimate_images' default options
 flags_common.define_estimate_flags(("search", "refine", "tta", "retry_tta", "verify", "coarse",
                                     "features"),
-                                   EstimateOptions.photographs())
+                                   EstimateOptions.photographs(), thresholds=True)
 flags.DEFINE_string("json_out", None, summaries.JSON_OUT_HELP)
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them

@@ -200,16 +200,25 @@ _FLAG_DEFAULTS = {}
 """The ``defaults`` each ``FlagValues`` (by id) got from :func:`define_estimate_flags`."""
 
 
+THRESHOLDS_HELP = ("Thresholds fields to change, as name=value (e.g. resolution_sigma=0: the "
+                   "whole-image refinement without its one resolution); the others keep the "
+                   "options' own.")
+
+
 def define_estimate_flags(names=("search", "refine", "tta", "retry_tta"), defaults=None,
-                          flag_values=flags.FLAGS):
+                          flag_values=flags.FLAGS, thresholds: bool = False):
     """Define a flag for each :class:`~stnh_tf.inference.options.EstimateOptions` field of
     ``names`` (keys of :data:`ESTIMATE_FLAG_HELP`), its default taken from ``defaults`` (an
-    ``EstimateOptions``; ``None``: ``EstimateOptions()``). :func:`options_from_flags` reads them.
+    ``EstimateOptions``; ``None``: ``EstimateOptions()``), and with ``thresholds``
+    ``--thresholds=name=value,...`` (:data:`THRESHOLDS_HELP`). :func:`options_from_flags` reads
+    them.
     """
     from stnh_tf.inference.options import EstimateOptions
 
     defaults = EstimateOptions() if defaults is None else defaults
     _FLAG_DEFAULTS[id(flag_values)] = defaults
+    if thresholds:
+        flags.DEFINE_list("thresholds", [], THRESHOLDS_HELP, flag_values=flag_values)
     for name in names:
         default, help_text = getattr(defaults, name), ESTIMATE_FLAG_HELP[name]
         if isinstance(default, bool):
@@ -227,9 +236,42 @@ def options_from_flags(defaults=None, flag_values=flags.FLAGS):
 
     if defaults is None:
         defaults = _FLAG_DEFAULTS.get(id(flag_values)) or EstimateOptions()
-    return dataclasses.replace(defaults, **{name: flag_values[name].value
-                                            for name in ESTIMATE_FLAG_HELP
-                                            if name in flag_values})
+    options = dataclasses.replace(defaults, **{name: flag_values[name].value
+                                               for name in ESTIMATE_FLAG_HELP
+                                               if name in flag_values})
+    if "thresholds" in flag_values and flag_values["thresholds"].value:
+        options = dataclasses.replace(options, thresholds=thresholds_from_flag(
+            flag_values["thresholds"].value, options.thresholds))
+    return options
+
+
+def thresholds_from_flag(items, base):
+    """``base`` (a :class:`~stnh_tf.inference.options.Thresholds`) with the ``name=value`` items
+    of ``--thresholds`` applied, each value of its field's type (an int field takes an int).
+
+    Raises:
+      ValueError: an item without ``=``, an unknown or tuple-valued field, a value of the wrong
+        type, or one the field refuses (``Thresholds``' own check).
+
+    >>> from stnh_tf.inference.options import Thresholds
+    >>> thresholds_from_flag(["resolution_sigma=0", "search_peaks=4"], Thresholds()).search_peaks
+    4
+    """
+    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)}
+    changes = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or name not in fields or isinstance(fields[name], tuple):
+            raise ValueError(f"--thresholds takes name=value items of Thresholds' number fields "
+                             f"({', '.join(n for n, v in fields.items() if not isinstance(v, tuple))}"
+                             f"); received {item!r}.")
+        kind = type(fields[name])
+        try:
+            changes[name] = kind(text) if kind is float else int(text)
+        except ValueError:
+            raise ValueError(f"--thresholds: {name} takes a {kind.__name__}; received "
+                             f"{text!r}.") from None
+    return dataclasses.replace(base, **changes)
 
 
 MAX_IMAGES_HELP = ("Use only the first N photographs of the folder's sorted listing (several "

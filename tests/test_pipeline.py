@@ -79,6 +79,24 @@ def test_flags_are_the_options_fields():
         fv(["prog", "--search=sift"])
 
 
+def test_the_thresholds_flag_changes_only_the_fields_it_names():
+    from experiments import flags_common
+
+    fv = flags.FlagValues()
+    base = EstimateOptions.photographs()
+    flags_common.define_estimate_flags(("search",), base, flag_values=fv, thresholds=True)
+    fv(["prog"])
+    assert flags_common.options_from_flags(flag_values=fv) == base
+    fv(["prog", "--thresholds=resolution_sigma=0,search_peaks=4"])
+    assert flags_common.options_from_flags(flag_values=fv) == dataclasses.replace(
+        base, thresholds=Thresholds(resolution_sigma=0.0, search_peaks=4))
+    for bad in ("resolution_sigma", "no_such=1", "search_coarse_iterations=1",
+                "search_peaks=2.5", "resolution_sigma=-1"):
+        fv(["prog", f"--thresholds={bad}"])
+        with pytest.raises(ValueError, match="Thresholds|thresholds"):
+            flags_common.options_from_flags(flag_values=fv)
+
+
 # ------------------------------------------------------------------------------------------------
 # Steps
 # ------------------------------------------------------------------------------------------------

@@ -40,6 +40,14 @@ SOURCES = {
     "camera0_wide_features": "docs/camera_pairs/wide_seed0_features.json",
     "camera2_wide_features": "docs/camera_pairs/wide_seed2_features.json",
     "camera0_speed": "docs/camera_pairs/speed_seed0_photographs.json",
+    # issue 64: the whole-image refinement at one resolution (Thresholds.resolution_sigma)
+    **{f"camera{s}_wide_resolution": f"docs/camera_pairs/wide_seed{s}_resolution.json"
+       for s in (0, 1, 2, 3)},
+    "camera3_wide_resolution_off": "docs/camera_pairs/wide_seed3_resolution_off.json",
+    "camera0_resolution": "docs/camera_pairs/seed0_photographs_resolution.json",
+    "camera1_resolution": "docs/camera_pairs/seed1_photographs_resolution.json",
+    "camera0_speed_resolution": "docs/camera_pairs/speed_seed0_resolution.json",
+    "camera0_speed_resolution_off": "docs/camera_pairs/speed_seed0_resolution_off.json",
     "readme_example": "docs/readme_example.json",
     "semi_all_seed0": "semi_supervised/eval/stage1_alone.json",
     "semi_labeled_alone_seed0": "semi_supervised/eval/semi_labels-0.1_drop.json",
