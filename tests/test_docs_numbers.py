@@ -114,13 +114,30 @@ def cam_row(source, method="estimator", flag=True):
     return cells
 
 
-def wide_rows(seed):
-    """The two rows (wide, wide_low_light) of a wide-baseline table of BENCHMARKS.md."""
+def wide_rows(seed, label=""):
+    """The two rows (wide, wide_low_light) of a wide-baseline table of BENCHMARKS.md (first cell
+    ``seed N`` and ``label``)."""
     method = rf"(\d+) of \d+, {N} px, (\d+) ms"
-    return (rf"\| seed {seed} \| wide \| (\d+) of (\d+), {N} px, (\d+) ms \| {method} \| "
+    first = rf"seed {seed}{re.escape(label)}"
+    return (rf"\| {first} \| wide \| (\d+) of (\d+), {N} px, (\d+) ms \| {method} \| "
             rf"{method} \| {method} \| (\d+) of \d+, {N} px \| (\d+) of (\d+), (\d+) of (\d+) \|\n"
-            rf"\| seed {seed} \| wide_low_light \| (\d+) of (\d+), {N} px, (\d+) ms \| {method} \| "
+            rf"\| {first} \| wide_low_light \| (\d+) of (\d+), {N} px, (\d+) ms \| {method} \| "
             rf"{method} \| {method} \| (\d+) of \d+, {N} px \| (\d+) of (\d+), (\d+) of (\d+) \|")
+
+
+def speed_row(label, source):
+    """A row of the one-resolution speed table: per group success, count, MACE, ms, the ratio to
+    SIFT + RANSAC's ms and SIFT's ms."""
+    cell = rf"(\d+) of (\d+), {N} px, (\d+) ms \({N}x SIFT's (\d+) ms\)"
+    path = "groups/{}/{}/ms_per_pair"
+    return (rf"\| {re.escape(label)} \| {cell} \| {cell} \| {cell} \|",
+            [f for g in ("within", "1-2x", "2-4x") for f in (
+                cam(source, g, "estimator", "ok"),
+                lambda sources, g=g: str(cr.value(sources, source,
+                                                  f"groups/{g}/estimator")["count"]),
+                cam(source, g, "estimator", "mace"), cam(source, g, "estimator", "ms"),
+                ratio((source, path.format(g, "estimator")), (source, path.format(g, "sift_ransac"))),
+                cam(source, g, "sift_ransac", "ms"))])
 
 
 def wide_cells(source):
@@ -198,18 +215,24 @@ PROSE = [
      rf"\| 0, `photographs\(features=\"none\"\)` \(issue 46\) \| {N} \({N}\) px, (\d+) \| "
      rf"(\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera0_photographs")),
     ("docs/estimate.md",
-     rf"\| 0, \*\*`photographs\(\)`\*\*, with the feature start \| \*\*{N}\*\* \({N}\) px, (\d+) "
+     rf"\| 0, `photographs\(\)` with the feature start, before one resolution \| {N} \({N}\) px, "
+     rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera0_features")),
+    ("docs/estimate.md",
+     rf"\| 0, \*\*`photographs\(\)`\*\*, with one resolution \| \*\*{N}\*\* \({N}\) px, (\d+) "
      rf"\| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
-     cam_row("camera0_features")),
+     cam_row("camera0_resolution")),
     ("docs/estimate.md", rf"\| 0, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
      cam_row("camera0_default", "sift_ransac", flag=False)),
     ("docs/estimate.md",
      rf"\| 1, `photographs\(features=\"none\"\)` \(issue 46\) \| {N} \({N}\) px, (\d+) \| "
      rf"(\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera1_photographs")),
     ("docs/estimate.md",
-     rf"\| 1, \*\*`photographs\(\)`\*\*, with the feature start \| \*\*{N}\*\* \({N}\) px, (\d+) "
+     rf"\| 1, `photographs\(\)` with the feature start, before one resolution \| {N} \({N}\) px, "
+     rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera1_features")),
+    ("docs/estimate.md",
+     rf"\| 1, \*\*`photographs\(\)`\*\*, with one resolution \| \*\*{N}\*\* \({N}\) px, (\d+) "
      rf"\| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
-     cam_row("camera1_features")),
+     cam_row("camera1_resolution")),
     ("docs/estimate.md", rf"\| 1, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
      cam_row("camera1_photographs", "sift_ransac", flag=False)),
     ("BENCHMARKS.md",
@@ -230,6 +253,13 @@ PROSE = [
         for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")]),
     *[("BENCHMARKS.md", wide_rows(seed), wide_cells(f"camera{seed}_wide_features"))
       for seed in (0, 1, 2)],  # issue 64: the wide-baseline groups
+    *[("BENCHMARKS.md", wide_rows(seed, ", one resolution"),
+       wide_cells(f"camera{seed}_wide_resolution")) for seed in (0, 1, 2, 3)],
+    ("BENCHMARKS.md", wide_rows(3, ", `resolution_sigma=0`"),
+     wide_cells("camera3_wide_resolution_off")),
+    ("BENCHMARKS.md", *speed_row("one resolution (default)", "camera0_speed_resolution")),
+    ("BENCHMARKS.md", *speed_row("`--thresholds=resolution_sigma=0`",
+                                 "camera0_speed_resolution_off")),
     ("BENCHMARKS.md",  # issue 64, item 3: the speed table
      rf"\| within \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \|\n"
      rf"\| 1-2x \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \|\n"
