@@ -257,14 +257,14 @@ def thresholds_from_flag(items, base):
     >>> thresholds_from_flag(["resolution_sigma=0", "search_peaks=4"], Thresholds()).search_peaks
     4
     """
-    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)}
+    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)
+              if not isinstance(getattr(base, f.name), tuple)}
     changes = {}
     for item in items:
         name, sep, text = item.partition("=")
-        if not sep or name not in fields or isinstance(fields[name], tuple):
+        if not sep or name not in fields:
             raise ValueError(f"--thresholds takes name=value items of Thresholds' number fields "
-                             f"({', '.join(n for n, v in fields.items() if not isinstance(v, tuple))}"
-                             f"); received {item!r}.")
+                             f"({', '.join(fields)}); received {item!r}.")
         kind = type(fields[name])
         try:
             changes[name] = kind(text) if kind is float else int(text)

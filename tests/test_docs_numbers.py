@@ -136,7 +136,8 @@ def speed_row(label, source):
                 lambda sources, g=g: str(cr.value(sources, source,
                                                   f"groups/{g}/estimator")["count"]),
                 cam(source, g, "estimator", "mace"), cam(source, g, "estimator", "ms"),
-                ratio((source, path.format(g, "estimator")), (source, path.format(g, "sift_ransac"))),
+                ratio((source, path.format(g, "estimator")),
+                      (source, path.format(g, "sift_ransac"))),
                 cam(source, g, "sift_ransac", "ms"))])
 
 
