@@ -195,7 +195,9 @@ def test_resolution_blurs_blur_the_sharper_image_by_the_camera_blur_at_the_other
     assert same is a and blurred.std() < a.std()  # 0.42 px: image_a blurred
 
 
-@pytest.mark.parametrize("optimized", [True, False])
+@pytest.mark.parametrize("optimized", [pytest.param(True, id="opencv_optimized"),
+                                       pytest.param(False, id="opencv_unoptimized",
+                                                    marks=pytest.mark.slow)])
 def test_one_resolution_brings_ecc_closer_on_a_zoom_between_two_cameras(optimized):
     """Two cameras with one blur, image_b zoomed out 3x, ECC (the refinement's settings) started
     2 px off in image_b's frame: over 4 scenes, image_a blurred to image_b's resolution ends
