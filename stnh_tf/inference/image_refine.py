@@ -110,7 +110,8 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
 
 MIN_BLUR = math.sqrt(1 / 6)
 """px: :func:`equal_resolution` leaves out a blur under this, the standard deviation of bilinear
-interpolation's own triangle kernel (0.41 px), which ECC's sampling applies anyway."""
+interpolation's triangle kernel (0.41 px): no more than ECC's own sampling between pixels
+smooths by."""
 
 
 def centre_scale(a_from_b, size_b) -> float:
