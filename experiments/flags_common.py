@@ -267,7 +267,7 @@ def thresholds_from_flag(items, base):
                              f"({', '.join(fields)}); received {item!r}.")
         kind = type(fields[name])
         try:
-            changes[name] = kind(text) if kind is float else int(text)
+            changes[name] = kind(text)
         except ValueError:
             raise ValueError(f"--thresholds: {name} takes a {kind.__name__}; received "
                              f"{text!r}.") from None

@@ -13,7 +13,7 @@ import skimage.data
 from conftest import constant_stage, opencv_optimized
 from stnh_tf import geometry, pixels
 from stnh_tf.evaluation.camera_pairs import image_errors
-from stnh_tf.inference import image_input, image_refine
+from stnh_tf.inference import image_input, image_refine, search
 from stnh_tf.inference.estimator import HomographyEstimator
 from stnh_tf.inference.options import EstimateOptions, Thresholds
 
@@ -210,7 +210,7 @@ def test_one_resolution_brings_ecc_closer_on_a_zoom_between_two_cameras(optimize
             start = h_ba @ geometry.translation(2.0, -1.4)
             for sigma in errors:
                 equal_a, equal_b = image_refine.equal_resolution(a, b, start, sigma)
-                h = image_refine.search_lib.ecc_refine(equal_a, equal_b, start)
+                h = search.ecc_refine(equal_a, equal_b, start)
                 errors[sigma].append(image_errors(h[None], h_ba[None])[0])
     assert np.mean(errors[0.8]) < 0.8 * np.mean(errors[0.0])
 
