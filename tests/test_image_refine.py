@@ -195,6 +195,33 @@ def test_resolution_blurs_blur_the_sharper_image_by_the_camera_blur_at_the_other
     assert same is a and blurred.std() < a.std()  # 0.42 px: image_a blurred
 
 
+def test_the_verify_move_is_measured_in_the_coarser_images_pixels():
+    """``checks.verify_move`` against ``cv2.perspectiveTransform`` of the work image's corners
+    (patch frame, origin ORIGIN): on a 3x zoom out the move in image_b's pixels (a third of
+    image_a's), on the zoom in the move in image_a's; ``inf`` without an optimum, image_a's
+    move where the estimate is singular."""
+    from stnh_tf.inference import checks
+
+    corners = np.array([[[0, 0], [W, 0], [W, H], [0, H]]], np.float64)
+    t = geometry.translation(*ORIGIN)
+    to_image = lambda h: t @ h @ np.linalg.inv(t)  # noqa: E731
+    warp = lambda p, h: cv2.perspectiveTransform(p, to_image(h))  # noqa: E731
+    tilt = np.array([[1.0, 0.05, 0.0], [-0.03, 1.0, 0.0], [2e-4, -1e-4, 1.0]])
+    for h in (3.0 * np.diag([1.0, 1.0, 1 / 3.0]) @ tilt, np.diag([1 / 3.0, 1 / 3.0, 1.0]) @ tilt):
+        optimum = h @ geometry.translation(0.8, -0.5) @ np.diag([1.01, 0.99, 1.0])
+        in_a = np.linalg.norm(warp(corners, optimum) - warp(corners, h), axis=-1).mean()
+        in_b = np.linalg.norm(warp(warp(corners, optimum), np.linalg.inv(h)) - corners,
+                              axis=-1).mean()
+        move = checks.verify_move(optimum, h, (H, W), ORIGIN)
+        assert move == pytest.approx(min(in_a, in_b), rel=1e-9)
+        zoom_out = h[0, 0] > 1
+        assert (in_b < in_a / 2) if zoom_out else (in_a < in_b / 2)
+    assert checks.verify_move(None, h, (H, W), ORIGIN) == np.inf
+    singular = np.diag([1.0, 0.0, 1.0])  # every point onto the x axis: no image_b frame
+    assert checks.verify_move(np.eye(3), singular, (H, W)) == checks.frame_corner_distance(
+        np.eye(3), singular, (H, W))
+
+
 @pytest.mark.parametrize("optimized", [pytest.param(True, id="opencv_optimized"),
                                        pytest.param(False, id="opencv_unoptimized",
                                                     marks=pytest.mark.slow)])

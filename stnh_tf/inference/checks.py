@@ -51,6 +51,29 @@ def frame_corner_distance(a_from_b, other, source_shape, origin=(0, 0)) -> float
     return out if np.isfinite(out) else float("inf")
 
 
+def verify_move(optimum, a_from_b, source_shape, origin=(0, 0)) -> float:
+    """``verify="ecc"``'s move (px): how far ``optimum``, the ECC alignment started from the
+    patch-frame ``a_from_b`` (both ``[3, 3]``), lies from it, in the coarser image's pixels: the
+    smaller of :func:`frame_corner_distance` in image_a (where the two map the corners of the
+    ``[h, w]`` frame) and in image_b (those corners against where ``a_from_b``'s inverse maps
+    ``optimum``'s images of them back). On a zoom out one pixel of image_b spans several of
+    image_a's and ECC fixes the alignment no finer than that (issue 64). ``inf`` where ECC
+    failed (``optimum`` None) or a corner maps to infinity.
+
+    >>> zoom_out = np.diag([2.0, 2.0, 1.0])  # image_b sees image_a at half its size
+    >>> round(verify_move(zoom_out @ geometry.translation(1.0, 0.0), zoom_out, (240, 320)), 6)
+    1.0
+    """
+    if optimum is None:
+        return float("inf")
+    h, optimum = np.asarray(a_from_b, np.float64), np.asarray(optimum, np.float64)
+    in_a = frame_corner_distance(optimum, h, source_shape, origin)
+    if not np.isfinite(h).all() or abs(np.linalg.det(h)) < 1e-12:
+        return in_a
+    in_b = frame_corner_distance(np.linalg.inv(h) @ optimum, np.eye(3), source_shape, origin)
+    return min(in_a, in_b)
+
+
 def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100) -> float:
     """How precisely the two images fix ``a_from_b`` at ``image_b``'s corners: the predicted
     standard deviation (px, mean over the corners ``(0, 0), (w, 0), (w, h), (0, h)`` of

@@ -135,8 +135,7 @@ def candidate(run, work_a, work_b, options: EstimateOptions, origin):
         move = np.array([np.nan])
         if options.verify == "ecc":
             optimum = search_lib.ecc_refine(work_a, patch_b, total, origin, t)
-            move[0] = (np.inf if optimum is None else checks.frame_corner_distance(
-                optimum, total, np.shape(work_a), origin))
+            move[0] = checks.verify_move(optimum, total, np.shape(work_a), origin)
     featured = dataclasses.replace(est, homography=total[None], alignment_ncc=np.array([ncc]),
                                    feature_start=np.array([True]), verify_move_px=move)
     return coarse.flag(featured, options)

@@ -101,7 +101,7 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
     if options.verify == "ecc":
         if checked_for is not best:
             checked = search_lib.ecc_refine(work_a, patch_b, best, origin, t)
-        move = np.array([_move(checked, best, work_a, origin)])
+        move = np.array([checks.verify_move(checked, best, np.shape(work_a), origin)])
     ncc = checks.alignment_ncc(work_a, patch_b, best, origin, t.min_overlap)
     refined = dataclasses.replace(est, homography=best[None], alignment_ncc=np.array([ncc]),
                                   refined=np.array([True]), verify_move_px=move)
@@ -171,17 +171,10 @@ def _verified(est, nearest, work_a, origin, options: EstimateOptions):
     unverified = est.verify_move_px is None or np.isnan(est.verify_move_px[0])
     if options.verify != "ecc" or not unverified:
         return est
-    move = _move(nearest, est.homography[0], work_a, origin)
+    move = checks.verify_move(nearest, est.homography[0], np.shape(work_a), origin)
     moved = not move <= options.thresholds.max_verify_move
     return dataclasses.replace(est, verify_move_px=np.array([move]),
                                implausible=est.implausible | moved)
-
-
-def _move(optimum, h, work_a, origin) -> float:
-    """``verify="ecc"``'s move: from ``h`` to patch_b's ECC ``optimum`` started from it (mean over
-    the work image's corners; ``inf`` where ECC failed, ``optimum`` None)."""
-    return (math.inf if optimum is None
-            else checks.frame_corner_distance(optimum, h, np.shape(work_a), origin))
 
 
 def _far(h, h_ref, work_a, origin, thresholds) -> bool:
