@@ -29,6 +29,8 @@ JAX backend). Leading batch dimensions are arbitrary (written ``[...]`` below).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 PATCH_SIZE = 128
@@ -327,6 +329,24 @@ DIHEDRAL = {"identity": "", "flip_x": "h", "flip_y": "v", "rotate_180": "hv",
 """The eight symmetries of a rectangle's pixel grid (:func:`dihedral_image`), by name: the steps
 applied in order, ``t`` transpose (swap rows and columns), ``h`` mirror left-right, ``v`` mirror
 top-bottom."""
+
+
+def centre_scale(a_from_b, size_b) -> float:
+    """The linear scale at which the image-frame ``a_from_b`` (``[3, 3]``, image_b pixel ->
+    image_a pixel) maps the centre of an image_b of ``size_b = (w, h)``: ``sqrt(|det J|)`` of
+    ``p -> a_from_b(p)`` there (``det J = det(H) / w**3``, ``w`` the homogeneous coordinate);
+    above 1 image_b sees image_a smaller (a zoom out); NaN where not finite or behind the camera.
+
+    >>> round(centre_scale(np.diag([2.0, 2.0, 1.0]), (320, 240)), 6)
+    2.0
+    """
+    h = np.asarray(a_from_b, np.float64)
+    centre = np.array([(size_b[0] - 1) / 2, (size_b[1] - 1) / 2, 1.0])
+    with np.errstate(all="ignore"):
+        w = float(h[2] @ centre)
+        det = float(np.linalg.det(h)) if np.isfinite(h).all() else math.nan
+        scale = math.sqrt(abs(det / w ** 3)) if w > 0 and math.isfinite(det) else math.nan
+    return scale if math.isfinite(scale) else math.nan
 
 
 def _check_dihedral(name: str) -> str:

@@ -51,14 +51,20 @@ def frame_corner_distance(a_from_b, other, source_shape, origin=(0, 0)) -> float
     return out if np.isfinite(out) else float("inf")
 
 
+TRAINED_ZOOM = 1.0 + geometry.MAX_PERTURBATION / (geometry.PATCH_SIZE / 2)
+"""The largest zoom out of the trained range (1.5): every corner of the 128 x 128 patch moved
+outwards by 32 px in x and in y."""
+
+
 def verify_move(optimum, a_from_b, source_shape, origin=(0, 0)) -> float:
     """``verify="ecc"``'s move (px): how far ``optimum``, the ECC alignment started from the
-    patch-frame ``a_from_b`` (both ``[3, 3]``), lies from it, in the coarser image's pixels: the
-    smaller of :func:`frame_corner_distance` in image_a (where the two map the corners of the
-    ``[h, w]`` frame) and in image_b (those corners against where ``a_from_b``'s inverse maps
-    ``optimum``'s images of them back). On a zoom out one pixel of image_b spans several of
-    image_a's and ECC fixes the alignment no finer than that (issue 64). ``inf`` where ECC
-    failed (``optimum`` None) or a corner maps to infinity.
+    patch-frame ``a_from_b`` (both ``[3, 3]``), lies from it at the corners of the ``[h, w]``
+    frame: :func:`frame_corner_distance` in image_a, or, where ``a_from_b`` zooms out beyond
+    the trained range (:func:`~stnh_tf.geometry.centre_scale` above :data:`TRAINED_ZOOM`), in
+    image_b, the coarser image (those corners against where ``a_from_b``'s inverse maps
+    ``optimum``'s images of them back): there one pixel of image_b spans several of image_a's and
+    ECC fixes the alignment no finer than that (issue 64). ``inf`` where ECC failed
+    (``optimum`` None) or a corner maps to infinity.
 
     >>> zoom_out = np.diag([2.0, 2.0, 1.0])  # image_b sees image_a at half its size
     >>> round(verify_move(zoom_out @ geometry.translation(1.0, 0.0), zoom_out, (240, 320)), 6)
@@ -67,11 +73,11 @@ def verify_move(optimum, a_from_b, source_shape, origin=(0, 0)) -> float:
     if optimum is None:
         return float("inf")
     h, optimum = np.asarray(a_from_b, np.float64), np.asarray(optimum, np.float64)
-    in_a = frame_corner_distance(optimum, h, source_shape, origin)
-    if not np.isfinite(h).all() or abs(np.linalg.det(h)) < 1e-12:
-        return in_a
-    in_b = frame_corner_distance(np.linalg.inv(h) @ optimum, np.eye(3), source_shape, origin)
-    return min(in_a, in_b)
+    height, width = source_shape[:2]
+    scale = geometry.centre_scale(geometry.patch_to_image(h, *origin), (width, height))
+    if not scale > TRAINED_ZOOM:
+        return frame_corner_distance(optimum, h, source_shape, origin)
+    return frame_corner_distance(np.linalg.inv(h) @ optimum, np.eye(3), source_shape, origin)
 
 
 def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100) -> float:

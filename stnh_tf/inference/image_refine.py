@@ -114,28 +114,10 @@ interpolation's triangle kernel (0.41 px): no more than ECC's own sampling betwe
 smooths by."""
 
 
-def centre_scale(a_from_b, size_b) -> float:
-    """The linear scale at which the image-frame ``a_from_b`` (``[3, 3]``, image_b pixel ->
-    image_a pixel) maps the centre of an image_b of ``size_b = (w, h)``: ``sqrt(|det J|)`` of
-    ``p -> a_from_b(p)`` there (``det J = det(H) / w**3``, ``w`` the homogeneous coordinate);
-    above 1 image_b sees image_a smaller (a zoom out); NaN where not finite or behind the camera.
-
-    >>> round(centre_scale(np.diag([2.0, 2.0, 1.0]), (320, 240)), 6)
-    2.0
-    """
-    h = np.asarray(a_from_b, np.float64)
-    centre = np.array([(size_b[0] - 1) / 2, (size_b[1] - 1) / 2, 1.0])
-    with np.errstate(all="ignore"):
-        w = float(h[2] @ centre)
-        det = float(np.linalg.det(h)) if np.isfinite(h).all() else math.nan
-        scale = math.sqrt(abs(det / w ** 3)) if w > 0 and math.isfinite(det) else math.nan
-    return scale if math.isfinite(scale) else math.nan
-
-
 def resolution_blurs(a_from_b, size_b, sigma: float) -> tuple:
     """``(sigma_a, sigma_b)``: the Gaussian blurs (px, each in its own image) that bring image_a
     and image_b to one resolution under the image-frame ``a_from_b``: at the scale ``s`` of
-    :func:`centre_scale`, ``sigma * sqrt(s**2 - 1)`` on image_a where ``s > 1`` (image_a is
+    :func:`~stnh_tf.geometry.centre_scale`, ``sigma * sqrt(s**2 - 1)`` on image_a where ``s > 1`` (image_a is
     the sharper: one pixel of image_b spans ``s`` of image_a's), ``sigma * sqrt(1 / s**2 - 1)``
     on image_b where ``s < 1``; ``(0, 0)`` at ``s = 1``, for ``sigma = 0`` or an undefined
     scale.
@@ -143,7 +125,7 @@ def resolution_blurs(a_from_b, size_b, sigma: float) -> tuple:
     >>> [round(x, 3) for x in resolution_blurs(np.diag([2.0, 2.0, 1.0]), (320, 240), 0.8)]
     [1.386, 0.0]
     """
-    s = centre_scale(a_from_b, size_b)
+    s = geometry.centre_scale(a_from_b, size_b)
     if sigma <= 0 or not s > 0:
         return 0.0, 0.0
     if s >= 1:
