@@ -6,6 +6,8 @@ the pair (:func:`alignment_ncc`), flat patches, and the rule that flags an estim
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 
@@ -80,6 +82,16 @@ def verify_move(optimum, a_from_b, source_shape, origin=(0, 0)) -> float:
     return frame_corner_distance(np.linalg.inv(h) @ optimum, np.eye(3), source_shape, origin)
 
 
+@functools.lru_cache(maxsize=4)
+def _pixel_grid(height: int, width: int) -> np.ndarray:
+    """``[3, h * w]`` float64 ``(x, y, 1)`` of every pixel, row by row (read-only, made once per
+    shape: :func:`corner_std` runs on every pair)."""
+    ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
+    grid = np.stack([xs.ravel(), ys.ravel(), np.ones(height * width)])
+    grid.flags.writeable = False
+    return grid
+
+
 def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100) -> float:
     """How precisely the two images fix ``a_from_b`` at ``image_b``'s corners: the predicted
     standard deviation (px, mean over the corners ``(0, 0), (w, 0), (w, h), (0, h)`` of
@@ -117,9 +129,9 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
         return float("inf")
     h = h / h[2, 2]
     height, width = b.shape[:2]
-    ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
-    u, v = xs.ravel(), ys.ravel()
-    p = h @ np.stack([u, v, np.ones_like(u)])
+    grid = _pixel_grid(height, width)
+    u, v = grid[0], grid[1]
+    p = h @ grid
     w = p[2]
     inside = w > 1e-9
     with np.errstate(all="ignore"):
@@ -128,19 +140,18 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
     if inside.sum() < min_pixels:
         return float("inf")
     maps = [np.where(inside, c, -10.0).astype(np.float32).reshape(height, width) for c in (x, y)]
-
-    def sample(img):
-        return cv2.remap(img.astype(np.float32), *maps, cv2.INTER_LINEAR).ravel()[inside]
-
-    a_q, gx, gy = (sample(img).astype(np.float64) for img in (a, *ecc.gradients(a)))
+    # image_a and its two gradients sampled in one call, as three channels
+    channels = np.dstack([a, *ecc.gradients(a)]).astype(np.float32)
+    sampled = cv2.remap(channels, *maps, cv2.INTER_LINEAR).reshape(-1, 3)[inside]
+    a_q, gx, gy = sampled.T.astype(np.float64)
     b_q = b.ravel()[inside]
     a_c = a_q - a_q.mean()
     gain = float(a_c @ (b_q - b_q.mean())) / max(float(a_c @ a_c), 1e-300)  # least squares
     s2 = float(np.var(b_q - b_q.mean() - gain * a_c))
     u, v, x, y, w = u[inside], v[inside], x[inside], y[inside], w[inside]
-    jac = gain * ecc.homography_jacobian(gx, gy, u, v, x, y, w)  # (b's points map to a's)
+    jac = ecc.homography_jacobian(gx, gy, u, v, x, y, w)  # (b's points map to a's)
     try:
-        cov = s2 * np.linalg.inv(jac.T @ jac)
+        cov = s2 * np.linalg.inv(gain * gain * (jac.T @ jac))
     except np.linalg.LinAlgError:
         return float("inf")
     stds = []
