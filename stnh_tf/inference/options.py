@@ -101,8 +101,9 @@ class Thresholds:
       max_refine_move: a refinement moving the corners by more than this on average is dropped.
       max_verify_move: with ``verify="ecc"``, an estimate that ECC (the refinement's settings)
         moves by more than this is flagged implausible: px, mean over the corners of the frame
-        the estimate is made in (the patch; the 320 x 240 image in ``estimate_images``), in the
-        coarser image's pixels (:func:`stnh_tf.inference.checks.verify_move`; issue 64).
+        the estimate is made in (the patch; the 320 x 240 image in ``estimate_images``), in
+        image_b's pixels where the estimate zooms out beyond the trained range
+        (:func:`stnh_tf.inference.checks.verify_move`; issue 64).
       image_refine_rounds: with ``refine="images"``, the most rounds of whole-image ECC
         (:mod:`stnh_tf.inference.image_refine`); a round after the first runs only where the
         previous one improved the alignment and left the estimate more than

@@ -55,9 +55,9 @@ class Estimate:
       options: the options that made it.
       verify_move_px: with ``verify="ecc"``, how far ECC started from the estimate moved it
         (mean over the corners of the patch, or of the 320 x 240 image in
-        ``estimate_images_with_info``, in the coarser image's pixels:
-        :func:`~stnh_tf.inference.checks.verify_move`; ``inf``: it did not converge); NaN where
-        not verified.
+        ``estimate_images_with_info``; in image_b's pixels where the estimate zooms out beyond
+        the trained range: :func:`~stnh_tf.inference.checks.verify_move`; ``inf``: it did not
+        converge); NaN where not verified.
       network_homography: float64 ``[B, 3, 3]``: the network's own estimate (the stages
         composed, with ``options.tta``; before the flat rule, the search, the refinement, the
         coarse pass and the feature start), in the frame of ``homography``.
@@ -256,8 +256,8 @@ def verify(run: dict, patch_b, sources, origin, options: EstimateOptions) -> dic
     """With ``options.verify == "ecc"``: ECC (:func:`~stnh_tf.inference.search.ecc_refine`, the
     refinement's settings) is started from each finite estimate of a pair that is not flat, and
     how far it moves the estimate is recorded: the mean distance at the corners of the source's
-    frame (the patch for bare patches, the 320 x 240 image with context) in the coarser image's
-    pixels (:func:`~stnh_tf.inference.checks.verify_move`), ``inf`` where ECC fails. The estimates are not changed.
+    frame (the patch for bare patches, the 320 x 240 image with context;
+    :func:`~stnh_tf.inference.checks.verify_move`), ``inf`` where ECC fails. The estimates are not changed.
     An estimate away from the nearest alignment optimum is likely wrong where its alignment NCC
     still looks good (issue 46). Adds ``"verify_move"`` (float64 ``[B]``, NaN where not
     verified); returns a new dict."""
