@@ -6,6 +6,8 @@ from __future__ import annotations
 import contextlib
 import json
 
+from stnh_tf import provenance  # noqa: F401  (records the commit and load at the binary's start)
+
 
 def emit_json(result: dict, json_out: str | None = None) -> None:
     """Print ``result`` as indented JSON and, if ``json_out`` is given, write it there too."""

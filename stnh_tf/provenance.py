@@ -5,6 +5,9 @@ under ``"machine"`` in the JSON of every binary that writes results (the benchma
 
 NumPy core: imports nothing heavy at module level, and :func:`machine_info` reports TensorFlow,
 JAX and Keras only where the caller has imported them (call it after the work, so that they are).
+The commit and the load average are those of the moment this module was first imported
+(:data:`STARTED`; ``experiments.common`` imports it, so for a binary: its start): a commit made,
+or a load that came, while a long run was going is not taken for the run's.
 
     >>> info = machine_info()
     >>> sorted(k for k in ("git_commit", "cpu", "python", "numpy", "stnh_tf") if k in info)
@@ -37,8 +40,9 @@ def git_commit() -> str | None:
 def machine_info() -> dict:
     """The commit, the machine and the library versions, as a JSON object.
 
-    Keys: ``git_commit`` (:func:`git_commit`), ``platform``, ``cpu`` (``/proc/cpuinfo``'s model
-    name), ``cpu_count``, ``loadavg_at_start`` (where the OS has one), ``command``, and the
+    Keys: ``git_commit`` (:func:`git_commit` at :data:`STARTED`), ``platform``, ``cpu``
+    (``/proc/cpuinfo``'s model name), ``cpu_count``, ``loadavg_at_start`` (at :data:`STARTED`,
+    where the OS has one), ``command``, and the
     versions ``python``, ``numpy``, ``opencv``, ``stnh_tf``; where the caller imported them,
     ``tensorflow`` and ``gpus``, ``jax`` and ``jax_devices``, ``keras`` and ``keras_backend``.
     """
@@ -56,10 +60,10 @@ def machine_info() -> dict:
 
     info = {"platform": platform.platform(), "cpu": model or None, "cpu_count": os.cpu_count(),
             "python": platform.python_version(), "numpy": np.__version__, "opencv": cv2.__version__,
-            "stnh_tf": __version__, "git_commit": git_commit(),
+            "stnh_tf": __version__, "git_commit": STARTED["git_commit"],
             "command": " ".join([os.path.basename(sys.executable)] + sys.argv)}
-    if hasattr(os, "getloadavg"):
-        info["loadavg_at_start"] = [round(x, 2) for x in os.getloadavg()]
+    if STARTED["loadavg"] is not None:
+        info["loadavg_at_start"] = STARTED["loadavg"]
     tf = sys.modules.get("tensorflow")  # (None also where an import of it was blocked)
     if tf is not None:
         info["tensorflow"] = tf.__version__
@@ -73,3 +77,10 @@ def machine_info() -> dict:
         info["keras"] = keras.__version__
         info["keras_backend"] = keras.backend.backend()
     return info
+
+
+STARTED = {"git_commit": git_commit(),
+           "loadavg": ([round(x, 2) for x in os.getloadavg()] if hasattr(os, "getloadavg")
+                       else None)}
+"""The commit (:func:`git_commit`) and the load average when this module was first imported,
+which :func:`machine_info` reports."""

@@ -90,3 +90,21 @@ def test_current_results_show_the_commit_and_machine_a_json_records():
             ("def5678+dirty", "Other CPU, 16 cores; /physical_device:GPU:0 (tensorflow)"))}
     # (Fig. 4 and Table 2 both read results.json: both rows changed, Table 1's did not)
     assert sum(a != b for a, b in zip(before, after)) == 3
+
+
+def test_the_commit_and_load_are_those_of_the_runs_start(monkeypatch):
+    """machine_info reports the commit and load average of the moment provenance was imported
+    (a binary's start: experiments.common imports it), not those when a long run writes its
+    JSON: here a commit and a load that came during the run are not taken."""
+    started = provenance.machine_info()
+    monkeypatch.setattr(provenance, "git_commit", lambda: "abc1234+dirty")
+    monkeypatch.setattr(os, "getloadavg", lambda: (99.0, 99.0, 99.0), raising=False)
+    info = provenance.machine_info()
+    assert info["git_commit"] == started["git_commit"] == provenance.STARTED["git_commit"]
+    assert info.get("loadavg_at_start") == started.get("loadavg_at_start")
+    assert info.get("loadavg_at_start") != [99.0, 99.0, 99.0]
+    # a binary's first import of the project records them
+    out = subprocess.run([sys.executable, "-c", "import sys, experiments.common; "
+                          "print('stnh_tf.provenance' in sys.modules)"], cwd=ROOT,
+                         capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "True"
