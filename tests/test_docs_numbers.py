@@ -257,6 +257,10 @@ PROSE = [
        wide_cells(f"camera{seed}_wide_resolution")) for seed in (0, 1, 2, 3)],
     ("BENCHMARKS.md", wide_rows(3, ", `resolution_sigma=0`"),
      wide_cells("camera3_wide_resolution_off")),
+    *[("BENCHMARKS.md", wide_rows(seed, ", image_b's move beyond 1.5x"),
+       wide_cells(f"camera{seed}_wide_move")) for seed in range(7)],
+    *[("BENCHMARKS.md", wide_rows(seed, ", before"), wide_cells(f"camera{seed}_wide_move_off"))
+      for seed in (4, 5, 6)],
     ("BENCHMARKS.md", *speed_row("one resolution (default)", "camera0_speed_resolution")),
     ("BENCHMARKS.md", *speed_row("`--thresholds=resolution_sigma=0`",
                                  "camera0_speed_resolution_off")),

@@ -48,6 +48,11 @@ SOURCES = {
     "camera1_resolution": "docs/camera_pairs/seed1_photographs_resolution.json",
     "camera0_speed_resolution": "docs/camera_pairs/speed_seed0_resolution.json",
     "camera0_speed_resolution_off": "docs/camera_pairs/speed_seed0_resolution_off.json",
+    # issue 64: the verify move in image_b's pixels beyond the trained zoom
+    **{f"camera{s}_wide_move": f"docs/camera_pairs/wide_seed{s}_move.json" for s in range(7)},
+    **{f"camera{s}_wide_move_off": f"docs/camera_pairs/wide_seed{s}_move_off.json"
+       for s in (4, 5, 6)},
+    **{f"camera{s}_move": f"docs/camera_pairs/seed{s}_photographs_move.json" for s in (0, 1)},
     "readme_example": "docs/readme_example.json",
     "semi_all_seed0": "semi_supervised/eval/stage1_alone.json",
     "semi_labeled_alone_seed0": "semi_supervised/eval/semi_labels-0.1_drop.json",
