@@ -35,7 +35,7 @@ import sys
 
 from absl import app, flags
 
-from experiments import flags_common
+from experiments import common, flags_common
 from stnh_tf.inference import image_files
 from stnh_tf.inference.options import EstimateOptions
 
@@ -50,18 +50,20 @@ flags.DEFINE_string("output_dir", ".",
 # estimate_images' default options
 flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search", "coarse", "verify",
                                     "features"),
-                                   EstimateOptions.photographs())
+                                   EstimateOptions.photographs(), thresholds=True)
 flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 
 def main(argv):
     del argv
+    with common.user_errors("predict"):  # a bad --thresholds item
+        options = flags_common.options_from_flags()
     try:
         result = image_files.align_image_files(
             FLAGS.image_a, FLAGS.image_b, FLAGS.model, FLAGS.output_dir,
             warn=lambda message: print(f"predict: warning: {message}", file=sys.stderr),
             note=lambda message: print(f"predict: note: {message}", file=sys.stderr),
-            options=flags_common.options_from_flags())
+            options=options)
     except image_files.AlignmentError as e:
         raise SystemExit(f"predict: {e}") from None
     print(json.dumps(result, indent=2))

@@ -1236,6 +1236,31 @@ def test_predict_binary(identity_model_path, tmp_path):
         assert "Traceback" not in proc.stderr
 
 
+@pytest.mark.slow
+def test_predict_takes_the_thresholds_flag(identity_model_path, tmp_path):
+    """--thresholds changes the numbers of the checks as in benchmark_camera_pairs: with
+    max_corner_std below the pair's corner precision the estimate is flagged, and the JSON's
+    thresholds say so (the others the defaults'); a bad item is a clear error."""
+    image_a = skimage.data.coffee()
+    noise = np.random.default_rng(0).normal(0, 4, image_a.shape)  # a residual: a std above 0
+    image_b = np.clip(image_a + noise, 0, 255).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "a.png"), image_a[..., ::-1])
+    cv2.imwrite(str(tmp_path / "b.png"), image_b[..., ::-1])
+    args = ("experiments.predict", f"--image_a={tmp_path / 'a.png'}",
+            f"--image_b={tmp_path / 'b.png'}", f"--model={identity_model_path}", "--refine=none")
+    proc = _run(*args, f"--output_dir={tmp_path / 'out'}", "--thresholds=max_corner_std=1e-12")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(proc.stdout)
+    assert result["corner_std_px"] > 1e-12 and result["implausible"] is True
+    assert result["thresholds"]["max_corner_std"] == 1e-12 and result["verify"] == "ecc"
+    assert {k: v for k, v in result["thresholds"].items() if k != "max_corner_std"} == {
+        k: v for k, v in json.loads(json.dumps(EstimateOptions().to_json()["thresholds"])).items()
+        if k != "max_corner_std"}
+    proc = _run(*args, f"--output_dir={tmp_path / 'bad'}", "--thresholds=max_corner_std")
+    assert proc.returncode != 0 and "--thresholds takes name=value" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
 def test_predict_checks_its_output_dir_first(identity_model_path, tmp_path):
     """An --output_dir that is a file, or under one, is a clear error before any work."""
     image = tmp_path / "a.png"

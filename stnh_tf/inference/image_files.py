@@ -305,7 +305,9 @@ def _estimate_json(estimate, shape_b, quad) -> dict:
             "retry_tta": used.retry_tta, "retried": bool(estimate.retried[0]),
             "search": used.search, "searched": bool(estimate.searched[0]),
             "search_found": bool(estimate.found[0]),
-            "coarse": used.coarse, "features": used.features,
+            "coarse": used.coarse, "features": used.features, "verify": used.verify,
+            # the numbers of the checks (predict's --thresholds)
+            "thresholds": used.to_json()["thresholds"],
             "max_corner_shift_px": float(estimate.max_corner_shift_px[0]),
             "alignment_ncc": ncc if np.isfinite(ncc) else None,
             # how far the steps beyond the network moved its own estimate (work image's corners)
