@@ -117,10 +117,10 @@ smooths by."""
 def resolution_blurs(a_from_b, size_b, sigma: float) -> tuple:
     """``(sigma_a, sigma_b)``: the Gaussian blurs (px, each in its own image) that bring image_a
     and image_b to one resolution under the image-frame ``a_from_b``: at the scale ``s`` of
-    :func:`~stnh_tf.geometry.centre_scale`, ``sigma * sqrt(s**2 - 1)`` on image_a where ``s > 1`` (image_a is
-    the sharper: one pixel of image_b spans ``s`` of image_a's), ``sigma * sqrt(1 / s**2 - 1)``
-    on image_b where ``s < 1``; ``(0, 0)`` at ``s = 1``, for ``sigma = 0`` or an undefined
-    scale.
+    :func:`~stnh_tf.geometry.centre_scale`, ``sigma * sqrt(s**2 - 1)`` on image_a where
+    ``s > 1`` (image_a is the sharper: one pixel of image_b spans ``s`` of image_a's),
+    ``sigma * sqrt(1 / s**2 - 1)`` on image_b where ``s < 1``; ``(0, 0)`` at ``s = 1``, for
+    ``sigma = 0`` or an undefined scale.
 
     >>> [round(x, 3) for x in resolution_blurs(np.diag([2.0, 2.0, 1.0]), (320, 240), 0.8)]
     [1.386, 0.0]
