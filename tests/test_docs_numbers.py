@@ -264,6 +264,8 @@ PROSE = [
     ("BENCHMARKS.md", *speed_row("one resolution (default)", "camera0_speed_resolution")),
     ("BENCHMARKS.md", *speed_row("`--thresholds=resolution_sigma=0`",
                                  "camera0_speed_resolution_off")),
+    ("BENCHMARKS.md", *speed_row("3 (default)", "camera0_speed_move")),
+    ("BENCHMARKS.md", *speed_row("2", "camera0_speed_two_stages")),
     ("BENCHMARKS.md",  # issue 64, item 3: the speed table
      rf"\| within \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \|\n"
      rf"\| 1-2x \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \|\n"

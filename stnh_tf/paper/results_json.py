@@ -53,6 +53,8 @@ SOURCES = {
     **{f"camera{s}_wide_move_off": f"docs/camera_pairs/wide_seed{s}_move_off.json"
        for s in (4, 5, 6)},
     **{f"camera{s}_move": f"docs/camera_pairs/seed{s}_photographs_move.json" for s in (0, 1)},
+    "camera0_speed_move": "docs/camera_pairs/speed_seed0_move.json",
+    "camera0_speed_two_stages": "docs/camera_pairs/speed_seed0_two_stages.json",
     "readme_example": "docs/readme_example.json",
     "semi_all_seed0": "semi_supervised/eval/stage1_alone.json",
     "semi_labeled_alone_seed0": "semi_supervised/eval/semi_labels-0.1_drop.json",
