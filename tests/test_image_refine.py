@@ -13,7 +13,7 @@ import skimage.data
 from conftest import constant_stage, opencv_optimized
 from stnh_tf import geometry, pixels
 from stnh_tf.evaluation.camera_pairs import image_errors
-from stnh_tf.inference import image_input, image_refine, search
+from stnh_tf.inference import checks, image_input, image_refine, search
 from stnh_tf.inference.estimator import HomographyEstimator
 from stnh_tf.inference.options import EstimateOptions, Thresholds
 
@@ -200,8 +200,6 @@ def test_the_verify_move_is_measured_in_the_coarser_image_beyond_the_trained_zoo
     (patch frame, origin ORIGIN): on a 3x zoom out (beyond the trained range's 1.5) the move in
     image_b's pixels, about a third of image_a's; on a 1.3x zoom out and on a 3x zoom in the
     move in image_a's; ``inf`` without an optimum."""
-    from stnh_tf.inference import checks
-
     assert checks.TRAINED_ZOOM == 1.5
     corners = np.array([[[0, 0], [W, 0], [W, H], [0, H]]], np.float64)
     t = geometry.translation(*ORIGIN)

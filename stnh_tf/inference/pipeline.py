@@ -257,8 +257,8 @@ def verify(run: dict, patch_b, sources, origin, options: EstimateOptions) -> dic
     refinement's settings) is started from each finite estimate of a pair that is not flat, and
     how far it moves the estimate is recorded: the mean distance at the corners of the source's
     frame (the patch for bare patches, the 320 x 240 image with context;
-    :func:`~stnh_tf.inference.checks.verify_move`), ``inf`` where ECC fails. The estimates are not changed.
-    An estimate away from the nearest alignment optimum is likely wrong where its alignment NCC
+    :func:`~stnh_tf.inference.checks.verify_move`), ``inf`` where ECC fails. The estimates are
+    not changed. An estimate away from the nearest alignment optimum is likely wrong where its alignment NCC
     still looks good (issue 46). Adds ``"verify_move"`` (float64 ``[B]``, NaN where not
     verified); returns a new dict."""
     t = options.thresholds
