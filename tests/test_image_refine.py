@@ -257,3 +257,79 @@ def test_the_whole_image_refinement_reaches_zoomed_pairs_it_missed_at_two_resolu
                     pixels.to_uint8(a), pixels.to_uint8(b), options)
                 reached[sigma] += int(image_errors(est.homography, h_ba[None])[0] < 1.0)
     assert reached[0.8] >= reached[0.0] + 2
+
+
+def _moving_object_pair(margin):
+    """(image_a, image_b) as :func:`_pair` (TRUTH), with an object in the middle of image_b
+    moving on its own: the central patch's square ``margin`` px inside its border is cut from
+    image_b made by TRUTH moved by (7, -5) px."""
+    a, b = _pair(TRUTH)
+    _, moved = _pair(TRUTH @ geometry.translation(7.0, -5.0))
+    x0, y0 = ORIGIN
+    inner = np.s_[y0 + margin:y0 + 128 - margin, x0 + margin:x0 + 128 - margin]
+    b[inner] = moved[inner]
+    return a, b
+
+
+@pytest.mark.parametrize("optimized", [pytest.param(True, id="opencv_optimized"),
+                                       pytest.param(False, id="opencv_unoptimized")])
+def test_a_move_the_whole_images_bring_back_does_not_flag_the_estimate(optimized):
+    """An object moving in the middle of image_b (the patch's central 104 x 104 px): ECC on
+    patch_b follows it, 15.8 px from the right estimate (0.22 px off); ECC over the whole
+    images, started there, comes back to within 0.001 px of the estimate, and the whole images
+    align at NCC 0.9635 (both OpenCV paths, measured): the move is confirmed and does not flag
+    the estimate. With ``verified_ncc`` above that NCC (0.99) it does, as before issue 64's
+    rule. Reference: the truth that made the rest of image_b."""
+    a, b = _moving_object_pair(12)
+    estimator = _estimator_off_by((0.0, 0.0))
+    with opencv_optimized(optimized):
+        runs = {ncc: estimator.estimate_images_with_info(a, b, EstimateOptions(
+            search="none", refine="images", verify="ecc",
+            thresholds=Thresholds(verified_ncc=ncc))) for ncc in (0.95, 0.99)}
+    est = runs[0.95]
+    assert Thresholds().verified_ncc == 0.95
+    assert image_errors(est.homography, TRUTH[None])[0] < 1.0
+    assert est.verify_move_px[0] > 10.0
+    assert est.move_confirmed[0] and not est.implausible[0]
+    strict = runs[0.99]
+    assert strict.verify_move_px[0] == pytest.approx(est.verify_move_px[0], rel=1e-6)
+    assert not strict.move_confirmed[0] and strict.implausible[0]
+
+
+def test_move_confirmed_needs_a_return_a_good_alignment_and_a_move_beyond_the_limit():
+    """``image_refine.move_confirmed`` on the moving-object pair: True for the patch optimum of
+    the right estimate; False where the move is within ``max_verify_move`` (nothing to excuse),
+    where ECC failed (no optimum, an infinite move), for an estimate 20 px off whose whole
+    images align below ``verified_ncc`` (NCC against OpenCV's own ``cv2.matchTemplate``), and
+    for a start so far (60 px) that the whole-image ECC does not come back to the estimate
+    (checked with ``search.ecc_refine``)."""
+    a, b = _moving_object_pair(12)
+    work_a, _ = image_input.work_image(a)
+    work_b, _ = image_input.work_image(b)
+    t = Thresholds()
+    right = geometry.image_to_patch(TRUTH, *ORIGIN)
+    equal = image_refine.equal_resolution(work_a, work_b, TRUTH, t.resolution_sigma)
+    patch_b = image_input.central_patch(work_b)[0, ..., 0]
+
+    def confirmed(move, optimum, h):
+        return image_refine.move_confirmed(move, optimum, h, *equal, (H, W), ORIGIN, t)
+
+    optimum = search.ecc_refine(work_a, patch_b, right, ORIGIN, t)
+    move = checks.verify_move(optimum, right, (H, W), ORIGIN)
+    assert move > 10.0 and confirmed(move, optimum, right)
+    assert not confirmed(t.max_verify_move, optimum, right)
+    assert not confirmed(np.inf, None, right) and not confirmed(move, None, right)
+    # 20 px off: the whole images align poorly there, whatever ECC does from its optimum
+    off = geometry.image_to_patch(TRUTH @ geometry.translation(16.0, -12.0), *ORIGIN)
+    warped = cv2.warpPerspective(work_a, TRUTH @ geometry.translation(16.0, -12.0), (W, H),
+                                 flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    inner = np.s_[40:200, 40:280]
+    ncc = cv2.matchTemplate(warped[inner].astype(np.float32), work_b[inner].astype(np.float32),
+                            cv2.TM_CCOEFF_NORMED)[0, 0]
+    assert ncc < 0.8
+    assert not confirmed(move, optimum, off)
+    # from 60 px away the whole-image ECC ends elsewhere (or fails): not back at the estimate
+    far = geometry.image_to_patch(TRUTH @ geometry.translation(48.0, -36.0), *ORIGIN)
+    back = search.ecc_refine(*equal, geometry.patch_to_image(far, *ORIGIN), (0, 0), t)
+    assert back is None or image_errors(back[None], TRUTH[None])[0] > t.max_verify_move
+    assert not confirmed(checks.verify_move(far, right, (H, W), ORIGIN), far, right)

@@ -67,11 +67,11 @@ def patch_errors(h_pred, h_true) -> np.ndarray:
 def run_estimator(estimator, pairs, options=None) -> dict:
     """``estimate_images_with_info`` on each pair (after one untimed call on the first). Returns
     per pair: ``h`` ``[B, 3, 3]``, ``seconds``, ``implausible``, ``searched``, ``found``,
-    ``alignment_ncc``, ``verify_move_px``, ``corner_std_px`` (NaN where the estimate has none),
-    ``undetermined``."""
+    ``alignment_ncc``, ``verify_move_px``, ``move_confirmed``, ``corner_std_px`` (NaN where
+    the estimate has none), ``undetermined``."""
     estimator.estimate_images_with_info(pairs[0].image_a, pairs[0].image_b, options)
     fields = ("implausible", "searched", "found", "alignment_ncc", "verify_move_px",
-              "corner_std_px", "undetermined")
+              "move_confirmed", "corner_std_px", "undetermined")
     out = {k: [] for k in ("h", "seconds") + fields}
     for p in pairs:
         t0 = time.perf_counter()
@@ -196,6 +196,7 @@ def benchmark(pairs, methods=DEFAULT_METHODS, estimator=None, options=None, succ
              **({"implausible": bool(runs["estimator"]["implausible"][i]),
                  "alignment_ncc": _json_number(runs["estimator"]["alignment_ncc"][i]),
                  "verify_move_px": _json_number(runs["estimator"]["verify_move_px"][i]),
+                 "move_confirmed": bool(runs["estimator"]["move_confirmed"][i]),
                  "corner_std_px": _json_number(runs["estimator"]["corner_std_px"][i]),
                  "undetermined": bool(runs["estimator"]["undetermined"][i])}
                 if "estimator" in runs else {})}

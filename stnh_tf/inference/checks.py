@@ -82,6 +82,23 @@ def verify_move(optimum, a_from_b, source_shape, origin=(0, 0)) -> float:
     return frame_corner_distance(np.linalg.inv(h) @ optimum, np.eye(3), source_shape, origin)
 
 
+def moved(verify_move_px, move_confirmed=None,
+          thresholds: Thresholds = _DEFAULT) -> np.ndarray:
+    """``verify="ecc"``'s part of the flag, per pair: the move ``verify_move_px`` ``[B]`` is
+    above ``thresholds.max_verify_move`` (or ``inf``: ECC did not converge) and
+    ``move_confirmed`` ``[B]`` (``None``: none) does not excuse it; False where not verified
+    (NaN).
+
+    >>> moved(np.array([1.0, 9.0, 9.0, np.inf, np.nan]), np.array([0, 0, 1, 0, 0], bool))
+    array([False,  True, False,  True, False])
+    """
+    move = np.asarray(verify_move_px, np.float64)
+    out = ~np.isnan(move) & ~(move <= thresholds.max_verify_move)
+    if move_confirmed is not None:
+        out &= ~np.asarray(move_confirmed, bool)
+    return out
+
+
 @functools.lru_cache(maxsize=4)
 def _pixel_grid(height: int, width: int) -> np.ndarray:
     """``[3, h * w]`` float64 ``(x, y, 1)`` of every pixel, row by row (read-only, made once per

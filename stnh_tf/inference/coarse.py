@@ -181,11 +181,11 @@ def flag(est, options: EstimateOptions, wide: bool = True):
     ``wide=False`` the trained range's ``implausible_corner_shift``; none for an estimate made
     from the feature start, ``est.feature_start``), the alignment NCC is below
     ``thresholds.min_alignment_ncc`` or undefined, a patch is flat, or (``verify="ecc"``) ECC
-    moved the estimate by more than ``thresholds.max_verify_move``."""
+    moved the estimate by more than ``thresholds.max_verify_move``, unless
+    ``est.move_confirmed`` (:func:`stnh_tf.inference.checks.moved`)."""
     t = options.thresholds
     shift = checks.corner_shift(est.homography)
-    move = est.verify_move_px
-    moved = ~np.isnan(move) & ~(move <= t.max_verify_move)
+    moved = checks.moved(est.verify_move_px, est.move_confirmed, t)
     rule = dataclasses.replace(t, implausible_corner_shift=t.coarse_corner_shift) if wide else t
     featured = (np.zeros(len(shift), bool) if est.feature_start is None
                 else np.asarray(est.feature_start, bool))

@@ -316,6 +316,10 @@ def _estimate_json(estimate, shape_b, quad) -> dict:
             "network_move_px": _finite_or_none(estimate.network_move_px[0]),
             # how precisely the two images fix it at image_b's corners (verify="ecc")
             "corner_std_px": _finite_or_none(estimate.corner_std_px[0]),
+            # how far ECC on patch_b moved it (verify="ecc"; null: not verified or no
+            # convergence), and whether the whole images bring that move back to the estimate
+            "verify_move_px": _finite_or_none(estimate.verify_move_px[0]),
+            "move_confirmed": bool(estimate.move_confirmed[0]),
             # above Thresholds.undetermined_corner_std: the identity in the estimate's place
             "undetermined": bool(estimate.undetermined[0])}
 

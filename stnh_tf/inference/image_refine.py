@@ -8,7 +8,8 @@ refinement and OpenCV's ECC alignment over the whole work images, started from t
 optimum of patch_b's alignment (and from the pipeline's estimate, where that lies far from it),
 and keeps the one that aligns the work images best (:func:`~stnh_tf.inference.coarse.image_ncc`), if
 better than the estimate; the kept estimate's alignment NCC, ``verify="ecc"`` move and
-implausibility flag are then those of the refined homography. Where the estimate is a zoom, the
+implausibility flag are then those of the refined homography. A move of the kept estimate that
+the whole images bring back to it does not flag it (:func:`move_confirmed`; issue 64). Where the estimate is a zoom, the
 whole-image ECC and the scores see the two images at one resolution (:func:`equal_resolution`,
 ``Thresholds.resolution_sigma``; issue 64, a deviation).
 
@@ -96,15 +97,18 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
             break
         starts = [checked]  # still off patch_b's nearest optimum: another round from there
     if best is h0:
-        return _verified(est, nearest, work_a, origin, options)
-    move = est.verify_move_px
+        return _verified(est, nearest, work_a, (equal_a, equal_b), origin, options)
+    move, confirmed = est.verify_move_px, est.move_confirmed
     if options.verify == "ecc":
         if checked_for is not best:
             checked = search_lib.ecc_refine(work_a, patch_b, best, origin, t)
         move = np.array([checks.verify_move(checked, best, np.shape(work_a), origin)])
+        confirmed = np.array([move_confirmed(move[0], checked, best, equal_a, equal_b,
+                                             np.shape(work_a), origin, t)])
     ncc = checks.alignment_ncc(work_a, patch_b, best, origin, t.min_overlap)
     refined = dataclasses.replace(est, homography=best[None], alignment_ncc=np.array([ncc]),
-                                  refined=np.array([True]), verify_move_px=move)
+                                  refined=np.array([True]), verify_move_px=move,
+                                  move_confirmed=confirmed)
     return coarse.flag(refined, options, wide=options.coarse != "none")
 
 
@@ -146,17 +150,48 @@ def equal_resolution(work_a, work_b, a_from_b, sigma: float) -> tuple:
     return blur(work_a, sigma_a), blur(work_b, sigma_b)
 
 
-def _verified(est, nearest, work_a, origin, options: EstimateOptions):
-    """``est`` with ``verify="ecc"``'s move and flag where the pipeline left them to this step
-    (``verify_move_px`` NaN): the move to ``nearest``, patch_b's ECC optimum started from the
-    estimate (``None``: ECC failed, ``inf``)."""
-    unverified = est.verify_move_px is None or np.isnan(est.verify_move_px[0])
-    if options.verify != "ecc" or not unverified:
+def move_confirmed(move, optimum, a_from_b, equal_a, equal_b, work_shape, origin,
+                   thresholds) -> bool:
+    """Whether ``verify="ecc"``'s move of the patch-frame ``a_from_b`` (``move`` px, to
+    ``optimum``: patch_b's ECC optimum started from it; ``None`` where ECC failed) is excused
+    (``Estimate.move_confirmed``): it is above ``thresholds.max_verify_move``, yet the whole
+    work images align at ``thresholds.verified_ncc`` or better under ``a_from_b``
+    (:func:`~stnh_tf.inference.coarse.image_ncc`), and ECC over them started from ``optimum``
+    comes back to within ``max_verify_move`` of ``a_from_b`` (measured as the move is,
+    :func:`~stnh_tf.inference.checks.verify_move`, in the ``[h, w]`` ``work_shape``): patch_b's
+    optimum then lies in the whole images' basin of the estimate (issue 64). ``equal_a``,
+    ``equal_b``: the work images at one resolution (:func:`equal_resolution`), as the
+    whole-image ECC sees them. False where the move is within the limit or ECC fails."""
+    t = thresholds
+    if optimum is None or not t.max_verify_move < move < math.inf:
+        return False
+    if not coarse.image_ncc(equal_a, equal_b, a_from_b, origin, t.min_overlap) >= t.verified_ncc:
+        return False
+    back = _whole_image_ecc(equal_a, equal_b, optimum, origin, t)
+    return back is not None and checks.verify_move(back, a_from_b, work_shape,
+                                                   origin) <= t.max_verify_move
+
+
+def _verified(est, nearest, work_a, equal, origin, options: EstimateOptions):
+    """``est`` (kept as it is) with ``verify="ecc"``'s move, :func:`move_confirmed` and flag:
+    the move to ``nearest``, patch_b's ECC optimum started from the estimate (``None``: ECC
+    failed, ``inf``), where the pipeline left it to this step (``verify_move_px`` NaN); where it
+    was measured before (the feature start's, a retry's), the flag again as for a refined
+    estimate (:func:`~stnh_tf.inference.coarse.flag`) if the move is confirmed. ``equal``:
+    ``(equal_a, equal_b)``."""
+    if options.verify != "ecc":
         return est
-    move = checks.verify_move(nearest, est.homography[0], np.shape(work_a), origin)
-    moved = not move <= options.thresholds.max_verify_move
-    return dataclasses.replace(est, verify_move_px=np.array([move]),
-                               implausible=est.implausible | moved)
+    t, h = options.thresholds, est.homography[0]
+    unverified = est.verify_move_px is None or np.isnan(est.verify_move_px[0])
+    move = (checks.verify_move(nearest, h, np.shape(work_a), origin) if unverified
+            else float(est.verify_move_px[0]))
+    confirmed = move_confirmed(move, nearest, h, *equal, np.shape(work_a), origin, t)
+    est = dataclasses.replace(est, verify_move_px=np.array([move]),
+                              move_confirmed=np.array([confirmed]))
+    if unverified:
+        return dataclasses.replace(est, implausible=est.implausible | checks.moved(
+            est.verify_move_px, est.move_confirmed, t))
+    return coarse.flag(est, options, wide=options.coarse != "none") if confirmed else est
 
 
 def _far(h, h_ref, work_a, origin, thresholds) -> bool:

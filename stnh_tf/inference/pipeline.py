@@ -39,7 +39,7 @@ class Estimate:
       implausible: a stage was skipped as degenerate, a corner moved beyond the trained range,
         the alignment NCC is below ``thresholds.min_alignment_ncc`` or undefined, a patch is
         flat, or (``verify="ecc"``) ECC moved the estimate by more than
-        ``thresholds.max_verify_move`` or did not converge (with ``coarse`` in
+        ``thresholds.max_verify_move`` (unless ``move_confirmed``) or did not converge (with ``coarse`` in
         ``estimate_images_with_info``: a corner moved beyond ``thresholds.coarse_corner_shift``
         instead, :func:`stnh_tf.inference.coarse.flag`).
       alignment_ncc: NCC of patch_b and patch_a warped by the estimate (NaN: undefined, flat).
@@ -58,6 +58,13 @@ class Estimate:
         ``estimate_images_with_info``; in image_b's pixels where the estimate zooms out beyond
         the trained range: :func:`~stnh_tf.inference.checks.verify_move`; ``inf``: it did not
         converge); NaN where not verified.
+      move_confirmed: in ``estimate_images_with_info`` with ``verify="ecc"`` and
+        ``refine="images"``, ECC moved the estimate by more than ``thresholds.max_verify_move``,
+        but ECC over the whole images, started from where it moved it, comes back to within
+        that of the estimate, and the whole images align at ``thresholds.verified_ncc`` or
+        better: the move is patch_b's own optimum, not a sign of another alignment, and does
+        not flag the estimate (:func:`stnh_tf.inference.image_refine.move_confirmed`; issue
+        64). False elsewhere.
       network_homography: float64 ``[B, 3, 3]``: the network's own estimate (the stages
         composed, with ``options.tta``; before the flat rule, the search, the refinement, the
         coarse pass and the feature start), in the frame of ``homography``.
@@ -93,6 +100,7 @@ class Estimate:
     gated_stages: np.ndarray
     options: EstimateOptions
     verify_move_px: np.ndarray = None
+    move_confirmed: np.ndarray = None
     network_homography: np.ndarray = None
     network_move_px: np.ndarray = None
     feature_start: np.ndarray = None
@@ -280,7 +288,7 @@ def finish(run: dict, options: EstimateOptions) -> Estimate:
     ncc = np.where(np.isfinite(shift) & ~run["flat"], run["ncc"], np.nan)
     rejected = run["non_finite"] + run["singular"]
     move = run.get("verify_move", np.full(len(shift), np.nan))
-    moved = ~np.isnan(move) & ~(move <= t.max_verify_move)
+    moved = checks.moved(move, None, t)
     # a run that did not record the network's own estimate: the final one (patch frames)
     network = run.get("network", run["total"])
     frames = run.get("frames", [(geometry.PATCH_SIZE,) * 2] * len(shift))
@@ -293,6 +301,7 @@ def finish(run: dict, options: EstimateOptions) -> Estimate:
         tta_choice=np.array(options.tta_symmetries)[run["choice"]],
         non_finite_stages=run["non_finite"], singular_stages=run["singular"],
         gated_stages=run["gated"], options=options, verify_move_px=move,
+        move_confirmed=np.zeros(len(shift), bool),
         network_homography=network,
         network_move_px=network_moves(run["total"], network, frames, run.get("origin", (0, 0))),
         feature_start=np.zeros(len(shift), bool), corner_std_px=np.full(len(shift), np.nan),
