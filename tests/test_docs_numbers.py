@@ -261,6 +261,18 @@ PROSE = [
        wide_cells(f"camera{seed}_wide_move")) for seed in range(7)],
     *[("BENCHMARKS.md", wide_rows(seed, ", before"), wide_cells(f"camera{seed}_wide_move_off"))
       for seed in (4, 5, 6)],
+    *[("BENCHMARKS.md", wide_rows(seed, ", a move brought back"),
+       wide_cells(f"camera{seed}_wide_confirm")) for seed in range(9)],
+    *[("BENCHMARKS.md", wide_rows(seed, ", before it"),
+       wide_cells(f"camera{seed}_wide_confirm_off")) for seed in (7, 8)],
+    ("BENCHMARKS.md",
+     rf"good estimates flagged (\d+) -> (\d+) of (\d+) and{S}(\d+) -> (\d+) of (\d+); both bad "
+     rf"estimates of seed 0 still flagged",
+     [f for seed in (0, 1) for f in (cam(f"camera{seed}_move", "all", "estimator",
+                                         "flag:flagged_good"),
+                                     cam(f"camera{seed}_confirm", "all", "estimator",
+                                         "flag:flagged_good"),
+                                     cam(f"camera{seed}_confirm", "all", "estimator", "good"))]),
     ("BENCHMARKS.md", *speed_row("one resolution (default)", "camera0_speed_resolution")),
     ("BENCHMARKS.md", *speed_row("`--thresholds=resolution_sigma=0`",
                                  "camera0_speed_resolution_off")),

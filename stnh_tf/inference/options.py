@@ -42,8 +42,9 @@ network's estimate."""
 VERIFIES = ("none", "ecc")
 """How the estimator double-checks its final estimate before flagging it: ``"none"`` (the
 checks alone) or ``"ecc"`` (an estimate that ECC alignment started from it moves by more than
-``Thresholds.max_verify_move``, or from which ECC does not converge, is flagged implausible; the
-estimate is kept; a deviation, issue 46)."""
+``Thresholds.max_verify_move``, or from which ECC does not converge, is flagged implausible,
+unless the whole images bring the move back: ``Estimate.move_confirmed``; the estimate is kept;
+a deviation, issue 46)."""
 
 COARSES = {
     "none": ((0.0, 1.0),),
@@ -90,7 +91,9 @@ class Thresholds:
       min_overlap: the fraction of patch_b's pixels that must land inside patch_a's source for
         the NCC to be defined.
       search_below_ncc: ``search="ecc"`` searches a pair aligned below this (or implausible).
-      verified_ncc: a search result must align the pair at least this well to be kept.
+      verified_ncc: a search result must align the pair at least this well to be kept (and a
+        later round of the whole-image refinement the whole images; a verify move is excused
+        only where they align this well: ``max_verify_move``).
       search_template: side (px) of patch_b's central square slid over the warped patch_a:
         translations up to ``(128 - side) / 2`` px are scored.
       search_peaks: translation peaks the search starts ECC from.
@@ -103,7 +106,10 @@ class Thresholds:
         moves by more than this is flagged implausible: px, mean over the corners of the frame
         the estimate is made in (the patch; the 320 x 240 image in ``estimate_images``), in
         image_b's pixels where the estimate zooms out beyond the trained range
-        (:func:`stnh_tf.inference.checks.verify_move`; issue 64).
+        (:func:`stnh_tf.inference.checks.verify_move`; issue 64); with ``refine="images"`` in
+        ``estimate_images``, not where ECC over the whole images brings the move back to
+        within this of an estimate that aligns them at ``verified_ncc`` or better
+        (:func:`stnh_tf.inference.image_refine.move_confirmed`).
       image_refine_rounds: with ``refine="images"``, the most rounds of whole-image ECC
         (:mod:`stnh_tf.inference.image_refine`); a round after the first runs only where the
         previous one improved the alignment and left the estimate more than
@@ -196,8 +202,9 @@ class EstimateOptions:
       verify: a key of :data:`VERIFIES`. ``"ecc"`` (a deviation): ECC alignment is started from
         each final estimate (not flat, finite); where it fails or moves the estimate by more than
         ``thresholds.max_verify_move`` at the frame's corners on average, the estimate is
-        flagged implausible (it is not replaced: ``refine="ecc"`` does that). ``"none"``: no
-        such check.
+        flagged implausible (it is not replaced: ``refine="ecc"`` does that), unless the whole
+        images bring that move back (``Estimate.move_confirmed``, with ``refine="images"`` in
+        ``estimate_images``). ``"none"``: no such check.
       coarse: a key of :data:`COARSES`, used by ``estimate_images`` only (a deviation, issue 46):
         ``"rotations"`` tries a pair that its estimate aligns poorly again from coarse rotations
         and zooms (:mod:`stnh_tf.inference.coarse`), for motions beyond the trained range; where

@@ -55,6 +55,13 @@ SOURCES = {
     **{f"camera{s}_move": f"docs/camera_pairs/seed{s}_photographs_move.json" for s in (0, 1)},
     "camera0_speed_move": "docs/camera_pairs/speed_seed0_move.json",
     "camera0_speed_two_stages": "docs/camera_pairs/speed_seed0_two_stages.json",
+    # issue 64: a verify move that the whole images bring back (Estimate.move_confirmed)
+    **{f"camera{s}_wide_confirm": f"docs/camera_pairs/wide_seed{s}_confirm.json"
+       for s in range(9)},
+    **{f"camera{s}_wide_confirm_off": f"docs/camera_pairs/wide_seed{s}_confirm_off.json"
+       for s in (7, 8)},
+    **{f"camera{s}_confirm": f"docs/camera_pairs/seed{s}_photographs_confirm.json"
+       for s in (0, 1)},
     "readme_example": "docs/readme_example.json",
     "semi_all_seed0": "semi_supervised/eval/stage1_alone.json",
     "semi_labeled_alone_seed0": "semi_supervised/eval/semi_labels-0.1_drop.json",
