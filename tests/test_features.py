@@ -160,7 +160,8 @@ def test_fallback_tries_the_feature_start_before_the_search(estimator):
 
 def test_the_flag_reads_how_precisely_the_images_fix_the_estimate(estimator):
     """With verify="ecc", estimate_images reports checks.corner_std of its final estimate (in
-    the 320 x 240 images' frame here, which is the work frame), flags the estimate where it is
+    the 320 x 240 images' frame here, which is the work frame; over 8 x 8 squares by default,
+    the classical one with ``corner_std_tile=0``), flags the estimate where it is
     above Thresholds.max_corner_std (the same homography), returns the identity (flagged,
     undetermined) above Thresholds.undetermined_corner_std, and reports NaN without the check."""
     from stnh_tf.inference import checks
@@ -170,8 +171,13 @@ def test_the_flag_reads_how_precisely_the_images_fix_the_estimate(estimator):
     est = estimator.estimate_images_with_info(a, b, options)
     std = est.corner_std_px[0]
     assert 0 < std < options.thresholds.max_corner_std and not est.implausible[0]
-    assert std == pytest.approx(checks.corner_std(_work(a), _work(b), est.homography[0]),
-                                rel=1e-9)
+    assert options.thresholds.corner_std_tile == 8  # the cluster-robust covariance (issue 64)
+    assert std == pytest.approx(checks.corner_std(_work(a), _work(b), est.homography[0],
+                                                  tile=8), rel=1e-9)
+    classical = dataclasses.replace(options, thresholds=dataclasses.replace(
+        options.thresholds, corner_std_tile=0))
+    assert estimator.estimate_images_with_info(a, b, classical).corner_std_px[0] == \
+        pytest.approx(checks.corner_std(_work(a), _work(b), est.homography[0]), rel=1e-9)
     strict = dataclasses.replace(options, thresholds=dataclasses.replace(
         options.thresholds, max_corner_std=std / 2))
     flagged = estimator.estimate_images_with_info(a, b, strict)

@@ -109,7 +109,8 @@ def _pixel_grid(height: int, width: int) -> np.ndarray:
     return grid
 
 
-def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100) -> float:
+def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100,
+               tile: int = 0) -> float:
     """How precisely the two images fix ``a_from_b`` at ``image_b``'s corners: the predicted
     standard deviation (px, mean over the corners ``(0, 0), (w, 0), (w, h), (0, h)`` of
     ``image_b``'s ``[h, w]`` frame) of where the homography maps them, from the Gauss-Newton
@@ -122,12 +123,18 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
     the covariance ``s2 (J^T J)^-1``, propagated to the corners. Where image_a covers little of image_b, or is
     featureless there, a small alignment error at the overlap becomes a large one at the corners:
     the number says so. A statistical lower bound, not the error (independent pixel noise).
+    With ``tile`` > 0 the covariance is the cluster-robust (sandwich) one over squares of
+    ``tile`` x ``tile`` pixels of ``image_b``, ``A^-1 (sum_t s_t s_t^T) A^-1`` (``A = g^2 J^T J``,
+    ``s_t`` the sum of ``g J^T r`` over square ``t``): residuals correlated within a square
+    (blur, JPEG blocks, noise filtered by the camera, a misfit of the model) count as they
+    spread the estimate, not as independent pixels.
 
     Args:
       source_a: ``[h_a, w_a]`` image holding patch_a with its top-left corner at ``origin``.
       image_b: ``[h, w]`` image holding patch_b at ``origin`` (the same frame convention).
       a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame.
       min_pixels: fewer pixels of image_b inside source_a: ``inf``.
+      tile: side (px) of the squares of the cluster-robust covariance; 0: the classical one.
     Returns:
       The predicted standard deviation (px); ``inf`` where it is undefined (too few pixels, a
       singular system, a corner mapped to infinity).
@@ -164,13 +171,21 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
     b_q = b.ravel()[inside]
     a_c = a_q - a_q.mean()
     gain = float(a_c @ (b_q - b_q.mean())) / max(float(a_c @ a_c), 1e-300)  # least squares
-    s2 = float(np.var(b_q - b_q.mean() - gain * a_c))
+    residual = b_q - b_q.mean() - gain * a_c
     u, v, x, y, w = u[inside], v[inside], x[inside], y[inside], w[inside]
     jac = ecc.homography_jacobian(gx, gy, u, v, x, y, w)  # (b's points map to a's)
     try:
-        cov = s2 * np.linalg.inv(gain * gain * (jac.T @ jac))
+        a_inv = np.linalg.inv(gain * gain * (jac.T @ jac))
     except np.linalg.LinAlgError:
         return float("inf")
+    if tile > 0:  # the scores summed per square of image_b, then their outer products
+        square = (v // tile) * (width // tile + 1) + (u // tile)
+        _, index = np.unique(square, return_inverse=True)
+        scores = np.zeros((index.max() + 1, jac.shape[1]))
+        np.add.at(scores, index, gain * jac * residual[:, None])
+        cov = a_inv @ (scores.T @ scores) @ a_inv
+    else:
+        cov = float(np.var(residual)) * a_inv
     stds = []
     for cu, cv in ((0.0, 0.0), (width, 0.0), (width, height), (0.0, height)):
         pc = h @ [cu, cv, 1.0]

@@ -355,7 +355,8 @@ class HomographyEstimator:
         if options.verify == "ecc" and not result.flat[0]:
             # the flag's check (issue 64): how precisely the whole images fix the estimate;
             # where not even at their own scale, the identity takes its place
-            std = checks.corner_std(work_a, work_b, result.homography[0], PATCH_ORIGIN)
+            std = checks.corner_std(work_a, work_b, result.homography[0], PATCH_ORIGIN,
+                                    tile=options.thresholds.corner_std_tile)
             undetermined = std > options.thresholds.undetermined_corner_std
             result = dataclasses.replace(
                 result, corner_std_px=np.array([std]), undetermined=np.array([undetermined]),

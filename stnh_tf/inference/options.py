@@ -124,6 +124,10 @@ class Thresholds:
         deviation, px, :func:`stnh_tf.inference.checks.corner_std`) is flagged implausible:
         where image_a covers little of image_b (a zoom out), a good alignment of the overlap
         can be far off at the corners.
+      corner_std_tile: the side (px) of the squares of image_b over which that standard
+        deviation's covariance is cluster-robust (``checks.corner_std``'s ``tile``; issue 64):
+        residuals correlated within a square count as they spread the estimate; 0: the
+        classical covariance of independent pixels (``max_corner_std`` 1 px before).
       resolution_sigma: with ``refine="images"``, the whole-image refinement first brings the two
         work images to one resolution (:func:`stnh_tf.inference.image_refine.equal_resolution`):
         where the estimate maps image_b's centre at scale ``s`` (a zoom), the sharper image is
@@ -156,7 +160,8 @@ class Thresholds:
     max_verify_move: float = 5.0
     image_refine_rounds: int = 3
     coarse_corner_shift: float = 4 * geometry.MAX_PERTURBATION
-    max_corner_std: float = 1.0
+    max_corner_std: float = 1.5
+    corner_std_tile: int = 8
     undetermined_corner_std: float = 400.0
     resolution_sigma: float = 0.8
 
