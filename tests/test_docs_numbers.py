@@ -127,6 +127,15 @@ def wide_rows(seed, label=""):
             rf"{method} \| {method} \| (\d+) of \d+, {N} px \| (\d+) of (\d+), (\d+) of (\d+) \|")
 
 
+def size_flags(before, after):
+    """Per size set (seeds 0, 1): its good estimates flagged in ``camera{seed}_{before}`` and in
+    ``camera{seed}_{after}``, and its good estimates."""
+    return [f for seed in (0, 1) for f in (
+        cam(f"camera{seed}_{before}", "all", "estimator", "flag:flagged_good"),
+        cam(f"camera{seed}_{after}", "all", "estimator", "flag:flagged_good"),
+        cam(f"camera{seed}_{after}", "all", "estimator", "good"))]
+
+
 def speed_row(label, source):
     """A row of the one-resolution speed table: per group success, count, MACE, ms, the ratio to
     SIFT + RANSAC's ms and SIFT's ms."""
@@ -268,21 +277,13 @@ PROSE = [
     ("BENCHMARKS.md",
      rf"good estimates flagged (\d+) -> (\d+) of (\d+) and{S}(\d+) -> (\d+) of (\d+); both bad "
      rf"estimates of seed 0 still flagged",
-     [f for seed in (0, 1) for f in (cam(f"camera{seed}_move", "all", "estimator",
-                                         "flag:flagged_good"),
-                                     cam(f"camera{seed}_confirm", "all", "estimator",
-                                         "flag:flagged_good"),
-                                     cam(f"camera{seed}_confirm", "all", "estimator", "good"))]),
+     size_flags("move", "confirm")),
     *[("BENCHMARKS.md", wide_rows(seed, ", 8 x 8 squares"),
        wide_cells(f"camera{seed}_wide_tiled")) for seed in range(9)],
     ("BENCHMARKS.md",
      rf"good estimates flagged (\d+) -> (\d+) of (\d+) \(seed 0's `2-4x` 272,{S}0.57 px off\) and "
      rf"(\d+) -> (\d+) of (\d+); both bad ones still flagged",
-     [f for seed in (0, 1) for f in (cam(f"camera{seed}_confirm", "all", "estimator",
-                                         "flag:flagged_good"),
-                                     cam(f"camera{seed}_tiled", "all", "estimator",
-                                         "flag:flagged_good"),
-                                     cam(f"camera{seed}_tiled", "all", "estimator", "good"))]),
+     size_flags("confirm", "tiled")),
     ("BENCHMARKS.md", *speed_row("one resolution (default)", "camera0_speed_resolution")),
     ("BENCHMARKS.md", *speed_row("`--thresholds=resolution_sigma=0`",
                                  "camera0_speed_resolution_off")),
