@@ -297,6 +297,20 @@ def test_the_tiled_corner_std_counts_correlated_residuals():
         assert checks.corner_std(a, blurred, h, tile=8) > 1.4 * checks.corner_std(a, blurred, h)
 
 
+def test_the_tiled_corner_std_is_the_classical_one_over_too_few_squares():
+    """Where image_a covers fewer than 32 squares of 8 x 8 px of image_b (here a 12x zoom out:
+    image_a covers about 27 x 20 px, 12 squares) the sandwich covariance has rank at most 12 < 8
+    x 4 and is not used: the classical number comes back, bit for bit; over enough squares the
+    two differ (the blurred noise of the test above)."""
+    a, h, clean, _ = _zoomed_pair(12.0, 0.02)
+    noisy = clean + _correlated_noise(clean.shape, 0.02, 1.0, np.random.default_rng(3))
+    assert checks.MIN_SQUARES_PER_PARAMETER == 4
+    assert checks.corner_std(a, noisy, h, tile=8) == checks.corner_std(a, noisy, h)
+    a, h, clean, _ = _zoomed_pair(2.0, 0.02)
+    noisy = clean + _correlated_noise(clean.shape, 0.02, 1.0, np.random.default_rng(3))
+    assert checks.corner_std(a, noisy, h, tile=8) != checks.corner_std(a, noisy, h)
+
+
 @pytest.mark.slow
 def test_the_tiled_corner_std_predicts_the_spread_of_opencv_ecc_under_correlated_noise():
     """The Monte Carlo oracle of the next test with noise blurred by 1 px: OpenCV's ECC spreads

@@ -99,6 +99,12 @@ def moved(verify_move_px, move_confirmed=None,
     return out
 
 
+MIN_SQUARES_PER_PARAMETER = 4
+""":func:`corner_std` with ``tile``: over fewer squares than this many per parameter (32 for the
+8 of a homography) the cluster-robust covariance is not estimable (its rank is at most the
+number of squares) and the classical one is used."""
+
+
 @functools.lru_cache(maxsize=4)
 def _pixel_grid(height: int, width: int) -> np.ndarray:
     """``[3, h * w]`` float64 ``(x, y, 1)`` of every pixel, row by row (read-only, made once per
@@ -134,7 +140,9 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
       image_b: ``[h, w]`` image holding patch_b at ``origin`` (the same frame convention).
       a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame.
       min_pixels: fewer pixels of image_b inside source_a: ``inf``.
-      tile: side (px) of the squares of the cluster-robust covariance; 0: the classical one.
+      tile: side (px) of the squares of the cluster-robust covariance; 0, or fewer squares
+        than :data:`MIN_SQUARES_PER_PARAMETER` per parameter inside source_a: the classical
+        one.
     Returns:
       The predicted standard deviation (px); ``inf`` where it is undefined (too few pixels, a
       singular system, a corner mapped to infinity).
@@ -178,14 +186,14 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
         a_inv = np.linalg.inv(gain * gain * (jac.T @ jac))
     except np.linalg.LinAlgError:
         return float("inf")
+    cov = float(np.var(residual)) * a_inv
     if tile > 0:  # the scores summed per square of image_b, then their outer products
         square = (v // tile) * (width // tile + 1) + (u // tile)
         _, index = np.unique(square, return_inverse=True)
-        scores = np.zeros((index.max() + 1, jac.shape[1]))
-        np.add.at(scores, index, gain * jac * residual[:, None])
-        cov = a_inv @ (scores.T @ scores) @ a_inv
-    else:
-        cov = float(np.var(residual)) * a_inv
+        if index.max() + 1 >= MIN_SQUARES_PER_PARAMETER * jac.shape[1]:
+            scores = np.zeros((index.max() + 1, jac.shape[1]))
+            np.add.at(scores, index, gain * jac * residual[:, None])
+            cov = a_inv @ (scores.T @ scores) @ a_inv
     stds = []
     for cu, cv in ((0.0, 0.0), (width, 0.0), (width, height), (0.0, height)):
         pc = h @ [cu, cv, 1.0]

@@ -9,9 +9,9 @@ optimum of patch_b's alignment (and from the pipeline's estimate, where that lie
 and keeps the one that aligns the work images best (:func:`~stnh_tf.inference.coarse.image_ncc`), if
 better than the estimate; the kept estimate's alignment NCC, ``verify="ecc"`` move and
 implausibility flag are then those of the refined homography. A move of the kept estimate that
-the whole images bring back to it does not flag it (:func:`move_confirmed`; issue 64). Where the estimate is a zoom, the
-whole-image ECC and the scores see the two images at one resolution (:func:`equal_resolution`,
-``Thresholds.resolution_sigma``; issue 64, a deviation).
+the whole images bring back to it does not flag it (:func:`move_confirmed`; issue 64). Where
+the estimate is a zoom, the whole-image ECC and the scores see the two images at one
+resolution (:func:`equal_resolution`, ``Thresholds.resolution_sigma``; issue 64, a deviation).
 
 Frames: the estimate is a pixel ``H_ba`` (``a_from_b``) in the patch frame; the patch's top-left
 corner lies at ``origin`` in the work images. NumPy and OpenCV only.

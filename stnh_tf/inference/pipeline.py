@@ -39,9 +39,9 @@ class Estimate:
       implausible: a stage was skipped as degenerate, a corner moved beyond the trained range,
         the alignment NCC is below ``thresholds.min_alignment_ncc`` or undefined, a patch is
         flat, or (``verify="ecc"``) ECC moved the estimate by more than
-        ``thresholds.max_verify_move`` (unless ``move_confirmed``) or did not converge (with ``coarse`` in
-        ``estimate_images_with_info``: a corner moved beyond ``thresholds.coarse_corner_shift``
-        instead, :func:`stnh_tf.inference.coarse.flag`).
+        ``thresholds.max_verify_move`` (unless ``move_confirmed``) or did not converge (with
+        ``coarse`` in ``estimate_images_with_info``: a corner moved beyond
+        ``thresholds.coarse_corner_shift`` instead, :func:`stnh_tf.inference.coarse.flag`).
       alignment_ncc: NCC of patch_b and patch_a warped by the estimate (NaN: undefined, flat).
       max_corner_shift_px: the largest displacement of a 128 x 128 patch corner.
       flat: patch_a or patch_b varies less than ``thresholds.min_patch_std`` (the identity).
