@@ -283,6 +283,22 @@ def _correlated_noise(shape, sigma, blur, rng):
     return sigma * n / n.std()
 
 
+def _ecc_corner_spread(a, h_true, images_b) -> float:
+    """The Monte Carlo oracle of the corner precision: OpenCV's ECC (``cv2.findTransformECC``,
+    homography, 100 iterations) aligning each of ``images_b`` with ``a`` from ``h_true``; the
+    RMS distance (px) of image_b's four corners about their mean, averaged over the corners."""
+    corners = np.array([[[0, 0], [320, 0], [320, 240], [0, 240]]], np.float64)
+    spread = []
+    for b in images_b:
+        _, warp = cv2.findTransformECC(b.astype(np.float32), a.astype(np.float32),
+                                       h_true.astype(np.float32), cv2.MOTION_HOMOGRAPHY,
+                                       (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100,
+                                        1e-8), None, 1)
+        spread.append(cv2.perspectiveTransform(corners, warp.astype(np.float64))[0])
+    spread = np.asarray(spread)
+    return float(np.sqrt(((spread - spread.mean(0)) ** 2).sum(-1).mean(0)).mean())
+
+
 def test_the_tiled_corner_std_counts_correlated_residuals():
     """``checks.corner_std(..., tile=8)`` (the cluster-robust covariance over 8 x 8 squares) is
     the classical one within 15% where the noise is white (measured 0.91-0.94 over seeds 3 and
@@ -318,18 +334,11 @@ def test_the_tiled_corner_std_predicts_the_spread_of_opencv_ecc_under_correlated
     1.11-1.20 over draw seeds 3 and 5) while the classical covariance falls under 0.7x of it
     (measured 0.61-0.64)."""
     a, h_true, clean, _ = _zoomed_pair(2.0, 0.02)
-    corners = np.array([[[0, 0], [320, 0], [320, 240], [0, 240]]], np.float64)
     for seed in (3, 5):
-        rng, spread = np.random.default_rng(seed), []
-        for _ in range(24):
-            b = (clean + _correlated_noise(clean.shape, 0.02, 1.0, rng)).astype(np.float32)
-            _, warp = cv2.findTransformECC(b, a.astype(np.float32), h_true.astype(np.float32),
-                                           cv2.MOTION_HOMOGRAPHY,
-                                           (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100,
-                                            1e-8), None, 1)
-            spread.append(cv2.perspectiveTransform(corners, warp.astype(np.float64))[0])
-        spread = np.asarray(spread)
-        measured = float(np.sqrt(((spread - spread.mean(0)) ** 2).sum(-1).mean(0)).mean())
+        rng = np.random.default_rng(seed)
+        measured = _ecc_corner_spread(
+            a, h_true, [clean + _correlated_noise(clean.shape, 0.02, 1.0, rng)
+                        for _ in range(24)])
         b = clean + _correlated_noise(clean.shape, 0.02, 1.0, rng)
         assert 0.8 < checks.corner_std(a, b, h_true, tile=8) / measured < 1.5
         assert checks.corner_std(a, b, h_true) / measured < 0.7
@@ -343,16 +352,8 @@ def test_corner_std_predicts_the_spread_of_opencv_ecc_under_noise():
     within a factor 2 (measured ratio 0.69-0.94 over 3 seeds of the draws: a lower bound, as
     documented)."""
     a, h_true, clean, noisy = _zoomed_pair(2.0, 0.02)
-    corners = np.array([[[0, 0], [320, 0], [320, 240], [0, 240]]], np.float64)
-    rng, spread = np.random.default_rng(3), []
-    for _ in range(24):
-        b = (clean + rng.normal(0, 0.02, clean.shape)).astype(np.float32)
-        _, warp = cv2.findTransformECC(b, a.astype(np.float32), h_true.astype(np.float32),
-                                       cv2.MOTION_HOMOGRAPHY,
-                                       (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100,
-                                        1e-8), None, 1)
-        spread.append(cv2.perspectiveTransform(corners, warp.astype(np.float64))[0])
-    spread = np.asarray(spread)
-    measured = float(np.sqrt(((spread - spread.mean(0)) ** 2).sum(-1).mean(0)).mean())
+    rng = np.random.default_rng(3)
+    measured = _ecc_corner_spread(a, h_true, [clean + rng.normal(0, 0.02, clean.shape)
+                                              for _ in range(24)])
     predicted = checks.corner_std(a, noisy, h_true)
     assert 0.5 < predicted / measured < 2.0, (predicted, measured)
