@@ -2,7 +2,7 @@
 ``torch``.
 
 The suite runs under TensorFlow; each other backend runs in one subprocess (the backend is chosen
-at Keras' import). References: OpenCV for the warp, the TensorFlow backend for the values and
+at Keras' import), in the slow suite. References: OpenCV for the warp, the TensorFlow backend for the values and
 gradients (themselves checked against OpenCV and finite differences in test_layers), and models
 saved under each backend loaded under the other; two training steps under each backend against
 the same two steps under TensorFlow, from the same weights; and ``experiments/gpu_recipe.sh`` end
@@ -41,7 +41,8 @@ def _needs(module):
                               reason=f"{module} is not installed: that backend is not tested")
 
 
-BACKENDS = [pytest.param(b, marks=_needs(b)) for b in ("jax", "torch")]
+# Slow: each backend's subprocess imports TensorFlow and that backend, and compiles and trains.
+BACKENDS = [pytest.param(b, marks=[_needs(b), pytest.mark.slow]) for b in ("jax", "torch")]
 # Models saved under TensorFlow (last layers perturbed so outputs depend on the input) and run
 # under the other backend: one stage, the 2-stage sequence model (HomographyMerge), HomographyNet.
 SAVED_MODELS = ("stn", "sequence2", "homographynet")

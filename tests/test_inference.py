@@ -948,16 +948,25 @@ def _run(module, *args, cwd=None):
 
 @pytest.fixture(scope="module")
 def exported(saved, tmp_path_factory):
-    """The single-stage model exported with the export binary."""
+    """The single-stage model exported by the library (in this process: the fast suite)."""
     out = tmp_path_factory.mktemp("export") / "saved_model"
+    return Path(export.export_saved_model(HomographyEstimator([saved["single"]]), out))
+
+
+@pytest.fixture(scope="module")
+def exported_by_binary(saved, tmp_path_factory):
+    """The single-stage model exported with the export binary (a new process importing
+    TensorFlow: the slow suite)."""
+    out = tmp_path_factory.mktemp("export_binary") / "saved_model"
     proc = _run("experiments.export", f"--model={saved['root'] / 'single.keras'}",
                 f"--output={out}", "--check_pairs=3")
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out, json.loads(proc.stdout), proc
 
 
-def test_export_binary_reports_agreement(exported):
-    _, report, proc = exported
+@pytest.mark.slow
+def test_export_binary_reports_agreement(exported_by_binary):
+    _, report, proc = exported_by_binary
     assert report["ok"] is True and report["kind"] == "single" and report["pairs"] == 3
     assert report["max_abs_diff"] <= 1e-3 and report["max_abs_diff_estimate"] <= 1e-3
     assert "export: export check passed" in proc.stderr  # issue 62: the wording
@@ -966,7 +975,7 @@ def test_export_binary_reports_agreement(exported):
 def test_saved_model_matches_keras_model(exported, saved, pairs):
     import tensorflow as tf
 
-    path, _, _ = exported
+    path = exported
     a, b, _ = pairs
     fn = tf.saved_model.load(str(path)).signatures["serving_default"]
     specs = fn.structured_input_signature[1]
@@ -1068,7 +1077,7 @@ def test_saved_model_rejects_bad_requests_without_crashing(exported):
     """serving_default checks rank, size, channels, dtype and batch in the graph: a [1, 128, 128]
     request used to abort the whole process (SIGABRT in oneDNN), [1, 64, 64, 1] and
     [1, 1, 128, 128, 1] returned a homography. Run in a subprocess: an abort fails this test."""
-    path, _, _ = exported
+    path = exported
     env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2")
     proc = subprocess.run([sys.executable, "-c", BAD_REQUESTS_SCRIPT, str(path)],
                           capture_output=True, text=True, env=env, timeout=300)
@@ -1434,14 +1443,15 @@ def test_estimate_says_how_far_the_result_is_from_the_networks_own(pairs):
 # --------------------------------------------------------------------------------------------
 # Issue 62, item 3: the export binary's documents, its check line and its quiet log
 # --------------------------------------------------------------------------------------------
-def test_export_binary_writes_its_documents_and_one_plain_check_line(exported, saved):
+@pytest.mark.slow
+def test_export_binary_writes_its_documents_and_one_plain_check_line(exported_by_binary, saved):
     """The export binary (the module's export of a single-stage model without a model card)
     writes README.md and signature.json beside saved_model.pb, says in one line on stderr what
     it compared and that the check passed, and prints none of TensorFlow's INFO lines (the
     SavedModel writer's "Assets written to ..." in absl's format, shown before the fix)."""
     import re
 
-    path, report, proc = exported
+    path, report, proc = exported_by_binary
     assert sorted(report["documents"]) == [str(path / "README.md"), str(path / "signature.json")]
     assert report["kept_user_files"] == []
     document = json.loads((path / "signature.json").read_text())
