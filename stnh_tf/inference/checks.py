@@ -188,11 +188,14 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
         return float("inf")
     cov = float(np.var(residual)) * a_inv
     if tile > 0:  # the scores summed per square of image_b, then their outer products
-        square = (v // tile) * (width // tile + 1) + (u // tile)
-        _, index = np.unique(square, return_inverse=True)
-        if index.max() + 1 >= MIN_SQUARES_PER_PARAMETER * jac.shape[1]:
-            scores = np.zeros((index.max() + 1, jac.shape[1]))
-            np.add.at(scores, index, gain * jac * residual[:, None])
+        square = ((v // tile) * (width // tile + 1) + (u // tile)).astype(np.intp)
+        present = np.bincount(square) > 0
+        if present.sum() >= MIN_SQUARES_PER_PARAMETER * jac.shape[1]:
+            index = (np.cumsum(present) - 1)[square]  # the squares numbered in order, as unique's
+            weighted = gain * jac * residual[:, None]
+            # bincount adds in the pixels' order, as np.add.at would (the same sums), 10x faster
+            scores = np.stack([np.bincount(index, weights=weighted[:, k])
+                               for k in range(jac.shape[1])], axis=1)
             cov = a_inv @ (scores.T @ scores) @ a_inv
     stds = []
     for cu, cv in ((0.0, 0.0), (width, 0.0), (width, height), (0.0, height)):
