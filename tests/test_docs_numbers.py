@@ -150,6 +150,24 @@ def speed_row(label, source):
                 cam(source, g, "sift_ransac", "ms"))])
 
 
+def stage_row(label, source):
+    """A row of the fewer-stages table: per group :func:`speed_row`'s cell and the share of pairs
+    the search looked at, then the flag over all pairs (bad flagged of bad, good flagged of
+    good)."""
+    cell = rf"(\d+) of (\d+), {N} px, (\d+) ms \({N}x SIFT's (\d+) ms\), searched {N}"
+    path = "groups/{}/{}/ms_per_pair"
+    return (rf"\| {re.escape(label)} \| {cell} \| {cell} \| {cell} \| (\d+) of (\d+), (\d+) of "
+            rf"(\d+) \|",
+            [f for g in ("within", "1-2x", "2-4x") for f in (
+                cam(source, g, "estimator", "ok"), cam(source, g, "estimator", "count"),
+                cam(source, g, "estimator", "mace"), cam(source, g, "estimator", "ms"),
+                ratio((source, path.format(g, "estimator")),
+                      (source, path.format(g, "sift_ransac"))),
+                cam(source, g, "sift_ransac", "ms"), cam(source, g, "estimator", "searched"))]
+            + [cam(source, "all", "estimator", f)
+               for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")])
+
+
 def wide_cells(source):
     """The numbers of :func:`wide_rows` from ``source``."""
     return [f for g in ("wide", "wide_low_light") for f in (
@@ -289,6 +307,9 @@ PROSE = [
                                  "camera0_speed_resolution_off")),
     ("BENCHMARKS.md", *speed_row("3 (default)", "camera0_speed_move")),
     ("BENCHMARKS.md", *speed_row("2", "camera0_speed_two_stages")),
+    *[("BENCHMARKS.md", *stage_row(label, f"camera0_{name}"))  # issue 64: fewer stages
+      for label, name in (("3 stages (default)", "three_stages"), ("2 stages", "two_stages"),
+                          ("1 stage", "one_stage"))],
     ("BENCHMARKS.md",  # issue 64, item 3: the speed table
      rf"\| within \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \|\n"
      rf"\| 1-2x \| (\d+) of (\d+), {N} px, (\d+) ms \| (\d+) of \d+, {N} px, (\d+) ms \|\n"

@@ -65,6 +65,9 @@ SOURCES = {
     # issue 64: the corner precision over 8 x 8 squares (Thresholds.corner_std_tile)
     **{f"camera{s}_wide_tiled": f"docs/camera_pairs/wide_seed{s}_tiled.json" for s in range(9)},
     **{f"camera{s}_tiled": f"docs/camera_pairs/seed{s}_photographs_tiled.json" for s in (0, 1)},
+    # issue 64: fewer stages of the shipped hierarchy (the size groups of seed 0)
+    **{f"camera0_{n}": f"docs/camera_pairs/seed0_photographs_{n}.json"
+       for n in ("one_stage", "two_stages", "three_stages")},
     "readme_example": "docs/readme_example.json",
     "semi_all_seed0": "semi_supervised/eval/stage1_alone.json",
     "semi_labeled_alone_seed0": "semi_supervised/eval/semi_labels-0.1_drop.json",
