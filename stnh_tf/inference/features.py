@@ -111,8 +111,8 @@ def wanted(first, options: EstimateOptions) -> bool:
 
 def candidate(run, work_a, work_b, options: EstimateOptions, origin):
     """The feature start's estimate of one pair, or ``None`` where :func:`feature_start` finds no
-    start: ``G @ H`` (``H``: ``run(patch_a, patch_b, contexts, options)``, the pipeline on the
-    central patches of work_a warped by ``G`` and of work_b) or ``G`` itself, whichever aligns the
+    start: ``G @ H`` (``H``: ``run(patch_a, patch_b, contexts, options)``, the pipeline without
+    the search on the central patches of work_a warped by ``G`` and of work_b) or ``G`` itself, whichever aligns the
     work images better (:func:`stnh_tf.inference.coarse.image_ncc`; ``G @ H`` on a tie): an
     ``Estimate`` (B = 1) with that homography in the patch frame (``[2, 2] = 1``),
     ``alignment_ncc`` measured in work_a, ``feature_start`` set, the other fields those of ``H``,
@@ -123,7 +123,10 @@ def candidate(run, work_a, work_b, options: EstimateOptions, origin):
         return None
     g = geometry.image_to_patch(h_image, *origin)
     context = coarse.warp_context(work_a, g, origin)
-    est = run(central_patch(context), central_patch(work_b), [context], options)
+    # no search from the start (issue 64, its speed): it seldom finds one there, and the
+    # whole-image refinement that follows reaches what it finds (BENCHMARKS.md)
+    est = run(central_patch(context), central_patch(work_b), [context],
+              dataclasses.replace(options, search="none"))
     t = options.thresholds
     score = lambda h: coarse.image_ncc(work_a, work_b, h, origin, t.min_overlap)  # noqa: E731
     refined = geometry.scale_to_unit(g @ est.homography[0])
