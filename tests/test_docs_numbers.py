@@ -307,6 +307,14 @@ PROSE = [
                                  "camera0_speed_resolution_off")),
     ("BENCHMARKS.md", *speed_row("3 (default)", "camera0_speed_move")),
     ("BENCHMARKS.md", *speed_row("2", "camera0_speed_two_stages")),
+    *[("BENCHMARKS.md", wide_rows(seed, ", no search from the start"),
+       wide_cells(f"camera{seed}_wide_start")) for seed in range(11)],
+    *[("BENCHMARKS.md", wide_rows(seed, ", before"), wide_cells(f"camera{seed}_wide_start_off"))
+      for seed in (9, 10)],
+    *[("BENCHMARKS.md", *stage_row(label, f"camera{seed}_{name}"))
+      for seed in (0, 1) for label, name in (
+          (f"seed {seed}, 8 x 8 squares (before)", "tiled"),
+          (f"seed {seed}, no search from the start", "start"))],
     *[("BENCHMARKS.md", *stage_row(label, f"camera0_{name}"))  # issue 64: fewer stages
       for label, name in (("3 stages (default)", "three_stages"), ("2 stages", "two_stages"),
                           ("1 stage", "one_stage"))],

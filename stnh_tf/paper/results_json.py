@@ -68,6 +68,11 @@ SOURCES = {
     # issue 64: fewer stages of the shipped hierarchy (the size groups of seed 0)
     **{f"camera0_{n}": f"docs/camera_pairs/seed0_photographs_{n}.json"
        for n in ("one_stage", "two_stages", "three_stages")},
+    # issue 64: the feature start's network pass without the search
+    **{f"camera{s}_wide_start": f"docs/camera_pairs/wide_seed{s}_start.json" for s in range(11)},
+    **{f"camera{s}_wide_start_off": f"docs/camera_pairs/wide_seed{s}_start_off.json"
+       for s in (9, 10)},
+    **{f"camera{s}_start": f"docs/camera_pairs/seed{s}_photographs_start.json" for s in (0, 1)},
     "readme_example": "docs/readme_example.json",
     "semi_all_seed0": "semi_supervised/eval/stage1_alone.json",
     "semi_labeled_alone_seed0": "semi_supervised/eval/semi_labels-0.1_drop.json",
