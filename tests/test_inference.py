@@ -1217,19 +1217,24 @@ def test_predict_binary(identity_model_path, tmp_path):
     assert abs(result["homography"][0][2]) == pytest.approx(60.0 * 600 / 320, abs=1e-3)
     assert "warning: the estimate is implausible" in proc.stderr and "60.0 px" in proc.stderr
     assert "note: the estimate was flagged and estimated again" in proc.stderr
-    # a network 8 px off on a pair of identical images: the default search finds the identity
-    # and says so (the network's estimate was replaced)
+    # a network 8 px off on a pair of identical images: by default the feature start (SIFT
+    # matches) finds the identity and says so (the network's estimate was replaced); without it
+    # (--features=none) the search does, and says so
     off = geometry.translation(8.0, 0.0)
     constant_stage(off, "off").save(tmp_path / "off.keras")
-    proc = _run("experiments.predict", f"--image_a={tmp_path / 'a.png'}",
-                f"--image_b={tmp_path / 'a.png'}", f"--model={tmp_path / 'off.keras'}",
-                f"--output_dir={tmp_path / 'off'}")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    result = json.loads(proc.stdout)
-    assert result["search_found"] is True
-    assert np.abs(np.array(result["homography"]) - np.eye(3)).max() < 0.05
-    assert "predict: note: the network's estimate aligned the images poorly; the search" \
-        in proc.stderr
+    for flags, found, note in (([], "feature_start", "the estimate was made from a start found "
+                                                     "by OpenCV SIFT matches"),
+                               (["--features=none"], "search_found", "the search")):
+        proc = _run("experiments.predict", f"--image_a={tmp_path / 'a.png'}",
+                    f"--image_b={tmp_path / 'a.png'}", f"--model={tmp_path / 'off.keras'}",
+                    f"--output_dir={tmp_path / ('off' + ''.join(flags))}", *flags)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        result = json.loads(proc.stdout)
+        assert result[found] is True
+        assert result["feature_start" if found == "search_found" else "search_found"] is False
+        assert np.abs(np.array(result["homography"]) - np.eye(3)).max() < 0.05
+        assert f"predict: note: the network's estimate aligned the images poorly; {note}" \
+            in proc.stderr
     # issue 64: the network's own estimate (8 px in the 320 x 240 work frame, 8 x 600 / 320 px
     # in image_a's) and how far the result is from it at the work image's corners
     assert result["network_homography"][0][2] == pytest.approx(8.0 * 600 / 320, abs=1e-3)

@@ -252,13 +252,18 @@ def _note_stderr(message):
 
 def deviation_notes(estimate) -> list:
     """One line per step beyond the paper's network that changed the estimate of the (first)
-    pair of an :class:`~stnh_tf.inference.pipeline.Estimate`: the search, the refinement, the
-    retry, a test-time symmetry."""
+    pair of an :class:`~stnh_tf.inference.pipeline.Estimate`: the search, the feature start, the
+    refinement, the retry, a test-time symmetry."""
     notes, ncc = [], float(estimate.alignment_ncc[0])
     if estimate.found[0]:
         notes.append(f"the network's estimate aligned the images poorly; the search (a deviation "
                      f"from the paper; --search=none gives the network's estimate) replaced it "
                      f"with one that aligns them at NCC {ncc:.3f}.")
+    if estimate.feature_start is not None and estimate.feature_start[0]:
+        notes.append(f"the network's estimate aligned the images poorly; the estimate was made "
+                     f"from a start found by OpenCV SIFT matches (--features="
+                     f"{estimate.options.features}, a deviation from the paper; --features=none "
+                     f"leaves it out), aligning them at NCC {ncc:.3f}.")
     if estimate.refined[0]:
         notes.append(f"the estimate is the ECC refinement of the network's "
                      f"(--refine={estimate.options.refine}, a deviation from the paper).")
@@ -305,6 +310,8 @@ def _estimate_json(estimate, shape_b, quad) -> dict:
             "retry_tta": used.retry_tta, "retried": bool(estimate.retried[0]),
             "search": used.search, "searched": bool(estimate.searched[0]),
             "search_found": bool(estimate.found[0]),
+            # made from the feature start (issue 64: OpenCV SIFT matches; --features)
+            "feature_start": bool(estimate.feature_start[0]),
             "coarse": used.coarse, "features": used.features, "verify": used.verify,
             # the numbers of the checks (predict's --thresholds)
             "thresholds": used.to_json()["thresholds"],
