@@ -336,6 +336,12 @@ PROSE = [
     ("docs/estimate.md", rf"it takes (\d+){S}against the default's (\d+) ms per pair",
      [cam("camera0_photographs", "within", "estimator", "ms"),
       cam("camera0_default_estimator", "within", "estimator", "ms")]),
+    ("BENCHMARKS.md",  # issue 63: the re-measure's progress
+     rf"MACE {N} px on the 300 test pairs \(`semi_supervised/eval/semi_labels-0.1_l1b.json`;"
+     rf"{S}the model and its record in `semi_supervised/`\), against {N} px for the 10% labels "
+     rf"alone \(seed{S}0\)",
+     [num("semi_plus_unlabeled_l1b_seed0", "model/mace"),
+      num("semi_labeled_alone_seed0", "model/mace")]),
     (SEMI_HISTORY,
      rf"\| 100% labels \| 21,900 \| 21,900 \| {N} \| {N} \|\n"
      rf"\| 10% labels alone \| 2,241 \| 2,241 \| {N} \| {N} \|\n"
