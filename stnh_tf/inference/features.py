@@ -112,9 +112,10 @@ def wanted(first, options: EstimateOptions) -> bool:
 def candidate(run, work_a, work_b, options: EstimateOptions, origin):
     """The feature start's estimate of one pair, or ``None`` where :func:`feature_start` finds no
     start: ``G @ H`` (``H``: ``run(patch_a, patch_b, contexts, options)``, the pipeline without
-    the search on the central patches of work_a warped by ``G`` and of work_b) or ``G`` itself, whichever aligns the
-    work images better (:func:`stnh_tf.inference.coarse.image_ncc`; ``G @ H`` on a tie): an
-    ``Estimate`` (B = 1) with that homography in the patch frame (``[2, 2] = 1``),
+    the search on the central patches of work_a warped by ``G`` and of work_b) or ``G`` itself,
+    whichever aligns the work images better (:func:`stnh_tf.inference.coarse.image_ncc`;
+    ``G @ H`` on a tie): an ``Estimate`` (B = 1) with that homography in the patch frame
+    (``[2, 2] = 1``),
     ``alignment_ncc`` measured in work_a, ``feature_start`` set, the other fields those of ``H``,
     flagged by :func:`stnh_tf.inference.coarse.flag` (no corner rule). Arguments as in
     :func:`feature_pass`."""

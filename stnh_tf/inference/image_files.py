@@ -260,10 +260,10 @@ def deviation_notes(estimate) -> list:
                      f"from the paper; --search=none gives the network's estimate) replaced it "
                      f"with one that aligns them at NCC {ncc:.3f}.")
     if estimate.feature_start is not None and estimate.feature_start[0]:
-        notes.append(f"the network's estimate aligned the images poorly; the estimate was made "
-                     f"from a start found by OpenCV SIFT matches (--features="
+        notes.append(f"the estimate was made from a start found by OpenCV SIFT matches, which "
+                     f"aligned the images better than the network's estimate (--features="
                      f"{estimate.options.features}, a deviation from the paper; --features=none "
-                     f"leaves it out), aligning them at NCC {ncc:.3f}.")
+                     f"leaves it out); it aligns them at NCC {ncc:.3f}.")
     if estimate.refined[0]:
         notes.append(f"the estimate is the ECC refinement of the network's "
                      f"(--refine={estimate.options.refine}, a deviation from the paper).")
