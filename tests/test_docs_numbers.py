@@ -136,36 +136,31 @@ def size_flags(before, after):
         cam(f"camera{seed}_{after}", "all", "estimator", "good"))]
 
 
-def speed_row(label, source):
+def speed_row(label, source, searched=False):
     """A row of the one-resolution speed table: per group success, count, MACE, ms, the ratio to
-    SIFT + RANSAC's ms and SIFT's ms."""
+    SIFT + RANSAC's ms and SIFT's ms; with ``searched``, also the share of pairs the search
+    looked at per group, then the flag over all pairs (bad flagged of bad, good flagged of good):
+    a row of the fewer-stages and feature-start tables."""
     cell = rf"(\d+) of (\d+), {N} px, (\d+) ms \({N}x SIFT's (\d+) ms\)"
+    cell += rf", searched {N}" if searched else ""
     path = "groups/{}/{}/ms_per_pair"
-    return (rf"\| {re.escape(label)} \| {cell} \| {cell} \| {cell} \|",
+    flag = r" (\d+) of (\d+), (\d+) of (\d+) \|" if searched else ""
+    return (rf"\| {re.escape(label)} \| {cell} \| {cell} \| {cell} \|{flag}",
             [f for g in ("within", "1-2x", "2-4x") for f in (
                 cam(source, g, "estimator", "ok"), cam(source, g, "estimator", "count"),
                 cam(source, g, "estimator", "mace"), cam(source, g, "estimator", "ms"),
                 ratio((source, path.format(g, "estimator")),
                       (source, path.format(g, "sift_ransac"))),
-                cam(source, g, "sift_ransac", "ms"))])
+                cam(source, g, "sift_ransac", "ms"),
+                *([cam(source, g, "estimator", "searched")] if searched else []))]
+            + ([cam(source, "all", "estimator", f)
+                for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")]
+               if searched else []))
 
 
 def stage_row(label, source):
-    """A row of the fewer-stages table: per group :func:`speed_row`'s cell and the share of pairs
-    the search looked at, then the flag over all pairs (bad flagged of bad, good flagged of
-    good)."""
-    cell = rf"(\d+) of (\d+), {N} px, (\d+) ms \({N}x SIFT's (\d+) ms\), searched {N}"
-    path = "groups/{}/{}/ms_per_pair"
-    return (rf"\| {re.escape(label)} \| {cell} \| {cell} \| {cell} \| (\d+) of (\d+), (\d+) of "
-            rf"(\d+) \|",
-            [f for g in ("within", "1-2x", "2-4x") for f in (
-                cam(source, g, "estimator", "ok"), cam(source, g, "estimator", "count"),
-                cam(source, g, "estimator", "mace"), cam(source, g, "estimator", "ms"),
-                ratio((source, path.format(g, "estimator")),
-                      (source, path.format(g, "sift_ransac"))),
-                cam(source, g, "sift_ransac", "ms"), cam(source, g, "estimator", "searched"))]
-            + [cam(source, "all", "estimator", f)
-               for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")])
+    """:func:`speed_row` with the search's share and the flag."""
+    return speed_row(label, source, searched=True)
 
 
 def wide_cells(source):
