@@ -51,7 +51,7 @@ def _corner_error(h, h_true):
                                 - cv2.perspectiveTransform(corners, h_true)[0], axis=1).mean())
 
 
-# photographs() without the coarse pass (slow with a network that cannot estimate the rest)
+# photographs() without the feature start
 WHOLE = EstimateOptions(refine="images", verify="ecc")
 
 
@@ -195,3 +195,29 @@ def test_the_flag_reads_how_precisely_the_images_fix_the_estimate(estimator):
     unchecked = estimator.estimate_images_with_info(a, b, dataclasses.replace(options,
                                                                               verify="none"))
     assert np.isnan(unchecked.corner_std_px[0]) and not unchecked.undetermined[0]
+
+
+def test_no_feature_start_keeps_the_corner_rule_of_motions_beyond_the_trained_range(monkeypatch):
+    """A network estimate that moves a patch corner beyond the trained range's rule (48 px) yet
+    aligns the pair: with a feature start (``wide_motions``) and none found, it is judged by the
+    coarse pass's corner rule (``coarse_corner_shift``, 128 px) as after a coarse pass that finds
+    nothing, so not flagged; without the feature start the trained range's rule flags it. The
+    stage outputs the true homography (rotation by 40 degrees: the patch corners move 62 px)."""
+    h_true = _wide_motion(40.0, 1.0)
+    a, b = _pair(h_true)
+    origin = image_input.PATCH_ORIGIN
+    truth = HomographyEstimator([constant_stage(geometry.image_to_patch(h_true, *origin),
+                                                "truth")])
+    monkeypatch.setattr(features, "feature_start", lambda *images: None)  # no start found
+    t = EstimateOptions().thresholds
+    wide = truth.estimate_images_with_info(a, b, EstimateOptions(search="none",
+                                                                 features="fallback"))
+    plain = truth.estimate_images_with_info(a, b, EstimateOptions(search="none"))
+    np.testing.assert_array_equal(wide.homography, plain.homography)
+    assert _corner_error(wide.homography[0], h_true) < 0.5
+    assert t.implausible_corner_shift < wide.max_corner_shift_px[0] < t.coarse_corner_shift
+    assert wide.alignment_ncc[0] > 0.9 and not wide.feature_start[0]
+    assert not wide.implausible[0] and plain.implausible[0]
+    assert EstimateOptions(features="fallback").wide_motions
+    assert EstimateOptions(coarse="rotations").wide_motions
+    assert not EstimateOptions().wide_motions

@@ -129,8 +129,8 @@ def test_estimate_images_defaults_to_photographs_and_estimate_to_the_plain_defau
     assert estimator.image_options == EstimateOptions.photographs()
     default = estimator.estimate_images_with_info(a, b)
     explicit = estimator.estimate_images_with_info(a, b, EstimateOptions.photographs())
-    assert (default.options.coarse, default.options.refine, default.options.verify) == (
-        "rotations", "images", "ecc")
+    assert (default.options.coarse, default.options.refine, default.options.verify,
+            default.options.features) == ("none", "images", "ecc", "fallback")
     np.testing.assert_array_equal(default.homography, explicit.homography)
     assert image_errors(default.homography, TRUTH[None])[0] < 0.1  # refined (measured 0.003)
     # options given at construction apply to both methods

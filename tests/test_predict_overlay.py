@@ -118,8 +118,7 @@ def test_predicts_line_says_how_far_the_steps_beyond_the_network_moved_its_estim
     assert result["alignment_ncc"] > 0.99
     moved = float(re.search(r"moved the network's own estimate by ([\d.]+) px", line).group(1))
     assert moved == pytest.approx(8.0, abs=0.5) and moved == round(result["network_move_px"], 2)
-    assert ("--search=none --refine=none --coarse=none --features=none gives the network alone"
-            in line)
+    assert "--search=none --refine=none --features=none gives the network alone" in line
     alone = image_files.align_image_files(
         str(tmp_path / "a.png"), str(tmp_path / "a.png"), str(tmp_path / "off.keras"),
         str(tmp_path / "out"), warn=lambda m: None, note=lambda m: None,

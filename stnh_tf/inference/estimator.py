@@ -350,6 +350,10 @@ class HomographyEstimator:
         if options.coarse != "none" and not confirmed:
             # a deviation (issue 46): motions beyond the trained range
             result = coarse.coarse_pass(run, work_a, work_b, result, network, PATCH_ORIGIN)
+        elif options.wide_motions and not confirmed and coarse.needs_pass(result, network):
+            # the feature start found nothing better: the corner rule of motions beyond the
+            # trained range, as after a coarse pass that finds nothing (issue 64)
+            result = coarse.flag(result, network)
         # a deviation (issue 46): refine="images" aligns the whole images
         result = image_refine.refine_images(result, work_a, work_b, options, PATCH_ORIGIN)
         if options.verify == "ecc" and not result.flat[0]:
@@ -388,11 +392,11 @@ class HomographyEstimator:
           options: as in :meth:`estimate` (search and refinement align patch_b with the
             320 x 240 image_a; test-time augmentation transforms image_a with its patch);
             ``None``: the estimator's ``image_options`` (by default
-            ``EstimateOptions.photographs()``: the feature start, the coarse pass, the
-            whole-image refinement and the ECC check of the flag; deviations, docs/estimate.md);
-            ``options.coarse`` (used here only): the coarse pass for motions beyond the trained
-            range (:mod:`stnh_tf.inference.coarse`); ``refine="images"``: ECC over the whole images
-            at the end (:mod:`stnh_tf.inference.image_refine`).
+            ``EstimateOptions.photographs()``: the feature start, the whole-image refinement
+            and the ECC check of the flag; deviations, docs/estimate.md);
+            ``options.coarse`` (used here only; opt-in): the coarse pass for motions beyond the
+            trained range (:mod:`stnh_tf.inference.coarse`); ``refine="images"``: ECC over the
+            whole images at the end (:mod:`stnh_tf.inference.image_refine`).
           channel_order: "rgb" (NumPy/scikit-image) or "bgr" (``cv2.imread``).
           **legacy: as in :meth:`estimate`; deprecated.
         Returns:

@@ -49,8 +49,8 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
     result, a later round's is kept only where it aligns the images at
     ``thresholds.verified_ncc`` or better. From an estimate beyond ECC's reach the kept result can
     be further off than the estimate. A refined estimate has ``refined`` set and is flagged by
-    :func:`~stnh_tf.inference.coarse.flag` (the coarse pass's corner rule with
-    ``options.coarse``, the trained range's without), as any estimate. An estimate kept as it
+    :func:`~stnh_tf.inference.coarse.flag` (the coarse pass's corner rule where
+    ``options.wide_motions``, the trained range's without), as any estimate. An estimate kept as it
     is that ``verify="ecc"`` has not checked yet (``verify_move_px`` NaN: ``estimate_images``
     leaves the check to this step) gets the move to the patch optimum and its flag.
 
@@ -109,7 +109,7 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
     refined = dataclasses.replace(est, homography=best[None], alignment_ncc=np.array([ncc]),
                                   refined=np.array([True]), verify_move_px=move,
                                   move_confirmed=confirmed)
-    return coarse.flag(refined, options, wide=options.coarse != "none")
+    return coarse.flag(refined, options, wide=options.wide_motions)
 
 
 MIN_BLUR = math.sqrt(1 / 6)
@@ -191,7 +191,7 @@ def _verified(est, nearest, work_a, equal, origin, options: EstimateOptions):
     if unverified:
         return dataclasses.replace(est, implausible=est.implausible | checks.moved(
             est.verify_move_px, est.move_confirmed, t))
-    return coarse.flag(est, options, wide=options.coarse != "none") if confirmed else est
+    return coarse.flag(est, options, wide=options.wide_motions) if confirmed else est
 
 
 def _far(h, h_ref, work_a, origin, thresholds) -> bool:

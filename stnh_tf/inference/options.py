@@ -115,9 +115,11 @@ class Thresholds:
         previous one improved the alignment and left the estimate more than
         ``max_verify_move`` from patch_b's nearest ECC optimum, and its result is kept only
         where its whole-image NCC reaches ``verified_ncc``.
-      coarse_corner_shift: with ``coarse`` other than ``"none"``, this replaces
-        ``implausible_corner_shift`` in the implausibility rule (a patch corner moved further is
-        beyond what the coarse pass handles: 4x the trained range). An estimate made from the
+      coarse_corner_shift: with ``coarse`` or ``features`` other than ``"none"``
+        (``EstimateOptions.wide_motions``), this replaces ``implausible_corner_shift`` in the
+        implausibility rule of ``estimate_images`` where the network's estimate aligns poorly
+        (a patch corner moved further is beyond what the coarse pass handles: 4x the trained
+        range). An estimate made from the
         feature start (``features``) has no corner rule: its checks are the alignment's.
       max_corner_std: with ``verify="ecc"`` in ``estimate_images``, an estimate that the two
         work images fix less precisely than this at image_b's corners (the predicted standard
@@ -214,7 +216,7 @@ class EstimateOptions:
         ``"rotations"`` tries a pair that its estimate aligns poorly again from coarse rotations
         and zooms (:mod:`stnh_tf.inference.coarse`), for motions beyond the trained range; where
         the pass ran, the flag's corner rule uses ``thresholds.coarse_corner_shift``.
-        ``"none"`` (default): no coarse pass.
+        ``"none"`` (default, and ``photographs()``'s since issue 64): no coarse pass.
       features: a key of :data:`FEATURES`, used by ``estimate_images`` only (a deviation, issue
         64): a start from OpenCV SIFT matches (:mod:`stnh_tf.inference.features`) refined by the
         network's stages, kept where it aligns the work images better; ``"fallback"`` for pairs
@@ -259,17 +261,23 @@ class EstimateOptions:
     @classmethod
     def photographs(cls, **changes) -> "EstimateOptions":
         """``estimate_images``' default, for real photographs (issues 46 and 64; deviations from
-        the paper): ``EstimateOptions()`` with the coarse pass (``coarse="rotations"``), the
-        whole-image refinement (``refine="images"``), the ECC check of the flag
-        (``verify="ecc"``) and the feature start where the network's estimate aligns poorly
-        (``features="fallback"``). ``changes`` override fields.
+        the paper): ``EstimateOptions()`` with the whole-image refinement (``refine="images"``),
+        the ECC check of the flag (``verify="ecc"``) and the feature start where the network's
+        estimate aligns poorly (``features="fallback"``), which takes motions beyond the trained
+        range (``wide_motions``); the coarse pass (``coarse="rotations"``) is opt-in since the
+        feature start (issue 64). ``changes`` override fields.
 
         >>> o = EstimateOptions.photographs()
-        >>> o.coarse, o.refine, o.verify, o.search, o.features
-        ('rotations', 'images', 'ecc', 'ecc', 'fallback')
+        >>> o.coarse, o.refine, o.verify, o.search, o.features, o.wide_motions
+        ('none', 'images', 'ecc', 'ecc', 'fallback', True)
         """
-        return cls(**{"coarse": "rotations", "refine": "images", "verify": "ecc",
-                      "features": "fallback", **changes})
+        return cls(**{"refine": "images", "verify": "ecc", "features": "fallback", **changes})
+
+    @property
+    def wide_motions(self) -> bool:
+        """Whether ``estimate_images`` takes motions beyond the trained range (the coarse pass or
+        the feature start): its flag's corner rule is then ``thresholds.coarse_corner_shift``."""
+        return self.coarse != "none" or self.features != "none"
 
     @property
     def tta_symmetries(self) -> tuple:
