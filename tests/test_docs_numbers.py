@@ -240,9 +240,12 @@ PROSE = [
      rf"\| 0, `photographs\(\)` with the feature start, before one resolution \| {N} \({N}\) px, "
      rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera0_features")),
     ("docs/estimate.md",
-     rf"\| 0, \*\*`photographs\(\)`\*\*, with one resolution \| \*\*{N}\*\* \({N}\) px, (\d+) "
-     rf"\| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
-     cam_row("camera0_resolution")),
+     rf"\| 0, `photographs\(\)` with one resolution \| {N} \({N}\) px, "
+     rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera0_resolution")),
+    ("docs/estimate.md",
+     rf"\| 0, \*\*`photographs\(\)`\*\* today \(no coarse pass\) \| \*\*{N}\*\* \({N}\) px, "
+     rf"(\d+) \| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
+     cam_row("camera0_nocoarse")),
     ("docs/estimate.md", rf"\| 0, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
      cam_row("camera0_default", "sift_ransac", flag=False)),
     ("docs/estimate.md",
@@ -252,9 +255,12 @@ PROSE = [
      rf"\| 1, `photographs\(\)` with the feature start, before one resolution \| {N} \({N}\) px, "
      rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera1_features")),
     ("docs/estimate.md",
-     rf"\| 1, \*\*`photographs\(\)`\*\*, with one resolution \| \*\*{N}\*\* \({N}\) px, (\d+) "
-     rf"\| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
-     cam_row("camera1_resolution")),
+     rf"\| 1, `photographs\(\)` with one resolution \| {N} \({N}\) px, "
+     rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera1_resolution")),
+    ("docs/estimate.md",
+     rf"\| 1, \*\*`photographs\(\)`\*\* today \(no coarse pass\) \| \*\*{N}\*\* \({N}\) px, "
+     rf"(\d+) \| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
+     cam_row("camera1_nocoarse")),
     ("docs/estimate.md", rf"\| 1, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
      cam_row("camera1_photographs", "sift_ransac", flag=False)),
     ("BENCHMARKS.md",
@@ -310,6 +316,12 @@ PROSE = [
       for seed in (0, 1) for label, name in (
           (f"seed {seed}, 8 x 8 squares (before)", "tiled"),
           (f"seed {seed}, no search from the start", "start"))],
+    *[("BENCHMARKS.md", wide_rows(seed, label), wide_cells(f"camera{seed}_wide_{name}"))
+      for seed in range(13) for label, name in (  # issue 64: the coarse pass out of the default
+          (", coarse pass (before)", "coarse"), (", no coarse pass", "nocoarse"))],
+    *[("BENCHMARKS.md", *stage_row(f"seed {seed}, {label}", f"camera{seed}_{name}"))
+      for seed in (0, 1, 2) for label, name in (
+          ("coarse pass (before)", "coarse"), ("no coarse pass", "nocoarse"))],
     *[("BENCHMARKS.md", *stage_row(label, f"camera0_{name}"))  # issue 64: fewer stages
       for label, name in (("3 stages (default)", "three_stages"), ("2 stages", "two_stages"),
                           ("1 stage", "one_stage"))],
