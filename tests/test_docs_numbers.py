@@ -322,6 +322,20 @@ PROSE = [
     *[("BENCHMARKS.md", *stage_row(f"seed {seed}, {label}", f"camera{seed}_{name}"))
       for seed in (0, 1, 2) for label, name in (
           ("coarse pass (before)", "coarse"), ("no coarse pass", "nocoarse"))],
+    *[("BENCHMARKS.md",  # the current results' camera rows, against cam's reading of the JSON
+       rf"group `{group}` \(seed 0[^|]*\| [^|]*?: estimator \*\*(\d+) of (\d+)\*\*, {N} px, (\d+) "
+       rf"ms; SIFT \+ RANSAC (\d+) of \d+, {N} px, (\d+) ms;[^|]*; ORB \+ RANSAC (\d+) of \d+, {N} "
+       rf"px, (\d+) ms; identity {N} px; flag: (\d+) of (\d+) [^|]*?, (\d+) of (\d+) good ones \|",
+       [cam(source, group, m, f) for m, fields in (("estimator", ("ok", "count", "mace", "ms")),
+                                                   ("sift_ransac", ("ok", "mace", "ms")),
+                                                   ("orb_ransac", ("ok", "mace", "ms")),
+                                                   ("identity", ("mace",)))
+        for f in fields]
+       + [cam(source, group, "estimator", f)
+          for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")])
+      for source, groups in (("camera0_nocoarse", ("within", "1-2x", "2-4x")),
+                             ("camera0_wide_nocoarse", ("wide", "wide_low_light")))
+      for group in groups],
     *[("BENCHMARKS.md", *stage_row(label, f"camera0_{name}"))  # issue 64: fewer stages
       for label, name in (("3 stages (default)", "three_stages"), ("2 stages", "two_stages"),
                           ("1 stage", "one_stage"))],

@@ -11,7 +11,10 @@ paths from the repository root):
   ``bundled_check`` and each stage's training configuration);
 - ``stnh_tf/weights/paper_recipe/model_card.json``: the paper recipe's CPU-budget hierarchy;
 - ``docs/reproduce_cpu/results.json`` and ``docs/reproduce_cpu/table1.json``:
-  ``experiments.reproduce --budget=cpu`` (Fig. 4, Table 1, Table 2).
+  ``experiments.reproduce --budget=cpu`` (Fig. 4, Table 1, Table 2);
+- ``docs/camera_pairs/seed0_photographs_nocoarse.json`` and ``wide_seed0_nocoarse.json``:
+  ``experiments.benchmark_camera_pairs`` (``estimate_images``' default beside SIFT, ORB and the
+  identity on every group of the camera-pair benchmark, :data:`CAMERA_SETS`).
 
 The commands are those BENCHMARKS.md records for each measurement; a commit or machine is shown
 where the JSON records one, "not recorded" where it does not. Numbers typed in prose elsewhere
@@ -102,6 +105,46 @@ def _table1_cells(sources):
         note = (f" ({' and '.join(label for label, _, _ in ranges)}: mean of {seeds}, ranges "
                 f"{' and '.join(r for _, _, r in ranges)})")
     return " / ".join(cells), note, " / ".join(paper_cells)
+
+
+# estimate_images' default on the camera-pair benchmark (issue 64): (source, groups, the set's
+# make_camera_pairs flags), seed 0 (the development seed)
+CAMERA_SETS = (("camera0_nocoarse", ("within", "1-2x", "2-4x"), "--seed=0"),
+               ("camera0_wide_nocoarse", ("wide", "wide_low_light"),
+                "--motion_set=wide --seed=0 --pairs_per_image=2"))
+CAMERA_METHODS = (("estimator", "estimator"), ("sift_ransac", "SIFT + RANSAC"),
+                  ("sift_wide", "SIFT, wide settings"), ("orb_ransac", "ORB + RANSAC"))
+
+
+def _camera_rows(sources) -> list[tuple[str, str, str, str, str, str]]:
+    """One row of the "Current results" table per group of :data:`CAMERA_SETS`: each method's
+    successes (under 3 px), mean MACE and ms per pair, the identity's MACE, the estimator's flag
+    (estimates more than 5 px off flagged, good ones flagged)."""
+    rows = []
+    for name, groups, flags in CAMERA_SETS:
+        command = (f"`python -m experiments.make_camera_pairs --output_dir=D {flags}`, then "
+                   "`python -m experiments.benchmark_camera_pairs --pairs_dir=D "
+                   "--methods=estimator,sift_ransac,sift_wide,orb_ransac,identity`")
+        for group in groups:
+            result = value(sources, name, f"groups/{group}")
+            cells = []
+            for key, label in CAMERA_METHODS:
+                r = result[key]
+                ok = f"{round(r['success_rate'] * r['count'])} of {r['count']}"
+                cells.append(f"{label} {f'**{ok}**' if key == 'estimator' else ok}, "
+                             f"{fixed(r['mace'])} px, {r['ms_per_pair']:.0f} ms")
+            flag = result["estimator"]["flag"]
+            good = result["estimator"]["count"] - flag["bad"]
+            rows.append((
+                f"[`estimate_images`' default](docs/estimate.md#real-photographs-estimateoptionsph"
+                f"otographs-default-of-estimate_images) (`photographs()`), camera pairs, group "
+                f"`{group}` (seed 0, the development seed; [held-out seeds](#wide-baselines-issue-"
+                f"64-the-coarse-pass-out-of-the-default))",
+                "success, mean MACE at the image corners, time per pair: " + "; ".join(cells)
+                + f"; identity {fixed(result['identity']['mace'])} px; flag: {flag['flagged_bad']}"
+                f" of {flag['bad']} estimates more than 5 px off, {flag['flagged_good']} of {good}"
+                " good ones", command, f"`{SOURCES[name]}`", *_recorded(sources, name)))
+    return rows
 
 
 def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, str, str]]:
@@ -223,6 +266,7 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
          f" ms, sequence model "
          f"{_joined(sources, 'results', [f'sequence_latency_ms/{k}' for k in (1, 2, 3)])} ms",
          reproduce, results, *_recorded(sources, "results")),
+        *_camera_rows(sources),
     ]
 
 
