@@ -241,7 +241,8 @@ PROSE = [
      rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera0_features")),
     ("docs/estimate.md",
      rf"\| 0, `photographs\(\)` with one resolution \| {N} \({N}\) px, "
-     rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera0_resolution")),
+     rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|",
+     cam_row("camera0_resolution")),
     ("docs/estimate.md",
      rf"\| 0, \*\*`photographs\(\)`\*\* today \(no coarse pass\) \| \*\*{N}\*\* \({N}\) px, "
      rf"(\d+) \| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
@@ -256,7 +257,8 @@ PROSE = [
      rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera1_features")),
     ("docs/estimate.md",
      rf"\| 1, `photographs\(\)` with one resolution \| {N} \({N}\) px, "
-     rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|", cam_row("camera1_resolution")),
+     rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|",
+     cam_row("camera1_resolution")),
     ("docs/estimate.md",
      rf"\| 1, \*\*`photographs\(\)`\*\* today \(no coarse pass\) \| \*\*{N}\*\* \({N}\) px, "
      rf"(\d+) \| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",

@@ -79,7 +79,8 @@ SOURCES = {
     **{f"camera{s}_wide_coarse": f"docs/camera_pairs/wide_seed{s}_coarse.json" for s in range(13)},
     **{f"camera{s}_nocoarse": f"docs/camera_pairs/seed{s}_photographs_nocoarse.json"
        for s in (0, 1, 2)},
-    **{f"camera{s}_coarse": f"docs/camera_pairs/seed{s}_photographs_coarse.json" for s in (0, 1, 2)},
+    **{f"camera{s}_coarse": f"docs/camera_pairs/seed{s}_photographs_coarse.json"
+       for s in (0, 1, 2)},
     "readme_example": "docs/readme_example.json",
     "semi_all_seed0": "semi_supervised/eval/stage1_alone.json",
     "semi_labeled_alone_seed0": "semi_supervised/eval/semi_labels-0.1_drop.json",
