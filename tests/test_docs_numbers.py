@@ -324,6 +324,10 @@ PROSE = [
     *[("BENCHMARKS.md", *stage_row(f"seed {seed}, {label}", f"camera{seed}_{name}"))
       for seed in (0, 1, 2) for label, name in (
           ("coarse pass (before)", "coarse"), ("no coarse pass", "nocoarse"))],
+    *[("BENCHMARKS.md", wide_rows(seed, ", features always"),
+       wide_cells(f"camera{seed}_wide_always")) for seed in (0, 12)],  # issue 64: features="always" against "fallback"
+    *[("BENCHMARKS.md", *stage_row(f"seed {seed}, features always", f"camera{seed}_always"))
+      for seed in (0, 2)],
     *[("BENCHMARKS.md",  # the current results' camera rows, against cam's reading of the JSON
        rf"group `{group}` \(seed 0[^|]*\| [^|]*?: estimator \*\*(\d+) of (\d+)\*\*, {N} px, (\d+) "
        rf"ms; SIFT \+ RANSAC (\d+) of \d+, {N} px, (\d+) ms;[^|]*; ORB \+ RANSAC (\d+) of \d+, {N} "
