@@ -94,6 +94,7 @@ SOURCES = {
     "semi_plus_unlabeled_seed1": "semi_supervised/eval/semi_labels-0.1_seed1.json",
     "semi_none_seed1": "semi_supervised/eval/semi_labels-0_seed1.json",
     "semi_plus_unlabeled_l1b_seed0": "semi_supervised/eval/semi_labels-0.1_l1b.json",
+    "semi_none_l1b_seed0": "semi_supervised/eval/semi_labels-0_l1b.json",
     "semi_table": "semi_supervised/semi_supervised.json",
     "semi_step_cost": "semi_supervised/step_cost.json",
     "results": "docs/reproduce_cpu/results.json",
