@@ -490,9 +490,10 @@ PROSE = [
      rf"[^$]*?then 52,500 -> 56,331 at {N} steps/s[^$]*?then 56,331 -> 60,094 at {N} steps/s"
      rf"[^$]*?then 60,094 ->{S}64,055 at {N} steps/s[^$]*?then 64,055 -> 66,399 at {N} steps/s"
      rf"[^$]*?then 66,399 -> 68,025 at {N}{S}steps/s[^$]*?then 68,025 -> 69,410 at {N} steps/s"
-     rf"[^$]*?then 69,410 -> 70,764 at {N} steps/s[^$]*?then 70,764 -> 77,056 at {N} steps/s",
+     rf"[^$]*?then 69,410 -> 70,764 at {N} steps/s[^$]*?then 70,764 -> 77,056 at {N} steps/s"
+     rf"[^$]*?then 77,056 -> 78,902 at{S}{N} steps/s",
      [num("schedule_ledger", f"{i}/steps_per_s")
-      for i in (4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16)]),
+      for i in (4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17)]),
     ("docs/gpu.md", r"resumes from it on any machine: ([\d,]+) steps remain",
      [schedule_steps_left(2)]),
     ("docs/gpu.md", rf"50 steps per call, {N} steps/s over", [num("schedule_record",
