@@ -222,6 +222,17 @@ def schedule_steps_left(stage):
         r["to_step"] for r in sources["schedule_ledger"] if r["stage"] == stage))
 
 
+def schedule_chunks(stage):
+    """The number of ``stage``'s chunks in the paper schedule's ledger."""
+    return lambda sources: str(sum(r["stage"] == stage for r in sources["schedule_ledger"]))
+
+
+def schedule_hours(stage):
+    """The wall time of ``stage``'s chunks in the paper schedule's ledger, in hours."""
+    return lambda sources: cr.fixed(sum(r["wall_s"] for r in sources["schedule_ledger"]
+                                        if r["stage"] == stage) / 3600, 1)
+
+
 def stage_pairs_ms(source, threads):
     """Best ms per re-made stage-k pair of a stage-pairs benchmark at ``threads``."""
     return lambda sources: f"{sources[source]['best_ms_per_pair'][str(threads)]:.2f}"
@@ -445,7 +456,7 @@ PROSE = [
       num("readme_example", "identity_error_px")]),
     ("docs/gpu.md",
      rf"\*\*MACE {N} px\*\* on the 300 coco_mini test pairs of the tables \(identity {N};",
-     [num("schedule_card", "evaluation/model/mace"),
+     [num("schedule_card", "evaluation/model/stages/after_1_stages/mace"),
       num("schedule_card", "evaluation/identity/mace")]),
     ("docs/gpu.md",
      rf"validation MACE\): {N} px at step 500,{S}{N} at 10,000, {N} at 30,000, {N} at 50,000, "
@@ -494,8 +505,18 @@ PROSE = [
      rf"[^$]*?then 77,056 -> 78,902 at{S}{N} steps/s",
      [num("schedule_ledger", f"{i}/steps_per_s")
       for i in (4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17)]),
-    ("docs/gpu.md", r"resumes from it on any machine: ([\d,]+) steps remain",
-     [schedule_steps_left(2)]),
+    ("docs/gpu.md", rf"then 78,902 -> 89,276 at {N} steps/s[^$]*?then 89,276 -> 91,000 at {N}{S}"
+     rf"steps/s \(`paper_schedule/logs/stage2_89276-91000_cpu.log`",
+     [num("schedule_ledger", f"{i}/steps_per_s") for i in (18, 19)]),
+    ("docs/gpu.md", rf"\*\*MACE {N} px after 2 stages\*\* on the 300 coco_mini test pairs of the "
+     rf"tables \(paper 2.6; after{S}stage 1 {N}, identity {N};",
+     [num("schedule_card", f"evaluation/model/stages/after_{k}_stages/mace") for k in (2, 1)]
+     + [num("schedule_card", "evaluation/identity/mace")]),
+    ("docs/gpu.md", rf"\(the reproduction's hierarchy rows\) {N} px[^$]*?saved mixed{S}bfloat16, "
+     rf"{N} px with the clipping",
+     [num("schedule2_eval", "model/mace"), num("schedule2_eval_float32", "model/mace")]),
+    ("docs/gpu.md", rf"Finished at 91,000 steps over (\d+) chunks and {N} hours of wall time",
+     [schedule_chunks(2), schedule_hours(2)]),
     ("docs/gpu.md", rf"50 steps per call, {N} steps/s over", [num("schedule_record",
                                                                   "chunks/1/steps_per_s")]),
     ("docs/weights.md",

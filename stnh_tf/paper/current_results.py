@@ -229,16 +229,20 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
          "`python -m experiments.evaluate --model_dir=runs/cpu/stage1,runs/cpu/stage2,"
          "runs/cpu/stage3 --data_dir=data/cpu --split=test`", paper_card,
          *_recorded(sources, "paper_card", "evaluation/machine")),
-        ("[Paper's schedule](docs/gpu.md#the-papers-schedule-in-chunks), stage 1 "
-         "(`stnh_tf/weights/paper_schedule/`): the paper's recipe, 91,000 steps, 184,800 pairs "
-         "from 1,848 photographs; 300 coco_mini test pairs",
-         f"MACE {fixed(value(sources, 'schedule_card', 'evaluation/model/mace'))} px (paper "
-         f"5.83; identity {fixed(value(sources, 'schedule_card', 'evaluation/identity/mace'))})",
-         "`python -m experiments.paper_schedule --stage=1` (chunks), then `python -m "
-         "experiments.evaluate --model_dir=paper_schedule/stage1.keras --data_dir=D "
-         "--split=test`", schedule_card,
+        ("[Paper's schedule](docs/gpu.md#the-papers-schedule-in-chunks), stages 1-2 "
+         "(`stnh_tf/weights/paper_schedule/`): the paper's recipe, 91,000 steps a stage, 184,800 "
+         "pairs from 1,848 photographs; 300 coco_mini test pairs, image context, the networks "
+         "alone (no clipping rule)",
+         "MACE after 1 / 2 stages "
+         f"{_joined(sources, 'schedule_card', _stages('evaluation/model')[:2], bold=1)} px "
+         "(paper 5.83 / 2.6; identity "
+         f"{fixed(value(sources, 'schedule_card', 'evaluation/identity/mace'))})",
+         "`python -m experiments.paper_schedule --stage=K` (chunks, K = 1, 2), then `python -m "
+         "experiments.evaluate --model_dir=paper_schedule/stage1.keras,paper_schedule/stage2.keras"
+         " --data_dir=D --split=test --no_clip`", schedule_card,
          _recorded(sources, "schedule_card", "evaluation/machine")[0],
-         "; ".join(value(sources, "schedule_card", "stages")[0]["machines"])),
+         "; ".join(dict.fromkeys(m for stage in value(sources, "schedule_card", "stages")
+                                 for m in stage["machines"]))),
         ("Paper recipe's hierarchy, `estimate` on bare patches (default search), 60 bundled pairs",
          f"{_joined(sources, 'paper_card', check('', '123'))} px after 1 / 2 / 3 "
          "stages; after 3 stages the network alone "
@@ -301,8 +305,10 @@ def readme_block(sources: dict[str, dict]) -> str:
     table1, table1_note, paper_table1 = _table1_cells(sources)
     stn = ["STN-Homography 1 stage", "STN-Homography 2 stages", "STN-Homography 3 stages"]
     steps = sum(card_steps(sources))
-    schedule = {1: fixed(value(sources, "schedule_card", "evaluation/model/mace"))}
-    next_ = "not yet"  # trained next, in the order of issue 45 (docs/gpu.md)
+    next_ = "not yet"  # trained next, in the order of issue 60 (docs/gpu.md)
+    shipped = value(sources, "schedule_card", "evaluation/model/stages")
+    schedule = {k: fixed(shipped[f"after_{k}_stages"]["mace"]) if f"after_{k}_stages" in shipped
+                else next_ for k in (1, 2, 3)}
     rows = [
         ("identity", ours("Identity"),
          fixed(value(sources, "schedule_card", "evaluation/identity/mace")),
@@ -312,8 +318,8 @@ def readme_block(sources: dict[str, dict]) -> str:
         ("HomographyNet's 4-point regression on our backbone (`homographynet_gap`, paper's "
          "recipe)", ours("HomographyNet variant (GAP)"), "-", "-"),
         ("STN-Homography, 1 stage", ours(stn[0]), schedule[1], theirs(stn[0])),
-        ("hierarchy, 2 stages", ours(stn[1]), next_, theirs(stn[1])),
-        ("hierarchy, 3 stages", ours(stn[2]), next_, theirs(stn[2])),
+        ("hierarchy, 2 stages", ours(stn[1]), schedule[2], theirs(stn[1])),
+        ("hierarchy, 3 stages", ours(stn[2]), schedule[3], theirs(stn[2])),
         ("sequence model, 2 stages", ours("Sequence 2 stages"), next_,
          theirs("Sequence 2 stages")),
         ("ORB + RANSAC (tuned on train photographs)", ours("ORB + RANSAC"), "-", "-"),

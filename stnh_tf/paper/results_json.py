@@ -25,6 +25,8 @@ SOURCES = {
     "schedule_probe_h100": "paper_schedule/logs/h100_steps_per_execution_probe.json",
     "schedule_ledger": "paper_schedule/ledger.json",
     "schedule_float32_inference": "paper_schedule/stage1_eval_float32_inference.json",
+    "schedule2_eval": "paper_schedule/hierarchy2_eval.json",
+    "schedule2_eval_float32": "paper_schedule/hierarchy2_eval_float32_inference.json",
     "stage_pairs_before": "paper_schedule/logs/stage_pairs_benchmark_before_cpu.json",
     "stage_pairs_after": "paper_schedule/logs/stage_pairs_benchmark_after_cpu.json",
     "training_step_zen4": "paper_schedule/logs/training_step_benchmark_zen4_cpu.json",

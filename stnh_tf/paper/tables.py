@@ -73,7 +73,9 @@ def tables_markdown(result: dict, latency: dict) -> str:
 
 SCHEDULE_NOTE = ("the paper's recipe at its 91,000 steps per model, on the pairs of "
                  "`experiments.paper_schedule` (not this budget's), evaluated on the same test "
-                 "pairs (`stnh_tf/weights/paper_schedule/model_card.json`; docs/gpu.md); empty: "
+                 "pairs, the hierarchy without the clipping of corners onto the context "
+                 "(`experiments.evaluate --no_clip`: the networks alone; "
+                 "`stnh_tf/weights/paper_schedule/model_card.json`; docs/gpu.md); empty: "
                  "not trained yet, or other test pairs.")
 """What the "paper's schedule" column of the tables is."""
 
