@@ -221,3 +221,60 @@ def test_no_feature_start_keeps_the_corner_rule_of_motions_beyond_the_trained_ra
     assert EstimateOptions(features="fallback").wide_motions
     assert EstimateOptions(coarse="rotations").wide_motions
     assert not EstimateOptions().wide_motions
+
+
+def test_late_feature_start_rescues_what_the_early_trigger_let_through(estimator, monkeypatch):
+    """The early trigger (:func:`features.wanted`) judges the network's estimate before the
+    refinement; where it lets an estimate through that the finished result then flags (or moves
+    far), ``estimate_images`` tries the feature start after all (:func:`features.late_wanted`).
+    With the early trigger switched off, a wide motion is still recovered to under 0.5 px of the
+    homography the pair was made with (cv2.perspectiveTransform), unflagged and from the start;
+    without the late trigger too, the finished estimate is far off and flagged."""
+    h_true = _wide_motion(-100.0, 2.2)
+    a, b = _pair(h_true)
+    monkeypatch.setattr(features, "wanted", lambda first, options: False)
+    made = []
+    candidate = features.candidate
+    monkeypatch.setattr(features, "candidate",
+                        lambda *args: made.append(1) or candidate(*args))
+    late = estimator.estimate_images_with_info(a, b, EstimateOptions.photographs())
+    assert made == [1]
+    assert _corner_error(late.homography[0], h_true) < 0.5
+    assert late.feature_start[0] and not late.implausible[0]
+    monkeypatch.setattr(features, "late_wanted", lambda *args: False)
+    early_only = estimator.estimate_images_with_info(a, b, EstimateOptions.photographs())
+    assert _corner_error(early_only.homography[0], h_true) > 50 and early_only.implausible[0]
+    assert not early_only.feature_start[0]
+
+
+def test_late_trigger_and_choice(estimator):
+    """:func:`features.late_wanted`: only with ``features="fallback"``, never for an estimate
+    made from the feature start or a flat pair; where the finished estimate is flagged or lies
+    more than ``late_start_move`` from the network's. :func:`features.late_better`: an unflagged
+    estimate beats a flagged one; otherwise the better whole-image NCC (the estimate on a
+    tie)."""
+    h_true = _wide_motion(5.0, 1.05)
+    a, b = _pair(h_true)
+    est = estimator.estimate_images_with_info(a, b, EstimateOptions.photographs())
+    assert _corner_error(est.homography[0], h_true) < 0.5 and not est.implausible[0]
+    est = dataclasses.replace(est, feature_start=np.array([False]))  # as if the network's
+    fallback, limit = EstimateOptions.photographs(), EstimateOptions().thresholds.late_start_move
+    flagged = dataclasses.replace(est, implausible=np.array([True]))
+    assert not features.late_wanted(est, limit, fallback)
+    assert features.late_wanted(est, limit + 0.01, fallback)
+    assert features.late_wanted(flagged, 0.0, fallback)
+    for options in (EstimateOptions(), dataclasses.replace(fallback, features="always")):
+        assert not features.late_wanted(flagged, 100.0, options)
+    assert not features.late_wanted(dataclasses.replace(
+        flagged, feature_start=np.array([True])), 100.0, fallback)
+    assert not features.late_wanted(dataclasses.replace(flagged, flat=np.array([True])), 100.0,
+                                     fallback)
+    # patch frame, as estimate_images compares them: the true motion, and the identity
+    wa, wb, origin = _work(a), _work(b), image_input.PATCH_ORIGIN
+    right = dataclasses.replace(est, homography=geometry.image_to_patch(h_true, *origin)[None])
+    wrong = dataclasses.replace(right, homography=np.eye(3)[None])
+    assert features.late_better(right, wrong, wa, wb, fallback, origin)
+    assert not features.late_better(wrong, right, wa, wb, fallback, origin)
+    assert not features.late_better(right, right, wa, wb, fallback, origin)
+    assert features.late_better(wrong, dataclasses.replace(right, implausible=np.array([True])),
+                                wa, wb, fallback, origin)

@@ -346,6 +346,31 @@ class HomographyEstimator:
         # a deviation (issue 64): a start from SIFT matches for wide baselines
         result = features.estimate(run, work_a, work_b, network, PATCH_ORIGIN)
         network_h = result.network_homography
+        result = self._finish_images(run, result, work_a, work_b, network, options)
+        # what the network alone gave from the identity start, and how far the result is from it
+        move = pipeline.network_moves(result.homography, network_h, [np.shape(work_a)],
+                                      PATCH_ORIGIN)
+        if features.late_wanted(result, move[0], options):
+            # the finished estimate says the network's was off: the feature start after all
+            made = features.candidate(run, work_a, work_b, network, PATCH_ORIGIN)
+            if made is not None:
+                late = self._finish_images(
+                    run, dataclasses.replace(made, network_homography=network_h), work_a,
+                    work_b, network, options)
+                if features.late_better(late, result, work_a, work_b, options, PATCH_ORIGIN):
+                    result = late
+                    move = pipeline.network_moves(result.homography, network_h,
+                                                  [np.shape(work_a)], PATCH_ORIGIN)
+        h = patch_to_image_frames(result.homography[0], size_a, size_b)
+        return dataclasses.replace(
+            result, homography=h[None], options=options, network_move_px=move,
+            network_homography=patch_to_image_frames(network_h[0], size_a, size_b)[None])
+
+    @staticmethod
+    def _finish_images(run, result, work_a, work_b, network, options):
+        """What follows the network and the feature start in :meth:`estimate_images_with_info`
+        (one pair, patch frame): the coarse pass or its corner rule, the whole-image refinement
+        and the flag's corner-precision check."""
         confirmed = bool(result.feature_start[0] and not result.implausible[0])
         if options.coarse != "none" and not confirmed:
             # a deviation (issue 46): motions beyond the trained range
@@ -367,13 +392,7 @@ class HomographyEstimator:
                 homography=np.eye(3)[None] if undetermined else result.homography,
                 implausible=(result.implausible | undetermined
                              | (std > options.thresholds.max_corner_std)))
-        h = patch_to_image_frames(result.homography[0], size_a, size_b)
-        # what the network alone gave from the identity start, and how far the result is from it
-        move = pipeline.network_moves(result.homography, network_h, [np.shape(work_a)],
-                                      PATCH_ORIGIN)
-        return dataclasses.replace(
-            result, homography=h[None], options=options, network_move_px=move,
-            network_homography=patch_to_image_frames(network_h[0], size_a, size_b)[None])
+        return result
 
     def estimate_images(self, image_a, image_b, options: EstimateOptions | None = None,
                         channel_order: str = "rgb", **legacy) -> np.ndarray:

@@ -164,6 +164,31 @@ def better(made, first, work_a, work_b, options: EstimateOptions, origin) -> boo
     return score(made.homography[0]) > score(first.homography[0])
 
 
+def late_wanted(est, move_px: float, options: EstimateOptions) -> bool:
+    """Whether ``estimate_images`` tries the feature start again after the refinement and the
+    checks (``features="fallback"``): ``est`` (the finished ``Estimate`` of one pair) was not
+    made from the feature start, is not flat, and is flagged or lies more than
+    ``thresholds.late_start_move`` from the network's own estimate (``move_px``: the measure of
+    ``Estimate.network_move_px``): the network's estimate passed the early trigger
+    (:func:`wanted`) yet the finished one says it was off."""
+    if (options.features != "fallback" or est.flat[0]
+            or (est.feature_start is not None and est.feature_start[0])):
+        return False
+    return bool(est.implausible[0] or move_px > options.thresholds.late_start_move)
+
+
+def late_better(late, est, work_a, work_b, options: EstimateOptions, origin) -> bool:
+    """Whether ``late`` (the finished estimate from the feature start) replaces ``est`` (the
+    finished one without it): the one that is not flagged where one of them is, else the one
+    that aligns the work images better (:func:`stnh_tf.inference.coarse.image_ncc`; ``est`` on
+    a tie)."""
+    if bool(late.implausible[0]) != bool(est.implausible[0]):
+        return not late.implausible[0]
+    t = options.thresholds
+    score = lambda h: coarse.image_ncc(work_a, work_b, h, origin, t.min_overlap)  # noqa: E731
+    return score(late.homography[0]) > score(est.homography[0])
+
+
 NOT_MADE = object()
 """The ``made`` of :func:`feature_pass` when the feature start was not tried yet."""
 

@@ -143,6 +143,11 @@ class Thresholds:
         image), the images leave the estimate undetermined at their own scale: the identity is
         returned in its place, flagged (``Estimate.undetermined``), as SIFT + RANSAC returns
         the identity where it finds no model.
+      late_start_move: with ``features="fallback"`` in ``estimate_images``, where the feature
+        start was not taken and the finished estimate is flagged, or lies more than this from
+        the network's own estimate (px, ``Estimate.network_move_px``'s measure), the feature
+        start is tried once more after the refinement and the better of the two finished
+        estimates kept (:func:`stnh_tf.inference.features.late_wanted`; issue 64).
     """
 
     implausible_corner_shift: float = 1.5 * geometry.MAX_PERTURBATION
@@ -166,6 +171,7 @@ class Thresholds:
     corner_std_tile: int = 8
     undetermined_corner_std: float = 400.0
     resolution_sigma: float = 0.8
+    late_start_move: float = 10.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
