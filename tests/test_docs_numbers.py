@@ -176,6 +176,21 @@ def wide_cells(source):
           for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")])]
 
 
+def late_row(label, before, after, group):
+    """A row of BENCHMARKS.md's late-feature-start table and its numbers: the estimator in
+    ``before`` and ``after``, SIFT + RANSAC in ``after``, the estimator's flag in both."""
+    run = rf"(\d+) of (\d+), {N} px, (\d+) ms"
+    flag = r"(\d+) of (\d+), (\d+) of (\d+)"
+    regex = (rf"\| {label} \| {re.escape(group)} \| {run} \| {run} \| {run} \| {flag} \| "
+             rf"{flag} \|")
+    cells = [cam(source, group, method, f) for source, method in (
+        (before, "estimator"), (after, "estimator"), (after, "sift_ransac"))
+        for f in ("ok", "count", "mace", "ms")]
+    cells += [cam(source, group, "estimator", f) for source in (before, after)
+              for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")]
+    return ("BENCHMARKS.md", regex, cells)
+
+
 def probe(key, source="schedule_probe"):
     """Steps/s of one variant of a GPU probe (its keys hold a slash: read directly)."""
     return lambda sources: f"{sources[source]['fit'][key]['steps_per_s']:.1f}"
@@ -255,9 +270,13 @@ PROSE = [
      rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|",
      cam_row("camera0_resolution")),
     ("docs/estimate.md",
-     rf"\| 0, \*\*`photographs\(\)`\*\* today \(no coarse pass\) \| \*\*{N}\*\* \({N}\) px, "
-     rf"(\d+) \| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
+     rf"\| 0, `photographs\(\)` without the coarse pass \| {N} \({N}\) px, "
+     rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|",
      cam_row("camera0_nocoarse")),
+    ("docs/estimate.md",
+     rf"\| 0, \*\*`photographs\(\)`\*\* today \(the late feature start\) \| \*\*{N}\*\* \({N}\) px, "
+     rf"(\d+) \| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
+     cam_row("camera0_late")),
     ("docs/estimate.md", rf"\| 0, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
      cam_row("camera0_default", "sift_ransac", flag=False)),
     ("docs/estimate.md",
@@ -271,8 +290,8 @@ PROSE = [
      rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|",
      cam_row("camera1_resolution")),
     ("docs/estimate.md",
-     rf"\| 1, \*\*`photographs\(\)`\*\* today \(no coarse pass\) \| \*\*{N}\*\* \({N}\) px, "
-     rf"(\d+) \| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| \*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
+     rf"\| 1, `photographs\(\)` without the coarse pass \| {N} \({N}\) px, "
+     rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|",
      cam_row("camera1_nocoarse")),
     ("docs/estimate.md", rf"\| 1, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
      cam_row("camera1_photographs", "sift_ransac", flag=False)),
@@ -350,8 +369,12 @@ PROSE = [
         for f in fields]
        + [cam(source, group, "estimator", f)
           for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")])
-      for source, groups in (("camera0_nocoarse", ("within", "1-2x", "2-4x")),
-                             ("camera0_wide_nocoarse", ("wide", "wide_low_light")))
+      for source, groups, _ in cr.CAMERA_SETS
+      for group in groups],
+    *[late_row(label, f"camera{name}_nolate", f"camera{name}_late", group)  # the late start
+      for label, name, groups in (("size seed 0", "0", ("within", "1-2x", "2-4x")),
+                                  ("size seed 2", "2", ("within", "1-2x", "2-4x")),
+                                  ("wide seed 0", "0_wide", ("wide", "wide_low_light")))
       for group in groups],
     *[("BENCHMARKS.md", *stage_row(label, f"camera0_{name}"))  # issue 64: fewer stages
       for label, name in (("3 stages (default)", "three_stages"), ("2 stages", "two_stages"),
