@@ -209,14 +209,15 @@ def semi_table_line(title):
             rf"([+-]?[\d.]*) \|")
 
 
-def semi_row(i):
-    """The numbers of row ``i`` of the semi-supervised table (semi_supervised.md): the mean, the
-    seeds' count, lowest and highest, and the difference to the first row (empty for it)."""
+def semi_row(i, table="semi_table"):
+    """The numbers of row ``i`` of a semi-supervised table (``table``: its JSON's source): the
+    mean, the seeds' count, lowest and highest, and the difference to the first row (empty for
+    it)."""
     def field(k):
         def get(sources):
-            row = cr.value(sources, "semi_table", f"rows/{i}")
+            row = cr.value(sources, table, f"rows/{i}")
             maces = row["mace_per_seed"]
-            first = cr.value(sources, "semi_table", "rows/0/mace")
+            first = cr.value(sources, table, "rows/0/mace")
             return {"mace": f"{row['mace']:.2f}", "n": str(len(maces)),
                     "low": f"{min(maces):.2f}", "high": f"{max(maces):.2f}",
                     "delta": "" if i == 0 else f"{row['mace'] - first:+.2f}"}[k]
