@@ -15,7 +15,6 @@ import re
 import shutil
 
 from stnh_tf.paper import current_results as cr
-from stnh_tf.training.config import TrainConfig
 
 ROOT = cr.default_root()
 N = r"([\d.]+)"  # one number in a phrase
@@ -229,13 +228,6 @@ def callback_cost(source):
     """The share of steps/s (%) the training callbacks cost a probe at 50 steps per call."""
     return lambda sources: "%.0f" % (100 * (1 - float(probe("array/spe50+callbacks", source)(
         sources)) / float(probe("array/spe50", source)(sources))))
-
-
-def schedule_steps_left(stage):
-    """The steps of ``stage`` left after the last chunk in the paper schedule's ledger (the
-    schedule trains ``TrainConfig``'s default steps, the paper's)."""
-    return lambda sources: "{:,}".format(TrainConfig().train_steps - max(
-        r["to_step"] for r in sources["schedule_ledger"] if r["stage"] == stage))
 
 
 def schedule_chunks(stage):
