@@ -180,13 +180,10 @@ def late_wanted(est, move_px: float, options: EstimateOptions) -> bool:
 def late_better(late, est, work_a, work_b, options: EstimateOptions, origin) -> bool:
     """Whether ``late`` (the finished estimate from the feature start) replaces ``est`` (the
     finished one without it): the one that is not flagged where one of them is, else the one
-    that aligns the work images better (:func:`stnh_tf.inference.coarse.image_ncc`; ``est`` on
-    a tie)."""
+    that aligns the work images better (:func:`better`; ``est`` on a tie)."""
     if bool(late.implausible[0]) != bool(est.implausible[0]):
         return not late.implausible[0]
-    t = options.thresholds
-    score = lambda h: coarse.image_ncc(work_a, work_b, h, origin, t.min_overlap)  # noqa: E731
-    return score(late.homography[0]) > score(est.homography[0])
+    return better(late, est, work_a, work_b, options, origin)
 
 
 NOT_MADE = object()
