@@ -286,6 +286,11 @@ PROSE = [
      rf"\| 1, `photographs\(\)` without the coarse pass \| {N} \({N}\) px, "
      rf"(\d+) \| (\d+) / (\d+) \| (\d+) of (\d+), (\d+) of (\d+) \|",
      cam_row("camera1_nocoarse")),
+    ("docs/estimate.md",
+     rf"\| 1, \*\*`photographs\(\)`\*\* today \(the late feature start; held out\) \| "
+     rf"\*\*{N}\*\* \({N}\) px, (\d+) \| \*\*(\d+)\*\* / \*\*(\d+)\*\* \| "
+     rf"\*\*(\d+) of (\d+)\*\*, (\d+) of (\d+) \|",
+     cam_row("camera1_late")),
     ("docs/estimate.md", rf"\| 1, SIFT \+ RANSAC \| {N} \({N}\) px, (\d+) \| (\d+) / (\d+) \| - \|",
      cam_row("camera1_photographs", "sift_ransac", flag=False)),
     ("BENCHMARKS.md",
@@ -367,7 +372,11 @@ PROSE = [
     *[late_row(label, f"camera{name}_nolate", f"camera{name}_late", group)  # the late start
       for label, name, groups in (("size seed 0", "0", ("within", "1-2x", "2-4x")),
                                   ("size seed 2", "2", ("within", "1-2x", "2-4x")),
-                                  ("wide seed 0", "0_wide", ("wide", "wide_low_light")))
+                                  ("wide seed 0", "0_wide", ("wide", "wide_low_light")),
+                                  # the held-out check
+                                  ("size seed 1", "1", ("within", "1-2x", "2-4x")),
+                                  ("wide seed 11", "11_wide", ("wide", "wide_low_light")),
+                                  ("wide seed 12", "12_wide", ("wide", "wide_low_light")))
       for group in groups],
     *[("BENCHMARKS.md", *stage_row(label, f"camera0_{name}"))  # issue 64: fewer stages
       for label, name in (("3 stages (default)", "three_stages"), ("2 stages", "two_stages"),

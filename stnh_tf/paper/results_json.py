@@ -87,10 +87,13 @@ SOURCES = {
     **{f"camera{s}_wide_always": f"docs/camera_pairs/wide_seed{s}_always.json" for s in (0, 12)},
     **{f"camera{s}_always": f"docs/camera_pairs/seed{s}_photographs_always.json" for s in (0, 2)},
     # issue 64: the late feature start (after: every method; before: the estimator alone)
-    "camera0_wide_late": "docs/camera_pairs/wide_seed0_late.json",
-    "camera0_wide_nolate": "docs/camera_pairs/wide_seed0_nolate.json",
-    **{f"camera{s}_late": f"docs/camera_pairs/seed{s}_photographs_late.json" for s in (0, 2)},
-    **{f"camera{s}_nolate": f"docs/camera_pairs/seed{s}_photographs_nolate.json" for s in (0, 2)},
+    # (wide seeds 11-12 and size seed 1: the held-out check, every method both ways)
+    **{f"camera{s}_wide_late": f"docs/camera_pairs/wide_seed{s}_late.json" for s in (0, 11, 12)},
+    **{f"camera{s}_wide_nolate": f"docs/camera_pairs/wide_seed{s}_nolate.json"
+       for s in (0, 11, 12)},
+    **{f"camera{s}_late": f"docs/camera_pairs/seed{s}_photographs_late.json" for s in (0, 1, 2)},
+    **{f"camera{s}_nolate": f"docs/camera_pairs/seed{s}_photographs_nolate.json"
+       for s in (0, 1, 2)},
     "readme_example": "docs/readme_example.json",
     "semi_all_seed0": "semi_supervised/eval/stage1_alone.json",
     "semi_labeled_alone_seed0": "semi_supervised/eval/semi_labels-0.1_drop.json",
