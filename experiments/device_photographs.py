@@ -38,6 +38,7 @@ import subprocess
 from absl import app, flags
 
 from experiments import common
+from stnh_tf.paper.budgets import SCHEDULE_PARTS
 from stnh_tf.paths import inside
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -203,11 +204,20 @@ def gray_copy(src: str, dst: str, claim=lambda path: path) -> int:
     return len(files)
 
 
-def next_stage() -> int:
-    """The stage the next chunk trains, from ``paper_schedule/ledger.json``."""
+def next_chunk(last_stage: int = 3) -> str | None:
+    """What the next chunk trains, as the environment of ``experiments/paper_schedule_gpu.sh``:
+    ``STAGE=K``, the hierarchical stage ``paper_schedule/ledger.json`` is at (its rows without a
+    ``"part"``), until stage ``last_stage`` is done; then ``PART=NAME``, the first run of
+    :data:`stnh_tf.paper.budgets.SCHEDULE_PARTS` without its ``paper_schedule/NAME.keras``;
+    ``None`` once every one is finished."""
     with open(os.path.join(REPO, "paper_schedule", "ledger.json")) as f:
-        last = json.load(f)[-1]
-    return last["stage"] + 1 if last["done"] else last["stage"]
+        last = [r for r in json.load(f) if "part" not in r][-1]
+    stage = last["stage"] + 1 if last["done"] else last["stage"]
+    if stage <= last_stage:
+        return f"STAGE={stage}"
+    todo = [name for name, fields in SCHEDULE_PARTS.items() if fields is not None
+            and not os.path.exists(os.path.join(REPO, "paper_schedule", f"{name}.keras"))]
+    return f"PART={todo[0]}" if todo else None
 
 
 def parts(files: list, budget: int, first_extra: int) -> list:
@@ -265,8 +275,9 @@ def plan_calls() -> dict:
         carry = [os.path.relpath(folder, REPO)]
         if k == 1:
             carry.append(os.path.relpath(FLAGS.wheels_dir, REPO))
-        command = ("bash experiments/paper_schedule_gpu.sh stage" if k < len(packed) else
-                   f"STAGE={next_stage()} bash experiments/paper_schedule_gpu.sh chunk 535")
+        chunk = next_chunk() if k == len(packed) else None  # None: nothing left to train
+        command = (f"{chunk} bash experiments/paper_schedule_gpu.sh chunk 535" if chunk else
+                   "bash experiments/paper_schedule_gpu.sh stage")
         calls.append({"command": command, "carry": carry, "photographs": len(part["files"]),
                       "mib": round((part["bytes"] + tree) / 2 ** 20, 1)})
     _remove_files(out, gray)

@@ -4,6 +4,7 @@ otherwise (docs/gpu.md, "The paper's schedule in chunks").
 
   python -m experiments.paper_schedule --stage=1 --time_limit_s=480        # a GPU chunk
   nohup nice -n 19 python -m experiments.paper_schedule --stage=1 > log &  # CPU, background
+  python -m experiments.paper_schedule --part=sequence2 --time_limit_s=480  # the sequence model
 
 Each call resumes stage ``--stage`` (and, with ``--last_stage``, goes on with the next stages in
 the time a finished stage leaves: :func:`stnh_tf.training.chunks.run_stages`) in
@@ -14,10 +15,14 @@ that step's checkpoint), and commits the checkpoint back there; a finished stage
 as ``paper_schedule/stage<k>.keras`` (and is then refused: it is never trained again, nor its model
 replaced). Nothing is copied into the run folder before its lock and its configuration are checked
 (:func:`stnh_tf.training.chunks.sync_in`). Each chunk adds a row to ``paper_schedule/ledger.json``
-and to the ledger table of docs/gpu.md. The data (:data:`SCHEDULE`): pairs from the coco_mini train
+and to the ledger table of docs/gpu.md. The data (:data:`stnh_tf.paper.budgets.SCHEDULE`): pairs
+from the coco_mini train
 photographs and photos_extra (1,848 photographs, not COCO 2014's 82,783), 100 squares per image
 made once in memory (184,800 pairs), validation on 300 coco_mini test pairs; stage k > 1 trains on
-pairs re-made from the finished stages' predictions.
+pairs re-made from the finished stages' predictions. ``--part`` trains, in chunks the same way,
+the other runs of the paper's tables on the stage-1 pairs
+(:data:`stnh_tf.paper.budgets.SCHEDULE_PARTS`: the 2-stage sequence model, Table 1's 10:1 row),
+each kept as ``paper_schedule/<part>.keras``.
 """
 
 from __future__ import annotations
@@ -27,17 +32,18 @@ import os
 from absl import app, flags, logging
 
 from experiments import common, flags_common
+from stnh_tf.paper.budgets import SCHEDULE, SCHEDULE_PARTS as PARTS
 from stnh_tf.training import chunks
 from stnh_tf.training.config import TrainConfig
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SHARED = os.path.join(os.path.dirname(REPO), "shared", "data")
 ROOT = os.path.join(REPO, "paper_schedule")
-# The run's TrainConfig fields besides the paper's recipe (TrainConfig's defaults): what every
-# chunk of every machine must train with, so that they continue one run.
-SCHEDULE = {"samples_per_image": 100, "in_memory": True, "mixed_precision": True,
-            "val_samples": 300, "checkpoint_every": 500, "log_every": 500, "seed": 0}
 
+flags.DEFINE_enum("part", "hierarchy", list(PARTS), "What to train: the hierarchy's --stage, "
+                  "or one of the other runs of the paper's tables on the stage-1 pairs "
+                  "(sequence2: the 2-stage sequence model; stage1_l2-10_l1-1: Table 1's 10:1 "
+                  "row), kept as paper_schedule/<part>.keras.")
 flags.DEFINE_integer("stage", 1, "Hierarchical stage to train (stage k > 1 needs stages 1..k-1 "
                      "finished in paper_schedule/).")
 flags.DEFINE_list("image_dir", [os.path.join(SHARED, "coco_mini", "train"),
@@ -62,20 +68,32 @@ def main(argv):
     del argv
     from stnh_tf.provenance import git_commit, machine_info
 
+    part = PARTS[FLAGS.part]
+
     def config(stage):
-        return TrainConfig(**SCHEDULE, stage=stage, image_dir=",".join(FLAGS.image_dir),
+        return TrainConfig(**SCHEDULE, **(part or {}), stage=stage,
+                           image_dir=",".join(FLAGS.image_dir),
                            val_image_dir=",".join(FLAGS.val_image_dir), workers=FLAGS.workers,
                            steps_per_execution=FLAGS.steps_per_execution,
-                           model_dir=os.path.join(FLAGS.runs_dir, f"stage{stage}"),
+                           model_dir=os.path.join(FLAGS.runs_dir, chunks.part_name(
+                               stage if part is None else FLAGS.part)),
                            prev_stages=tuple(chunks.finished_model(ROOT, k)
                                              for k in range(1, stage)))
 
     device = FLAGS.device or f"{machine_info()['cpu']}, {os.cpu_count()} cores"
     with common.user_errors("paper_schedule"):
+        if part is not None and (FLAGS.stage != 1 or FLAGS.last_stage):
+            raise ValueError(f"--part={FLAGS.part} trains on the stage-1 pairs: leave --stage "
+                             "and --last_stage unset.")
         try:
-            rows = chunks.run_stages(config, FLAGS.stage, max(FLAGS.stage, FLAGS.last_stage),
-                                     ROOT, FLAGS.time_limit_s, str(device),
-                                     printer=logging.info, commit=git_commit())
+            if part is None:
+                rows = chunks.run_stages(config, FLAGS.stage, max(FLAGS.stage, FLAGS.last_stage),
+                                         ROOT, FLAGS.time_limit_s, str(device),
+                                         printer=logging.info, commit=git_commit())
+            else:
+                rows = [chunks.run_chunk(config(1), ROOT, FLAGS.time_limit_s, str(device),
+                                         printer=logging.info, commit=git_commit(),
+                                         part=FLAGS.part)]
         finally:
             chunks.write_ledger_table(ROOT, os.path.join(REPO, "docs", "gpu.md"))
     for row in rows:

@@ -5,6 +5,7 @@
 #   experiments/paper_schedule_gpu.sh stage            # keep the photographs carried this call
 #   experiments/paper_schedule_gpu.sh probe            # + steps/s at several steps_per_execution
 #   experiments/paper_schedule_gpu.sh chunk SECONDS    # + resume stage $STAGE, stop before SECONDS
+#   PART=sequence2 experiments/paper_schedule_gpu.sh chunk SECONDS  # + another run (--part)
 #   experiments/paper_schedule_gpu.sh semi SECONDS     # + issue 63's rows, stop at SECONDS
 #
 # Every mode first copies the parts this call carried under .devdata/part-K/ (made here by
@@ -15,7 +16,8 @@
 # JSON in /tmp/probe.json; a later `chunk` on the same machine trains with the fastest
 # steps_per_execution it measured with the training callbacks (50 without a probe). What comes
 # back is written to $OUT: probe.json, chunk.log, paper_schedule.tgz (the ledger, docs/gpu.md and
-# the finished stages) and resume_stageK.tgz (an unfinished stage's committed checkpoint). A chunk
+# the finished stages and parts) and resume_NAME.tgz (an unfinished stage's or part's committed
+# checkpoint, NAME stageK or the part). A chunk
 # that finishes its stage goes on with the next one, up to stage 3, in the time left. `semi`
 # trains and evaluates the semi-supervised experiment's rows (experiments.semi_supervised
 # --in_memory at the CPU budget; SEMI_BUDGET=tiny for a try) from the coco_mini photographs,
@@ -76,6 +78,8 @@ fi
 
 seconds=${2:?chunk needs its time limit in seconds}
 stage=${STAGE:-1}
+part=${PART:-hierarchy}
+if [ "$part" = hierarchy ]; then what=(--stage="$stage" --last_stage=3); else what=(--part="$part"); fi
 if [ "$train" != 1848 ] || [ "$test" != 100 ]; then
   echo "expected 1848 training and 100 validation photographs in $data: carry the rest first"
   exit 3
@@ -91,8 +95,8 @@ if os.path.exists("/tmp/probe.json"):
 print(best[1])
 EOF
 )
-echo "stage $stage, steps_per_execution $spe, time limit $seconds s, $workers workers"
-timeout $((seconds + 60)) python3 -m experiments.paper_schedule --stage="$stage" --last_stage=3 \
+echo "${what[*]}, steps_per_execution $spe, time limit $seconds s, $workers workers"
+timeout $((seconds + 60)) python3 -m experiments.paper_schedule "${what[@]}" \
   --time_limit_s="$seconds" --workers="$workers" --steps_per_execution="$spe" \
   --image_dir="$data/coco_mini/train,$data/photos_extra" \
   --val_image_dir="$data/coco_mini/test" --runs_dir=/tmp/stnh-runs/paper_schedule \
@@ -101,13 +105,13 @@ timeout $((seconds + 60)) python3 -m experiments.paper_schedule --stage="$stage"
 status=$?
 # What the chunks write, not the whole folder, in archives of at most 16 MiB each (what comes
 # back): the ledger and the finished stages in paper_schedule.tgz, each unfinished stage's
-# committed checkpoint with its saved estimates (12 MiB) in resume_stageK.tgz.
+# committed checkpoint with its saved estimates (12 MiB) in resume_NAME.tgz.
 back="paper_schedule/ledger.json docs/gpu.md"
-for k in 1 2 3; do
-  for f in stage$k.keras stage$k.json; do
-    [ -e paper_schedule/$f ] && back="$back paper_schedule/$f"
-  done
-  [ -d paper_schedule/resume/stage$k ] && tar czf "$out/resume_stage$k.tgz" paper_schedule/resume/stage$k
+for f in paper_schedule/*.keras; do  # each finished stage or part, with its record
+  [ -e "$f" ] && back="$back $f" && [ -e "${f%.keras}.json" ] && back="$back ${f%.keras}.json"
+done
+for d in paper_schedule/resume/*/; do
+  [ -d "$d" ] && name=$(basename "$d") && tar czf "$out/resume_$name.tgz" "paper_schedule/resume/$name"
 done
 tar czf "$out/paper_schedule.tgz" $back
 exit $status

@@ -138,3 +138,26 @@ def test_set_aside_gives_the_calls_the_models_room(tmp_path):
                           capture_output=True, text=True)
     assert proc.returncode != 0 and "none" in proc.stderr
     assert all((repo / rel).read_bytes() == data for rel, data in ASIDE.items())
+
+
+def test_the_next_chunk_goes_through_the_stages_then_the_other_parts(tmp_path, monkeypatch):
+    """next_chunk: the stage the hierarchy's ledger rows are at (rows of another part left out),
+    then, once stage 3 is done, each part of SCHEDULE_PARTS in order until its model exists."""
+    folder = tmp_path / "paper_schedule"
+    folder.mkdir()
+    monkeypatch.setattr(dp, "REPO", str(tmp_path))
+
+    def at(*rows):
+        (folder / "ledger.json").write_text(json.dumps(list(rows)))
+        return dp.next_chunk()
+
+    assert at({"stage": 2, "done": False}) == "STAGE=2"
+    assert at({"stage": 2, "done": True}) == "STAGE=3"
+    done3 = {"stage": 3, "done": True}
+    assert at(done3) == "PART=sequence2"
+    # a part's row (stage 1 of its own run) does not move the hierarchy back to stage 1
+    assert at(done3, {"stage": 1, "part": "sequence2", "done": False}) == "PART=sequence2"
+    (folder / "sequence2.keras").write_bytes(b"finished")
+    assert at(done3) == "PART=stage1_l2-10_l1-1"
+    (folder / "stage1_l2-10_l1-1.keras").write_bytes(b"finished")
+    assert at(done3) is None

@@ -675,6 +675,22 @@ def test_checkpoint_state_cannot_name_weights_outside_its_folder(tmp_path):
         run_dir.checkpoint_weights_path(str(ckpt))
 
 
+def _ticking_time_limit():
+    """A TimeLimit on a fake clock on which each training step ends 1,000 s after it began."""
+    from stnh_tf.training import callbacks
+
+    class Ticking(callbacks.TimeLimit):
+        def __init__(self, *args, **kwargs):
+            self.offset = 0.0
+            super().__init__(*args, clock=lambda: time.monotonic() + self.offset, **kwargs)
+
+        def on_train_batch_end(self, batch, logs=None):
+            self.offset += 1000.0
+            super().on_train_batch_end(batch, logs)
+
+    return Ticking
+
+
 @pytest.mark.slow  # (make test-all)
 def test_chunks_stop_at_the_time_limit_and_continue_on_another_machine(tiny_data, straight_run,
                                                                        tmp_path, narrow,
@@ -684,18 +700,9 @@ def test_chunks_stop_at_the_time_limit_and_continue_on_another_machine(tiny_data
     (another machine) resuming from the checkpoint committed in the repository folder: the
     finished model (without optimizer state) equals the uninterrupted run's, the committed
     checkpoint is gone, and the ledger has one row per chunk."""
-    from stnh_tf.training import callbacks, chunks
+    from stnh_tf.training import chunks
 
-    class Ticking(callbacks.TimeLimit):  # each step ends 1,000 s after it began
-        def __init__(self, *args, **kwargs):
-            self.offset = 0.0
-            super().__init__(*args, clock=lambda: time.monotonic() + self.offset, **kwargs)
-
-        def on_train_batch_end(self, batch, logs=None):
-            self.offset += 1000.0
-            super().on_train_batch_end(batch, logs)
-
-    monkeypatch.setattr(training, "TimeLimit", Ticking)
+    monkeypatch.setattr(training, "TimeLimit", _ticking_time_limit())
     repo = tmp_path / "repo"
     rows = []
     for k in range(3):
@@ -742,6 +749,47 @@ def test_chunks_stop_at_the_time_limit_and_continue_on_another_machine(tiny_data
     assert lines[4] == "| 1 | 0 -> 2 | machine 0 | tensorflow | %.2f | 0 | %s |" % (
         rows[0]["steps_per_s"], rows[0]["date"]) and lines[-1] == "after"
     assert not chunks.write_ledger_table(str(repo), str(doc))  # unchanged the second time
+
+
+@pytest.mark.slow  # (make test-all)
+def test_a_part_other_than_a_stage_is_chunked_under_its_own_name(tiny_data, tmp_path, narrow,
+                                                                  monkeypatch):
+    """paper_schedule --part: the 2-stage sequence model trained in two chunks (the first
+    stopped by the time limit after one checkpoint, on a fake clock; the second on a fresh run
+    folder, another machine) is committed under its own name (resume/sequence2/, then
+    sequence2.keras and sequence2.json), its ledger rows carry the part and the ledger table
+    shows it; a finished part is refused by name, and a hierarchical stage beside it is not."""
+    from stnh_tf.training import chunks
+
+    monkeypatch.setattr(training, "TimeLimit", _ticking_time_limit())
+    repo = tmp_path / "repo"
+    cfg = lambda k: _cfg(tiny_data, tmp_path / f"machine{k}", model="sequence",  # noqa: E731
+                         num_stages=2, train_steps=4, learning_rate=1e-3)
+    first = chunks.run_chunk(cfg(0), str(repo), 2500.0, "machine 0", printer=_quiet,
+                             part="sequence2")
+    resume = repo / "resume" / "sequence2"
+    assert (first["part"], first["to_step"], first["done"]) == ("sequence2", 2, False)
+    assert json.loads((resume / "state.json").read_text())["step"] == 2
+    assert not (repo / "resume" / "stage1").exists()
+    monkeypatch.undo()  # the real clock: the second chunk trains to the end
+    second = chunks.run_chunk(cfg(1), str(repo), 0, "machine 1", printer=_quiet,
+                              part="sequence2")
+    assert (second["from_step"], second["to_step"], second["done"]) == (2, 4, True)
+    assert not resume.exists() and not (repo / "stage1.keras").exists()
+    record = json.loads((repo / "sequence2.json").read_text())
+    assert record["part"] == "sequence2" and record["chunks"] == [first, second]
+    assert record["config"]["model"] == "sequence" and record["final_step"] == 4
+    model = keras.saving.load_model(str(repo / "sequence2.keras"), compile=False)
+    assert {"h_bar_1", "h_bar_2"} <= set(model.output_names)
+    table = chunks.ledger_table(json.loads((repo / "ledger.json").read_text()))
+    assert table.splitlines()[2].startswith("| sequence2 | 0 -> 2 | machine 0 |")
+    with pytest.raises(FileExistsError, match="part sequence2 is finished"):
+        chunks.run_chunk(cfg(2), str(repo), 0, "machine 2", printer=_quiet, part="sequence2")
+    assert not (tmp_path / "machine2").exists()
+    assert chunks.finished_model(str(repo), 1) == str(repo / "stage1.keras")
+    for bad in ("", "Stage1", "../up", "a/b", None):
+        with pytest.raises(ValueError, match="a part is a stage number or a name"):
+            chunks.part_name(bad)
 
 
 def test_a_chunk_goes_on_with_the_next_stage_in_the_time_it_leaves(monkeypatch):

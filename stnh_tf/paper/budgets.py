@@ -1,5 +1,6 @@
-"""The training budgets of a reproduction (:class:`Budget`, :data:`BUDGETS`) and the check that a
-finished model found in place was trained with one (:func:`check_budget`)."""
+"""The training budgets of a reproduction (:class:`Budget`, :data:`BUDGETS`), the check that a
+finished model found in place was trained with one (:func:`check_budget`), and the runs of the
+paper's schedule trained in chunks (:data:`SCHEDULE`, :data:`SCHEDULE_PARTS`)."""
 
 from __future__ import annotations
 
@@ -73,6 +74,19 @@ BUDGETS = {
                    drop_after_eval=("homographynet",)),
 }
 
+
+SCHEDULE = {"samples_per_image": 100, "in_memory": True, "mixed_precision": True,
+            "val_samples": 300, "checkpoint_every": 500, "log_every": 500, "seed": 0}
+"""The ``TrainConfig`` fields of ``experiments.paper_schedule``'s runs besides the paper's recipe
+(``TrainConfig``'s defaults): what every chunk of every machine must train with, so that they
+continue one run."""
+
+SCHEDULE_PARTS = {"hierarchy": None,
+                  "sequence2": {"model": "sequence", "num_stages": 2},
+                  "stage1_l2-10_l1-1": {"l2_weight": 10.0, "l1_weight": 1.0}}
+"""The runs of ``experiments.paper_schedule --part``, in the order they are trained: the
+hierarchy's stages (``--stage``), then, on the stage-1 pairs, Fig. 4's 2-stage sequence model
+and Table 1's L2:L1 = 10:1 row, each with the ``TrainConfig`` fields that make it that run."""
 
 def check_budget(model_dir: str, cfg) -> None:
     """Raise ``ValueError`` unless the finished model in ``model_dir`` was trained with ``cfg``'s

@@ -15,6 +15,10 @@ Layout of a chunked run's repository folder ``root`` (e.g. ``paper_schedule/``):
   ``experiments.ship_weights`` puts in a model card;
 * ``ledger.json``: one row per chunk (stage, steps, machine, steps/s, date).
 
+A run other than a hierarchical stage (the 2-stage sequence model, a stage 1 with other loss
+weights) is a *part* named by a string (``resume/<part>/``, ``<part>.keras``, ``<part>.json``;
+its ledger rows carry ``"part"``); an int part ``k`` is hierarchical stage k (:func:`part_name`).
+
     >>> ledger_table([{"stage": 1, "from_step": 0, "to_step": 500, "device": "2-core CPU",
     ...                "backend": "tensorflow", "steps_per_s": 1.52, "wall_s": 400.0,
     ...                "date": "2026-11-27"}]).splitlines()[2]
@@ -25,6 +29,7 @@ from __future__ import annotations
 
 import datetime
 import os
+import re
 import shutil
 import time
 
@@ -39,35 +44,60 @@ LEDGER_START = "<!-- ledger:start -->"
 LEDGER_END = "<!-- ledger:end -->"
 
 
-def resume_dir(root: str, stage: int) -> str:
-    """The repository folder of stage ``stage``'s committed checkpoint."""
-    return os.path.join(root, RESUME_DIR, f"stage{stage}")
+def part_name(part: int | str) -> str:
+    """The name of a chunked run under ``root``: ``stage<k>`` for hierarchical stage ``k`` (an
+    int), else the part's own name (lower-case letters, digits, ``_``, ``-`` and ``.``).
+
+    >>> part_name(2), part_name("sequence2")
+    ('stage2', 'sequence2')
+
+    Raises:
+      ValueError: an empty name or one with other characters (it names files and folders).
+    """
+    if isinstance(part, int) and not isinstance(part, bool):
+        return f"stage{part}"
+    if not isinstance(part, str) or not re.fullmatch(r"[a-z0-9][a-z0-9_.-]*", part):
+        raise ValueError(f"a part is a stage number or a name of lower-case letters, digits, "
+                         f"'_', '-' and '.'; received {part!r}.")
+    return part
 
 
-def finished_model(root: str, stage: int) -> str:
-    """Where a finished stage's model is kept (``stage<k>.keras``)."""
-    return os.path.join(root, f"stage{stage}.keras")
+def row_part(row: dict) -> str:
+    """The :func:`part_name` of a ledger row (its ``"part"``, else its stage's)."""
+    return row.get("part") or part_name(row["stage"])
 
 
-def stage_record(root: str, stage: int, config: dict) -> dict:
-    """Write and return ``stage<k>.json`` beside the finished stage: its run's ``config`` (the
-    ``config.json`` fields), the number of training photographs and pairs, the ledger rows of its
-    chunks, and their totals (steps, wall seconds, machines)."""
+def resume_dir(root: str, part: int | str) -> str:
+    """The repository folder of a part's (stage k: ``k``) committed checkpoint."""
+    return os.path.join(root, RESUME_DIR, part_name(part))
+
+
+def finished_model(root: str, part: int | str) -> str:
+    """Where a finished part's model is kept (``stage<k>.keras``, ``<part>.keras``)."""
+    return os.path.join(root, f"{part_name(part)}.keras")
+
+
+def stage_record(root: str, part: int | str, config: dict) -> dict:
+    """Write and return ``stage<k>.json`` (``<part>.json``) beside the finished part: its run's
+    ``config`` (the ``config.json`` fields), the number of training photographs and pairs, the
+    ledger rows of its chunks, and their totals (steps, wall seconds, machines)."""
     from stnh_tf.data import sources
 
     path = os.path.join(root, LEDGER_FILE)
+    name = part_name(part)
     rows = [r for r in (read_json(path, "ledger") if os.path.exists(path) else [])
-            if r["stage"] == stage]
+            if row_part(r) == name]
     images = len(sources.scan_image_folders(config["image_dir"],
                                             config.get("max_images", 0)).files) \
         if config.get("image_dir") else None
-    record = {"format": "stnh_tf.chunked_stage", "stage": stage, "config": config,
+    record = {"format": "stnh_tf.chunked_stage", "stage": config.get("stage", part),
+              **({"part": name} if isinstance(part, str) else {}), "config": config,
               "training_photographs": images,
               "training_pairs": images and images * config["samples_per_image"], "chunks": rows,
               "final_step": max((r["to_step"] for r in rows), default=0),
               "wall_s": round(sum(r["wall_s"] for r in rows), 1),
               "machines": sorted({f"{r['device']} ({r['backend']})" for r in rows})}
-    atomic_write_json(stage_record_path(finished_model(root, stage)), record)
+    atomic_write_json(stage_record_path(finished_model(root, part)), record)
     return record
 
 
@@ -151,34 +181,39 @@ def strip_optimizer(src: str, dst: str) -> None:
     from stnh_tf.modeling import runner
 
     tmp = f"{dst}.tmp-{os.getpid()}.keras"
+    os.makedirs(os.path.dirname(os.path.abspath(dst)), exist_ok=True)
     runner.load_model(src).save(tmp)
     os.replace(tmp, dst)
 
 
 def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
-              printer=print, commit: str | None = None) -> dict:
+              printer=print, commit: str | None = None, part: str | None = None) -> dict:
     """One chunk of ``cfg``'s run: resume from the newest checkpoint (``cfg.model_dir``'s or the
     one committed under ``root``), train until ``time_limit_s`` or a SIGTERM (:func:`stnh_tf.training.loop.train`
     stops within one step and saves that step's checkpoint), then commit the checkpoint back under ``root``, or, once the
     stage is done, its model as ``stage<k>.keras`` (and remove the checkpoint), and add a row to
     the ledger (``commit``: the code's, recorded in the row where given; ``machine``: the commit,
     machine and library versions, :func:`stnh_tf.provenance.machine_info`). Returns the row.
+    ``part``: the run's name under ``root`` where it is not hierarchical stage ``cfg.stage``
+    (:func:`part_name`; recorded in the row as ``"part"``).
 
     Raises:
       FileExistsError: the stage is finished (``stage<k>.keras`` under ``root``): nothing is
         trained or written. ``ValueError`` / ``OSError``: as :func:`sync_in` (before anything is
-        copied) and :func:`stnh_tf.training.loop.train`.
+        copied) and :func:`stnh_tf.training.loop.train`; a bad ``part`` (:func:`part_name`).
     """
     import keras
 
     from stnh_tf.training import loop
 
-    finished = finished_model(root, cfg.stage)
+    key = cfg.stage if part is None else part
+    finished = finished_model(root, key)
     if os.path.exists(finished):
-        raise FileExistsError(f"stage {cfg.stage} is finished: {finished} exists; it is not "
+        what = f"stage {cfg.stage}" if part is None else f"part {part_name(part)}"
+        raise FileExistsError(f"{what} is finished: {finished} exists; it is not "
                               f"trained again (move it and {stage_record_path(finished)} away "
                               "to train it anew).")
-    resume = resume_dir(root, cfg.stage)
+    resume = resume_dir(root, key)
     copied = sync_in(resume, cfg.model_dir, cfg)
     if copied is not None:
         printer(f"resuming from the committed checkpoint at step {copied} ({resume})")
@@ -188,18 +223,19 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
     final = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
     done = result["final_step"] >= cfg.train_steps and os.path.exists(final)
     if done:
-        strip_optimizer(final, finished_model(root, cfg.stage))
+        strip_optimizer(final, finished)
     else:
         sync_out(cfg.model_dir, resume)
     steps = result["final_step"] - start_step
-    row = {"stage": cfg.stage, "from_step": start_step, "to_step": result["final_step"],
+    row = {"stage": cfg.stage, **({"part": part_name(part)} if part is not None else {}),
+           "from_step": start_step, "to_step": result["final_step"],
            "done": bool(done), "device": device, "backend": keras.backend.backend(),
            "steps_per_s": round(steps / max(result["wall_s_this_run"], 1e-9), 3),
            "wall_s": round(time.time() - t0, 1), "date": datetime.date.today().isoformat(),
            **({"commit": commit} if commit else {}), "machine": machine_info()}
     add_ledger_row(root, row)
     if done:
-        stage_record(root, cfg.stage,
+        stage_record(root, key,
                      run_dir.read_run_config(os.path.join(cfg.model_dir, run_dir.CONFIG_FILE)))
         shutil.rmtree(resume, ignore_errors=True)
     return row
@@ -251,11 +287,13 @@ def add_ledger_row(root: str, row: dict) -> list:
 
 
 def ledger_table(ledger: list) -> str:
-    """The ledger as a Markdown table (stage, steps, machine, backend, steps/s, minutes, date)."""
+    """The ledger as a Markdown table (stage, steps, machine, backend, steps/s, minutes, date;
+    a part other than a hierarchical stage shows its name in the stage column)."""
     lines = ["| stage | steps | machine | backend | steps/s | minutes | date |",
              "|---|---|---|---|---|---|---|"]
     for r in ledger:
-        lines.append(f"| {r['stage']} | {r['from_step']} -> {r['to_step']} | {r['device']} | "
+        lines.append(f"| {r.get('part', r['stage'])} | {r['from_step']} -> {r['to_step']} | "
+                     f"{r['device']} | "
                      f"{r['backend']} | {r['steps_per_s']:.2f} | {r['wall_s'] / 60:.0f} | "
                      f"{r['date']} |")
     return "\n".join(lines)

@@ -361,7 +361,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         callbacks.extend(extra_callbacks)
         # The time limit and SIGTERM stop a run on one process after any step (its checkpoint
         # saved); several processes stop together at an epoch end (SyncStop), by the limit alone.
-        limit = (TimeLimit(time_limit_s, start=t_call, per_step=not cluster.multi)
+        limit = (TimeLimit(time_limit_s or None, start=t_call, per_step=not cluster.multi)
                  if time_limit_s or not cluster.multi else None)
         callbacks += [limit] if limit else []
         callbacks += distribute.callbacks(cluster, limit)  # the chief's stop decision, to all
