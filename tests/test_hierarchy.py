@@ -239,7 +239,11 @@ def test_error_summary_counts_pairs_worse_than_the_identity():
     got = evaluation.error_summary([1.0, 5.0, 3.0, 0.5], identity_errors=[2.0, 2.0, 3.0, 0.4])
     assert got["worse_than_identity"] == 2  # 5 > 2 and 0.5 > 0.4; a tie is not worse
     assert got["mace"] == pytest.approx(2.375) and got["count"] == 4
-    assert "worse_than_identity" not in evaluation.error_summary([1.0])
+    # the standard error of the mean: sample std (n - 1) over sqrt(n), by hand
+    deviations = [e - 2.375 for e in (1.0, 5.0, 3.0, 0.5)]
+    assert got["mace_se"] == pytest.approx((sum(d * d for d in deviations) / 3) ** 0.5 / 2)
+    one = evaluation.error_summary([1.0])
+    assert "worse_than_identity" not in one and one["mace_se"] is None
 
 
 def test_no_clip_needs_a_hierarchy():

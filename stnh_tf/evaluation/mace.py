@@ -17,13 +17,17 @@ from stnh_tf.modeling import runner
 
 
 def error_summary(errors, identity_errors=None) -> dict:
-    """Mean (MACE), median, 90th and 99th percentile and count of per-pair corner errors (px);
-    given the same pairs' ``identity_errors``, also ``worse_than_identity``: the pairs whose error
-    exceeds the identity's."""
+    """Mean (MACE), its standard error over the pairs (``mace_se``: the sample standard deviation
+    over the square root of the count; ``None`` for one pair), median, 90th and 99th percentile and
+    count of per-pair corner errors (px); given the same pairs' ``identity_errors``, also
+    ``worse_than_identity``: the pairs whose error exceeds the identity's."""
     errors = np.asarray(errors, dtype=np.float64)
     if errors.size == 0:
         raise ValueError("no pairs to evaluate.")
-    out = {"mace": float(errors.mean()), "median": float(np.median(errors)),
+    out = {"mace": float(errors.mean()),
+           "mace_se": float(errors.std(ddof=1) / np.sqrt(errors.size)) if errors.size > 1
+           else None,
+           "median": float(np.median(errors)),
            "p90": float(np.percentile(errors, 90)), "p99": float(np.percentile(errors, 99)),
            "count": int(errors.size)}
     if identity_errors is not None:
