@@ -477,6 +477,11 @@ PROSE = [
      [num("semi_step_cost", "train_step_s/mixed_bfloat16/stn_homography", 3),
       num("semi_step_cost", "train_step_s/mixed_bfloat16/stn_homography_unlabeled", 3),
       num("semi_step_cost", "train_step_s/mixed_bfloat16/unlabeled_over_labeled", 3)]),
+    ("docs/gpu.md",  # issue 60, item 4: the test set's precision of stage 1's MACE
+     rf"the standard error of the {N} over its 300 pairs is {N} px",
+     [num("schedule1_eval_se", "model/mace"), num("schedule1_eval_se", "model/mace_se")]),
+    ("BENCHMARKS.md", rf"{N} px with a{S}standard error of {N} px over the 300 pairs",
+     [num("schedule1_eval_se", "model/mace"), num("schedule1_eval_se", "model/mace_se")]),
     ("BENCHMARKS.md",  # issue 63: the step cost with the leak-free L1 target
      rf"the paper's model's median step takes {N} s; the model{S}of a run with unlabeled pairs "
      rf"[^:]*?unlabeled, {N} s: a ratio of {N} \(the bare regression{S}network with the L2 loss alone: "

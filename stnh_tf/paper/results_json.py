@@ -111,6 +111,7 @@ SOURCES = {
     "semi_none_l1b_seed1": "semi_supervised/eval/semi_labels-0_l1b_seed1.json",
     "semi_step_cost": "semi_supervised/step_cost.json",
     "semi_step_cost_l1b": "semi_supervised/step_cost_l1b.json",
+    "schedule1_eval_se": "paper_schedule/stage1_eval_se.json",
     "results": "docs/reproduce_cpu/results.json",
     "table1": "docs/reproduce_cpu/table1.json",
 }
