@@ -558,6 +558,9 @@ PROSE = [
     ("docs/gpu.md", rf"\(the reproduction's hierarchy rows\) {N} px[^$]*?saved mixed{S}bfloat16, "
      rf"{N} px with the clipping",
      [num("schedule2_eval", "model/mace"), num("schedule2_eval_float32", "model/mace")]),
+    ("docs/gpu.md", rf"First chunk, steps 0 -> 12,022, on the 2-core Intel Xeon with AMX[^$]*?"
+     rf"`paper_schedule/logs/stage3_0-12022_cpu.log`\): {N} steps/s in the ledger",
+     [num("schedule_ledger", "20/steps_per_s")]),
     ("docs/gpu.md", rf"Finished at 91,000 steps over (\d+) chunks and {N} hours of wall time",
      [schedule_chunks(2), schedule_hours(2)]),
     ("docs/gpu.md", rf"50 steps per call, {N} steps/s over", [num("schedule_record",
