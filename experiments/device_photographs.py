@@ -43,7 +43,7 @@ from stnh_tf.paths import inside
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SHARED = os.path.join(os.path.dirname(REPO), "shared", "data")
-CALL_BYTES = 64 * 2 ** 20  # what one call of the device tool carries
+CALL_MIB = 64  # what one call of the device tool carries
 # Tracked files that no chunk on the GPU machine reads (git pathspecs; ``*`` spans folders).
 ASIDE_PATTERNS = ("semi_supervised/*.keras", "stnh_tf/weights/*.keras")
 # The list of the files a run wrote under --output_dir, one relative path a line (OutputFiles).
@@ -54,6 +54,9 @@ flags.DEFINE_string("coco_dir", os.path.join(SHARED, "coco_mini"), "coco_mini (t
 flags.DEFINE_string("extra_dir", os.path.join(SHARED, "photos_extra"), "photos_extra.")
 flags.DEFINE_string("output_dir", os.path.join(REPO, ".devdata"), "Where to write them.")
 flags.DEFINE_string("wheels_dir", os.path.join(REPO, ".whl"), "The wheels the first call carries.")
+flags.DEFINE_integer("call_mib", CALL_MIB, "MiB one call carries, the working tree included (the "
+                     "device tool's limit; tests give more, so the repository's size does not "
+                     "decide them).")
 flags.DEFINE_bool("set_aside", False, "First remove the models of ASIDE_PATTERNS from the "
                   "working tree (they stay in git), so that each call carries more photographs.")
 flags.DEFINE_bool("restore", False, "Only check the set-aside models out again, and exit.")
@@ -266,7 +269,7 @@ def plan_calls() -> dict:
                              check=True).stdout.decode().split("\0")
     tree = sum(size(os.path.join(REPO, p)) for p in tracked if p and os.path.exists(
         os.path.join(REPO, p)))
-    packed = parts(files, CALL_BYTES - tree - 2 ** 20, size(FLAGS.wheels_dir))
+    packed = parts(files, FLAGS.call_mib * 2 ** 20 - tree - 2 ** 20, size(FLAGS.wheels_dir))
     calls = []
     for k, part in enumerate(packed, start=1):
         folder = os.path.join(out, f"part-{k}")

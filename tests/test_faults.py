@@ -1162,7 +1162,7 @@ def _device_photographs(out, photos, *flags, script=None, env=None):
     """experiments.device_photographs on the tiny set ``photos`` (coco/, extra/, whl/) into
     ``out``."""
     args = [f"--coco_dir={photos / 'coco'}", f"--extra_dir={photos / 'extra'}",
-            f"--output_dir={out}", f"--wheels_dir={photos / 'whl'}", *flags]
+            f"--output_dir={out}", f"--wheels_dir={photos / 'whl'}", "--call_mib=1024", *flags]
     if script is None:
         return _binary("experiments.device_photographs", *args)
     return subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True,
