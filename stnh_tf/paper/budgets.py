@@ -88,6 +88,7 @@ SCHEDULE_PARTS = {"hierarchy": None,
 hierarchy's stages (``--stage``), then, on the stage-1 pairs, Fig. 4's 2-stage sequence model
 and Table 1's L2:L1 = 10:1 row, each with the ``TrainConfig`` fields that make it that run."""
 
+
 def check_budget(model_dir: str, cfg) -> None:
     """Raise ``ValueError`` unless the finished model in ``model_dir`` was trained with ``cfg``'s
     budget (model kind, schedule, loss weights, network options) and, where ``cfg`` trains on
