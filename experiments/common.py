@@ -7,6 +7,7 @@ import contextlib
 import json
 
 from stnh_tf import provenance  # noqa: F401  (records the commit and load at the binary's start)
+from stnh_tf.paths import atomic_write_text
 
 
 def emit_json(result: dict, json_out: str | None = None) -> None:
@@ -14,8 +15,7 @@ def emit_json(result: dict, json_out: str | None = None) -> None:
     text = json.dumps(result, indent=2)
     print(text)
     if json_out:
-        with open(json_out, "w") as f:
-            f.write(text + "\n")
+        atomic_write_text(json_out, text + "\n")
 
 
 @contextlib.contextmanager

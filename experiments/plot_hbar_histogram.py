@@ -22,6 +22,7 @@ flags.DEFINE_integer("max_samples", 0, "Use only the first N samples (0 = all)."
 FLAGS = flags.FLAGS
 
 # The library pieces (the reproduce driver draws the same figure).
+from stnh_tf.paths import atomic_write_json  # noqa: E402
 from stnh_tf.paper.figures import ENTRY_NAMES, read_h_bar  # noqa: E402,F401
 from stnh_tf.paper.figures import hbar_histogram as plot_histogram  # noqa: E402
 
@@ -35,8 +36,7 @@ def main(argv):
                            f"Value histogram of H_bar, {FLAGS.split} split of {FLAGS.data_dir} "
                            f"({len(h_bar)} samples)")
     stats.update(data_dir=os.path.abspath(FLAGS.data_dir), split=FLAGS.split)
-    with open(os.path.splitext(FLAGS.output)[0] + ".json", "w") as f:
-        json.dump(stats, f, indent=2)
+    atomic_write_json(os.path.splitext(FLAGS.output)[0] + ".json", stats, sort_keys=False)
     print(json.dumps(stats["entries"], indent=1))
 
 

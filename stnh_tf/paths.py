@@ -1,5 +1,5 @@
-"""Files the package reads and writes: JSON parsed with errors naming the file and written
-atomically, paths read from files kept inside their folder, output folders checked before any
+"""Files the package reads and writes: JSON parsed with errors naming the file, text and JSON
+written atomically, paths read from files kept inside their folder, output folders checked before any
 work, one writer at a time (:func:`exclusive_lock`).
 
 Standard library only (data-generation workers and the TF-free pipelines import it).
@@ -35,14 +35,39 @@ def fsync_replace(tmp, path) -> None:
     os.replace(tmp, path)
 
 
-def atomic_write_json(path, obj) -> None:
-    """Write ``obj`` as JSON (indented, keys sorted, NumPy scalars as floats) to ``path`` through
-    a temporary file beside it (``<path>.tmp-<pid>``), fsynced and renamed."""
-    tmp = f"{os.fspath(path)}.tmp-{os.getpid()}"
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=2, sort_keys=True, default=float)
-        f.write("\n")
-    fsync_replace(tmp, path)
+def atomic_write_text(path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` through a temporary file beside it
+    (``<path>.tmp-<pid>``), fsynced and renamed: ``path`` holds its old text or the new one,
+    never part of either (a crash, a full disk). The temporary file is removed where writing it
+    fails. A ``path`` that exists and is not a regular file (``/dev/stdout``, a FIFO) is written
+    directly: it cannot be replaced.
+
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     atomic_write_text(os.path.join(d, "a.md"), "new\\n")
+    ...     sorted(os.listdir(d))
+    ['a.md']
+    """
+    path = os.fspath(path)
+    if os.path.exists(path) and not os.path.isfile(path):
+        with open(path, "w", encoding="utf-8") as f:
+            f.write(text)
+        return
+    tmp = f"{path}.tmp-{os.getpid()}"
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+        fsync_replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+
+
+def atomic_write_json(path, obj, sort_keys: bool = True) -> None:
+    """Write ``obj`` as JSON (indented, keys sorted unless ``sort_keys`` is False, NumPy scalars
+    as floats) to ``path`` by :func:`atomic_write_text`."""
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=sort_keys, default=float) + "\n")
 
 
 def inside(folder, name, what: str) -> str:

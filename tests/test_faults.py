@@ -1447,3 +1447,68 @@ def test_a_checkpoint_without_its_state_is_resumed_not_deleted(_first_checkpoint
     assert len(warning) == 1 and str(folder / "checkpoint" / "state.json") in warning[0] \
         and str(folder / "checkpoint" / "ckpt-00000002.weights.h5") in warning[0], warning
     assert result["final_step"] == 4 and (folder / "model.keras").exists()
+
+
+def _ledger_doc(tmp_path):
+    """chunks.write_ledger_table on docs/gpu.md-like prose with an out-of-date ledger block."""
+    from stnh_tf.training import chunks
+
+    root = tmp_path / "root"
+    root.mkdir()
+    (root / chunks.LEDGER_FILE).write_text(json.dumps([{
+        "stage": 1, "from_step": 0, "to_step": 500, "device": "2-core CPU",
+        "backend": "tensorflow", "steps_per_s": 1.5, "wall_s": 400.0, "date": "2026-12-05"}]))
+    doc = tmp_path / "gpu.md"
+    doc.write_text(f"# runbook\nprose\n{chunks.LEDGER_START}\nold\n{chunks.LEDGER_END}\nmore\n")
+    return doc, lambda: chunks.write_ledger_table(str(root), str(doc))
+
+
+def _contract_doc(tmp_path):
+    """export_contract.write_contract_docs on docs/estimate.md-like prose."""
+    from stnh_tf.inference import export_contract
+
+    doc = tmp_path / "estimate.md"
+    doc.write_text(f"# estimate\n{export_contract.DOCS_BEGIN}\nold\n{export_contract.DOCS_END}\n")
+    return doc, lambda: export_contract.write_contract_docs(str(doc))
+
+
+def _json_out(tmp_path):
+    """A binary's --json_out over the results of an earlier run (experiments.common.emit_json)."""
+    doc = tmp_path / "results.json"
+    doc.write_text('{"mace": 6.84}\n')
+    return doc, lambda: common.emit_json({"mace": 2.0}, str(doc))
+
+
+@pytest.mark.parametrize("make", [_ledger_doc, _contract_doc, _json_out],
+                         ids=["ledger_table", "contract_docs", "json_out"])
+def test_a_rewrite_that_fails_on_a_full_disk_leaves_the_file_as_it_was(make, tmp_path,
+                                                                       monkeypatch):
+    """A file rewritten in place (the ledger block of docs/gpu.md, the contract block of
+    docs/estimate.md, a benchmark's --json_out) was opened with "w": a crash or a full disk
+    while writing left it truncated, its hand-written prose lost. It is written beside and
+    renamed (paths.atomic_write_text): a write that fails (ENOSPC at the flush) leaves it byte
+    for byte as it was, and no temporary file behind; the same write then succeeds."""
+    doc, rewrite = make(tmp_path)
+    before = _files(tmp_path)
+
+    def full_disk(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(os, "fsync", full_disk)
+        with pytest.raises(OSError, match="No space left"):
+            rewrite()
+    assert _files(tmp_path) == before
+    rewrite()
+    after = _files(tmp_path)
+    assert set(after) == set(before) and after[doc.name] != before[doc.name]
+
+
+def test_atomic_write_text_writes_a_device_in_place():
+    """``--json_out=/dev/stdout`` (a path that is not a regular file) is written directly: a
+    temporary file renamed over it would replace the device node itself."""
+    from stnh_tf.paths import atomic_write_text
+
+    atomic_write_text(os.devnull, "{}\n")
+    assert not os.path.isfile(os.devnull) and os.path.exists(os.devnull)
+    assert not any(n.startswith("null.tmp") for n in os.listdir(os.path.dirname(os.devnull)))

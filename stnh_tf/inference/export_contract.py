@@ -23,6 +23,7 @@ import json
 import os
 
 from stnh_tf import geometry
+from stnh_tf.paths import atomic_write_json, atomic_write_text
 
 SIGNATURE_FORMAT = "stnh_tf.saved_model_signature"
 SIGNATURE_VERSION = 1
@@ -333,11 +334,8 @@ def write_files(estimator, folder) -> list:
     returns their paths."""
     document = signature_document(estimator)
     paths = [os.path.join(folder, name) for name in DOC_FILES]
-    with open(paths[0], "w") as f:
-        f.write(readme(document))
-    with open(paths[1], "w") as f:
-        json.dump(document, f, indent=2)
-        f.write("\n")
+    atomic_write_text(paths[0], readme(document))
+    atomic_write_json(paths[1], document, sort_keys=False)
     return paths
 
 
@@ -365,8 +363,7 @@ def write_contract_docs(path) -> bool:
         raise ValueError(f"{path} has no block between {DOCS_BEGIN!r} and {DOCS_END!r}.")
     new = text[:start] + DOCS_BEGIN + "\n\n" + contract_markdown() + "\n" + text[end:]
     if new != text:
-        with open(path, "w", encoding="utf-8") as f:
-            f.write(new)
+        atomic_write_text(path, new)
     return new != text
 
 

@@ -20,6 +20,8 @@ import sys
 
 import numpy as np
 
+from stnh_tf.paths import atomic_write_json
+
 
 class AlignmentError(Exception):
     """An input image, the output folder or the model cannot be used (the message says which)."""
@@ -422,7 +424,6 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
               "num_stages": estimator.num_stages,
               **_estimate_json(estimate, image_b.gray.shape, quad), "overlay_png": png,
               "input_paths": inputs}
-    with open(os.path.join(output_dir, f"{stem}_homography.json"), "w") as f:
-        json.dump(result, f, indent=2)
-        f.write("\n")
+    atomic_write_json(os.path.join(output_dir, f"{stem}_homography.json"), result,
+                      sort_keys=False)
     return result

@@ -32,11 +32,10 @@ Standard library only: nothing here loads a model.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 
-from stnh_tf.paths import inside, read_json
+from stnh_tf.paths import atomic_write_json, inside, read_json
 
 MANIFEST_FORMAT = "stnh_tf.hierarchy"
 MANIFEST_VERSION = 1
@@ -91,9 +90,7 @@ def write_manifest(path, stages, description: str = "") -> str:
     doc = {"format": MANIFEST_FORMAT, "version": MANIFEST_VERSION, "stages": entries}
     if description:
         doc["description"] = description
-    with open(path, "w") as f:
-        json.dump(doc, f, indent=2)
-        f.write("\n")
+    atomic_write_json(path, doc, sort_keys=False)
     return os.fspath(path)
 
 

@@ -34,6 +34,7 @@ import os
 import re
 import sys
 
+from stnh_tf.paths import atomic_write_text
 from stnh_tf.paper.results_json import (NOT_RECORDED, PAPER_STEPS, SOURCES,  # noqa: F401
                                         card_steps, default_root, fixed, load_sources, percent,
                                         value)
@@ -406,8 +407,7 @@ def write(root: str) -> list[str]:
             text = f.read()
         new = replace_block(text, block, name)
         if new != text:
-            with open(path, "w") as f:
-                f.write(new)
+            atomic_write_text(path, new)
             changed.append(name)
     return changed
 

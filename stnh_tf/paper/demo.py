@@ -6,9 +6,10 @@ shipped models (:func:`shipped_models`) on them, writing ``results.json`` and a 
 
 from __future__ import annotations
 
-import json
 import os
 import time
+
+from stnh_tf.paths import atomic_write_json
 
 
 def self_check(seed: int = 0, num_pairs: int = 8) -> dict:
@@ -145,6 +146,5 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
         printer(f"\nFig. 5-style examples ({best}): {png}")
     result = {"conventions": check, "num_pairs": n, "seed": seed, "methods": rows, "figure": png,
               "wall_s": time.time() - t_start}
-    with open(os.path.join(output_dir, "results.json"), "w") as f:
-        json.dump(result, f, indent=2)
+    atomic_write_json(os.path.join(output_dir, "results.json"), result, sort_keys=False)
     return result

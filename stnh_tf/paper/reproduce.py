@@ -32,7 +32,7 @@ import time
 import numpy as np
 
 from stnh_tf.training import config as train_config
-from stnh_tf.paths import atomic_write_json
+from stnh_tf.paths import atomic_write_json, atomic_write_text
 from stnh_tf.provenance import machine_info
 from stnh_tf.paper.budgets import (BUDGETS, SPEED_FIELDS, Budget,  # noqa: F401
                                    check_budget)
@@ -295,8 +295,7 @@ class Reproduction:
                                (schedule or {}).get("table1_mace", {}),
                                table1_claim(per_seed, identity, self.budget.verdicts).get(
                                    "text", ""))]
-        with open(os.path.join(self.out, "table1.md"), "w") as f:
-            f.write("\n".join(lines) + "\n")
+        atomic_write_text(os.path.join(self.out, "table1.md"), "\n".join(lines) + "\n")
         atomic_write_json(os.path.join(self.out, "table1.json"), {
             f"{a:g},{b:g}": {"mace": float(np.mean(v)), "mace_per_seed": v,
                              "seeds": list(range(len(v))), "model_dir": rows[(a, b)][0],
@@ -404,8 +403,7 @@ class Reproduction:
                       "table1_mace": {f"{a:g},{b:g}": v for (a, b), v in PAPER_TABLE1.items()},
                       "table2_gpu_ms": PAPER_TABLE2_GPU_MS}}
         atomic_write_json(os.path.join(self.out, "results.json"), result)
-        with open(os.path.join(self.out, "tables.md"), "w") as f:
-            f.write(tables_markdown(result, lat))
+        atomic_write_text(os.path.join(self.out, "tables.md"), tables_markdown(result, lat))
         self.printer(f"[done] {os.path.join(self.out, 'tables.md')}")
         return result
 

@@ -56,7 +56,7 @@ import shutil
 import numpy as np
 
 from stnh_tf.paper import reproduce
-from stnh_tf.paths import atomic_write_json
+from stnh_tf.paths import atomic_write_json, atomic_write_text
 
 CLOSE_PX = 1.0
 MAX_SEEDS = 2
@@ -331,8 +331,7 @@ class SemiSupervised:
                 "evaluated_elsewhere": [s for s in seeds if self.evaluated_elsewhere(
                     self.model_name(r, s)) is not None]})
         atomic_write_json(os.path.join(self.run.out, "semi_supervised.json"), result)
-        with open(os.path.join(self.run.out, "semi_supervised.md"), "w") as f:
-            f.write(markdown(result))
+        atomic_write_text(os.path.join(self.run.out, "semi_supervised.md"), markdown(result))
         return result
 
 

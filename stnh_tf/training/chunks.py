@@ -33,7 +33,7 @@ import re
 import shutil
 import time
 
-from stnh_tf.paths import atomic_write_json, read_json, stage_record_path
+from stnh_tf.paths import atomic_write_json, atomic_write_text, read_json, stage_record_path
 from stnh_tf.provenance import machine_info
 from stnh_tf.training import run_dir
 from stnh_tf.training.config import TrainConfig
@@ -316,6 +316,5 @@ def write_ledger_table(root: str, doc: str) -> bool:
     _, tail = rest.split(LEDGER_END, 1)
     new = f"{head}{LEDGER_START}\n{ledger_table(ledger)}\n{LEDGER_END}{tail}"
     if new != text:
-        with open(doc, "w") as f:
-            f.write(new)
+        atomic_write_text(doc, new)
     return new != text
