@@ -115,6 +115,16 @@ def _pixel_grid(height: int, width: int) -> np.ndarray:
     return grid
 
 
+@functools.lru_cache(maxsize=4)
+def _squares(height: int, width: int, tile: int) -> np.ndarray:
+    """``[h * w]`` the square of :func:`corner_std`'s ``tile`` x ``tile`` grid each pixel lies in,
+    row by row (read-only, made once per shape and tile)."""
+    ys, xs = np.mgrid[0:height, 0:width]
+    square = ((ys // tile) * (width // tile + 1) + xs // tile).ravel().astype(np.intp)
+    square.flags.writeable = False
+    return square
+
+
 def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100,
                tile: int = 0) -> float:
     """How precisely the two images fix ``a_from_b`` at ``image_b``'s corners: the predicted
@@ -188,11 +198,12 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
         return float("inf")
     cov = float(np.var(residual)) * a_inv
     if tile > 0:  # the scores summed per square of image_b, then their outer products
-        square = ((v // tile) * (width // tile + 1) + (u // tile)).astype(np.intp)
+        square = _squares(height, width, tile)[inside]
         present = np.bincount(square) > 0
         if present.sum() >= MIN_SQUARES_PER_PARAMETER * jac.shape[1]:
             index = (np.cumsum(present) - 1)[square]  # the squares numbered in order, as unique's
-            weighted = gain * jac * residual[:, None]
+            weighted = np.multiply(jac, gain, out=jac)  # gain * jac * residual, in place
+            weighted *= residual[:, None]
             # bincount adds in the pixels' order, as np.add.at would (the same sums), 10x faster
             scores = np.stack([np.bincount(index, weights=weighted[:, k])
                                for k in range(jac.shape[1])], axis=1)

@@ -44,11 +44,18 @@ def homography_jacobian(gx, gy, x, y, u, v, w) -> np.ndarray:
     points ``p = (x, y)`` mapped to source points ``(u, v)`` with projective divisor ``w``, where
     the source's gradients there are ``(gx, gy)`` (chain rule through the projective division).
 
+    The array is column-major (each parameter's column contiguous: a transposed ``[8, N]``),
+    so that sums over the points run along memory.
+
     >>> homography_jacobian(*(np.array([v]) for v in (1.0, 0.0, 2.0, 3.0, 2.0, 3.0, 1.0)))[0]
     array([ 2.,  3.,  1.,  0.,  0.,  0., -4., -6.])
     """
     gw = -(gx * u + gy * v)
-    return np.stack([gx * x, gx * y, gx, gy * x, gy * y, gy, gw * x, gw * y], axis=1) / w[:, None]
+    out = np.empty((8, len(w)))
+    for row, (g, c) in enumerate(((gx, x), (gx, y), (gx, None), (gy, x), (gy, y), (gy, None),
+                                  (gw, x), (gw, y))):
+        np.divide(g if c is None else np.multiply(g, c, out=out[row]), w, out=out[row])
+    return out.T
 
 
 def bilinear(images, u, v) -> np.ndarray:
@@ -125,7 +132,8 @@ def ecc_homography(source, template, source_from_template, iterations: int = 100
         else:
             x, y, u, v, w, t = (a[inside] for a in (xs, ys, u, v, w, tpl))
         warped, gx, gy = bilinear(stack, u, v)
-        jac = homography_jacobian(gx, gy, x, y, u, v, w)  # d warped / d parameters
+        # d warped / d parameters, row-major: the mean below sums each column in the points' order
+        jac = np.ascontiguousarray(homography_jacobian(gx, gy, x, y, u, v, w))
         jac -= jac.mean(axis=0)
         warped -= warped.mean()
         t = t - t.mean()
