@@ -555,6 +555,16 @@ PROSE = [
      rf"tables \(paper 2.6; after{S}stage 1 {N}, identity {N};",
      [num("schedule_card", f"evaluation/model/stages/after_{k}_stages/mace") for k in (2, 1)]
      + [num("schedule_card", "evaluation/identity/mace")]),
+    ("docs/gpu.md", rf"the{S}second stage does not help: {N} px after stage 1, {N} after 2 stages "
+     rf"\(identity {N}\); under{S}the photometric change of patch_b {N} and {N} px, and the "
+     rf"networks alone without the{S}estimator's search {N} px, worse than the identity on (\d+) "
+     rf"of the 60 pairs",
+     [num("schedule_card", f"bundled_check/{k}") for k in (
+         "estimate_mace_1_stages", "estimate_mace_2_stages", "identity_mace",
+         "photometric_estimate_mace_1_stages", "photometric_estimate_mace_2_stages",
+         "photometric_unsearched_estimate_mace_2_stages")]
+     + [lambda sources: str(cr.value(sources, "schedule_card",
+                                     "bundled_check/photometric_unsearched_worse_than_identity_2_stages"))]),
     ("docs/gpu.md", rf"\(the reproduction's hierarchy rows\) {N} px[^$]*?saved mixed{S}bfloat16, "
      rf"{N} px with the clipping",
      [num("schedule2_eval", "model/mace"), num("schedule2_eval_float32", "model/mace")]),
