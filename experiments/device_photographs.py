@@ -39,7 +39,7 @@ from absl import app, flags
 
 from experiments import common
 from stnh_tf.paper.budgets import SCHEDULE_PARTS
-from stnh_tf.paths import inside
+from stnh_tf.paths import atomic_write_text, inside
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SHARED = os.path.join(os.path.dirname(REPO), "shared", "data")
@@ -173,10 +173,7 @@ def clear_output(out: str) -> OutputFiles:
                       not line.startswith("#")]
         _remove_files(out, listed)
     os.makedirs(out, exist_ok=True)
-    tmp = f"{marker}.tmp-{os.getpid()}"
-    with open(tmp, "w") as f:
-        f.write(MARKER_HEADER)
-    os.replace(tmp, marker)
+    atomic_write_text(marker, MARKER_HEADER)
     return OutputFiles(out)
 
 

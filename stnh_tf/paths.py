@@ -1,6 +1,6 @@
 """Files the package reads and writes: JSON parsed with errors naming the file, text and JSON
-written atomically, paths read from files kept inside their folder, output folders checked before any
-work, one writer at a time (:func:`exclusive_lock`).
+written atomically, paths read from files kept inside their folder, output folders checked before
+any work, one writer at a time (:func:`exclusive_lock`).
 
 Standard library only (data-generation workers and the TF-free pipelines import it).
 """
