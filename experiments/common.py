@@ -1,5 +1,5 @@
-"""Small helpers shared by the binaries (no flags defined here): the JSON they print, and how a
-user's error ends them."""
+"""Small helpers shared by the binaries (no flags defined here): the JSON they print, how a
+user's error ends them, and the checks that keep their outputs off their inputs."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import contextlib
 import json
 
 from stnh_tf import provenance  # noqa: F401  (records the commit and load at the binary's start)
-from stnh_tf.paths import atomic_write_text
+from stnh_tf.paths import atomic_write_text, check_apart
 
 
 def emit_json(result: dict, json_out: str | None = None) -> None:
@@ -26,3 +26,34 @@ def user_errors(binary: str, errors=(ValueError, OSError)):
         yield
     except errors as e:
         raise SystemExit(f"{binary}: {e}") from None
+
+
+def check_flags_apart(outputs, inputs, flag_values=None) -> None:
+    """:func:`stnh_tf.paths.check_apart` of the flags named: no output flag in ``outputs`` (flag
+    names, e.g. ``("json_out",)``) is, lies inside or holds a path of an input flag in ``inputs``
+    (a path or a list of them; unset flags are skipped). Call it inside :func:`user_errors`,
+    before the work. ``flag_values``: default ``absl.flags.FLAGS``.
+
+    Raises:
+      ValueError: naming both flags and their values.
+    """
+    from absl import flags
+
+    f = flags.FLAGS if flag_values is None else flag_values
+    check_apart({f"--{name}": f[name].value for name in outputs},
+                {f"--{name}": f[name].value for name in inputs})
+
+
+def check_not_a_run(folder, flag: str = "output_dir") -> None:
+    """Refuse to write into ``folder`` (the value of ``--flag``) where it holds a training run
+    (:func:`stnh_tf.training.run_dir.holds_run`): its files are not a dataset's or a result's.
+
+    Raises:
+      FileExistsError: naming the flag, the folder and the run's ``config.json``.
+    """
+    from stnh_tf.training import run_dir
+
+    if folder and run_dir.holds_run(folder):
+        raise FileExistsError(f"--{flag} {folder} holds a training run "
+                              f"({run_dir.CONFIG_FILE}); nothing was written there: choose "
+                              "another folder.")

@@ -119,6 +119,53 @@ def check_output_file(path) -> str:
     return path
 
 
+def _named_paths(named: dict):
+    """``(name, path as given, real path)`` for each path of ``{name: path | paths | None}``
+    (``None``, ``""`` and ``"-"``, standard output, skipped)."""
+    for name, value in named.items():
+        values = [value] if isinstance(value, (str, os.PathLike)) else list(value or ())
+        for path in values:
+            if path and os.fspath(path) != "-":
+                yield name, os.fspath(path), os.path.realpath(path)
+
+
+def check_apart(outputs: dict, inputs: dict) -> None:
+    """Refuse, before anything is written, outputs that would overwrite what a run reads or be
+    read back by it as input.
+
+    ``outputs`` and ``inputs`` map a name as the user knows it (a flag: ``"--json_out"``) to a
+    path, a list of paths, or ``None`` (unset; ``""`` and ``"-"``, standard output, are skipped
+    too). Paths are compared once symbolic links are resolved (:func:`os.path.realpath`), so a
+    link to an input is that input. Refused: an output that is an input (``--json_out`` naming the
+    dataset's ``metadata.json``), an output inside an input folder (a result written into the
+    dataset or model folder it reads, pairs written among the photographs they are made from),
+    and an output folder that holds an input (photographs that an ``--overwrite`` could delete or
+    a later run read back).
+
+    Raises:
+      ValueError: naming the output, the input and how they overlap.
+
+    >>> check_apart({"--json_out": "D/result.json"}, {"--data_dir": "E", "--model": None})
+    >>> check_apart({"--json_out": "D/metadata.json"}, {"--data_dir": ["E", "D"]})
+    Traceback (most recent call last):
+    ...
+    ValueError: --json_out 'D/metadata.json' is inside --data_dir 'D', an input of this run: ...
+    """
+    for out_name, out, out_real in _named_paths(outputs):
+        for in_name, given, in_real in _named_paths(inputs):
+            if out_real == in_real:
+                how = "is"
+            elif out_real.startswith(in_real.rstrip(os.sep) + os.sep):
+                how = "is inside"
+            elif in_real.startswith(out_real.rstrip(os.sep) + os.sep):
+                how = "holds"
+            else:
+                continue
+            raise ValueError(f"{out_name} {out!r} {how} {in_name} {given!r}, an input of this run: "
+                             "writing there could overwrite what it reads, or be read back as "
+                             "input; nothing was written: choose an output outside the inputs.")
+
+
 def stage_record_path(model_file) -> str:
     """The record beside a chunked run's finished stage (``stage<k>.keras`` -> ``stage<k>.json``:
     :func:`stnh_tf.training.chunks.stage_record`), which ``experiments.ship_weights`` reads.

@@ -90,7 +90,7 @@ def stage_record(root: str, part: int | str, config: dict) -> dict:
     images = len(sources.scan_image_folders(config["image_dir"],
                                             config.get("max_images", 0)).files) \
         if config.get("image_dir") else None
-    record = {"format": "stnh_tf.chunked_stage", "stage": config.get("stage", part),
+    record = {"format": run_dir.STAGE_RECORD_FORMAT, "stage": config.get("stage", part),
               **({"part": name} if isinstance(part, str) else {}), "config": config,
               "training_photographs": images,
               "training_pairs": images and images * config["samples_per_image"], "chunks": rows,
