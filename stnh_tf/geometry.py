@@ -349,6 +349,21 @@ def centre_scale(a_from_b, size_b) -> float:
     return scale if math.isfinite(scale) else math.nan
 
 
+def in_front(a_from_b, size_b=(IMAGE_WIDTH, IMAGE_HEIGHT)) -> bool:
+    """Whether every pixel of an image_b of ``size_b = (w, h)`` maps by the image-frame
+    ``a_from_b`` (``[3, 3]``) to a finite point in front of camera a: a positive homogeneous
+    coordinate at image_b's four corner pixels, hence everywhere between (NumPy only).
+
+    >>> in_front(np.eye(3)), in_front([[1, 0, 0], [0, 1, 0], [-0.01, 0, 1]])
+    (True, False)
+    """
+    w, h = size_b
+    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
+    a_from_b = np.asarray(a_from_b, np.float64)
+    z = corners @ a_from_b[2]
+    return bool(np.all(np.isfinite(a_from_b)) and np.all(z > 1e-6))
+
+
 def _check_dihedral(name: str) -> str:
     if name not in DIHEDRAL:
         raise ValueError(f"dihedral name must be one of {tuple(DIHEDRAL)}; received {name!r}.")

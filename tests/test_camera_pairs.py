@@ -117,7 +117,7 @@ def test_motion_offset_and_groups():
             offset = float(cm.motion_offset(h))
             assert 32 * lo < offset <= 32 * hi and cm.group_of(offset) == group
             assert offset == pytest.approx(params["target_offset_px"], abs=1e-6)
-            assert kind in cm.KINDS and 0 <= params["scale"] <= 1 and cm.in_front(h)
+            assert kind in cm.KINDS and 0 <= params["scale"] <= 1 and geometry.in_front(h)
             assert 0.7 <= params["zoom"] <= 1.4 and abs(params["roll_deg"]) <= 30
     with pytest.raises(ValueError, match="group must be one of"):
         cm.draw_motion(rng, "8x")
@@ -128,8 +128,9 @@ def _photos():
 
 
 def test_same_seed_same_pairs():
-    one, two = (cm.make_image_pairs(_photos()[0], 4, "camera", 3, seed=5) for _ in range(2))
-    other = cm.make_image_pairs(_photos()[0], 4, "camera", 3, seed=6)
+    one, two = (camera_pair_files.make_image_pairs(_photos()[0], 4, "camera", 3, seed=5)
+                for _ in range(2))
+    other = camera_pair_files.make_image_pairs(_photos()[0], 4, "camera", 3, seed=6)
     for p, q, r in zip(one, two, other):
         assert (p.index, p.group, p.kind, p.motion) == (q.index, q.group, q.kind, q.motion)
         np.testing.assert_array_equal(p.h_ba, q.h_ba)
@@ -158,7 +159,8 @@ def test_written_set_reads_back(pair_set):
     assert manifest["counts"] == {"within": 2, "1-2x": 2, "2-4x": 2} and manifest["images"] == 2
     assert [s[0] for s in manifest["skipped"]] == ["broken.jpg"]
     loaded, pairs = camera_pair_files.load_pairs(out)
-    fresh = cm.make_image_pairs(_photos()[1], 0, "astronaut.png", 3, 0)  # sorted: astronaut first
+    # sorted: astronaut first
+    fresh = camera_pair_files.make_image_pairs(_photos()[1], 0, "astronaut.png", 3, 0)
     for p, q in zip(pairs, fresh):
         np.testing.assert_array_equal(p.image_a, q.image_a)
         np.testing.assert_array_equal(p.image_b, q.image_b)  # PNG is lossless
@@ -307,7 +309,7 @@ def test_wide_motions_are_within_the_stated_ranges_and_warp_as_opencv_does():
     source = _textured_source()
     centre = ((320 - 1) / 2, (240 - 1) / 2)
     for kind, p, h in draws:
-        assert cm.in_front(h) and wm.overlap(h) >= wm.MIN_OVERLAP
+        assert geometry.in_front(h) and wm.overlap(h) >= wm.MIN_OVERLAP
         if kind == "plane_viewpoint":
             assert 0 <= p["view_deg"] <= 60.0
         if kind == "camera_rotation":
@@ -336,8 +338,8 @@ def test_wide_set_alternates_plain_and_low_light_groups():
     low light drawn from LOW_LIGHT (darker image_b than image_a), the rest from the set's
     degradation; same seed, same pairs; an unknown set is a clear error."""
     photo = _photos()[0]
-    pairs = cm.make_image_pairs(photo, 1, "camera", 4, seed=0, motion_set="wide")
-    again = cm.make_image_pairs(photo, 1, "camera", 4, seed=0, motion_set="wide")
+    pairs = camera_pair_files.make_image_pairs(photo, 1, "camera", 4, seed=0, motion_set="wide")
+    again = camera_pair_files.make_image_pairs(photo, 1, "camera", 4, seed=0, motion_set="wide")
     assert [p.group for p in pairs] == ["wide", "wide_low_light"] * 2
     for p, q in zip(pairs, again):
         np.testing.assert_array_equal(p.image_b, q.image_b)
@@ -349,7 +351,7 @@ def test_wide_set_alternates_plain_and_low_light_groups():
     dark = [p for p in pairs if p.group == "wide_low_light"]
     assert all(p.image_b.mean() < 0.8 * p.image_a.mean() for p in dark)
     with pytest.raises(ValueError, match="motion_set must be one of"):
-        cm.make_image_pairs(photo, 1, "camera", 2, seed=0, motion_set="huge")
+        camera_pair_files.make_image_pairs(photo, 1, "camera", 2, seed=0, motion_set="huge")
 
 
 class _ShiftedOnOddPairs:

@@ -30,7 +30,8 @@ Motion size (:func:`motion_offset`, :func:`group_of`): the largest corner offset
 in ``[-32, 32]`` per coordinate, so ``"within"`` (<= 32 px) is exactly the trained range,
 ``"1-2x"`` is (32, 64] px and ``"2-4x"`` (64, 128] px (:data:`GROUPS`).
 
-Seeding (:func:`make_image_pairs`): pair ``k = i * pairs_per_image + j`` of photograph ``i`` is
+Seeding (:func:`stnh_tf.data.camera_pair_files.make_image_pairs`, which makes the pairs of a
+photograph from this module's parts): pair ``k = i * pairs_per_image + j`` of photograph ``i`` is
 drawn from ``np.random.default_rng([seed, i])`` and belongs to group ``GROUPS[k % 3]`` (groups
 balanced); its motion is drawn from :class:`MotionRanges` and scaled towards the identity
 (:func:`draw_motion`) so that its size is uniform in the group's interval. Sets of pairs on
@@ -123,8 +124,8 @@ WIDE_GROUPS = ("wide", "wide_low_light")
 degradation."""
 
 MOTION_SETS = {"size": tuple(GROUPS), "wide": WIDE_GROUPS}
-"""The kinds of set :func:`make_image_pairs` makes, with their groups: ``"size"`` (motions scaled
-to a group by size, :func:`draw_motion`) and ``"wide"``
+"""The kinds of set :func:`stnh_tf.data.camera_pair_files.make_image_pairs` makes, with their
+groups: ``"size"`` (motions scaled to a group by size, :func:`draw_motion`) and ``"wide"``
 (:func:`stnh_tf.data.wide_motions.draw_wide_motion`)."""
 
 ALL_GROUPS = tuple(GROUPS) + WIDE_GROUPS
@@ -252,15 +253,6 @@ def group_of(offset_px) -> str | None:
                  or (lo == 0 and ratio == 0)), None)
 
 
-def in_front(h_ba, size=WORK_SIZE) -> bool:
-    """Whether every pixel of image_b maps to a finite point in front of camera a (positive
-    homogeneous coordinate at image_b's four corners, hence everywhere between)."""
-    w, h = size
-    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
-    z = corners @ np.asarray(h_ba, np.float64)[2]
-    return bool(np.all(np.isfinite(h_ba)) and np.all(z > 1e-6))
-
-
 def _homography(kind, p):
     deg = math.radians
     if kind == "camera_rotation":
@@ -329,7 +321,7 @@ def draw_motion(rng: np.random.Generator, group: str, ranges: MotionRanges = Mot
             a, b = (mid, b) if offset(mid) < target else (a, mid)
         params = _scaled(full, b)
         h = _homography(kind, params)
-        if in_front(h) and lo < motion_offset(h) <= hi:
+        if geometry.in_front(h) and lo < motion_offset(h) <= hi:
             return kind, {**params, "scale": b, "target_offset_px": target}, h
     raise RuntimeError(f"no motion of group {group!r} in {max_draws} draws.")
 
@@ -390,49 +382,3 @@ def degrade(image: np.ndarray, p: dict) -> np.ndarray:
     ok, buf = cv2.imencode(".jpg", x, [cv2.IMWRITE_JPEG_QUALITY, p["jpeg_quality"]])
     return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
 
-
-# --------------------------------------------------------------------------------------------
-# Sets of pairs
-# --------------------------------------------------------------------------------------------
-def make_image_pairs(gray, image_index: int, image_id: str, pairs_per_image: int, seed: int,
-                     motions: MotionRanges | None = None,
-                     degradation: Degradation = Degradation(),
-                     motion_set: str = "size") -> list:
-    """The :class:`CameraPair` s of one photograph (gray ``uint8 [h, w]``, any size): pair ``j``
-    has index ``k = image_index * pairs_per_image + j`` and group ``groups[k % len(groups)]``
-    (``groups = MOTION_SETS[motion_set]``); every draw from
-    ``np.random.default_rng([seed, image_index])``, motion then degradation, pair by pair.
-    ``motions``: ``None``, the set's (:func:`set_motions`); ``"wide_low_light"`` pairs get
-    ``wide_motions.LOW_LIGHT`` instead of ``degradation``.
-
-    Raises:
-      ValueError: an unknown ``motion_set``.
-    """
-    if motion_set not in MOTION_SETS:
-        raise ValueError(f"motion_set must be one of {tuple(MOTION_SETS)}; received "
-                         f"{motion_set!r}.")
-    from stnh_tf.data import wide_motions  # (it builds on this module)
-
-    motions = set_motions(motion_set) if motions is None else motions
-    groups = MOTION_SETS[motion_set]
-    rng = np.random.default_rng([int(seed), int(image_index)])
-    source, out = source_image(gray), []
-    for j in range(pairs_per_image):
-        k = image_index * pairs_per_image + j
-        group = groups[k % len(groups)]
-        kind, motion, h = (wide_motions.draw_wide_motion(rng, motions) if motion_set == "wide"
-                           else draw_motion(rng, group, motions))
-        photometric = draw_degradation(rng, wide_motions.LOW_LIGHT if group == "wide_low_light"
-                                       else degradation)
-        image_a, image_b = render_pair(source, h)
-        out.append(CameraPair(k, image_id, group, kind, h, float(motion_offset(h)), motion,
-                              photometric, np.clip(np.rint(image_a), 0, 255).astype(np.uint8),
-                              degrade(image_b, photometric)))
-    return out
-
-
-def set_motions(motion_set: str) -> MotionRanges:
-    """The :class:`MotionRanges` a set of ``motion_set`` draws from by default."""
-    from stnh_tf.data import wide_motions
-
-    return wide_motions.WIDE_MOTIONS if motion_set == "wide" else MotionRanges()

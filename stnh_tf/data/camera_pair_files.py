@@ -1,6 +1,7 @@
-"""Sets of realistic camera pairs on disk (:mod:`stnh_tf.data.camera_motions`): a folder of PNG
-pairs and a JSON manifest, written by :func:`write_pairs` (``experiments.make_camera_pairs``) and
-read by :func:`load_pairs`. NumPy/OpenCV only.
+"""Sets of realistic camera pairs (:mod:`stnh_tf.data.camera_motions`): the pairs of one
+photograph (:func:`make_image_pairs`, with :mod:`stnh_tf.data.wide_motions` for the wide-baseline
+set), and sets on disk, a folder of PNG pairs and a JSON manifest, written by :func:`write_pairs`
+(``experiments.make_camera_pairs``) and read by :func:`load_pairs`. NumPy/OpenCV only.
 
 Layout: ``{k:05d}_a.png`` and ``{k:05d}_b.png`` (8-bit gray, 320 x 240) for pair ``k``, and
 :data:`MANIFEST`: the set's parameters (seed, ranges, groups, counts, skipped files) and per pair
@@ -21,12 +22,10 @@ import os
 import cv2
 import numpy as np
 
-from stnh_tf.data import sources
+from stnh_tf.data import camera_motions, sources, wide_motions
 from stnh_tf.data.folder_counts import FolderCounts, no_photograph_message
 from stnh_tf.data.camera_motions import (GROUPS, MARGIN, MOTION_SETS, SOURCE_SIZE,
-                                         TRAINED_OFFSET, CameraPair, Degradation, MotionRanges,
-                                         make_image_pairs, set_motions)
-from stnh_tf.data.wide_motions import LOW_LIGHT
+                                         TRAINED_OFFSET, CameraPair, Degradation, MotionRanges)
 from stnh_tf.paths import atomic_write_json, inside
 
 FORMAT = "stnh_tf.camera_pairs"
@@ -50,6 +49,50 @@ def _read_manifest(path: str) -> dict:
     return manifest
 
 
+def make_image_pairs(gray, image_index: int, image_id: str, pairs_per_image: int, seed: int,
+                     motions: MotionRanges | None = None,
+                     degradation: Degradation = Degradation(),
+                     motion_set: str = "size") -> list:
+    """The :class:`~stnh_tf.data.camera_motions.CameraPair` s of one photograph (gray
+    ``uint8 [h, w]``, any size): pair ``j`` has index ``k = image_index * pairs_per_image + j``
+    and group ``groups[k % len(groups)]`` (``groups = MOTION_SETS[motion_set]``); every draw
+    from ``np.random.default_rng([seed, image_index])``, motion then degradation, pair by pair
+    (:func:`~stnh_tf.data.camera_motions.draw_motion`, or
+    :func:`~stnh_tf.data.wide_motions.draw_wide_motion` for ``motion_set="wide"``).
+    ``motions``: ``None``, the set's (:func:`set_motions`); ``"wide_low_light"`` pairs get
+    ``wide_motions.LOW_LIGHT`` instead of ``degradation``.
+
+    Raises:
+      ValueError: an unknown ``motion_set``.
+    """
+    if motion_set not in MOTION_SETS:
+        raise ValueError(f"motion_set must be one of {tuple(MOTION_SETS)}; received "
+                         f"{motion_set!r}.")
+    motions = set_motions(motion_set) if motions is None else motions
+    groups = MOTION_SETS[motion_set]
+    rng = np.random.default_rng([int(seed), int(image_index)])
+    source, out = camera_motions.source_image(gray), []
+    for j in range(pairs_per_image):
+        k = image_index * pairs_per_image + j
+        group = groups[k % len(groups)]
+        kind, motion, h = (wide_motions.draw_wide_motion(rng, motions) if motion_set == "wide"
+                           else camera_motions.draw_motion(rng, group, motions))
+        photometric = camera_motions.draw_degradation(
+            rng, wide_motions.LOW_LIGHT if group == "wide_low_light" else degradation)
+        image_a, image_b = camera_motions.render_pair(source, h)
+        out.append(CameraPair(k, image_id, group, kind, h,
+                              float(camera_motions.motion_offset(h)), motion, photometric,
+                              np.clip(np.rint(image_a), 0, 255).astype(np.uint8),
+                              camera_motions.degrade(image_b, photometric)))
+    return out
+
+
+def set_motions(motion_set: str) -> MotionRanges:
+    """The :class:`~stnh_tf.data.camera_motions.MotionRanges` a set of ``motion_set`` draws from
+    by default."""
+    return wide_motions.WIDE_MOTIONS if motion_set == "wide" else MotionRanges()
+
+
 def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
                 motions: MotionRanges | None = None,
                 degradation: Degradation = Degradation(), overwrite: bool = False,
@@ -61,7 +104,7 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
     leading out of the folder and undecodable files, and counted by kind in ``photographs``:
     :class:`~stnh_tf.data.folder_counts.FolderCounts`). Returns the manifest without its
     ``pairs``. ``motion_set`` and
-    ``motions``: as :func:`~stnh_tf.data.camera_motions.make_image_pairs` takes them (``"wide"``:
+    ``motions``: as :func:`make_image_pairs` takes them (``"wide"``:
     the wide-baseline set, issue 64).
 
     Before the first PNG, :data:`MANIFEST` is replaced by an incomplete one (``"complete":
@@ -134,7 +177,8 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
         **({"wide": "every motion at the full range of motions, kept where the views overlap "
                     "(camera_motions.overlap >= MIN_OVERLAP); pair k in wide_low_light when k is "
                     "odd, with the degradation low_light",
-            "low_light": dataclasses.asdict(LOW_LIGHT)} if motion_set == "wide" else {}),
+            "low_light": dataclasses.asdict(wide_motions.LOW_LIGHT)}
+           if motion_set == "wide" else {}),
     }
     atomic_write_json(path, {**manifest, "pairs": records})  # the commit point
     return manifest

@@ -121,6 +121,21 @@ def read_gray_folder(image_dir, max_images: int = 0) -> tuple:
     return images, counts
 
 
+def load_gray_images(image_dir=None, max_images: int = 0) -> list:
+    """uint8 ``[240, 320]`` grayscale images (``sources.load_gray_320x240``): every image file
+    below ``image_dir`` (sorted; unreadable files skipped and counted: :func:`read_gray_folder`)
+    or, without it, the bundled photographs (``sources.bundled_images``); the first
+    ``max_images`` of them (0: all).
+
+    Raises:
+      ValueError: no readable image in ``image_dir`` (``SourceError``: the reasons counted).
+    """
+    if not image_dir:
+        images = [img for _, img in sources.bundled_images()]
+        return images[:max_images] if max_images > 0 else images
+    return read_gray_folder(image_dir, max_images)[0]
+
+
 def no_photograph_message(image_dir, counts: FolderCounts, skipped=()) -> str:
     """The error of a photograph folder none of whose files could be used: its counts, and the
     first skipped file with its reason.

@@ -256,23 +256,6 @@ def bundled_images() -> list:
     return [(i, load_gray_320x240(p)) for i, p in bundled_image_files()]
 
 
-def load_gray_images(image_dir=None, max_images: int = 0) -> list:
-    """uint8 ``[240, 320]`` grayscale images (:func:`load_gray_320x240`): every image file below
-    ``image_dir`` (sorted; unreadable files skipped and counted:
-    :func:`stnh_tf.data.folder_counts.read_gray_folder`) or, without it, the bundled
-    photographs; the first ``max_images`` of them (0: all).
-
-    Raises:
-      ValueError: no readable image in ``image_dir`` (``SourceError``: the reasons counted).
-    """
-    if not image_dir:
-        images = [img for _, img in bundled_images()]
-        return images[:max_images] if max_images > 0 else images
-    from stnh_tf.data import folder_counts
-
-    return folder_counts.read_gray_folder(image_dir, max_images)[0]
-
-
 # ------------------------------------------------------------------------------------------------
 # Decoding
 # ------------------------------------------------------------------------------------------------

@@ -1,8 +1,8 @@
 """The wide-baseline set of realistic camera pairs (issue 64): motions at full range (zoom
 0.3-3.0, in-plane rotation up to +-180 degrees, a plane's viewpoint up to 60 degrees), kept where
 the two views overlap, and a low-light degradation. Pairs are made by
-:func:`stnh_tf.data.camera_motions.make_image_pairs` with ``motion_set="wide"``; frames and
-rendering as there. NumPy/OpenCV only.
+:func:`stnh_tf.data.camera_pair_files.make_image_pairs` with ``motion_set="wide"``; frames
+and rendering as :mod:`stnh_tf.data.camera_motions`'. NumPy/OpenCV only.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 
 from stnh_tf import geometry
 from stnh_tf.data.camera_motions import (KINDS, WORK_SIZE, Degradation, MotionRanges,
-                                         _draw_full, _homography, in_front)
+                                         _draw_full, _homography)
 
 WIDE_MOTIONS = MotionRanges(zoom=(0.3, 3.0), roll_deg=180.0, view_deg=60.0, shift_px=48.0)
 """The wide-baseline set's ranges (issue 64), each motion drawn at full range
@@ -32,14 +32,15 @@ MIN_OVERLAP = 0.5
 
 def overlap(h_ba, size=WORK_SIZE) -> float:
     """The share of the smaller of image_a and image_b's view that both see: image_b's frame
-    mapped into image_a's by ``h_ba`` (a convex quadrilateral where :func:`in_front`) intersected
-    with image_a's (``cv2.intersectConvexConvex``), over the smaller of the two areas; 0 where a
-    corner of image_b lies behind camera a.
+    mapped into image_a's by ``h_ba`` (a convex quadrilateral where
+    :func:`stnh_tf.geometry.in_front`) intersected with image_a's
+    (``cv2.intersectConvexConvex``), over the smaller of the two areas; 0 where a corner of
+    image_b lies behind camera a.
 
     >>> overlap(np.eye(3)), overlap(geometry.translation(160.0, 0.0))
     (1.0, 0.5)
     """
-    if not in_front(h_ba, size):
+    if not geometry.in_front(h_ba, size):
         return 0.0
     w, h = size
     frame = np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float64)

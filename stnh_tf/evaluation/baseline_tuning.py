@@ -1,8 +1,9 @@
 """The settings grid of the classical baselines, library core of ``experiments.tune_baselines``
 (its docstring says how to run it): paper-protocol pairs drawn in memory from photographs
-(:func:`stnh_tf.data.sources.load_gray_images`, :func:`stnh_tf.data.pairs.make_pair_arrays`),
-identity, the registered baselines and ORB / SIFT settings around them (:func:`settings_grid`), each
-evaluated with :func:`stnh_tf.evaluation.baselines.evaluate_baseline`. NumPy/OpenCV only.
+(:func:`stnh_tf.data.folder_counts.load_gray_images`,
+:func:`stnh_tf.data.pairs.make_pair_arrays`), identity, the registered baselines and ORB / SIFT
+settings around them (:func:`settings_grid`), each evaluated with
+:func:`stnh_tf.evaluation.baselines.evaluate_baseline`. NumPy/OpenCV only.
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ def run_tuning(image_dir=None, num_pairs=300, seed=0, grid="small", max_images=0
     import cv2
 
     from stnh_tf.evaluation import baselines
-    from stnh_tf.data import pairs, sources
+    from stnh_tf.data import pairs
     from stnh_tf.evaluation.benchmarks import machine_info
 
     from stnh_tf.data import folder_counts
@@ -70,7 +71,7 @@ def run_tuning(image_dir=None, num_pairs=300, seed=0, grid="small", max_images=0
     if image_dir:
         images, counts = folder_counts.read_gray_folder(image_dir, max_images)
     else:
-        images, counts = sources.load_gray_images(None, max_images), None
+        images, counts = folder_counts.load_gray_images(None, max_images), None
     pa, pb, h = pairs.make_pair_arrays(images, num_pairs, seed)
     results = {}
     for label, name, overrides in settings_grid(grid):

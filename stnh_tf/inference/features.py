@@ -35,7 +35,6 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry, pixels
-from stnh_tf.data import camera_motions
 from stnh_tf.inference import checks, coarse
 from stnh_tf.inference import search as search_lib
 from stnh_tf.inference.image_input import central_patch
@@ -96,7 +95,7 @@ def feature_start(work_a, work_b):
             or abs(h[2, 2]) < 1e-12:
         return None
     h = geometry.scale_to_unit(h)
-    return h if camera_motions.in_front(h, np.shape(work_b)[::-1]) else None
+    return h if geometry.in_front(h, np.shape(work_b)[::-1]) else None
 
 
 def wanted(first, options: EstimateOptions) -> bool:
