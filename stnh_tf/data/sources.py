@@ -8,8 +8,11 @@ Every source image becomes ``uint8 [240, 320]`` (height, width) through :func:`l
 * decoded with OpenCV (``IMREAD_IGNORE_ORIENTATION``: raw pixel order, EXIF rotation ignored, the
   same as tensorflow-datasets' decoder); JPEGs straight to gray (libjpeg's luma), every other
   file unchanged and then converted here; Pillow is tried when OpenCV cannot decode a file;
-* 16-bit and other wide integer images scaled to 8 bits (``round(v * 255 / 65535)``), float
-  images taken as ``[0, 1]`` when their maximum is <= 1 (else ``[0, 255]``), booleans as 0/255;
+* 16-bit and other wide integer images scaled to 8 bits by the bit depth their values use
+  (``round(v * 255 / (2^b - 1))``, ``b`` the fewest bits, 8 to 16, that hold the image's largest
+  value: :func:`integer_full_scale`; a 16-bit file holding 0..255 reads as the 8-bit image, 12-bit
+  data by 255/4095, full-range data by 255/65535), float images taken as ``[0, 1]`` when their
+  maximum is <= 1 (else ``[0, 255]``), booleans as 0/255;
 * colour (BGR/RGB, palette expanded, CMYK converted by the decoder) to gray with the ITU-R 601
   weights ``0.299 R + 0.587 G + 0.114 B`` (``cv2.COLOR_BGR2GRAY``);
 * an alpha channel is composited onto black (``gray * alpha``), so that hidden colour values of
@@ -39,7 +42,8 @@ IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".pgm", ".ppm", ".pbm", ".p
 
 RESIZE_POLICY = "cv2.INTER_AREA if both sides shrink else cv2.INTER_LINEAR"
 GRAY_POLICY = ("ITU-R 601 luma (cv2 BGR2GRAY; JPEG decoded to gray by libjpeg), 16-bit scaled by "
-               "255/65535, alpha composited onto black, EXIF orientation ignored")
+               "255/(2^b - 1), b the fewest bits (8 to 16) that hold its largest value, alpha "
+               "composited onto black, EXIF orientation ignored")
 
 _JPEG_MAGIC = b"\xff\xd8"
 
@@ -295,6 +299,14 @@ def to_gray_uint8(image: np.ndarray, channel_order: str = "bgr") -> np.ndarray:
     return pixels.to_uint8(gray)
 
 
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """Any decoded image (uint8, 16-bit or other integers, float or bool; any channels) as uint8
+    with its channels kept, scaled as :func:`to_gray_uint8` scales (module docstring): the
+    colours of the pixels that image estimates on."""
+    image = np.asarray(image)
+    return image if image.dtype == np.uint8 else pixels.to_uint8(_unit_float(image))
+
+
 def _unit_float(img: np.ndarray) -> np.ndarray:
     """Scale any dtype to float64 in [0, 1]."""
     if img.dtype == np.bool_:
@@ -302,12 +314,25 @@ def _unit_float(img: np.ndarray) -> np.ndarray:
     if img.dtype == np.uint8:
         return img.astype(np.float64) / 255.0
     if np.issubdtype(img.dtype, np.integer):
-        # 16-bit (uint16, or Pillow's int32 mode "I" holding 16-bit data): full scale 65535.
-        return np.clip(img.astype(np.float64), 0, 65535.0) / 65535.0
+        # 16-bit (uint16, or Pillow's int32 mode "I" holding 16-bit data)
+        return np.clip(img.astype(np.float64), 0, 65535.0) / integer_full_scale(img)
     if np.issubdtype(img.dtype, np.floating):
         f = np.nan_to_num(img.astype(np.float64))
         return np.clip(f if f.size == 0 or f.max() <= 1.0 else f / 255.0, 0.0, 1.0)
     raise ImageDecodeError(f"unsupported pixel type {img.dtype}")
+
+
+def integer_full_scale(img: np.ndarray) -> float:
+    """The value that stands for white in a 16-bit (or other wide integer) image: ``2^b - 1``,
+    ``b`` the fewest bits, from 8 to 16, that hold its largest value. A low-range export (a
+    16-bit PNG holding 0..255) is white at 255, not black; 10-, 12- and 14-bit sensor data at
+    their own full scale; full-range data at 65535.
+
+        >>> [integer_full_scale(np.array([v], np.uint16)) for v in (0, 255, 256, 4095, 65535)]
+        [255, 255, 511, 4095, 65535]
+    """
+    largest = int(np.max(img)) if img.size else 0
+    return 2 ** min(16, max(8, largest.bit_length())) - 1
 
 
 def decode_gray(data: bytes) -> np.ndarray:

@@ -107,7 +107,8 @@ import tensorflow as tf
 def read_gray(path):
     """uint8 [h, w]: a JPEG decoded to gray by libjpeg, another 8-bit file decoded in colour and
     converted with cv2.COLOR_BGR2GRAY; EXIF orientation ignored (stnh_tf's own reader also
-    composites an alpha channel onto black and scales 16-bit files by 255/65535)."""
+    composites an alpha channel onto black and scales 16-bit files by the bit depth their
+    values use)."""
     flags = cv2.IMREAD_IGNORE_ORIENTATION
     with open(path, "rb") as f:
         if f.read(2) == b"\\xff\\xd8":

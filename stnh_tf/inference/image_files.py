@@ -8,9 +8,10 @@ The homography maps image_b pixel coordinates (x, y) to image_a pixel coordinate
 
 Files are read as make_dataset reads them (:func:`stnh_tf.data.sources.read_gray`, one
 implementation): a truncated or corrupt file is refused (OpenCV's ``imread`` would fill in a
-truncated JPEG), an alpha channel is composited onto black, 16-bit images are scaled, and the
-pixel frame is the file's stored pixel order (EXIF orientation ignored). The network sees the
-patch make_dataset would cut from the file; the colours are used only to draw the overlay.
+truncated JPEG), an alpha channel is composited onto black, 16-bit images are scaled by the bit
+depth their values use (their colours too), and the pixel frame is the file's stored pixel order
+(EXIF orientation ignored). The network sees the patch make_dataset would cut from the file; the
+colours are used only to draw the overlay.
 """
 
 import dataclasses
@@ -68,10 +69,11 @@ def read_image(path, name) -> ImageFile:
         gray = sources.read_gray(data)
     except (OSError, sources.ImageDecodeError) as e:
         raise AlignmentError(f"cannot read {name} {path!r} as an image: {e}.") from None
-    colour = cv2.imdecode(np.frombuffer(data, np.uint8),
-                          cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    colour = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR
+                          | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION)
     if colour is None or colour.shape[:2] != gray.shape:
         colour = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+    colour = sources.to_uint8(colour)  # a 16-bit file scaled as its gray
     image = ImageFile(gray=gray, colour=colour)
     try:
         image_input.check_image_size(image.size, f"{name} {path!r}")
