@@ -13,10 +13,16 @@ The layers of the package, each importing only the ones above it (``tests/test_l
 * :mod:`stnh_tf.paper`: the paper's tables and figures, and the demo.
 
 Keras is imported lazily, so data-generation workers that only need the NumPy core never import
-a deep-learning backend.
+a deep-learning backend. Once Keras is imported (before or after this package), this package's
+layers, losses and metric are registered with it
+(:func:`stnh_tf.modeling.register_keras_objects`, a post-import hook), so that after
+``import stnh_tf`` a plain ``keras.models.load_model(path)`` opens the shipped models and any
+model trained here (docs/weights.md).
 """
 
 import importlib
+
+import wrapt
 
 __version__ = "0.1.0"
 
@@ -36,3 +42,7 @@ def __getattr__(name):
     if name in _SUBPACKAGES:
         return importlib.import_module(f"stnh_tf.{name}")
     raise AttributeError(f"module 'stnh_tf' has no attribute {name!r}")
+
+
+# (wrapt: installed with TensorFlow; the hook imports stnh_tf.modeling only once Keras is imported)
+wrapt.register_post_import_hook("stnh_tf.modeling:register_keras_objects", "keras")

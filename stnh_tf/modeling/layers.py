@@ -1,5 +1,7 @@
 """Keras layers of STN-Homography: the projective spatial transformer (and where its warp is
-defined, :class:`WarpValidity`) and the Homography Merge.
+defined, :class:`WarpValidity`), the Homography Merge, the per-patch input standardization, and
+the HomographyNet baseline's :class:`OffsetsToHBar`: every custom layer of the package, each
+registered with Keras (``import stnh_tf`` imports this module once Keras is imported).
 
 They are written with ``keras.ops`` only, so they run under the TensorFlow and JAX backends.
 Conventions (direction, the paper's ``M``) are those of :mod:`stnh_tf.geometry`.
@@ -278,3 +280,32 @@ class HomographyMerge(keras.layers.Layer):
         config = super().get_config()
         config["output_matrix"] = self.output_matrix
         return config
+
+
+HOMOGRAPHYNET_SCALE = float(geometry.MAX_PERTURBATION)
+"""What :class:`OffsetsToHBar` multiplies the HomographyNet baseline's outputs by: the
+perturbation range, 32 px (its targets, the corners' offsets / 32, lie in ``[-1, 1]``)."""
+
+
+@keras.saving.register_keras_serializable(package="stnh_tf")
+class OffsetsToHBar(keras.layers.Layer):
+    """Four-point offsets (scaled by 1/32) ``[B, 8]`` -> normalized ``H_bar`` ``[B, 8]``.
+
+    Lets the HomographyNet baseline be trained and evaluated through the same ``h_bar`` interface:
+    offsets are ``H_ba @ c - c`` for the corners of :func:`geometry.patch_corners`.
+    """
+
+    def __init__(self, size: int = geometry.PATCH_SIZE, scale: float = HOMOGRAPHYNET_SCALE,
+                 **kwargs):
+        kwargs.setdefault("dtype", "float32")
+        super().__init__(**kwargs)
+        self.size, self.scale = int(size), float(scale)
+
+    def call(self, offsets):
+        offsets = ops.cast(offsets, "float32") * self.scale
+        h = geometry.offsets_to_homography(ops.reshape(offsets, (-1, 4, 2)), self.size)
+        h_bar = geometry.normalize_homography(h, self.size, self.size)
+        return ops.reshape(h_bar, (-1, 9))[:, :8]
+
+    def get_config(self):
+        return {**super().get_config(), "size": self.size, "scale": self.scale}

@@ -16,10 +16,11 @@ from __future__ import annotations
 
 import keras
 import numpy as np
-from keras import layers, ops
+from keras import layers
 
 from stnh_tf import geometry
-from stnh_tf.modeling.layers import (HomographyMerge, PatchStandardization, SpatialTransformer,
+from stnh_tf.modeling.layers import (HOMOGRAPHYNET_SCALE, HomographyMerge,  # noqa: F401
+                                     OffsetsToHBar, PatchStandardization, SpatialTransformer,
                                      WarpValidity)
 
 IDENTITY_H_BAR = np.array([1, 0, 0, 0, 1, 0, 0, 0], dtype=np.float32)
@@ -261,33 +262,6 @@ def build_sequence_stn_homography(num_stages: int = 2, batch_norm: str = DEFAULT
 SequenceSTNHomography = build_sequence_stn_homography
 """Public name of the sequence model: ``SequenceSTNHomography(num_stages=2, ...)`` returns the
 Functional model of :func:`build_sequence_stn_homography` (the same function)."""
-
-
-HOMOGRAPHYNET_SCALE = float(geometry.MAX_PERTURBATION)
-
-
-@keras.saving.register_keras_serializable(package="stnh_tf")
-class OffsetsToHBar(layers.Layer):
-    """Four-point offsets (scaled by 1/32) ``[B, 8]`` -> normalized ``H_bar`` ``[B, 8]``.
-
-    Lets the HomographyNet baseline be trained and evaluated through the same ``h_bar`` interface:
-    offsets are ``H_ba @ c - c`` for the corners of :func:`geometry.patch_corners`.
-    """
-
-    def __init__(self, size: int = geometry.PATCH_SIZE, scale: float = HOMOGRAPHYNET_SCALE,
-                 **kwargs):
-        kwargs.setdefault("dtype", "float32")
-        super().__init__(**kwargs)
-        self.size, self.scale = int(size), float(scale)
-
-    def call(self, offsets):
-        offsets = ops.cast(offsets, "float32") * self.scale
-        h = geometry.offsets_to_homography(ops.reshape(offsets, (-1, 4, 2)), self.size)
-        h_bar = geometry.normalize_homography(h, self.size, self.size)
-        return ops.reshape(h_bar, (-1, 9))[:, :8]
-
-    def get_config(self):
-        return {**super().get_config(), "size": self.size, "scale": self.scale}
 
 
 def _four_point_model(regressor, size: int, name: str) -> keras.Model:

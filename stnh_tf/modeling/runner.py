@@ -31,7 +31,9 @@ COMPUTE_DTYPES = ("float32", "bfloat16", "float16")
 
 
 def load_model(model_dir_or_file, compute_dtype=None):
-    """Load a trained Keras model from a model directory (its ``model.keras``) or a file.
+    """Load a trained Keras model from a model directory (its ``model.keras``) or a file: a thin
+    wrapper of ``keras.models.load_model(path, compile=False)`` (which opens the same files after
+    ``import stnh_tf``), with the errors below and the choice of precision.
 
     ``compute_dtype="float32"`` rebuilds a model saved with a mixed-precision policy (e.g.
     ``mixed_bfloat16``, as the CPU-budget models were trained) so every layer computes in
@@ -46,11 +48,7 @@ def load_model(model_dir_or_file, compute_dtype=None):
     if compute_dtype is not None and compute_dtype not in COMPUTE_DTYPES:
         raise ValueError(f"compute_dtype must be None (as saved) or one of {COMPUTE_DTYPES}; "
                          f"received {compute_dtype!r}.")
-    import keras
-
-    import stnh_tf.modeling.layers  # noqa: F401  (registers the custom layers)
-    import stnh_tf.modeling.losses  # noqa: F401
-    import stnh_tf.modeling.models  # noqa: F401
+    import keras  # (its import registers this package's layers: stnh_tf/__init__.py)
 
     path = model_dir_or_file
     if os.path.isdir(path):
