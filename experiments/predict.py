@@ -27,7 +27,8 @@ it the shipped default weights are used. Resizing rule: see ``stnh_tf.inference.
 The files are read as ``make_dataset`` reads them (``stnh_tf.inference.image_files``): a
 truncated or corrupt file is refused, an alpha channel is composited onto black, pixel frames
 are the files' stored pixel order (EXIF orientation ignored); an image under 20 x 15 px is
-refused (too small for the patch).
+refused (too small for the patch), and one whose header declares more than
+``--max_image_pixels`` pixels before it is decoded (a decompression bomb).
 """
 
 import json
@@ -36,6 +37,7 @@ import sys
 from absl import app, flags
 
 from experiments import common, flags_common
+from stnh_tf.data import sources
 from stnh_tf.inference import image_files
 from stnh_tf.inference.options import EstimateOptions
 
@@ -47,6 +49,11 @@ flags.DEFINE_string("model", None, "Model: .keras file, run directory or hierarc
                     "(default: the weights shipped in stnh_tf/weights).")
 flags.DEFINE_string("output_dir", ".",
                     "Folder for the overlay PNG and the JSON (created if missing).")
+flags.DEFINE_integer("max_image_pixels", sources.MAX_IMAGE_PIXELS,
+                     "Refuse an image whose header declares more pixels (width x height) than "
+                     "this, before decoding it (a guard against decompression bombs: a small "
+                     "file that decodes to gigabytes; about 17 bytes of memory a pixel).",
+                     lower_bound=1)
 # estimate_images' default options
 flags_common.define_estimate_flags(("refine", "tta", "retry_tta", "search", "coarse", "verify",
                                     "features"),
@@ -63,7 +70,7 @@ def main(argv):
             FLAGS.image_a, FLAGS.image_b, FLAGS.model, FLAGS.output_dir,
             warn=lambda message: print(f"predict: warning: {message}", file=sys.stderr),
             note=lambda message: print(f"predict: note: {message}", file=sys.stderr),
-            options=options)
+            options=options, max_pixels=FLAGS.max_image_pixels)
     except image_files.AlignmentError as e:
         raise SystemExit(f"predict: {e}") from None
     print(json.dumps(result, indent=2))

@@ -19,6 +19,7 @@ SKIP_KINDS = (
     ("not an image", "not a decodable image"),
     ("unsupported image", "unsupported "),
     ("too small", "image is "),  # sources.check_image_size: under 20 x 15 px
+    ("too large", "too large"),  # sources.check_pixel_count: a decompression bomb
 )
 """``(kind, start of the reason)``: the kinds a skipped file is counted under (:func:`skip_kind`),
 from the reasons :mod:`stnh_tf.data.sources` gives (:class:`~stnh_tf.data.sources.ImageDecodeError`,

@@ -5,6 +5,8 @@ Keras, so data-generation worker processes and the backend-free ``PairSequence``
 
 Every source image becomes ``uint8 [240, 320]`` (height, width) through :func:`load_gray_320x240`:
 
+* refused before decoding when the header declares more than :data:`MAX_IMAGE_PIXELS` pixels
+  (a decompression bomb; :func:`check_pixel_count`);
 * decoded with OpenCV (``IMREAD_IGNORE_ORIENTATION``: raw pixel order, EXIF rotation ignored, the
   same as tensorflow-datasets' decoder); JPEGs straight to gray (libjpeg's luma), every other
   file unchanged and then converted here; Pillow is tried when OpenCV cannot decode a file;
@@ -47,6 +49,13 @@ GRAY_POLICY = ("ITU-R 601 luma (cv2 BGR2GRAY; JPEG decoded to gray by libjpeg), 
 
 _JPEG_MAGIC = b"\xff\xd8"
 
+MAX_IMAGE_PIXELS = 120_000_000
+"""The most pixels (width x height) an image file may decode to (120 megapixels: a 108-MP phone
+photograph passes). Checked from the file's header before it is decoded (:func:`decode_gray`),
+as Pillow's decompression-bomb guard does: a 250 KB PNG can declare 16,000 x 16,000 pixels, and
+``predict`` needed 4.3 GB for it (about 17 bytes a pixel). ``predict --max_image_pixels`` raises
+it."""
+
 # Natural photographs shipped inside scikit-image's wheel (no download needed); synthetic
 # images (checkerboards, logos, colour wheels, silhouettes) are left out on purpose.
 _SKIMAGE_PHOTOS = ("astronaut.png", "brick.png", "camera.png", "cell.png", "chelsea.png",
@@ -63,6 +72,10 @@ class ImageDecodeError(ValueError):
 
 class ImageTooSmallError(ImageDecodeError):
     """An image too small for the protocol's patches (:func:`check_image_size`)."""
+
+
+class ImageTooLargeError(ImageDecodeError):
+    """An image whose header declares more pixels than the cap (:func:`check_pixel_count`)."""
 
 
 class SourceError(ValueError):
@@ -335,14 +348,59 @@ def integer_full_scale(img: np.ndarray) -> float:
     return 2 ** min(16, max(8, largest.bit_length())) - 1
 
 
-def decode_gray(data: bytes) -> np.ndarray:
-    """Encoded image bytes -> ``uint8 [h, w]`` gray at the file's own size.
+def header_size(data: bytes):
+    """``(w, h)`` that the header of the encoded image ``data`` declares, read by Pillow's format
+    plugins (the first whose ``accept`` takes the data's prefix and whose header reader
+    succeeds, as ``PIL.Image.open`` chooses) without decoding the pixels; ``None`` where no
+    plugin reads the header (the decoder then finds out). ``PIL.Image.open`` itself is not used:
+    above twice ``PIL.Image.MAX_IMAGE_PIXELS`` it raises without giving the size, and its limit
+    is not this module's (:data:`MAX_IMAGE_PIXELS`, which a binary's flag may raise)."""
+    try:
+        from PIL import Image
+    except ImportError:  # pragma: no cover - Pillow comes with matplotlib
+        return None
+    Image.init()  # every format's header reader (once per process)
+    for fmt in Image.ID:
+        factory, accept = Image.OPEN[fmt]
+        accepted = accept(data[:16]) if accept else True
+        if not accepted or isinstance(accepted, str):  # a str: "this format, unsupported"
+            continue
+        try:
+            with factory(io.BytesIO(data), "") as im:  # reads the header, decodes nothing
+                return int(im.size[0]), int(im.size[1])
+        except Exception:  # noqa: BLE001 - not this format's header, as Image.open goes on
+            continue
+    return None
+
+
+def check_pixel_count(size, max_pixels: int = MAX_IMAGE_PIXELS) -> None:
+    """:class:`ImageTooLargeError` when an image of header ``size`` (:func:`header_size`: ``(w,
+    h)``, or ``None``: unknown) has more than ``max_pixels`` pixels.
+
+        >>> check_pixel_count((16000, 16000))  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        stnh_tf.data.sources.ImageTooLargeError: too large to decode: 16,000 x 16,000 px ...
+    """
+    if size is not None and size[0] * size[1] > max_pixels:
+        raise ImageTooLargeError(
+            f"too large to decode: {size[0]:,} x {size[1]:,} px is {size[0] * size[1]:,} pixels, "
+            f"over the cap of {max_pixels:,} (a guard against decompression bombs: a small file "
+            "that decodes to gigabytes)")
+
+
+def decode_gray(data: bytes, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
+    """Encoded image bytes -> ``uint8 [h, w]`` gray at the file's own size. The size its header
+    declares is checked against ``max_pixels`` first (:func:`check_pixel_count`), before
+    anything is decoded.
 
     Raises:
-      ImageDecodeError: empty, truncated, corrupt or non-image data (message = reason).
+      ImageDecodeError: empty, truncated, corrupt or non-image data (message = reason);
+        ImageTooLargeError: over ``max_pixels``.
     """
     if len(data) == 0:
         raise ImageDecodeError("empty file (0 bytes)")
+    check_pixel_count(header_size(data), max_pixels)
     buf = np.frombuffer(data, np.uint8)
     flags = cv2.IMREAD_IGNORE_ORIENTATION
     if data[:2] == _JPEG_MAGIC:
@@ -376,6 +434,8 @@ def _decode_with_pillow(data: bytes) -> np.ndarray:
             arr = np.asarray(im)
     except UnidentifiedImageError:
         raise ImageDecodeError("not a decodable image (unknown or corrupt format)") from None
+    except Image.DecompressionBombError as e:  # a cap raised beyond Pillow's own limit
+        raise ImageTooLargeError(f"too large for Pillow's decoder: {e}") from None
     except (OSError, ValueError, SyntaxError) as e:
         raise ImageDecodeError(f"corrupt or truncated image: {e}") from None
     return to_gray_uint8(arr, "rgb")
@@ -417,13 +477,15 @@ def resize_to_protocol(gray: np.ndarray, width: int = geometry.IMAGE_WIDTH,
     return cv2.resize(gray, (width, height), interpolation=interp)
 
 
-def read_gray(path_or_bytes) -> np.ndarray:
+def read_gray(path_or_bytes, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
     """Read an image file (path) or encoded bytes -> ``uint8 [h, w]`` gray at the file's own size
-    (:func:`decode_gray`: the module docstring's rules, a truncated file refused). The one reading
+    (:func:`decode_gray`: the module docstring's rules, a truncated file refused, one whose
+    header declares more than ``max_pixels`` pixels refused before decoding). The one reading
     of image files: make_dataset's (:func:`load_gray_320x240`) and ``experiments.predict``'s.
 
     Raises:
-      ImageDecodeError: the file cannot be read or decoded (message = reason).
+      ImageDecodeError: the file cannot be read or decoded (message = reason);
+        ImageTooLargeError: over ``max_pixels``.
     """
     if isinstance(path_or_bytes, (bytes, bytearray, memoryview)):
         data = bytes(path_or_bytes)
@@ -434,7 +496,7 @@ def read_gray(path_or_bytes) -> np.ndarray:
         except OSError as e:
             reason = f"unreadable file: {type(e).__name__}: {e.strerror or e}"
             raise ImageDecodeError(reason) from None
-    return decode_gray(data)
+    return decode_gray(data, max_pixels)
 
 
 def load_gray_320x240(path_or_bytes) -> np.ndarray:

@@ -47,13 +47,14 @@ class ImageFile:
         return int(self.gray.shape[1]), int(self.gray.shape[0])
 
 
-def read_image(path, name) -> ImageFile:
+def read_image(path, name, max_pixels: int | None = None) -> ImageFile:
     """The image file at ``path`` (``name``: "image_a" or "image_b", for the messages), read as
-    make_dataset reads it (module docstring).
+    make_dataset reads it (module docstring), refused before decoding when its header declares
+    more than ``max_pixels`` pixels (``None``: :data:`stnh_tf.data.sources.MAX_IMAGE_PIXELS`).
 
     Raises:
       AlignmentError: one line naming the file: missing, unreadable, not an image, truncated or
-        corrupt, or too small for the patch
+        corrupt, over ``max_pixels`` (naming ``--max_image_pixels``), or too small for the patch
         (:func:`stnh_tf.inference.image_input.check_image_size`).
     """
     import cv2
@@ -61,12 +62,17 @@ def read_image(path, name) -> ImageFile:
     from stnh_tf.data import sources
     from stnh_tf.inference import image_input
 
+    if max_pixels is None:
+        max_pixels = sources.MAX_IMAGE_PIXELS
     if not os.path.isfile(path):
         raise AlignmentError(f"{name} {path!r} does not exist or is not a file.")
     try:
         with open(path, "rb") as f:
             data = f.read()
-        gray = sources.read_gray(data)
+        gray = sources.read_gray(data, max_pixels)
+    except sources.ImageTooLargeError as e:
+        raise AlignmentError(f"{name} {path!r} is {e}; --max_image_pixels raises the cap.") \
+            from None
     except (OSError, sources.ImageDecodeError) as e:
         raise AlignmentError(f"cannot read {name} {path!r} as an image: {e}.") from None
     colour = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR
@@ -379,14 +385,16 @@ def _finite_or_none(x):
 
 
 def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", warn=_warn_stderr,
-                      options=None, note=_note_stderr):
+                      options=None, note=_note_stderr, max_pixels: int | None = None):
     """Estimate ``H_ba`` between two image files with ``model`` (what
     ``HomographyEstimator.load`` takes; ``None``: the shipped weights) and ``options`` (an
     :class:`~stnh_tf.inference.options.EstimateOptions`; ``None``: the estimator's default for
     images, ``EstimateOptions.photographs()``), write
     ``<a>__<b>_overlay.png`` and ``<a>__<b>_homography.json`` into ``output_dir`` (created if
     missing; :func:`output_stem`) and return the JSON's content. ``warn`` receives the warning
-    of an implausible estimate, ``note`` each line of :func:`deviation_notes`.
+    of an implausible estimate, ``note`` each line of :func:`deviation_notes`. An image whose
+    header declares more than ``max_pixels`` pixels is refused before it is decoded
+    (:func:`read_image`).
 
     Raises:
       AlignmentError: an image cannot be read, ``output_dir`` cannot be written, or the model
@@ -397,8 +405,8 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
     from stnh_tf import paths
     from stnh_tf.inference.estimator import HomographyEstimator
 
-    image_a = read_image(image_a_path, "image_a")
-    image_b = read_image(image_b_path, "image_b")
+    image_a = read_image(image_a_path, "image_a", max_pixels)
+    image_b = read_image(image_b_path, "image_b", max_pixels)
     try:
         output_dir = paths.check_output_dir(output_dir)
     except OSError as e:
