@@ -31,7 +31,7 @@ flags.DEFINE_integer("batch_size", 64, "Read batch size.")
 flags.DEFINE_integer("read_batches", 200, "Batches timed when reading (after 10 warm-up).")
 flags.DEFINE_integer("resume_skip_batches", 0, "Also time resuming the stream at this batch "
                      "(0: not timed).")
-flags.DEFINE_integer("seed", 0, "Generation seed.")
+flags_common.define_seed("Generation seed.")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them

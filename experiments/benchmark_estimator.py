@@ -25,7 +25,7 @@ flags.DEFINE_enum("compute_dtype", "float32", ["float32", "as_saved"],
 flags.DEFINE_integer("runs", 30, "Timed calls per measurement (median reported).")
 flags.DEFINE_integer("warmup", 5, "Untimed calls first.")
 flags.DEFINE_integer("large_batch", 256, "Pairs per call of the large-batch measurement.")
-flags.DEFINE_integer("seed", 0, "Seed of the inputs.")
+flags_common.define_seed("Seed of the inputs.")
 # search=none by default: random patches do not align, so the search would take every pair.
 DEFAULTS = EstimateOptions(search="none")
 flags_common.define_estimate_flags(("tta", "search"), DEFAULTS)

@@ -33,7 +33,7 @@ flags.DEFINE_integer("warmup", 20, "Untimed calls first.")
 flags.DEFINE_enum("policy", "float32", ["float32", "mixed_bfloat16"], "Dtype policy of built "
                   "models (loaded models keep theirs; the JSON's policy says what ran).")
 flags.DEFINE_bool("sequence", True, "Also time sequence models with 1..max_stages stages.")
-flags.DEFINE_integer("seed", 0, "Seed of the inputs and weights.")
+flags_common.define_seed("Seed of the inputs and weights.")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 

@@ -22,7 +22,7 @@ flags.DEFINE_integer("batch_size", 64, "Patches per batch.")
 flags.DEFINE_integer("size", 128, "Patch side in pixels.")
 flags.DEFINE_integer("iterations", 30, "Timed iterations per measurement (the median is reported).")
 flags.DEFINE_integer("warmup", 3, "Untimed iterations before each measurement (tracing, XLA).")
-flags.DEFINE_integer("seed", 0, "Seed for patch positions and homographies.")
+flags_common.define_seed("Seed for patch positions and homographies.")
 flags.DEFINE_bool("jit_compile", False, "Compile the tf.functions with XLA.")
 flags.DEFINE_bool("compare_jit", False,
                   "Measure both jit_compile=False and True (overrides --jit_compile).")

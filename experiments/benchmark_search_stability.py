@@ -21,7 +21,7 @@ from experiments import common, flags_common
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
 flags.DEFINE_integer("stages", None, "Use only the first N stages of the hierarchy.")
-flags.DEFINE_integer("seed", 0, "Seed of the bundled test pairs (the model card's: 0).")
+flags_common.define_seed("Seed of the bundled test pairs (the model card's: 0).")
 flags.DEFINE_integer("samples_per_image", 3, "Pairs per bundled test photograph.")
 flags.DEFINE_bool("photometric", False, "patch_b also changed in brightness, contrast and gamma.")
 flags.DEFINE_list("perturbations", ["0.01", "0.1", "0.3"], "Start moves (px) of the search.")

@@ -17,7 +17,7 @@ from experiments import common, flags_common
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
 flags.DEFINE_integer("pairs", 8, "Photograph pairs per size.")
-flags.DEFINE_integer("seed", 0, "Seed of the pairs' warps.")
+flags_common.define_seed("Seed of the pairs' warps.")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them

@@ -22,7 +22,7 @@ flags.DEFINE_integer("samples_per_image", 40, "Pairs made from each photograph."
 flags.DEFINE_list("threads", ["1", "2"], "Thread counts to time.")
 flags.DEFINE_integer("repeats", 2, "Timings per thread count.")
 flags.DEFINE_float("error_px", 8.0, "Oracle error: each corner moved by up to this (pixels).")
-flags.DEFINE_integer("seed", 0, "Pair and oracle seed.")
+flags_common.define_seed("Pair and oracle seed.")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them

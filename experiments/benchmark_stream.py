@@ -38,7 +38,7 @@ flags.DEFINE_list("modes", ["array", "stream", "fresh"], "Inputs to time inside 
 flags.DEFINE_integer("steps_per_epoch", 50, "Keras epoch length (training checkpoints each epoch).")
 flags.DEFINE_integer("epochs", 3, "Timed Keras epochs (after one untimed).")
 flags.DEFINE_bool("mixed_precision", True, "Keras mixed_bfloat16 policy.")
-flags.DEFINE_integer("seed", 0, "Pair and weight seed.")
+flags_common.define_seed("Pair and weight seed.")
 flags.DEFINE_list("steps_per_execution", ["1"], "Keras steps_per_execution values to time each "
                   "mode at (each must divide --steps_per_epoch).")
 flags.DEFINE_list("callbacks", ["none"], "Callbacks to time each mode with: none, training (the "

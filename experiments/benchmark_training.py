@@ -30,7 +30,7 @@ flags.DEFINE_integer("warmup", 3, "Untimed steps first.")
 flags.DEFINE_list("policies", ["float32", "mixed_bfloat16"], "Keras dtype policies to measure.")
 flags.DEFINE_bool("jit", False, "Also measure jit_compile=True.")
 flags.DEFINE_integer("latency_runs", 200, "Batch-1 inference calls timed.")
-flags.DEFINE_integer("seed", 0, "Seed of the batches and weights.")
+flags_common.define_seed("Seed of the batches and weights.")
 flags.DEFINE_bool("unlabeled", False, "Also time the step of a run with unlabeled pairs, every "
                   "pair unlabeled (h_mask 0: the L1 term against patch_b alone), against the "
                   "labeled one.")

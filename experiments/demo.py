@@ -18,10 +18,11 @@ import sys
 
 from absl import app, flags
 
+from experiments import flags_common
 from stnh_tf.paper import demo
 
 flags.DEFINE_string("output_dir", "demo_output", "Where the test set, results.json and the PNG go.")
-flags.DEFINE_integer("seed", 0, "Seed of the test pairs.")
+flags_common.define_seed("Seed of the test pairs.")
 flags.DEFINE_integer("samples_per_image", 3, "Pairs per bundled photograph.")
 flags.DEFINE_integer("examples", 4, "Pairs drawn in the figure.")
 FLAGS = flags.FLAGS

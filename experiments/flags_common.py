@@ -285,6 +285,13 @@ def define_max_images(flag_values=flags.FLAGS, help_text: str = MAX_IMAGES_HELP)
     flags.DEFINE_integer("max_images", 0, help_text, lower_bound=0, flag_values=flag_values)
 
 
+def define_seed(help_text: str, flag_values=flags.FLAGS):
+    """``--seed`` (an integer >= 0, default 0) of a binary: absl refuses a negative value at
+    parsing, naming the flag (``flag --seed=-1: -1 is not a non-negative integer``), before
+    NumPy's ``default_rng`` refuses it in its own words or anything is written."""
+    flags.DEFINE_integer("seed", 0, help_text, lower_bound=0, flag_values=flag_values)
+
+
 def define_json_out(flag_values=flags.FLAGS):
     """``--json_out``: where a binary also writes the JSON it prints
     (:func:`experiments.common.emit_json`)."""

@@ -32,7 +32,7 @@ flags.DEFINE_string("image_dir", "../shared/data/coco_mini/test",
                     "measured); give your folder.")
 flags_common.define_max_images()
 flags.DEFINE_integer("pairs_per_image", 3, "Pairs per photograph (groups cycle over the pairs).")
-flags.DEFINE_integer("seed", 0, "Seed: photograph i draws from default_rng([seed, i]).")
+flags_common.define_seed("Seed: photograph i draws from default_rng([seed, i]).")
 flags.DEFINE_bool("overwrite", False, "Replace a set already in --output_dir.")
 flags.DEFINE_enum("motion_set", "size", ["size", "wide"],
                   "size: groups within / 1-2x / 2-4x the trained range; wide: zoom 0.3-3.0, "
