@@ -50,6 +50,8 @@ def main(argv):
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     sources.quiet_opencv()
     with common.user_errors("make_dataset", (sources.SourceError, ValueError, OSError)):
+        common.check_flags_apart(("output_dir",), ("image_dir", "tfds_data_dir"))
+        common.check_not_a_run(FLAGS.output_dir)
         split = stage1.make_dataset(
             FLAGS.source, FLAGS.output_dir, FLAGS.split, image_dir=FLAGS.image_dir,
             samples_per_image=FLAGS.samples_per_image, seed=FLAGS.seed,

@@ -32,12 +32,36 @@ flags.DEFINE_bool("overwrite", False, "Regenerate splits that are already comple
 FLAGS = flags.FLAGS
 
 
+def check_model_stage(model_dir, stage: int) -> None:
+    """Stage-``stage`` data is made with the stage-(``stage``-1) model: refuse a ``model_dir``
+    whose run configuration or stage record says another stage
+    (:func:`stnh_tf.training.run_records.trained_stage`); where none says it (a ``.keras`` file
+    alone), log that the stage could not be checked.
+
+    Raises:
+      ValueError: naming the model, its stage, the file that says so and the stage needed.
+    """
+    from stnh_tf.training import run_records
+
+    found = run_records.trained_stage(model_dir)
+    if found is None and os.path.exists(model_dir):
+        logging.warning("%s records no stage (no run config.json or stage record beside it): "
+                        "taken to be the stage-%d model.", model_dir, stage - 1)
+    elif found is not None and found[0] != stage - 1:
+        raise ValueError(f"--model_dir {model_dir} is a stage-{found[0]} model ({found[1]}); "
+                         f"stage-{stage} data is made with the stage-{stage - 1} model (trained "
+                         f"on stage-{stage - 1} data).")
+
+
 def main(argv):
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     with common.user_errors("make_stage_dataset"):  # every split's flags, before the model loads
         stage_k.check_stage_arguments(FLAGS.stage, FLAGS.input_dir, FLAGS.output_dir,
                                       FLAGS.splits, num_shards=FLAGS.num_shards)
+        common.check_flags_apart(("output_dir",), ("input_dir", "model_dir"))
+        common.check_not_a_run(FLAGS.output_dir)
+        check_model_stage(FLAGS.model_dir, FLAGS.stage)
     for split in FLAGS.splits:
         with common.user_errors("make_stage_dataset"):
             result = stage_k.make_stage_dataset(

@@ -39,6 +39,8 @@ flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 def main(argv):
     del argv
+    with common.user_errors("benchmark_data"):
+        common.check_flags_apart(("json_out",), ("image_dir",))
     result = benchmark.data_benchmark(
         FLAGS.source, FLAGS.image_dir, FLAGS.max_images, FLAGS.repeat, FLAGS.workers,
         FLAGS.num_shards, FLAGS.batch_size, FLAGS.read_batches, FLAGS.resume_skip_batches,

@@ -36,6 +36,8 @@ flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 def main(argv):
     del argv
+    with common.user_errors("benchmark_estimator"):
+        common.check_flags_apart(("json_out",), (), models=("model",))
     import tensorflow as tf  # noqa: F401  (loaded first, so machine_info reports it)
 
     result = benchmarks.estimator_benchmark(FLAGS.model, FLAGS.compute_dtype, FLAGS.runs,

@@ -49,6 +49,8 @@ flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 def main(argv):
     del argv
+    with common.user_errors("benchmark_latency"):
+        common.check_flags_apart(("json_out",), ("model_dir",))
     import keras
 
     if keras.backend.backend() == "tensorflow":

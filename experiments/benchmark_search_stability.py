@@ -32,6 +32,8 @@ flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 def main(argv):
     del argv
+    with common.user_errors("benchmark_search_stability"):
+        common.check_flags_apart(("json_out",), (), models=("model",))
     import tensorflow as tf  # noqa: F401  (loaded first, so machine_info reports it)
 
     from stnh_tf.data import stage1

@@ -28,6 +28,8 @@ SIZES = [(320, 240), (320, 32), (320, 24), (320, 16), (320, 14), (320, 8), (320,
 
 def main(argv):
     del argv
+    with common.user_errors("benchmark_small_images"):
+        common.check_flags_apart(("json_out",), (), models=("model",))
     import tensorflow as tf  # noqa: F401  (loaded first, so machine_info reports it)
 
     from stnh_tf.evaluation import benchmarks, small_images

@@ -14,7 +14,9 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common, flags_common
+from stnh_tf.data import sources
 from stnh_tf.evaluation import data_benchmark as benchmark
+from stnh_tf.paths import check_apart
 
 flags.DEFINE_string("images", "bundled", "Photographs: 'bundled' or folders (comma-separated).")
 flags_common.define_max_images()
@@ -31,6 +33,8 @@ flags.adopt_module_key_flags(flags_common)  # --help lists them
 def main(argv):
     del argv
     with common.user_errors("benchmark_stage_pairs"):
+        folders = [] if FLAGS.images == "bundled" else sources.split_folders(FLAGS.images)
+        check_apart({"--json_out": FLAGS.json_out}, {"--images": folders})
         result = benchmark.stage_pairs_benchmark(FLAGS.images, FLAGS.samples_per_image,
                                                  FLAGS.threads, FLAGS.repeats, FLAGS.error_px,
                                                  FLAGS.seed, FLAGS.max_images)

@@ -51,6 +51,8 @@ flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 def main(argv):
     del argv
+    with common.user_errors("benchmark_stream"):
+        common.check_flags_apart(("json_out",), ("image_dir",))
     result = benchmarks.stream_benchmark(
         FLAGS.image_dir, FLAGS.workers, FLAGS.samples_per_image, FLAGS.batch_size,
         FLAGS.alone_batches, FLAGS.modes, FLAGS.steps_per_epoch, FLAGS.epochs,

@@ -34,6 +34,7 @@ def main(argv):
     del argv
     with common.user_errors("check_implausible"):
         summaries.check_json_out(FLAGS.json_out)
+        common.check_flags_apart(("json_out",), ("data_dir",), models=("model",))
         result = mace.implausibility_check(FLAGS.model, FLAGS.data_dir, FLAGS.split,
                                            photometric=FLAGS.photometric,
                                            options=flags_common.options_from_flags())

@@ -39,7 +39,7 @@ from absl import app, flags
 
 from experiments import common
 from stnh_tf.paper.budgets import SCHEDULE_PARTS
-from stnh_tf.paths import atomic_write_text, inside
+from stnh_tf.paths import atomic_write_text, inside, link_below
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SHARED = os.path.join(os.path.dirname(REPO), "shared", "data")
@@ -118,11 +118,13 @@ class OutputFiles:
         """List ``path`` (inside ``out``) as written; returns it, its folder made.
 
         Raises:
-          FileExistsError: something is at ``path`` already (nothing is listed or written)."""
+          FileExistsError: something is at ``path`` already, or a symbolic link is on the way to
+            it from ``out`` (nothing is listed or written)."""
+        rel = os.path.relpath(path, self.out)
+        _refuse_links(self.out, [rel])
         if os.path.lexists(path):
             raise FileExistsError(f"{path} exists and was not written by device_photographs: "
                                   "not replacing it; move it away.")
-        rel = os.path.relpath(path, self.out)
         with open(os.path.join(self.out, MARKER), "a") as f:
             f.write(rel + "\n")
         self.written.append(rel)
@@ -130,13 +132,27 @@ class OutputFiles:
         return path
 
 
+def _refuse_links(out: str, rels) -> None:
+    """Raise ``FileExistsError`` naming the first symbolic link on the way from ``out`` to one of
+    ``rels`` (:func:`stnh_tf.paths.link_below`): this tool writes none, and one there may lead
+    out of ``out`` (to the photographs it copies)."""
+    for rel in rels:
+        inside(out, rel, f"{os.path.join(out, MARKER)!r}, a listed file")  # (or ValueError)
+        link = link_below(out, rel)
+        if link is not None:
+            raise FileExistsError(f"{link} is a symbolic link, not written by device_photographs; "
+                                  "nothing is removed or written through it: remove the link.")
+
+
 def _remove_files(out: str, rels) -> None:
-    """Remove the files ``rels`` (relative to ``out``) that are there, then every folder between
-    them and ``out`` that this leaves empty."""
+    """Remove the files ``rels`` (relative to ``out``) that are there, as plain files, then every
+    folder between them and ``out`` that this leaves empty. Refused before anything is removed
+    where a symbolic link is on the way to one of them (:func:`_refuse_links`)."""
+    _refuse_links(out, rels)
     folders = set()
     for rel in rels:
         path = inside(out, rel, f"{os.path.join(out, MARKER)!r}, a listed file")
-        if os.path.isfile(path) or os.path.islink(path):
+        if os.path.isfile(path):
             os.remove(path)
         parent = os.path.dirname(os.path.normpath(rel))
         while parent:
@@ -291,6 +307,7 @@ def main(argv):
         print(json.dumps({"restored": restore()}, indent=1))
         return
     with common.user_errors("device_photographs", (ValueError, OSError, RuntimeError)):
+        common.check_flags_apart(("output_dir",), ("coco_dir", "extra_dir", "wheels_dir"))
         aside = set_aside() if FLAGS.set_aside else 0
         try:
             report = plan_calls()

@@ -46,6 +46,7 @@ def main(argv):
         raise SystemExit("evaluate: give --model_dir and/or --baselines.")
     with common.user_errors("evaluate"):
         summaries.check_json_out(FLAGS.json_out)  # before: the result must not be lost at the end
+        common.check_flags_apart(("json_out",), ("model_dir", "data_dir"))
         result = evaluation.evaluate(FLAGS.model_dir, FLAGS.data_dir, FLAGS.split, FLAGS.baselines,
                                      FLAGS.max_samples, FLAGS.batch_size,
                                      FLAGS.compute_dtype, clip_to_context=not FLAGS.no_clip)

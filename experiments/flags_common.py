@@ -7,6 +7,7 @@ import dataclasses
 from absl import flags
 
 from experiments import common
+from stnh_tf.paths import check_apart
 from stnh_tf.training import config as train_config
 from stnh_tf.training import worker_log
 from stnh_tf.training.config import TrainConfig
@@ -98,6 +99,18 @@ def config_from_flags(scope: str, flag_values=flags.FLAGS, **overrides) -> Train
     return cfg
 
 
+TRAINING_INPUTS = ("data_dir", "image_dir", "val_image_dir", "unlabeled_image_dir",
+                   "unlabeled_pairs_dir", "init_from", "prev_stages")
+"""The TrainConfig fields that name what a run reads (folders, or runs it starts from)."""
+
+
+def training_inputs(cfg) -> dict:
+    """``{"--field": [paths]}`` of :data:`TRAINING_INPUTS` in ``cfg`` (comma-separated strings
+    split), for :func:`stnh_tf.paths.check_apart`."""
+    return {f"--{name}": value.split(",") if isinstance(value, str) else list(value)
+            for name in TRAINING_INPUTS for value in [getattr(cfg, name)]}
+
+
 def run_training(cfg, binary: str, flag_values=None) -> None:
     """Train (or resume) ``cfg`` (the parsed ``flag_values`` give ``--overwrite`` and
     ``--time_limit_s``; default: ``flags.FLAGS`` as it is at the call), after logging
@@ -110,6 +123,7 @@ def run_training(cfg, binary: str, flag_values=None) -> None:
     from stnh_tf.training import loop as training
 
     with common.user_errors(binary, (ValueError, OSError, training.TrainingDiverged)):
+        check_apart({"--model_dir": cfg.model_dir}, training_inputs(cfg))
         result = training.train(cfg, overwrite=f.overwrite, printer=logging.info,
                                 time_limit_s=f.time_limit_s or None)
     logging.info(final_line(result, cfg.train_steps))

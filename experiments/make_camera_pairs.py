@@ -45,6 +45,7 @@ FLAGS = flags.FLAGS
 def main(argv):
     del argv
     with common.user_errors("make_camera_pairs"):
+        common.check_flags_apart(("output_dir", "json_out"), ("image_dir",))
         result = camera_pair_files.write_pairs(FLAGS.image_dir, FLAGS.output_dir,
                                             FLAGS.pairs_per_image, FLAGS.seed,
                                             overwrite=FLAGS.overwrite,

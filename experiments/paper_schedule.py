@@ -82,6 +82,7 @@ def main(argv):
 
     device = FLAGS.device or f"{machine_info()['cpu']}, {os.cpu_count()} cores"
     with common.user_errors("paper_schedule"):
+        common.check_flags_apart(("runs_dir",), ("image_dir", "val_image_dir"))
         if part is not None and (FLAGS.stage != 1 or FLAGS.last_stage):
             raise ValueError(f"--part={FLAGS.part} trains on the stage-1 pairs: leave --stage "
                              "and --last_stage unset.")

@@ -22,7 +22,8 @@ flags.DEFINE_integer("max_samples", 0, "Use only the first N samples (0 = all)."
 FLAGS = flags.FLAGS
 
 # The library pieces (the reproduce driver draws the same figure).
-from stnh_tf.paths import atomic_write_json  # noqa: E402
+from experiments import common  # noqa: E402
+from stnh_tf.paths import atomic_write_json, check_apart  # noqa: E402
 from stnh_tf.paper.figures import ENTRY_NAMES, read_h_bar  # noqa: E402,F401
 from stnh_tf.paper.figures import hbar_histogram as plot_histogram  # noqa: E402
 
@@ -31,12 +32,15 @@ def main(argv):
     del argv
     if not FLAGS.data_dir or not FLAGS.output:
         raise app.UsageError("--data_dir and --output are required.")
+    stats_json = os.path.splitext(FLAGS.output)[0] + ".json"
+    with common.user_errors("plot_hbar_histogram"):
+        check_apart({"--output": [FLAGS.output, stats_json]}, {"--data_dir": FLAGS.data_dir})
     h_bar = read_h_bar(FLAGS.data_dir, FLAGS.split, FLAGS.max_samples)
     stats = plot_histogram(h_bar, FLAGS.output, FLAGS.bins,
                            f"Value histogram of H_bar, {FLAGS.split} split of {FLAGS.data_dir} "
                            f"({len(h_bar)} samples)")
     stats.update(data_dir=os.path.abspath(FLAGS.data_dir), split=FLAGS.split)
-    atomic_write_json(os.path.splitext(FLAGS.output)[0] + ".json", stats, sort_keys=False)
+    atomic_write_json(stats_json, stats, sort_keys=False)
     print(json.dumps(stats["entries"], indent=1))
 
 

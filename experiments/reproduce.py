@@ -60,7 +60,13 @@ def reproduction_from_flags(budget=None, **kwargs):
     ``--output_dir``, ``--source``, ``--image_dir``, ``--test_image_dir``, ``--reuse``), which
     experiments.loss_weight_ablation and experiments.semi_supervised take too; ``budget`` replaces
     ``--budget``'s, ``--max_images`` replaces its ``max_images`` and ``test_max_images``, and
-    ``kwargs`` go to the constructor. Prints :func:`budget_line` first."""
+    ``kwargs`` go to the constructor. Prints :func:`budget_line` first.
+
+    Raises:
+      ValueError: ``--output_dir`` is, lies inside or holds ``--image_dir`` or
+        ``--test_image_dir`` (:func:`experiments.common.check_flags_apart`).
+    """
+    common.check_flags_apart(("output_dir",), ("image_dir", "test_image_dir"))
     budget = budget or reproduce.BUDGETS[FLAGS.budget]
     if FLAGS.max_images:
         budget = dataclasses.replace(budget, max_images=FLAGS.max_images,

@@ -29,6 +29,7 @@ import json
 
 from absl import app, flags
 
+from experiments import common
 from stnh_tf.inference import shipped_weights
 
 flags.DEFINE_list("model_dir", None, "Trained stage model directories, in stage order.")
@@ -45,6 +46,8 @@ FLAGS = flags.FLAGS
 
 def main(argv):
     del argv
+    with common.user_errors("ship_weights"):
+        common.check_flags_apart(("weights_dir",), ("model_dir", "eval_json"))
     if FLAGS.refresh_check:
         if FLAGS.model_dir or FLAGS.eval_json:
             raise app.UsageError("--refresh_check takes neither --model_dir nor --eval_json.")

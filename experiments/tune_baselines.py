@@ -43,6 +43,7 @@ def main(argv):
     del argv
     with common.user_errors("tune_baselines"):
         summaries.check_json_out(FLAGS.json_out)
+        common.check_flags_apart(("json_out",), ("image_dir",))
     with common.user_errors("tune_baselines", (SourceError,)):  # (no photograph there)
         result = baseline_tuning.run_tuning(FLAGS.image_dir, FLAGS.num_pairs, FLAGS.seed,
                                             FLAGS.grid, FLAGS.max_images)

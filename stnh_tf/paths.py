@@ -89,6 +89,27 @@ def inside(folder, name, what: str) -> str:
     return os.path.join(os.fspath(folder), norm)
 
 
+def link_below(folder, name) -> str | None:
+    """The first symbolic link met going from ``folder`` down to ``folder/name`` (``name`` a
+    relative path inside it: :func:`inside`), ``name`` itself included and ``folder`` not; None
+    where there is none. A path with a link on the way may lead out of ``folder``: what is
+    removed or written there must not follow it.
+
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     os.symlink(tempfile.gettempdir(), os.path.join(d, "elsewhere"))
+    ...     [os.path.relpath(p, d) if p else p
+    ...      for p in (link_below(d, "elsewhere/a.png"), link_below(d, "own/a.png"))]
+    ['elsewhere', None]
+    """
+    path = os.fspath(folder)
+    for part in os.path.normpath(name).split(os.sep):
+        path = os.path.join(path, part)
+        if os.path.islink(path):
+            return path
+    return None
+
+
 def check_output_dir(output_dir) -> str:
     """Create ``output_dir`` if needed and prove it writable (a probe file is written and
     removed); returns its absolute path.

@@ -31,13 +31,20 @@ def test_parts_refuse_a_file_or_wheels_larger_than_a_call():
         dp.parts([("a.jpg", 1)], budget=10, first_extra=10)
 
 
-def test_parts_copied_over_one_folder_rebuild_every_photograph(tmp_path):
+def photograph_sets(root, counts=(3, 2, 2)):
+    """``root/coco_mini/{train,test}`` and ``root/photos_extra/set1`` with ``counts`` random
+    400 x 300 JPEGs ``p<k>.jpg`` each; returns the folders ``(coco_mini, photos_extra)``."""
     rng = np.random.default_rng(0)
-    coco, extra = tmp_path / "coco_mini", tmp_path / "photos_extra"
-    for folder, count in ((coco / "train", 3), (coco / "test", 2), (extra / "set1", 2)):
+    coco, extra = root / "coco_mini", root / "photos_extra"
+    for folder, count in zip((coco / "train", coco / "test", extra / "set1"), counts):
         folder.mkdir(parents=True)
         for k in range(count):
             cv2.imwrite(str(folder / f"p{k}.jpg"), rng.integers(0, 256, (300, 400, 3), np.uint8))
+    return coco, extra
+
+
+def test_parts_copied_over_one_folder_rebuild_every_photograph(tmp_path):
+    coco, extra = photograph_sets(tmp_path)
     (extra / "README.md").write_text("not a photograph")
     (tmp_path / "whl").mkdir()
     out = tmp_path / "dev"

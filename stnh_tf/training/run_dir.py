@@ -23,7 +23,7 @@ import zipfile
 import keras
 import numpy as np
 
-from stnh_tf.paths import atomic_write_json, fsync_replace, inside, read_json, stage_record_path
+from stnh_tf.paths import atomic_write_json, fsync_replace, inside, read_json
 from stnh_tf.training.config import MODEL_KINDS, RESUME_FREE_FIELDS, TrainConfig
 from stnh_tf.training.run_lock import LOCK_FILE, RunLock  # noqa: F401 (the run's lock)
 
@@ -274,47 +274,6 @@ def read_run_config(config_path: str) -> dict:
                 f"marker: {why}); its folder is neither resumed nor deleted, with or without "
                 "--overwrite: choose another --model_dir, or move the folder away.")
     return {k: v for k, v in doc.items() if k not in CONFIG_MARKER}
-
-
-def holds_run(folder) -> bool:
-    """Whether ``folder`` holds a training run: its ``config.json`` is a run's
-    (:func:`read_run_config`), or, where that file is unreadable, it has a run's
-    ``checkpoint/`` beside it (a run whose configuration was damaged is still a run)."""
-    config_path = os.path.join(os.fspath(folder), CONFIG_FILE)
-    if not os.path.isfile(config_path):
-        return False
-    try:
-        read_run_config(config_path)
-    except (ValueError, OSError):
-        return os.path.isdir(os.path.join(os.fspath(folder), CHECKPOINT_DIR))
-    return True
-
-
-def trained_stage(model) -> tuple[int, str] | None:
-    """``(stage, record)``: the hierarchical stage the model ``model`` was trained as, and the
-    file that says so: the ``config.json`` of a run folder (``model`` the folder or its
-    ``model.keras``), or the record ``<name>.json`` beside a model file ``<name>.keras``
-    (:func:`stnh_tf.paths.stage_record_path`): a chunked run's stage record
-    (:data:`STAGE_RECORD_FORMAT`) or a run's configuration. ``None`` where no such file says it
-    (a ``.keras`` file alone, a folder or file beside a JSON file of another kind).
-    """
-    model = os.fspath(model)
-    folder = model if os.path.isdir(model) else (
-        os.path.dirname(model) if os.path.basename(model) == FINAL_MODEL else None)
-    if folder is not None and os.path.isfile(os.path.join(folder, CONFIG_FILE)):
-        record = os.path.join(folder, CONFIG_FILE)
-    elif os.path.isfile(model) and os.path.isfile(stage_record_path(model)):
-        record = stage_record_path(model)
-    else:
-        return None
-    try:
-        doc = read_json(record, "model record")
-        if not isinstance(doc, dict) or doc.get("format") != STAGE_RECORD_FORMAT:
-            doc = read_run_config(record)
-    except ValueError:  # not valid JSON, or not a run's configuration
-        return None
-    stage = doc.get("stage", 1)
-    return (stage, record) if isinstance(stage, int) and not isinstance(stage, bool) else None
 
 
 def _config_diff(cfg: TrainConfig, config_path: str) -> dict:
