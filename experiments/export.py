@@ -10,9 +10,13 @@ frame, how to cut patches from photographs (a snippet) and the model card's numb
 writing, the SavedModel is reloaded and run on ``--check_pairs`` photograph patch pairs; the JSON
 summary (printed on stdout) gives the max abs difference from the same computation on the Keras
 model, one line on stderr says what was compared and whether it passed, and the exit status is
-nonzero if it exceeds ``--tolerance``. The export holds ``--output``'s lock from its checks
-through the verification: a second export to the same folder is refused at once, and the hidden
-staging folders a killed export left beside it are removed. Library code:
+nonzero if it exceeds ``--tolerance``. Only a passed check marks the folder verified
+(``stnh_tf_export_verified.json``, written last): a folder without it (an export or check that
+was killed, or failed) is named as never verified by the next export, which asks for
+``--overwrite``, and by ``stnh_tf.inference.export.load_serving_signature``. The export holds
+``--output``'s lock from its checks through the verification: a second export to the same
+folder is refused at once, and the hidden staging folders a killed export left beside it are
+removed. Library code:
 ``stnh_tf.inference.export`` (``export_and_verify``).
 """
 
@@ -56,7 +60,8 @@ def main(argv):
     print(f"export: {export.verification_line(report)}", file=sys.stderr)
     if not report["ok"]:
         raise SystemExit(f"export: the check failed (above). The SavedModel is left at "
-                         f"{FLAGS.output} for inspection; re-export with --overwrite.")
+                         f"{FLAGS.output} for inspection, not marked verified; re-export with "
+                         "--overwrite.")
 
 
 if __name__ == "__main__":

@@ -51,6 +51,14 @@ CONTEXT_MARGIN = geometry.MAX_PERTURBATION
 """Margin (pixels) of image_a stored around the square on every side."""
 
 REJECT_REASONS = ("non_finite", "singular", "outside_context")
+MIN_SCALE = 1e-12
+"""Below this ``|H[2, 2]|`` a composed pixel estimate is ``"non_finite"``
+(:func:`rejection_reason`)."""
+MIN_DET = 1e-6
+"""Below this ``|det H|`` (``H[2, 2] = 1``) a composed pixel estimate is ``"singular"``."""
+MIN_W = 1e-9
+"""At or below this homogeneous coordinate at a patch corner (the corner maps to infinity or
+behind the camera) a composed pixel estimate is ``"singular"``."""
 
 
 def warp_crop(source: np.ndarray, a_from_b: np.ndarray, origin=(0, 0),
@@ -160,12 +168,12 @@ def rejection_reason(h_composed: np.ndarray, margin: int = CONTEXT_MARGIN,
                      size: int = geometry.PATCH_SIZE) -> str | None:
     """Why a composed estimate ``[3, 3]`` breaks the degenerate-prediction rule, or ``None``."""
     h = np.asarray(h_composed, np.float64)
-    if not np.all(np.isfinite(h)) or abs(h[2, 2]) < 1e-12:
+    if not np.all(np.isfinite(h)) or abs(h[2, 2]) < MIN_SCALE:
         return "non_finite"
     h = h / h[2, 2]
     corners = np.concatenate([geometry.patch_corners(size), np.ones((4, 1))], axis=1)
     mapped = corners @ h.T
-    if abs(np.linalg.det(h)) < 1e-6 or np.any(mapped[:, 2] <= 1e-9):
+    if abs(np.linalg.det(h)) < MIN_DET or np.any(mapped[:, 2] <= MIN_W):
         return "singular"
     xy = mapped[:, :2] / mapped[:, 2:3]
     if np.any(xy < -margin) or np.any(xy > size + margin):

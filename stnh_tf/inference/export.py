@@ -30,8 +30,10 @@ SavedModel agrees with the estimate only up to that interpolation difference, wh
 with the same TensorFlow computation run before export to float32 rounding (models compute in
 float32 as ``HomographyEstimator.load`` rebuilds them by default; one kept in bfloat16 differs
 between eager and graph runs by bfloat16 rounding and fails ``verify_export``'s default
-tolerance). One difference remains: the estimator skips a stage whose prediction makes the
-composition non-finite or singular; the SavedModel returns such a composition as it is.
+tolerance). Both skip a stage whose prediction makes the composition non-finite or singular,
+keeping the estimate before it (the identity before the first stage): the graph applies the
+estimator's degenerate-prediction rule (:func:`kept_unless_degenerate`), so that an
+under-trained model's export computes what ``estimate`` does.
 
 Writing (:func:`export_saved_model`; :func:`export_and_verify` for ``experiments.export``):
 
@@ -41,6 +43,13 @@ Writing (:func:`export_saved_model`; :func:`export_and_verify` for ``experiments
   verification too): a second export to the same output, in this process or another, is
   refused at once with ``FileExistsError`` naming the folder, so neither can report success
   with the other's files.
+* **Verified, then marked.** :func:`export_and_verify` writes
+  :data:`VERIFIED_FILE` (atomically: the check's report and :func:`saved_model_digest`) only
+  after the check passed, and an export removes the old one before it replaces anything: a
+  folder an export or its check was killed in (``kill -9``) has none. Loading an export
+  (:func:`load_serving_signature`) logs a warning where it is missing or its digest is not the
+  files', and a re-export without ``overwrite`` says the folder was never verified
+  (:func:`verified_problem`).
 * **Atomic.** The SavedModel is written to a hidden folder beside the output
   (``.<output name>.xxxxxxxx``, holding the marker file ``.stnh_tf_export_staging``) and moved
   in when complete. One left by a killed export (``kill -9``) is removed by the next export to
@@ -52,6 +61,7 @@ Writing (:func:`export_saved_model`; :func:`export_and_verify` for ``experiments
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import re
@@ -94,6 +104,36 @@ def checked_inputs(patch_a, patch_b):
         return tf.identity(patch_a), tf.identity(patch_b)
 
 
+def kept_unless_degenerate(before, proposed):
+    """The degenerate-prediction rule of :meth:`HomographyEstimator.estimate` in the graph
+    (:func:`stnh_tf.hierarchy.rejection_reason`'s ``"non_finite"`` and ``"singular"``, with its
+    thresholds): per pair, ``proposed`` (normalized ``[B, 3, 3]``, the estimate composed with a
+    stage's prediction) scaled to ``[2, 2] = 1`` where its pixel homography is finite with
+    ``|H[2, 2]| >= MIN_SCALE`` and, so scaled, ``|det H| >= MIN_DET`` and a homogeneous
+    coordinate above ``MIN_W`` at the four patch corners (none maps to infinity or behind the
+    camera); ``before`` (normalized ``[B, 3, 3]``, ``[2, 2] = 1``: the estimate before that
+    stage) elsewhere."""
+    from keras import ops
+
+    from stnh_tf import hierarchy
+
+    s = geometry.PATCH_SIZE
+    m = geometry.normalization_matrix(s, s)
+    m_inv = ops.convert_to_tensor(np.linalg.inv(m), "float32")
+    m = ops.convert_to_tensor(m, "float32")
+    corners = ops.convert_to_tensor(  # [3, 4]: the patch corners, homogeneous, as columns
+        np.concatenate([geometry.patch_corners(s), np.ones((4, 1))], axis=1).T, "float32")
+    pixel = ops.matmul(ops.matmul(m_inv, proposed), m)
+    scale = pixel[:, 2, 2]
+    finite = ops.logical_and(ops.all(ops.isfinite(pixel), axis=(1, 2)),
+                             ops.abs(scale) >= hierarchy.MIN_SCALE)
+    unit = pixel / scale[:, None, None]
+    w = ops.matmul(unit, corners)[:, 2, :]
+    kept = ops.logical_and(finite, ops.logical_and(ops.abs(ops.det(unit)) >= hierarchy.MIN_DET,
+                                                   ops.all(w > hierarchy.MIN_W, axis=1)))
+    return ops.where(kept[:, None, None], geometry.scale_to_unit(proposed), before)
+
+
 def serving_function(estimator):
     """A TensorFlow function ``(patch_a, patch_b) -> {"homography": [B, 3, 3] float32}`` on uint8
     ``[B, 128, 128, 1]`` patches, computing the estimator's ``H_ba`` with its Keras models."""
@@ -117,16 +157,21 @@ def serving_function(estimator):
             h8 = ops.cast(model({"patch_a": current, "patch_b": b}, training=False)[name],
                           "float32")
             h_bar = geometry.vector_to_matrix(h8)
-            total = geometry.scale_to_unit(h_bar if total is None else ops.matmul(total, h_bar))
+            if total is None:  # the estimate before the first stage: the identity
+                total = ops.broadcast_to(ops.eye(3, dtype="float32"), ops.shape(h_bar))
+            total = kept_unless_degenerate(total, ops.matmul(total, h_bar))
         return {OUTPUT: geometry.denormalize_homography(total)}
 
     serve.tracked = list(stages)  # the warp layer holds no variables
     return serve
 
 
-SAVED_MODEL_ENTRIES = ("saved_model.pb", "fingerprint.pb", "variables", "assets")
+VERIFIED_FILE = export_contract.VERIFIED_FILE
+"""The marker of a verified export (module docstring)."""
+VERIFIED_FORMAT = "stnh_tf.export_verified"
+SAVED_MODEL_ENTRIES = (VERIFIED_FILE, "saved_model.pb", "fingerprint.pb", "variables", "assets")
 """What a SavedModel export writes into its folder: ``overwrite`` replaces these and nothing
-else."""
+else (the marker first, so that an export cut short leaves none)."""
 LOCK_FILE = ".stnh_tf_export.lock"
 """The output folder's lock file (module docstring); not part of the export (a folder holding
 only it counts as empty)."""
@@ -146,8 +191,11 @@ def _check_output(output_dir, overwrite):
         return
     is_saved_model = os.path.isfile(os.path.join(output_dir, "saved_model.pb"))
     if not overwrite or not is_saved_model:
-        why = ("pass overwrite=True (--overwrite) to replace it" if is_saved_model
-               else "it is not a SavedModel; choose another path")
+        unverified = verified_problem(output_dir) if is_saved_model else None
+        why = ("it is not a SavedModel; choose another path" if not is_saved_model else
+               "it holds a SavedModel; pass overwrite=True (--overwrite) to replace it"
+               if unverified is None else f"{unverified}: pass overwrite=True (--overwrite) to "
+               "export it again")
         raise FileExistsError(f"{output_dir} exists and is not empty; {why}.")
 
 
@@ -229,16 +277,60 @@ def export_and_verify(estimator, output_dir, overwrite: bool = False, check_pair
                       tolerance: float = 1e-3) -> dict:
     """:func:`export_saved_model`, then :func:`verify_export` on :func:`verification_pairs`
     (``check_pairs`` of them), holding the output's lock through both, so the report is about
-    this export's files. Returns ``verify_export``'s dict with ``documents`` (the paths of the
-    ``README.md`` and ``signature.json`` written) and ``kept_user_files`` (files of those names
-    that the export did not write, kept in their place). Raises as ``export_saved_model``."""
+    this export's files; where the check passed, :data:`VERIFIED_FILE` is written last
+    (atomically). Returns ``verify_export``'s dict with ``documents`` (the paths of the
+    ``README.md`` and ``signature.json`` written), ``kept_user_files`` (files of those names
+    that the export did not write, kept in their place) and ``verified_file`` (the marker's
+    path, ``None`` where the check failed). Raises as ``export_saved_model``."""
     with output_lock(output_dir, overwrite):
         kept = _write_export(estimator, os.fspath(output_dir))
         patch_a, patch_b = verification_pairs(check_pairs)
         report = verify_export(output_dir, estimator, patch_a, patch_b, tolerance)
+        marker = None
+        if report["ok"]:
+            marker = os.path.join(os.fspath(output_dir), VERIFIED_FILE)
+            paths.atomic_write_json(marker, {"format": VERIFIED_FORMAT,
+                                             "saved_model_sha256": saved_model_digest(output_dir),
+                                             "report": report})
     written = [os.path.join(os.fspath(output_dir), name) for name in export_contract.DOC_FILES
                if os.path.join(os.fspath(output_dir), name) not in kept]
-    return {**report, "documents": written, "kept_user_files": kept}
+    return {**report, "documents": written, "kept_user_files": kept, "verified_file": marker}
+
+
+def saved_model_digest(path) -> str:
+    """The SHA-256 of the SavedModel's files in the folder ``path`` (:data:`SAVED_MODEL_ENTRIES`
+    but the marker; each file's path relative to ``path`` and content, in sorted order)."""
+    digest = hashlib.sha256()
+    path = os.fspath(path)
+    for name in SAVED_MODEL_ENTRIES[1:]:
+        top = os.path.join(path, name)
+        files = [top] if os.path.isfile(top) else sorted(
+            os.path.join(folder, f) for folder, _, names in os.walk(top) for f in names)
+        for file in files:
+            with open(file, "rb") as f:
+                digest.update(os.path.relpath(file, path).encode() + b"\0"
+                              + hashlib.file_digest(f, "sha256").digest())
+    return digest.hexdigest()
+
+
+def verified_problem(path) -> str | None:
+    """Why the export in the folder ``path`` is not known to be verified, or ``None``: no
+    :data:`VERIFIED_FILE` (its export or check was cut short, or the check failed), one that is
+    not an export's, or one whose digest is not the files' (:func:`saved_model_digest`)."""
+    marker = os.path.join(os.fspath(path), VERIFIED_FILE)
+    if not os.path.isfile(marker):
+        return (f"{os.fspath(path)} was never verified (no {VERIFIED_FILE}: its export or its "
+                "check was cut short, or the check failed)")
+    try:
+        doc = paths.read_json(marker)
+    except (OSError, ValueError) as e:
+        return f"{marker} cannot be read ({e})"
+    if not isinstance(doc, dict) or doc.get("format") != VERIFIED_FORMAT:
+        return f"{marker} is not an export's marker"
+    if doc.get("saved_model_sha256") != saved_model_digest(path):
+        return (f"the SavedModel files in {os.fspath(path)} changed since they were verified "
+                f"({VERIFIED_FILE})")
+    return None
 
 
 def _write_export(estimator, output_dir) -> list:
@@ -301,10 +393,16 @@ def _write_archive(estimator, path):
     archive.write_out(path, verbose=False)
 
 
-def load_serving_signature(path):
-    """The ``serving_default`` signature of the SavedModel at ``path``."""
+def load_serving_signature(path, check_verified: bool = True):
+    """The ``serving_default`` signature of the SavedModel at ``path``; with
+    ``check_verified``, a warning is logged where the export is not known to be verified
+    (:func:`verified_problem`)."""
     import tensorflow as tf
 
+    problem = verified_problem(path) if check_verified else None
+    if problem:
+        _log.warning("export: %s; its output was not compared with its model: export it again "
+                     "with --overwrite (experiments.export).", problem)
     loaded = tf.saved_model.load(os.fspath(path))
     fn = loaded.signatures[SIGNATURE]
     fn._stnh_owner = loaded  # keep the loaded object (and its variables) alive
@@ -391,7 +489,8 @@ def verify_export(path, estimator, patch_a=None, patch_b=None, tolerance: float 
     if patch_a is None or patch_b is None:
         patch_a, patch_b = verification_pairs()
     patch_a, patch_b = signature_inputs(patch_a, patch_b)
-    saved = run_saved_model(path, patch_a, patch_b).astype(np.float64)
+    signature = load_serving_signature(path, check_verified=False)  # (being verified)
+    saved = run_saved_model(signature, patch_a, patch_b).astype(np.float64)
     eager = np.asarray(
         serving_function(estimator)(tf.constant(patch_a), tf.constant(patch_b))[OUTPUT],
         np.float64)
