@@ -13,9 +13,12 @@ folder's own, or the one committed in ``paper_schedule/resume/stage<k>/``), trai
 ``--time_limit_s`` (0: to the end; it stops within one step of the limit, or on SIGTERM, and saves
 that step's checkpoint), and commits the checkpoint back there; a finished stage is kept
 as ``paper_schedule/stage<k>.keras`` (and is then refused: it is never trained again, nor its model
-replaced). Nothing is copied into the run folder before its lock and its configuration are checked
-(:func:`stnh_tf.training.chunks.sync_in`). Each chunk adds a row to ``paper_schedule/ledger.json``
-and to the ledger table of docs/gpu.md. The data (:data:`stnh_tf.paper.budgets.SCHEDULE`): pairs
+replaced). One chunk at a time runs on ``paper_schedule/`` (its lock), and nothing is copied into
+the run folder before the ledger, its lock, its configuration (the finished stages by their
+files' sha256, wherever the checkout is) and the committed weights are checked
+(:func:`stnh_tf.training.chunks.run_chunk`, :func:`~stnh_tf.training.chunks.sync_in`). Each
+chunk adds a row to ``paper_schedule/ledger.json`` and to the ledger table of docs/gpu.md.
+The data (:data:`stnh_tf.paper.budgets.SCHEDULE`): pairs
 from the coco_mini train
 photographs and photos_extra (1,848 photographs, not COCO 2014's 82,783), 100 squares per image
 made once in memory (184,800 pairs), validation on 300 coco_mini test pairs; stage k > 1 trains on
@@ -62,6 +65,19 @@ flags.DEFINE_integer("last_stage", 0, "Where --stage finishes within the time li
                      "the next stages up to this one in the time left (0: --stage only).")
 flags.DEFINE_string("device", None, "The machine, for the ledger (default: described here).")
 FLAGS = flags.FLAGS
+
+
+def check_last_stage(values: dict) -> bool:
+    """absl validator of ``--last_stage``: 0 (``--stage`` only) or at least ``--stage``; refused
+    at parsing, before anything starts."""
+    if values["last_stage"] and values["last_stage"] < values["stage"]:
+        raise flags.ValidationError(f"--last_stage ({values['last_stage']}) is below --stage "
+                                    f"({values['stage']}): give 0 (--stage only) or a stage from "
+                                    "--stage on.")
+    return True
+
+
+flags.register_multi_flags_validator(["stage", "last_stage"], check_last_stage)
 
 
 def main(argv):

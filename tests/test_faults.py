@@ -1295,12 +1295,17 @@ def test_a_camera_pair_set_rewritten_and_cut_short_is_refused(_pair_photos, tmp_
     assert _files(mine) == {"pairs.json": json.dumps({"my": "pairs"}).encode()}
 
 
-def _fake_checkpoint(folder, step):
-    """A checkpoint of ``step`` in ``folder``: state.json and the weights file it names (bytes
-    of its own, for the byte comparisons)."""
+def _fake_checkpoint(folder, step, held=None):
+    """A checkpoint of ``step`` in ``folder``: state.json and the weights file it names, an HDF5
+    file laid out as Keras saves one (a layer's weights of their own, for the byte comparisons,
+    and the optimizer's step count: ``held``, by default ``step``)."""
+    import h5py
+
     folder.mkdir(parents=True, exist_ok=True)
     name = f"ckpt-{step:08d}.weights.h5"
-    (folder / name).write_bytes(b"weights of step %d" % step)
+    with h5py.File(folder / name, "w") as f:
+        f["layers/dense/vars/0"] = np.full((64, 8), step, np.float32)
+        f["optimizer/vars/0"] = np.int64(step if held is None else held)
     (folder / "state.json").write_text(json.dumps({"step": step, "weights": name}))
 
 
@@ -1512,3 +1517,215 @@ def test_atomic_write_text_writes_a_device_in_place():
     atomic_write_text(os.devnull, "{}\n")
     assert not os.path.isfile(os.devnull) and os.path.exists(os.devnull)
     assert not any(n.startswith("null.tmp") for n in os.listdir(os.path.dirname(os.devnull)))
+
+
+# ------------------------------------------------------------------------------------------------
+# Issue 77, item 2: the chunk's own faults (stnh_tf.training.chunks, experiments.paper_schedule)
+# ------------------------------------------------------------------------------------------------
+def _stage2_cfg(repo, model_dir, photos="/photos"):
+    """Stage 2 of a chunked run in the checkout ``repo`` (its stage 1: ``repo``'s
+    ``paper_schedule/stage1.keras``), the photographs in ``photos``, the run folder ``model_dir``
+    (as experiments.paper_schedule makes it)."""
+    return train_config.TrainConfig(
+        image_dir=f"{photos}/train", val_image_dir=f"{photos}/test", in_memory=True, stage=2,
+        prev_stages=(str(repo / "paper_schedule" / "stage1.keras"),), model_dir=str(model_dir),
+        train_steps=8, warmup_steps=1, batch_size=4, checkpoint_every=2)
+
+
+def test_a_committed_checkpoint_resumes_in_a_checkout_at_another_path(tmp_path):
+    """Issue 77 item 2: resume/stage3/config.json pinned the checkout's absolute paths
+    (prev_stages, image_dir, model_dir): a checkout at another path was refused as "the
+    configuration of another run". The finished stages are compared by what their files hold
+    (sha256), the photograph folders and the run folder not by where they are: a config.json as
+    chunks wrote it before (absolute paths, no digests) resumes in its own checkout and in a
+    copy at another path; re-saved in the new form (run_dir.config_document) it resumes in a
+    copy after the first checkout is gone; a stage file of other bytes is still another run."""
+    from stnh_tf.paths import atomic_write_json
+    from stnh_tf.training import chunks
+
+    first = tmp_path / "a"
+    (first / "paper_schedule").mkdir(parents=True)
+    (first / "paper_schedule" / "stage1.keras").write_bytes(b"the finished stage 1")
+    resume = first / "paper_schedule" / "resume" / "stage2"
+    _fake_checkpoint(resume, 4)
+    (resume / "config.json").write_text(_config_json(_stage2_cfg(first, tmp_path / "runs")))
+    here = _stage2_cfg(first, tmp_path / "run_here")
+    assert chunks.sync_in(str(resume), here.model_dir, here) == 4
+    shutil.copytree(first, tmp_path / "b")
+    there = _stage2_cfg(tmp_path / "b", tmp_path / "run_b", photos="/mnt/shared/photos")
+    assert chunks.sync_in(str(tmp_path / "b" / resume.relative_to(first)), there.model_dir,
+                          there) == 4  # before: refused, prev_stages differ
+    config = str(resume / "config.json")  # re-saved in the new form
+    atomic_write_json(config, run_dir.config_document(
+        train_config.TrainConfig.from_json(run_dir.read_run_config(config))))
+    shutil.copytree(first, tmp_path / "c")
+    shutil.rmtree(first)  # (a machine without the first checkout)
+    third = _stage2_cfg(tmp_path / "c", tmp_path / "run_c")
+    assert chunks.sync_in(str(tmp_path / "c" / resume.relative_to(first)), third.model_dir,
+                          third) == 4
+    (tmp_path / "c" / "paper_schedule" / "stage1.keras").write_bytes(b"another stage 1")
+    other = _stage2_cfg(tmp_path / "c", tmp_path / "run_d")
+    with pytest.raises(ValueError, match="is the configuration of another run .*prev_stages"):
+        chunks.sync_in(str(tmp_path / "c" / resume.relative_to(first)), other.model_dir, other)
+    assert not (tmp_path / "run_d").exists()
+
+
+def test_a_truncated_committed_checkpoint_does_not_replace_the_run_folders_own(tmp_path):
+    """Issue 77 item 2: a truncated committed checkpoint was copied over the run folder's good
+    older one by sync_in, and loading it then asked for "a complete copy", gone. The committed
+    weights are read first (an HDF5 file whose every dataset reads, holding the step its state
+    names); one that is not is refused in one line naming it, the run folder kept byte for
+    byte; a complete one is then copied in."""
+    import h5py
+    from stnh_tf.training import chunks
+
+    resume, run = tmp_path / "repo" / "resume" / "stage1", tmp_path / "run"
+    cfg = _train_cfg("d", run, train_steps=8)
+    _fake_checkpoint(run / "checkpoint", 2)
+    (run / "config.json").write_text(_config_json(cfg))
+    weights = resume / "ckpt-00000004.weights.h5"
+    for damage in ("truncated", "another step's"):
+        _fake_checkpoint(resume, 4, held=6 if damage == "another step's" else None)
+        (resume / "config.json").write_text(_config_json(cfg))
+        if damage == "truncated":
+            weights.write_bytes(weights.read_bytes()[:weights.stat().st_size // 2])
+            with pytest.raises(OSError):  # the reference: HDF5 itself cannot open it
+                h5py.File(weights, "r")
+        before = _files(run)
+        with pytest.raises(ValueError) as refused:
+            chunks.sync_in(str(resume), str(run), cfg)
+        message = str(refused.value)
+        assert str(weights) in message and "\n" not in message, message
+        assert _files(run) == before  # before: replaced by the broken copy
+    _fake_checkpoint(resume, 4)
+    assert chunks.sync_in(str(resume), str(run), cfg) == 4
+    assert (run / "checkpoint" / weights.name).read_bytes() == weights.read_bytes()
+
+
+def _fake_train(calls):
+    """loop.train's stand-in for a chunk: records ``cfg.model_dir``, writes the run folder's
+    config.json and a checkpoint 2 steps on from the one there."""
+    from pathlib import Path
+
+    def train(cfg, printer=None, time_limit_s=None):
+        calls.append(cfg.model_dir)
+        run_dir.prepare_model_dir(cfg)
+        found = run_dir.find_checkpoint(os.path.join(cfg.model_dir, "checkpoint"))
+        step = (0 if found is None else found[1]) + 2
+        _fake_checkpoint(Path(cfg.model_dir) / "checkpoint", step)
+        return {"final_step": step, "wall_s_this_run": 1.0}
+    return train
+
+
+@pytest.mark.parametrize("ledger", ['[{"stage": 1, "from_step": 0', '{"rows": []}',
+                                    '[{"stage": 1, "from_step": 0, "to_step": 2}]'],
+                         ids=["not JSON", "not a list", "a row without its fields"])
+def test_a_broken_ledger_is_refused_before_the_chunk_trains(tmp_path, monkeypatch, ledger):
+    """Issue 77 item 2: an invalid ledger.json was found only after the chunk had trained (the
+    row lost, and with a finished stage its stage<k>.json, while the re-run named that missing
+    file). It is read and checked before anything is copied or trained: refused in one line
+    naming it, nothing trained or written; a finished stage is still reported as finished, the
+    message naming only the files that exist."""
+    from stnh_tf.training import chunks
+
+    root = tmp_path / "repo"
+    root.mkdir()
+    (root / "ledger.json").write_text(ledger)
+    calls = []
+    monkeypatch.setattr(training, "train", _fake_train(calls))
+    cfg = _train_cfg("d", tmp_path / "run", train_steps=8)
+    before = _files(root)
+    with pytest.raises(ValueError) as refused:
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET)
+    message = str(refused.value)
+    assert str(root / "ledger.json") in message and "\n" not in message, message
+    assert calls == [] and _files(root) == before and not (tmp_path / "run").exists()
+    (root / "stage1.keras").write_bytes(b"the finished stage")
+    with pytest.raises(FileExistsError) as refused:
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET)
+    assert "stage 1 is finished" in str(refused.value)
+    assert "stage1.json" not in str(refused.value)  # before: named, though missing
+    assert calls == []
+
+
+def test_two_chunks_on_one_repository_folder_are_refused(tmp_path, monkeypatch):
+    """Issue 77 item 2: two chunks on one repository folder (two --runs_dir, so two run folders)
+    both trained from the same checkpoint and one of them was dropped. The first holds the
+    folder's lock (run_lock.RunLock on the folder) for its whole run; a second is refused at
+    once in one line naming the folder, and writes nothing; the next chunk resumes from the
+    first's checkpoint. A lock left by a killed chunk (its process gone) does not block."""
+    from stnh_tf.training import chunks
+
+    root = tmp_path / "repo"
+    inside, go_on, calls, first = threading.Event(), threading.Event(), [], {}
+    train = _fake_train(calls)
+
+    def held(cfg, **kw):  # the first chunk, paused inside its training
+        inside.set()
+        assert go_on.wait(60)
+        return train(cfg, **kw)
+
+    def run_first():
+        first["row"] = chunks.run_chunk(_train_cfg("d", tmp_path / "run_a", train_steps=8),
+                                        str(root), 0, "first", printer=QUIET)
+
+    monkeypatch.setattr(training, "train", held)
+    thread = threading.Thread(target=run_first)
+    thread.start()
+    try:
+        assert inside.wait(60)
+        monkeypatch.setattr(training, "train", train)
+        with pytest.raises(FileExistsError) as refused:
+            chunks.run_chunk(_train_cfg("d", tmp_path / "run_b", train_steps=8), str(root), 0,
+                             "second", printer=QUIET)
+    finally:
+        go_on.set()
+        thread.join(60)
+    message = str(refused.value)
+    assert str(root) in message and "\n" not in message, message
+    assert not (tmp_path / "run_b").exists() and calls == [str(tmp_path / "run_a")]
+    assert [r["device"] for r in json.loads((root / "ledger.json").read_text())] == ["first"]
+    killed = subprocess.Popen([sys.executable, "-c", (
+        "import fcntl, os, sys, time\n"
+        f"fd = os.open({str(root / run_dir.LOCK_FILE)!r}, os.O_RDWR | os.O_CREAT)\n"
+        "fcntl.flock(fd, fcntl.LOCK_EX)\nprint('held', flush=True)\ntime.sleep(60)\n")],
+        stdout=subprocess.PIPE, text=True)
+    assert killed.stdout.readline() == "held\n"
+    killed.kill()
+    killed.wait(10)
+    row = chunks.run_chunk(_train_cfg("d", tmp_path / "run_b", train_steps=8), str(root), 0,
+                           "third", printer=QUIET)
+    assert (row["from_step"], row["to_step"]) == (first["row"]["to_step"], 4)
+
+
+def test_a_committed_checkpoint_that_is_a_file_is_refused(tmp_path, monkeypatch):
+    """Issue 77 item 2: resume/stage<k> that is a plain file was ignored (the chunk trained from
+    step 0, and its commit then had to replace the file). Refused in one line naming it, before
+    anything is trained or written."""
+    from stnh_tf.training import chunks
+
+    root = tmp_path / "repo"
+    (root / "resume").mkdir(parents=True)
+    (root / "resume" / "stage1").write_text("a file where the checkpoint folder goes")
+    calls = []
+    monkeypatch.setattr(training, "train", _fake_train(calls))
+    before = _files(root)
+    with pytest.raises(NotADirectoryError) as refused:
+        chunks.run_chunk(_train_cfg("d", tmp_path / "run", train_steps=8), str(root), 0, "here",
+                         printer=QUIET)
+    message = str(refused.value)
+    assert str(root / "resume" / "stage1") in message and "\n" not in message, message
+    assert calls == [] and _files(root) == before and not (tmp_path / "run").exists()
+
+
+def test_paper_schedule_refuses_a_last_stage_below_the_first(tmp_path):
+    """Issue 77 item 2: paper_schedule --last_stage below --stage was accepted (only --stage was
+    trained). Refused at parsing, naming both flags, before anything starts (stage 5 has no
+    finished stages 3 and 4, and the photographs named do not exist: before, the chunk started
+    and failed on those instead)."""
+    res = _binary("experiments.paper_schedule", "--stage=5", "--last_stage=4",
+                  f"--runs_dir={tmp_path / 'runs'}", f"--image_dir={tmp_path / 'none'}",
+                  f"--val_image_dir={tmp_path / 'none'}")
+    assert res.returncode == 1 and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert "--last_stage (4) is below --stage (5)" in res.stderr, res.stderr[-2000:]
+    assert not (tmp_path / "runs").exists()

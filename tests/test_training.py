@@ -830,21 +830,28 @@ def test_a_chunk_goes_on_with_the_next_stage_in_the_time_it_leaves(monkeypatch):
         run(1000.0, done3, first=3, last=2)
 
 
+def _h5_checkpoint(folder, step):
+    """A checkpoint of ``step`` in ``folder``: state.json and the weights file it names, an HDF5
+    file of a weight of its own and the optimizer's step count, as Keras saves them."""
+    folder.mkdir(parents=True)
+    with h5py.File(folder / f"ckpt-{step:08d}.weights.h5", "w") as f:
+        f["layers/dense/vars/0"] = np.full((4,), step, np.float32)
+        f["optimizer/vars/0"] = np.int64(step)
+    (folder / "state.json").write_text(json.dumps({"step": step,
+                                                   "weights": f"ckpt-{step:08d}.weights.h5"}))
+
+
 def test_sync_in_keeps_a_newer_local_checkpoint(tmp_path):
     from stnh_tf.training import chunks
 
-    def checkpoint(folder, step):
-        folder.mkdir(parents=True)
-        (folder / f"ckpt-{step:08d}.weights.h5").write_bytes(b"w%d" % step)
-        (folder / "state.json").write_text(json.dumps({"step": step,
-                                                       "weights": f"ckpt-{step:08d}.weights.h5"}))
-
-    checkpoint(tmp_path / "resume", 4)
+    _h5_checkpoint(tmp_path / "resume", 4)
     (tmp_path / "resume" / "config.json").write_text("{}")
-    checkpoint(tmp_path / "run" / "checkpoint", 6)
+    _h5_checkpoint(tmp_path / "run" / "checkpoint", 6)
     assert chunks.sync_in(str(tmp_path / "resume"), str(tmp_path / "run")) is None
     assert chunks.sync_in(str(tmp_path / "resume"), str(tmp_path / "new")) == 4
-    assert (tmp_path / "new" / "checkpoint" / "ckpt-00000004.weights.h5").read_bytes() == b"w4"
+    name = "ckpt-00000004.weights.h5"
+    assert (tmp_path / "new" / "checkpoint" / name).read_bytes() == \
+        (tmp_path / "resume" / name).read_bytes()
     assert (tmp_path / "new" / "config.json").read_text() == "{}"
 
 
@@ -854,10 +861,7 @@ def test_saved_stage_estimates_travel_with_the_committed_checkpoint(tmp_path):
     from stnh_tf.training import chunks, run_dir
 
     run = tmp_path / "run"
-    (run / "checkpoint").mkdir(parents=True)
-    (run / "checkpoint" / "ckpt-00000004.weights.h5").write_bytes(b"w4")
-    (run / "checkpoint" / "state.json").write_text(json.dumps(
-        {"step": 4, "weights": "ckpt-00000004.weights.h5"}))
+    _h5_checkpoint(run / "checkpoint", 4)
     (run / "config.json").write_text("{}")
     h = np.random.default_rng(0).normal(size=(5, 3, 3))
     run_dir.save_estimates(str(run), "train", "key-1", h, {"outside_context": 2})

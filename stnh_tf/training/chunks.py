@@ -5,15 +5,25 @@ until a time limit, and commits its checkpoint back; a ledger records where each
 Layout of a chunked run's repository folder ``root`` (e.g. ``paper_schedule/``):
 
 * ``resume/stage<k>/``: the checkpoint of the unfinished stage k: ``config.json`` (the
-  :class:`~stnh_tf.training.config.TrainConfig`), ``state.json`` (step, RNG states) and the one
-  ``ckpt-<step>.weights.h5`` it names (weights and optimizer state), and for k > 1 the finished
-  stages' estimates its pairs are made from (``stage_estimates_<split>.npz``:
-  :func:`stnh_tf.training.streams.stage_pairs`); replaced by each chunk and removed when the
-  stage is done;
+  :class:`~stnh_tf.training.config.TrainConfig`, and the sha256 of the finished stages it is
+  made from: :func:`~stnh_tf.training.run_dir.config_document`), ``state.json`` (step, RNG
+  states) and the one ``ckpt-<step>.weights.h5`` it names (weights and optimizer state), and
+  for k > 1 the finished stages' estimates its pairs are made from
+  (``stage_estimates_<split>.npz``: :func:`stnh_tf.training.streams.stage_pairs`); replaced by
+  each chunk and removed when the stage is done;
 * ``stage<k>.keras``: a finished stage (weights without optimizer state), and beside it
   ``stage<k>.json`` (:func:`stage_record`: the run's configuration and its chunks), what
   ``experiments.ship_weights`` puts in a model card;
-* ``ledger.json``: one row per chunk (stage, steps, machine, steps/s, date).
+* ``ledger.json``: one row per chunk (stage, steps, machine, steps/s, date);
+* while a chunk runs, its lock (``.stnh_tf_run.lock``, :class:`~stnh_tf.training.run_dir.RunLock`
+  on ``root``): one chunk at a time on ``root``, whatever its run folder; a second is refused.
+
+Before a chunk copies or trains anything it checks that the part is not finished, that the
+ledger reads (:func:`read_ledger`), that ``resume/<part>`` is a folder, that the run folder is of
+the same run (:func:`~stnh_tf.training.run_dir.check_same_run`: the finished stages it is made
+from compared by their files' sha256, not by where the checkout is; the photograph folders and
+the run folder may be anywhere) and that the committed weights read whole
+(:func:`~stnh_tf.training.run_dir.check_weights_file`): a refusal leaves everything as it was.
 
 A run other than a hierarchical stage (the 2-stage sequence model, a stage 1 with other loss
 weights) is a *part* named by a string (``resume/<part>/``, ``<part>.keras``, ``<part>.json``;
@@ -42,6 +52,9 @@ RESUME_DIR = "resume"
 LEDGER_FILE = "ledger.json"
 LEDGER_START = "<!-- ledger:start -->"
 LEDGER_END = "<!-- ledger:end -->"
+ROOT_BUSY = ("another chunk is running on {folder} (it holds {lock}); one chunk at a time "
+             "trains a repository folder's runs: wait for it to finish.")
+""":func:`run_chunk`'s refusal while another chunk holds the repository folder's lock."""
 
 
 def part_name(part: int | str) -> str:
@@ -83,10 +96,8 @@ def stage_record(root: str, part: int | str, config: dict) -> dict:
     ledger rows of its chunks, and their totals (steps, wall seconds, machines)."""
     from stnh_tf.data import sources
 
-    path = os.path.join(root, LEDGER_FILE)
     name = part_name(part)
-    rows = [r for r in (read_json(path, "ledger") if os.path.exists(path) else [])
-            if row_part(r) == name]
+    rows = [r for r in read_ledger(root) if row_part(r) == name]
     images = len(sources.scan_image_folders(config["image_dir"],
                                             config.get("max_images", 0)).files) \
         if config.get("image_dir") else None
@@ -142,8 +153,18 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
     (``FileExistsError``), nor into a folder that is not a run, or is a run of another
     configuration than the committed one or than ``cfg`` where given (``ValueError``:
     :func:`~stnh_tf.training.run_dir.check_same_run`); ``cfg`` is then checked even when
-    nothing is to be copied."""
+    nothing is to be copied. Nor is a committed checkpoint that does not read whole
+    (``ValueError`` naming its weights file:
+    :func:`~stnh_tf.training.run_dir.check_weights_file`): the folder keeps its own.
+
+    Raises:
+      NotADirectoryError: ``resume`` exists and is not a folder (a checkpoint is one).
+    """
     if not os.path.isdir(resume):
+        if os.path.lexists(resume):
+            raise NotADirectoryError(f"{resume} is not a folder: a committed checkpoint is one "
+                                     "(state.json, its weights, config.json); move the file "
+                                     "away.")
         return None
     ckpt = os.path.join(model_dir, run_dir.CHECKPOINT_DIR)
     with run_dir.RunLock(model_dir):  # no other run there while this checks and copies
@@ -153,6 +174,16 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
         if not (newer or estimates or cfg is not None):
             return None
         run_dir.check_same_run(model_dir, os.path.join(resume, run_dir.CONFIG_FILE), cfg)
+        if newer:
+            weights, step, _ = run_dir.find_checkpoint(resume)
+            try:
+                run_dir.check_weights_file(weights, step)
+            except ValueError as e:
+                own = _step(ckpt)
+                kept = f"its checkpoint of step {own} is kept" if own >= 0 else "it has none"
+                raise ValueError(f"{e}; nothing was copied into {model_dir} ({kept}): put "
+                                 "back a complete copy of the committed one (git checkout, or "
+                                 "the archive it came in).") from None
         for path in estimates:
             shutil.copy2(path, model_dir)
         if not newer:
@@ -197,22 +228,44 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
     ``part``: the run's name under ``root`` where it is not hierarchical stage ``cfg.stage``
     (:func:`part_name`; recorded in the row as ``"part"``).
 
+    The chunk holds ``root``'s lock (:class:`~stnh_tf.training.run_dir.RunLock` on ``root``,
+    whatever its run folder) from its first check to its ledger row: two chunks of one
+    repository folder would train from the same checkpoint, and one of them be lost. Before
+    anything is copied or trained, the ledger is read and checked (:func:`read_ledger`), after
+    the check that the stage is not finished.
+
     Raises:
-      FileExistsError: the stage is finished (``stage<k>.keras`` under ``root``): nothing is
-        trained or written. ``ValueError`` / ``OSError``: as :func:`sync_in` (before anything is
-        copied) and :func:`stnh_tf.training.loop.train`; a bad ``part`` (:func:`part_name`).
+      FileExistsError: the stage is finished (``stage<k>.keras`` under ``root``), or another
+        chunk holds ``root``'s lock: nothing is trained or written. ``ValueError``: the ledger
+        is broken (:func:`read_ledger`), before anything is copied or trained; as :func:`sync_in`
+        (before anything is copied) and :func:`stnh_tf.training.loop.train`; a bad ``part``
+        (:func:`part_name`). ``NotADirectoryError`` / ``OSError``: as :func:`sync_in` and
+        :func:`stnh_tf.training.loop.train`.
     """
+    key = cfg.stage if part is None else part
+    finished = finished_model(root, key)
+    with run_dir.RunLock(root, busy=ROOT_BUSY):  # one chunk at a time on root, to its end
+        if os.path.exists(finished):
+            what = f"stage {cfg.stage}" if part is None else f"part {part_name(part)}"
+            record = stage_record_path(finished)
+            also = f" and {record}" if os.path.exists(record) else ""
+            raise FileExistsError(f"{what} is finished: {finished} exists; it is not trained "
+                                  f"again (move it{also} away to train it anew).")
+        try:
+            read_ledger(root)
+        except ValueError as e:
+            raise ValueError(f"{e} No chunk was started: mend it first (git checkout), so that "
+                             "the chunk's row can be added.") from None
+        return _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part)
+
+
+def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part) -> dict:
+    """:func:`run_chunk`'s chunk, under ``root``'s lock, of the checked part ``key``."""
     import keras
 
     from stnh_tf.training import loop
 
-    key = cfg.stage if part is None else part
     finished = finished_model(root, key)
-    if os.path.exists(finished):
-        what = f"stage {cfg.stage}" if part is None else f"part {part_name(part)}"
-        raise FileExistsError(f"{what} is finished: {finished} exists; it is not "
-                              f"trained again (move it and {stage_record_path(finished)} away "
-                              "to train it anew).")
     resume = resume_dir(root, key)
     copied = sync_in(resume, cfg.model_dir, cfg)
     if copied is not None:
@@ -277,12 +330,39 @@ def run_stages(make_config, first: int, last: int, root: str, time_limit_s: floa
     return rows
 
 
-def add_ledger_row(root: str, row: dict) -> list:
-    """Append ``row`` to ``root``'s ledger; returns the ledger."""
+LEDGER_FIELDS = ("stage", "from_step", "to_step", "device", "backend", "steps_per_s", "wall_s",
+                 "date")
+"""What every ledger row holds (:func:`ledger_table` shows them, :func:`stage_record` sums
+them)."""
+
+
+def read_ledger(root: str) -> list:
+    """``root``'s ledger, a list of rows (``[]`` where it has none yet).
+
+    Raises:
+      ValueError: naming the file, where it is not valid JSON, not a list of JSON objects, or a
+        row lacks one of :data:`LEDGER_FIELDS`.
+    """
     path = os.path.join(root, LEDGER_FILE)
-    ledger = read_json(path, "ledger") if os.path.exists(path) else []
+    if not os.path.exists(path):
+        return []
+    ledger = read_json(path, "ledger")
+    if not isinstance(ledger, list):
+        raise ValueError(f"ledger {path!r} holds a JSON {type(ledger).__name__}, not a list of "
+                         "rows.")
+    for i, row in enumerate(ledger):
+        missing = [k for k in LEDGER_FIELDS if not isinstance(row, dict) or k not in row]
+        if missing:
+            raise ValueError(f"ledger {path!r}: its row {i} is not a chunk's row (it lacks "
+                             f"{missing}).")
+    return ledger
+
+
+def add_ledger_row(root: str, row: dict) -> list:
+    """Append ``row`` to ``root``'s ledger (:func:`read_ledger`); returns the ledger."""
+    ledger = read_ledger(root)
     ledger.append(row)
-    atomic_write_json(path, ledger)
+    atomic_write_json(os.path.join(root, LEDGER_FILE), ledger)
     return ledger
 
 
@@ -306,8 +386,7 @@ def write_ledger_table(root: str, doc: str) -> bool:
     Raises:
       ValueError: ``doc`` lacks the markers.
     """
-    path = os.path.join(root, LEDGER_FILE)
-    ledger = read_json(path, "ledger") if os.path.exists(path) else []
+    ledger = read_ledger(root)
     with open(doc) as f:
         text = f.read()
     if LEDGER_START not in text or LEDGER_END not in text:

@@ -423,6 +423,10 @@ RESUME_FREE_FIELDS = frozenset({"log_every", "model_dir", "data_dir", "image_dir
                                 "workers", "in_memory", "unlabeled_image_dir",
                                 "unlabeled_pairs_dir", "steps_per_execution",
                                 "coordinator_address"})
+# Fields naming finished models (run folders holding model.keras, or .keras files): a run and its
+# resumption are compared by what those files hold, wherever the checkout that holds them is
+# (stnh_tf.training.run_dir.config_document records their sha256 in config.json).
+MODEL_FILE_FIELDS = ("init_from", "prev_stages")
 
 
 def time_limit_problems(seconds) -> list:

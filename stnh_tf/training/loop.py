@@ -181,7 +181,7 @@ def check_start(cfg: TrainConfig, time_limit_s: float | None = None) -> None:
             data.shard_paths(cfg.data_dir, cfg.val_split)
     train_streams.check_labels(cfg)  # label_fraction, drop_unlabeled, unlabeled_image_dir
     for d in (*cfg.init_from, *cfg.prev_stages):
-        path = os.path.join(d, run_dir.FINAL_MODEL) if os.path.isdir(d) else d
+        path = run_dir.model_file(d)
         if not os.path.isfile(path):
             raise FileNotFoundError(f"no trained model at {d} (looked for {path}); init_from and "
                                     "prev_stages name finished training runs.")

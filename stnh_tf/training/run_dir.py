@@ -2,15 +2,17 @@
 a run is started, resumed or overwritten there.
 
 Layout of ``model_dir``: ``config.json`` (the :class:`~stnh_tf.training.config.TrainConfig` with
-:data:`CONFIG_MARKER`), ``checkpoint/`` (``ckpt-<step>.weights.h5`` committed by ``state.json``),
-``logs/`` (TensorBoard), for an in-memory stage-k run ``stage_estimates_<split>.npz``
-(:func:`save_estimates`), and when finished ``model.keras`` and ``result.json``; while a run
-trains, its lock (:class:`RunLock`, ``.stnh_tf_run.lock``).
+:data:`CONFIG_MARKER` and :data:`MODEL_DIGESTS`: :func:`config_document`), ``checkpoint/``
+(``ckpt-<step>.weights.h5`` committed by ``state.json``), ``logs/`` (TensorBoard), for an
+in-memory stage-k run ``stage_estimates_<split>.npz`` (:func:`save_estimates`), and when
+finished ``model.keras`` and ``result.json``; while a run trains, its lock (:class:`RunLock`,
+``.stnh_tf_run.lock``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import numbers
@@ -24,7 +26,8 @@ import keras
 import numpy as np
 
 from stnh_tf.paths import atomic_write_json, fsync_replace, inside, read_json
-from stnh_tf.training.config import MODEL_KINDS, RESUME_FREE_FIELDS, TrainConfig
+from stnh_tf.training.config import (MODEL_FILE_FIELDS, MODEL_KINDS, RESUME_FREE_FIELDS,
+                                     TrainConfig)
 from stnh_tf.training.run_lock import LOCK_FILE, RunLock  # noqa: F401 (the run's lock)
 
 FINAL_MODEL = "model.keras"
@@ -33,6 +36,9 @@ RESULT_FILE = "result.json"
 LOGS_DIR = "logs"
 # Written into config.json with the fields: what makes a folder a training run (read_run_config).
 CONFIG_MARKER = {"format": "stnh_tf.train_config", "format_version": 1}
+# Written into config.json beside the fields: {field: [sha256 of each model file it names]} for
+# the fields of MODEL_FILE_FIELDS (config_document), what a resumption compares them by.
+MODEL_DIGESTS = "model_sha256"
 # The format of the record beside a chunked run's finished stage (stnh_tf.training.chunks).
 STAGE_RECORD_FORMAT = "stnh_tf.chunked_stage"
 CHECKPOINT_DIR = "checkpoint"
@@ -199,6 +205,35 @@ def load_checkpoint(model, directory) -> int:
     return step
 
 
+def check_weights_file(path: str, step: int) -> None:
+    """That the checkpoint weights file ``path`` reads whole, without a model: an HDF5 file
+    (h5py, which Keras saves them with) whose every dataset reads, with at least one, and whose
+    optimizer step count (``optimizer/vars/0``, where it holds a scalar integer there) is
+    ``step``, the step its state names. Reads only.
+
+    Raises:
+      ValueError: naming ``path`` and what is wrong (truncated, not HDF5, empty, another step).
+    """
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            datasets = []
+            f.visititems(lambda _, item: datasets.append(item[()])
+                         if isinstance(item, h5py.Dataset) else None)
+            held = f.get("optimizer/vars/0")
+            held = int(held[()]) if isinstance(held, h5py.Dataset) and held.shape == () \
+                and held.dtype.kind in "iu" else None
+    except (OSError, ValueError, KeyError, RuntimeError) as e:
+        raise ValueError(f"the checkpoint {path} cannot be read ({type(e).__name__}: "
+                         f"{str(e).splitlines()[0] if str(e) else ''})") from None
+    if not datasets:
+        raise ValueError(f"the checkpoint {path} holds no weights")
+    if held is not None and held != step:
+        raise ValueError(f"the checkpoint {path} holds step {held}, not step {step} as its "
+                         "state says")
+
+
 def _typed(value, field) -> bool:
     """Whether ``value`` (read from JSON) has the type of the TrainConfig ``field``."""
     def of(kind, v):
@@ -240,8 +275,9 @@ def _legacy_config_problem(doc: dict) -> str | None:
     return None
 
 
-def read_run_config(config_path: str) -> dict:
-    """The saved fields of the training run whose ``config.json`` is ``config_path``.
+def read_run_config(config_path: str, digests: bool = False) -> dict:
+    """The saved fields of the training run whose ``config.json`` is ``config_path`` (with
+    ``digests``, and the model files' digests it records: :data:`MODEL_DIGESTS`).
 
     A run's ``config.json`` holds :data:`CONFIG_MARKER` (``format`` and ``format_version``) with
     the :class:`TrainConfig` fields (:func:`prepare_model_dir` writes it); one written before the
@@ -273,26 +309,82 @@ def read_run_config(config_path: str) -> dict:
                 f"\"format\": \"{CONFIG_MARKER['format']}\", and not one written before that "
                 f"marker: {why}); its folder is neither resumed nor deleted, with or without "
                 "--overwrite: choose another --model_dir, or move the folder away.")
-    return {k: v for k, v in doc.items() if k not in CONFIG_MARKER}
+    return {k: v for k, v in doc.items()
+            if k not in CONFIG_MARKER and (digests or k != MODEL_DIGESTS)}
 
 
-def _config_diff(cfg: TrainConfig, config_path: str) -> dict:
-    """``{field: (old, new)}`` for the fields that differ from a saved run's and matter
-    (``ValueError`` if ``config_path`` is not a run's: :func:`read_run_config`)."""
+def model_file(path: str) -> str:
+    """The model file of a finished training run named by ``path``: the run folder's
+    ``model.keras``, or ``path`` itself (a ``.keras`` file)."""
+    return os.path.join(path, FINAL_MODEL) if os.path.isdir(path) else path
+
+
+def file_sha256(path: str) -> str:
+    """The sha256 (hex) of the bytes of the file ``path`` (``OSError`` where it cannot be
+    read)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def model_digests(fields: dict) -> dict:
+    """``{field: [sha256 or None, ...]}``: for each field of :data:`MODEL_FILE_FIELDS` in
+    ``fields`` (a configuration's, as :meth:`TrainConfig.to_json`), the digest of each model
+    file it names (:func:`model_file`, :func:`file_sha256`), None where there is no such file
+    here."""
+    return {name: [file_sha256(model_file(p))
+                   if isinstance(p, str) and os.path.isfile(model_file(p)) else None
+                   for p in fields.get(name) or ()] for name in MODEL_FILE_FIELDS}
+
+
+def config_document(cfg: TrainConfig) -> dict:
+    """What a run's ``config.json`` holds (:func:`prepare_model_dir` writes it): ``cfg``'s
+    fields, :data:`CONFIG_MARKER`, and the digests of the model files it names
+    (:data:`MODEL_DIGESTS`: :func:`model_digests`)."""
+    fields = cfg.to_json()
+    return {**fields, **CONFIG_MARKER, MODEL_DIGESTS: model_digests(fields)}
+
+
+def _resume_form(doc: dict) -> dict:
+    """What of a run's configuration ``doc`` (a ``config.json``'s fields with its
+    :data:`MODEL_DIGESTS`, or :func:`config_document`'s) a resumption must repeat, wherever the
+    run folder, the photographs and the checkout are: every field but
+    :data:`~stnh_tf.training.config.RESUME_FREE_FIELDS` (a field the run predates at its default
+    value then, e.g. optimizer="sgd"); each model file of the fields of
+    :data:`~stnh_tf.training.config.MODEL_FILE_FIELDS` by its content, ``sha256:<hex>`` (as
+    ``doc`` records it, else as the file named is here), or, where neither says, by its path;
+    and the kind of source (``source``: TFRecords and generated pairs come in different
+    orders)."""
+    fields = {**TrainConfig().to_json(),
+              **{k: v for k, v in doc.items() if k != MODEL_DIGESTS and k not in CONFIG_MARKER}}
+    recorded, here = doc.get(MODEL_DIGESTS), model_digests(fields)
+    form = {k: v for k, v in fields.items() if k not in RESUME_FREE_FIELDS}
+    for name in MODEL_FILE_FIELDS:
+        paths = fields[name]
+        if not isinstance(paths, list):  # (not a configuration this project wrote)
+            continue
+        saved = recorded.get(name) if isinstance(recorded, dict) else None
+        if not isinstance(saved, list) or len(saved) != len(paths):
+            saved = [None] * len(paths)
+        form[name] = [f"sha256:{a or b}" if (a or b) else path
+                      for path, a, b in zip(paths, saved, here[name])]
+    form["source"] = "data_dir" if fields.get("data_dir") else "image_dir"
+    return form
+
+
+def _config_diff(new: TrainConfig | str, config_path: str) -> dict:
+    """``{field: (old, new)}`` for what differs between the saved run whose ``config.json`` is
+    ``config_path`` and ``new`` (a configuration, or another run's ``config.json``) and matters
+    (:func:`_resume_form`). ``ValueError`` where a ``config.json`` is not a run's
+    (:func:`read_run_config`)."""
     if not os.path.exists(config_path):
         return {}
-    old = read_run_config(config_path)
-    new = cfg.to_json()
-    # A field the saved run predates had its default value then (e.g. optimizer="sgd").
-    old = {**TrainConfig().to_json(), **old}
-    diff = {k: (old.get(k), new[k]) for k in new
-            if k not in RESUME_FREE_FIELDS and old.get(k) != new[k]}
-    # The folders may move between a run and its resumption, but not the kind of source: TFRecords
-    # and generated pairs come in different orders.
-    kinds = tuple("data_dir" if c.get("data_dir") else "image_dir" for c in (old, new))
-    if kinds[0] != kinds[1]:
-        diff["source"] = kinds
-    return diff
+    old = _resume_form(read_run_config(config_path, digests=True))
+    new = _resume_form(config_document(new) if isinstance(new, TrainConfig)
+                       else read_run_config(new, digests=True))
+    return {k: (old.get(k), v) for k, v in new.items() if old.get(k) != v}
 
 
 def _check_run_folder(model_dir: str) -> None:
@@ -323,11 +415,11 @@ def check_same_run(model_dir: str, config_path: str, cfg: TrainConfig | None = N
     if cfg is None:
         if not (os.path.exists(config_path) and os.path.exists(own)):
             return  # nothing to compare
-        cfg, what = TrainConfig.from_json(read_run_config(config_path)), config_path
+        new, what = config_path, config_path
     else:
-        what = "this run's flags"
+        new, what = cfg, "this run's flags"
     for path in (config_path, own):
-        diff = _config_diff(cfg, path)
+        diff = _config_diff(new, path)
         if diff:
             raise ValueError(f"{path} is the configuration of another run than {what}: {diff} "
                              f"(old, new); nothing was copied into {model_dir}: use the same "
@@ -335,8 +427,8 @@ def check_same_run(model_dir: str, config_path: str, cfg: TrainConfig | None = N
 
 
 def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
-    """Make ``model_dir`` ready for training and write its ``config.json`` (with
-    :data:`CONFIG_MARKER`). Returns True when this starts a new run there (there was no
+    """Make ``model_dir`` ready for training and write its ``config.json``
+    (:func:`config_document`). Returns True when this starts a new run there (there was no
     ``config.json``), False when it resumes one.
 
     ``model_dir`` must be missing, empty, or a training run (its ``config.json`` is one of ours:
@@ -365,7 +457,7 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
         raise ValueError(f"{cfg.model_dir} holds an unfinished run with a different configuration "
                          f"{diff} (old, new); use the same flags to resume, or --overwrite.")
     new_run = not os.path.exists(config_path)
-    atomic_write_json(config_path, {**cfg.to_json(), **CONFIG_MARKER})
+    atomic_write_json(config_path, config_document(cfg))
     return new_run
 
 

@@ -22,13 +22,19 @@ class RunLock:
     held. The lock file is removed on release if this lock created it (a stale one left by a
     killed run stays, and is reused).
 
+    ``busy``: the refusal when another holds the lock, a format string of ``folder`` and ``lock``
+    (the lock file); by default it names ``model_dir``.
+
     Raises:
-      FileExistsError: another run holds the lock (the message names the folder).
+      FileExistsError: another run holds the lock (``busy``: the message names the folder).
       NotADirectoryError: ``model_dir`` exists and is not a folder.
       PermissionError: ``model_dir`` cannot be created or written.
     """
 
-    def __init__(self, model_dir: str):
+    BUSY = ("another training run is using model_dir {folder} (it holds {lock}); wait for it to "
+            "finish, or choose another --model_dir.")
+
+    def __init__(self, model_dir: str, busy: str = BUSY):
         import fcntl
 
         self.model_dir = os.fspath(model_dir)
@@ -52,10 +58,8 @@ class RunLock:
                     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 except BlockingIOError:
                     os.close(fd)
-                    raise FileExistsError(
-                        f"another training run is using model_dir {self.model_dir} (it holds "
-                        f"{self.path}); wait for it to finish, or choose another "
-                        "--model_dir.") from None
+                    raise FileExistsError(busy.format(folder=self.model_dir,
+                                                      lock=self.path)) from None
                 if self._same_file(fd):
                     self._fd = fd
                     return

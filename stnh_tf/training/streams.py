@@ -216,12 +216,11 @@ def estimates_key(arrays: dict, prev_stages) -> str:
     digest.update((np.round(np.asarray(arrays["h_ba"], np.float64), 6) + 0.0).tobytes())
     digest.update(np.ascontiguousarray(arrays["context_a"][::max(1, n // 64)]).tobytes())
     for stage in prev_stages:
-        path = os.path.join(stage, run_dir.FINAL_MODEL) if os.path.isdir(stage) else stage
+        path = run_dir.model_file(stage)
         if not os.path.isfile(path):
             raise FileNotFoundError(f"stage-k pairs need the finished stage {path!r}: no such "
                                     "file.")
-        with open(path, "rb") as f:
-            digest.update(hashlib.sha256(f.read()).digest())
+        digest.update(bytes.fromhex(run_dir.file_sha256(path)))
     return digest.hexdigest()
 
 
