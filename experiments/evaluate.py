@@ -9,7 +9,10 @@ hierarchy, reported after 1, 2, ..., n stages; --no_clip reports it without the 
 predicted corners onto the context border (post-processing that is not the paper's). Prints a
 short table (:func:`stnh_tf.evaluation.summaries.evaluation_table`): the identity, the model
 (after each stage), the baselines, each with its MACE, median and the pairs it estimates worse
-than the identity, and "worse than the identity" where its mean is above the identity's.
+than the identity, and "worse than the identity" where its mean is above the identity's; a note
+under it (``notes`` in the JSON) where a model was trained as another stage (its run's
+``config.json``) than the pairs are for (the dataset's ``metadata.json``), e.g. a stage-1 model
+on stage-2 data.
 --json_out=FILE writes the full JSON (mean/median/p90/p99 MACE, the identity on the same pairs,
 the number of pairs, ``worse_than_identity``); --json_out=- prints it instead of the table.
 """

@@ -37,6 +37,9 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry, pixels
+from stnh_tf.data.image_checks import (  # noqa: F401 (sources' names too: one rule with the data)
+    MAX_IMAGE_PIXELS, MIN_PATCH_SPAN_PX, ImageDecodeError, ImageTooLargeError, ImageTooSmallError,
+    check_image_size, check_pixel_count, header_size)
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".pgm", ".ppm", ".pbm", ".pnm", ".tif",
                     ".tiff")
@@ -49,13 +52,6 @@ GRAY_POLICY = ("ITU-R 601 luma (cv2 BGR2GRAY; JPEG decoded to gray by libjpeg), 
 
 _JPEG_MAGIC = b"\xff\xd8"
 
-MAX_IMAGE_PIXELS = 120_000_000
-"""The most pixels (width x height) an image file may decode to (120 megapixels: a 108-MP phone
-photograph passes). Checked from the file's header before it is decoded (:func:`decode_gray`),
-as Pillow's decompression-bomb guard does: a 250 KB PNG can declare 16,000 x 16,000 pixels, and
-``predict`` needed 4.3 GB for it (about 17 bytes a pixel). ``predict --max_image_pixels`` raises
-it."""
-
 # Natural photographs shipped inside scikit-image's wheel (no download needed); synthetic
 # images (checkerboards, logos, colour wheels, silhouettes) are left out on purpose.
 _SKIMAGE_PHOTOS = ("astronaut.png", "brick.png", "camera.png", "cell.png", "chelsea.png",
@@ -64,18 +60,6 @@ _SKIMAGE_PHOTOS = ("astronaut.png", "brick.png", "camera.png", "cell.png", "chel
                    "motorcycle_right.png", "page.png", "retina.jpg", "rocket.jpg", "text.png")
 _MATPLOTLIB_PHOTOS = ("grace_hopper.jpg",)
 _SKLEARN_PHOTOS = ("china.jpg", "flower.jpg")
-
-
-class ImageDecodeError(ValueError):
-    """A file that cannot be turned into an 8-bit gray image; ``str(e)`` is the reason."""
-
-
-class ImageTooSmallError(ImageDecodeError):
-    """An image too small for the protocol's patches (:func:`check_image_size`)."""
-
-
-class ImageTooLargeError(ImageDecodeError):
-    """An image whose header declares more pixels than the cap (:func:`check_pixel_count`)."""
 
 
 class SourceError(ValueError):
@@ -348,47 +332,6 @@ def integer_full_scale(img: np.ndarray) -> float:
     return 2 ** min(16, max(8, largest.bit_length())) - 1
 
 
-def header_size(data: bytes):
-    """``(w, h)`` that the header of the encoded image ``data`` declares, read by Pillow's format
-    plugins (the first whose ``accept`` takes the data's prefix and whose header reader
-    succeeds, as ``PIL.Image.open`` chooses) without decoding the pixels; ``None`` where no
-    plugin reads the header (the decoder then finds out). ``PIL.Image.open`` itself is not used:
-    above twice ``PIL.Image.MAX_IMAGE_PIXELS`` it raises without giving the size, and its limit
-    is not this module's (:data:`MAX_IMAGE_PIXELS`, which a binary's flag may raise)."""
-    try:
-        from PIL import Image
-    except ImportError:  # pragma: no cover - Pillow comes with matplotlib
-        return None
-    Image.init()  # every format's header reader (once per process)
-    for fmt in Image.ID:
-        factory, accept = Image.OPEN[fmt]
-        accepted = accept(data[:16]) if accept else True
-        if not accepted or isinstance(accepted, str):  # a str: "this format, unsupported"
-            continue
-        try:
-            with factory(io.BytesIO(data), "") as im:  # reads the header, decodes nothing
-                return int(im.size[0]), int(im.size[1])
-        except Exception:  # noqa: BLE001 - not this format's header, as Image.open goes on
-            continue
-    return None
-
-
-def check_pixel_count(size, max_pixels: int = MAX_IMAGE_PIXELS) -> None:
-    """:class:`ImageTooLargeError` when an image of header ``size`` (:func:`header_size`: ``(w,
-    h)``, or ``None``: unknown) has more than ``max_pixels`` pixels.
-
-        >>> check_pixel_count((16000, 16000))  # doctest: +ELLIPSIS
-        Traceback (most recent call last):
-        ...
-        stnh_tf.data.sources.ImageTooLargeError: too large to decode: 16,000 x 16,000 px ...
-    """
-    if size is not None and size[0] * size[1] > max_pixels:
-        raise ImageTooLargeError(
-            f"too large to decode: {size[0]:,} x {size[1]:,} px is {size[0] * size[1]:,} pixels, "
-            f"over the cap of {max_pixels:,} (a guard against decompression bombs: a small file "
-            "that decodes to gigabytes)")
-
-
 def decode_gray(data: bytes, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
     """Encoded image bytes -> ``uint8 [h, w]`` gray at the file's own size. The size its header
     declares is checked against ``max_pixels`` first (:func:`check_pixel_count`), before
@@ -439,32 +382,6 @@ def _decode_with_pillow(data: bytes) -> np.ndarray:
     except (OSError, ValueError, SyntaxError) as e:
         raise ImageDecodeError(f"corrupt or truncated image: {e}") from None
     return to_gray_uint8(arr, "rgb")
-
-
-MIN_PATCH_SPAN_PX = 8
-"""Fewest pixels of an image a 128 x 128 patch of its 320 x 240 version may cover on a side."""
-
-
-def check_image_size(size, name="image") -> None:
-    """:class:`ImageTooSmallError` (naming ``name``) unless a 128 x 128 patch of the 320 x 240
-    version of a ``size = (w, h)`` image covers :data:`MIN_PATCH_SPAN_PX` of its pixels a side
-    (``w >= 20``, ``h >= 15``; below, its motion is not observable: training pairs skip it).
-
-        >>> check_image_size((5120, 1))  # doctest: +ELLIPSIS
-        Traceback (most recent call last):
-        ...
-        stnh_tf.data.sources.ImageTooSmallError: image is 5120 x 1 px: too small ... 20 x 15 px).
-    """
-    work, patch = (geometry.IMAGE_WIDTH, geometry.IMAGE_HEIGHT), geometry.PATCH_SIZE
-    span = tuple(side * patch / w for side, w in zip(size, work))
-    if min(span) < MIN_PATCH_SPAN_PX:
-        least = [-(-MIN_PATCH_SPAN_PX * side // patch) for side in work]
-        raise ImageTooSmallError(
-            f"{name} is {size[0]} x {size[1]} px: too small to estimate a homography from; its "
-            f"central {patch} x {patch} patch, after the resize to {work[0]} x {work[1]}, would "
-            f"cover {span[0]:.1f} x {span[1]:.1f} of its pixels, and at least "
-            f"{MIN_PATCH_SPAN_PX} x {MIN_PATCH_SPAN_PX} are needed (an image of at least "
-            f"{least[0]} x {least[1]} px).")
 
 
 def resize_to_protocol(gray: np.ndarray, width: int = geometry.IMAGE_WIDTH,

@@ -8,6 +8,7 @@ composed as ``h_prev @ H_k``.
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -104,7 +105,9 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
       data_dir, split: the stored pairs (``stnh_tf.data.tfrecords``).
       max_samples: evaluate the first N pairs only (reported as ``count``; default all).
     Returns:
-      ``{"data_dir", "split", "count", "identity", "model" (if any), "baselines" (if any)}``.
+      ``{"data_dir", "split", "count", "identity", "model" (if any), "baselines" (if any),
+      "notes"}``, ``notes`` the lines of :func:`stage_notes` (a model of another stage than the
+      data's).
     Raises:
       ValueError: ``batch_size`` < 1 or ``max_samples`` < 1, or ``clip_to_context=False``
         without a hierarchy (checked before anything is read); a missing split, a model or
@@ -116,9 +119,43 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
     if max_samples is not None and max_samples < 1:
         raise ValueError(f"max_samples must be >= 1 (or unset: all pairs); received {max_samples}.")
     samples = data.load_arrays(data_dir, split, max_samples=max_samples)
+    notes = stage_notes(model_dirs, int(data.read_metadata(data_dir).get("stage", 1)), data_dir)
     return {"data_dir": data_dir, "split": split,
             **evaluate_arrays(samples, model_dirs, baselines, batch_size, compute_dtype,
-                              clip_to_context, source=data_dir)}
+                              clip_to_context, source=data_dir), "notes": notes}
+
+
+def stage_notes(model_dirs, data_stage: int, data_dir: str) -> list:
+    """One line per model whose stage (its run's ``config.json`` or stage record:
+    :func:`stnh_tf.training.run_records.trained_stage`; a model that records none is not judged)
+    is not the one ``data_dir``'s stage-``data_stage`` pairs (its ``metadata.json``) are meant
+    for: a single model, stage ``data_stage``; the k-th of a hierarchy (on stage-1 pairs),
+    stage k."""
+    from stnh_tf.data.tfrecords import METADATA_FILE
+    from stnh_tf.training import run_records
+
+    model_dirs = [d for d in (model_dirs or ()) if d]
+    meta = os.path.join(data_dir, METADATA_FILE)
+    notes = []
+    for k, model_dir in enumerate(model_dirs, start=1):
+        wanted = data_stage if len(model_dirs) == 1 else k
+        found = run_records.trained_stage(model_dir)
+        if found is None or found[0] == wanted:
+            continue
+        stage, record = found
+        if len(model_dirs) == 1:
+            notes.append(
+                f"note: {model_dir} was trained as stage {stage} ({record}) and {data_dir} holds "
+                f"stage-{data_stage} pairs ({meta}): its estimate is composed with the stored "
+                f"estimate of the stages before stage {data_stage} (h_prev), as a stage-"
+                f"{data_stage} model's would be; these are the numbers of neither a stage-"
+                f"{data_stage} model nor this model on the pairs it was trained for.")
+        else:
+            notes.append(
+                f"note: {model_dir}, stage {k} of the hierarchy, was trained as stage {stage} "
+                f"({record}): the hierarchy's stage {k} is meant to be a stage-{k} model, "
+                f"trained on the pairs its stages 1..{k - 1} leave.")
+    return notes
 
 
 def check_evaluation(model_dirs, batch_size: int, clip_to_context: bool) -> None:

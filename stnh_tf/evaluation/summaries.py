@@ -116,7 +116,8 @@ def evaluation_table(result: dict) -> str:
     """The table of :func:`stnh_tf.evaluation.mace.evaluate`'s result: the identity, the model
     (a hierarchy: after each stage; a sequence model: each ``h_bar_k`` output), the baselines
     but the identity (already the first row). On a stage-k dataset a single model is compared
-    with the estimate it starts from (the stored ``h_prev``), which gets its own row."""
+    with the estimate it starts from (the stored ``h_prev``), which gets its own row. The
+    result's ``notes`` (a model of another stage than the data's) follow the table."""
     identity = Row.of("identity", result["identity"])
     rows, notes = [], []
     model = result.get("model")
@@ -153,7 +154,7 @@ def evaluation_table(result: dict) -> str:
         if name != "identity":
             rows.append(Row.of(name, summary))
     title = f"MACE on {result['count']} pairs of {result['data_dir']} ({result['split']})"
-    return summary_table(identity, rows, title, notes)
+    return summary_table(identity, rows, title, notes + list(result.get("notes", ())))
 
 
 def camera_pairs_table(result: dict) -> str:

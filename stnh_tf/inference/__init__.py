@@ -2,7 +2,8 @@
 whole images), what it accepts (:mod:`~stnh_tf.inference.image_input`), where its models are
 (:mod:`~stnh_tf.inference.model_files`), the ECC alignment of its search and refinement
 (:mod:`~stnh_tf.inference.ecc`), two image files aligned (:mod:`~stnh_tf.inference.image_files`),
-the SavedModel export (:mod:`~stnh_tf.inference.export`) and the shipped weights' card
+the SavedModel export (:mod:`~stnh_tf.inference.export`; what it computes:
+:mod:`~stnh_tf.inference.serving`) and the shipped weights' card
 (:mod:`~stnh_tf.inference.shipped_weights`).
 
     >>> from stnh_tf.inference import HomographyEstimator  # doctest: +SKIP

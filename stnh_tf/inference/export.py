@@ -3,8 +3,9 @@
 The SavedModel has one serving signature (``serving_default``, also reachable as ``serve``):
 
 * inputs ``patch_a`` and ``patch_b``: ``uint8`` ``[B, 128, 128, 1]`` grayscale patches (0..255),
-  the same ``B >= 1`` for both; checked in the graph (:func:`checked_inputs`): any other rank,
-  size, channel count, dtype or an empty batch raises ``InvalidArgumentError``;
+  the same ``B >= 1`` for both; checked in the graph
+  (:func:`stnh_tf.inference.serving.checked_inputs`): any other rank, size, channel count, dtype
+  or an empty batch raises ``InvalidArgumentError``;
 * output ``homography``: ``float32`` ``[B, 3, 3]`` pixel ``H_ba`` (maps patch_b pixel coordinates
   to patch_a pixel coordinates, ``[2, 2] = 1``; see :mod:`stnh_tf.geometry`).
 
@@ -32,8 +33,8 @@ float32 as ``HomographyEstimator.load`` rebuilds them by default; one kept in bf
 between eager and graph runs by bfloat16 rounding and fails ``verify_export``'s default
 tolerance). Both skip a stage whose prediction makes the composition non-finite or singular,
 keeping the estimate before it (the identity before the first stage): the graph applies the
-estimator's degenerate-prediction rule (:func:`kept_unless_degenerate`), so that an
-under-trained model's export computes what ``estimate`` does.
+estimator's degenerate-prediction rule (:func:`stnh_tf.inference.serving.kept_unless_degenerate`),
+so that an under-trained model's export computes what ``estimate`` does.
 
 Writing (:func:`export_saved_model`; :func:`export_and_verify` for ``experiments.export``):
 
@@ -73,98 +74,9 @@ import logging
 import numpy as np
 
 from stnh_tf import geometry, paths
-from stnh_tf.inference import export_contract
+from stnh_tf.inference import export_contract, serving
 
 _log = logging.getLogger(__name__)
-
-SIGNATURE = "serving_default"
-OUTPUT = "homography"
-
-
-def checked_inputs(patch_a, patch_b):
-    """``patch_a``, ``patch_b`` after run-time checks in the graph: each of shape
-    ``[B, 128, 128, 1]`` (``tf.ensure_shape``) and the same ``B >= 1`` for both (an empty batch
-    is refused as ``estimate`` refuses it); anything else raises ``InvalidArgumentError`` when
-    the function runs. (A SavedModel signature's declared input
-    shape is not enforced when it is called, and the graph is optimized for that shape: without
-    these checks a ``[1, 128, 128]`` request aborted the serving process and a ``[1, 64, 64, 1]``
-    one returned a homography.) The dtype (uint8) is checked by the signature itself."""
-    import tensorflow as tf
-
-    s = geometry.PATCH_SIZE
-    patch_a = tf.ensure_shape(patch_a, [None, s, s, 1], name="check_patch_a")
-    patch_b = tf.ensure_shape(patch_b, [None, s, s, 1], name="check_patch_b")
-    same = tf.debugging.assert_equal(tf.shape(patch_a)[0], tf.shape(patch_b)[0],
-                                     message="patch_a and patch_b must hold the same number of "
-                                             "patches")
-    some = tf.debugging.assert_positive(tf.shape(patch_a)[0],
-                                        message="patch_a is an empty batch: patch_a and patch_b "
-                                                "must hold at least one patch each")
-    with tf.control_dependencies([same, some]):
-        return tf.identity(patch_a), tf.identity(patch_b)
-
-
-def kept_unless_degenerate(before, proposed):
-    """The degenerate-prediction rule of :meth:`HomographyEstimator.estimate` in the graph
-    (:func:`stnh_tf.hierarchy.rejection_reason`'s ``"non_finite"`` and ``"singular"``, with its
-    thresholds): per pair, ``proposed`` (normalized ``[B, 3, 3]``, the estimate composed with a
-    stage's prediction) scaled to ``[2, 2] = 1`` where its pixel homography is finite with
-    ``|H[2, 2]| >= MIN_SCALE`` and, so scaled, ``|det H| >= MIN_DET`` and a homogeneous
-    coordinate above ``MIN_W`` at the four patch corners (none maps to infinity or behind the
-    camera); ``before`` (normalized ``[B, 3, 3]``, ``[2, 2] = 1``: the estimate before that
-    stage) elsewhere."""
-    from keras import ops
-
-    from stnh_tf import hierarchy
-
-    s = geometry.PATCH_SIZE
-    m = geometry.normalization_matrix(s, s)
-    m_inv = ops.convert_to_tensor(np.linalg.inv(m), "float32")
-    m = ops.convert_to_tensor(m, "float32")
-    corners = ops.convert_to_tensor(  # [3, 4]: the patch corners, homogeneous, as columns
-        np.concatenate([geometry.patch_corners(s), np.ones((4, 1))], axis=1).T, "float32")
-    pixel = ops.matmul(ops.matmul(m_inv, proposed), m)
-    scale = pixel[:, 2, 2]
-    finite = ops.logical_and(ops.all(ops.isfinite(pixel), axis=(1, 2)),
-                             ops.abs(scale) >= hierarchy.MIN_SCALE)
-    unit = pixel / scale[:, None, None]
-    w = ops.matmul(unit, corners)[:, 2, :]
-    kept = ops.logical_and(finite, ops.logical_and(ops.abs(ops.det(unit)) >= hierarchy.MIN_DET,
-                                                   ops.all(w > hierarchy.MIN_W, axis=1)))
-    return ops.where(kept[:, None, None], geometry.scale_to_unit(proposed), before)
-
-
-def serving_function(estimator):
-    """A TensorFlow function ``(patch_a, patch_b) -> {"homography": [B, 3, 3] float32}`` on uint8
-    ``[B, 128, 128, 1]`` patches, computing the estimator's ``H_ba`` with its Keras models."""
-    from keras import ops
-
-    from stnh_tf.inference.options import EstimateOptions
-    from stnh_tf.modeling.layers import SpatialTransformer
-
-    stages, outputs = estimator.stages, estimator.output_names
-    warp = SpatialTransformer(fill=EstimateOptions.network_only().fill, dtype="float32",
-                              name="hierarchy_warp")
-
-    def serve(patch_a, patch_b):
-        patch_a, patch_b = checked_inputs(patch_a, patch_b)
-        a = ops.cast(patch_a, "float32") / 255.0
-        b = ops.cast(patch_b, "float32") / 255.0
-        total, current = None, a
-        for model, name in zip(stages, outputs):
-            if total is not None:
-                current = warp([a, total])  # patch_a(H_1 ... H_{k-1} p), mirrored outside
-            h8 = ops.cast(model({"patch_a": current, "patch_b": b}, training=False)[name],
-                          "float32")
-            h_bar = geometry.vector_to_matrix(h8)
-            if total is None:  # the estimate before the first stage: the identity
-                total = ops.broadcast_to(ops.eye(3, dtype="float32"), ops.shape(h_bar))
-            total = kept_unless_degenerate(total, ops.matmul(total, h_bar))
-        return {OUTPUT: geometry.denormalize_homography(total)}
-
-    serve.tracked = list(stages)  # the warp layer holds no variables
-    return serve
-
 
 VERIFIED_FILE = export_contract.VERIFIED_FILE
 """The marker of a verified export (module docstring)."""
@@ -377,11 +289,12 @@ def _write_export(estimator, output_dir) -> list:
 
 
 def _write_archive(estimator, path):
-    """The SavedModel of :func:`serving_function` written to the new folder ``path``."""
+    """The SavedModel of :func:`stnh_tf.inference.serving.serving_function` written to the new
+    folder ``path``."""
     import keras
     import tensorflow as tf
 
-    serve = serving_function(estimator)
+    serve = serving.serving_function(estimator)
     archive = keras.export.ExportArchive()
     for obj in serve.tracked:
         archive.track(obj)
@@ -404,7 +317,7 @@ def load_serving_signature(path, check_verified: bool = True):
         _log.warning("export: %s; its output was not compared with its model: export it again "
                      "with --overwrite (experiments.export).", problem)
     loaded = tf.saved_model.load(os.fspath(path))
-    fn = loaded.signatures[SIGNATURE]
+    fn = loaded.signatures[serving.SIGNATURE]
     fn._stnh_owner = loaded  # keep the loaded object (and its variables) alive
     return fn
 
@@ -440,7 +353,7 @@ def run_saved_model(signature_or_path, patch_a, patch_b) -> np.ndarray:
     if isinstance(fn, (str, os.PathLike)):
         fn = load_serving_signature(fn)
     out = fn(patch_a=tf.constant(patch_a), patch_b=tf.constant(patch_b))
-    return np.asarray(out[OUTPUT])
+    return np.asarray(out[serving.OUTPUT])
 
 
 def verification_pairs(n: int = 8, seed: int = 0):
@@ -492,7 +405,8 @@ def verify_export(path, estimator, patch_a=None, patch_b=None, tolerance: float 
     signature = load_serving_signature(path, check_verified=False)  # (being verified)
     saved = run_saved_model(signature, patch_a, patch_b).astype(np.float64)
     eager = np.asarray(
-        serving_function(estimator)(tf.constant(patch_a), tf.constant(patch_b))[OUTPUT],
+        serving.serving_function(estimator)(tf.constant(patch_a),
+                                            tf.constant(patch_b))[serving.OUTPUT],
         np.float64)
     from stnh_tf.inference.options import EstimateOptions
 
