@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 import sys
 
 import numpy as np
@@ -298,10 +299,14 @@ def _init_worker(batches: PairBatches):
     """Pool initializer: keep this process's copy of ``batches`` (sent once per worker, not per
     task) and run OpenCV single-threaded, so N workers do not each start one OpenCV thread per
     core (the workers gain nothing from OpenCV's threads: BENCHMARKS.md, "CPU-budget
-    single-stage models trained on the H100")."""
+    single-stage models trained on the H100"). Ctrl-C, which a terminal sends to every process
+    of the group, is ignored: the parent handles it (a training run stops after its step and
+    saves it) and ends the pool; interrupted, the workers printed tracebacks and left the
+    parent waiting a minute for their batches."""
     global _WORKER_BATCHES
     import cv2
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     cv2.setNumThreads(1)
     _WORKER_BATCHES = batches
 

@@ -13,8 +13,8 @@ it on the TFRecord dataset in ``config.data_dir`` with:
 * Atomic periodic checkpoints (model + optimizer + RNG state) every ``checkpoint_every`` steps; a
   killed run restarted with the same command resumes at the last checkpoint, repositions the data
   stream at that step, and follows the same schedule to the same final step. A run stopped by its
-  time limit or a SIGTERM saves the checkpoint of the step it stopped at (between two periodic
-  ones if need be) and resumes from there the same way.
+  time limit, a SIGTERM or a SIGINT (Ctrl-C) saves the checkpoint of the step it stopped at
+  (between two periodic ones if need be) and resumes from there the same way.
 * TensorBoard scalars against the global step (both loss terms, learning rate, validation MACE)
   and console progress, every ``log_every`` steps and at least ten times a run.
 * A non-finite loss stops training with an error naming the step and the last good checkpoint.
@@ -45,9 +45,11 @@ A run trained in chunks across machines: :mod:`stnh_tf.training.chunks`.
 from __future__ import annotations
 
 import contextlib
+import gc
 import importlib.util
 import math
 import os
+import signal
 import time
 
 import keras
@@ -79,6 +81,11 @@ OPTIMIZERS = {"sgd": _sgd, "adam": _adam, "adamw": _adamw}
 if sorted(OPTIMIZERS) != sorted(OPTIMIZER_NAMES):
     raise ImportError(f"training.OPTIMIZERS {sorted(OPTIMIZERS)} must match "
                       f"train_config.OPTIMIZER_NAMES {sorted(OPTIMIZER_NAMES)}.")
+
+
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+"""The signals that stop a run after its current step, that step's checkpoint saved: what
+``timeout`` and ``kill`` send, and Ctrl-C (a second one acts as it did before: it interrupts)."""
 
 
 class TrainingDiverged(RuntimeError):
@@ -266,15 +273,15 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     ``time_limit_s`` (None or 0: no limit; else a finite number > 0, checked with the fields):
     stop within one step of this many seconds after the call, after the step past which another
     as long would end beyond it (:class:`~stnh_tf.training.callbacks.TimeLimit`), and save the
-    checkpoint of that step, between the ``checkpoint_every`` ones if need be. A SIGTERM while
-    training stops the same way after the current step (on one process, in the main thread:
-    :func:`~stnh_tf.training.callbacks.stop_on_signals`), so ``timeout`` loses no work. The
-    result then has ``stopped_by`` (``"time limit"`` or ``"SIGTERM"``; with the time limit also
-    ``stopped_at_time_limit``) and no final model is written: the same call resumes the run from
-    that step, its first ``fit`` call a short epoch to the next multiple of ``checkpoint_every``
-    (:func:`stnh_tf.training.fit_calls.calls`), and ends with the weights of an uninterrupted
-    run. Several processes stop by the time limit alone, at an epoch end (the chief's decision,
-    shared).
+    checkpoint of that step, between the ``checkpoint_every`` ones if need be. A SIGTERM or a
+    SIGINT (Ctrl-C) while training stops the same way after the current step (on one process, in
+    the main thread: :data:`STOP_SIGNALS`), so neither ``timeout`` nor Ctrl-C loses work. The
+    result then has ``stopped_by`` (``"time limit"``, ``"SIGTERM"`` or ``"SIGINT"``; with the
+    time limit also ``stopped_at_time_limit``) and no final model is written: the same call
+    resumes the run from that step, its first ``fit`` call a short epoch to the next multiple of
+    ``checkpoint_every`` (:func:`stnh_tf.training.fit_calls.calls`), and ends with the weights
+    of an uninterrupted run. Several processes stop by the time limit alone, at an epoch end
+    (the chief's decision, shared).
 
     ``stream_fn(cfg, split, start_step)`` may replace the TFRecord stream (tests, generators);
     ``extra_callbacks`` run after the built-in ones (checkpointing comes first).
@@ -359,7 +366,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             else:
                 printer("TensorFlow is not installed: no TensorBoard logs (console progress only)")
         callbacks.extend(extra_callbacks)
-        # The time limit and SIGTERM stop a run on one process after any step (its checkpoint
+        # The time limit and STOP_SIGNALS stop a run on one process after any step (its checkpoint
         # saved); several processes stop together at an epoch end (SyncStop), by the limit alone.
         limit = (TimeLimit(time_limit_s or None, start=t_call, per_step=not cluster.multi)
                  if time_limit_s or not cluster.multi else None)
@@ -368,7 +375,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         t0 = time.time()
         histories, stream_start = [], start_step  # the step of the stream's first item
         try:
-            with stop_on_signals(None if cluster.multi else limit):
+            with stop_on_signals(None if cluster.multi else limit, STOP_SIGNALS):
                 for step_0, first_epoch, epochs, steps in fit_calls.calls(
                         start_step, cfg.checkpoint_every, cfg.train_steps):
                     if step_0 != stream_start:  # each call reads its stream from the start
@@ -428,6 +435,9 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         keras.mixed_precision.set_global_policy("float32")
         if hasattr(train_ds, "close"):  # a PairStream's generator processes
             train_ds.close()
+        # Its tf.data iterator sits in a reference cycle; left to the interpreter's exit, it
+        # called into a finalizing Python and TensorFlow logged an error after the last line.
+        gc.collect()
         distribute.deactivate(cluster)
         if lock is not None:
             lock.release()
