@@ -3,6 +3,8 @@ r"""Generate a stage-1 STN-Homography dataset (the paper's protocol) as sharded 
   python -m data_prep.make_dataset --source=folder --image_dir=../shared/data/coco_mini/train \
       --output_dir=data/coco_mini --split=train --seed=0
   python -m data_prep.make_dataset --source=bundled --output_dir=/tmp/demo --split=train
+  python -m data_prep.make_dataset --source=folder --image_dir=PHOTOS --output_dir=data/mine \
+      --split=train --val_fraction=0.1   # the same flags with --split=val: the 10% held out
   python -m data_prep.make_dataset --source=coco2014 --output_dir=data/coco --split=train \
       --max_images=118000        # needs the tensorflow-datasets download (network)
 
@@ -42,6 +44,10 @@ flags.DEFINE_string("tfds_split", None, "tfds split for coco2014 (default: train
                     "train+validation, test -> test, as in the paper).")
 flags.DEFINE_integer("chunk_size", 4, "Images per task sent to a worker.")
 flags.DEFINE_bool("overwrite", False, "Regenerate a split that is already complete.")
+flags.DEFINE_float("val_fraction", 0.0, "Share of the photographs held out of --split=train for "
+                   "--split=val, each chosen by a hash of its path in its folder (the same on "
+                   "every machine; docs/data.md): give both splits the same value and "
+                   "photographs. 0: train keeps every photograph (the paper's), no val split.")
 FLAGS = flags.FLAGS
 
 
@@ -58,7 +64,8 @@ def main(argv):
             num_shards=FLAGS.num_shards, num_workers=FLAGS.num_workers,
             max_images=FLAGS.max_images, tfds_data_dir=FLAGS.tfds_data_dir,
             tfds_split=FLAGS.tfds_split, chunk_size=FLAGS.chunk_size, log=logging.info,
-            overwrite=FLAGS.overwrite, photometric=FLAGS.photometric)
+            overwrite=FLAGS.overwrite, photometric=FLAGS.photometric,
+            val_fraction=FLAGS.val_fraction)
     logging.info(folder_counts.split_counts(split).line())
 
 

@@ -1,7 +1,7 @@
 r"""Generate the stage-k dataset of hierarchical STN-Homography from stage k-1's data and model.
 
   python -m data_prep.make_stage_dataset --stage=2 --input_dir=data/cpu --model_dir=runs/stage1 \
-      --output_dir=data/cpu_stage2                      # train and test splits
+      --output_dir=data/cpu_stage2                      # train, val (if any) and test
   python -m data_prep.make_stage_dataset --stage=3 --input_dir=data/cpu_stage2 \
       --model_dir=runs/stage2 --output_dir=data/cpu_stage3
 
@@ -25,7 +25,8 @@ flags.DEFINE_integer("stage", None, "Stage k >= 2 of the dataset to build.", req
 flags.DEFINE_string("input_dir", None, "Stage-(k-1) dataset directory.", required=True)
 flags.DEFINE_string("model_dir", None, "Trained stage-(k-1) model directory.", required=True)
 flags.DEFINE_string("output_dir", None, "Stage-k dataset directory (created).", required=True)
-flags.DEFINE_list("splits", ["train", "test"], "Splits to build.")
+flags.DEFINE_list("splits", None, "Splits to build (default: train and test, and val where "
+                  "--input_dir holds it).")
 flags.DEFINE_integer("num_shards", 0, "Shards per split; 0 = as many as the input split has.")
 flags.DEFINE_integer("num_workers", os.cpu_count() or 1, "Re-cropping processes.")
 flags.DEFINE_bool("overwrite", False, "Regenerate splits that are already complete.")
@@ -57,12 +58,14 @@ def main(argv):
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     with common.user_errors("make_stage_dataset"):  # every split's flags, before the model loads
-        stage_k.check_stage_arguments(FLAGS.stage, FLAGS.input_dir, FLAGS.output_dir,
-                                      FLAGS.splits, num_shards=FLAGS.num_shards)
+        splits = (stage_k.default_splits(FLAGS.input_dir) if FLAGS.splits is None
+                  else FLAGS.splits)
+        stage_k.check_stage_arguments(FLAGS.stage, FLAGS.input_dir, FLAGS.output_dir, splits,
+                                      num_shards=FLAGS.num_shards)
         common.check_flags_apart(("output_dir",), ("input_dir", "model_dir"))
         common.check_not_a_run(FLAGS.output_dir)
         check_model_stage(FLAGS.model_dir, FLAGS.stage)
-    for split in FLAGS.splits:
+    for split in splits:
         with common.user_errors("make_stage_dataset"):
             result = stage_k.make_stage_dataset(
                 FLAGS.stage, FLAGS.input_dir, FLAGS.output_dir, split, model_dir=FLAGS.model_dir,

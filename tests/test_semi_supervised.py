@@ -899,8 +899,8 @@ def test_an_in_memory_experiment_uses_the_records_pairs_without_writing_them(ima
         np.testing.assert_array_equal(got[name], want[name], err_msg=name)
     cfg = exp.config(exp.rows[2], 1)
     assert (cfg.data_dir, cfg.image_dir, cfg.in_memory, cfg.samples_per_image, cfg.max_images,
-            cfg.val_image_dir, cfg.val_seed, cfg.label_fraction, cfg.seed) == (
-        "", train, True, 2, 4, test, 1, 0.75, 1)
+            cfg.val_image_dir, cfg.label_fraction, cfg.seed) == (
+        "", train, True, 2, 4, "", 0.75, 1)  # (no validation on the test photographs: issue 78)
     cfg.validate()
     fast = _in_memory_experiment(tmp_path / "fast", image_folders,
                                  speed={"steps_per_execution": 2, "workers": 3})

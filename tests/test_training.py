@@ -972,7 +972,8 @@ def test_tensorboard_scalars_are_against_the_global_step(tiny_data, tmp_path, na
     checkpoint, read back from the event files; the learning rate equals the schedule's (Keras'
     CosineDecay) at that step."""
     cfg = _cfg(tiny_data, tmp_path / "run", log_every=log_every,
-               checkpoint_every=checkpoint_every, train_steps=train_steps, val_samples=4)
+               checkpoint_every=checkpoint_every, train_steps=train_steps, val_samples=4,
+               val_split="test")  # (tiny_data has no val split: the default would not validate)
     lines = []
     training.train(cfg, printer=lines.append)
     train = _scalars(tmp_path / "run" / "logs" / "train")

@@ -54,6 +54,9 @@ class FolderCounts:
     ignored: int = 0
     beyond_max_images: int = 0
     max_images: int = 0
+    held_apart: int = 0  # photographs of the other split of a hold-out (stnh_tf.data.holdout)
+    held_apart_in: str = ""  # that split
+    val_fraction: float = 0.0
 
     @classmethod
     def of(cls, used: int, reasons, listing: "sources.FolderListing | None" = None,
@@ -81,6 +84,9 @@ class FolderCounts:
             parts.append(f"skipped {sum(self.skipped.values())} ({kinds})")
         if self.ignored:
             parts.append(f"non-image files ignored: {self.ignored}")
+        if self.held_apart:
+            parts.append(f"in the {self.held_apart_in} split (--val_fraction="
+                         f"{self.val_fraction:g}): {self.held_apart}")
         if self.beyond_max_images:
             parts.append(f"left out by --max_images={self.max_images}: {self.beyond_max_images}")
         if self.skipped.get("link outside the folder"):
@@ -90,13 +96,22 @@ class FolderCounts:
 
 def split_counts(split: dict) -> FolderCounts:
     """The :class:`FolderCounts` of a split ``data_prep.make_dataset`` wrote (its section of
-    ``metadata.json``: :func:`stnh_tf.data.stage1.make_dataset`'s result)."""
+    ``metadata.json``: :func:`stnh_tf.data.stage1.make_dataset`'s result), with the photographs
+    of the other split of its hold-out (:mod:`stnh_tf.data.holdout`).
+
+    >>> print(split_counts({"num_files_listed": 10, "num_items": 7, "num_items_used": 7,
+    ...                     "val_fraction": 0.25, "held_apart": 3, "held_apart_in": "val"}).line())
+    photographs: 7 used; in the val split (--val_fraction=0.25): 3
+    """
     listed, items = split.get("num_files_listed", 0), split.get("num_items", 0)
+    apart = split.get("held_apart", 0)
     return FolderCounts(
         used=split["num_items_used"],
         skipped=FolderCounts.of(0, [s["reason"] for s in split.get("skipped", [])]).skipped,
         ignored=split.get("num_non_image_files_ignored", 0),
-        beyond_max_images=max(0, listed - items), max_images=split.get("max_images", 0))
+        beyond_max_images=max(0, listed - items - apart), max_images=split.get("max_images", 0),
+        held_apart=apart, held_apart_in=split.get("held_apart_in", ""),
+        val_fraction=split.get("val_fraction", 0.0))
 
 
 def read_gray_folder(image_dir, max_images: int = 0) -> tuple:

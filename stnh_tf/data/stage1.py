@@ -14,7 +14,7 @@ import shlex
 import socket
 import sys
 
-from stnh_tf.data import metadata, writer
+from stnh_tf.data import holdout, metadata, writer
 from stnh_tf import paths
 from stnh_tf.data import pairs, sources
 
@@ -22,24 +22,38 @@ SOURCES = ("folder", "bundled", "coco2014")
 COCO_TFDS_SPLITS = {"train": "train+validation", "test": "test"}
 
 
-def folder_items(image_dir, max_images: int = 0):
+def _first(items: list, max_images: int, split: str, val_fraction: float, key) -> tuple:
+    """``(items, holdout section)``: the first ``max_images`` (0: all) of the ``items`` of
+    ``split`` under a hold-out of ``val_fraction`` (:func:`stnh_tf.data.holdout.select`; each
+    item keeps its index in the full listing, so its pairs do not depend on the hold-out)."""
+    mine, others = holdout.select(items, key, val_fraction, split)
+    return (mine[:max_images] if max_images > 0 else mine,
+            holdout.split_section(val_fraction, split, others))
+
+
+def folder_items(image_dir, max_images: int = 0, split: str = "train", val_fraction: float = 0.0):
     """WorkItems (payload = path) of every image below ``image_dir`` (a folder, a list of folders
-    or a comma-separated string of them: :func:`sources.scan_image_folders`), plus unreadable
-    dirs."""
+    or a comma-separated string of them: :func:`sources.scan_image_folders`) that ``split``
+    holds under a hold-out of ``val_fraction`` (0: every image), the first ``max_images`` of
+    them, plus unreadable dirs."""
     listing = sources.scan_image_folders(image_dir)
-    files = listing.files[:max_images] if max_images > 0 else listing.files
-    items = [writer.WorkItem(i, listing.image_id(p), p) for i, p in enumerate(files)]
+    several = listing.ids is not None
+    items, section = _first(
+        [writer.WorkItem(i, listing.image_id(p), p) for i, p in enumerate(listing.files)],
+        max_images, split, val_fraction, lambda it: holdout.photograph_key(it.item_id, several))
     info = {"image_dir": listing.root, "num_files_listed": len(listing.files),
-            "num_non_image_files_ignored": listing.ignored}
+            "num_non_image_files_ignored": listing.ignored, **section}
     return items, listing.unreadable, info
 
 
-def bundled_items(max_images: int = 0):
-    """WorkItems (payload = path) of the photographs bundled with installed packages."""
+def bundled_items(max_images: int = 0, split: str = "train", val_fraction: float = 0.0):
+    """WorkItems (payload = path) of the photographs bundled with installed packages (those
+    ``split`` holds under a hold-out of ``val_fraction``; the first ``max_images``)."""
     files = sources.bundled_image_files()
-    files = files[:max_images] if max_images > 0 else files
-    items = [writer.WorkItem(i, image_id, p) for i, (image_id, p) in enumerate(files)]
-    return items, [], {"num_files_listed": len(files)}
+    items, section = _first(
+        [writer.WorkItem(i, image_id, p) for i, (image_id, p) in enumerate(files)],
+        max_images, split, val_fraction, lambda it: it.item_id)
+    return items, [], {"num_files_listed": len(items), **section}  # (those used, as before)
 
 
 def _network_reachable(host: str = "images.cocodataset.org", port: int = 80,
@@ -91,18 +105,27 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
                  samples_per_image: int = 3, seed: int = 0, num_shards: int = 0,
                  num_workers: int = 1, max_images: int = 0, tfds_data_dir=None, tfds_split=None,
                  chunk_size: int = 4, log=print, command=None, overwrite: bool = False,
-                 photometric: bool = False) -> dict:
+                 photometric: bool = False, val_fraction: float = 0.0) -> dict:
     """Library entry point of the binary (tests call it directly). Returns the split's metadata.
 
     ``photometric`` changes patch_b photometrically (:class:`stnh_tf.data.pairs.PhotometricChange`;
     not the paper's protocol, recorded in the metadata's ``protocol``).
+
+    ``val_fraction`` > 0 (folder and bundled sources) divides the photographs between the
+    ``train`` and ``val`` splits by a hash of each one's path (:mod:`stnh_tf.data.holdout`):
+    ``split`` ``"val"`` writes the held-out ones, ``"train"`` the others; both splits of one
+    ``output_dir`` must be written with the same fraction from the same photographs (checked
+    before anything is written: :func:`stnh_tf.data.holdout.check_beside`). 0 (the default) holds
+    nothing out: the train split keeps every photograph, as the paper's does.
 
     Every argument, and for the folder and bundled sources the image listing, is checked
     before ``output_dir`` is created; a coco2014 run checks ``output_dir`` before any download.
 
     Raises:
       ValueError: a bad split name or number (negative ``num_shards``/``max_images``,
-        ``samples_per_image``/``chunk_size`` < 1, ``seed`` < 0).
+        ``samples_per_image``/``chunk_size`` < 1, ``seed`` < 0), a ``val_fraction`` this split or
+        source cannot take (:func:`stnh_tf.data.holdout.check_arguments`) or one that the
+        other split of ``output_dir``'s hold-out contradicts.
       sources.SourceError: unknown/empty source, missing folder, coco2014 unavailable.
       ValueError: ``output_dir`` holds a ``metadata.json`` this project did not write (refused
         before anything is written there).
@@ -116,6 +139,7 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
                              ("chunk_size", chunk_size, 1), ("seed", seed, 0)):
         if value < low:
             raise ValueError(f"--{name} must be >= {low}; received {value}.")
+    holdout.check_arguments(split, val_fraction, source)
     protocol = pairs.Protocol(samples_per_image=samples_per_image,
                               photometric=pairs.PhotometricChange() if photometric else None)
     if source == "coco2014":
@@ -124,10 +148,10 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
     if source == "folder":
         if not image_dir:
             raise sources.SourceError("--source=folder needs --image_dir.")
-        items, preskipped, info = folder_items(image_dir, max_images)
+        items, preskipped, info = folder_items(image_dir, max_images, split, val_fraction)
         num_items = len(items)
     elif source == "bundled":
-        items, preskipped, info = bundled_items(max_images)
+        items, preskipped, info = bundled_items(max_images, split, val_fraction)
         num_items = len(items)
     elif source == "coco2014":
         items, num_items, info = coco2014_items(split, tfds_split, tfds_data_dir, max_images,
@@ -135,11 +159,18 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
         preskipped = []
     else:
         raise sources.SourceError(f"unknown source {source!r}; expected one of {SOURCES}.")
+    if num_items == 0 and info.get("held_apart"):
+        raise ValueError(f"none of the {info['held_apart']} photographs of "
+                         f"{info.get('image_dir', source)} is in the {split} split with "
+                         f"--val_fraction={val_fraction:g}: give a value further from "
+                         f"{0 if split == holdout.VAL_SPLIT else 1}.")
     if num_items == 0:
         where = info.get("image_dir", source)
         extra = f" ({len(preskipped)} unreadable directories)" if preskipped else ""
         raise sources.SourceError(f"no image files found in {where}{extra}; image files end in "
                                   f"{', '.join(sources.IMAGE_EXTENSIONS)}.")
+    holdout.check_beside(metadata.read_metadata_file(output_dir), split, val_fraction,
+                         {"source": source, **info}, output_dir)
     output_dir = paths.check_output_dir(output_dir)
     if num_shards == 0:
         num_shards = writer.auto_num_shards(num_items, samples_per_image)

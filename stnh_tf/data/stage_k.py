@@ -92,6 +92,16 @@ def _items(paths, predict, counts: dict):
         yield from flush()
 
 
+def default_splits(input_dir: str) -> list:
+    """The splits ``make_stage_dataset`` builds unless told: train and test, and the ``val``
+    split (:mod:`stnh_tf.data.holdout`) where ``input_dir`` holds it complete."""
+    from stnh_tf.data import holdout
+    from stnh_tf.data import tfrecords as data
+
+    return ["train", *([holdout.VAL_SPLIT] if data.has_split(input_dir, holdout.VAL_SPLIT)
+                       else []), "test"]
+
+
 def check_stage_arguments(stage: int, input_dir: str, output_dir: str, splits, *,
                           num_shards: int = 0) -> list:
     """Check what :func:`make_stage_dataset` is given, before any model is loaded or folder

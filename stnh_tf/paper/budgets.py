@@ -29,7 +29,7 @@ class Budget:
     batch_size: int = 64
     mixed_precision: bool = False
     checkpoint_every: int = 1000
-    val_samples: int = 1024
+    val_samples: int = 1024          # on a val split only; a reproduction writes none
     ablation_steps: int = 0          # 0: as train_steps
     test_samples_per_image: int = 3
     max_images: int = 0              # training images; 0: every image

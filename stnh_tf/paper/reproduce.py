@@ -138,14 +138,15 @@ class Reproduction:
         """The stage-1 training pairs as :class:`~stnh_tf.training.config.TrainConfig` fields:
         the TFRecords of :meth:`stage1_data`, or with ``in_memory`` the same pairs made in memory
         from ``image_dir`` (``PairBatches`` draws a run's pairs with its own seed: seed 0's are
-        the TFRecords' pairs, another seed's are a set of their own) and validated on
-        ``test_image_dir``'s pairs (seed 1, as the test split)."""
+        the TFRecords' pairs, another seed's are a set of their own). Neither validates: a
+        reproduction writes no ``val`` split (its training pairs are the paper's protocol on all
+        its training photographs) and validates on no test pair (``val_split``'s default since
+        issue 78; before, both sources watched the test pairs, choosing nothing on them)."""
         if not self.in_memory:
             return {"data_dir": self.stage1_data()}
         image_dir, per_image, _, max_images = self.stage1_protocol("train")
         return {"image_dir": image_dir, "in_memory": True, "samples_per_image": per_image,
-                "max_images": max_images, "val_image_dir": self.test_image_dir,
-                "val_seed": self.stage1_protocol("test")[2], "workers": self.budget.num_workers}
+                "max_images": max_images, "workers": self.budget.num_workers}
 
     def test_pairs(self) -> dict:
         """The stage-1 test pairs made in memory (with ``in_memory``; made once), in

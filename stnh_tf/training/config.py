@@ -129,7 +129,8 @@ class TrainConfig:
                                       "so the accelerator is not waited for every step; the "
                                       "updates are the same. Must divide checkpoint_every and "
                                       "log_every.")
-    val_split: str = _field("test", "Split for the validation MACE (monitoring only).")
+    val_split: str = _field("val", "Split for the validation MACE (monitoring only; none where "
+                            "data_dir lacks val): val, held out of train (docs/data.md).")
     val_samples: int = _field(1024, "Validation pairs per checkpoint (0: off).")
     strategy: str = _field("default", "default (one device), mirrored (TensorFlow backend: "
                            "tf.distribute.MirroredStrategy over this machine's devices) or "
@@ -152,7 +153,7 @@ class TrainConfig:
                             "pairs are generated on the fly (any Keras backend, e.g. "
                             "KERAS_BACKEND=jax).", comma_list=True)
     val_image_dir: str = _field("", "With --image_dir: folders of images for the validation pairs "
-                                "(comma-separated).", comma_list=True)
+                                "(comma-separated; none: no validation).", comma_list=True)
     samples_per_image: int = _field(3, "With --image_dir: squares per image per data epoch (as "
                                     "make_dataset).")
     max_images: int = _field(0, "With --image_dir: train on the first N images of the folders' "

@@ -184,8 +184,9 @@ def check_start(cfg: TrainConfig, time_limit_s: float | None = None) -> None:
     else:
         train_streams.check_dataset(cfg.data_dir, "train", cfg.stage)
         data.load_split(cfg.data_dir, "train", cfg.batch_size, shuffle=False, repeat=False)
-        if cfg.val_samples and data.has_split(cfg.data_dir, cfg.val_split):
-            data.shard_paths(cfg.data_dir, cfg.val_split)
+        val_split = train_streams.validation_plan(cfg)[0]  # (a val_split named, not there)
+        if val_split:
+            data.shard_paths(cfg.data_dir, val_split)
     train_streams.check_labels(cfg)  # label_fraction, drop_unlabeled, unlabeled_image_dir
     for d in (*cfg.init_from, *cfg.prev_stages):
         path = run_dir.model_file(d)
@@ -299,8 +300,6 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     on its share of each global batch and returns the same result
     (:mod:`stnh_tf.training.distribute`).
     """
-    from stnh_tf.data import tfrecords as data
-
     t_call = time.monotonic()
     cluster = distribute.join(cfg)  # first: before any JAX computation (metrics in check_start)
     check_start(cfg, time_limit_s)
@@ -346,12 +345,15 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
 
         train_ds = stream_at(start_step)
         val_ds = val_steps = None
+        val_split, val_line = train_streams.validation_plan(cfg)
+        if val_line:
+            printer(val_line)
         if generated:
             if cfg.val_samples and cfg.val_image_dir:
                 val_ds = train_streams.generated_validation(cfg)
                 val_steps = len(val_ds)
-        elif cfg.val_samples and data.has_split(cfg.data_dir, cfg.val_split):
-            val_ds, val_steps = train_streams.validation_stream(cfg, cfg.val_split)
+        elif val_split:
+            val_ds, val_steps = train_streams.validation_stream(cfg, val_split)
             val_ds = val_ds.map(mapper) if mapper is not None else val_ds
         val_ds, val_steps = distribute.validation_share(cluster, val_ds, val_steps)
         guard = NonFiniteGuard()

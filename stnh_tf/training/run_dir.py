@@ -356,7 +356,8 @@ def _resume_form(doc: dict) -> dict:
     :data:`~stnh_tf.training.config.MODEL_FILE_FIELDS` by its content, ``sha256:<hex>`` (as
     ``doc`` records it, else as the file named is here), or, where neither says, by its path;
     and the kind of source (``source``: TFRecords and generated pairs come in different
-    orders)."""
+    orders); ``val_split`` only for TFRecords, the one source reading it (an ``image_dir`` run
+    saved under its former default, ``"test"``, resumes under ``"val"``)."""
     fields = {**TrainConfig().to_json(),
               **{k: v for k, v in doc.items() if k != MODEL_DIGESTS and k not in CONFIG_MARKER}}
     recorded, here = doc.get(MODEL_DIGESTS), model_digests(fields)
@@ -371,6 +372,8 @@ def _resume_form(doc: dict) -> dict:
         form[name] = [f"sha256:{a or b}" if (a or b) else path
                       for path, a, b in zip(paths, saved, here[name])]
     form["source"] = "data_dir" if fields.get("data_dir") else "image_dir"
+    if form["source"] == "image_dir":
+        form.pop("val_split", None)
     return form
 
 

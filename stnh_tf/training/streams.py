@@ -282,6 +282,44 @@ def validation_count(cfg: TrainConfig, available: int) -> int:
     return min(int(cfg.val_samples), int(available))
 
 
+def validation_plan(cfg: TrainConfig) -> tuple:
+    """``(split, line)``: the TFRecord split of ``cfg.data_dir`` a run validates on (None: none,
+    or pairs of ``cfg.val_image_dir``) and the one line the run prints about its validation
+    (None: nothing to say). A run validates on the test split only where ``val_split`` names it,
+    and then says so: nothing is chosen by validation (it logs the MACE only), but a test number
+    of a run that watched it is no longer apart from it. Where the default ``val`` split is
+    missing (written by ``data_prep.make_dataset --split=val --val_fraction=F``), the run does
+    not validate and says why; an ``--image_dir`` run validates on ``val_image_dir``'s
+    photographs only, which it names.
+
+    Raises:
+      ValueError: ``val_split`` names a split other than the default ``val`` that ``data_dir``
+        does not hold complete (a split asked for by name is never skipped silently).
+    """
+    from stnh_tf.data import holdout
+    from stnh_tf.data import tfrecords as data
+
+    if not cfg.val_samples:
+        return None, None
+    if cfg.image_dir:
+        return None, (f"validation: pairs of {cfg.val_image_dir} (--val_image_dir, seed "
+                      f"{cfg.val_seed}), monitoring only: a test number on these photographs "
+                      "is not apart from what was watched" if cfg.val_image_dir else
+                      "no validation: an --image_dir run validates on the photographs of "
+                      "--val_image_dir only, and none was given")
+    if data.has_split(cfg.data_dir, cfg.val_split):
+        return cfg.val_split, (
+            f"validation on the {cfg.val_split!r} split of {cfg.data_dir} (--val_split), the "
+            "test pairs: monitoring only; a test number of this run is then not apart from "
+            "what was watched" if cfg.val_split == "test" else None)
+    if cfg.val_split != holdout.VAL_SPLIT:
+        raise ValueError(f"dataset {cfg.data_dir} has no complete {cfg.val_split!r} split for "
+                         f"--val_split; give a split it holds, or --val_samples=0.")
+    return None, (f"no validation: {cfg.data_dir} has no {holdout.VAL_SPLIT!r} split (the test "
+                  "split validates only where --val_split=test says so); write one with "
+                  "data_prep.make_dataset --split=val --val_fraction=F (docs/data.md)")
+
+
 def validation_stream(cfg: TrainConfig, split: str):
     """The first :func:`validation_count` pairs of ``split`` (unshuffled, fixed), batched.
     Returns ``(dataset, batches)``."""
@@ -306,7 +344,7 @@ def raise_shard_error(cfg: TrainConfig, error: BaseException) -> None:
     if not isinstance(error, tf.errors.DataLossError):
         return
     splits = ["train"]
-    if cfg.val_samples and data.has_split(cfg.data_dir, cfg.val_split):
+    if validation_plan(cfg)[0]:
         splits.append(cfg.val_split)
     for split in splits:
         try:
