@@ -125,69 +125,40 @@ def _squares(height: int, width: int, tile: int) -> np.ndarray:
     return square
 
 
-CORNER_REACH = 1.0
-""":func:`corner_std` measures the precision at the corners of the part of ``image_b`` that the
-estimate maps in front of image_a's camera and within this many of image_a's widths (heights)
-beyond its border: image_b's own corners wherever they map there (zooms out to 3x included),
-never points mapped toward the horizon, where a right estimate's corner precision is infinite
-(issue 79)."""
+def precision_corners(a_from_b, image_b_shape, origin=(0, 0)) -> list:
+    """The points ``(u, v)`` of image_b at which :func:`corner_std` measures how precisely the
+    images fix the image-frame ``a_from_b`` ``[3, 3]``: image_b's corners ``(0, 0), (w, 0),
+    (w, h), (0, h)`` (``[h, w]`` frame) where ``a_from_b`` maps them all in front of image_a's
+    horizon, on the side of the patch's centre (the patch's top-left corner at ``origin``); else
+    the patch's own corners (``origin`` + those of the 128 x 128 square), the paper's frame: a
+    corner beyond the horizon has no position in image_a, and its precision is infinite for any
+    estimate, right or wrong (issue 79).
 
-
-def clip_convex(polygon, half_planes) -> list:
-    """The part of a convex ``polygon`` (``(x, y)`` vertices in order) where every half-plane
-    ``c`` of ``half_planes`` holds, ``c[0] x + c[1] y + c[2] >= 0`` (Sutherland-Hodgman
-    clipping). Vertices that no half-plane cuts are returned as they were, in the same order;
-    ``[]`` where nothing is left.
-
-    >>> clip_convex([(0.0, 0.0), (4.0, 0.0), (4.0, 2.0), (0.0, 2.0)], [(-1.0, 0.0, 3.0)])
-    [(0.0, 0.0), (3.0, 0.0), (3.0, 2.0), (0.0, 2.0)]
-    """
-    points = [tuple(map(float, p)) for p in polygon]
-    for c in half_planes:
-        side = [c[0] * x + c[1] * y + c[2] for x, y in points]
-        kept = []
-        for i, (p, s) in enumerate(zip(points, side)):
-            q, r = points[i - 1], side[i - 1]  # the edge q -> p
-            if (s >= 0) != (r >= 0):  # it crosses the line: where it does
-                t = r / (r - s)
-                kept.append((float(q[0] + t * (p[0] - q[0])), float(q[1] + t * (p[1] - q[1]))))
-            if s >= 0:
-                kept.append(p)
-        points = kept
-        if not points:
-            break
-    return points
-
-
-def mapped_corners(a_from_b, image_b_shape, image_a_shape, reach: float = CORNER_REACH) -> list:
-    """The corners ``(u, v)`` of the part of ``image_b``'s ``[h, w]`` frame (corners ``(0, 0),
-    (w, 0), (w, h), (0, h)``) that the image-frame ``a_from_b`` ``[3, 3]`` maps on the side of
-    image_a's horizon where its homogeneous scale ``a_from_b[2] @ (u, v, 1)`` is positive (the
-    sign of ``a_from_b`` chooses the side) and inside image_a's ``[h_a, w_a]`` frame grown by
-    ``reach`` times its size on every side: image_b's own corners where they all map there, else
-    that convex polygon's vertices (``[]``: none of image_b maps there).
-
-    >>> mapped_corners(np.eye(3), (240, 320), (240, 320))
+    >>> precision_corners(np.eye(3), (240, 320), (96, 56))
     [(0.0, 0.0), (320.0, 0.0), (320.0, 240.0), (0.0, 240.0)]
+    >>> tilted = np.array([[1.0, 0, 0], [0, 1.0, 0], [-0.004, 0, 1.0]])  # horizon at u = 250
+    >>> precision_corners(tilted, (240, 320), (96, 56))
+    [(96.0, 56.0), (224.0, 56.0), (224.0, 184.0), (96.0, 184.0)]
     """
     h = np.asarray(a_from_b, np.float64)
     height, width = image_b_shape[:2]
-    height_a, width_a = image_a_shape[:2]
-    lo_x, hi_x = -reach * width_a, (1 + reach) * width_a
-    lo_y, hi_y = -reach * height_a, (1 + reach) * height_a
-    scale = h[2]  # where scale . q > 0, x = h0.q / scale.q >= lo  <=>  (h0 - lo h2).q >= 0, ...
-    planes = [scale - [0.0, 0.0, 1e-9 * np.abs(scale).max()],
-              h[0] - lo_x * scale, hi_x * scale - h[0], h[1] - lo_y * scale, hi_y * scale - h[1]]
-    return clip_convex([(0.0, 0.0), (width, 0.0), (width, height), (0.0, height)], planes)
+    x0, y0 = float(origin[0]), float(origin[1])
+    size = float(geometry.PATCH_SIZE)
+    side = np.sign(h[2] @ [x0 + size / 2, y0 + size / 2, 1.0])
+    corners = [(0.0, 0.0), (float(width), 0.0), (float(width), float(height)),
+               (0.0, float(height))]
+    if all(side * (h[2] @ [u, v, 1.0]) > 0 for u, v in corners):
+        return corners
+    return [(x0, y0), (x0 + size, y0), (x0 + size, y0 + size), (x0, y0 + size)]
 
 
 def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100,
                tile: int = 0) -> float:
     """How precisely the two images fix ``a_from_b`` at ``image_b``'s corners: the predicted
     standard deviation (px, mean over the corners ``(0, 0), (w, 0), (w, h), (0, h)`` of
-    ``image_b``'s ``[h, w]`` frame, or, where some of them map toward image_a's horizon, over
-    the :func:`mapped_corners` of the part that maps within :data:`CORNER_REACH` of image_a) of
-    where the homography maps them, from the Gauss-Newton
+    ``image_b``'s ``[h, w]`` frame, or, where some of them map beyond image_a's horizon, over
+    the patch's corners: :func:`precision_corners`) of where the homography maps them, from the
+    Gauss-Newton
     covariance of the least-squares alignment of ``image_b`` with ``source_a`` warped by it.
 
     Over every pixel ``q`` of ``image_b`` that lands inside ``source_a`` (1 px from its border),
@@ -269,11 +240,8 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
             scores = np.stack([np.bincount(index, weights=weighted[:, k])
                                for k in range(jac.shape[1])], axis=1)
             cov = a_inv @ (scores.T @ scores) @ a_inv
-    corners = mapped_corners(h, b.shape, a.shape)
-    if not corners:
-        return float("inf")
     stds = []
-    for cu, cv in corners:
+    for cu, cv in precision_corners(h, b.shape, origin):
         pc = h @ [cu, cv, 1.0]
         if abs(pc[2]) < 1e-12:
             return float("inf")
