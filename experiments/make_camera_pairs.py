@@ -5,6 +5,7 @@ of a plane, in-plane rotation; blur, exposure change, sensor noise and JPEG on i
   python -m experiments.make_camera_pairs --output_dir=/tmp/camera_pairs
   python -m experiments.make_camera_pairs --output_dir=D --image_dir=F --pairs_per_image=3 --seed=0
   python -m experiments.make_camera_pairs --output_dir=D --motion_set=wide   # wide baseline
+  python -m experiments.make_camera_pairs --output_dir=D --motion_set=paper  # paper's protocol
 
 Writes ``D/{k:05d}_a.png``, ``D/{k:05d}_b.png`` and ``D/pairs.json`` (every parameter, per pair
 ``h_ba``, group, kind, motion and degradation, the SHA-256 of its PNG files); prints the manifest
@@ -22,7 +23,7 @@ import sys
 from absl import app, flags
 
 from experiments import common, flags_common
-from stnh_tf.data import camera_pair_files
+from stnh_tf.data import camera_motions, camera_pair_files
 from stnh_tf.data.folder_counts import FolderCounts
 
 flags.DEFINE_string("output_dir", None, "Folder of the pairs (created).", required=True)
@@ -34,10 +35,12 @@ flags_common.define_max_images()
 flags.DEFINE_integer("pairs_per_image", 3, "Pairs per photograph (groups cycle over the pairs).")
 flags_common.define_seed("Seed: photograph i draws from default_rng([seed, i]).")
 flags.DEFINE_bool("overwrite", False, "Replace a set already in --output_dir.")
-flags.DEFINE_enum("motion_set", "size", ["size", "wide"],
+flags.DEFINE_enum("motion_set", "size", list(camera_motions.MOTION_SETS),
                   "size: groups within / 1-2x / 2-4x the trained range; wide: zoom 0.3-3.0, "
                   "rotation up to 180 deg, a plane's viewpoint up to 60 deg, groups wide and "
-                  "wide_low_light (issue 64; stnh_tf.data.camera_motions.MOTION_SETS).")
+                  "wide_low_light (issue 64); paper: the paper's protocol on whole images, "
+                  "groups paper and paper_exposure, errors at the patch's corners (issue 79; "
+                  "stnh_tf.data.camera_motions.MOTION_SETS).")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 

@@ -407,3 +407,67 @@ def test_benchmark_counts_pairs_worse_than_the_identity_and_prints_them(pair_set
         assert re.search(rf"^estimator\s+{est['mace']:.2f}\s+{est['median']:.2f}\s+"
                          rf"{est['worse_than_identity']} of {est['count']}$", section, re.M), g
         assert ("worse than the identity: estimator" in section) == (est["mace"] > ident["mace"])
+
+
+# Issue 79, item 1: the paper's protocol on whole images (motion_set="paper")
+def test_paper_set_moves_the_central_squares_corners_by_up_to_32_px():
+    """make_image_pairs(motion_set="paper"): groups paper / paper_exposure by the pair's index;
+    h_ba maps the central square's corners to themselves plus the recorded offsets (checked with
+    cv2.perspectiveTransform), every offset within 32 px; image_b is the source warped by h_ba
+    as OpenCV warps it (away from the JPEG's rounding); the plain group's image_b is not
+    darkened or brightened, the exposure group's by 1-2 stops (gain 2 ** (ev / 2.2))."""
+    from stnh_tf.data import paper_motions
+
+    photo = _photos()[0]
+    pairs = camera_pair_files.make_image_pairs(photo, 2, "camera", 6, seed=0, motion_set="paper")
+    assert [p.group for p in pairs] == ["paper", "paper_exposure"] * 3
+    x0, y0 = cm.PATCH_ORIGIN
+    square = np.float64([[x0, y0], [x0 + 128, y0], [x0 + 128, y0 + 128], [x0, y0 + 128]])
+    source = cm.source_image(photo).astype(np.float32)
+    for p in pairs:
+        offsets = np.array(p.motion["corner_offsets"])
+        assert p.kind == paper_motions.KIND and np.abs(offsets).max() <= 32.0
+        np.testing.assert_allclose(cv2.perspectiveTransform(square[None], p.h_ba)[0],
+                                   square + offsets, atol=1e-3)
+        ev = p.photometric["exposure_ev"]
+        assert ev == 0.0 if p.group == "paper" else 1.0 <= abs(ev) <= 2.0
+        warped = cv2.warpPerspective(source, geometry.translation(*cm.MARGIN) @ p.h_ba,
+                                     cm.WORK_SIZE, flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_REFLECT_101)
+        expected = np.clip(warped * 2.0 ** (ev / 2.2), 0, 255)
+        assert np.median(np.abs(p.image_b - expected)) <= 1.0
+
+
+def test_paper_groups_are_scored_at_the_patch_corners():
+    """In the paper's groups the benchmark's error is the patch's MACE (its image corners may lie
+    beyond the horizon): an estimate 2% too large about the patch's centre scores the mean
+    distance its four patch corners move (cv2.perspectiveTransform, written out here), not its
+    image corners' larger one."""
+    from types import SimpleNamespace
+
+    photo = _photos()[0]
+    pairs = camera_pair_files.make_image_pairs(photo, 0, "camera", 4, seed=1, motion_set="paper")
+    centre = geometry.translation(160.0, 120.0)
+    grow = centre @ np.diag([1.02, 1.02, 1.0]) @ np.linalg.inv(centre)
+    off = [grow @ p.h_ba for p in pairs]
+
+    class Grown:
+        def estimate_images_with_info(self, image_a, image_b, options=None):
+            i = next(k for k, p in enumerate(pairs) if p.image_b is image_b)
+            return SimpleNamespace(homography=off[i][None], implausible=np.array([False]),
+                                   searched=np.array([False]), found=np.array([False]))
+
+    result = camera_pairs.benchmark(pairs, ("estimator",), estimator=Grown(), per_pair=True)
+    assert set(result["groups"]) == {"paper", "paper_exposure", "all"}
+    x0, y0 = cm.PATCH_ORIGIN
+    square = np.float64([[[x0, y0], [x0 + 128, y0], [x0 + 128, y0 + 128], [x0, y0 + 128]]])
+    image = np.float64([[[0, 0], [320, 0], [320, 240], [0, 240]]])
+
+    def moved(corners, h, h_other):
+        return np.linalg.norm(cv2.perspectiveTransform(corners, h)[0]
+                              - cv2.perspectiveTransform(corners, h_other)[0], axis=1).mean()
+
+    expected = [moved(square, h, p.h_ba) for h, p in zip(off, pairs)]
+    np.testing.assert_allclose([r["estimator_error"] for r in result["pairs"]], expected,
+                               rtol=1e-9)
+    assert all(moved(image, h, p.h_ba) > 1.5 * e for h, p, e in zip(off, pairs, expected))

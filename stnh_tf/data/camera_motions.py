@@ -123,12 +123,17 @@ WIDE_GROUPS = ("wide", "wide_low_light")
 ``WIDE_GROUPS[k % 2]``; the second gets ``wide_motions.LOW_LIGHT`` instead of the set's
 degradation."""
 
-MOTION_SETS = {"size": tuple(GROUPS), "wide": WIDE_GROUPS}
-"""The kinds of set :func:`stnh_tf.data.camera_pair_files.make_image_pairs` makes, with their
-groups: ``"size"`` (motions scaled to a group by size, :func:`draw_motion`) and ``"wide"``
-(:func:`stnh_tf.data.wide_motions.draw_wide_motion`)."""
+PAPER_GROUPS = ("paper", "paper_exposure")
+"""The groups of the paper's protocol on whole images (:mod:`stnh_tf.data.paper_motions`, issue
+79): pair ``k`` is in ``PAPER_GROUPS[k % 2]``; the second with an exposure change."""
 
-ALL_GROUPS = tuple(GROUPS) + WIDE_GROUPS
+MOTION_SETS = {"size": tuple(GROUPS), "wide": WIDE_GROUPS, "paper": PAPER_GROUPS}
+"""The kinds of set :func:`stnh_tf.data.camera_pair_files.make_image_pairs` makes, with their
+groups: ``"size"`` (motions scaled to a group by size, :func:`draw_motion`), ``"wide"``
+(:func:`stnh_tf.data.wide_motions.draw_wide_motion`) and ``"paper"``
+(:func:`stnh_tf.data.paper_motions.draw_paper_motion`)."""
+
+ALL_GROUPS = tuple(GROUPS) + WIDE_GROUPS + PAPER_GROUPS
 """Every group a pair can belong to, in the order they are reported."""
 
 

@@ -22,7 +22,7 @@ import os
 import cv2
 import numpy as np
 
-from stnh_tf.data import camera_motions, sources, wide_motions
+from stnh_tf.data import camera_motions, paper_motions, sources, wide_motions
 from stnh_tf.data.folder_counts import FolderCounts, no_photograph_message
 from stnh_tf.data.camera_motions import (GROUPS, MARGIN, MOTION_SETS, SOURCE_SIZE,
                                          TRAINED_OFFSET, CameraPair, Degradation, MotionRanges)
@@ -58,9 +58,12 @@ def make_image_pairs(gray, image_index: int, image_id: str, pairs_per_image: int
     and group ``groups[k % len(groups)]`` (``groups = MOTION_SETS[motion_set]``); every draw
     from ``np.random.default_rng([seed, image_index])``, motion then degradation, pair by pair
     (:func:`~stnh_tf.data.camera_motions.draw_motion`, or
-    :func:`~stnh_tf.data.wide_motions.draw_wide_motion` for ``motion_set="wide"``).
+    :func:`~stnh_tf.data.wide_motions.draw_wide_motion` for ``motion_set="wide"``,
+    :func:`~stnh_tf.data.paper_motions.draw_paper_motion` for ``"paper"``).
     ``motions``: ``None``, the set's (:func:`set_motions`); ``"wide_low_light"`` pairs get
-    ``wide_motions.LOW_LIGHT`` instead of ``degradation``.
+    ``wide_motions.LOW_LIGHT`` instead of ``degradation``, the paper groups their own
+    (:func:`~stnh_tf.data.paper_motions.group_degradation`; ``motions`` and ``degradation`` do
+    not apply to them).
 
     Raises:
       ValueError: an unknown ``motion_set``.
@@ -75,10 +78,15 @@ def make_image_pairs(gray, image_index: int, image_id: str, pairs_per_image: int
     for j in range(pairs_per_image):
         k = image_index * pairs_per_image + j
         group = groups[k % len(groups)]
-        kind, motion, h = (wide_motions.draw_wide_motion(rng, motions) if motion_set == "wide"
-                           else camera_motions.draw_motion(rng, group, motions))
-        photometric = camera_motions.draw_degradation(
-            rng, wide_motions.LOW_LIGHT if group == "wide_low_light" else degradation)
+        if motion_set == "paper":
+            kind, motion, h = paper_motions.draw_paper_motion(rng)
+            photometric = paper_motions.group_degradation(rng, group)
+        else:
+            kind, motion, h = (wide_motions.draw_wide_motion(rng, motions)
+                               if motion_set == "wide"
+                               else camera_motions.draw_motion(rng, group, motions))
+            photometric = camera_motions.draw_degradation(
+                rng, wide_motions.LOW_LIGHT if group == "wide_low_light" else degradation)
         image_a, image_b = camera_motions.render_pair(source, h)
         out.append(CameraPair(k, image_id, group, kind, h,
                               float(camera_motions.motion_offset(h)), motion, photometric,
@@ -179,6 +187,12 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
                     "odd, with the degradation low_light",
             "low_light": dataclasses.asdict(wide_motions.LOW_LIGHT)}
            if motion_set == "wide" else {}),
+        **({"paper": "the paper's protocol on whole images: the central square's corners moved "
+                     "by up to 32 px (paper_motions.draw_paper_motion); pair k in "
+                     "paper_exposure when k is odd; errors at the patch's corners",
+            "paper_degradation": {"paper": dataclasses.asdict(paper_motions.PLAIN),
+                                  "paper_exposure": dataclasses.asdict(paper_motions.EXPOSURE)}}
+           if motion_set == "paper" else {}),
     }
     atomic_write_json(path, {**manifest, "pairs": records})  # the commit point
     return manifest
