@@ -102,9 +102,9 @@ def test_every_shipped_model_opens_with_plain_keras_after_import_stnh_tf(tmp_pat
     _check_plain_load(SHIPPED, tmp_path)
 
 
-def test_the_hook_registers_every_class_and_function_the_package_registers():
-    """:data:`stnh_tf.modeling.KERAS_OBJECT_MODULES` lists every module that registers an object
-    with Keras (read from the sources), and each registered name resolves after the hook."""
+def _registered_in_sources():
+    """``(modules, names)``: the modules of stnh_tf and the Keras names (``stnh_tf>Name``) of the
+    classes and functions they decorate with ``register_keras_serializable``."""
     package = os.path.join(ROOT, "stnh_tf")
     registering, names = set(), set()
     for path in glob.glob(os.path.join(package, "**", "*.py"), recursive=True):
@@ -115,6 +115,13 @@ def test_the_hook_registers_every_class_and_function_the_package_registers():
                 module = os.path.relpath(path, ROOT)[:-3].replace(os.sep, ".")
                 registering.add(module)
                 names.add(f"stnh_tf>{node.name}")
+    return registering, names
+
+
+def test_the_hook_registers_every_class_and_function_the_package_registers():
+    """:data:`stnh_tf.modeling.KERAS_OBJECT_MODULES` lists every module that registers an object
+    with Keras (read from the sources), and each registered name resolves after the hook."""
+    registering, names = _registered_in_sources()
     assert registering == set(modeling.KERAS_OBJECT_MODULES)
     assert names and all(keras.saving.get_registered_object(n) is not None for n in names)
 
@@ -150,3 +157,15 @@ def test_the_fine_tuning_example_of_docs_weights_runs(tmp_path, monkeypatch):
     saved = keras.models.load_model(tmp_path / "runs" / "finetune" / "stage1.keras")
     for u, v in zip(saved.get_weights(), tuned):
         np.testing.assert_array_equal(u, v)
+
+
+def test_keras_imported_before_stnh_tf_has_the_objects_registered_at_import():
+    """The other order: ``import stnh_tf`` after Keras registers at once (no hook to wait for),
+    in a fresh process: Keras then knows every name the sources register."""
+    code = ("import keras, stnh_tf\n"
+            "print(' '.join(n for n in keras.saving.get_custom_objects() if n.startswith('stnh_tf>')"
+            "))\n")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert set(proc.stdout.split()) == _registered_in_sources()[1]

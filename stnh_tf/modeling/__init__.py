@@ -12,14 +12,18 @@ metric. Neither imports the other, so either may be importing Keras when Keras' 
 :func:`register_keras_objects` runs (a half-imported one finishes its own registration)."""
 
 
-def register_keras_objects(keras_module=None) -> None:
+def register_keras_objects(keras_module) -> None:
     """Register this package's Keras objects (import :data:`KERAS_OBJECT_MODULES`), so that
     ``keras.models.load_model`` opens any model it saved, the shipped ``.keras`` files included.
 
     ``import stnh_tf`` calls it once Keras is imported (a post-import hook on ``keras``, or at
-    once if Keras already is), without importing Keras itself; ``keras_module`` (what the hook
-    passes) is unused.
+    once if Keras already is), without importing Keras itself, with ``keras_module`` the module
+    imported as ``keras``. A stand-in without Keras' saving API (``keras.saving``: no model
+    opens with it), such as the data tests' module giving ``keras.utils.PyDataset`` alone, has
+    nothing to register with: nothing is imported then (the Keras layers would import a
+    backend).
     """
-    del keras_module
+    if not hasattr(keras_module, "saving"):
+        return
     for name in KERAS_OBJECT_MODULES:
         importlib.import_module(name)
