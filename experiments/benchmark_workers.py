@@ -222,7 +222,7 @@ def lost_worker(repeats: int) -> dict:
     import shutil
 
     from stnh_tf.data import sources
-    from stnh_tf.training import run_dir, watchdog
+    from stnh_tf.training import checkpoints, run_dir, watchdog
 
     address = f"127.0.0.1:{_free_port()}"
     with tempfile.TemporaryDirectory(prefix="lost_worker_") as tmp:
@@ -239,7 +239,7 @@ def lost_worker(repeats: int) -> dict:
                                 f"--model_dir={model_dir}", *LOST_RUN_FLAGS]) for k in range(2)]
 
         def step():
-            state = run_dir.read_checkpoint_state(state_dir)
+            state = checkpoints.read_checkpoint_state(state_dir)
             return state["step"] if state else 0
 
         kills = []

@@ -9,7 +9,7 @@ from absl import flags
 from experiments import common
 from stnh_tf.paths import check_apart
 from stnh_tf.training import config as train_config
-from stnh_tf.training import worker_log
+from stnh_tf.training import presets, worker_log
 from stnh_tf.training.config import TrainConfig
 
 
@@ -68,7 +68,7 @@ def check_time_limit(value) -> bool:
 
 def config_from_flags(scope: str, flag_values=flags.FLAGS, **overrides) -> TrainConfig:
     """The TrainConfig of the parsed flags of :func:`define_training_flags` (``scope``): the
-    preset of ``--recipe`` and of the model kind (:func:`stnh_tf.training.config.preset_fields`:
+    preset of ``--recipe`` and of the model kind (:func:`stnh_tf.training.presets.preset_fields`:
     e.g. DeTone's schedule for ``model="homographynet"``, 90,000 steps for ``"sequence"``), then
     every flag given explicitly, then ``overrides``.
 
@@ -92,7 +92,7 @@ def config_from_flags(scope: str, flag_values=flags.FLAGS, **overrides) -> Train
         values[field.name] = value
     cfg = TrainConfig(**values)
     model = overrides.get("model", cfg.model)
-    preset = {k: v for k, v in train_config.preset_fields(f.recipe, model).items()
+    preset = {k: v for k, v in presets.preset_fields(f.recipe, model).items()
               if not f[k].present}
     for k, v in {**preset, **overrides}.items():
         setattr(cfg, k, v)

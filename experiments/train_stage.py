@@ -13,10 +13,11 @@ from absl import app, flags
 
 from experiments import common, flags_common
 from stnh_tf.training import config as train_config
+from stnh_tf.training import presets
 
 flags_common.define_training_flags(
     train_config.STAGE,
-    choices={"model": [k for k in train_config.MODEL_KINDS if k != "sequence"]})
+    choices={"model": [k for k in presets.MODEL_KINDS if k != "sequence"]})
 flags.adopt_module_key_flags(flags_common)  # --help lists the training flags
 
 

@@ -21,7 +21,7 @@ from PIL import Image
 from conftest import cv2_warp, inside_mask, to_bar
 from stnh_tf.data import stage1, writer
 from stnh_tf.data import tfrecords as data
-from stnh_tf.data import features, pair_datasets, pairs, sources
+from stnh_tf.data import features, image_checks, pair_datasets, pairs, sources
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CORNERS = np.array([[0, 0], [128, 0], [128, 128], [0, 128]], np.float64)
@@ -344,7 +344,7 @@ def test_images_too_small_for_a_patch_are_skipped_by_name(tmp_path):
     for name, (w, h) in {"dot.png": (1, 1), "narrow.png": (19, 240), "low.png": (320, 14),
                          "least.png": (20, 15), "photo.png": (320, 240)}.items():
         cv2.imwrite(str(root / name), (rng.random((h, w)) * 255).astype(np.uint8))
-    with pytest.raises(sources.ImageTooSmallError, match="image is 1 x 1 px: too small"):
+    with pytest.raises(image_checks.ImageTooSmallError, match="image is 1 x 1 px: too small"):
         sources.load_gray_320x240(str(root / "dot.png"))
     with pytest.raises(ValueError, match="image is 19 x 15 px: too small"):
         sources.as_gray_320x240(np.zeros((15, 19), np.uint8))

@@ -41,7 +41,7 @@ from stnh_tf.inference.options import EstimateOptions
 from stnh_tf.modeling import models
 from stnh_tf.training import config as train_config
 from stnh_tf.training import loop as training
-from stnh_tf.training import run_dir
+from stnh_tf.training import checkpoints, run_dir
 from stnh_tf.training import streams as train_streams
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -1442,13 +1442,13 @@ def test_a_checkpoint_without_its_state_is_resumed_not_deleted(_first_checkpoint
             self.step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
 
     start, lines = AtStart(), []
-    with caplog.at_level("WARNING", logger="stnh_tf.training.run_dir"):
+    with caplog.at_level("WARNING", logger="stnh_tf.training.checkpoints"):
         result = training.train(_run_config(folder), printer=lines.append,
                                 extra_callbacks=[start])
     assert start.step == 2 and f"resuming {folder} from step 2" in lines
     for got, want in zip(start.weights, _first_checkpoint[1]):
         np.testing.assert_array_equal(got, want)
-    warning = [r.getMessage() for r in caplog.records if r.name == "stnh_tf.training.run_dir"]
+    warning = [r.getMessage() for r in caplog.records if r.name == "stnh_tf.training.checkpoints"]
     assert len(warning) == 1 and str(folder / "checkpoint" / "state.json") in warning[0] \
         and str(folder / "checkpoint" / "ckpt-00000002.weights.h5") in warning[0], warning
     assert result["final_step"] == 4 and (folder / "model.keras").exists()
@@ -1610,7 +1610,7 @@ def _fake_train(calls):
     def train(cfg, printer=None, time_limit_s=None):
         calls.append(cfg.model_dir)
         run_dir.prepare_model_dir(cfg)
-        found = run_dir.find_checkpoint(os.path.join(cfg.model_dir, "checkpoint"))
+        found = checkpoints.find_checkpoint(os.path.join(cfg.model_dir, "checkpoint"))
         step = (0 if found is None else found[1]) + 2
         _fake_checkpoint(Path(cfg.model_dir) / "checkpoint", step)
         return {"final_step": step, "wall_s_this_run": 1.0}

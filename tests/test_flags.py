@@ -11,7 +11,7 @@ from absl import flags
 
 from conftest import binary_flags
 from experiments import flags_common
-from stnh_tf.training import config as train_config
+from stnh_tf.training import presets
 from stnh_tf.training.config import SEQUENCE, STAGE, TrainConfig
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -71,7 +71,7 @@ def test_defaults_are_the_configs_and_presets_fill_only_what_is_not_given():
     flags_common.define_training_flags(STAGE, flag_values=flag_values)
     flag_values(["binary", "--model_dir=m", "--recipe=fast", "--learning_rate=5e-4"])
     cfg = flags_common.config_from_flags(STAGE, flag_values=flag_values)
-    fast = train_config.RECIPES["fast"]
+    fast = presets.RECIPES["fast"]
     want = dataclasses.replace(TrainConfig(model_dir="m", recipe="fast"),
                                **{**fast, "learning_rate": 5e-4})
     assert cfg == want

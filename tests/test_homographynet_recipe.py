@@ -11,7 +11,7 @@ import pytest
 
 from stnh_tf.training import config as train_config
 from stnh_tf.training import loop as training
-from stnh_tf.training import model_kinds
+from stnh_tf.training import model_kinds, presets
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -66,24 +66,24 @@ def test_bad_homographynet_settings_are_clear_errors(changes, message):
 def test_presets_by_model_kind_and_recipe():
     detone = {"batch_norm": "conv", "learning_rate": 0.005, "lr_schedule": "step",
               "warmup_steps": 0, "train_steps": 90_000}
-    assert train_config.preset_fields("paper", "homographynet") == detone
-    assert train_config.preset_fields("paper", "sequence") == {"train_steps": 90_000}
-    assert train_config.preset_fields("paper", "stn") == {}
-    assert train_config.preset_fields("paper", "homographynet_gap") == {}
+    assert presets.preset_fields("paper", "homographynet") == detone
+    assert presets.preset_fields("paper", "sequence") == {"train_steps": 90_000}
+    assert presets.preset_fields("paper", "stn") == {}
+    assert presets.preset_fields("paper", "homographynet_gap") == {}
     # The fast recipe replaces DeTone's schedule (its own warm-up needs the cosine schedule).
-    fast = train_config.preset_fields("fast", "homographynet")
+    fast = presets.preset_fields("fast", "homographynet")
     assert fast["lr_schedule"] == "cosine" and fast["optimizer"] == "adamw"
     assert fast["batch_norm"] == "conv"
     # ... and leaves out what only the STN kinds use (their L2 sum, per-patch input).
-    assert not set(train_config.STN_ONLY_FIELDS) & set(fast)
-    stn = train_config.preset_fields("fast", "stn")
-    assert stn == train_config.RECIPES["fast"]
+    assert not set(presets.STN_ONLY_FIELDS) & set(fast)
+    stn = presets.preset_fields("fast", "stn")
+    assert stn == presets.RECIPES["fast"]
     assert (stn["l2_reduction"], stn["input_norm"]) == ("sum", "patch")
     cfg = train_config.TrainConfig(data_dir="d", model_dir="m", model="homographynet", **fast)
     cfg.validate()
     for recipe, model in (("turbo", "stn"), ("paper", "vgg")):
         with pytest.raises(ValueError, match="must be one of"):
-            train_config.preset_fields(recipe, model)
+            presets.preset_fields(recipe, model)
 
 
 def test_model_kinds_build_their_networks():

@@ -163,8 +163,8 @@ def test_keras_imported_before_stnh_tf_has_the_objects_registered_at_import():
     """The other order: ``import stnh_tf`` after Keras registers at once (no hook to wait for),
     in a fresh process: Keras then knows every name the sources register."""
     code = ("import keras, stnh_tf\n"
-            "print(' '.join(n for n in keras.saving.get_custom_objects() if n.startswith('stnh_tf>')"
-            "))\n")
+            "print(' '.join(n for n in keras.saving.get_custom_objects()\n"
+            "               if n.startswith('stnh_tf>')))\n")
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]

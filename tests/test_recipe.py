@@ -17,6 +17,7 @@ from stnh_tf.data import stage1
 from stnh_tf.training import run_dir
 from stnh_tf.training import config as train_config
 from stnh_tf.training import loop as training
+from stnh_tf.training import presets
 from stnh_tf.data import batches
 from stnh_tf.data import tfrecords as data
 from stnh_tf.data import pairs, sources
@@ -154,7 +155,7 @@ def test_binary_recipe_preset_then_explicit_flags_and_bad_values(two_folders, tm
                          "--val_samples=0", "--photometric"])
     assert res.returncode == 0, res.stderr[-3000:]
     saved = json.loads((model_dir / "config.json").read_text())
-    fast = train_config.RECIPES["fast"]
+    fast = presets.RECIPES["fast"]
     assert saved["recipe"] == "fast" and saved["optimizer"] == fast["optimizer"] == "adamw"
     assert saved["weight_decay"] == fast["weight_decay"] and saved["learning_rate"] == 5e-4
     assert saved["warmup_steps"] == 0 and saved["photometric"] is True

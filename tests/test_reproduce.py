@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from stnh_tf.paper import reproduce
-from stnh_tf.training import run_dir
+from stnh_tf.training import presets, run_dir
 from stnh_tf.data import tfrecords as data
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -347,7 +347,7 @@ def test_tiny_drops_homographynet_after_its_evaluation_and_never_retrains_it(tmp
     run = reproduce.Reproduction(tiny, str(tmp_path / "out"), source="bundled",
                                  printer=logs.append)
     cfg = run.config("homographynet", data_dir=str(tmp_path / "data"), model="homographynet",
-                     **{**reproduce.train_config.MODEL_DEFAULTS["homographynet"],
+                     **{**presets.MODEL_DEFAULTS["homographynet"],
                         "train_steps": tiny.train_steps})
     run_dir.prepare_model_dir(cfg)
     d = cfg.model_dir

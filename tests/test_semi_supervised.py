@@ -781,7 +781,7 @@ def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_pat
     its config; an unfinished one as its checkpoint; both come back into a fresh output folder,
     and a second restore changes nothing."""
     from stnh_tf.paper import reproduce, semi_supervised
-    from stnh_tf.training import run_dir
+    from stnh_tf.training import checkpoints, run_dir
 
     def experiment(out):
         run = reproduce.Reproduction(reproduce.BUDGETS["tiny"], str(out), printer=_quiet,
@@ -807,9 +807,9 @@ def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_pat
     assert json.load(open(os.path.join(second.run.model_dir(done), "config.json"))) == json.load(
         open(os.path.join(first.run.model_dir(done), "config.json")))
     ckpt = [os.path.join(e.run.model_dir(busy), run_dir.CHECKPOINT_DIR) for e in (first, second)]
-    assert run_dir.read_checkpoint_state(ckpt[1])["step"] == 1
-    with open(run_dir.checkpoint_weights_path(ckpt[0]), "rb") as f0, \
-            open(run_dir.checkpoint_weights_path(ckpt[1]), "rb") as f1:
+    assert checkpoints.read_checkpoint_state(ckpt[1])["step"] == 1
+    with open(checkpoints.checkpoint_weights_path(ckpt[0]), "rb") as f0, \
+            open(checkpoints.checkpoint_weights_path(ckpt[1]), "rb") as f1:
         assert f0.read() == f1.read()
     assert second.restore(repo) == {}
     # The evaluation came along: the restored model is not evaluated again.

@@ -24,7 +24,7 @@ from conftest import NARROW_FILTERS, narrow_network
 from stnh_tf.data import stage1
 from stnh_tf.data.sources import bundled_image_files
 from stnh_tf import geometry
-from stnh_tf.training import run_dir
+from stnh_tf.training import checkpoints, run_dir
 from stnh_tf.training import config as train_config
 from stnh_tf.training import precision
 from stnh_tf.training import loop as training
@@ -121,7 +121,7 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, straight
             if epoch == 1:  # after the checkpoint at step 4
                 raise KeyboardInterrupt
 
-    write_json = run_dir.atomic_write_json
+    write_json = checkpoints.atomic_write_json
 
     def killed_before_state_json(path, obj):
         if path.endswith("state.json") and obj["step"] == 4:
@@ -133,7 +133,7 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, straight
     with monkeypatch.context() as m, pytest.raises(KeyboardInterrupt):
         extra = [Interrupt()]
         if where == "inside_checkpoint":
-            m.setattr(run_dir, "atomic_write_json", killed_before_state_json)
+            m.setattr(checkpoints, "atomic_write_json", killed_before_state_json)
             extra = []
         training.train(cfg, printer=_quiet, extra_callbacks=extra)
     state = json.loads((ckpt / "state.json").read_text())
@@ -722,10 +722,10 @@ def test_checkpoint_state_cannot_name_weights_outside_its_folder(tmp_path):
     for name in ("../../elsewhere.weights.h5", str(tmp_path / "elsewhere.weights.h5")):
         (ckpt / "state.json").write_text(json.dumps({"step": 2, "weights": name}))
         with pytest.raises(ValueError, match="is not a path inside"):
-            run_dir.checkpoint_weights_path(str(ckpt))
+            checkpoints.checkpoint_weights_path(str(ckpt))
     (ckpt / "state.json").write_text("{not json")
     with pytest.raises(ValueError, match="state.json"):
-        run_dir.checkpoint_weights_path(str(ckpt))
+        checkpoints.checkpoint_weights_path(str(ckpt))
 
 
 def _ticking_time_limit():

@@ -37,9 +37,8 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry, pixels
-from stnh_tf.data.image_checks import (  # noqa: F401 (sources' names too: one rule with the data)
-    MAX_IMAGE_PIXELS, MIN_PATCH_SPAN_PX, ImageDecodeError, ImageTooLargeError, ImageTooSmallError,
-    check_image_size, check_pixel_count, header_size)
+from stnh_tf.data.image_checks import (MAX_IMAGE_PIXELS, ImageDecodeError, ImageTooLargeError,
+                                       check_image_size, check_pixel_count, header_size)
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".pgm", ".ppm", ".pbm", ".pnm", ".tif",
                     ".tiff")

@@ -17,10 +17,10 @@ A float image (in [0, 1]) is converted and resized in float32.
 
 Images too thin for the patch are refused (:func:`check_image_size`): the central 128 x 128
 square of the 320 x 240 version covers ``0.4 w x 0.533 h`` pixels of a ``w x h`` image, and
-below :data:`MIN_PATCH_SPAN_PX` = 8 of them on a side (``w < 20`` or ``h < 15``) the patch is a
-handful of pixels (one row of a ``5120 x 1`` image) stretched 16 times or more: its motion
-along that side is not observable, and the estimate is meaningless (the shipped weights'
-errors by image size: ``docs/small_images.json``, written by
+below :data:`~stnh_tf.data.image_checks.MIN_PATCH_SPAN_PX` = 8 of them on a side (``w < 20`` or
+``h < 15``) the patch is a handful of pixels (one row of a ``5120 x 1`` image) stretched 16 times
+or more: its motion along that side is not observable, and the estimate is meaningless (the
+shipped weights' errors by image size: ``docs/small_images.json``, written by
 ``python -m experiments.benchmark_small_images``).
 
 The patch estimate is mapped back with ``H_img = inv(S_a) @ T @ H_patch @ inv(T) @ S_b`` where
@@ -39,8 +39,7 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry, pixels
-from stnh_tf.data.sources import (MIN_PATCH_SPAN_PX,  # noqa: F401 (one rule with the data)
-                                  check_image_size, resize_to_protocol)
+from stnh_tf.data.sources import check_image_size, resize_to_protocol
 
 PATCH_SIZE = geometry.PATCH_SIZE
 WORK_SIZE = (geometry.IMAGE_WIDTH, geometry.IMAGE_HEIGHT)

@@ -19,9 +19,8 @@ import numpy as np
 from keras import layers
 
 from stnh_tf import geometry
-from stnh_tf.modeling.layers import (HOMOGRAPHYNET_SCALE, HomographyMerge,  # noqa: F401
-                                     OffsetsToHBar, PatchStandardization, SpatialTransformer,
-                                     WarpValidity)
+from stnh_tf.modeling.layers import (HomographyMerge, OffsetsToHBar, PatchStandardization,
+                                     SpatialTransformer, WarpValidity)
 
 IDENTITY_H_BAR = np.array([1, 0, 0, 0, 1, 0, 0, 0], dtype=np.float32)
 WARP_VALID = "patch_a_warp_valid"
@@ -286,13 +285,14 @@ def build_homographynet(dropout: float = 0.5, size: int = geometry.PATCH_SIZE,
     pooling after conv2, conv4 and conv6 (128 -> 64 -> 32 -> 16); dropout ``dropout`` after
     conv8; the ``[16, 16, 128]`` map flattened (32,768 values) into Dense 1024 + ReLU; dropout
     ``dropout``; Dense 8: the four corners' offsets ``H_ba @ c - c`` (pixels, corners of
-    :func:`geometry.patch_corners`) divided by 32 (:data:`HOMOGRAPHYNET_SCALE`, the perturbation
-    range, so targets lie in ``[-1, 1]``). 34,194,568 parameters (3,072 of them BatchNorm's moving
+    :func:`geometry.patch_corners`) divided by 32
+    (:data:`~stnh_tf.modeling.layers.HOMOGRAPHYNET_SCALE`, the perturbation range, so targets
+    lie in ``[-1, 1]``). 34,194,568 parameters (3,072 of them BatchNorm's moving
     statistics). As in every model here the input pair is scaled from ``[0, 1]`` to ``[-1, 1]``;
     kernels start He-normal (convolutions, ``fc1``) and ``fc2`` at zero kernel and bias, so an
     untrained network predicts no motion (DeTone et al. state no initialisation; why this one:
     docs/training.md).
-    Trained with DeTone's schedule by default (:data:`stnh_tf.training.config.MODEL_DEFAULTS`).
+    Trained with DeTone's schedule by default (:data:`stnh_tf.training.presets.MODEL_DEFAULTS`).
 
     Inputs ``{"patch_a", "patch_b"}`` (``[B, S, S, 1]`` float in [0, 1]); outputs
     ``{"offsets": [B, 8] (pixels / 32), "h_bar": [B, 8], "patch_a_warp": [B, S, S, 1]}``; only

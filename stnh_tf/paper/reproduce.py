@@ -32,6 +32,7 @@ import time
 import numpy as np
 
 from stnh_tf.training import config as train_config
+from stnh_tf.training import presets
 from stnh_tf.paths import atomic_write_json, atomic_write_text
 from stnh_tf.provenance import machine_info
 from stnh_tf.paper.budgets import (BUDGETS, SPEED_FIELDS, Budget,  # noqa: F401
@@ -245,7 +246,7 @@ class Reproduction:
     def homographynet(self) -> str:
         """DeTone et al.'s network with their step schedule at this budget's steps, on the
         stage-1 pairs; returns its model dir."""
-        detone = {**train_config.MODEL_DEFAULTS["homographynet"],
+        detone = {**presets.MODEL_DEFAULTS["homographynet"],
                   "train_steps": self.budget.train_steps}
         return self.train("homographynet", self.config("homographynet", data_dir=self.stage1_data(),
                                                        model="homographynet", **detone))

@@ -164,11 +164,11 @@ class SemiSupervised:
         """The evaluation in ``eval/`` of model ``name`` where its folder holds neither the model
         nor a checkpoint (a model evaluated on another machine, e.g. Table 1's seeds restored by
         :meth:`restore`); else None."""
-        from stnh_tf.training import run_dir
+        from stnh_tf.training import checkpoints, run_dir
 
         d, path = self.run.model_dir(name), self.eval_file(name)
         if (not os.path.exists(path) or os.path.exists(os.path.join(d, run_dir.FINAL_MODEL))
-                or run_dir.checkpoint_weights_path(os.path.join(d, run_dir.CHECKPOINT_DIR))):
+                or checkpoints.checkpoint_weights_path(os.path.join(d, run_dir.CHECKPOINT_DIR))):
             return None
         with open(path) as f:
             return reproduce.check_pairs_kind(json.load(f), path, self.run.in_memory)
@@ -201,7 +201,7 @@ class SemiSupervised:
         ``resume/<name>/`` (``config.json``, ``state.json``, the weights it names); a finished
         model's evaluation as ``eval/<key>.json``. Returns ``{name: "finished" | step}`` of the
         models written (a model already saved as finished is left as it is)."""
-        from stnh_tf.training import chunks, run_dir
+        from stnh_tf.training import checkpoints, chunks, run_dir
 
         out = {}
         for name in self.model_names():
@@ -220,7 +220,7 @@ class SemiSupervised:
                              os.path.join(repo_dir, f"{name}.json"))
                 shutil.rmtree(resume, ignore_errors=True)
                 out[name] = "finished"
-            elif run_dir.checkpoint_weights_path(os.path.join(d, run_dir.CHECKPOINT_DIR)):
+            elif checkpoints.checkpoint_weights_path(os.path.join(d, run_dir.CHECKPOINT_DIR)):
                 out[name] = chunks.sync_out(d, resume)
         return out
 

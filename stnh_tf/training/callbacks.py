@@ -149,7 +149,7 @@ class TimeLimit(_GlobalStep):
     """Stops training within one step of a time limit, or at a stop signal, so that the run's
     state at that step is saved: the stop ends the Keras epoch early, and Keras still runs the
     epoch's end (validation, then the checkpoint that
-    :class:`~stnh_tf.training.run_dir.AtomicCheckpoint` writes of the step reached), from which
+    :class:`~stnh_tf.training.checkpoints.AtomicCheckpoint` writes of the step reached), from which
     :func:`stnh_tf.training.loop.train` resumes.
 
     * ``seconds`` (``None``: no time limit): after each step (each call of the compiled step:

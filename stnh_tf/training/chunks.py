@@ -23,7 +23,7 @@ ledger reads (:func:`read_ledger`), that ``resume/<part>`` is a folder, that the
 the same run (:func:`~stnh_tf.training.run_dir.check_same_run`: the finished stages it is made
 from compared by their files' sha256, not by where the checkout is; the photograph folders and
 the run folder may be anywhere) and that the committed weights read whole
-(:func:`~stnh_tf.training.run_dir.check_weights_file`): a refusal leaves everything as it was.
+(:func:`~stnh_tf.training.checkpoints.check_weights_file`): a refusal leaves everything as it was.
 
 A run other than a hierarchical stage (the 2-stage sequence model, a stage 1 with other loss
 weights) is a *part* named by a string (``resume/<part>/``, ``<part>.keras``, ``<part>.json``;
@@ -45,7 +45,7 @@ import time
 
 from stnh_tf.paths import atomic_write_json, atomic_write_text, read_json, stage_record_path
 from stnh_tf.provenance import machine_info
-from stnh_tf.training import run_dir
+from stnh_tf.training import checkpoints, run_dir
 from stnh_tf.training.config import TrainConfig
 
 RESUME_DIR = "resume"
@@ -114,19 +114,19 @@ def stage_record(root: str, part: int | str, config: dict) -> dict:
 
 def _step(checkpoint_dir) -> int:
     """The step of the checkpoint of ``checkpoint_dir`` (-1: none; errors as
-    :func:`stnh_tf.training.run_dir.find_checkpoint`)."""
-    found = run_dir.find_checkpoint(checkpoint_dir)
+    :func:`stnh_tf.training.checkpoints.find_checkpoint`)."""
+    found = checkpoints.find_checkpoint(checkpoint_dir)
     return -1 if found is None else int(found[1])
 
 
 def _copy_checkpoint(src_dir, dst_dir, extra_files=()):
-    """Copy the checkpoint of ``src_dir`` (the weights :func:`run_dir.find_checkpoint` finds and
-    the state naming them, where there is one) and ``extra_files`` into ``dst_dir``, replaced
+    """Copy the checkpoint of ``src_dir`` (the weights :func:`checkpoints.find_checkpoint` finds
+    and the state naming them, where there is one) and ``extra_files`` into ``dst_dir``, replaced
     whole (written beside it, then swapped in)."""
     tmp, old = f"{dst_dir}.tmp-{os.getpid()}", f"{dst_dir}.old-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     os.makedirs(tmp)
-    weights, _, state = run_dir.find_checkpoint(src_dir)
+    weights, _, state = checkpoints.find_checkpoint(src_dir)
     state = [os.path.join(src_dir, run_dir.CHECKPOINT_STATE)] if state is not None else []
     for path in (weights, *state, *extra_files):
         shutil.copy2(path, os.path.join(tmp, os.path.basename(path)))
@@ -155,7 +155,7 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
     :func:`~stnh_tf.training.run_dir.check_same_run`); ``cfg`` is then checked even when
     nothing is to be copied. Nor is a committed checkpoint that does not read whole
     (``ValueError`` naming its weights file:
-    :func:`~stnh_tf.training.run_dir.check_weights_file`): the folder keeps its own.
+    :func:`~stnh_tf.training.checkpoints.check_weights_file`): the folder keeps its own.
 
     Raises:
       NotADirectoryError: ``resume`` exists and is not a folder (a checkpoint is one).
@@ -175,9 +175,9 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
             return None
         run_dir.check_same_run(model_dir, os.path.join(resume, run_dir.CONFIG_FILE), cfg)
         if newer:
-            weights, step, _ = run_dir.find_checkpoint(resume)
+            weights, step, _ = checkpoints.find_checkpoint(resume)
             try:
-                run_dir.check_weights_file(weights, step)
+                checkpoints.check_weights_file(weights, step)
             except ValueError as e:
                 own = _step(ckpt)
                 kept = f"its checkpoint of step {own} is kept" if own >= 0 else "it has none"

@@ -9,7 +9,7 @@ it on the TFRecord dataset in ``config.data_dir`` with:
   ``warmup_target``): the paper's 1,000 + 90,000 steps by default. ``lr_schedule="step"`` is
   DeTone et al.'s schedule instead (the learning rate divided by 10 after each third of the
   steps), which the binaries preset for ``--model=homographynet``
-  (:data:`stnh_tf.training.config.MODEL_DEFAULTS`).
+  (:data:`stnh_tf.training.presets.MODEL_DEFAULTS`).
 * Atomic periodic checkpoints (model + optimizer + RNG state) every ``checkpoint_every`` steps; a
   killed run restarted with the same command resumes at the last checkpoint, repositions the data
   stream at that step, and follows the same schedule to the same final step. A run stopped by its
@@ -56,7 +56,7 @@ import keras
 
 from stnh_tf.modeling import runner
 from stnh_tf.paths import atomic_write_json, fsync_replace
-from stnh_tf.training import distribute, fit_calls, model_kinds, run_dir
+from stnh_tf.training import checkpoints, distribute, fit_calls, model_kinds, run_dir
 from stnh_tf.training import streams as train_streams
 from stnh_tf.training.callbacks import (NonFiniteGuard, ProgressLogger, StepScalars, TimeLimit,
                                         report_every, stop_on_signals)
@@ -220,7 +220,7 @@ def _strategy_scope(cfg):
 def _load_start(model, cfg: TrainConfig, ckpt_dir: str) -> int:
     """Load the latest checkpoint of ``ckpt_dir`` into the compiled ``model``, or on a fresh start
     (none there) ``cfg.init_from``'s weights; returns the checkpoint's step (0: fresh)."""
-    start_step = run_dir.load_checkpoint(model, ckpt_dir)
+    start_step = checkpoints.load_checkpoint(model, ckpt_dir)
     if start_step == 0 and cfg.init_from:
         initialize_from(model, cfg.init_from)
     return start_step
@@ -361,7 +361,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         callbacks = [guard, ProgressLogger(every, cfg.train_steps, printer)]
         if cluster.is_chief:  # checkpoints and logs: the chief's alone
             callbacks.insert(1, distribute.chief_callback(
-                cluster, run_dir.AtomicCheckpoint(ckpt_dir, guard)))
+                cluster, checkpoints.AtomicCheckpoint(ckpt_dir, guard)))
             if tensorboard_available():
                 callbacks.append(StepScalars(os.path.join(cfg.model_dir, run_dir.LOGS_DIR),
                                              every, cfg.train_steps))
@@ -402,8 +402,9 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             for k, v in h.history.items():
                 history.setdefault(k, []).extend(v)
         if guard.bad_step is not None:
-            last = run_dir.checkpoint_weights_path(ckpt_dir)
-            last_step = run_dir.read_checkpoint_state(ckpt_dir)["step"] if last is not None else 0
+            last = checkpoints.checkpoint_weights_path(ckpt_dir)
+            last_step = (checkpoints.read_checkpoint_state(ckpt_dir)["step"] if last is not None
+                         else 0)
             raise TrainingDiverged(
                 f"non-finite loss at step {guard.bad_step}; last good checkpoint: "
                 f"{last or '(none)'} (step {last_step}). Resuming with the same flags repeats the "

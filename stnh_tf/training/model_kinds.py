@@ -1,6 +1,6 @@
 """The model kinds a run can train, each defined once: how to build it, its losses and metrics,
 and how the dataset's targets map onto its outputs (:data:`KINDS`, keyed like
-:data:`stnh_tf.training.config.MODEL_KINDS`, which the binaries' ``--model`` flag offers).
+:data:`stnh_tf.training.presets.MODEL_KINDS`, which the binaries' ``--model`` flag offers).
 
 A run with pairs without ground truth (:func:`has_unlabeled_pairs`) builds its STN
 model with the output :data:`~stnh_tf.modeling.models.WARP_VALID` and trains each pair on its own
@@ -21,7 +21,9 @@ import keras
 
 from stnh_tf.modeling import losses as losses_lib
 from stnh_tf.modeling import models
-from stnh_tf.training.config import MODEL_KINDS, TrainConfig
+from stnh_tf.modeling.layers import HOMOGRAPHYNET_SCALE
+from stnh_tf.training.config import TrainConfig
+from stnh_tf.training.presets import MODEL_KINDS
 
 def has_unlabeled_pairs(cfg: TrainConfig) -> bool:
     """Whether the run trains pairs without ground truth (``h_mask`` 0): ``label_fraction`` < 1
@@ -113,7 +115,7 @@ def _homographynet_targets(x, y, w):
 
     h = geometry.denormalize_homography(geometry.vector_to_matrix(y["h_bar"]))
     offsets = keras.ops.reshape(geometry.homography_to_offsets(h), (-1, 8))
-    offsets = offsets / models.HOMOGRAPHYNET_SCALE
+    offsets = offsets / HOMOGRAPHYNET_SCALE
     # patch_a_warp carries no loss (HomographyNet has no photometric term) but Keras matches the
     # targets to every output.
     return (x, {"offsets": offsets, "h_bar": y["h_bar"], "patch_a_warp": y["patch_a_warp"]},
@@ -156,7 +158,7 @@ KINDS = {
         losses=_four_point_losses, targets=lambda cfg: _homographynet_targets),
 }
 if tuple(KINDS) != MODEL_KINDS:
-    raise ImportError(f"model_kinds.KINDS {tuple(KINDS)} must list train_config.MODEL_KINDS "
+    raise ImportError(f"model_kinds.KINDS {tuple(KINDS)} must list presets.MODEL_KINDS "
                       f"{MODEL_KINDS} in order.")
 
 

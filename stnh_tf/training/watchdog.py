@@ -83,10 +83,11 @@ def lost_line(num_processes: int, process_id: int, lost, model_dir: str | None =
     names = ", ".join(f"worker {j}" + (" (the chief)" if j == CHIEF else "") for j in lost)
     where = "its last checkpoint"
     if process_id == CHIEF and model_dir:
-        from stnh_tf.training import run_dir
+        from stnh_tf.training import checkpoints, run_dir
 
         try:
-            state = run_dir.read_checkpoint_state(os.path.join(model_dir, run_dir.CHECKPOINT_DIR))
+            state = checkpoints.read_checkpoint_state(os.path.join(model_dir,
+                                                                   run_dir.CHECKPOINT_DIR))
         except (OSError, ValueError):
             state = None
         where = (f"its last checkpoint (step {state['step']} in {model_dir})" if state else
