@@ -456,3 +456,54 @@ def test_corner_std_of_a_pair_whose_corners_map_beyond_the_horizon(tile):
         a, b, -image_a_from_b, tile, corners=square.astype(np.float64).tolist()), rel=1e-6)
     assert checks.corner_std(a, b, -patch_a_from_b, (96, 56), tile=tile) == pytest.approx(
         got, rel=1e-9)
+
+
+def _ncc_over_shifts(warped, b, r):
+    """NCC (zero-mean, normalized) of ``b``'s centre (a margin of ``r``) with ``warped`` at every
+    shift ``(dx, dy)`` in ``[-r, r]^2``, written out with NumPy: ``[2r + 1, 2r + 1]``."""
+    t = b[r:-r, r:-r].astype(np.float64)
+    t = t - t.mean()
+    out = np.empty((2 * r + 1, 2 * r + 1))
+    for i in range(2 * r + 1):
+        rows = warped[i:i + t.shape[0]].astype(np.float64)
+        windows = np.moveaxis(np.lib.stride_tricks.sliding_window_view(
+            rows, t.shape[1], axis=1), 1, 0)  # [2r + 1, h_t, w_t]
+        windows = windows - windows.mean(axis=(1, 2), keepdims=True)
+        out[i] = (windows * t).sum(axis=(1, 2)) / np.sqrt(
+            (windows ** 2).sum(axis=(1, 2)) * (t ** 2).sum())
+    return out
+
+
+@pytest.mark.parametrize("period", [0, 24])
+def test_ambiguity_gap_against_the_ncc_over_shifts_written_out(period):
+    """checks.ambiguity_gap on a shifted pair: the NCC at the estimate less the best local
+    maximum 8 px or more away, against the NCC over every shift computed with NumPy (to 1e-4:
+    OpenCV's matchTemplate sums in float32). A texture repeated every ``period`` px aligns as
+    well one period off (gap about 0); a smooth random one does not (gap above 0.3)."""
+    rng = np.random.default_rng(2)
+    if period:
+        tiles = cv2.GaussianBlur(np.tile(rng.random((period, period)), (3, 3)), (0, 0), 1.5)
+        tile = tiles[period:2 * period, period:2 * period]  # periodic: blurred in a 3 x 3
+        a = np.tile(tile, (240 // period + 2, 320 // period + 2))[:240, :320]
+    else:
+        a = cv2.GaussianBlur(rng.random((240, 320)), (0, 0), 2)
+    shift = geometry.translation(5.0, -3.0)
+    b = cv2.warpPerspective(a, shift, (320, 240), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_REFLECT_101)
+    patch_shift = geometry.image_to_patch(shift, 96, 56)
+    gap = checks.ambiguity_gap(a, b, patch_shift, (96, 56))
+    warped = cv2.warpPerspective(a, shift, (320, 240),
+                                 flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    covered = cv2.warpPerspective(np.ones_like(a), shift, (320, 240),
+                                  flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR) > 0.999
+    warped[~covered] = warped[covered].mean()
+    r = checks.AMBIGUITY_SHIFT_PX
+    scores = _ncc_over_shifts(warped, b, r)
+    ys, xs = np.mgrid[-r:r + 1, -r:r + 1]
+    padded = np.pad(scores, 2, constant_values=-np.inf)
+    local_max = np.all([scores >= padded[2 + dy:2 + dy + scores.shape[0],
+                                         2 + dx:2 + dx + scores.shape[1]]
+                        for dy in range(-2, 3) for dx in range(-2, 3)], axis=0)
+    other = scores[local_max & (np.hypot(xs, ys) >= 8)].max()
+    assert gap == pytest.approx(scores[r - 1:r + 2, r - 1:r + 2].max() - other, abs=1e-4)
+    assert (abs(gap) < 0.005) if period else (gap > 0.3)

@@ -269,3 +269,16 @@ def test_a_strongly_projective_pair_of_the_papers_protocol_keeps_its_estimate(
     assert not est.undetermined[0]
     found = cv2.perspectiveTransform(square[None].astype(np.float64), est.homography[0])[0]
     assert np.linalg.norm(found - perturbed, axis=1).mean() < 0.5
+
+
+def test_a_checkerboard_pair_is_flagged_ambiguous(default_estimator_float32, opencv_path):
+    """Issue 79, item 3: a checkerboard of 16-px squares shifted by (8, -6) aligns as well one
+    square diagonally off (NCC 1 there too). The default estimate_images came back 22.6 px off
+    with NCC 1.0 and unflagged; it is now flagged as ambiguous (checks.ambiguity_gap under
+    Thresholds.min_ambiguity_gap), whatever shift it lands on."""
+    ys, xs = np.mgrid[0:400, 0:480]
+    board = (((xs // 16) + (ys // 16)) % 2 * 255).astype(np.uint8)
+    image_a, image_b = board[40:280, 40:360], board[34:274, 48:368]  # b(p) = a(p + (8, -6))
+    est = default_estimator_float32.estimate_images_with_info(image_a, image_b)
+    assert est.implausible[0]
+    assert est.ambiguity_gap[0] < est.options.thresholds.min_ambiguity_gap

@@ -253,6 +253,63 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
     return out if np.isfinite(out) else float("inf")
 
 
+AMBIGUITY_SHIFT_PX = 40
+""":func:`ambiguity_gap`'s reach: other shifts up to this many px (beyond the trained 32)."""
+AMBIGUITY_MIN_SHIFT_PX = 8
+""":func:`ambiguity_gap`: a peak nearer the estimate than this is its own peak's shoulder."""
+
+
+def ambiguity_gap(work_a, work_b, a_from_b, origin=(0, 0), min_overlap: float = 0.3) -> float:
+    """How much better the patch-frame ``a_from_b`` aligns ``work_b`` with ``work_a`` than
+    any distinct other shift of it: work_a is warped onto work_b's frame by the estimate
+    (its pixels beyond work_a set to the mean of the rest), the NCC of work_b's centre (a
+    margin of :data:`AMBIGUITY_SHIFT_PX` on every side) with it is taken at every shift up to
+    that margin (``cv2.matchTemplate``, ``TM_CCOEFF_NORMED``), and the result is the NCC at
+    the estimate (the best within 1 px) less the highest local maximum (5 x 5) at least
+    :data:`AMBIGUITY_MIN_SHIFT_PX` away. A repeated pattern, which aligns as well one period
+    off, gives about 0; a photograph, whose NCC falls away from the estimate, 0.1 or more.
+
+    Args:
+      work_a, work_b: ``[h, w]`` images (work_b's sides above twice the margin); the patch has
+        its top-left corner at ``origin`` in both.
+      a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame.
+      min_overlap: the share of work_b that work_a must cover under the estimate.
+    Returns:
+      The gap (NCC units, at most 2); NaN where the estimate covers less than ``min_overlap``,
+      is not finite, or the NCC is undefined (a flat image); 1.0 where no other peak exists.
+
+    >>> ys, xs = np.mgrid[0:240, 0:320]
+    >>> board = ((xs // 16 + ys // 16) % 2).astype(np.float64)
+    >>> round(ambiguity_gap(board, board, np.eye(3), (96, 56)), 6)
+    0.0
+    >>> smooth = cv2.GaussianBlur(np.random.default_rng(0).random((240, 320)), (0, 0), 2)
+    >>> ambiguity_gap(smooth, smooth, np.eye(3), (96, 56)) > 0.5
+    True
+    """
+    h = geometry.patch_to_image(a_from_b, *origin)
+    if not np.isfinite(h).all():
+        return float("nan")
+    a = np.asarray(work_a, np.float32)
+    b = np.asarray(work_b, np.float32)
+    size = (b.shape[1], b.shape[0])
+    flags = cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR
+    warped = cv2.warpPerspective(a, h, size, flags=flags)
+    covered = cv2.warpPerspective(np.ones_like(a), h, size, flags=flags) > 0.999
+    if covered.mean() < min_overlap:
+        return float("nan")
+    warped[~covered] = warped[covered].mean()
+    r = AMBIGUITY_SHIFT_PX
+    with np.errstate(all="ignore"):
+        scores = cv2.matchTemplate(warped, b[r:-r, r:-r], cv2.TM_CCOEFF_NORMED)
+    if not np.isfinite(scores).all():
+        return float("nan")
+    own = float(scores[r - 1:r + 2, r - 1:r + 2].max())
+    ys, xs = np.mgrid[-r:r + 1, -r:r + 1]
+    peaks = ((scores == cv2.dilate(scores, np.ones((5, 5), np.uint8)))
+             & (np.hypot(xs, ys) >= AMBIGUITY_MIN_SHIFT_PX))
+    return own - float(scores[peaks].max()) if peaks.any() else 1.0
+
+
 def alignment_ncc(source_a, patch_b, a_from_b, origin=(0, 0),
                   min_overlap: float = _DEFAULT.min_overlap) -> float:
     """Normalized cross-correlation between ``patch_b`` and patch_a warped onto it by ``a_from_b``,

@@ -387,11 +387,15 @@ class HomographyEstimator:
             std = checks.corner_std(work_a, work_b, result.homography[0], PATCH_ORIGIN,
                                     tile=options.thresholds.corner_std_tile)
             undetermined = std > options.thresholds.undetermined_corner_std
+            # and whether another shift of it aligns the images as well (issue 79)
+            gap = checks.ambiguity_gap(work_a, work_b, result.homography[0], PATCH_ORIGIN)
             result = dataclasses.replace(
                 result, corner_std_px=np.array([std]), undetermined=np.array([undetermined]),
                 homography=np.eye(3)[None] if undetermined else result.homography,
+                ambiguity_gap=np.array([gap]),
                 implausible=(result.implausible | undetermined
-                             | (std > options.thresholds.max_corner_std)))
+                             | (std > options.thresholds.max_corner_std)
+                             | (gap < options.thresholds.min_ambiguity_gap)))
         return result
 
     def estimate_images(self, image_a, image_b, options: EstimateOptions | None = None,

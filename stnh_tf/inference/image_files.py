@@ -338,7 +338,9 @@ def _estimate_json(estimate, shape_b, quad) -> dict:
             "verify_move_px": _finite_or_none(estimate.verify_move_px[0]),
             "move_confirmed": bool(estimate.move_confirmed[0]),
             # above Thresholds.undetermined_corner_std: the identity in the estimate's place
-            "undetermined": bool(estimate.undetermined[0])}
+            "undetermined": bool(estimate.undetermined[0]),
+            # another shift of it aligns the images as well (verify="ecc"; a repeated pattern)
+            "ambiguity_gap": _finite_or_none(estimate.ambiguity_gap[0])}
 
 
 BEYOND_NETWORK = ("search", "refine", "coarse", "features", "retry_tta")

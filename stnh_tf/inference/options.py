@@ -143,6 +143,12 @@ class Thresholds:
         image), the images leave the estimate undetermined at their own scale: the identity is
         returned in its place, flagged (``Estimate.undetermined``), as SIFT + RANSAC returns
         the identity where it finds no model.
+      min_ambiguity_gap: with ``verify="ecc"`` in ``estimate_images``, an estimate under which
+        image_b's centre aligns with image_a warped by it at another shift (8 to 40 px, a
+        distinct peak of the NCC over shifts) within this much of the estimate's own NCC is
+        flagged implausible (``Estimate.ambiguity_gap``,
+        :func:`stnh_tf.inference.checks.ambiguity_gap`): a repeated pattern aligns as well one
+        period off (issue 79). 0.005: a near-perfect repetition only.
       late_start_move: with ``features="fallback"`` in ``estimate_images``, where the feature
         start was not taken and the finished estimate is flagged, or lies more than this from
         the network's own estimate (px, ``Estimate.network_move_px``'s measure), the feature
@@ -170,6 +176,7 @@ class Thresholds:
     max_corner_std: float = 1.5
     corner_std_tile: int = 8
     undetermined_corner_std: float = 400.0
+    min_ambiguity_gap: float = 0.005
     resolution_sigma: float = 0.8
     late_start_move: float = 10.0
 

@@ -83,6 +83,10 @@ class Estimate:
       undetermined: in ``estimate_images_with_info`` with ``verify="ecc"``, the corner standard
         deviation exceeded ``thresholds.undetermined_corner_std``: ``homography`` is the
         identity in place of the estimate (flagged); False elsewhere.
+      ambiguity_gap: in ``estimate_images_with_info`` with ``verify="ecc"``, how much better
+        the estimate aligns image_b's centre than the best other shift of it
+        (:func:`~stnh_tf.inference.checks.ambiguity_gap`); under
+        ``thresholds.min_ambiguity_gap`` the estimate is flagged. NaN elsewhere.
     """
 
     homography: np.ndarray
@@ -106,6 +110,7 @@ class Estimate:
     feature_start: np.ndarray = None
     corner_std_px: np.ndarray = None
     undetermined: np.ndarray = None
+    ambiguity_gap: np.ndarray = None
 
     def __len__(self):
         return len(self.homography)
@@ -305,7 +310,7 @@ def finish(run: dict, options: EstimateOptions) -> Estimate:
         network_homography=network,
         network_move_px=network_moves(run["total"], network, frames, run.get("origin", (0, 0))),
         feature_start=np.zeros(len(shift), bool), corner_std_px=np.full(len(shift), np.nan),
-        undetermined=np.zeros(len(shift), bool))
+        undetermined=np.zeros(len(shift), bool), ambiguity_gap=np.full(len(shift), np.nan))
 
 
 def network_moves(a_from_b, network, frame_shapes, origin) -> np.ndarray:
