@@ -15,6 +15,10 @@ under it (``notes`` in the JSON) where a model was trained as another stage (its
 on stage-2 data.
 --json_out=FILE writes the full JSON (mean/median/p90/p99 MACE, the identity on the same pairs,
 the number of pairs, ``worse_than_identity``); --json_out=- prints it instead of the table.
+Uncertainty: ``mace_se`` over the pairs, and by photograph (the pairs' ``image_id``) a percentile
+bootstrap that resamples whole photographs, their pairs together: ``mace_se_by_photograph`` and
+``mace_ci95_by_photograph`` (2,000 resamples, seed 0:
+:func:`stnh_tf.evaluation.uncertainty.by_photograph`), the model's in a line under the table.
 """
 
 from absl import app, flags

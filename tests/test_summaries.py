@@ -168,6 +168,9 @@ def test_evaluation_table_shows_the_numbers_of_evaluate(test_pairs, untrained_mo
     _check(text, {untrained_model: result["model"],
                   "orb_ransac": result["baselines"]["orb_ransac"]}, result["identity"])
     assert text.splitlines()[0] == f"MACE on 9 pairs of {test_pairs} (test)"
+    # Every stored pair names its photograph (image_id): the bootstrap resamples the 3 of them.
+    assert result["model"]["photographs"] == result["identity"]["photographs"] == 3
+    assert sum(line.startswith("by photograph: ") for line in text.splitlines()) == 1
     # The untrained model is worse than the identity, ORB + RANSAC is not: both cases shown.
     assert result["model"]["mace"] > result["identity"]["mace"] > (
         result["baselines"]["orb_ransac"]["mace"])

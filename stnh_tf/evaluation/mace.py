@@ -14,14 +14,19 @@ import time
 import numpy as np
 
 from stnh_tf import geometry, pixels
+from stnh_tf.evaluation import uncertainty
 from stnh_tf.modeling import runner
 
 
-def error_summary(errors, identity_errors=None) -> dict:
+def error_summary(errors, identity_errors=None, photograph_ids=None) -> dict:
     """Mean (MACE), its standard error over the pairs (``mace_se``: the sample standard deviation
     over the square root of the count; ``None`` for one pair), median, 90th and 99th percentile and
     count of per-pair corner errors (px); given the same pairs' ``identity_errors``, also
-    ``worse_than_identity``: the pairs whose error exceeds the identity's."""
+    ``worse_than_identity``: the pairs whose error exceeds the identity's; given each pair's
+    photograph (``photograph_ids``, the stored ``image_id``), also ``photographs``,
+    ``mace_se_by_photograph`` and ``mace_ci95_by_photograph`` (``[lo, hi]``): the standard error
+    and 95 % interval of a bootstrap that resamples whole photographs, the pairs of one photograph
+    together (:func:`stnh_tf.evaluation.uncertainty.by_photograph`)."""
     errors = np.asarray(errors, dtype=np.float64)
     if errors.size == 0:
         raise ValueError("no pairs to evaluate.")
@@ -33,6 +38,8 @@ def error_summary(errors, identity_errors=None) -> dict:
            "count": int(errors.size)}
     if identity_errors is not None:
         out["worse_than_identity"] = int((errors > np.asarray(identity_errors)).sum())
+    if photograph_ids is not None:
+        out.update(uncertainty.by_photograph(errors, photograph_ids))
     return out
 
 
@@ -52,14 +59,15 @@ def evaluate_model_on_arrays(model, samples: dict, batch_size=64) -> dict:
     elapsed = time.perf_counter() - t0
     final = runner.final_h_bar_name(model)
     identity = geometry.corner_errors(h_prev, h_true)
+    photos = samples.get("image_id")
     result = {}
     for name, h_bar in outs.items():
         h_est = geometry.compose(h_prev, geometry.h_bar_to_pixel(h_bar))
-        result[name] = error_summary(geometry.corner_errors(h_est, h_true), identity)
+        result[name] = error_summary(geometry.corner_errors(h_est, h_true), identity, photos)
     summary = dict(result[final])
     if len(outs) > 1:
         summary["stages"] = {k: v for k, v in sorted(result.items())}
-    summary["identity"] = error_summary(identity)
+    summary["identity"] = error_summary(identity, photograph_ids=photos)
     summary["ms_per_pair_batched"] = 1000.0 * elapsed / len(h_true)
     return summary
 
@@ -83,13 +91,15 @@ def evaluate_hierarchy(models, samples: dict, batch_size=64, clip_to_context: bo
                                   clip_to_context=clip_to_context)
     elapsed = time.perf_counter() - t0
     identity = geometry.corner_errors(np.broadcast_to(np.eye(3), h_true.shape), h_true)
-    stages = {f"after_{k}_stages": error_summary(geometry.corner_errors(h, h_true), identity)
+    photos = samples.get("image_id")
+    stages = {f"after_{k}_stages": error_summary(geometry.corner_errors(h, h_true), identity,
+                                                 photos)
               for k, h in enumerate(run["per_stage"], start=1)}
     summary = dict(stages[f"after_{len(models)}_stages"])
     summary["stages"] = stages
     summary["rejected"] = run["rejected"]
     summary["clip_to_context"] = bool(clip_to_context)
-    summary["identity"] = error_summary(identity)
+    summary["identity"] = error_summary(identity, photograph_ids=photos)
     summary["ms_per_pair_batched"] = 1000.0 * elapsed / len(h_true)
     return summary
 
@@ -106,8 +116,9 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
       max_samples: evaluate the first N pairs only (reported as ``count``; default all).
     Returns:
       ``{"data_dir", "split", "count", "identity", "model" (if any), "baselines" (if any),
-      "notes"}``, ``notes`` the lines of :func:`stage_notes` (a model of another stage than the
-      data's).
+      "bootstrap_by_photograph", "notes"}`` (:func:`evaluate_arrays`; every stored pair names its
+      photograph, ``image_id``), ``notes`` the lines of :func:`stage_notes` (a model of another
+      stage than the data's).
     Raises:
       ValueError: ``batch_size`` < 1 or ``max_samples`` < 1, or ``clip_to_context=False``
         without a hierarchy (checked before anything is read); a missing split, a model or
@@ -190,7 +201,10 @@ def evaluate_arrays(samples: dict, model_dirs=(), baselines=(), batch_size=64,
         the context border (:func:`evaluate_hierarchy`); ``False`` reports MACE without it.
       source: what the pairs are, for error messages.
     Returns:
-      ``{"count", "identity", "model" (if any), "baselines" (if any)}``.
+      ``{"count", "identity", "model" (if any), "baselines" (if any)}``; where the pairs carry
+      ``image_id``, the identity's and the model's summaries (each stage's too) add the
+      by-photograph bootstrap of :func:`error_summary`, whose settings ``bootstrap_by_photograph``
+      (``resamples``, ``seed``) records. The baselines' summaries have neither.
     Raises:
       ValueError: ``batch_size`` < 1, or ``clip_to_context=False`` without a hierarchy; a model
         or baseline that does not fit the pairs.
@@ -202,7 +216,11 @@ def evaluate_arrays(samples: dict, model_dirs=(), baselines=(), batch_size=64,
     h_prev = np.asarray(samples["h_prev"], np.float64)
     out = {"count": int(len(h_true)),
            "identity": error_summary(geometry.corner_errors(
-               np.broadcast_to(np.eye(3), h_true.shape), h_true))}
+               np.broadcast_to(np.eye(3), h_true.shape), h_true),
+               photograph_ids=samples.get("image_id"))}
+    if samples.get("image_id") is not None:
+        out["bootstrap_by_photograph"] = {"resamples": uncertainty.BOOTSTRAP_RESAMPLES,
+                                          "seed": uncertainty.BOOTSTRAP_SEED}
     model_dirs = [d for d in (model_dirs or ()) if d]
     if len(model_dirs) == 1:
         out["model"] = evaluate_model_on_arrays(runner.load_model(model_dirs[0], compute_dtype),

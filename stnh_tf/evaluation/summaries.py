@@ -150,11 +150,30 @@ def evaluation_table(result: dict) -> str:
                              f"{row.worse_than_identity} of {row.count} pairs")
                 row = dataclasses.replace(row, worse_than_identity=None)
             rows.append(row)
+    if model is not None and model.get("mace_ci95_by_photograph") is not None:
+        notes.append(by_photograph_line(rows[-1].method, model))  # the model's final row
     for name, summary in result.get("baselines", {}).items():
         if name != "identity":
             rows.append(Row.of(name, summary))
     title = f"MACE on {result['count']} pairs of {result['data_dir']} ({result['split']})"
     return summary_table(identity, rows, title, notes + list(result.get("notes", ())))
+
+
+def by_photograph_line(method: str, summary: dict) -> str:
+    """The line of an error summary's bootstrap by photograph
+    (:func:`stnh_tf.evaluation.uncertainty.by_photograph`), beside its standard error over pairs.
+
+    >>> print(by_photograph_line("m", {"mace": 6.84, "mace_se": 0.19, "count": 300,
+    ...     "photographs": 100, "mace_se_by_photograph": 0.21,
+    ...     "mace_ci95_by_photograph": [6.43, 7.25]}))
+    by photograph: m 6.84 px, 95% interval 6.43-7.25, standard error 0.21 over the 100 \
+photographs (0.19 over the 300 pairs)
+    """
+    lo, hi = summary["mace_ci95_by_photograph"]
+    return (f"by photograph: {method} {_px(summary['mace'])} px, 95% interval {_px(lo)}-{_px(hi)}"
+            f", standard error {_px(summary['mace_se_by_photograph'])} over the "
+            f"{summary['photographs']} photographs ({_px(summary['mace_se'])} over the "
+            f"{summary['count']} pairs)")
 
 
 def camera_pairs_table(result: dict) -> str:
