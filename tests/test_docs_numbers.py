@@ -482,6 +482,15 @@ PROSE = [
      [num("schedule1_eval_se", "model/mace"), num("schedule1_eval_se", "model/mace_se")]),
     ("BENCHMARKS.md", rf"{N} px with a{S}standard error of {N} px over the 300 pairs",
      [num("schedule1_eval_se", "model/mace"), num("schedule1_eval_se", "model/mace_se")]),
+    ("docs/gpu.md",  # issue 78, item 4: the same by photograph (a bootstrap)
+     rf"`paper_schedule/stage1_eval_ci.json`\), {N} px, with a 95% interval of {N}-{N} px",
+     [num("schedule1_eval_ci", "model/mace_se_by_photograph"),
+      num("schedule1_eval_ci", "model/mace_ci95_by_photograph/0"),
+      num("schedule1_eval_ci", "model/mace_ci95_by_photograph/1")]),
+    ("BENCHMARKS.md", rf"\({N} px by photograph, with a 95% interval of{S}{N}-{N} px",
+     [num("schedule1_eval_ci", "model/mace_se_by_photograph"),
+      num("schedule1_eval_ci", "model/mace_ci95_by_photograph/0"),
+      num("schedule1_eval_ci", "model/mace_ci95_by_photograph/1")]),
     ("BENCHMARKS.md",  # issue 63: the step cost with the leak-free L1 target
      rf"the paper's model's median step takes {N} s; the model{S}of a run with unlabeled pairs "
      rf"[^:]*?unlabeled, {N} s: a ratio of {N} \(the bare regression{S}network with the L2 loss alone: "

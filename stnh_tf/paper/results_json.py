@@ -112,6 +112,7 @@ SOURCES = {
     "semi_step_cost": "semi_supervised/step_cost.json",
     "semi_step_cost_l1b": "semi_supervised/step_cost_l1b.json",
     "schedule1_eval_se": "paper_schedule/stage1_eval_se.json",
+    "schedule1_eval_ci": "paper_schedule/stage1_eval_ci.json",
     "results": "docs/reproduce_cpu/results.json",
     "table1": "docs/reproduce_cpu/table1.json",
 }
