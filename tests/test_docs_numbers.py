@@ -723,17 +723,25 @@ def test_generated_blocks_equal_what_the_json_gives():
                        + "\n".join(stale.values()))
 
 
-def test_prose_numbers_equal_their_json():
-    sources = cr.load_sources(ROOT)
+def _prose_wrong(entries, root=ROOT):
+    """What differs from its JSON among ``entries`` (as ``PROSE``'s) in the docs under ``root``:
+    one line per phrase that no text matches or that reads another number."""
+    sources = cr.load_sources(root)
     wrong = []
-    for name, pattern, expected in PROSE:
-        matches = re.findall(pattern, _read(name))
-        assert matches, f"{name}: no text matches {pattern!r} (reworded? update PROSE)"
+    for name, pattern, expected in entries:
+        matches = re.findall(pattern, _read(name, root))
+        if not matches:
+            wrong.append(f"{name}: no text matches {pattern!r} (reworded? update the list)")
         want = tuple(f(sources) for f in expected)
         for found in matches:
             found = found if isinstance(found, tuple) else (found,)
-            if found != want:
+            if expected and found != want:
                 wrong.append(f"{name}: {pattern!r} reads {found}, the JSON gives {want}")
+    return wrong
+
+
+def test_prose_numbers_equal_their_json():
+    wrong = _prose_wrong(PROSE)
     assert not wrong, "\n".join(wrong)
 
 
@@ -782,3 +790,188 @@ def test_stage_pairs_benchmarks_made_the_same_pairs():
                for d in sources[name]["sha256"].values()}
     assert len(digests) == 1
     assert "carry the same SHA-256 of all pairs" in _read("BENCHMARKS.md")
+
+
+# Issue 78, point 6: one number in one place. Each group below is one item of the issue's walk;
+# each failed on the docs before they were made to agree.
+def latency(path, digits=2):
+    """Expected text of a value of the reproduction's Table 2 (``eval/latency.json``)."""
+    return num("reproduce_latency", path, digits)
+
+
+def _joined_ms(key):
+    return [num("results", f"{key}/{k}") for k in (1, 2, 3)]
+
+
+TABLE2 = [  # the committed reproduction's Table 2, wherever a page shows it
+    ("BENCHMARKS.md", rf"\| model forward `l_m` \| - \| 8\.31 ms \| {N} ms \|",
+     [latency("l_m_ms")]),
+    ("BENCHMARKS.md", rf"\| warp between stages `l_w` \(goal <= 3% of `l_m`\) \| - \| [^|]+ \| "
+     rf"{N} ms \({N}%\) \|",
+     [latency("l_w_ms", 3), lambda s: cr.fixed(100 * s["reproduce_latency"]["l_w_over_l_m"], 1)]),
+    ("BENCHMARKS.md", rf"\| 1 stage \| 4\.87 ms \| [^|]+ \| \*\*{N} ms\*\* \|",
+     [num("results", "table2_latency_ms/1")]),
+    *[("BENCHMARKS.md", rf"\| {k} stages[^|]* \| {paper} ms \| [^|]+ \| \*\*{N} ms\*\* \({N}x\) \|",
+       [num("results", f"table2_latency_ms/{k}"),
+        latency(f"hierarchy/{k}/ratio_to_one_stage")]) for k, paper in ((2, r"11\.46"),
+                                                                        (3, r"17\.85"))],
+    ("BENCHMARKS.md", rf"\| sequence model, 1 / 2 / 3 stages[^|]*\| [^|]+ \| [^|]+ \| {N} / {N} / "
+     rf"\*\*{N} ms\*\* \|", _joined_ms("sequence_latency_ms")),
+    ("BENCHMARKS.md", rf"\| Table 2, latency \(bf16, CPU\) \| {N} / {N} / {N} ms \(sequence {N} / "
+     rf"{N} / {N}\)", _joined_ms("table2_latency_ms") + _joined_ms("sequence_latency_ms")),
+    ("BENCHMARKS.md", rf"3 sequence stages {N} ms on{S}the", [num("results",
+                                                                   "sequence_latency_ms/3")]),
+    ("BENCHMARKS.md", rf"in bfloat16 \({N} ms for the model alone", [latency("l_m_ms")]),
+]
+
+
+def test_table2_is_the_reproduction_json_on_every_page():
+    """README's Table 2 row (generated) and BENCHMARKS.md's Table 2 section, its summary row and
+    its mentions show the committed reproduction's latencies, not another run's."""
+    wrong = _prose_wrong(TABLE2)
+    assert not wrong, "\n".join(wrong)
+
+
+GPU_CLAIM = re.compile(r"paper's (?:2019 )?GPU|GPU figure|the paper: its GPU")
+
+
+def _gpu_claims(text):
+    """The table rows and paragraphs of ``text`` that set a CPU's bfloat16 latency against the
+    paper's GPU."""
+    units = []
+    for part in re.split(r"\n\s*\n", text):
+        lines = part.splitlines()
+        units += [line for line in lines if line.startswith("|")]
+        units.append("\n".join(line for line in lines if not line.startswith("|")))
+    return [u for u in units if GPU_CLAIM.search(u) and "bfloat16" in u and "CPU" in u]
+
+
+def test_a_claim_against_the_papers_gpu_names_the_machine_and_its_load():
+    """The CPU's bfloat16 latency beat the paper's GPU on one machine (the reproduction's,
+    AVX-512/AMX, its load not recorded), not on others: each row or paragraph that sets them
+    side by side names that machine and its load, as ``current_results`` gives them."""
+    machine = "AVX-512/AMX"
+    sources = cr.load_sources(ROOT)
+    assert machine in cr._latency_machine(sources) or "machine" in sources["results"]
+    unnamed = [f"{name}: {unit[:120]!r}" for name in ("README.md", "BENCHMARKS.md")
+               for unit in _gpu_claims(_read(name))
+               if machine not in unit or "load" not in unit]
+    assert _gpu_claims(_read("README.md")) and not unnamed, "\n".join(unnamed)
+
+
+def _duration_sections(text):
+    """The headings of the sections of ``text`` that give a duration for 4,000 steps."""
+    found = []
+    for section in re.split(r"\n(?=#+ )", text):
+        for paragraph in re.split(r"\n\s*\n", section):
+            if "4,000 steps" in paragraph and re.search(
+                    r"an hour|\d h\b|\d hours?\b|\d minutes\b", paragraph):
+                found.append(section.splitlines()[0])
+                break
+    return found
+
+
+CPU_BUDGET_TIME = [
+    ("docs/training.md", rf"three hierarchy stages took (\d+), (\d+){S}and (\d+) minutes on the "
+     rf"CPU machine of BENCHMARKS\.md \(2 cores, x86_64 with AVX-512/AMX;",
+     [lambda s, k=k: "%.0f" % (s["paper_card"]["stages"][k]["result"]["wall_s_this_run"] / 60)
+      for k in range(3)]),
+    ("docs/weights.md", rf"(\d+) \+ (\d+) \+ (\d+) minutes on the{S}CPU machine of BENCHMARKS\.md "
+     rf"\(2 cores, x86_64 with AVX-512/AMX\)",
+     [lambda s, k=k: "%.0f" % (s["paper_card"]["stages"][k]["result"]["wall_s_this_run"] / 60)
+      for k in range(3)]),
+    ("docs/training.md", rf"a training step took {N} s \(`semi_supervised/step_cost\.json`\),{S}"
+     rf"{N} h for 4,000 steps",
+     [num("semi_step_cost", "train_step_s/mixed_bfloat16/stn_homography"),
+      lambda s: cr.fixed(4000 * cr.value(s, "semi_step_cost",
+                                         "train_step_s/mixed_bfloat16/stn_homography") / 3600)]),
+]
+
+
+def test_a_cpu_budget_models_time_is_given_once_per_machine():
+    """docs/training.md gave a CPU-budget model "about an hour" in one section and 1.5-1.7 h in
+    another, each for "the 2-core CPU": now one section gives it per named machine, from the
+    JSON that records it, and the others link there."""
+    sections = _duration_sections(_read("docs/training.md"))
+    assert sections == ["### The CPU budget"], sections
+    wrong = _prose_wrong(CPU_BUDGET_TIME)
+    assert not wrong, "\n".join(wrong)
+
+
+def stage1_alone(sources):
+    return cr.fixed(cr.value(sources, "table1", "1,1/mace_per_seed/0"))
+
+
+TWO_EVALUATIONS = [  # Fig. 4's clipped 1-stage row and Table 1's unclipped seed 0: one model
+    ("docs/reproduce.md", rf"its Fig\. 4 1-stage row, {N} px, is the hierarchy after one stage, "
+     rf"with{S}the rule \(`eval/hierarchy\.json`: (\d+) of 300 estimates clipped at the "
+     rf"context\), while Table 1's{S}1:1 seed 0, {N} px, is the network alone",
+     [fig4("STN-Homography 1 stage"),
+      count("reproduce_hierarchy", "model/rejected/0/outside_context"), stage1_alone]),
+    ("README.md", rf"its 1:1 seed 0 is the 1-stage row's model without the clipping, {N} px apart",
+     [lambda s: cr.fixed(cr.value(s, "table1", "1,1/mace_per_seed/0")
+                         - cr.value(s, "results", "fig4_mace/STN-Homography 1 stage"))]),
+]
+
+
+def test_fig4_one_stage_and_table1_seed0_are_told_apart():
+    """The committed Fig. 4 1-stage row (the hierarchy after one stage, clipped) and Table 1's
+    1:1 seed 0 (the network alone) are two evaluations of one model; the docs call them so,
+    with both numbers from their JSON."""
+    wrong = _prose_wrong(TWO_EVALUATIONS)
+    assert not wrong, "\n".join(wrong)
+
+
+def test_an_assembled_fig4_says_so_beside_it():
+    """README shows the committed Fig. 4, whose legend says "this run": where results.json's
+    models come from more than one run folder, the text beside the figure says it was
+    assembled."""
+    def paths(node):
+        if isinstance(node, str):
+            return [node]
+        return [p for item in (node.values() if isinstance(node, dict) else node)
+                for p in paths(item)]
+
+    dirs = paths(cr.value(cr.load_sources(ROOT), "results", "models"))
+    readme = _read("README.md")
+    figure = readme.index("(docs/reproduce_cpu/figures/fig4_mace_bars.png)")
+    beside = readme[figure:].split("\n\n")[1]
+    if len({os.path.dirname(d) for d in dirs}) > 1:
+        assert "assembled" in beside and "this run" in beside, beside
+
+
+def _shipped_folders(root=ROOT):
+    weights = os.path.join(root, "stnh_tf", "weights")
+    return sorted(d for d in os.listdir(weights)
+                  if os.path.isfile(os.path.join(weights, d, "model_card.json")))
+
+
+SCHEDULE = "evaluation/model/stages/after_{}_stages/mace"
+SCHEDULE_CARD = [  # docs/weights.md's section on the paper's-schedule weights, from their card
+    ("docs/weights.md", rf"91,000 steps for stage 1 and{S}91,000 for stage 2, on 184,800 pairs",
+     []),
+    ("docs/weights.md", rf"\(stage 1: (\d+) chunks, stage 2:{S}(\d+);",
+     [lambda s, k=k: str(len(s["schedule_card"]["stages"][k]["chunks"])) for k in (0, 1)]),
+    ("docs/weights.md", rf"\*\*{N} px\*\* after stage 1, \*\*{N}\*\* after stage 2 \(identity "
+     rf"{N}; paper 5\.83 / 2\.6",
+     [num("schedule_card", SCHEDULE.format(k)) for k in (1, 2)]
+     + [num("schedule_card", "evaluation/identity/mace")]),
+    ("docs/weights.md", rf"search\): {N} px after stage 1, {N} after 2 stages \(photometric {N} / "
+     rf"{N}; identity {N}\)",
+     [check("", k, "schedule_card") for k in (1, 2)]
+     + [check("photometric_", k, "schedule_card") for k in (1, 2)]
+     + [num("schedule_card", f"{CHECK}/identity_mace")]),
+]
+
+
+def test_every_shipped_model_is_named_where_users_look():
+    """Each folder of shipped weights (a model card in ``stnh_tf/weights/``) is named in
+    README's usage and has its section in docs/weights.md, whose numbers come from its card."""
+    readme, weights = _read("README.md"), _read("docs/weights.md")
+    usage = readme.split("## Estimate a homography")[1].split("\n## ")[0]
+    headings = re.findall(r"^## .*$", weights, re.M)
+    missing = [f for f in _shipped_folders() if f"`{f}/`" not in usage
+               or not any(f"stnh_tf/weights/{f}/" in h for h in headings)]
+    assert _shipped_folders() and not missing, missing
+    wrong = _prose_wrong(SCHEDULE_CARD)
+    assert not wrong, "\n".join(wrong)

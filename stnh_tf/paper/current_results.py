@@ -85,6 +85,23 @@ def _recorded(sources, name, path="machine") -> tuple[str, str]:
     return info.get("git_commit") or NOT_RECORDED, machine
 
 
+# Where the committed CPU-budget reproduction ran: results.json, written before machine blocks,
+# records none; BENCHMARKS.md ("experiments.reproduce --budget=cpu") names the machine.
+REPRODUCE_MACHINE = "the CPU machine of BENCHMARKS.md (2 cores, x86_64 with AVX-512/AMX)"
+
+
+def _latency_machine(sources) -> str:
+    """Where Table 2's latencies were measured and under what load: results.json's ``machine``
+    block (:func:`_recorded`, its ``loadavg_at_start``) where it has one, else
+    :data:`REPRODUCE_MACHINE`, the load "not recorded"."""
+    commit, machine = _recorded(sources, "results")
+    if machine == NOT_RECORDED:
+        return f"{REPRODUCE_MACHINE}, its load not recorded"
+    load = value(sources, "results", "machine").get("loadavg_at_start")
+    return (f"{machine}, code {commit}, "
+            + (f"load {load[0]:.2f} at start" if load else "its load not recorded"))
+
+
 def _table1_cells(sources):
     """Table 1 as cells (ours, note, paper): our means (best in bold), the ranges of the rows
     trained with several seeds, the paper's values (best in bold)."""
@@ -269,7 +286,10 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
         ("Reproduction, Table 2: batch-1 latency of 1 / 2 / 3 stages, mixed bfloat16",
          f"hierarchy {_joined(sources, 'results', [f'table2_latency_ms/{k}' for k in (1, 2, 3)])}"
          f" ms, sequence model "
-         f"{_joined(sources, 'results', [f'sequence_latency_ms/{k}' for k in (1, 2, 3)])} ms",
+         f"{_joined(sources, 'results', [f'sequence_latency_ms/{k}' for k in (1, 2, 3)])} ms, "
+         f"on {_latency_machine(sources)} "
+         "([Table 2](#the-papers-table-2-hierarchy-latency-batch-1): not below the paper's GPU on "
+         "other 2-core CPUs)",
          reproduce, results, *_recorded(sources, "results")),
         *_camera_rows(sources),
     ]
@@ -327,8 +347,8 @@ def readme_block(sources: dict[str, dict]) -> str:
         ("SIFT + RANSAC (tuned on train photographs)", ours("SIFT + RANSAC"), "-", "-"),
         ("Table 1, loss weights L2:L1 = " + " / ".join(label for _, label in TABLE1_ROWS),
          table1 + table1_note, f"{schedule[1]} / - / - / {next_} / -", paper_table1),
-        ("Table 2, batch-1 latency of 1 / 2 / 3 stages in ms (ours: mixed bfloat16, the 2-core "
-         "CPU; the paper: its GPU)",
+        ("Table 2, batch-1 latency of 1 / 2 / 3 stages in ms (ours: mixed bfloat16 on "
+         f"{_latency_machine(sources)}; the paper: its GPU)",
          _joined(sources, "results", [f"table2_latency_ms/{k}" for k in (1, 2, 3)]), "-",
          " / ".join(f"{value(sources, 'results', f'paper/table2_gpu_ms/{k}'):g}"
                     for k in (1, 2, 3))),

@@ -115,6 +115,9 @@ SOURCES = {
     "schedule1_eval_ci": "paper_schedule/stage1_eval_ci.json",
     "results": "docs/reproduce_cpu/results.json",
     "table1": "docs/reproduce_cpu/table1.json",
+    # the reproduction's own files: Table 2's terms, the hierarchy's evaluation (its clipping)
+    "reproduce_latency": "docs/reproduce_cpu/eval/latency.json",
+    "reproduce_hierarchy": "docs/reproduce_cpu/eval/hierarchy.json",
 }
 PAPER_STEPS = 3 * 90_000  # the paper's hierarchy: 90,000 steps for each of 3 stages
 
