@@ -48,6 +48,8 @@ def main(argv):
         raise SystemExit(f"export: --tolerance must be a finite number >= 0; received "
                          f"{FLAGS.tolerance}.")
     with common.user_errors("export"):
+        # --overwrite replaces --output: never the model it exports (issue 80)
+        common.check_flags_apart(("output",), (), models=("model",))
         estimator = HomographyEstimator.load(FLAGS.model)
         report = export.export_and_verify(estimator, FLAGS.output, overwrite=FLAGS.overwrite,
                                           check_pairs=FLAGS.check_pairs,

@@ -49,6 +49,8 @@ def main(argv):
     del argv
     with common.user_errors("make_camera_pairs"):
         common.check_flags_apart(("output_dir", "json_out"), ("image_dir",))
+        # the set's folder holds its own files only: --json_out there could be its manifest
+        common.check_flags_apart(("json_out",), ("output_dir",))
         result = camera_pair_files.write_pairs(FLAGS.image_dir, FLAGS.output_dir,
                                             FLAGS.pairs_per_image, FLAGS.seed,
                                             overwrite=FLAGS.overwrite,

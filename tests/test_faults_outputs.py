@@ -236,3 +236,30 @@ def test_make_dataset_refuses_a_training_runs_folder(tiny_data, tmp_path):
                    "--max_images=4", "--num_workers=1")
     _refused(proc, "make_dataset", "--output_dir", "training run")
     assert _files(run) == before
+
+
+def test_export_refuses_to_overwrite_the_model_it_exports(tmp_path):
+    """``export --model=R --output=R --overwrite``: the folder the model is read from is refused
+    as the output before the model is loaded, in one line naming both flags (the output rule of
+    every binary; before, the export's own check refused it after loading, as "not a
+    SavedModel"), the folder byte for byte as it was."""
+    from stnh_tf.inference import model_files
+
+    run = tmp_path / "run"
+    shutil.copytree(os.path.dirname(model_files.resolve_model_paths(None)[0]), run)
+    before = _files(run)
+    proc = _binary("experiments.export", f"--model={run}", f"--output={run}", "--overwrite")
+    _refused(proc, "export", "--output", "--model")
+    assert _files(run) == before
+
+
+def test_make_camera_pairs_refuses_json_out_inside_its_set(tmp_path):
+    """``make_camera_pairs --json_out=D/pairs.json`` wrote its summary over the set's manifest
+    (the set could no longer be read); a --json_out inside --output_dir is refused before
+    anything is written."""
+    photos = _photo_folder(tmp_path / "photos", 2)
+    out = tmp_path / "set"
+    proc = _binary("experiments.make_camera_pairs", f"--image_dir={photos}",
+                   f"--output_dir={out}", f"--json_out={out / 'pairs.json'}")
+    _refused(proc, "make_camera_pairs", "--json_out", "--output_dir")
+    assert not out.exists()
