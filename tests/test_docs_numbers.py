@@ -15,6 +15,7 @@ import re
 import shutil
 
 from stnh_tf.paper import current_results as cr
+from stnh_tf.paper import result_cells
 
 ROOT = cr.default_root()
 N = r"([\d.]+)"  # one number in a phrase
@@ -367,7 +368,7 @@ PROSE = [
         for f in fields]
        + [cam(source, group, "estimator", f)
           for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good", "good")])
-      for source, groups, _ in cr.CAMERA_SETS
+      for source, groups, _ in result_cells.CAMERA_SETS
       for group in groups],
     *[late_row(label, f"camera{name}_nolate", f"camera{name}_late", group)  # the late start
       for label, name, groups in (("size seed 0", "0", ("within", "1-2x", "2-4x")),
@@ -852,7 +853,7 @@ def test_a_claim_against_the_papers_gpu_names_the_machine_and_its_load():
     side by side names that machine and its load, as ``current_results`` gives them."""
     machine = "AVX-512/AMX"
     sources = cr.load_sources(ROOT)
-    assert machine in cr._latency_machine(sources) or "machine" in sources["results"]
+    assert machine in result_cells.latency_machine(sources) or "machine" in sources["results"]
     unnamed = [f"{name}: {unit[:120]!r}" for name in ("README.md", "BENCHMARKS.md")
                for unit in _gpu_claims(_read(name))
                if machine not in unit or "load" not in unit]

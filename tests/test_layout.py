@@ -27,7 +27,8 @@ ALLOWED = {
 # Deep-learning backends: the NumPy core and these modules never import them at module level.
 BACKENDS = ("tensorflow", "keras", "jax", "torch")
 BACKEND_FREE = ("core", "data/sources", "data/pairs", "data/batches",
-                "data/features", "data/labels", "training/config", "training/presets",
+                "data/features", "data/labels", "data/paper_motions", "training/config",
+                "training/presets", "paper/result_cells",
                 "training/run_dir", "training/run_records", "inference/options",
                 "inference/checks", "inference/search", "inference/pipeline", "inference/ecc")
 
@@ -145,7 +146,8 @@ DOCTEST_MODULES = ("stnh_tf.geometry", "stnh_tf.pixels", "stnh_tf.paths", "stnh_
                    "stnh_tf.data.sources",
                    "stnh_tf.training.config", "stnh_tf.training.presets", "stnh_tf.data.labels",
                    "stnh_tf.inference.options", "stnh_tf.inference.checks",
-                   "stnh_tf.inference.search", "stnh_tf.inference.ecc")
+                   "stnh_tf.inference.search", "stnh_tf.inference.ecc",
+                   "stnh_tf.data.paper_motions")
 
 
 @pytest.mark.parametrize("name", DOCTEST_MODULES)

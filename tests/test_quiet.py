@@ -78,16 +78,24 @@ def test_the_binaries_package_sets_the_level_and_honours_the_users_choice():
 
 
 def test_importing_the_package_from_other_code_changes_nothing():
+    """No log level set, and no import hook added but the package's own finder for ``keras``
+    (issue 78: it registers this package's Keras objects once Keras is imported, so that a
+    plain ``keras.models.load_model`` opens its models; tests/test_plain_keras.py), which
+    imports nothing itself."""
+    names = "' '.join(type(f).__module__ + '.' + type(f).__qualname__ for f in sys.meta_path)"
     script = ("import os, sys\nsys.argv[:] = ['pytest']\nimport experiments, data_prep\n"
-              "print(os.environ.get('TF_CPP_MIN_LOG_LEVEL'),\n"
-              "      len(sys.meta_path))")
-    base = subprocess.run([sys.executable, "-c", "import sys; print(None, len(sys.meta_path))"],
+              f"print(os.environ.get('TF_CPP_MIN_LOG_LEVEL'), {names},\n"
+              "      'keras' in sys.modules, 'tensorflow' in sys.modules)")
+    base = subprocess.run([sys.executable, "-c", f"import sys; print(None, {names})"],
                           cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
     out = subprocess.run([sys.executable, "-c", script], cwd=REPO, env=_env(),
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
-    # no level set, no import hook added
-    assert out.stdout.split() == base.stdout.split()
+    words = out.stdout.split()
+    got, loaded = words[:-2], words[-2:]
+    assert loaded == ["False", "False"]  # neither Keras nor TensorFlow imported
+    assert [w for w in got if w != "stnh_tf._AfterKerasImport"] == base.stdout.split()
+    assert got.count("stnh_tf._AfterKerasImport") == 1
 
 
 @pytest.mark.parametrize("argv, expected", [

@@ -14,7 +14,8 @@ paths from the repository root):
   ``experiments.reproduce --budget=cpu`` (Fig. 4, Table 1, Table 2);
 - ``docs/camera_pairs/seed0_photographs_nocoarse.json`` and ``wide_seed0_nocoarse.json``:
   ``experiments.benchmark_camera_pairs`` (``estimate_images``' default beside SIFT, ORB and the
-  identity on every group of the camera-pair benchmark, :data:`CAMERA_SETS`).
+  identity on every group of the camera-pair benchmark,
+  :data:`stnh_tf.paper.result_cells.CAMERA_SETS`).
 
 The commands are those BENCHMARKS.md records for each measurement; a commit or machine is shown
 where the JSON records one, "not recorded" where it does not. Numbers typed in prose elsewhere
@@ -31,138 +32,22 @@ import difflib
 import json
 import math
 import os
-import re
 import sys
 
 from stnh_tf.paths import atomic_write_text
+from stnh_tf.paper.result_cells import (TABLE1_ROWS, camera_rows, commit_in, joined,
+                                        latency_machine, recorded, stage_paths,
+                                        table1_cells)
 from stnh_tf.paper.results_json import (NOT_RECORDED, PAPER_STEPS, SOURCES,  # noqa: F401
                                         card_steps, default_root, fixed, load_sources, percent,
                                         value)
 
 START = "<!-- current-results:start -->"
 END = "<!-- current-results:end -->"
-# Table 1's rows in the paper's order, as (results.json key, label).
-TABLE1_ROWS = (("1,1", "1:1"), ("1,10", "1:10"), ("1,0.1", "1:0.1"), ("10,1", "10:1"),
-               ("0.1,1", "0.1:1"))
 # The identity's expected MACE under the paper's protocol (docs/conventions.md): the mean length
 # of a uniform offset in [-32, 32]^2.
 IDENTITY_EXPECTED = 32 * (math.sqrt(2) + math.asinh(1)) / 3
 _DEFAULT_EVAL = "evaluation/plain_coco_mini_test/model"
-
-
-def _joined(sources, name, paths, digits=2, bold=None):
-    """``a / b / c`` of the values at ``paths``; the one at index ``bold`` in bold."""
-    parts = [fixed(value(sources, name, p), digits) for p in paths]
-    if bold is not None:
-        parts[bold] = f"**{parts[bold]}**"
-    return " / ".join(parts)
-
-
-def _stages(prefix, field="mace"):
-    return [f"{prefix}/stages/after_{k}_stages/{field}" for k in (1, 2, 3)]
-
-
-def _commit_in(text: str) -> str:
-    """The commit a free-text field names as ``code <hash>``, else ``NOT_RECORDED``."""
-    found = re.search(r"\bcode ([0-9a-f]{7,40})\b", text)
-    return found.group(1) if found else NOT_RECORDED
-
-
-def _recorded(sources, name, path="machine") -> tuple[str, str]:
-    """The (commit, machine) cells of what source ``name`` records at ``path``: the object of
-    :func:`stnh_tf.provenance.machine_info` (the CPU, its cores, any accelerator and the Keras
-    backend), each ``NOT_RECORDED`` where the JSON has none."""
-    try:
-        info = value(sources, name, path)
-    except KeyError:
-        return NOT_RECORDED, NOT_RECORDED
-    accelerators = sorted({*info.get("gpus", []),
-                           *(d for d in info.get("jax_devices", []) if d.lower() != "cpu")})
-    machine = "; ".join([f"{info.get('cpu') or 'CPU'}, {info.get('cpu_count')} cores",
-                         *accelerators])
-    if info.get("keras_backend"):
-        machine += f" ({info['keras_backend']})"
-    return info.get("git_commit") or NOT_RECORDED, machine
-
-
-# Where the committed CPU-budget reproduction ran: results.json, written before machine blocks,
-# records none; BENCHMARKS.md ("experiments.reproduce --budget=cpu") names the machine.
-REPRODUCE_MACHINE = "the CPU machine of BENCHMARKS.md (2 cores, x86_64 with AVX-512/AMX)"
-
-
-def _latency_machine(sources) -> str:
-    """Where Table 2's latencies were measured and under what load: results.json's ``machine``
-    block (:func:`_recorded`, its ``loadavg_at_start``) where it has one, else
-    :data:`REPRODUCE_MACHINE`, the load "not recorded"."""
-    commit, machine = _recorded(sources, "results")
-    if machine == NOT_RECORDED:
-        return f"{REPRODUCE_MACHINE}, its load not recorded"
-    load = value(sources, "results", "machine").get("loadavg_at_start")
-    return (f"{machine}, code {commit}, "
-            + (f"load {load[0]:.2f} at start" if load else "its load not recorded"))
-
-
-def _table1_cells(sources):
-    """Table 1 as cells (ours, note, paper): our means (best in bold), the ranges of the rows
-    trained with several seeds, the paper's values (best in bold)."""
-    ours = {key: value(sources, "table1", f"{key}/mace") for key, _ in TABLE1_ROWS}
-    paper = {key: value(sources, "table1", f"{key}/paper") for key, _ in TABLE1_ROWS}
-    best, paper_best = min(ours, key=ours.get), min(paper, key=paper.get)
-    cells = [f"**{fixed(ours[k])}**" if k == best else fixed(ours[k]) for k, _ in TABLE1_ROWS]
-    paper_cells = [f"**{paper[k]:g}**" if k == paper_best else f"{paper[k]:g}"
-                   for k, _ in TABLE1_ROWS]
-    ranges = []
-    for key, label in TABLE1_ROWS:
-        seeds = value(sources, "table1", f"{key}/mace_per_seed")
-        if len(seeds) > 1:
-            ranges.append((label, len(seeds), f"{fixed(min(seeds))}-{fixed(max(seeds))}"))
-    note = ""
-    if ranges:
-        counts = {n for _, n, _ in ranges}
-        seeds = f"{counts.pop()} seeds" if len(counts) == 1 else "several seeds"
-        note = (f" ({' and '.join(label for label, _, _ in ranges)}: mean of {seeds}, ranges "
-                f"{' and '.join(r for _, _, r in ranges)})")
-    return " / ".join(cells), note, " / ".join(paper_cells)
-
-
-# estimate_images' default on the camera-pair benchmark (issue 64): (source, groups, the set's
-# make_camera_pairs flags), seed 0 (the development seed)
-CAMERA_SETS = (("camera0_late", ("within", "1-2x", "2-4x"), "--seed=0"),
-               ("camera0_wide_late", ("wide", "wide_low_light"),
-                "--motion_set=wide --seed=0 --pairs_per_image=2"))
-CAMERA_METHODS = (("estimator", "estimator"), ("sift_ransac", "SIFT + RANSAC"),
-                  ("sift_wide", "SIFT, wide settings"), ("orb_ransac", "ORB + RANSAC"))
-
-
-def _camera_rows(sources) -> list[tuple[str, str, str, str, str, str]]:
-    """One row of the "Current results" table per group of :data:`CAMERA_SETS`: each method's
-    successes (under 3 px), mean MACE and ms per pair, the identity's MACE, the estimator's flag
-    (estimates more than 5 px off flagged, good ones flagged)."""
-    rows = []
-    for name, groups, flags in CAMERA_SETS:
-        command = (f"`python -m experiments.make_camera_pairs --output_dir=D {flags}`, then "
-                   "`python -m experiments.benchmark_camera_pairs --pairs_dir=D "
-                   "--methods=estimator,sift_ransac,sift_wide,orb_ransac,identity`")
-        for group in groups:
-            result = value(sources, name, f"groups/{group}")
-            cells = []
-            for key, label in CAMERA_METHODS:
-                r = result[key]
-                ok = f"{round(r['success_rate'] * r['count'])} of {r['count']}"
-                cells.append(f"{label} {f'**{ok}**' if key == 'estimator' else ok}, "
-                             f"{fixed(r['mace'])} px, {r['ms_per_pair']:.0f} ms")
-            flag = result["estimator"]["flag"]
-            good = result["estimator"]["count"] - flag["bad"]
-            rows.append((
-                f"[`estimate_images`' default](docs/estimate.md#real-photographs-estimateoptionsph"
-                f"otographs-default-of-estimate_images) (`photographs()`), camera pairs, group "
-                f"`{group}` (seed 0, the development seed; [held-out seeds](#wide-baselines-issue-"
-                f"64-the-coarse-pass-out-of-the-default))",
-                "success, mean MACE at the image corners, time per pair: " + "; ".join(cells)
-                + f"; identity {fixed(result['identity']['mace'])} px; flag: {flag['flagged_bad']}"
-                f" of {flag['bad']} estimates more than 5 px off, {flag['flagged_good']} of {good}"
-                " good ones", command, f"`{SOURCES[name]}`", *_recorded(sources, name)))
-    return rows
 
 
 def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, str, str]]:
@@ -197,7 +82,7 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
     machines = sorted({training[f"stage{k}"]["machine"] for k in (1, 2, 3)})
     fig4 = {label: fixed(value(sources, "results", f"fig4_mace/{label}"))
             for label in value(sources, "results", "fig4_mace")}
-    table1, table1_note, _ = _table1_cells(sources)
+    table1, table1_note, _ = table1_cells(sources)
     evaluate = ("`python -m experiments.evaluate --model_dir=M1,M2,M3 --data_dir=D --split=test "
                 "--compute_dtype=float32 [--no_clip]`")
     reproduce = "`python -m experiments.reproduce --budget=cpu ...` ([how](docs/reproduce.md))"
@@ -205,24 +90,24 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
     return [
         ("[Shipped default](#shipped-weights-the-default) (fast recipe, 3-stage hierarchy): "
          "300 coco_mini test pairs, image context between stages",
-         f"MACE after 1 / 2 / 3 stages {_joined(sources, 'card', _stages(plain), bold=2)} px "
+         f"MACE after 1 / 2 / 3 stages {joined(sources, 'card', stage_paths(plain), bold=2)} px "
          f"({card_num('evaluation/plain_coco_mini_test_no_clip/model/mace', 3)} without the "
          "clipping rule)", evaluate, card,
-         *_recorded(sources, "card", os.path.dirname(plain) + "/machine")),
+         *recorded(sources, "card", os.path.dirname(plain) + "/machine")),
         ("Shipped default, the same pairs with a photometric change of patch_b",
-         f"{_joined(sources, 'card', _stages(photo), bold=2)} px "
+         f"{joined(sources, 'card', stage_paths(photo), bold=2)} px "
          f"({value(sources, 'card', photo + '/worse_than_identity')} of 300 worse than the "
          "identity)", evaluate, card,
-         *_recorded(sources, "card", os.path.dirname(photo) + "/machine")),
+         *recorded(sources, "card", os.path.dirname(photo) + "/machine")),
         ("Shipped default, `estimate` on bare 128x128 patches (default search), the card's 60 "
          "bundled pairs",
-         f"{_joined(sources, 'card', check('', '123'))} px after 1 / 2 / 3 stages, "
-         f"photometric {_joined(sources, 'card', check('photometric_', '123'))}; after 3 stages "
+         f"{joined(sources, 'card', check('', '123'))} px after 1 / 2 / 3 stages, "
+         f"photometric {joined(sources, 'card', check('photometric_', '123'))}; after 3 stages "
          "the network alone (`search=\"none\"`) "
          f"{card_num('bundled_check/unsearched_estimate_mace_3_stages')} (photometric "
          f"{card_num('bundled_check/photometric_unsearched_estimate_mace_3_stages')}); "
          f"with `tta=\"dihedral\"` {card_num('bundled_check/tta_estimate_mace_3_stages')}",
-         "`python -m experiments.ship_weights --refresh_check`", card, *_recorded(sources, "card")),
+         "`python -m experiments.ship_weights --refresh_check`", card, *recorded(sources, "card")),
         ("Shipped default, `estimate` on bare patches without the search, 300 coco_mini test "
          "pairs; the implausibility flag",
          f"MACE {card_num(flag + '/ordinary/mace')} (photometric "
@@ -232,7 +117,7 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
          f"{card_num(flag + '/ordinary/mace_kept')}), "
          f"{percent(min(beyond))[:-1]}-{percent(max(beyond))} of pairs beyond the trained range",
          "`python -m experiments.check_implausible --data_dir=D [--photometric]`", card,
-         _commit_in(value(sources, "card", flag + "/model")), nr),
+         commit_in(value(sources, "card", flag + "/model")), nr),
         ("Shipped default, training (the last run of each stage; flags in the card)",
          f"{' / '.join(f'{s:,}' for s in steps)} steps for stages 1 / 2 / 3, {sum(steps):,} in "
          f"all ({sum(steps) / PAPER_STEPS:.0%} of the paper's 3 x 90,000)",
@@ -243,35 +128,35 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
         ("Paper recipe's CPU-budget hierarchy (`stnh_tf/weights/paper_recipe/`): 300 coco_mini "
          "test pairs, image context",
          "MACE after 1 / 2 / 3 stages "
-         f"{_joined(sources, 'paper_card', _stages('evaluation/model'), bold=2)} px",
+         f"{joined(sources, 'paper_card', stage_paths('evaluation/model'), bold=2)} px",
          "`python -m experiments.evaluate --model_dir=runs/cpu/stage1,runs/cpu/stage2,"
          "runs/cpu/stage3 --data_dir=data/cpu --split=test`", paper_card,
-         *_recorded(sources, "paper_card", "evaluation/machine")),
+         *recorded(sources, "paper_card", "evaluation/machine")),
         ("[Paper's schedule](docs/gpu.md#the-papers-schedule-in-chunks), stages 1-2 "
          "(`stnh_tf/weights/paper_schedule/`): the paper's recipe, 91,000 steps a stage, 184,800 "
          "pairs from 1,848 photographs; 300 coco_mini test pairs, image context, the networks "
          "alone (no clipping rule)",
          "MACE after 1 / 2 stages "
-         f"{_joined(sources, 'schedule_card', _stages('evaluation/model')[:2], bold=1)} px "
+         f"{joined(sources, 'schedule_card', stage_paths('evaluation/model')[:2], bold=1)} px "
          "(paper 5.83 / 2.6; identity "
          f"{fixed(value(sources, 'schedule_card', 'evaluation/identity/mace'))})",
          "`python -m experiments.paper_schedule --stage=K` (chunks, K = 1, 2), then `python -m "
          "experiments.evaluate --model_dir=paper_schedule/stage1.keras,paper_schedule/stage2.keras"
          " --data_dir=D --split=test --no_clip`", schedule_card,
-         _recorded(sources, "schedule_card", "evaluation/machine")[0],
+         recorded(sources, "schedule_card", "evaluation/machine")[0],
          "; ".join(dict.fromkeys(m for stage in value(sources, "schedule_card", "stages")
                                  for m in stage["machines"]))),
         ("Paper recipe's hierarchy, `estimate` on bare patches (default search), 60 bundled pairs",
-         f"{_joined(sources, 'paper_card', check('', '123'))} px after 1 / 2 / 3 "
+         f"{joined(sources, 'paper_card', check('', '123'))} px after 1 / 2 / 3 "
          "stages; after 3 stages the network alone "
-         f"{_joined(sources, 'paper_card', check('unsearched_'))}, photometric "
-         f"{_joined(sources, 'paper_card', check('photometric_'))} (network alone "
-         f"{_joined(sources, 'paper_card', check('photometric_unsearched_'))}; "
+         f"{joined(sources, 'paper_card', check('unsearched_'))}, photometric "
+         f"{joined(sources, 'paper_card', check('photometric_'))} (network alone "
+         f"{joined(sources, 'paper_card', check('photometric_unsearched_'))}; "
          f"{value(sources, 'paper_card', 'bundled_check/photometric_worse_than_identity_3_stages')}"
          " of 60 worse than the identity with the search)",
          "`python -m experiments.ship_weights --refresh_check "
          "--weights_dir=stnh_tf/weights/paper_recipe`", paper_card,
-         *_recorded(sources, "paper_card")),
+         *recorded(sources, "paper_card")),
         ("Reproduction at the CPU budget, Fig. 4: 300 coco_mini test pairs, every network "
          "trained 4,000 steps",
          f"identity {fig4['Identity']}, HomographyNet {fig4['HomographyNet']} "
@@ -279,19 +164,19 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
          f"stages {fig4['STN-Homography 1 stage']} / {fig4['STN-Homography 2 stages']} / "
          f"{fig4['STN-Homography 3 stages']}, sequence (2 stages) {fig4['Sequence 2 stages']}, "
          f"ORB + RANSAC {fig4['ORB + RANSAC']}, SIFT + RANSAC {fig4['SIFT + RANSAC']} px",
-         reproduce, results, *_recorded(sources, "results")),
+         reproduce, results, *recorded(sources, "results")),
         ("Reproduction, Table 1: loss weights L2:L1 = "
          + " / ".join(label for _, label in TABLE1_ROWS), f"{table1} px{table1_note}", reproduce,
-         table1_json, *_recorded(sources, "table1")),
+         table1_json, *recorded(sources, "table1")),
         ("Reproduction, Table 2: batch-1 latency of 1 / 2 / 3 stages, mixed bfloat16",
-         f"hierarchy {_joined(sources, 'results', [f'table2_latency_ms/{k}' for k in (1, 2, 3)])}"
+         f"hierarchy {joined(sources, 'results', [f'table2_latency_ms/{k}' for k in (1, 2, 3)])}"
          f" ms, sequence model "
-         f"{_joined(sources, 'results', [f'sequence_latency_ms/{k}' for k in (1, 2, 3)])} ms, "
-         f"on {_latency_machine(sources)} "
+         f"{joined(sources, 'results', [f'sequence_latency_ms/{k}' for k in (1, 2, 3)])} ms, "
+         f"on {latency_machine(sources)} "
          "([Table 2](#the-papers-table-2-hierarchy-latency-batch-1): not below the paper's GPU on "
          "other 2-core CPUs)",
-         reproduce, results, *_recorded(sources, "results")),
-        *_camera_rows(sources),
+         reproduce, results, *recorded(sources, "results")),
+        *camera_rows(sources),
     ]
 
 
@@ -323,7 +208,7 @@ def readme_block(sources: dict[str, dict]) -> str:
     def theirs(key):
         return f"{value(sources, 'results', f'{paper}/{key}'):g}"
 
-    table1, table1_note, paper_table1 = _table1_cells(sources)
+    table1, table1_note, paper_table1 = table1_cells(sources)
     stn = ["STN-Homography 1 stage", "STN-Homography 2 stages", "STN-Homography 3 stages"]
     steps = sum(card_steps(sources))
     next_ = "not yet"  # trained next, in the order of issue 60 (docs/gpu.md)
@@ -348,13 +233,13 @@ def readme_block(sources: dict[str, dict]) -> str:
         ("Table 1, loss weights L2:L1 = " + " / ".join(label for _, label in TABLE1_ROWS),
          table1 + table1_note, f"{schedule[1]} / - / - / {next_} / -", paper_table1),
         ("Table 2, batch-1 latency of 1 / 2 / 3 stages in ms (ours: mixed bfloat16 on "
-         f"{_latency_machine(sources)}; the paper: its GPU)",
-         _joined(sources, "results", [f"table2_latency_ms/{k}" for k in (1, 2, 3)]), "-",
+         f"{latency_machine(sources)}; the paper: its GPU)",
+         joined(sources, "results", [f"table2_latency_ms/{k}" for k in (1, 2, 3)]), "-",
          " / ".join(f"{value(sources, 'results', f'paper/table2_gpu_ms/{k}'):g}"
                     for k in (1, 2, 3))),
         (f"**shipped default** (not the CPU budget: the fast recipe, a deviation, {steps:,} "
          f"steps in all, {steps / PAPER_STEPS:.0%} of the paper's), after 1 / 2 / 3 stages",
-         _joined(sources, "card", _stages(_DEFAULT_EVAL), bold=2), "-",
+         joined(sources, "card", stage_paths(_DEFAULT_EVAL), bold=2), "-",
          " / ".join(theirs(key) for key in stn)),
         ("shipped default, 3 stages, photometric change of patch_b",
          fixed(value(sources, "card", "evaluation/photometric_coco_mini_test/model/mace")), "-",

@@ -1,0 +1,129 @@
+"""The cells of the "current results" tables (:mod:`stnh_tf.paper.current_results`) that take
+more than one value to write: Table 1's row, the camera-pair rows, a JSON's commit and machine,
+where Table 2 was measured. The standard library only.
+"""
+
+from __future__ import annotations
+
+import re
+
+from stnh_tf.paper.results_json import NOT_RECORDED, SOURCES, fixed, value
+
+# Table 1's rows in the paper's order, as (results.json key, label).
+TABLE1_ROWS = (("1,1", "1:1"), ("1,10", "1:10"), ("1,0.1", "1:0.1"), ("10,1", "10:1"),
+               ("0.1,1", "0.1:1"))
+
+
+def joined(sources, name, paths, digits=2, bold=None):
+    """``a / b / c`` of the values at ``paths``; the one at index ``bold`` in bold."""
+    parts = [fixed(value(sources, name, p), digits) for p in paths]
+    if bold is not None:
+        parts[bold] = f"**{parts[bold]}**"
+    return " / ".join(parts)
+
+
+def stage_paths(prefix, field="mace"):
+    return [f"{prefix}/stages/after_{k}_stages/{field}" for k in (1, 2, 3)]
+
+
+def commit_in(text: str) -> str:
+    """The commit a free-text field names as ``code <hash>``, else ``NOT_RECORDED``."""
+    found = re.search(r"\bcode ([0-9a-f]{7,40})\b", text)
+    return found.group(1) if found else NOT_RECORDED
+
+
+def recorded(sources, name, path="machine") -> tuple[str, str]:
+    """The (commit, machine) cells of what source ``name`` records at ``path``: the object of
+    :func:`stnh_tf.provenance.machine_info` (the CPU, its cores, any accelerator and the Keras
+    backend), each ``NOT_RECORDED`` where the JSON has none."""
+    try:
+        info = value(sources, name, path)
+    except KeyError:
+        return NOT_RECORDED, NOT_RECORDED
+    accelerators = sorted({*info.get("gpus", []),
+                           *(d for d in info.get("jax_devices", []) if d.lower() != "cpu")})
+    machine = "; ".join([f"{info.get('cpu') or 'CPU'}, {info.get('cpu_count')} cores",
+                         *accelerators])
+    if info.get("keras_backend"):
+        machine += f" ({info['keras_backend']})"
+    return info.get("git_commit") or NOT_RECORDED, machine
+
+
+# Where the committed CPU-budget reproduction ran: results.json, written before machine blocks,
+# records none; BENCHMARKS.md ("experiments.reproduce --budget=cpu") names the machine.
+REPRODUCE_MACHINE = "the CPU machine of BENCHMARKS.md (2 cores, x86_64 with AVX-512/AMX)"
+
+
+def latency_machine(sources) -> str:
+    """Where Table 2's latencies were measured and under what load: results.json's ``machine``
+    block (:func:`recorded`, its ``loadavg_at_start``) where it has one, else
+    :data:`REPRODUCE_MACHINE`, the load "not recorded"."""
+    commit, machine = recorded(sources, "results")
+    if machine == NOT_RECORDED:
+        return f"{REPRODUCE_MACHINE}, its load not recorded"
+    load = value(sources, "results", "machine").get("loadavg_at_start")
+    return (f"{machine}, code {commit}, "
+            + (f"load {load[0]:.2f} at start" if load else "its load not recorded"))
+
+
+def table1_cells(sources):
+    """Table 1 as cells (ours, note, paper): our means (best in bold), the ranges of the rows
+    trained with several seeds, the paper's values (best in bold)."""
+    ours = {key: value(sources, "table1", f"{key}/mace") for key, _ in TABLE1_ROWS}
+    paper = {key: value(sources, "table1", f"{key}/paper") for key, _ in TABLE1_ROWS}
+    best, paper_best = min(ours, key=ours.get), min(paper, key=paper.get)
+    cells = [f"**{fixed(ours[k])}**" if k == best else fixed(ours[k]) for k, _ in TABLE1_ROWS]
+    paper_cells = [f"**{paper[k]:g}**" if k == paper_best else f"{paper[k]:g}"
+                   for k, _ in TABLE1_ROWS]
+    ranges = []
+    for key, label in TABLE1_ROWS:
+        seeds = value(sources, "table1", f"{key}/mace_per_seed")
+        if len(seeds) > 1:
+            ranges.append((label, len(seeds), f"{fixed(min(seeds))}-{fixed(max(seeds))}"))
+    note = ""
+    if ranges:
+        counts = {n for _, n, _ in ranges}
+        seeds = f"{counts.pop()} seeds" if len(counts) == 1 else "several seeds"
+        note = (f" ({' and '.join(label for label, _, _ in ranges)}: mean of {seeds}, ranges "
+                f"{' and '.join(r for _, _, r in ranges)})")
+    return " / ".join(cells), note, " / ".join(paper_cells)
+
+
+# estimate_images' default on the camera-pair benchmark (issue 64): (source, groups, the set's
+# make_camera_pairs flags), seed 0 (the development seed)
+CAMERA_SETS = (("camera0_late", ("within", "1-2x", "2-4x"), "--seed=0"),
+               ("camera0_wide_late", ("wide", "wide_low_light"),
+                "--motion_set=wide --seed=0 --pairs_per_image=2"))
+CAMERA_METHODS = (("estimator", "estimator"), ("sift_ransac", "SIFT + RANSAC"),
+                  ("sift_wide", "SIFT, wide settings"), ("orb_ransac", "ORB + RANSAC"))
+
+
+def camera_rows(sources) -> list[tuple[str, str, str, str, str, str]]:
+    """One row of the "Current results" table per group of :data:`CAMERA_SETS`: each method's
+    successes (under 3 px), mean MACE and ms per pair, the identity's MACE, the estimator's flag
+    (estimates more than 5 px off flagged, good ones flagged)."""
+    rows = []
+    for name, groups, flags in CAMERA_SETS:
+        command = (f"`python -m experiments.make_camera_pairs --output_dir=D {flags}`, then "
+                   "`python -m experiments.benchmark_camera_pairs --pairs_dir=D "
+                   "--methods=estimator,sift_ransac,sift_wide,orb_ransac,identity`")
+        for group in groups:
+            result = value(sources, name, f"groups/{group}")
+            cells = []
+            for key, label in CAMERA_METHODS:
+                r = result[key]
+                ok = f"{round(r['success_rate'] * r['count'])} of {r['count']}"
+                cells.append(f"{label} {f'**{ok}**' if key == 'estimator' else ok}, "
+                             f"{fixed(r['mace'])} px, {r['ms_per_pair']:.0f} ms")
+            flag = result["estimator"]["flag"]
+            good = result["estimator"]["count"] - flag["bad"]
+            rows.append((
+                f"[`estimate_images`' default](docs/estimate.md#real-photographs-estimateoptionsph"
+                f"otographs-default-of-estimate_images) (`photographs()`), camera pairs, group "
+                f"`{group}` (seed 0, the development seed; [held-out seeds](#wide-baselines-issue-"
+                f"64-the-coarse-pass-out-of-the-default))",
+                "success, mean MACE at the image corners, time per pair: " + "; ".join(cells)
+                + f"; identity {fixed(result['identity']['mace'])} px; flag: {flag['flagged_bad']}"
+                f" of {flag['bad']} estimates more than 5 px off, {flag['flagged_good']} of {good}"
+                " good ones", command, f"`{SOURCES[name]}`", *recorded(sources, name)))
+    return rows
