@@ -84,7 +84,14 @@ class _ThenRegister:
     def exec_module(self, module):
         module.__loader__ = module.__spec__.loader = self.loader
         self.loader.exec_module(module)
-        _register_keras_objects(module)
+        try:
+            _register_keras_objects(module)
+        except Exception as e:  # Keras itself must import whatever happens to this package
+            import warnings
+
+            warnings.warn(f"stnh_tf could not register its Keras objects ({type(e).__name__}: "
+                          f"{e}); keras.models.load_model will not open its models.",
+                          RuntimeWarning, stacklevel=2)
 
 
 # Not wrapt's post-import hook: importing wrapt imports asyncio, ssl, email... (113 modules,

@@ -8,6 +8,7 @@ Standard library only (data-generation workers and the TF-free pipelines import 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 
@@ -148,6 +149,17 @@ def _named_paths(named: dict):
         for path in values:
             if path and os.fspath(path) != "-":
                 yield name, os.fspath(path), os.path.realpath(path)
+
+
+def file_sha256(path: str) -> str:
+    """The sha256 (hex) of the bytes of the file ``path``, read in blocks of 1 MiB (``OSError``
+    where it cannot be read). ``hashlib.file_digest`` does the same from Python 3.11 on; this
+    project supports 3.10."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def check_apart(outputs: dict, inputs: dict) -> None:

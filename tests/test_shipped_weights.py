@@ -253,7 +253,7 @@ def test_a_strongly_projective_pair_of_the_papers_protocol_keeps_its_estimate(
     """estimate_images finds the pair's homography (measured: under 0.05 px at the square's
     corners on both OpenCV paths; 0.5 px asserted, against the 24-32 px of the identity), and
     does not call it undetermined: its precision is measured where image_b maps in front of
-    image_a (checks.mapped_corners)."""
+    image_a (checks.precision_corners)."""
     import cv2
 
     from stnh_tf.data import sources

@@ -5,8 +5,10 @@ the photograph's context around it instead of the paper's crops. Pairs are made 
 :func:`stnh_tf.data.camera_pair_files.make_image_pairs` with ``motion_set="paper"``; frames and
 rendering as :mod:`stnh_tf.data.camera_motions`'. Their errors are measured at the patch's
 corners, the paper's MACE (:data:`PATCH_FRAME_GROUPS`): a strongly projective draw can put
-image_b's own corners beyond image_a's horizon, where no estimate has a finite error. NumPy/OpenCV
-only.
+image_b's own corners beyond image_a's horizon, where no estimate has a finite error. There,
+image_b's pixels beyond the horizon hold what ``cv2.warpPerspective`` samples behind the camera
+(the mirrored source at the point the homography gives): they are part of the pair as every
+method sees it, not masked. NumPy/OpenCV only.
 """
 
 from __future__ import annotations

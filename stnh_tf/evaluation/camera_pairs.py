@@ -17,9 +17,9 @@ Errors (px), all in the 320 x 240 frame the pairs are made in (it is each image'
 image); ``patch_error`` the same over the corners of the central 128 x 128 patch in the patch
 frame (the training's MACE). In the paper's-protocol groups
 (:data:`stnh_tf.data.paper_motions.PATCH_FRAME_GROUPS`) ``error`` is ``patch_error``, the paper's
-MACE: their image corners can lie beyond the horizon. Success: ``error < success_px``. The flag's recall is the share of
-estimates with ``error > flag_error_px`` that are flagged implausible; its false-alarm rate the
-share of the others that are flagged (``flag_patch_frame``: the same with ``patch_error``).
+MACE: their image corners can lie beyond the horizon. Success: ``error < success_px``. The
+flag's recall is the share of estimates with ``error > flag_error_px`` that are flagged
+implausible; its false-alarm rate the share of the others that are flagged (``flag_patch_frame``: the same with ``patch_error``).
 Times are wall-clock seconds per call (``time.perf_counter``), the estimator's after one untimed
 warm-up call.
 """

@@ -219,9 +219,8 @@ def saved_model_digest(path) -> str:
         files = [top] if os.path.isfile(top) else sorted(
             os.path.join(folder, f) for folder, _, names in os.walk(top) for f in names)
         for file in files:
-            with open(file, "rb") as f:
-                digest.update(os.path.relpath(file, path).encode() + b"\0"
-                              + hashlib.file_digest(f, "sha256").digest())
+            digest.update(os.path.relpath(file, path).encode() + b"\0"
+                          + bytes.fromhex(paths.file_sha256(file)))
     return digest.hexdigest()
 
 
@@ -232,7 +231,8 @@ def verified_problem(path) -> str | None:
     marker = os.path.join(os.fspath(path), VERIFIED_FILE)
     if not os.path.isfile(marker):
         return (f"{os.fspath(path)} was never verified (no {VERIFIED_FILE}: its export or its "
-                "check was cut short, or the check failed)")
+                "check was cut short, the check failed, or it was exported before stnh_tf "
+                "wrote the marker)")
     try:
         doc = paths.read_json(marker)
     except (OSError, ValueError) as e:

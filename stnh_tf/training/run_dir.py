@@ -13,7 +13,6 @@ trains, its lock (:class:`RunLock`, ``.stnh_tf_run.lock``).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import numbers
 import os
@@ -22,7 +21,7 @@ import zipfile
 
 import numpy as np
 
-from stnh_tf.paths import atomic_write_json, fsync_replace, read_json
+from stnh_tf.paths import atomic_write_json, file_sha256, fsync_replace, read_json
 from stnh_tf.training.config import MODEL_FILE_FIELDS, RESUME_FREE_FIELDS, TrainConfig
 from stnh_tf.training.presets import MODEL_KINDS
 from stnh_tf.training.run_lock import LOCK_FILE, RunLock  # noqa: F401 (the run's lock)
@@ -138,20 +137,10 @@ def model_file(path: str) -> str:
     return os.path.join(path, FINAL_MODEL) if os.path.isdir(path) else path
 
 
-def file_sha256(path: str) -> str:
-    """The sha256 (hex) of the bytes of the file ``path`` (``OSError`` where it cannot be
-    read)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def model_digests(fields: dict) -> dict:
     """``{field: [sha256 or None, ...]}``: for each field of :data:`MODEL_FILE_FIELDS` in
     ``fields`` (a configuration's, as :meth:`TrainConfig.to_json`), the digest of each model
-    file it names (:func:`model_file`, :func:`file_sha256`), None where there is no such file
+    file it names (:func:`model_file`, :func:`stnh_tf.paths.file_sha256`), None where there is no such file
     here."""
     return {name: [file_sha256(model_file(p))
                    if isinstance(p, str) and os.path.isfile(model_file(p)) else None
@@ -276,8 +265,12 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
     if not os.access(cfg.model_dir, os.W_OK):
         raise PermissionError(f"model_dir {cfg.model_dir} is not writable.")
     if diff:
+        # val_split's default changed (issue 78): the old value resumes, --overwrite would not
+        hint = (f" (--val_split={diff['val_split'][0]} resumes it: the default was "
+                f"{diff['val_split'][0]!r} when it was saved)" if "val_split" in diff else "")
         raise ValueError(f"{cfg.model_dir} holds an unfinished run with a different configuration "
-                         f"{diff} (old, new); use the same flags to resume, or --overwrite.")
+                         f"{diff} (old, new); use the same flags to resume{hint}, or --overwrite "
+                         "(which deletes its checkpoints).")
     new_run = not os.path.exists(config_path)
     atomic_write_json(config_path, config_document(cfg))
     return new_run

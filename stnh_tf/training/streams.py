@@ -209,6 +209,7 @@ def estimates_key(arrays: dict, prev_stages) -> str:
     """What a stage-k run's saved estimates are of (sha256, hex): the stage-1 pairs (their count,
     their ``h_ba`` rounded to 1e-6, the context of 64 of them spread over the set) and the
     finished stages (their model files' bytes)."""
+    from stnh_tf import paths
     from stnh_tf.training import run_dir
 
     n = len(arrays["patch_b"])
@@ -220,7 +221,7 @@ def estimates_key(arrays: dict, prev_stages) -> str:
         if not os.path.isfile(path):
             raise FileNotFoundError(f"stage-k pairs need the finished stage {path!r}: no such "
                                     "file.")
-        digest.update(bytes.fromhex(run_dir.file_sha256(path)))
+        digest.update(bytes.fromhex(paths.file_sha256(path)))
     return digest.hexdigest()
 
 
