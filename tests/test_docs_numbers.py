@@ -584,6 +584,9 @@ PROSE = [
     ("docs/gpu.md", rf"Second chunk, steps 12,022 -> 26,399, on the same machine[^$]*?"
      rf"`paper_schedule/logs/stage3_12022-26399_cpu.log`\): {N} steps/s in the ledger",
      [num("schedule_ledger", "21/steps_per_s")]),
+    ("docs/gpu.md", rf"Third chunk, steps 26,399 -> 37,132, on the same machine[^$]*?"
+     rf"`paper_schedule/logs/stage3_26399-37132_cpu.log`\): {N} steps/s in the ledger",
+     [num("schedule_ledger", "22/steps_per_s")]),
     ("docs/gpu.md", rf"Finished at 91,000 steps over (\d+) chunks and {N} hours of wall time",
      [schedule_chunks(2), schedule_hours(2)]),
     ("docs/gpu.md", rf"50 steps per call, {N} steps/s over", [num("schedule_record",
