@@ -252,6 +252,20 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
     return out if np.isfinite(out) else float("inf")
 
 
+def warped_onto(work_a, a_from_b, origin, shape_b) -> tuple:
+    """``work_a`` warped onto image_b's ``[h, w]`` frame (``shape_b``) by the patch-frame
+    ``a_from_b`` (the patch's top-left corner at ``origin`` in both): ``(warped, covered)``,
+    float32 ``[h, w]`` ``warped(p) = work_a(H p)`` (bilinear, 0 beyond work_a) and the bool mask
+    of the pixels whose source lies inside work_a (``H`` the image-frame estimate,
+    :func:`~stnh_tf.geometry.patch_to_image`)."""
+    h = geometry.patch_to_image(a_from_b, *origin)
+    size = (shape_b[1], shape_b[0])
+    flags = cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR
+    a = np.asarray(work_a, np.float32)
+    warped = cv2.warpPerspective(a, h, size, flags=flags)
+    return warped, cv2.warpPerspective(np.ones_like(a), h, size, flags=flags) > 0.999
+
+
 AMBIGUITY_SHIFT_PX = 40
 """:func:`ambiguity_gap`'s reach: other shifts up to this many px (beyond the trained 32)."""
 AMBIGUITY_MIN_SHIFT_PX = 8
@@ -285,15 +299,11 @@ def ambiguity_gap(work_a, work_b, a_from_b, origin=(0, 0), min_overlap: float = 
     >>> ambiguity_gap(smooth, smooth, np.eye(3), (96, 56)) > 0.5
     True
     """
-    h = geometry.patch_to_image(a_from_b, *origin)
-    if not np.isfinite(h).all():
-        return float("nan")
-    a = np.asarray(work_a, np.float32)
+    with np.errstate(all="ignore"):
+        if not np.isfinite(geometry.patch_to_image(a_from_b, *origin)).all():
+            return float("nan")
     b = np.asarray(work_b, np.float32)
-    size = (b.shape[1], b.shape[0])
-    flags = cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR
-    warped = cv2.warpPerspective(a, h, size, flags=flags)
-    covered = cv2.warpPerspective(np.ones_like(a), h, size, flags=flags) > 0.999
+    warped, covered = warped_onto(work_a, a_from_b, origin, b.shape)
     if covered.mean() < min_overlap:
         return float("nan")
     warped[~covered] = warped[covered].mean()

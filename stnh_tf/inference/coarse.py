@@ -87,12 +87,7 @@ def _one_way_ncc(work_a, work_b, h_patch, origin, min_overlap: float):
     constant there."""
     if not np.isfinite(h_patch).all():
         return None
-    h = geometry.patch_to_image(h_patch, *origin)
-    size = np.shape(work_b)[1], np.shape(work_b)[0]
-    flags = cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR
-    warped = cv2.warpPerspective(np.asarray(work_a, np.float32), h, size, flags=flags)
-    inside = cv2.warpPerspective(np.ones(np.shape(work_a), np.float32), h, size,
-                                 flags=flags) > 0.999
+    warped, inside = checks.warped_onto(work_a, h_patch, origin, np.shape(work_b))
     if inside.mean() < min_overlap:
         return None
     x = warped[inside].astype(np.float64)
