@@ -21,6 +21,13 @@ entry's ``init_from_run``) and re-computes the bundled check.
 
 re-computes only the bundled check of the weights already shipped (after a change to how
 ``HomographyEstimator`` computes, e.g. its default ``compute_dtype``), leaving the rest of the card.
+
+  python -m experiments.ship_weights --refresh_evaluation \
+      --test_image_dir=../shared/data/coco_mini/test [--weights_dir=stnh_tf/weights/paper_recipe]
+
+re-measures every evaluation the card holds on the shipped files, on the test pairs made from
+the photographs (:mod:`stnh_tf.evaluation.card_evaluation`), each with the commit and machine of
+this run; with ``--refresh_check`` both.
 """
 
 from __future__ import annotations
@@ -41,6 +48,10 @@ flags.DEFINE_bool("init_from_previous", False, "With --replace_stage: the run wa
                   "from the stage it replaces; keep that stage's card entry as init_from_run.")
 flags.DEFINE_bool("refresh_check", False, "Only re-compute the bundled check of the shipped "
                   "weights in --weights_dir (no --model_dir).")
+flags.DEFINE_bool("refresh_evaluation", False, "Only re-measure the card's evaluation of the "
+                  "shipped weights in --weights_dir on pairs made from --test_image_dir.")
+flags.DEFINE_string("test_image_dir", None, "--refresh_evaluation: the test photographs the "
+                    "card was measured on (the coco_mini test photographs).")
 FLAGS = flags.FLAGS
 
 
@@ -48,11 +59,23 @@ def main(argv):
     del argv
     with common.user_errors("ship_weights"):
         common.check_flags_apart(("weights_dir",), ("model_dir", "eval_json"))
-    if FLAGS.refresh_check:
-        if FLAGS.model_dir or FLAGS.eval_json:
-            raise app.UsageError("--refresh_check takes neither --model_dir nor --eval_json.")
-        card = shipped_weights.refresh_check(FLAGS.weights_dir)
-        print(json.dumps({"bundled_check": card["bundled_check"]}))
+    if FLAGS.refresh_evaluation != bool(FLAGS.test_image_dir):
+        raise app.UsageError("--refresh_evaluation and --test_image_dir go together.")
+    if FLAGS.refresh_check or FLAGS.refresh_evaluation:
+        if FLAGS.model_dir or FLAGS.eval_json or FLAGS.replace_stage is not None:
+            raise app.UsageError("--refresh_check and --refresh_evaluation take neither "
+                                 "--model_dir, --eval_json nor --replace_stage.")
+        out = {}
+        if FLAGS.refresh_evaluation:
+            from stnh_tf.evaluation import card_evaluation
+
+            with common.user_errors("ship_weights"):
+                card = card_evaluation.refresh_card(FLAGS.weights_dir, FLAGS.test_image_dir)
+            out["evaluation"] = sorted(card["evaluation"])
+        if FLAGS.refresh_check:
+            out["bundled_check"] = shipped_weights.refresh_check(FLAGS.weights_dir)[
+                "bundled_check"]
+        print(json.dumps(out))
         return
     if not FLAGS.model_dir:
         raise app.UsageError("--model_dir is required (or --refresh_check).")

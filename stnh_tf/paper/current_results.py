@@ -35,7 +35,7 @@ import os
 import sys
 
 from stnh_tf.paths import atomic_write_text
-from stnh_tf.paper.result_cells import (TABLE1_ROWS, camera_rows, commit_in, joined,
+from stnh_tf.paper.result_cells import (TABLE1_ROWS, camera_rows, joined,
                                         latency_machine, recorded, stage_paths,
                                         table1_cells)
 from stnh_tf.paper.results_json import (NOT_RECORDED, PAPER_STEPS, SOURCES,  # noqa: F401
@@ -62,7 +62,6 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
     Raises:
         KeyError: a JSON lacks a field the table shows.
     """
-    nr = NOT_RECORDED
     card, paper_card, schedule_card = (f"`{SOURCES[k]}`"
                                        for k in ("card", "paper_card", "schedule_card"))
 
@@ -116,8 +115,8 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
          f"MACE {card_num(flag + '/ordinary/mace_flagged')} against "
          f"{card_num(flag + '/ordinary/mace_kept')}), "
          f"{percent(min(beyond))[:-1]}-{percent(max(beyond))} of pairs beyond the trained range",
-         "`python -m experiments.check_implausible --data_dir=D [--photometric]`", card,
-         commit_in(value(sources, "card", flag + "/model")), nr),
+         "`python -m experiments.check_implausible --data_dir=D --search=none`", card,
+         *recorded(sources, "card", flag + "/machine")),
         ("Shipped default, training (the last run of each stage; flags in the card)",
          f"{' / '.join(f'{s:,}' for s in steps)} steps for stages 1 / 2 / 3, {sum(steps):,} in "
          f"all ({sum(steps) / PAPER_STEPS:.0%} of the paper's 3 x 90,000)",

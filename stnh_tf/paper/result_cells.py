@@ -5,8 +5,6 @@ where Table 2 was measured. The standard library only.
 
 from __future__ import annotations
 
-import re
-
 from stnh_tf.paper.results_json import NOT_RECORDED, SOURCES, fixed, value
 
 # Table 1's rows in the paper's order, as (results.json key, label).
@@ -24,12 +22,6 @@ def joined(sources, name, paths, digits=2, bold=None):
 
 def stage_paths(prefix, field="mace"):
     return [f"{prefix}/stages/after_{k}_stages/{field}" for k in (1, 2, 3)]
-
-
-def commit_in(text: str) -> str:
-    """The commit a free-text field names as ``code <hash>``, else ``NOT_RECORDED``."""
-    found = re.search(r"\bcode ([0-9a-f]{7,40})\b", text)
-    return found.group(1) if found else NOT_RECORDED
 
 
 def recorded(sources, name, path="machine") -> tuple[str, str]:
