@@ -28,7 +28,8 @@ ALLOWED = {
 BACKENDS = ("tensorflow", "keras", "jax", "torch")
 BACKEND_FREE = ("core", "data/sources", "data/pairs", "data/batches",
                 "data/features", "data/labels", "data/paper_motions", "training/config",
-                "training/presets", "paper/result_cells", "evaluation/card_evaluation",
+                "training/presets", "paper/result_cells", "paper/model_provenance",
+                "evaluation/card_evaluation",
                 "training/run_dir", "training/run_records", "inference/options",
                 "inference/checks", "inference/search", "inference/pipeline", "inference/ecc")
 
@@ -147,7 +148,8 @@ DOCTEST_MODULES = ("stnh_tf.geometry", "stnh_tf.pixels", "stnh_tf.paths", "stnh_
                    "stnh_tf.training.config", "stnh_tf.training.presets", "stnh_tf.data.labels",
                    "stnh_tf.inference.options", "stnh_tf.inference.checks",
                    "stnh_tf.inference.search", "stnh_tf.inference.ecc",
-                   "stnh_tf.data.paper_motions", "stnh_tf.evaluation.card_evaluation")
+                   "stnh_tf.data.paper_motions", "stnh_tf.evaluation.card_evaluation",
+                   "stnh_tf.paper.model_provenance")
 
 
 @pytest.mark.parametrize("name", DOCTEST_MODULES)

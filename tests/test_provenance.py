@@ -67,7 +67,8 @@ def test_the_model_card_records_the_run_that_wrote_it(tmp_path, monkeypatch):
 
 def test_current_results_show_the_commit_and_machine_a_json_records():
     """BENCHMARKS' "Current results" shows the commit and machine of each JSON that records
-    machine_info, "not recorded" in the rows whose JSON does not."""
+    machine_info, "not recorded" in the rows whose JSON does not; the reproduction's rows, those
+    of its models' model_provenance."""
     import copy
 
     from stnh_tf.paper import current_results as cr
@@ -81,15 +82,26 @@ def test_current_results_show_the_commit_and_machine_a_json_records():
                                      "cpu_count": 16, "gpus": ["/physical_device:GPU:0"],
                                      "keras_backend": "tensorflow"}
     after = cr.benchmarks_rows(sources)
-    changed = {b[2]: (a[4:], b[4:]) for a, b in zip(before, after) if a != b}
-    assert changed == {
-        "`python -m experiments.ship_weights --refresh_check`": (
-            (cr.NOT_RECORDED, cr.NOT_RECORDED), ("abc1234", "Some CPU, 2 cores (jax)")),
-        "`python -m experiments.reproduce --budget=cpu ...` ([how](docs/reproduce.md))": (
-            (cr.NOT_RECORDED, cr.NOT_RECORDED),
-            ("def5678+dirty", "Other CPU, 16 cores; /physical_device:GPU:0 (tensorflow)"))}
-    # (Fig. 4 and Table 2 both read results.json: both rows changed, Table 1's did not)
-    assert sum(a != b for a, b in zip(before, after)) == 3
+    changed = {b[0].split(":")[0]: (a[4:], b[4:]) for a, b in zip(before, after) if a != b}
+    fig4, table2 = "Reproduction at the CPU budget, Fig. 4", "Reproduction, Table 2"
+    assert set(changed) == {"Shipped default, `estimate` on bare 128x128 patches (default search), "
+                            "the card's 60 bundled pairs", fig4, table2}  # (Table 2: its text)
+    assert changed["Shipped default, `estimate` on bare 128x128 patches (default search), the "
+                   "card's 60 bundled pairs"][1] == ("abc1234", "Some CPU, 2 cores (jax)")
+    # The reproduction's rows show where its models were trained (model_provenance); a machine
+    # block (a run that evaluated its models itself) adds its commit and machine to Fig. 4's, and
+    # Table 2 keeps its own measurement's (latency_provenance).
+    (commit, machine), (new_commit, new_machine) = changed[fig4]
+    assert commit.startswith("assembled: trained between ") and cr.NOT_RECORDED not in machine
+    assert (new_commit, new_machine) == (f"{commit}; evaluated at def5678+dirty",
+                                         f"{machine}; /physical_device:GPU:0 (tensorflow)")
+    assert changed[table2][0] == changed[table2][1]
+    # A results.json without model_provenance (written before issue 78): its machine block alone.
+    del sources["results"]["model_provenance"]
+    old = {b[0].split(":")[0]: b[4:] for b in cr.benchmarks_rows(sources)}
+    for row in (fig4, table2):
+        assert old[row] == ("def5678+dirty",
+                            "Other CPU, 16 cores; /physical_device:GPU:0 (tensorflow)")
 
 
 def test_the_commit_and_load_are_those_of_the_runs_start(monkeypatch):

@@ -85,6 +85,21 @@ def test_every_table_and_figure_is_written(tiny_run):
             assert f.read(8) == PNG
     # header, rule, the identity and 5 rows
     assert open(os.path.join(out, "table1.md")).read().count("\n| ") == 8
+    # Where each model was trained (issue 78): all here, by this process, none reused.
+    prov = result["model_provenance"]
+    assert set(prov) == {"stage1", "stage2", "stage3", "homographynet", "sequence2",
+                         *(reproduce.ablation_name(*w, seed) for w in reproduce.ABLATION_WEIGHTS
+                           for seed in reproduce.table1_seeds(reproduce.BUDGETS["tiny"], *w)
+                           if (*w, seed) != (1.0, 1.0, 0))}
+    assert result["assembled"] is False and not any(e["reused"] for e in prov.values())
+    for e in prov.values():
+        assert e["steps"] == json.load(open(os.path.join(e["run"], "config.json")))["train_steps"]
+        assert (e["commit"], e["backend"], e["machine"]["cores"]) == (
+            result["machine"]["git_commit"], result["machine"]["keras_backend"], os.cpu_count())
+    table1 = json.load(open(os.path.join(out, "table1.json")))
+    assert table1["assembled"] is False and set(table1["model_provenance"]) == {
+        n for n in prov if n.startswith("ablation_") or n == "stage1"}
+    assert "Every model was trained by this reproduction" in tables
 
 
 @pytest.mark.slow
@@ -398,3 +413,120 @@ def test_one_number_per_model_no_verdict_and_a_small_smoke_run(tiny_run):
     size = sum(os.path.getsize(os.path.join(root, f)) for root, _, files in os.walk(out)
                for f in files)
     assert size < 100e6, size
+
+
+def _run_folder(path, result):
+    os.makedirs(path)
+    if result is not None:
+        with open(os.path.join(path, run_dir.RESULT_FILE), "w") as f:
+            f.write(result if isinstance(result, str) else json.dumps(result))
+    return str(path)
+
+
+def test_model_provenance_reads_each_run_folders_own_record(tmp_path):
+    """results.json's model_provenance: steps, wall time, commit, machine and backend as each run
+    folder's result.json records them; "not recorded" only for what a folder lacks (no
+    result.json, an unreadable one, one written before it held the machine); the run is
+    assembled exactly where a model was reused."""
+    from stnh_tf.paper.model_provenance import assembled_line, provenance_block
+
+    machine = {"git_commit": "abc1234+dirty", "cpu": "Intel(R) Xeon(R) Processor", "cpu_count": 2,
+               "gpus": [], "jax_devices": ["cpu", "NVIDIA H100 80GB HBM3"],
+               "keras_backend": "jax"}
+    runs = {"stage1": _run_folder(tmp_path / "s1", {"final_step": 40, "wall_s_this_run": 12.345,
+                                                    "machine": machine, "history": {}}),
+            "stage2": _run_folder(tmp_path / "s2", {"final_step": 7, "wall_s_this_run": 3.0}),
+            "sequence2": _run_folder(tmp_path / "seq", None),
+            "homographynet": _run_folder(tmp_path / "h", "{not json")}
+    block = provenance_block(runs, reused={"stage2": "elsewhere"})
+    prov = block["model_provenance"]
+    assert prov["stage1"] == {"run": runs["stage1"], "steps": 40, "wall_s": 12.3,
+                              "commit": "abc1234+dirty",
+                              "machine": {"cpu": "Intel(R) Xeon(R) Processor", "cores": 2,
+                                          "accelerators": ["NVIDIA H100 80GB HBM3"]},
+                              "backend": "jax", "reused": False}
+    assert prov["stage2"] == {"run": runs["stage2"], "steps": 7, "wall_s": 3.0,
+                              "commit": "not recorded", "machine": "not recorded",
+                              "backend": "not recorded", "reused": True}
+    for name in ("sequence2", "homographynet"):
+        assert {k: v for k, v in prov[name].items() if k != "run"} == {
+            "steps": "not recorded", "wall_s": "not recorded", "commit": "not recorded",
+            "machine": "not recorded", "backend": "not recorded", "reused": False}
+    assert block["assembled"] is True
+    assert "**Assembled**: 1 of 4 models were trained elsewhere and reused (stage2)" in (
+        assembled_line(block))
+    # Only the folders asked for (Table 1's rows), and a run reusing nothing is not assembled.
+    kept = provenance_block(runs, reused={"stage2"}, only={runs["stage1"]})
+    assert set(kept["model_provenance"]) == {"stage1"} and kept["assembled"] is False
+    assert assembled_line(kept).startswith("Every model was trained by this reproduction")
+
+
+def test_current_results_cells_of_an_assembled_reproduction():
+    """The commit cell spans the models' reconstructed commits by date (not by the order given);
+    the machine cell lists each machine once, accelerators in place of the CPU; Table 2's
+    measurement adds its own span; a JSON without model_provenance keeps recorded()."""
+    from stnh_tf.paper import result_cells
+
+    def entry(after, a_date, rec, r_date, machine, backend):
+        return {"trained_after": {"commit": after, "date": a_date},
+                "recorded_in": {"commit": rec, "date": r_date}, "machine": machine,
+                "backend": backend}
+
+    cpu = {"cpu": "Xeon", "cores": 2, "accelerators": []}
+    gpu = {"cpu": "not recorded", "cores": 16, "accelerators": ["H100"]}
+    prov = {"late": entry("ccc", "2026-11-25T00:00:00Z", "ddd", "2026-11-25T04:00:00Z", cpu,
+                          "tensorflow"),
+            "early": entry("aaa", "2026-11-23T03:00:00Z", "bbb", "2026-11-23T04:00:00Z", gpu,
+                           "jax"),
+            "same": entry("aaa", "2026-11-23T03:00:00Z", "bbb", "2026-11-23T04:00:00Z", cpu,
+                          "tensorflow")}
+    sources = {"results": {"assembled": True, "model_provenance": prov,
+                           "latency": entry("eee", "2026-11-23T05:00:00Z", "fff",
+                                            "2026-11-23T06:00:00Z", cpu, "tensorflow")},
+               "old": {}}
+    assert result_cells.provenance_cells(sources, "results") == (
+        "assembled: trained between aaa and ddd",
+        "Xeon, 2 cores (tensorflow); H100 (jax)")
+    assert result_cells.provenance_cells(sources, "results", ["early"], "latency") == (
+        "assembled: trained between aaa and bbb; measured between eee and fff",
+        "H100 (jax); Xeon, 2 cores (tensorflow)")
+    with pytest.raises(KeyError):
+        result_cells.provenance_cells(sources, "results", ["missing"])
+    assert result_cells.provenance_cells(sources, "old") == ("not recorded", "not recorded")
+
+
+def test_committed_reproduction_provenance_matches_git_history():
+    """The committed reproduction (its run folders gone) carries a model_provenance reconstructed
+    from git and BENCHMARKS.md for every model its models block names, marked assembled; each
+    span's commits exist with the dates recorded, the training's start before its record; and
+    Fig. 4, Table 1 and Table 2's current-results rows show no "not recorded" commit or machine."""
+    from stnh_tf.paper import current_results as cr
+
+    sources = cr.load_sources(ROOT)
+    results, table1 = sources["results"], sources["table1"]
+    models = results["models"]
+    dirs = {*models["stages"], models["homographynet"], models["homographynet_gap"],
+            models["sequence2"], *(d for v in models["ablation_seeds"].values() for d in v)}
+    assert {e["run"] for e in results["model_provenance"].values()} == dirs
+    t1_dirs = {d for key, _ in cr.TABLE1_ROWS for d in table1[key]["model_dirs"]}
+    assert {e["run"] for e in table1["model_provenance"].values()} == t1_dirs
+    for doc in (results, table1):
+        assert doc["assembled"] is True and "run folders are gone" in doc["reconstructed_from"]
+    entries = [*results["model_provenance"].values(), results["latency_provenance"],
+               *table1["model_provenance"].values()]
+    for e in entries:
+        for key in ("trained_after", "recorded_in"):
+            commit, date = e[key]["commit"], e[key]["date"]
+            found = subprocess.run(["git", "show", "-s", "--format=%aI", commit], cwd=ROOT,
+                                   capture_output=True, text=True)
+            if found.returncode != 0:
+                pytest.skip(f"commit {commit} is not in this checkout (a shallow clone)")
+            assert found.stdout.strip().replace("+00:00", "Z") == date, (commit, date)
+        assert e["trained_after"]["date"] < e["recorded_in"]["date"]
+        assert e["commit"] == (f"between {e['trained_after']['commit']} and "
+                               f"{e['recorded_in']['commit']}")
+    rows = [r for r in cr.benchmarks_rows(sources) if r[0].startswith("Reproduction")]
+    assert len(rows) == 3
+    for row in rows:
+        assert row[4].startswith("assembled: trained between ")
+        assert all("not recorded" not in cell for cell in row[4:]), row

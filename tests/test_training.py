@@ -197,6 +197,20 @@ def test_init_from_starts_a_stage_from_a_trained_one(tiny_data, tmp_path, narrow
         np.testing.assert_array_equal(g, s)
 
 
+def test_finished_run_records_its_commit_machine_and_backend(tiny_data, tmp_path, narrow):
+    """result.json of a finished run holds, beside its final step, the commit, CPU, cores and
+    Keras backend of the process that finished it (what a reproduction's model_provenance reads),
+    checked against git (a commit of this checkout's history), os.cpu_count and Keras."""
+    training.train(_cfg(tiny_data, tmp_path / "run", train_steps=2), printer=_quiet)
+    record = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert record["final_step"] == 2 and record["wall_s_this_run"] > 0
+    commit = record["machine"]["git_commit"].split("+")[0]  # (HEAD when the suite started)
+    assert subprocess.run(["git", "merge-base", "--is-ancestor", commit, "HEAD"],
+                          cwd=ROOT).returncode == 0, commit
+    assert record["machine"]["cpu_count"] == os.cpu_count()
+    assert record["machine"]["keras_backend"] == keras.backend.backend()
+
+
 def test_init_from_rejects_a_stage_of_another_build(tiny_data, tmp_path, narrow):
     other = model_kinds.build_model(_cfg(tiny_data, tmp_path / "x", input_norm="patch"))
     other.save(tmp_path / "patch_norm.keras")

@@ -18,7 +18,9 @@ paths from the repository root):
   :data:`stnh_tf.paper.result_cells.CAMERA_SETS`).
 
 The commands are those BENCHMARKS.md records for each measurement; a commit or machine is shown
-where the JSON records one, "not recorded" where it does not. Numbers typed in prose elsewhere
+where the JSON records one, "not recorded" where it does not; the reproduction's rows show where
+its models were trained (``model_provenance``:
+:func:`stnh_tf.paper.result_cells.provenance_cells`). Numbers typed in prose elsewhere
 are checked against the same JSON by ``tests/test_docs_numbers.py``, which calls
 :func:`differing` and :func:`value`. The standard library only: no TensorFlow.
 
@@ -35,9 +37,9 @@ import os
 import sys
 
 from stnh_tf.paths import atomic_write_text
-from stnh_tf.paper.result_cells import (TABLE1_ROWS, camera_rows, joined,
-                                        latency_machine, recorded, stage_paths,
-                                        table1_cells)
+from stnh_tf.paper.result_cells import (FIG4_MODELS, TABLE1_ROWS, camera_rows, joined,
+                                        latency_machine, provenance_cells, recorded,
+                                        stage_paths, table1_cells)
 from stnh_tf.paper.results_json import (NOT_RECORDED, PAPER_STEPS, SOURCES,  # noqa: F401
                                         card_steps, default_root, fixed, load_sources, percent,
                                         value)
@@ -163,10 +165,10 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
          f"stages {fig4['STN-Homography 1 stage']} / {fig4['STN-Homography 2 stages']} / "
          f"{fig4['STN-Homography 3 stages']}, sequence (2 stages) {fig4['Sequence 2 stages']}, "
          f"ORB + RANSAC {fig4['ORB + RANSAC']}, SIFT + RANSAC {fig4['SIFT + RANSAC']} px",
-         reproduce, results, *recorded(sources, "results")),
+         reproduce, results, *provenance_cells(sources, "results", FIG4_MODELS)),
         ("Reproduction, Table 1: loss weights L2:L1 = "
          + " / ".join(label for _, label in TABLE1_ROWS), f"{table1} px{table1_note}", reproduce,
-         table1_json, *recorded(sources, "table1")),
+         table1_json, *provenance_cells(sources, "table1")),
         ("Reproduction, Table 2: batch-1 latency of 1 / 2 / 3 stages, mixed bfloat16",
          f"hierarchy {joined(sources, 'results', [f'table2_latency_ms/{k}' for k in (1, 2, 3)])}"
          f" ms, sequence model "
@@ -174,7 +176,8 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
          f"on {latency_machine(sources)} "
          "([Table 2](#the-papers-table-2-hierarchy-latency-batch-1): not below the paper's GPU on "
          "other 2-core CPUs)",
-         reproduce, results, *recorded(sources, "results")),
+         reproduce, results, *provenance_cells(sources, "results", ("stage1", "stage2", "stage3"),
+                                               "latency_provenance")),
         *camera_rows(sources),
     ]
 

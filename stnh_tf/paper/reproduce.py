@@ -18,7 +18,8 @@ re-run with the same command):
 
 A model trained elsewhere at the same budget is used in place (``reuse={"stage1": dir, ...}``)
 after checking that its recorded configuration is the budget's; a finished model is never
-trained again.
+trained again. ``results.json`` (and ``table1.json``) record where each model was trained and
+whether the run is assembled from reused ones (:mod:`stnh_tf.paper.model_provenance`).
 """
 
 from __future__ import annotations
@@ -35,8 +36,8 @@ from stnh_tf.training import config as train_config
 from stnh_tf.training import presets
 from stnh_tf.paths import atomic_write_json, atomic_write_text
 from stnh_tf.provenance import machine_info
-from stnh_tf.paper.budgets import (BUDGETS, SPEED_FIELDS, Budget,  # noqa: F401
-                                   check_budget)
+from stnh_tf.paper.budgets import BUDGETS, SPEED_FIELDS, Budget, check_budget  # noqa: F401
+from stnh_tf.paper.model_provenance import provenance_block
 from stnh_tf.paper.tables import (SMOKE_NOTE, TABLE1_HEAD, schedule_results,  # noqa: F401
                                   table1_claim, table1_line, table1_lines, tables_markdown)
 
@@ -87,7 +88,7 @@ class Reproduction:
                                        for seed in table1_seeds(budget, *w))}
         if unknown:
             raise ValueError(f"unknown reuse names {sorted(unknown)}.")
-        self.timings = {}
+        self.timings, self.models = {}, {}  # models: {name: run folder}, as train() met them
         os.makedirs(os.path.join(output_dir, "figures"), exist_ok=True)
         os.makedirs(os.path.join(output_dir, "eval"), exist_ok=True)
 
@@ -201,6 +202,7 @@ class Reproduction:
         from stnh_tf.training import loop as training
 
         final = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
+        self.models[name] = cfg.model_dir
         if os.path.exists(final) or self.dropped(name):
             check_budget(cfg.model_dir, cfg)
             return cfg.model_dir
@@ -298,11 +300,12 @@ class Reproduction:
                                table1_claim(per_seed, identity, self.budget.verdicts).get(
                                    "text", ""))]
         atomic_write_text(os.path.join(self.out, "table1.md"), "\n".join(lines) + "\n")
-        atomic_write_json(os.path.join(self.out, "table1.json"), {
+        atomic_write_json(os.path.join(self.out, "table1.json"), {**{
             f"{a:g},{b:g}": {"mace": float(np.mean(v)), "mace_per_seed": v,
                              "seeds": list(range(len(v))), "model_dir": rows[(a, b)][0],
                              "model_dirs": rows[(a, b)], "paper": PAPER_TABLE1.get((a, b))}
-            for (a, b), v in table.items()})
+            for (a, b), v in table.items()}, **provenance_block(
+                self.models, self.reuse, {d for dirs in rows.values() for d in dirs})})
         return table
 
     # -- evaluation -----------------------------------------------------------------------------
@@ -400,6 +403,7 @@ class Reproduction:
                              "ablation_seeds": {f"{a:g},{b:g}": d for (a, b), d in rows.items()}},
                   "figures": figs, "paper_schedule": schedule,
                   "wall_s_this_run": time.time() - t0, "machine": machine_info(),
+                  **provenance_block(self.models, self.reuse),
                   "timings_this_run_s": self.timings, "paper": {
                       "fig4_mace": PAPER_FIG4,
                       "table1_mace": {f"{a:g},{b:g}": v for (a, b), v in PAPER_TABLE1.items()},

@@ -1,10 +1,12 @@
 """The cells of the "current results" tables (:mod:`stnh_tf.paper.current_results`) that take
 more than one value to write: Table 1's row, the camera-pair rows, a JSON's commit and machine,
-where Table 2 was measured. The standard library only.
+where a reproduction's models were trained (:func:`provenance_cells`), where Table 2 was
+measured. The standard library only.
 """
 
 from __future__ import annotations
 
+from stnh_tf.paper.model_provenance import machine_summary
 from stnh_tf.paper.results_json import NOT_RECORDED, SOURCES, fixed, value
 
 # Table 1's rows in the paper's order, as (results.json key, label).
@@ -39,6 +41,63 @@ def recorded(sources, name, path="machine") -> tuple[str, str]:
     if info.get("keras_backend"):
         machine += f" ({info['keras_backend']})"
     return info.get("git_commit") or NOT_RECORDED, machine
+
+
+# The models of Fig. 4's row (the reproduction's names; Table 1's are table1.json's own).
+FIG4_MODELS = ("stage1", "stage2", "stage3", "homographynet", "homographynet_gap", "sequence2")
+
+
+def machine_label(entry: dict) -> str:
+    """A model's or measurement's machine as one cell part: its accelerators, else its CPU and
+    cores, with the Keras backend, from a ``model_provenance`` entry
+    (:func:`stnh_tf.paper.model_provenance.run_provenance`) or a :func:`recorded`-like object."""
+    machine = entry.get("machine")
+    if not isinstance(machine, dict):
+        return NOT_RECORDED
+    label = (", ".join(machine["accelerators"]) if machine.get("accelerators")
+             else f"{machine.get('cpu')}, {machine.get('cores')} cores")
+    backend = entry.get("backend")
+    return f"{label} ({backend})" if backend and backend != NOT_RECORDED else label
+
+
+def _span(entries) -> str:
+    """Where ``entries`` (``model_provenance`` entries) were trained: "between A and B" (the
+    earliest ``trained_after`` and the latest ``recorded_in`` of reconstructed entries, by date),
+    else "at" the distinct commits they record."""
+    if all("trained_after" in e and "recorded_in" in e for e in entries):
+        first = min((e["trained_after"] for e in entries), key=lambda c: c["date"])
+        last = max((e["recorded_in"] for e in entries), key=lambda c: c["date"])
+        return f"between {first['commit']} and {last['commit']}"
+    return "at " + ", ".join(dict.fromkeys(str(e.get("commit", NOT_RECORDED)) for e in entries))
+
+
+def provenance_cells(sources, name, models=None, measured=None) -> tuple[str, str]:
+    """The (commit, machine) cells of a reproduction's row from source ``name``'s
+    ``model_provenance`` (``results.json``, ``table1.json``), for the models named ``models``
+    (all where None): "assembled: trained between A and B" (or "trained at" their commits) and
+    their distinct machines; ``measured``, the key of an entry of the same form for what the row
+    measures beyond the models (Table 2's latency: ``latency_provenance``), adds "measured ...".
+    A source without ``model_provenance`` falls back to :func:`recorded`.
+
+    Raises:
+        KeyError: a model named is not in ``model_provenance``.
+    """
+    doc = sources[name]
+    if "model_provenance" not in doc:
+        return recorded(sources, name)
+    prov = doc["model_provenance"]
+    entries = [prov[m] for m in (models or prov)]
+    commit = ("assembled: " if doc.get("assembled") else "") + f"trained {_span(entries)}"
+    machines = [machine_label(e) for e in entries]
+    if measured and measured in doc:
+        commit += f"; measured {_span([doc[measured]])}"
+        machines.append(machine_label(doc[measured]))
+    elif "machine" in doc:  # a reproduction that evaluated its models itself: its machine_info
+        info = doc["machine"]
+        commit += f"; evaluated at {info.get('git_commit') or NOT_RECORDED}"
+        machines.append(machine_label({"machine": machine_summary(info),
+                                       "backend": info.get("keras_backend")}))
+    return commit, "; ".join(dict.fromkeys(machines))
 
 
 # Where the committed CPU-budget reproduction ran: results.json, written before machine blocks,

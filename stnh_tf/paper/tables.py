@@ -7,6 +7,8 @@ import os
 
 import numpy as np
 
+from stnh_tf.paper.model_provenance import assembled_line
+
 SMOKE_NOTE = ("**Smoke test** (`--budget=tiny`: 2 steps of every model, 1 warm-up step, batch 4, "
               "2 pairs per image from the first 4 images): it checks that every step of the "
               "reproduction runs; its numbers mean nothing (expect errors of hundreds of px).")
@@ -59,7 +61,9 @@ def tables_markdown(result: dict, latency: dict) -> str:
         lines += ["", "Sequence models, forward pass: " + ", ".join(
             f"{k} stage{'s' if k != '1' else ''} {v['forward_ms']:.2f} ms"
             for k, v in latency["sequence"].items()) + "."]
-    lines += ["", "## Models", "", "| model | directory | trained on |", "| --- | --- | --- |"]
+    lines += ["", "## Models", "",
+              *([assembled_line(result), ""] if "model_provenance" in result else []),
+              "| model | directory | trained on |", "| --- | --- | --- |"]
     dropped = b.get("drop_after_eval", ())
     for name, d in _model_dirs(result["models"]):
         gone = (" (model file removed after its evaluation at this budget)"

@@ -56,6 +56,7 @@ import keras
 
 from stnh_tf.modeling import runner
 from stnh_tf.paths import atomic_write_json, fsync_replace
+from stnh_tf.provenance import machine_info
 from stnh_tf.training import checkpoints, distribute, fit_calls, model_kinds, run_dir
 from stnh_tf.training import streams as train_streams
 from stnh_tf.training.callbacks import (NonFiniteGuard, ProgressLogger, StepScalars, TimeLimit,
@@ -269,7 +270,10 @@ def initialize_from(model, stage_dirs):
 
 def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=None,
           extra_callbacks=(), time_limit_s: float | None = None):
-    """Train (or resume) the model described by ``cfg``. Returns a dict of final results.
+    """Train (or resume) the model described by ``cfg``. Returns a dict of final results: a
+    finished run's (also written to ``model_dir/result.json``) has ``final_step``,
+    ``wall_s_this_run`` (this call's, not an earlier session's), ``machine`` (the commit, machine
+    and Keras backend of this process: :func:`stnh_tf.provenance.machine_info`) and ``history``.
 
     ``time_limit_s`` (None or 0: no limit; else a finite number > 0, checked with the fields):
     stop within one step of this many seconds after the call, after the step past which another
@@ -425,7 +429,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
                 model.save(tmp)
             fsync_replace(tmp, final_path)
         result = {"final_step": int(keras.ops.convert_to_numpy(model.optimizer.iterations)),
-                  "wall_s_this_run": time.time() - t0,
+                  "wall_s_this_run": time.time() - t0, "machine": machine_info(),
                   "history": {k: [float(x) for x in v] for k, v in history.items()}}
         if cluster.is_chief:
             atomic_write_json(os.path.join(cfg.model_dir, run_dir.RESULT_FILE), result)
