@@ -58,9 +58,9 @@ from stnh_tf.inference import checks, coarse, features, image_refine, pipeline
 # Public names of this module before the pipeline was split (stnh_tf.inference.<name>).
 from stnh_tf.inference.checks import alignment_ncc, corner_shift  # noqa: F401
 from stnh_tf.inference.image_input import (PATCH_ORIGIN, PATCH_SIZE, central_patch,  # noqa: F401
-                                           check_patches, patch_to_image_frames, prepare_image,
-                                           prepare_patches, resize_to_work_size, unit_patches,
-                                           work_image)
+                                           check_patches, input_image, patch_to_image_frames,
+                                           prepare_image, prepare_patches, resize_to_work_size,
+                                           unit_patches, work_image)
 from stnh_tf.inference.model_files import default_source, resolve_model_paths
 from stnh_tf.inference.options import (REFINES, SEARCHES, TTAS, EstimateOptions,  # noqa: F401
                                        Thresholds)
@@ -334,8 +334,13 @@ class HomographyEstimator:
         # later stages see zeros beyond the image, as in the paper.
         options = dataclasses.replace(self._resolve(options, legacy, self.image_options),
                                       gate_stages=False, fill="zeros")
-        work_a, size_a = work_image(image_a, "image_a", channel_order)
-        work_b, size_b = work_image(image_b, "image_b", channel_order)
+        # the feature start matches the images at their own resolution (issue 79)
+        wants_start = options.features != "none"
+        input_a = input_image(image_a, "image_a", channel_order, wants_start)
+        input_b = input_image(image_b, "image_b", channel_order, wants_start)
+        (work_a, size_a), (work_b, size_b) = input_a[:2], input_b[:2]
+        start = features.start_images(input_a, input_b) if wants_start else None
+        del input_a, input_b  # the images at their own size: held by start only
         network = options
         if options.refine == "images":
             # image_refine makes the patch refinement (scored beside the whole images' ECC) and,
@@ -344,7 +349,7 @@ class HomographyEstimator:
                                           verify=options.verify if options.retries else "none")
         run = lambda a, b, contexts, opts: self._run(a, b, contexts, PATCH_ORIGIN, opts, 64)  # noqa
         # a deviation (issue 64): a start from SIFT matches for wide baselines
-        result = features.estimate(run, work_a, work_b, network, PATCH_ORIGIN)
+        result = features.estimate(run, work_a, work_b, network, PATCH_ORIGIN, start)
         network_h = result.network_homography
         result = self._finish_images(run, result, work_a, work_b, network, options)
         # what the network alone gave from the identity start, and how far the result is from it
@@ -352,7 +357,7 @@ class HomographyEstimator:
                                       PATCH_ORIGIN)
         if features.late_wanted(result, move[0], options):
             # the finished estimate says the network's was off: the feature start after all
-            made = features.candidate(run, work_a, work_b, network, PATCH_ORIGIN)
+            made = features.candidate(run, work_a, work_b, network, PATCH_ORIGIN, start)
             if made is not None:
                 late = self._finish_images(
                     run, dataclasses.replace(made, network_homography=network_h), work_a,
@@ -406,7 +411,9 @@ class HomographyEstimator:
         the patch pair; a hierarchy's later stages crop from the warped 320 x 240 image_a
         (context beyond the patch, as in the paper: ``options.gate_stages`` and ``options.fill``,
         which are for bare patches, do not apply: every stage is composed, zeros beyond the
-        image). The rule:
+        image). The feature start (``options.features``) matches the images at their own
+        resolution (up to 1,600 px on the long side) and its start is mapped into the 320 x 240
+        frame; the network and the refinement work at 320 x 240. The rule:
         :mod:`stnh_tf.inference.image_input`.
 
         Args:

@@ -5,9 +5,11 @@
 The network was trained on corners moved by up to 32 px in the 128 x 128 patch; the coarse pass
 (:mod:`stnh_tf.inference.coarse`) reaches rotations up to 45 degrees and zooms 0.7-1.4. For wider
 baselines (zoom 0.3-3, any rotation, strong viewpoint changes) the start comes from classical
-matching: OpenCV SIFT keypoints of the two 320 x 240 work images, Lowe's ratio test and
+matching: OpenCV SIFT keypoints of the two images at their own resolution (up to
+:data:`~stnh_tf.inference.image_input.FEATURE_MAX_SIDE` px on the long side; the work images
+where an image fits in 320 x 240: :class:`StartImages`, issue 79), Lowe's ratio test and
 ``cv2.findHomography`` with ``cv2.USAC_MAGSAC`` (:func:`feature_start`, the SIFT baseline's
-settings). image_a is
+settings), its ``H_ba`` brought into the work frame (:func:`work_start`). image_a is
 warped by that start ``G`` (:func:`stnh_tf.inference.coarse.warp_context`), the estimator's
 pipeline (the network's stages, the search and refinement its options ask for) estimates the
 rest ``H`` from it, and the better of ``G @ H`` and ``G`` by the whole work images' alignment
@@ -23,7 +25,8 @@ where its alignment NCC is below ``thresholds.min_alignment_ncc`` or ECC moves i
 
 Frames: ``G`` and ``H`` are pixel ``H_ba`` (``a_from_b``) in the patch frame
 (:mod:`stnh_tf.geometry`), the patch's top-left corner at ``origin`` in the work images;
-:func:`feature_start` returns the work images' frame. NumPy and OpenCV only.
+:func:`feature_start` returns the frame of the images it is given, :func:`work_start` the work
+images'. NumPy and OpenCV only.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ import numpy as np
 from stnh_tf import geometry, pixels
 from stnh_tf.inference import checks, coarse
 from stnh_tf.inference import search as search_lib
-from stnh_tf.inference.image_input import central_patch
+from stnh_tf.inference.image_input import central_patch, work_from_feature
 from stnh_tf.inference.options import EstimateOptions
 
 SIFT = {"nOctaveLayers": 3, "contrastThreshold": 0.01, "edgeThreshold": 10.0, "sigma": 1.6}
@@ -98,6 +101,53 @@ def feature_start(work_a, work_b):
     return h if geometry.in_front(h, np.shape(work_b)[::-1]) else None
 
 
+@dataclasses.dataclass(frozen=True)
+class StartImages:
+    """The images the feature start matches for one pair (:func:`start_images`) and the maps
+    from their pixel frames to the work images'.
+
+    Attributes:
+      image_a, image_b: gray ``[h, w]`` images (uint8, or float in [0, 1]) of any size.
+      work_from_a, work_from_b: ``[3, 3]`` float64: pixels of ``image_a`` (``image_b``) ->
+        pixels of work_a (work_b)
+        (:func:`stnh_tf.inference.image_input.work_from_feature`).
+      found: :func:`work_start`'s result once made (``estimate_images`` may ask twice: the
+        early and the late start; SIFT at the images' own size is the costly part).
+    """
+
+    image_a: np.ndarray
+    image_b: np.ndarray
+    work_from_a: np.ndarray
+    work_from_b: np.ndarray
+    found: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
+
+
+def start_images(input_a, input_b):
+    """The :class:`StartImages` of a pair of
+    :class:`~stnh_tf.inference.image_input.InputImage` s made with ``feature_image=True``: each
+    image's feature image, or its work image where it has none (it fits in the work size);
+    ``None`` where neither has one: the feature start then runs on the work images, as
+    :func:`candidate` does with ``start=None``."""
+    if input_a.feature is None and input_b.feature is None:
+        return None
+    pick = lambda x: ((x.work, np.eye(3)) if x.feature is None  # noqa: E731
+                      else (x.feature, work_from_feature(x.size)))
+    (a, a_map), (b, b_map) = pick(input_a), pick(input_b)
+    return StartImages(a, b, a_map, b_map)
+
+
+def work_start(start: StartImages):
+    """:func:`feature_start` of ``start``'s images in the work frame: ``H_ba`` ``[3, 3]`` (work_b
+    pixel -> work_a pixel, ``[2, 2] = 1``) ``= work_from_a @ H @ inv(work_from_b)``, ``H`` the
+    start in the frames of ``start``'s images; ``None`` where :func:`feature_start` finds none.
+    Made once per ``start`` (kept in ``start.found``)."""
+    if "h" not in start.found:
+        h = feature_start(start.image_a, start.image_b)
+        start.found["h"] = None if h is None else geometry.scale_to_unit(
+            start.work_from_a @ h @ np.linalg.inv(start.work_from_b))
+    return start.found["h"]
+
+
 def wanted(first, options: EstimateOptions) -> bool:
     """Whether :func:`feature_pass` tries the feature start for ``first`` (the network's
     ``Estimate`` of one pair): ``features="always"``, or ``"fallback"`` where the coarse pass's
@@ -108,9 +158,9 @@ def wanted(first, options: EstimateOptions) -> bool:
     return options.features == "always" or coarse.needs_pass(first, options)
 
 
-def candidate(run, work_a, work_b, options: EstimateOptions, origin):
+def candidate(run, work_a, work_b, options: EstimateOptions, origin, start=None):
     """The feature start's estimate of one pair, or ``None`` where :func:`feature_start` finds no
-    start: ``G @ H`` (``H``: ``run(patch_a, patch_b, contexts, options)``, the pipeline without
+    start (on ``start``'s images, :func:`work_start`; ``None``: on work_a and work_b): ``G @ H`` (``H``: ``run(patch_a, patch_b, contexts, options)``, the pipeline without
     the search on the central patches of work_a warped by ``G`` and of work_b) or ``G`` itself,
     whichever aligns the work images better (:func:`stnh_tf.inference.coarse.image_ncc`;
     ``G @ H`` on a tie): an ``Estimate`` (B = 1) with that homography in the patch frame
@@ -118,7 +168,7 @@ def candidate(run, work_a, work_b, options: EstimateOptions, origin):
     ``alignment_ncc`` measured in work_a, ``feature_start`` set, the other fields those of ``H``,
     flagged by :func:`stnh_tf.inference.coarse.flag` (no corner rule). Arguments as in
     :func:`feature_pass`."""
-    h_image = feature_start(work_a, work_b)
+    h_image = feature_start(work_a, work_b) if start is None else work_start(start)
     if h_image is None:
         return None
     g = geometry.image_to_patch(h_image, *origin)
@@ -189,7 +239,8 @@ NOT_MADE = object()
 """The ``made`` of :func:`feature_pass` when the feature start was not tried yet."""
 
 
-def feature_pass(run, work_a, work_b, first, options: EstimateOptions, origin, made=NOT_MADE):
+def feature_pass(run, work_a, work_b, first, options: EstimateOptions, origin, made=NOT_MADE,
+                 start=None):
     """The estimate of one pair with ``options.features``: ``first`` (the pipeline's
     ``Estimate`` from the identity) where the feature start is not :func:`wanted` or fails, or
     where its estimate (:func:`candidate`) does not align the work images better than ``first``
@@ -202,15 +253,17 @@ def feature_pass(run, work_a, work_b, first, options: EstimateOptions, origin, m
       options: the options of ``run``.
       origin: ``(x0, y0)`` of the central patch in the work images.
       made: :func:`candidate`'s result for this pair if already made (not made again).
+      start: the :class:`StartImages` of the pair (:func:`start_images`); ``None``: the feature
+        start matches work_a and work_b.
     """
     if not wanted(first, options):
         return first
     if made is NOT_MADE:
-        made = candidate(run, work_a, work_b, options, origin)
+        made = candidate(run, work_a, work_b, options, origin, start)
     return made if better(made, first, work_a, work_b, options, origin) else first
 
 
-def estimate(run, work_a, work_b, options: EstimateOptions, origin):
+def estimate(run, work_a, work_b, options: EstimateOptions, origin, start=None):
     """The estimate of one pair from its central patches with ``options.features``:
     ``run(patch_a, patch_b, [work_a], options)``, then :func:`feature_pass`. With
     ``"fallback"`` (and a search, no retry) the feature start comes before the search: the
@@ -225,10 +278,10 @@ def estimate(run, work_a, work_b, options: EstimateOptions, origin):
     first = run(*patches, dataclasses.replace(options, search="none") if early else options)
     made = NOT_MADE
     if early and wanted(first, options):
-        made = candidate(run, work_a, work_b, options, origin)
+        made = candidate(run, work_a, work_b, options, origin, start)
         if made is not None and confirmed(made, options) and better(made, first, work_a, work_b,
                                                                     options, origin):
             return dataclasses.replace(made, network_homography=first.network_homography)
         first = run(*patches, options)  # the search, as without the early start
-    result = feature_pass(run, work_a, work_b, first, options, origin, made)
+    result = feature_pass(run, work_a, work_b, first, options, origin, made, start)
     return dataclasses.replace(result, network_homography=first.network_homography)

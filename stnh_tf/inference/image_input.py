@@ -31,9 +31,22 @@ offset. The result is meaningful when, in
 the 320 x 240 frame, the motion between the images is of the size the model was trained on
 (corners of the central square moving by up to about 32 px, i.e. 10% of the width) and the
 central square holds texture.
+
+The feature start's images (:func:`input_image` with ``feature_image=True``, issue 79). The
+feature start (:mod:`stnh_tf.inference.features`) matches SIFT keypoints on each image at its
+own resolution, where the detail a wide zoom needs is still there: the gray image (the same gray
+version as above) as it is where its long side is at most :data:`FEATURE_MAX_SIDE`, else resized
+down with ``cv2.INTER_AREA`` to that long side (:func:`feature_size`; never enlarged). An image
+that fits in 320 x 240 (``w <= 320`` and ``h <= 240``) has no feature image of its own: its
+feature start runs on its work image, as before. The feature start's ``H_ba`` is brought into the
+work frame by ``S_a @ inv(F_a) @ H_feature @ F_b @ inv(S_b)``, ``F_x`` the map from pixels of
+image x to pixels of its feature image (:func:`work_from_feature`; both ``S_x`` and ``F_x`` are
+:func:`resize_matrix`, with the half-pixel offset).
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -46,6 +59,8 @@ WORK_SIZE = (geometry.IMAGE_WIDTH, geometry.IMAGE_HEIGHT)
 """``(width, height)`` every image is resized to by ``estimate_images``."""
 PATCH_ORIGIN = ((WORK_SIZE[0] - PATCH_SIZE) // 2, (WORK_SIZE[1] - PATCH_SIZE) // 2)
 """Top-left corner ``(x0, y0) = (96, 56)`` of the central patch in the 320 x 240 frame."""
+FEATURE_MAX_SIDE = 1600
+"""The longest side (px) of an image the feature start matches (:func:`feature_size`)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -185,15 +200,28 @@ _GRAY_BLOCK_PIXELS = 1 << 16
 image with an alpha channel)."""
 
 
-def work_image(x, name="image", channel_order: str = "rgb"):
-    """One image (as :func:`prepare_image` accepts it) -> ``(work, (w, h))``: its gray float32
-    ``[240, 320]`` version in [0, 1] and its own size.
+class InputImage(NamedTuple):
+    """One image as ``estimate_images`` uses it (:func:`input_image`): ``work``, its gray float32
+    ``[240, 320]`` version in [0, 1]; ``size``, its own ``(w, h)``; ``feature``, its feature
+    image (:func:`feature_size`: gray, uint8 for a uint8 image, else float32 in [0, 1]) or
+    ``None`` (not asked for, or the image fits in the work size)."""
+
+    work: np.ndarray
+    size: tuple
+    feature: np.ndarray | None = None
+
+
+def input_image(x, name="image", channel_order: str = "rgb",
+                feature_image: bool = False) -> InputImage:
+    """One image (as :func:`prepare_image` accepts it) -> :class:`InputImage`: its work image,
+    its own size and, with ``feature_image``, its feature image (the module docstring).
 
     A uint8 image is made gray (:func:`stnh_tf.data.sources.to_gray_uint8`, a block of rows at a
     time) and resized (:func:`~stnh_tf.data.sources.resize_to_protocol`) in uint8, as the
     training data was made, and only then converted to float; a float image goes through
-    :func:`prepare_image` and :func:`resize_to_work_size`. Raises ``ValueError`` as
-    :func:`prepare_image`, and for an image too small for the patch (:func:`check_image_size`).
+    :func:`prepare_image` and :func:`resize_to_work_size`. The feature image is resized from the
+    same gray image (:func:`feature_size`). Raises ``ValueError`` as :func:`prepare_image`, and
+    for an image too small for the patch (:func:`check_image_size`).
     """
     from stnh_tf.data import sources
 
@@ -201,15 +229,58 @@ def work_image(x, name="image", channel_order: str = "rgb"):
     size = (arr.shape[1], arr.shape[0])
     check_image_size(size, name)
     if arr.dtype != np.uint8:
-        return resize_to_work_size(prepare_image(arr, name, channel_order)), size
-    if arr.ndim == 2 or arr.shape[2] == 1:
-        gray = arr.reshape(arr.shape[:2])
+        gray = prepare_image(arr, name, channel_order)
+        work = resize_to_work_size(gray)
     else:
-        rows = max(1, _GRAY_BLOCK_PIXELS // arr.shape[1])
-        gray = np.empty(arr.shape[:2], np.uint8)
-        for r in range(0, arr.shape[0], rows):
-            gray[r:r + rows] = sources.to_gray_uint8(arr[r:r + rows], channel_order)
-    return pixels.to_unit(sources.resize_to_protocol(np.ascontiguousarray(gray))), size
+        if arr.ndim == 2 or arr.shape[2] == 1:
+            gray = arr.reshape(arr.shape[:2])
+        else:
+            rows = max(1, _GRAY_BLOCK_PIXELS // arr.shape[1])
+            gray = np.empty(arr.shape[:2], np.uint8)
+            for r in range(0, arr.shape[0], rows):
+                gray[r:r + rows] = sources.to_gray_uint8(arr[r:r + rows], channel_order)
+        gray = np.ascontiguousarray(gray)
+        work = pixels.to_unit(sources.resize_to_protocol(gray))
+    target = feature_size(size) if feature_image else None
+    feature = (None if target is None else gray if target == size else
+               cv2.resize(gray, target, interpolation=cv2.INTER_AREA))
+    return InputImage(work, size, feature)
+
+
+def work_image(x, name="image", channel_order: str = "rgb"):
+    """One image (as :func:`prepare_image` accepts it) -> ``(work, (w, h))``: its gray float32
+    ``[240, 320]`` version in [0, 1] and its own size (:func:`input_image` without the feature
+    image). Raises ``ValueError`` as :func:`input_image`."""
+    return tuple(input_image(x, name, channel_order)[:2])
+
+
+def feature_size(size):
+    """``(w', h')`` of the feature image of an image of ``size = (w, h)``: ``(w, h)`` where
+    ``max(w, h) <= FEATURE_MAX_SIDE``, else each side scaled by ``FEATURE_MAX_SIDE / max(w, h)``
+    and rounded (at least 1); ``None`` where the image fits in the work size (``w <= 320`` and
+    ``h <= 240``: its work image is its feature image).
+
+    >>> feature_size((320, 240)), feature_size((640, 480)), feature_size((4000, 3000))
+    (None, (640, 480), (1600, 1200))
+    """
+    w, h = (int(v) for v in size)
+    if w <= WORK_SIZE[0] and h <= WORK_SIZE[1]:
+        return None
+    scale = FEATURE_MAX_SIDE / max(w, h)
+    if scale >= 1.0:
+        return (w, h)
+    return (max(1, round(w * scale)), max(1, round(h * scale)))
+
+
+def work_from_feature(size) -> np.ndarray:
+    """``[3, 3]`` float64 map from pixels of the feature image of an image of ``size = (w, h)``
+    (:func:`feature_size`) to pixels of its work image: ``S @ inv(F)``, ``S`` and ``F`` the
+    :func:`resize_matrix` from the image to its work and feature images; the identity where the
+    feature image is the work image (``feature_size`` ``None``)."""
+    target = feature_size(size)
+    if target is None:
+        return np.eye(3)
+    return resize_matrix(size, WORK_SIZE) @ np.linalg.inv(resize_matrix(size, target))
 
 
 # --------------------------------------------------------------------------------------------
