@@ -84,8 +84,12 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
     fig4 = {label: fixed(value(sources, "results", f"fig4_mace/{label}"))
             for label in value(sources, "results", "fig4_mace")}
     table1, table1_note, _ = table1_cells(sources)
-    evaluate = ("`python -m experiments.evaluate --model_dir=M1,M2,M3 --data_dir=D --split=test "
-                "--compute_dtype=float32 [--no_clip]`")
+    # Re-measures every entry of a card's evaluation (stnh_tf.evaluation.card_evaluation).
+    refresh = ("`python -m experiments.ship_weights --refresh_evaluation "
+               "--test_image_dir=../shared/data/coco_mini/test{}`")
+    evaluate = refresh.format("") + (" (each entry: `python -m experiments.evaluate "
+                                     "--model_dir=M1,M2,M3 --data_dir=D --split=test "
+                                     "--compute_dtype=float32 [--no_clip]`)")
     reproduce = "`python -m experiments.reproduce --budget=cpu ...` ([how](docs/reproduce.md))"
     results, table1_json = f"`{SOURCES['results']}`", f"`{SOURCES['table1']}`"
     return [
@@ -117,7 +121,8 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
          f"MACE {card_num(flag + '/ordinary/mace_flagged')} against "
          f"{card_num(flag + '/ordinary/mace_kept')}), "
          f"{percent(min(beyond))[:-1]}-{percent(max(beyond))} of pairs beyond the trained range",
-         "`python -m experiments.check_implausible --data_dir=D --search=none`", card,
+         refresh.format("") + " (each entry: `python -m experiments.check_implausible "
+         "--model=stnh_tf/weights --data_dir=D --search=none`)", card,
          *recorded(sources, "card", flag + "/machine")),
         ("Shipped default, training (the last run of each stage; flags in the card)",
          f"{' / '.join(f'{s:,}' for s in steps)} steps for stages 1 / 2 / 3, {sum(steps):,} in "
@@ -130,8 +135,7 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
          "test pairs, image context",
          "MACE after 1 / 2 / 3 stages "
          f"{joined(sources, 'paper_card', stage_paths('evaluation/model'), bold=2)} px",
-         "`python -m experiments.evaluate --model_dir=runs/cpu/stage1,runs/cpu/stage2,"
-         "runs/cpu/stage3 --data_dir=data/cpu --split=test`", paper_card,
+         refresh.format(" --weights_dir=stnh_tf/weights/paper_recipe"), paper_card,
          *recorded(sources, "paper_card", "evaluation/machine")),
         ("[Paper's schedule](docs/gpu.md#the-papers-schedule-in-chunks), stages 1-2 "
          "(`stnh_tf/weights/paper_schedule/`): the paper's recipe, 91,000 steps a stage, 184,800 "
