@@ -1,6 +1,7 @@
 r"""The estimator, SIFT + RANSAC, ORB + RANSAC and the identity on realistic camera pairs (a folder
-written by ``experiments.make_camera_pairs``), per group of motion size: MACE at the 320 x 240
-image's corners (and of the central patch), median, success rate (< 3 px), time per pair, and the
+written by ``experiments.make_camera_pairs``), per group of motion size: MACE at the image's
+corners in the pairs' own frame (320 x 240, or 640 x 480 for a set made with ``--scale=2``; and
+of the central patch of the 320 x 240 frame), median, success rate (< 3 px), time per pair, and the
 estimator's implausibility flag as a detector of estimates more than 5 px off
 (:mod:`stnh_tf.evaluation.camera_pairs`).
 

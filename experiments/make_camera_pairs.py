@@ -6,6 +6,7 @@ of a plane, in-plane rotation; blur, exposure change, sensor noise and JPEG on i
   python -m experiments.make_camera_pairs --output_dir=D --image_dir=F --pairs_per_image=3 --seed=0
   python -m experiments.make_camera_pairs --output_dir=D --motion_set=wide   # wide baseline
   python -m experiments.make_camera_pairs --output_dir=D --motion_set=paper  # paper's protocol
+  python -m experiments.make_camera_pairs --output_dir=D --motion_set=wide --scale=2  # 640 x 480
 
 Writes ``D/{k:05d}_a.png``, ``D/{k:05d}_b.png`` and ``D/pairs.json`` (every parameter, per pair
 ``h_ba``, group, kind, motion and degradation, the SHA-256 of its PNG files); prints the manifest
@@ -41,6 +42,10 @@ flags.DEFINE_enum("motion_set", "size", list(camera_motions.MOTION_SETS),
                   "wide_low_light (issue 64); paper: the paper's protocol on whole images, "
                   "groups paper and paper_exposure, errors at the patch's corners (issue 79; "
                   "stnh_tf.data.camera_motions.MOTION_SETS).")
+flags.DEFINE_integer("scale", 1, "Render the pairs at scale times 320 x 240 (2: 640 x 480) from "
+                     "the photograph resized to scale times 560 x 420, the same motions, h_ba "
+                     "and the errors in that frame (issue 79; stnh_tf.data.camera_motions, "
+                     "'Larger pairs').", lower_bound=1)
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 
@@ -55,7 +60,8 @@ def main(argv):
                                             FLAGS.pairs_per_image, FLAGS.seed,
                                             overwrite=FLAGS.overwrite,
                                             motion_set=FLAGS.motion_set,
-                                            max_images=FLAGS.max_images)
+                                            max_images=FLAGS.max_images,
+                                            scale=FLAGS.scale)
     print(FolderCounts(**result["photographs"]).line(), file=sys.stderr)
     common.emit_json({"output_dir": FLAGS.output_dir, **result}, FLAGS.json_out)
 

@@ -16,6 +16,14 @@ beyond the photograph its mirror image (OpenCV's ``BORDER_REFLECT_101``). Then i
 its exposure changed, sensor noise added and the result JPEG-compressed (:func:`degrade`);
 image_a stays as is.
 
+Larger pairs (issue 79: ``scale`` ``s``, an integer, 1 by default): the same motions drawn in the
+320 x 240 frame, rendered at ``320 s x 240 s`` from the photograph resized to ``560 s x 420 s``
+(image_a at ``(120 s, 90 s)``), their ``h_ba`` in that frame (:func:`to_scale`:
+``inv(R) @ h_ba @ R``, ``R`` the resize map from ``320 s x 240 s`` to 320 x 240 pixels,
+:func:`stnh_tf.data.sources.resize_matrix`) and the blur's sigma times ``s``; noise and JPEG per
+pixel as at 320 x 240. A photograph smaller than the source is enlarged: the coco_mini
+photographs (~640 x 480) hold the detail of a ``366 x 274`` image_a, whatever ``s``.
+
 Motions (:data:`KINDS`; camera a has focal length ``f``, principal point at the image centre):
 
 * ``"camera_rotation"``: rotation about the camera centre with zoom, ``h_ba = K_a R^T K_b^-1``
@@ -139,8 +147,9 @@ ALL_GROUPS = tuple(GROUPS) + WIDE_GROUPS + PAPER_GROUPS
 
 @dataclasses.dataclass(frozen=True)
 class CameraPair:
-    """One pair. ``image_a``, ``image_b``: ``uint8 [240, 320]``; ``h_ba``: float64 ``[3, 3]``
-    (image_b -> image_a pixels, ``[2, 2] = 1``); ``offset_px``: :func:`motion_offset`;
+    """One pair. ``image_a``, ``image_b``: ``uint8 [240, 320]`` (``[240 s, 320 s]`` at
+    ``scale`` ``s``); ``h_ba``: float64 ``[3, 3]`` (image_b -> image_a pixels in the images'
+    own frame, ``[2, 2] = 1``); ``offset_px``: :func:`motion_offset` (the 320 x 240 frame's);
     ``motion`` and ``photometric``: the drawn parameters (JSON-ready)."""
 
     index: int
@@ -335,29 +344,46 @@ def draw_motion(rng: np.random.Generator, group: str, ranges: MotionRanges = Mot
 # --------------------------------------------------------------------------------------------
 # Rendering and degradation
 # --------------------------------------------------------------------------------------------
-def source_image(gray: np.ndarray) -> np.ndarray:
-    """A photograph's gray ``uint8 [h, w]`` -> the ``uint8 [420, 560]`` source of its pairs
-    (resized as the paper resizes to 320 x 240: area when shrinking, else bilinear)."""
-    return sources.resize_to_protocol(np.asarray(gray, np.uint8), *SOURCE_SIZE)
+def source_image(gray: np.ndarray, scale: int = 1) -> np.ndarray:
+    """A photograph's gray ``uint8 [h, w]`` -> the ``uint8 [420 s, 560 s]`` source of its pairs
+    at ``scale`` ``s`` (resized as the paper resizes to 320 x 240: area when shrinking, else
+    bilinear)."""
+    return sources.resize_to_protocol(np.asarray(gray, np.uint8), *_times(SOURCE_SIZE, scale))
 
 
-def render_pair(source: np.ndarray, h_ba) -> tuple:
-    """``(image_a, image_b)`` float32 ``[240, 320]`` (0..255) of a ``[420, 560]`` source:
-    image_a its central window at :data:`MARGIN`, ``image_b(p) = source(T @ h_ba @ p)``
-    (``T`` the translation by :data:`MARGIN`: image_a's pixel ``h_ba @ p`` where that lies in
-    image_a), bilinear, mirrored beyond the source.
+def _times(size, scale):
+    return tuple(int(scale) * v for v in size)
+
+
+def to_scale(h_ba, scale: int = 1) -> np.ndarray:
+    """A 320 x 240 frame ``h_ba`` ``[3, 3]`` in the frame of pairs rendered at ``scale`` ``s``
+    (``320 s x 240 s``, pixel centres at integers): ``inv(R) @ h_ba @ R`` (``[2, 2] = 1``), ``R``
+    the map of :func:`stnh_tf.data.sources.resize_matrix` from those pixels to 320 x 240's;
+    ``h_ba`` itself at ``s = 1``."""
+    if int(scale) == 1:
+        return np.asarray(h_ba, np.float64)
+    r = sources.resize_matrix(_times(WORK_SIZE, scale), WORK_SIZE)
+    return geometry.scale_to_unit(np.linalg.inv(r) @ np.asarray(h_ba, np.float64) @ r)
+
+
+def render_pair(source: np.ndarray, h_ba, scale: int = 1) -> tuple:
+    """``(image_a, image_b)`` float32 ``[240 s, 320 s]`` (0..255) of a ``[420 s, 560 s]`` source
+    (:func:`source_image`, ``s = scale``): image_a its central window at :data:`MARGIN` times
+    ``s``, ``image_b(p) = source(T @ H @ p)`` (``H = to_scale(h_ba, s)``, ``h_ba`` in the
+    320 x 240 frame; ``T`` the translation by the margin: image_a's pixel ``H @ p`` where that
+    lies in image_a), bilinear, mirrored beyond the source.
 
     Raises:
       ValueError: a source of another shape.
     """
     source = np.asarray(source, np.float32)
-    if source.shape != SOURCE_SIZE[::-1]:
-        raise ValueError(f"source must have shape {list(SOURCE_SIZE[::-1])}; received shape "
-                         f"{source.shape}.")
-    (mx, my), (w, h) = MARGIN, WORK_SIZE
+    if source.shape != _times(SOURCE_SIZE, scale)[::-1]:
+        raise ValueError(f"source must have shape {list(_times(SOURCE_SIZE, scale)[::-1])}; "
+                         f"received shape {source.shape}.")
+    (mx, my), (w, h) = _times(MARGIN, scale), _times(WORK_SIZE, scale)
     image_a = source[my:my + h, mx:mx + w].copy()
-    image_b = cv2.warpPerspective(source, geometry.translation(mx, my) @ np.asarray(h_ba, float),
-                                  WORK_SIZE, flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
+    image_b = cv2.warpPerspective(source, geometry.translation(mx, my) @ to_scale(h_ba, scale),
+                                  (w, h), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
                                   borderMode=cv2.BORDER_REFLECT_101)
     return image_a, image_b
 
@@ -372,14 +398,16 @@ def draw_degradation(rng: np.random.Generator, ranges: Degradation = Degradation
             "noise_seed": int(rng.integers(2 ** 63))}
 
 
-def degrade(image: np.ndarray, p: dict) -> np.ndarray:
-    """float ``[h, w]`` (0..255) -> ``uint8 [h, w]``: Gaussian blur (``p["blur_sigma"]``), the
+def degrade(image: np.ndarray, p: dict, scale: int = 1) -> np.ndarray:
+    """float ``[h, w]`` (0..255) -> ``uint8 [h, w]``: Gaussian blur (``p["blur_sigma"]`` times
+    ``scale``: the same blur of a pair rendered at ``scale``, :func:`render_pair`), the
     exposure change (gain ``2 ** (ev / 2.2)``, clipped), Gaussian noise of variance
     ``read_noise^2 + shot_noise * value`` (from ``p["noise_seed"]``), rounding, then JPEG
     encoding and decoding at ``p["jpeg_quality"]`` (OpenCV's libjpeg)."""
     x = np.asarray(image, np.float32)
     if p["blur_sigma"] >= 0.1:
-        x = cv2.GaussianBlur(x, (0, 0), p["blur_sigma"], borderType=cv2.BORDER_REFLECT_101)
+        x = cv2.GaussianBlur(x, (0, 0), p["blur_sigma"] * int(scale),
+                             borderType=cv2.BORDER_REFLECT_101)
     x = np.clip(x * 2.0 ** (p["exposure_ev"] / 2.2), 0, 255)
     std = np.sqrt(p["read_noise"] ** 2 + p["shot_noise"] * x)
     x = x + std * np.random.default_rng(p["noise_seed"]).standard_normal(x.shape, np.float32)

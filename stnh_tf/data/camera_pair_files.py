@@ -3,7 +3,8 @@ photograph (:func:`make_image_pairs`, with :mod:`stnh_tf.data.wide_motions` for 
 set), and sets on disk, a folder of PNG pairs and a JSON manifest, written by :func:`write_pairs`
 (``experiments.make_camera_pairs``) and read by :func:`load_pairs`. NumPy/OpenCV only.
 
-Layout: ``{k:05d}_a.png`` and ``{k:05d}_b.png`` (8-bit gray, 320 x 240) for pair ``k``, and
+Layout: ``{k:05d}_a.png`` and ``{k:05d}_b.png`` (8-bit gray, 320 x 240, or ``scale`` times it:
+:mod:`stnh_tf.data.camera_motions`, "Larger pairs") for pair ``k``, and
 :data:`MANIFEST`: the set's parameters (seed, ranges, groups, counts, skipped files) and per pair
 its ``h_ba`` (image_b -> image_a pixels), group, kind, motion offset, motion and degradation
 parameters, and the SHA-256 of its two PNG files. The manifest is the set's commit point: it is
@@ -52,7 +53,7 @@ def _read_manifest(path: str) -> dict:
 def make_image_pairs(gray, image_index: int, image_id: str, pairs_per_image: int, seed: int,
                      motions: MotionRanges | None = None,
                      degradation: Degradation = Degradation(),
-                     motion_set: str = "size") -> list:
+                     motion_set: str = "size", scale: int = 1) -> list:
     """The :class:`~stnh_tf.data.camera_motions.CameraPair` s of one photograph (gray
     ``uint8 [h, w]``, any size): pair ``j`` has index ``k = image_index * pairs_per_image + j``
     and group ``groups[k % len(groups)]`` (``groups = MOTION_SETS[motion_set]``); every draw
@@ -63,7 +64,8 @@ def make_image_pairs(gray, image_index: int, image_id: str, pairs_per_image: int
     ``motions``: ``None``, the set's (:func:`set_motions`); ``"wide_low_light"`` pairs get
     ``wide_motions.LOW_LIGHT`` instead of ``degradation``, the paper groups their own
     (:func:`~stnh_tf.data.paper_motions.group_degradation`; ``motions`` and ``degradation`` do
-    not apply to them).
+    not apply to them). ``scale``: the pairs rendered at ``320 scale x 240 scale`` from the same
+    draws, ``h_ba`` in that frame (:func:`~stnh_tf.data.camera_motions.to_scale`).
 
     Raises:
       ValueError: an unknown ``motion_set``.
@@ -74,7 +76,7 @@ def make_image_pairs(gray, image_index: int, image_id: str, pairs_per_image: int
     motions = set_motions(motion_set) if motions is None else motions
     groups = MOTION_SETS[motion_set]
     rng = np.random.default_rng([int(seed), int(image_index)])
-    source, out = camera_motions.source_image(gray), []
+    source, out = camera_motions.source_image(gray, scale), []
     for j in range(pairs_per_image):
         k = image_index * pairs_per_image + j
         group = groups[k % len(groups)]
@@ -87,11 +89,11 @@ def make_image_pairs(gray, image_index: int, image_id: str, pairs_per_image: int
                                else camera_motions.draw_motion(rng, group, motions))
             photometric = camera_motions.draw_degradation(
                 rng, wide_motions.LOW_LIGHT if group == "wide_low_light" else degradation)
-        image_a, image_b = camera_motions.render_pair(source, h)
-        out.append(CameraPair(k, image_id, group, kind, h,
+        image_a, image_b = camera_motions.render_pair(source, h, scale)
+        out.append(CameraPair(k, image_id, group, kind, camera_motions.to_scale(h, scale),
                               float(camera_motions.motion_offset(h)), motion, photometric,
                               np.clip(np.rint(image_a), 0, 255).astype(np.uint8),
-                              camera_motions.degrade(image_b, photometric)))
+                              camera_motions.degrade(image_b, photometric, scale)))
     return out
 
 
@@ -104,7 +106,7 @@ def set_motions(motion_set: str) -> MotionRanges:
 def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
                 motions: MotionRanges | None = None,
                 degradation: Degradation = Degradation(), overwrite: bool = False,
-                motion_set: str = "size", max_images: int = 0) -> dict:
+                motion_set: str = "size", max_images: int = 0, scale: int = 1) -> dict:
     """Pairs of every photograph below ``image_dir`` (:func:`stnh_tf.data.sources.scan_image_folder`
     order; the first ``max_images`` of them, 0: all) into ``output_dir``: ``{k:05d}_a.png``,
     ``{k:05d}_b.png`` and :data:`MANIFEST` (every parameter, each pair's ``h_ba``, group, kind,
@@ -113,7 +115,8 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
     :class:`~stnh_tf.data.folder_counts.FolderCounts`). Returns the manifest without its
     ``pairs``. ``motion_set`` and
     ``motions``: as :func:`make_image_pairs` takes them (``"wide"``:
-    the wide-baseline set, issue 64).
+    the wide-baseline set, issue 64). ``scale``: the pairs' size in 320 x 240's
+    (:func:`make_image_pairs`; recorded as ``"scale"`` and in ``"frame"``).
 
     Before the first PNG, :data:`MANIFEST` is replaced by an incomplete one (``"complete":
     false``, which :func:`load_pairs` refuses); the whole manifest is written atomically after
@@ -127,6 +130,8 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
     """
     if pairs_per_image < 1:
         raise ValueError(f"pairs_per_image must be >= 1; received {pairs_per_image}.")
+    if isinstance(scale, bool) or not isinstance(scale, (int, np.integer)) or scale < 1:
+        raise ValueError(f"scale must be an integer >= 1; received {scale!r}.")
     if motion_set not in MOTION_SETS:
         raise ValueError(f"motion_set must be one of {tuple(MOTION_SETS)}; received "
                          f"{motion_set!r}.")
@@ -152,7 +157,7 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
             skipped.append([listing.image_id(path_in), str(e)])
             continue
         for p in make_image_pairs(gray, index, listing.image_id(path_in), pairs_per_image, seed,
-                                  motions, degradation, motion_set):
+                                  motions, degradation, motion_set, scale):
             names, sha256 = (f"{p.index:05d}_a.png", f"{p.index:05d}_b.png"), []
             for name, image in zip(names, (p.image_a, p.image_b)):
                 data = cv2.imencode(".png", image)[1].tobytes()
@@ -172,13 +177,15 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
         "pairs_per_image": pairs_per_image,
         "image_dir": listing.root, "images": index, "skipped": skipped,
         "max_images": max_images, "photographs": counts.as_dict(),
-        "frame": "h_ba maps image_b pixels to image_a pixels, 320 x 240, pixel centres at "
-                 "integers; image_b(p) = image_a(h_ba @ p) before the degradation",
-        "source_size": list(SOURCE_SIZE), "margin": list(MARGIN),
+        "frame": f"h_ba maps image_b pixels to image_a pixels, {320 * scale} x {240 * scale}, "
+                 "pixel centres at integers; image_b(p) = image_a(h_ba @ p) before the "
+                 "degradation",
+        "scale": int(scale), "source_size": [v * scale for v in SOURCE_SIZE],
+        "margin": [v * scale for v in MARGIN],
         "groups": ({g: [lo * TRAINED_OFFSET, hi * TRAINED_OFFSET] for g, (lo, hi) in GROUPS.items()}
                    if motion_set == "size" else {g: None for g in MOTION_SETS[motion_set]}),
         "group_measure": "largest corner offset (per coordinate, px) of the central 128 x 128 "
-                         "patch at (96, 56) in the patch frame",
+                         "patch at (96, 56) of the 320 x 240 frame, in the patch frame",
         "counts": {g: sum(r["group"] == g for r in records) for g in MOTION_SETS[motion_set]},
         "motions": dataclasses.asdict(motions), "degradation": dataclasses.asdict(degradation),
         "motion_set": motion_set,

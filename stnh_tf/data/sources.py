@@ -385,12 +385,21 @@ def _decode_with_pillow(data: bytes) -> np.ndarray:
 
 def resize_to_protocol(gray: np.ndarray, width: int = geometry.IMAGE_WIDTH,
                        height: int = geometry.IMAGE_HEIGHT) -> np.ndarray:
-    """``uint8 [h, w]`` -> ``uint8 [height, width]`` (area when shrinking, else bilinear)."""
+    """``uint8 [h, w]`` -> ``uint8 [height, width]`` (area when shrinking, else bilinear; both
+    with the geometry of :func:`resize_matrix`)."""
     h, w = gray.shape[:2]
     if (w, h) == (width, height):
         return np.ascontiguousarray(gray)
     interp = cv2.INTER_AREA if (w >= width and h >= height) else cv2.INTER_LINEAR
     return cv2.resize(gray, (width, height), interpolation=interp)
+
+
+def resize_matrix(src_size, dst_size) -> np.ndarray:
+    """``[3, 3]`` float64 map from pixels of an image of ``src_size = (w, h)`` to pixels of its
+    resized version of ``dst_size = (w', h')`` (``cv2.resize`` geometry, pixel centres at integer
+    coordinates): ``x' = s_x (x + 0.5) - 0.5`` with ``s_x = w' / w`` (same for y)."""
+    sx, sy = dst_size[0] / src_size[0], dst_size[1] / src_size[1]
+    return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
 
 
 def read_gray(path_or_bytes, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:

@@ -4,18 +4,20 @@ library core of ``experiments.benchmark_camera_pairs``.
 Per group of motion size, each method's corner error, success rate and time per pair:
 
 * ``"estimator"``: ``HomographyEstimator.estimate_images_with_info``
-  (:mod:`stnh_tf.inference.estimator`) on the two 320 x 240 gray images (the shipped default
+  (:mod:`stnh_tf.inference.estimator`) on the two gray images (the shipped default
   weights and options unless given others), and its implausibility flag as a detector of
   estimates more than ``flag_error_px`` off;
 * ``"sift_ransac"``, ``"orb_ransac"``: :mod:`stnh_tf.evaluation.baselines` on the same whole
   images (``estimate_images``; their settings as on patches);
 * ``"identity"``.
 
-Errors (px), all in the 320 x 240 frame the pairs are made in (it is each image's own frame):
-``error`` is the mean distance over the image's four corners ``(0, 0), (320, 0), (320, 240),
-(0, 240)`` between the estimate's and the true ``h_ba``'s images of them (the MACE of the whole
-image); ``patch_error`` the same over the corners of the central 128 x 128 patch in the patch
-frame (the training's MACE). In the paper's-protocol groups
+Errors (px), all in the frame the pairs are made in (each image's own: 320 x 240, or
+``320 s x 240 s`` for a set made at ``scale`` ``s``, issue 79):
+``error`` is the mean distance over the image's four corners ``(0, 0), (w, 0), (w, h),
+(0, h)`` between the estimate's and the true ``h_ba``'s images of them (the MACE of the whole
+image); ``patch_error`` the same over the corners of the central 128 x 128 patch of the
+320 x 240 frame (both homographies brought there, :func:`work_frame`), in the patch frame (the
+training's MACE). In the paper's-protocol groups
 (:data:`stnh_tf.data.paper_motions.PATCH_FRAME_GROUPS`) ``error`` is ``patch_error``, the paper's
 MACE: their image corners can lie beyond the horizon. Success: ``error < success_px``. The
 flag's recall is the share of estimates with ``error > flag_error_px`` that are flagged
@@ -31,7 +33,7 @@ import time
 import numpy as np
 
 from stnh_tf import geometry
-from stnh_tf.data import camera_motions, camera_pair_files, paper_motions
+from stnh_tf.data import camera_motions, camera_pair_files, paper_motions, sources
 from stnh_tf.evaluation import baselines
 
 METHODS = ("estimator", "sift_ransac", "orb_ransac", "identity", "sift_wide")
@@ -55,10 +57,22 @@ def image_errors(h_pred, h_true, size=camera_motions.WORK_SIZE) -> np.ndarray:
     return np.where(np.isfinite(out), out, np.inf)
 
 
-def patch_errors(h_pred, h_true) -> np.ndarray:
+def work_frame(h_ba, size) -> np.ndarray:
+    """Image-frame ``H_ba`` ``[..., 3, 3]`` of two ``size = (w, h)`` images in the 320 x 240
+    frame: ``R @ H @ inv(R)``, ``R`` :func:`stnh_tf.data.sources.resize_matrix` from ``size`` to
+    320 x 240 (``H`` itself at that size)."""
+    h_ba = np.asarray(h_ba, np.float64)
+    if tuple(size) == camera_motions.WORK_SIZE:
+        return h_ba
+    r = sources.resize_matrix(size, camera_motions.WORK_SIZE)
+    return r @ h_ba @ np.linalg.inv(r)
+
+
+def patch_errors(h_pred, h_true, size=camera_motions.WORK_SIZE) -> np.ndarray:
     """Mean corner error ``[B]`` (px) of the central 128 x 128 patch
-    (:data:`stnh_tf.data.camera_motions.PATCH_ORIGIN`) in the patch frame, for image-frame
-    ``H_ba`` ``[B, 3, 3]``."""
+    (:data:`stnh_tf.data.camera_motions.PATCH_ORIGIN`) of the 320 x 240 frame in the patch
+    frame, for image-frame ``H_ba`` ``[B, 3, 3]`` of ``size`` images (:func:`work_frame`)."""
+    h_pred, h_true = work_frame(h_pred, size), work_frame(h_true, size)
     t = geometry.translation(*camera_motions.PATCH_ORIGIN)
     to_patch = lambda h: np.linalg.inv(t) @ np.asarray(h, np.float64) @ t  # noqa: E731
     with np.errstate(all="ignore"):
@@ -167,6 +181,10 @@ def benchmark(pairs, methods=DEFAULT_METHODS, estimator=None, options=None, succ
     if unknown or not len(pairs):
         raise ValueError(f"methods must be among {METHODS} (received {list(methods)}) and pairs "
                          f"must not be empty (received {len(pairs)}).")
+    sizes = {p.image_a.shape[::-1] for p in pairs} | {p.image_b.shape[::-1] for p in pairs}
+    if len(sizes) != 1:
+        raise ValueError(f"the pairs' images must all have one size; received {sorted(sizes)}.")
+    size = sizes.pop()
     h_true = np.stack([p.h_ba for p in pairs])
     groups = np.array([p.group for p in pairs])
     runs = {}
@@ -179,13 +197,15 @@ def benchmark(pairs, methods=DEFAULT_METHODS, estimator=None, options=None, succ
             runs[m] = run_estimator(estimator, pairs, options)
         else:
             runs[m] = run_baseline(m, pairs)
-    patch = {m: patch_errors(r["h"], h_true) for m, r in runs.items()}
+    patch = {m: patch_errors(r["h"], h_true, size) for m, r in runs.items()}
     in_patch_frame = np.isin(groups, paper_motions.PATCH_FRAME_GROUPS)
-    errors = {m: np.where(in_patch_frame, patch[m], image_errors(r["h"], h_true))
+    errors = {m: np.where(in_patch_frame, patch[m], image_errors(r["h"], h_true, size))
               for m, r in runs.items()}
     result = {"count": len(pairs), "success_px": success_px, "flag_error_px": flag_error_px,
-              "error_frame": "320 x 240 image frame: mean over the image's 4 corners (patch_mace:"
-                             " the central 128 x 128 patch's corners, patch frame; in the groups "
+              "image_size": list(size),
+              "error_frame": f"{size[0]} x {size[1]} image frame: mean over the image's 4 corners"
+                             " (patch_mace: the central 128 x 128 patch's corners of the 320 x "
+                             "240 frame, patch frame; in the groups "
                              f"{', '.join(paper_motions.PATCH_FRAME_GROUPS)} the error is "
                              "patch_mace, the paper's)",
               "groups": {}}

@@ -52,7 +52,7 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry, pixels
-from stnh_tf.data.sources import check_image_size, resize_to_protocol
+from stnh_tf.data.sources import check_image_size, resize_matrix, resize_to_protocol
 
 PATCH_SIZE = geometry.PATCH_SIZE
 WORK_SIZE = (geometry.IMAGE_WIDTH, geometry.IMAGE_HEIGHT)
@@ -286,16 +286,6 @@ def work_from_feature(size) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Frames
 # --------------------------------------------------------------------------------------------
-def resize_matrix(src_size, dst_size) -> np.ndarray:
-    """``[3, 3]`` float64 map from pixels of an image of ``src_size = (w, h)`` to pixels of its
-    resized version of ``dst_size = (w', h')`` (``cv2.resize`` geometry, pixel centres at integer
-    coordinates): ``x' = s_x (x + 0.5) - 0.5`` with ``s_x = w' / w`` (same for y)."""
-    sx, sy = dst_size[0] / src_size[0], dst_size[1] / src_size[1]
-    return np.array([[sx, 0.0, 0.5 * sx - 0.5],
-                     [0.0, sy, 0.5 * sy - 0.5],
-                     [0.0, 0.0, 1.0]], dtype=np.float64)
-
-
 def resize_to_work_size(gray: np.ndarray) -> np.ndarray:
     """Grayscale ``[h, w]`` (uint8 or float) -> ``[240, 320]`` as the training data was made:
     :func:`stnh_tf.data.sources.resize_to_protocol` (``cv2.INTER_AREA`` when both sides shrink,
