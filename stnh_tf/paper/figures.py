@@ -154,30 +154,36 @@ def prediction_examples(context_a, patch_b, h_true, h_pred, path: str, titles=No
 
 @dataclasses.dataclass(frozen=True)
 class Bar:
-    """One method's bar of Fig. 4: its MACE (px), the paper's (``None``: none), and where the
-    hierarchy's degenerate-prediction rule rejected some of its stage predictions, the ``note``
-    written over it and ``hatched``."""
+    """One method's bar of Fig. 4: its MACE (px), the paper's (``None``: none), where the
+    hierarchy's degenerate-prediction rule rejected some of its stage predictions the ``note``
+    written over it and ``hatched``, the MACE of each seed trained (``seeds``, drawn as dots) and
+    the same method trained at the paper's schedule (``schedule``, its own bar; ``None``: none)."""
 
     name: str
     value: float
     paper: float | None = None
     note: str = ""
     hatched: bool = False
+    seeds: tuple = ()
+    schedule: float | None = None
 
 
 def fig4_bars(results: dict, paper: dict | None = None, rejected: dict | None = None,
-              predictions: dict | None = None) -> list:
+              predictions: dict | None = None, seeds: dict | None = None,
+              schedule: dict | None = None) -> list:
     """What :func:`mace_bars` draws, one :class:`Bar` per method of ``results`` (``{name: mace}``)
     in order. A method with ``rejected[name] > 0`` stage predictions rejected (of
     ``predictions[name]``) is hatched and noted ``rejected: n of m``, plus ``at the identity``
     where its MACE is the identity's (drawn at the identity's height; the identity's method: the
-    one named ``identity``, any case).
+    one named ``identity``, any case). ``seeds`` and ``schedule`` (``{name: ...}``) fill
+    :class:`Bar`'s fields of the same names.
 
     >>> [b.note for b in fig4_bars({"Identity": 23.5, "2 stages": 23.5, "1 stage": 9.0},
     ...                            rejected={"2 stages": 8}, predictions={"2 stages": 8})]
     ['', 'rejected: 8 of 8\\nat the identity', '']
     """
     rejected, predictions, paper = rejected or {}, predictions or {}, paper or {}
+    seeds, schedule = seeds or {}, schedule or {}
     identity = next((v for n, v in results.items() if n.lower() == "identity"), None)
     bars = []
     for name, value in results.items():
@@ -186,40 +192,51 @@ def fig4_bars(results: dict, paper: dict | None = None, rejected: dict | None = 
             note = f"rejected: {n}" + (f" of {predictions[name]}" if name in predictions else "")
             if identity is not None and abs(value - identity) < 1e-6:
                 note += "\nat the identity"
-        bars.append(Bar(name, float(value), paper.get(name), note, bool(n)))
+        bars.append(Bar(name, float(value), paper.get(name), note, bool(n),
+                        tuple(float(v) for v in seeds.get(name, ())),
+                        None if schedule.get(name) is None else float(schedule[name])))
     return bars
 
 
-def mace_bars_figure(bars, title: str = "Mean corner error (px)"):
-    """The matplotlib figure of :func:`mace_bars` for :func:`fig4_bars`' ``bars``: this run's
-    bars (hatched ``//`` where noted, the note above the method's pair of bars), the paper's in
-    grey beside them where any is given, and the identity's MACE as a dashed line. The caller
-    closes it."""
+def mace_bars_figure(bars, title: str = "Mean corner error (px)", label: str = "this run",
+                     seeds_label: str = "each seed"):
+    """The matplotlib figure of :func:`mace_bars` for :func:`fig4_bars`' ``bars``: the bars
+    named ``label`` (hatched ``//`` where noted, the note above the method's bars), each seed's
+    MACE as a dot on them (``seeds_label`` in the legend), the paper's-schedule bars beside them
+    where any bar has one, the paper's in grey where any is given, and the identity's MACE as a
+    dashed line. The caller closes it."""
     plt = _pyplot()
     names = [b.name for b in bars]
     x = np.arange(len(names))
-    has_paper = any(b.paper is not None for b in bars)
-    fig, ax = plt.subplots(figsize=(max(6, 1.2 * len(names)), 3.8))
-    width = 0.4 if has_paper else 0.7
-    drawn = ax.bar(x - (width / 2 if has_paper else 0), [b.value for b in bars], width,
-                   label="this run", hatch=["//" if b.hatched else "" for b in bars],
-                   edgecolor="black", linewidth=0.3)
-    ax.bar_label(drawn, fmt="%.1f", fontsize=7)
+    columns = [("ours", [b.value for b in bars])]
+    if any(b.schedule is not None for b in bars):
+        columns.append(("schedule", [np.nan if b.schedule is None else b.schedule for b in bars]))
+    if any(b.paper is not None for b in bars):
+        columns.append(("paper", [np.nan if b.paper is None else b.paper for b in bars]))
+    fig, ax = plt.subplots(figsize=(max(6, 1.3 * len(names)), 3.8))
+    width = 0.8 / len(columns) if len(columns) > 1 else 0.7
+    offsets = (np.arange(len(columns)) - (len(columns) - 1) / 2) * width
+    styles = {"ours": {"label": label, "hatch": ["//" if b.hatched else "" for b in bars],
+                       "edgecolor": "black", "linewidth": 0.3},
+              "schedule": {"label": "ours, the paper's schedule", "color": "tab:green"},
+              "paper": {"label": "paper", "color": "grey"}}
+    for (kind, values), offset in zip(columns, offsets):
+        drawn = ax.bar(x + offset, values, width, **styles[kind])
+        ax.bar_label(drawn, fmt="%.1f" if kind == "ours" else "%.2f", fontsize=7)
+    dots = [(xi + offsets[0], v) for xi, b in zip(x, bars) for v in b.seeds]
+    if dots:
+        ax.scatter(*zip(*dots), s=9, color="black", zorder=3, label=seeds_label)
     for xi, b in zip(x, bars):
         if b.note:
             ax.annotate(b.note, (xi, b.value), xytext=(0, 10),
                         textcoords="offset points", ha="center", va="bottom", fontsize=6,
                         color="darkred")
-    if has_paper:
-        pbars = ax.bar(x + width / 2, [np.nan if b.paper is None else b.paper for b in bars],
-                       width, label="paper", color="grey")
-        ax.bar_label(pbars, fmt="%.2f", fontsize=7)
     identity = next((b.value for b in bars if b.name.lower() == "identity"), None)
     if identity is not None:
         ax.axhline(identity, color="black", linestyle="--", linewidth=0.8, label="identity")
     top = max([b.value for b in bars if np.isfinite(b.value)] + [1.0])
     ax.set_ylim(0, top * (1.35 if any(b.note for b in bars) else 1.12))
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7, ncol=2)
     ax.set_xticks(x, names, rotation=20, ha="right", fontsize=8)
     ax.set_ylabel("MACE (px)")
     ax.set_title(title, fontsize=9)
@@ -229,12 +246,16 @@ def mace_bars_figure(bars, title: str = "Mean corner error (px)"):
 
 def mace_bars(results: dict, path: str, paper: dict | None = None,
               title: str = "Mean corner error (px)", rejected: dict | None = None,
-              predictions: dict | None = None) -> str:
+              predictions: dict | None = None, seeds: dict | None = None,
+              schedule: dict | None = None, label: str = "this run",
+              seeds_label: str = "each seed") -> str:
     """Fig. 4: one bar per method (``{name: mace}``), the paper's value beside it where given,
-    rows whose predictions the degenerate rule rejected marked (:func:`fig4_bars`), the
-    identity's MACE as a dashed line; writes a PNG to ``path`` and returns it."""
+    rows whose predictions the degenerate rule rejected marked, each seed a dot, the paper's
+    schedule's bars (:func:`fig4_bars`), the identity's MACE as a dashed line; writes a PNG to
+    ``path`` and returns it."""
     plt = _pyplot()
-    fig = mace_bars_figure(fig4_bars(results, paper, rejected, predictions), title)
+    fig = mace_bars_figure(fig4_bars(results, paper, rejected, predictions, seeds, schedule),
+                           title, label, seeds_label)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
