@@ -30,6 +30,7 @@ BACKEND_FREE = ("core", "data/sources", "data/pairs", "data/batches",
                 "data/features", "data/labels", "data/paper_motions", "training/config",
                 "training/presets", "paper/result_cells", "paper/model_provenance",
                 "evaluation/card_evaluation", "paper/fig4_render",
+                "paper/learning_curves",
                 "training/run_dir", "training/run_records", "inference/options",
                 "inference/checks", "inference/search", "inference/pipeline", "inference/ecc")
 
@@ -149,7 +150,8 @@ DOCTEST_MODULES = ("stnh_tf.geometry", "stnh_tf.pixels", "stnh_tf.paths", "stnh_
                    "stnh_tf.inference.options", "stnh_tf.inference.checks",
                    "stnh_tf.inference.search", "stnh_tf.inference.ecc",
                    "stnh_tf.data.paper_motions", "stnh_tf.evaluation.card_evaluation",
-                   "stnh_tf.paper.model_provenance", "stnh_tf.paper.fig4_render")
+                   "stnh_tf.paper.model_provenance", "stnh_tf.paper.fig4_render",
+                   "stnh_tf.paper.learning_curves")
 
 
 @pytest.mark.parametrize("name", DOCTEST_MODULES)
