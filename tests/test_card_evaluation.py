@@ -35,13 +35,19 @@ def test_plan_by_card_layout():
     # written before --no_clip existed: no clip_to_context recorded, and it clipped
     assert card_evaluation.plan({"model": {}})[""].clip_to_context is True
     named = {"plain_coco_mini_test": {}, "training": {}, "implausibility_coco_mini_test": {}}
-    assert set(card_evaluation.plan(named)) == {"plain_coco_mini_test",
-                                                "implausibility_coco_mini_test"}
+    # every named measurement, those the card lacks added; the training record kept
+    assert card_evaluation.plan(named) == card_evaluation.NAMED
+    assert card_evaluation.NAMED["plain_bundled_test"].source == "bundled"
     with pytest.raises(ValueError, match="cannot re-measure.*'hand_made'"):
         card_evaluation.plan({**named, "hand_made": {}})
 
 
-def test_refresh_measures_the_shipped_files_and_refuses_other_pairs(tmp_path, narrow):
+def test_refresh_measures_the_shipped_files_and_refuses_other_pairs(tmp_path, narrow,
+                                                                     monkeypatch):
+    # two of the named measurements: the test photographs' and the bundled ones' (the others
+    # differ from them only in their settings, and take minutes with the search)
+    monkeypatch.setattr(card_evaluation, "NAMED", {
+        key: card_evaluation.NAMED[key] for key in ("plain_coco_mini_test", "plain_bundled_test")})
     h = np.array([[1.04, 0.02, -3.0], [-0.02, 0.97, 4.0], [1e-4, -1e-4, 1.0]])
     _constant_run(tmp_path / "s1", h, mixed=False)
     _constant_run(tmp_path / "s2", np.eye(3), mixed=False)
@@ -68,7 +74,7 @@ def test_refresh_measures_the_shipped_files_and_refuses_other_pairs(tmp_path, na
         json.dump(card, f)
     lines = []
     new = card_evaluation.refresh_card(str(weights), photos, log=lines.append)
-    assert lines == ["plain_coco_mini_test: measured"]
+    assert lines == ["plain_coco_mini_test: measured", "plain_bundled_test: measured"]
     assert new["evaluation"]["training"] == {"stage1": "kept as it is"}
     entry = new["evaluation"]["plain_coco_mini_test"]
     with open(card_path) as f:
@@ -88,6 +94,9 @@ def test_refresh_measures_the_shipped_files_and_refuses_other_pairs(tmp_path, na
             _mace_numpy(h, h_ba), abs=1e-3)
     assert entry["model"]["model_dirs"] == ["stage1.keras", "stage2.keras"]
     assert entry["test_pairs"] == {**settings, "image_dir": photos, "photometric": False}
+    bundled = new["evaluation"]["plain_bundled_test"]
+    assert bundled["test_pairs"]["source"] == "bundled" and bundled["test_pairs"]["image_dir"] is None
+    assert bundled["count"] == 3 * len(sources.bundled_images())
     assert entry["machine"]["cpu_count"] == os.cpu_count() and "git_commit" in entry["machine"]
     assert "data_dir" not in entry  # a temporary folder, gone
 

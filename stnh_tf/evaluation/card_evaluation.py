@@ -10,8 +10,10 @@ entry re-runs is data, :data:`NAMED`, chosen by its key:
 
 - a card whose ``evaluation`` is one ``experiments.evaluate`` result (``paper_recipe``,
   ``paper_schedule``): that hierarchy, stored dtype, the clipping rule as the result records it;
-- a card with named entries (the shipped default): each key of :data:`NAMED`; ``training`` (a
-  record of how the stages were trained, not a measurement) is kept as it is.
+- a card with named entries (the shipped default): every key of :data:`NAMED`, among them the
+  same hierarchy on the photographs shipped inside installed packages, which no shipped model
+  was trained on or chosen with; ``training`` (a record of how the stages were trained, not a
+  measurement) is kept as it is.
 
 The pairs must be the ones the card was measured on: where an entry records the identity's MACE
 and the new pairs' differs, nothing is written (:class:`OtherPairs`).
@@ -45,6 +47,9 @@ class Evaluation:
       clip_to_context: ``"hierarchy"``: the degenerate-prediction rule's clipping.
       compute_dtype: ``"float32"`` or ``None`` (the stages as saved).
       search: ``"implausibility"``: ``EstimateOptions.search``.
+      source: the pairs' photographs: ``"folder"`` (``--test_image_dir``) or ``"bundled"``
+        (those shipped inside installed packages, :func:`stnh_tf.data.sources.bundled_images`:
+        photographs no shipped model was trained on or chosen with).
     """
 
     kind: str
@@ -52,6 +57,7 @@ class Evaluation:
     clip_to_context: bool = True
     compute_dtype: str | None = "float32"
     search: str = "none"
+    source: str = "folder"
 
 
 NAMED = {
@@ -60,6 +66,7 @@ NAMED = {
     "photometric_coco_mini_test": Evaluation("hierarchy", photometric=True),
     "implausibility_coco_mini_test": Evaluation("implausibility"),
     "implausibility_coco_mini_test_photometric": Evaluation("implausibility", photometric=True),
+    "plain_bundled_test": Evaluation("hierarchy", source="bundled"),
 }
 """What each named entry of the shipped default's card measures."""
 
@@ -72,7 +79,8 @@ class OtherPairs(ValueError):
 
 
 def plan(evaluation: dict) -> dict[str, Evaluation]:
-    """``{key: Evaluation}`` of what re-measuring ``evaluation`` (a card's) runs.
+    """``{key: Evaluation}`` of what re-measuring ``evaluation`` (a card's) runs: a single result,
+    again; named entries, every entry of :data:`NAMED` (those the card lacks are added).
 
     Raises:
       ValueError: a named entry that is neither in :data:`NAMED` nor :data:`KEPT`.
@@ -85,7 +93,7 @@ def plan(evaluation: dict) -> dict[str, Evaluation]:
     if unknown:
         raise ValueError(f"the card's evaluation has entries this command cannot re-measure: "
                          f"{unknown} (known: {sorted(NAMED)}; kept: {list(KEPT)}).")
-    return {key: NAMED[key] for key in evaluation if key in NAMED}
+    return dict(NAMED)
 
 
 def _identity_mace(entry: dict):
@@ -127,15 +135,16 @@ def refresh(weights_dir: str, card: dict, test_image_dir: str, log=print) -> dic
     new = {} if ROOT in todo else dict(evaluation)
     with tempfile.TemporaryDirectory() as tmp:
         data_dirs = {}
-        for photometric in sorted({e.photometric for e in todo.values()}):
-            data_dirs[photometric] = os.path.join(tmp, "photometric" if photometric else "plain")
-            stage1.make_dataset(TEST_PAIRS["source"], data_dirs[photometric],
-                                TEST_PAIRS["split"], image_dir=test_image_dir,
+        for source, photometric in sorted({(e.source, e.photometric) for e in todo.values()}):
+            data_dirs[source, photometric] = os.path.join(
+                tmp, f"{source}_{'photometric' if photometric else 'plain'}")
+            stage1.make_dataset(source, data_dirs[source, photometric], TEST_PAIRS["split"],
+                                image_dir=test_image_dir if source == "folder" else None,
                                 seed=TEST_PAIRS["seed"],
                                 samples_per_image=TEST_PAIRS["samples_per_image"],
                                 num_shards=1, log=lambda *a, **k: None, photometric=photometric)
         for key, spec in todo.items():
-            data_dir = data_dirs[spec.photometric]
+            data_dir = data_dirs[spec.source, spec.photometric]
             if spec.kind == "hierarchy":
                 result = mace.evaluate(stages, data_dir, TEST_PAIRS["split"],
                                        compute_dtype=spec.compute_dtype,
@@ -154,8 +163,9 @@ def refresh(weights_dir: str, card: dict, test_image_dir: str, log=print) -> dic
                     f"the card was measured on (identity MACE {after:.4f}, recorded "
                     f"{before:.4f}); nothing was written. Give the card's test photographs.")
             result.pop("data_dir", None)
-            result["test_pairs"] = {**TEST_PAIRS, "image_dir": test_image_dir,
-                                    "photometric": spec.photometric}
+            result["test_pairs"] = {**TEST_PAIRS, "source": spec.source,
+                                    "image_dir": test_image_dir if spec.source == "folder"
+                                    else None, "photometric": spec.photometric}
             result["machine"] = machine_info()
             log(f"{key or 'evaluation'}: measured")
             if key == ROOT:
