@@ -720,6 +720,61 @@ PROSE = [
 ]
 
 
+def _camera_file(name):
+    """docs/camera_pairs/``name``.json (not in ``current_results.SOURCES``)."""
+    with open(os.path.join(ROOT, "docs", "camera_pairs", f"{name}.json")) as f:
+        return json.load(f)
+
+
+def from_file(name, get):
+    """``get`` (a getter of this module, reading source ``name``) on docs/camera_pairs/``name``."""
+    return lambda sources: get({**sources, name: _camera_file(name)})
+
+
+def native_row(label, name, group):
+    """A row of BENCHMARKS.md's table of the feature start at the images' own resolution (issue
+    79) and its numbers, from docs/camera_pairs/``name``.json."""
+    run = rf"(\d+) of (\d+), {N} \({N}\) px, (\d+) ms"
+    base = rf"(\d+), {N} px, (\d+) ms"
+    regex = (rf"\| {re.escape(label)} \| `{group}` \| {run} \| {base} \| {base} \| "
+             rf"(\d+) of (\d+), (\d+) of (\d+) \|")
+    fields = [("estimator", f) for f in ("ok", "count", "mace", "median", "ms")]
+    fields += [(m, f) for m in ("sift_ransac", "sift_wide") for f in ("ok", "mace", "ms")]
+    fields += [("estimator", f) for f in ("flag:flagged_bad", "flag:bad", "flag:flagged_good",
+                                          "good")]
+    return ("BENCHMARKS.md", regex, [from_file(name, cam(name, group, m, f)) for m, f in fields])
+
+
+def native_pair(name, index):
+    """The estimator's error of pair ``index`` in docs/camera_pairs/``name``.json."""
+    return lambda sources: cr.fixed(next(p["estimator_error"] for p in _camera_file(name)["pairs"]
+                                         if p["index"] == index))
+
+
+NATIVE = ("wide_seed13_scale2_work_start", "wide_seed13_scale2_native_start")
+PROSE += [  # issue 79, item 2: the feature start at the images' own resolution
+    *[native_row(label, name, group)
+      for label, name in (("320 x 240, work start (= native)", "wide_seed13_scale1"),
+                          ("640 x 480, work start", NATIVE[0]),
+                          ("640 x 480, native start", NATIVE[1]))
+      for group in ("wide", "wide_low_light")],
+    ("BENCHMARKS.md",
+     rf"\(pair 10, `wide`:{S}{N} px and unflagged, a silent failure; pair 23, "
+     rf"`wide_low_light`: {N} px\) get no start from{S}the 640 x 480 images and end flagged, {N} "
+     rf"and {N} px off; pair 75, flagged in both, went{S}from {N} to {N} px",
+     [native_pair(NATIVE[0], 10), native_pair(NATIVE[0], 23), native_pair(NATIVE[1], 10),
+      native_pair(NATIVE[1], 23), native_pair(NATIVE[0], 75), native_pair(NATIVE[1], 75)]),
+    ("BENCHMARKS.md",
+     rf"The estimator takes {N}x the time per{S}pair in `wide` [^,]*,[^,]*, {N}x SIFT \+ "
+     "RANSAC's on the same images",
+     [from_file(NATIVE[1], lambda sources: cr.fixed(
+         cr.value(sources, NATIVE[1], "groups/wide/estimator/ms_per_pair")
+         / _camera_file(NATIVE[0])["groups"]["wide"]["estimator"]["ms_per_pair"])),
+      from_file(NATIVE[1], ratio((NATIVE[1], "groups/wide/estimator/ms_per_pair"),
+                                 (NATIVE[1], "groups/wide/sift_ransac/ms_per_pair")))]),
+]
+
+
 def _scale(name):
     """docs/scale/``name``.json (written by ``experiments.benchmark_workers``)."""
     with open(os.path.join(ROOT, "docs", "scale", f"{name}.json")) as f:

@@ -89,7 +89,8 @@ def test_feature_and_work_maps_follow_cv2_resize():
     image (2400 x 1800 capped to 1600 x 1200, INTER_AREA) and its work image hold, at the
     interior pixels ``p``, the original coordinates that ``resize_matrix`` maps to ``p``; so
     ``work_from_feature`` maps a feature pixel to the work pixel of the same original point
-    (the line through them within 1e-3 px; float32 resizing). Sizes that fit in 320 x 240 have no feature image."""
+    (the line through them within 1e-3 px; float32 resizing). Sizes that fit in 320 x 240 have
+    no feature image."""
     size = (2400, 1800)
     xs, ys = np.meshgrid(np.arange(size[0]), np.arange(size[1]))
     for coord, axis in ((xs, 0), (ys, 1)):

@@ -160,7 +160,8 @@ def wanted(first, options: EstimateOptions) -> bool:
 
 def candidate(run, work_a, work_b, options: EstimateOptions, origin, start=None):
     """The feature start's estimate of one pair, or ``None`` where :func:`feature_start` finds no
-    start (on ``start``'s images, :func:`work_start`; ``None``: on work_a and work_b): ``G @ H`` (``H``: ``run(patch_a, patch_b, contexts, options)``, the pipeline without
+    start (on ``start``'s images, :func:`work_start`; ``None``: on work_a and work_b): ``G @ H``
+    (``H``: ``run(patch_a, patch_b, contexts, options)``, the pipeline without
     the search on the central patches of work_a warped by ``G`` and of work_b) or ``G`` itself,
     whichever aligns the work images better (:func:`stnh_tf.inference.coarse.image_ncc`;
     ``G @ H`` on a tie): an ``Estimate`` (B = 1) with that homography in the patch frame
