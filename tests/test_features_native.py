@@ -184,7 +184,10 @@ def test_images_that_fit_the_work_size_keep_the_work_images_start(estimator, mon
     """Images at or below 320 x 240 (the pair and a 256 x 192 one): no feature image, no
     :class:`features.StartImages`; the feature start receives the work images themselves, and
     the estimate is bit for bit the one made with the start on the work images (the path before
-    issue 79). A pair of 1280 x 960 images goes to the start at that size, once per call."""
+    issue 79). A pair of 1280 x 960 images whose work images hold the texture: their start is
+    confirmed, and the start at the images' own size is not made (it costs more, and adds only
+    the detail a strong zoom needs); where the work images' start finds nothing (fine texture),
+    the start at the images' own size is made once per call."""
     seen = []
     start = features.feature_start
     monkeypatch.setattr(features, "feature_start",
@@ -208,10 +211,18 @@ def test_images_that_fit_the_work_size_keep_the_work_images_start(estimator, mon
                       "corner_std_px", "verify_move_px"):
             np.testing.assert_array_equal(getattr(est, field), getattr(before, field), field)
     size = (1280, 960)
-    a, b = _pair(_texture(1, size, fine=False), _motion(size, 100.0, 0.6), size)
+    h_true = _motion(size, 100.0, 0.6)
+    a, b = _pair(_texture(1, size, fine=False), h_true, size)
+    seen.clear()
+    est = estimator.estimate_images_with_info(a, b)
+    assert seen and all(x.shape == (240, 320) for pair in seen for x in pair)
+    assert est.feature_start[0] and not est.implausible[0]
+    assert _corner_error(est.homography[0], h_true, size) < 0.5
+    a, b = _pair(_texture(0, size, fine=True), _motion(size, 70.0, 0.4), size)
     seen.clear()
     estimator.estimate_images_with_info(a, b)
-    assert len(seen) == 1 and all(x.shape == (960, 1280) for x in seen[0])  # SIFT once
+    native = [pair for pair in seen if pair[0].shape == (960, 1280)]
+    assert len(native) == 1 and len(seen) == 2  # the work images' start, then SIFT once native
 
 
 def test_the_papers_path_makes_no_feature_image(estimator, monkeypatch):

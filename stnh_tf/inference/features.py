@@ -159,8 +159,23 @@ def wanted(first, options: EstimateOptions) -> bool:
 
 
 def candidate(run, work_a, work_b, options: EstimateOptions, origin, start=None):
-    """The feature start's estimate of one pair, or ``None`` where :func:`feature_start` finds no
-    start (on ``start``'s images, :func:`work_start`; ``None``: on work_a and work_b): ``G @ H``
+    """The feature start's estimate of one pair (:func:`from_start`), or ``None`` where no start
+    is found. The start is matched on work_a and work_b first; where it gives no estimate or one
+    that is not :func:`confirmed`, and the pair has larger images (``start``, :func:`work_start`),
+    the start matched on those gives a second estimate, and the one :func:`late_better` prefers
+    is returned (the larger images cost more, and add only the detail a strong zoom needs)."""
+    made = from_start(run, work_a, work_b, options, origin, feature_start(work_a, work_b))
+    if start is None or (made is not None and confirmed(made, options)):
+        return made
+    native = from_start(run, work_a, work_b, options, origin, work_start(start))
+    if native is None or made is None:
+        return made if native is None else native
+    return native if late_better(native, made, work_a, work_b, options, origin) else made
+
+
+def from_start(run, work_a, work_b, options: EstimateOptions, origin, h_image):
+    """The estimate of one pair from the start ``h_image`` (``[3, 3]`` ``H_ba`` in the work
+    frame; ``None``: no start, and ``None`` is returned): ``G @ H``
     (``H``: ``run(patch_a, patch_b, contexts, options)``, the pipeline without
     the search on the central patches of work_a warped by ``G`` and of work_b) or ``G`` itself,
     whichever aligns the work images better (:func:`stnh_tf.inference.coarse.image_ncc`;
@@ -169,7 +184,6 @@ def candidate(run, work_a, work_b, options: EstimateOptions, origin, start=None)
     ``alignment_ncc`` measured in work_a, ``feature_start`` set, the other fields those of ``H``,
     flagged by :func:`stnh_tf.inference.coarse.flag` (no corner rule). Arguments as in
     :func:`feature_pass`."""
-    h_image = feature_start(work_a, work_b) if start is None else work_start(start)
     if h_image is None:
         return None
     g = geometry.image_to_patch(h_image, *origin)
