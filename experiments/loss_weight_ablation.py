@@ -36,10 +36,10 @@ def main(argv):
             raise ValueError
     except ValueError:
         raise SystemExit(f"--weights entries are l2:l1; received {FLAGS.weights}.") from None
-    budget = reproduce.BUDGETS[FLAGS.budget]
-    if FLAGS.steps:
-        budget = dataclasses.replace(budget, ablation_steps=FLAGS.steps)
     with common.user_errors("loss_weight_ablation"):
+        budget = reproduce.BUDGETS.get(FLAGS.budget)  # (None: hour, which reproduce alone takes)
+        if budget and FLAGS.steps:
+            budget = dataclasses.replace(budget, ablation_steps=FLAGS.steps)
         run = reproduction_from_flags(budget, ablation_weights=weights)
         table = run.table1(run.ablation(run.ablation_weights))
     for (l2, l1), maces in table.items():

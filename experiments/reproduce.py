@@ -13,21 +13,28 @@ results.json and figures/. Models trained elsewhere at the same budget are used 
 budget. --train_only=homographynet trains that part alone (resumable) and stops, to spread the
 training over several sessions. See stnh_tf/paper/reproduce.py for the steps and budgets.
 --budget=tiny is the smoke test: it judges no claim, and keeps its output small (no checkpoints
-of finished models; HomographyNet's model.keras removed once evaluated).
+of finished models; HomographyNet's model.keras removed once evaluated). --budget=hour plans the
+steps of every model from a short timed probe of this machine so that the whole run ends within
+an hour, and says where that is too few steps for Fig. 4's order (stnh_tf/paper/hour_budget.py).
+Training prints a line per model every few steps (step, loss, time left of the model and of the
+reproduction); Ctrl-C or SIGTERM stops it after saving the model's checkpoint, with one line, and
+the same command resumes.
 --train_only=semi_supervised runs the semi-supervised table (experiments.semi_supervised with its
 defaults: trains its rows, evaluates them, writes semi_supervised.md and .json).
 """
 
+import contextlib
 import dataclasses
 
 from absl import app, flags
 
 from experiments import common, flags_common
-from stnh_tf.paper import reproduce, semi_supervised
+from stnh_tf.paper import hour_budget, reproduce, semi_supervised
 
-flags.DEFINE_enum("budget", "cpu", sorted(reproduce.BUDGETS), "Training budget of every model: "
-                  "cpu (the default: 4,000 steps each, hours on a CPU), tiny (the smoke test: 2 "
-                  "steps each, no verdict) or paper (91,000 steps each).")
+flags.DEFINE_enum("budget", "cpu", sorted([*reproduce.BUDGETS, "hour"]), "Training budget of "
+                  "every model: cpu (the default: 4,000 steps each, hours on a CPU), hour (as many "
+                  "steps as fit an hour on this machine, planned by a timed probe first), tiny "
+                  "(the smoke test: 2 steps each, no verdict) or paper (91,000 steps each).")
 flags.DEFINE_string("output_dir", None, "Where data, models, tables and figures go.", required=True)
 flags.DEFINE_enum("source", "folder", ["folder", "bundled", "coco2014"], "Image source.")
 flags.DEFINE_string("image_dir", "", "Training images (--source=folder).")
@@ -55,18 +62,31 @@ def parse_reuse(items) -> dict:
     return out
 
 
-def reproduction_from_flags(budget=None, **kwargs):
+def reproduction_from_flags(budget=None, hour: bool = False, **kwargs):
     """The :class:`~stnh_tf.paper.reproduce.Reproduction` of the shared flags (``--budget``,
     ``--output_dir``, ``--source``, ``--image_dir``, ``--test_image_dir``, ``--reuse``), which
     experiments.loss_weight_ablation and experiments.semi_supervised take too; ``budget`` replaces
     ``--budget``'s, ``--max_images`` replaces its ``max_images`` and ``test_max_images``, and
-    ``kwargs`` go to the constructor. Prints :func:`budget_line` first.
+    ``kwargs`` go to the constructor. Prints :func:`budget_line` first; at ``--budget=hour``
+    (with ``hour``: experiments.reproduce's alone) the plan's lines before it, the plan
+    (:func:`stnh_tf.paper.hour_budget.plan_for_folder`) going to the reproduction.
 
     Raises:
       ValueError: ``--output_dir`` is, lies inside or holds ``--image_dir`` or
-        ``--test_image_dir`` (:func:`experiments.common.check_flags_apart`).
+        ``--test_image_dir`` (:func:`experiments.common.check_flags_apart`); ``--budget=hour``
+        without ``hour`` (it plans a whole reproduction).
     """
     common.check_flags_apart(("output_dir",), ("image_dir", "test_image_dir"))
+    if budget is None and FLAGS.budget == "hour":
+        if not hour:
+            raise ValueError("--budget=hour plans a whole reproduction: run experiments.reproduce "
+                             "--budget=hour (Table 1 is part of it).")
+        kwargs["plan"] = hour_budget.plan_for_folder(
+            FLAGS.output_dir, source=FLAGS.source, image_dir=FLAGS.image_dir,
+            test_image_dir=FLAGS.test_image_dir, max_images=FLAGS.max_images,
+            ablation_weights=kwargs.get("ablation_weights", reproduce.ABLATION_WEIGHTS),
+            printer=lambda line: print(line, flush=True))
+        budget = hour_budget.planned_budget(kwargs["plan"])
     budget = budget or reproduce.BUDGETS[FLAGS.budget]
     if FLAGS.max_images:
         budget = dataclasses.replace(budget, max_images=FLAGS.max_images,
@@ -86,7 +106,9 @@ def budget_line(budget, given: bool) -> str:
     """
     share = budget.train_steps / reproduce.BUDGETS["paper"].train_steps
     what = {"tiny": "the smoke test (no verdict on any claim)",
-            "paper": "the paper's schedule: days per model on a CPU"}.get(
+            "paper": "the paper's schedule: days per model on a CPU",
+            "hour": f"{share:.2%} of the paper's schedule, planned for an hour on this machine "
+                    "([plan] above)"}.get(
         budget.name, f"{share:.1%} of the paper's schedule: hours on a CPU")
     images = (f"; the first {budget.max_images:,} photographs of each folder"
               if budget.max_images else "")
@@ -96,10 +118,23 @@ def budget_line(budget, given: bool) -> str:
             f"{default}")
 
 
+@contextlib.contextmanager
+def interrupt_line(binary: str):
+    """End ``binary`` with one line, not a traceback, at a KeyboardInterrupt: Ctrl-C outside a
+    model's training (data, evaluation; inside it, the first one stops the model after saving
+    its checkpoint: :class:`~stnh_tf.paper.progress.Stopped`), or a second Ctrl-C."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise SystemExit(f"{binary}: interrupted (Ctrl-C); finished parts and saved checkpoints "
+                         "are kept: the same command resumes") from None
+
+
 def main(argv):
     del argv
-    with common.user_errors("reproduce"):
-        run = reproduction_from_flags()
+    with common.user_errors("reproduce", (ValueError, OSError, reproduce.Stopped)), \
+            interrupt_line("reproduce"):
+        run = reproduction_from_flags(hour=True)
         parts = {"hierarchy": run.hierarchy, "homographynet": run.homographynet,
                  "sequence2": run.sequence2, "table1": lambda: run.ablation(run.ablation_weights),
                  "semi_supervised": lambda: semi_supervised.SemiSupervised(run).table()}

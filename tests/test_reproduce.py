@@ -53,7 +53,14 @@ def tiny_run(tmp_path_factory):
 
 @pytest.mark.slow
 def test_every_table_and_figure_is_written(tiny_run):
-    out, result, _ = tiny_run
+    out, result, logs = tiny_run
+    # Progress (issue 78): each model's line at its last step, with its loss, steps/s and time
+    # left, and the training's; after the last model, nothing is left.
+    steps = [x for x in logs if re.match(r"\[train\] \S+ step 2/2 loss=\S+ \(\d+\.\d\d steps/s, "
+                                         r"0 s left; training: ", x)]
+    assert [x.split(" ")[1] for x in steps] == [m[0] for m in reproduce.planned_models(
+        reproduce.BUDGETS["tiny"], reproduce.ABLATION_WEIGHTS)]
+    assert steps[-1].endswith("; training: 0 s left)")
     tables = open(os.path.join(out, "tables.md")).read()
     for heading in ("Fig. 4", "Table 1", "Table 2"):
         assert heading in tables

@@ -75,6 +75,39 @@ BUDGETS = {
 }
 
 
+# Table 1 rows trained with several seeds: the paper's claim (10:1 beats 1:1) compares these two.
+SPREAD_ROWS = ((1.0, 1.0), (10.0, 1.0))
+
+
+def ablation_name(l2: float, l1: float, seed: int = 0) -> str:
+    return f"ablation_l2-{l2:g}_l1-{l1:g}" + (f"_seed{seed}" if seed else "")
+
+
+def table1_seeds(budget: Budget, l2: float, l1: float) -> range:
+    """The seeds Table 1's ``(l2, l1)`` row is trained with at ``budget``."""
+    return range(budget.table1_seeds if (l2, l1) in SPREAD_ROWS else 1)
+
+
+def planned_models(budget: Budget, ablation_weights) -> list:
+    """Every model a reproduction at ``budget`` trains with Table 1's ``ablation_weights``, in
+    the order it trains them: ``[(name, kind, steps)]``, kind ``"stn"`` (a stage or a Table 1
+    row), ``"homographynet"`` or ``"sequence"`` (the 2-stage sequence model). Table 1's 1:1 row's
+    seed 0 is stage 1 where the ablation trains as many steps (not listed twice).
+
+    >>> [m[0] for m in planned_models(BUDGETS["tiny"], [(1.0, 1.0)])]
+    ['stage1', 'stage2', 'stage3', 'homographynet', 'sequence2', 'ablation_l2-1_l1-1_seed1']
+    """
+    models = [(f"stage{k}", "stn", budget.train_steps) for k in (1, 2, 3)]
+    models += [("homographynet", "homographynet", budget.train_steps),
+               ("sequence2", "sequence", budget.sequence_train_steps)]
+    steps = budget.ablation_train_steps
+    for l2, l1 in ablation_weights:
+        for seed in table1_seeds(budget, l2, l1):
+            if (l2, l1, seed) != (1.0, 1.0, 0) or steps != budget.train_steps:
+                models.append((ablation_name(l2, l1, seed), "stn", steps))
+    return models
+
+
 SCHEDULE = {"samples_per_image": 100, "in_memory": True, "mixed_precision": True,
             "val_samples": 300, "checkpoint_every": 500, "log_every": 500, "seed": 0}
 """The ``TrainConfig`` fields of ``experiments.paper_schedule``'s runs besides the paper's recipe

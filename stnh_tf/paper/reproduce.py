@@ -36,7 +36,9 @@ from stnh_tf.training import config as train_config
 from stnh_tf.training import presets
 from stnh_tf.paths import atomic_write_json, atomic_write_text
 from stnh_tf.provenance import machine_info
-from stnh_tf.paper.budgets import BUDGETS, SPEED_FIELDS, Budget, check_budget  # noqa: F401
+from stnh_tf.paper.budgets import (BUDGETS, SPEED_FIELDS, SPREAD_ROWS, Budget,  # noqa: F401
+                                   ablation_name, check_budget, planned_models, table1_seeds)
+from stnh_tf.paper.progress import Progress, Stopped  # noqa: F401
 from stnh_tf.paper.model_provenance import provenance_block
 from stnh_tf.paper.tables import (SMOKE_NOTE, TABLE1_HEAD, schedule_results,  # noqa: F401
                                   table1_claim, table1_line, table1_lines, tables_markdown)
@@ -51,15 +53,6 @@ PAPER_FIG4 = {"HomographyNet": 9.2, "STN-Homography 1 stage": 5.83,
               "STN-Homography 2 stages": 2.6, "STN-Homography 3 stages": 1.57,
               "Sequence 2 stages": 2.14}
 ABLATION_WEIGHTS = tuple(PAPER_TABLE1)
-# Table 1 rows trained with several seeds: the paper's claim (10:1 beats 1:1) compares these two.
-SPREAD_ROWS = ((1.0, 1.0), (10.0, 1.0))
-def ablation_name(l2: float, l1: float, seed: int = 0) -> str:
-    return f"ablation_l2-{l2:g}_l1-{l1:g}" + (f"_seed{seed}" if seed else "")
-
-
-def table1_seeds(budget: Budget, l2: float, l1: float) -> range:
-    """The seeds Table 1's ``(l2, l1)`` row is trained with at ``budget``."""
-    return range(budget.table1_seeds if (l2, l1) in SPREAD_ROWS else 1)
 
 
 class Reproduction:
@@ -68,8 +61,8 @@ class Reproduction:
     def __init__(self, budget: Budget, output_dir: str, *, image_dir: str = "",
                  test_image_dir: str = "", source: str = "folder", reuse: dict | None = None,
                  ablation_weights=ABLATION_WEIGHTS, printer=print, in_memory: bool = False,
-                 speed: dict | None = None):
-        self.budget, self.out, self.printer = budget, output_dir, printer
+                 speed: dict | None = None, plan: dict | None = None):
+        self.budget, self.out, self.printer, self.plan = budget, output_dir, printer, plan
         self.image_dir, self.test_image_dir, self.source = image_dir, test_image_dir, source
         self.in_memory, self._test_pairs = bool(in_memory), None
         self.speed = {k: int(v) for k, v in (speed or {}).items()}
@@ -89,6 +82,8 @@ class Reproduction:
         if unknown:
             raise ValueError(f"unknown reuse names {sorted(unknown)}.")
         self.timings, self.models = {}, {}  # models: {name: run folder}, as train() met them
+        self.progress = Progress(planned_models(budget, self.ablation_weights), printer,
+                                 **{k: (plan or {}).get(k) or 0 for k in ("rates", "fixed_s")})
         os.makedirs(os.path.join(output_dir, "figures"), exist_ok=True)
         os.makedirs(os.path.join(output_dir, "eval"), exist_ok=True)
 
@@ -196,8 +191,9 @@ class Reproduction:
 
     def train(self, name: str, cfg) -> str:
         """Train ``cfg`` unless ``cfg.model_dir`` already holds a finished model of this budget
-        (or held one, evaluated and dropped: :meth:`dropped`). Where the budget keeps no
-        checkpoints, a model trained here has its ``checkpoint/`` removed once finished."""
+        (or held one, evaluated and dropped: :meth:`dropped`), printing :class:`Progress` lines;
+        a signal (Ctrl-C, SIGTERM) stops it, its checkpoint saved, and raises :class:`Stopped`.
+        Where the budget keeps no checkpoints, a finished model's ``checkpoint/`` is removed."""
         from stnh_tf.training import run_dir
         from stnh_tf.training import loop as training
 
@@ -205,9 +201,12 @@ class Reproduction:
         self.models[name] = cfg.model_dir
         if os.path.exists(final) or self.dropped(name):
             check_budget(cfg.model_dir, cfg)
+            self.progress.finished(name)
             return cfg.model_dir
         self.printer(f"[train] {name} ({cfg.model}, {cfg.train_steps} steps) -> {cfg.model_dir}")
-        self._timed(f"train_{name}", lambda: training.train(cfg, printer=lambda *a: None))
+        self.progress.check_stop(name, cfg, self._timed(f"train_{name}", lambda: training.train(
+            cfg, printer=self.progress.train_printer(name),
+            extra_callbacks=[self.progress.callback(name, cfg)])))
         if (not self.budget.keep_checkpoints and os.path.exists(final)
                 and name not in self.reuse):
             shutil.rmtree(os.path.join(cfg.model_dir, run_dir.CHECKPOINT_DIR), ignore_errors=True)
@@ -401,7 +400,8 @@ class Reproduction:
                   "models": {"stages": stages, "homographynet": hnet, "sequence2": seq,
                              "ablation": {f"{a:g},{b:g}": d[0] for (a, b), d in rows.items()},
                              "ablation_seeds": {f"{a:g},{b:g}": d for (a, b), d in rows.items()}},
-                  "figures": figs, "paper_schedule": schedule,
+                  "figures": figs, "paper_schedule": schedule, **(
+                      {"budget_plan": self.plan} if self.plan else {}),
                   "wall_s_this_run": time.time() - t0, "machine": machine_info(),
                   **provenance_block(self.models, self.reuse),
                   "timings_this_run_s": self.timings, "paper": {

@@ -25,8 +25,10 @@ def tables_markdown(result: dict, latency: dict) -> str:
              "COCO 2014 on a GPU: numbers at a smaller budget are not expected to match it.",
              *([f"Total time of this run: {result['wall_s_this_run'] / 3600:.2f} h."]
                if "wall_s_this_run" in result else []),
-             *(["", SMOKE_NOTE] if b["name"] == "tiny" else []), "",
-             "## Fig. 4: mean corner error on the same test pairs", "",
+             *(["", SMOKE_NOTE] if b["name"] == "tiny" else []),
+             *(["", f"**Planned for an hour** (`budget_plan` in results.json): "
+                    f"{result['budget_plan']['reason']}"] if result.get("budget_plan") else []),
+             "", "## Fig. 4: mean corner error on the same test pairs", "",
              FIG4_NOTE, "",
              f"The paper's schedule: {SCHEDULE_NOTE}", "",
              "| method | MACE (px), ours | paper's schedule | paper |",
