@@ -756,7 +756,9 @@ PROSE += [  # issue 79, item 2: the feature start at the images' own resolution
     *[native_row(label, name, group)
       for label, name in (("320 x 240, work start (= native)", "wide_seed13_scale1"),
                           ("640 x 480, work start", NATIVE[0]),
-                          ("640 x 480, native start", NATIVE[1]))
+                          ("640 x 480, native start", NATIVE[1]),
+                          ("640 x 480, work start first, native where unconfirmed",
+                           "wide_seed13_scale2_cascade"))
       for group in ("wide", "wide_low_light")],
     ("BENCHMARKS.md",
      rf"\(pair 10, `wide`:{S}{N} px and unflagged, a silent failure; pair 23, "
