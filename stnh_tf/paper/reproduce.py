@@ -39,6 +39,7 @@ from stnh_tf.provenance import machine_info
 from stnh_tf.paper.budgets import (BUDGETS, SPEED_FIELDS, SPREAD_ROWS, Budget,  # noqa: F401
                                    ablation_name, check_budget, planned_models, table1_seeds)
 from stnh_tf.paper.progress import Progress, Stopped  # noqa: F401
+from stnh_tf.paper import fig4_render
 from stnh_tf.paper.model_provenance import provenance_block
 from stnh_tf.paper.tables import (SMOKE_NOTE, TABLE1_HEAD, schedule_results,  # noqa: F401
                                   table1_claim, table1_line, table1_lines, tables_markdown)
@@ -372,24 +373,20 @@ class Reproduction:
         # row's seed 0); 2 and 3 stages: the hierarchy with its degenerate-prediction rule.
         fig4["STN-Homography 1 stage"] = self.evaluate("stage1_alone",
                                                        stages[:1])["model"]["mace"]
-        rejected, predictions = {}, {}
         for k in range(2, len(stages) + 1):
-            name = f"STN-Homography {k} stages"
-            fig4[name] = hier["stages"][f"after_{k}_stages"]["mace"]
-            rejected[name] = sum(sum(r.values()) for r in hier.get("rejected", [])[:k])
-            predictions[name] = k * hier["count"]
+            fig4[f"STN-Homography {k} stages"] = hier["stages"][f"after_{k}_stages"]["mace"]
+        rejected, predictions = fig4_render.hierarchy_rejections(hier)
         fig4["Sequence 2 stages"] = self.evaluate("sequence2", [seq])["model"]["mace"]
-        rejected = {k: v for k, v in rejected.items() if v}
         schedule = schedule_results(fig4["Identity"])
         table1 = self.table1(rows, schedule)
         per_seed = {f"{l2:g},{l1:g}": v for (l2, l1), v in table1.items()}
         self.printer("[latency] 1/2/3 stages, batch 1")
         lat = self.latency(stages)
         self.printer("[figures]")
-        figs = self.figures(fig4, stages, rejected, predictions)
+        figs = self.figures(stages)
         result = {"budget": dataclasses.asdict(self.budget), "fig4_mace": fig4,
                   "fig4_rejected": rejected,
-                  "fig4_rejected_of": {k: predictions[k] for k in rejected},
+                  "fig4_rejected_of": predictions,
                   "table1_mace": {k: float(np.mean(v)) for k, v in per_seed.items()},
                   "table1_mace_per_seed": per_seed,
                   "table1_claim": table1_claim(per_seed, fig4["Identity"], self.budget.verdicts),
@@ -409,13 +406,14 @@ class Reproduction:
                       "table1_mace": {f"{a:g},{b:g}": v for (a, b), v in PAPER_TABLE1.items()},
                       "table2_gpu_ms": PAPER_TABLE2_GPU_MS}}
         atomic_write_json(os.path.join(self.out, "results.json"), result)
+        fig4_render.render(self.out)  # Fig. 4 from results.json, as experiments.render_fig4
         atomic_write_text(os.path.join(self.out, "tables.md"), tables_markdown(result, lat))
         self.printer(f"[done] {os.path.join(self.out, 'tables.md')}")
         return result
 
-    def figures(self, fig4: dict, stages, rejected=None, predictions=None) -> dict:
-        """Fig. 1, 4 and 5 into ``figures/``; Fig. 4 marks the rows with ``rejected`` stage
-        predictions (of ``predictions``: :func:`stnh_tf.paper.figures.fig4_bars`)."""
+    def figures(self, stages) -> dict:
+        """Fig. 1 and 5 into ``figures/``, with the path Fig. 4 is drawn to once results.json is
+        written (:func:`stnh_tf.paper.fig4_render.render`)."""
         from stnh_tf import hierarchy
         from stnh_tf.paper import figures
         from stnh_tf.data import tfrecords as data
@@ -427,11 +425,7 @@ class Reproduction:
         stats = figures.hbar_histogram(h_bar, os.path.join(fdir, "fig1_hbar_histogram.png"))
         atomic_write_json(os.path.join(fdir, "fig1_hbar_histogram.json"), stats)
         out["fig1"] = os.path.join(fdir, "fig1_hbar_histogram.png")
-        out["fig4"] = figures.mace_bars(fig4, os.path.join(fdir, "fig4_mace_bars.png"),
-                                        paper=PAPER_FIG4,
-                                        title=f"MACE on the same test pairs, budget "
-                                              f"'{self.budget.name}'",
-                                        rejected=rejected, predictions=predictions)
+        out["fig4"] = os.path.join(self.out, fig4_render.FIGURE)
         samples = data.load_arrays(self.data_dir(1), "test", max_samples=64)
         run = hierarchy.run_hierarchy([runner.predictor(runner.load_model(d)) for d in stages],
                                       samples["context_a"], samples["patch_b"])
