@@ -150,6 +150,7 @@ DOCTEST_MODULES = ("stnh_tf.geometry", "stnh_tf.pixels", "stnh_tf.paths", "stnh_
                    "stnh_tf.inference.options", "stnh_tf.inference.checks",
                    "stnh_tf.inference.search", "stnh_tf.inference.ecc",
                    "stnh_tf.data.paper_motions", "stnh_tf.evaluation.card_evaluation",
+                   "stnh_tf.evaluation.ablation",
                    "stnh_tf.paper.model_provenance", "stnh_tf.paper.fig4_render",
                    "stnh_tf.paper.learning_curves", "stnh_tf.paper.budgets",
                    "stnh_tf.paper.hour_budget")

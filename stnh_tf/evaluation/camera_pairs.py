@@ -80,12 +80,25 @@ def patch_errors(h_pred, h_true, size=camera_motions.WORK_SIZE) -> np.ndarray:
     return np.where(np.isfinite(out), out, np.inf)
 
 
-def run_estimator(estimator, pairs, options=None) -> dict:
-    """``estimate_images_with_info`` on each pair (after one untimed call on the first). Returns
-    per pair: ``h`` ``[B, 3, 3]``, ``seconds``, ``implausible``, ``searched``, ``found``,
-    ``alignment_ncc``, ``verify_move_px``, ``move_confirmed``, ``corner_std_px`` (NaN where
-    the estimate has none), ``undetermined``, ``ambiguity_gap`` (NaN where none)."""
-    estimator.estimate_images_with_info(pairs[0].image_a, pairs[0].image_b, options)
+def pair_errors(h_pred, h_true, groups, size=camera_motions.WORK_SIZE) -> tuple:
+    """The benchmark's scoring of image-frame ``H_ba`` ``h_pred`` against ``h_true`` (both
+    ``[B, 3, 3]``) for pairs of ``size = (w, h)`` images in ``groups`` ``[B]``:
+    ``(error, patch_error)``, float64 ``[B]`` (px; ``inf`` where not finite): ``patch_error``
+    :func:`patch_errors`; ``error`` :func:`image_errors`, or ``patch_error`` in the
+    paper's-protocol groups (:data:`stnh_tf.data.paper_motions.PATCH_FRAME_GROUPS`)."""
+    patch = patch_errors(h_pred, h_true, size)
+    in_patch_frame = np.isin(np.asarray(groups), paper_motions.PATCH_FRAME_GROUPS)
+    return np.where(in_patch_frame, patch, image_errors(h_pred, h_true, size)), patch
+
+
+def run_estimator(estimator, pairs, options=None, warm_up: bool = True) -> dict:
+    """``estimate_images_with_info`` on each pair (after one untimed call on the first, unless
+    ``warm_up`` is False). Returns per pair: ``h`` ``[B, 3, 3]``, ``seconds``, ``implausible``,
+    ``searched``, ``found``, ``alignment_ncc``, ``verify_move_px``, ``move_confirmed``,
+    ``corner_std_px`` (NaN where the estimate has none), ``undetermined``, ``ambiguity_gap``
+    (NaN where none)."""
+    if warm_up:
+        estimator.estimate_images_with_info(pairs[0].image_a, pairs[0].image_b, options)
     fields = ("implausible", "searched", "found", "alignment_ncc", "verify_move_px",
               "move_confirmed", "corner_std_px", "undetermined", "ambiguity_gap")
     out = {k: [] for k in ("h", "seconds") + fields}
@@ -197,10 +210,9 @@ def benchmark(pairs, methods=DEFAULT_METHODS, estimator=None, options=None, succ
             runs[m] = run_estimator(estimator, pairs, options)
         else:
             runs[m] = run_baseline(m, pairs)
-    patch = {m: patch_errors(r["h"], h_true, size) for m, r in runs.items()}
-    in_patch_frame = np.isin(groups, paper_motions.PATCH_FRAME_GROUPS)
-    errors = {m: np.where(in_patch_frame, patch[m], image_errors(r["h"], h_true, size))
-              for m, r in runs.items()}
+    scored = {m: pair_errors(r["h"], h_true, groups, size) for m, r in runs.items()}
+    errors = {m: error for m, (error, _) in scored.items()}
+    patch = {m: patch_error for m, (_, patch_error) in scored.items()}
     result = {"count": len(pairs), "success_px": success_px, "flag_error_px": flag_error_px,
               "image_size": list(size),
               "error_frame": f"{size[0]} x {size[1]} image frame: mean over the image's 4 corners"
