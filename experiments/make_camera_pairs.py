@@ -6,6 +6,7 @@ of a plane, in-plane rotation; blur, exposure change, sensor noise and JPEG on i
   python -m experiments.make_camera_pairs --output_dir=D --image_dir=F --pairs_per_image=3 --seed=0
   python -m experiments.make_camera_pairs --output_dir=D --motion_set=wide   # wide baseline
   python -m experiments.make_camera_pairs --output_dir=D --motion_set=paper  # paper's protocol
+  python -m experiments.make_camera_pairs --output_dir=D --motion_set=low_overlap  # panoramas
   python -m experiments.make_camera_pairs --output_dir=D --motion_set=wide --scale=2  # 640 x 480
 
 Writes ``D/{k:05d}_a.png``, ``D/{k:05d}_b.png`` and ``D/pairs.json`` (every parameter, per pair
@@ -40,8 +41,9 @@ flags.DEFINE_enum("motion_set", "size", list(camera_motions.MOTION_SETS),
                   "size: groups within / 1-2x / 2-4x the trained range; wide: zoom 0.3-3.0, "
                   "rotation up to 180 deg, a plane's viewpoint up to 60 deg, groups wide and "
                   "wide_low_light (issue 64); paper: the paper's protocol on whole images, "
-                  "groups paper and paper_exposure, errors at the patch's corners (issue 79; "
-                  "stnh_tf.data.camera_motions.MOTION_SETS).")
+                  "groups paper and paper_exposure, errors at the patch's corners (issue 79); "
+                  "low_overlap: turns of 20-40 deg, views overlapping by 30-60%, group "
+                  "low_overlap (issue 79; stnh_tf.data.camera_motions.MOTION_SETS).")
 flags.DEFINE_integer("scale", 1, "Render the pairs at scale times 320 x 240 (2: 640 x 480) from "
                      "the photograph resized to scale times 560 x 420, the same motions, h_ba "
                      "and the errors in that frame (issue 79; stnh_tf.data.camera_motions, "

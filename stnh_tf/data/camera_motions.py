@@ -48,7 +48,10 @@ disk: :mod:`stnh_tf.data.camera_pair_files`.
 The wide-baseline set (issue 64; ``motion_set="wide"``, :data:`MOTION_SETS`): its motions and
 low-light degradation are :mod:`stnh_tf.data.wide_motions`'; pair ``k`` belongs to
 ``WIDE_GROUPS[k % 2]``: ``"wide"`` (the :class:`Degradation` of the other groups) or
-``"wide_low_light"`` (dim, blurred, noisy).
+``"wide_low_light"`` (dim, blurred, noisy). The low-overlap set (issue 79;
+``motion_set="low_overlap"``, group ``"low_overlap"``): turns of 20-40 degrees, views overlapping
+by 30-60%, image_a's window placed off-centre against the turn (:func:`render_pair`'s
+``origin``; :mod:`stnh_tf.data.overlap_motions`).
 """
 
 from __future__ import annotations
@@ -135,13 +138,18 @@ PAPER_GROUPS = ("paper", "paper_exposure")
 """The groups of the paper's protocol on whole images (:mod:`stnh_tf.data.paper_motions`, issue
 79): pair ``k`` is in ``PAPER_GROUPS[k % 2]``; the second with an exposure change."""
 
-MOTION_SETS = {"size": tuple(GROUPS), "wide": WIDE_GROUPS, "paper": PAPER_GROUPS}
+LOW_OVERLAP_GROUPS = ("low_overlap",)
+"""The group of the low-overlap set (:mod:`stnh_tf.data.overlap_motions`, issue 79)."""
+
+MOTION_SETS = {"size": tuple(GROUPS), "wide": WIDE_GROUPS, "paper": PAPER_GROUPS,
+               "low_overlap": LOW_OVERLAP_GROUPS}
 """The kinds of set :func:`stnh_tf.data.camera_pair_files.make_image_pairs` makes, with their
 groups: ``"size"`` (motions scaled to a group by size, :func:`draw_motion`), ``"wide"``
-(:func:`stnh_tf.data.wide_motions.draw_wide_motion`) and ``"paper"``
-(:func:`stnh_tf.data.paper_motions.draw_paper_motion`)."""
+(:func:`stnh_tf.data.wide_motions.draw_wide_motion`), ``"paper"``
+(:func:`stnh_tf.data.paper_motions.draw_paper_motion`) and ``"low_overlap"``
+(:func:`stnh_tf.data.overlap_motions.draw_overlap_motion`)."""
 
-ALL_GROUPS = tuple(GROUPS) + WIDE_GROUPS + PAPER_GROUPS
+ALL_GROUPS = tuple(GROUPS) + WIDE_GROUPS + PAPER_GROUPS + LOW_OVERLAP_GROUPS
 """Every group a pair can belong to, in the order they are reported."""
 
 
@@ -366,21 +374,27 @@ def to_scale(h_ba, scale: int = 1) -> np.ndarray:
     return geometry.scale_to_unit(np.linalg.inv(r) @ np.asarray(h_ba, np.float64) @ r)
 
 
-def render_pair(source: np.ndarray, h_ba, scale: int = 1) -> tuple:
+def render_pair(source: np.ndarray, h_ba, scale: int = 1, origin=None) -> tuple:
     """``(image_a, image_b)`` float32 ``[240 s, 320 s]`` (0..255) of a ``[420 s, 560 s]`` source
-    (:func:`source_image`, ``s = scale``): image_a its central window at :data:`MARGIN` times
-    ``s``, ``image_b(p) = source(T @ H @ p)`` (``H = to_scale(h_ba, s)``, ``h_ba`` in the
-    320 x 240 frame; ``T`` the translation by the margin: image_a's pixel ``H @ p`` where that
-    lies in image_a), bilinear, mirrored beyond the source.
+    (:func:`source_image`, ``s = scale``): image_a its window at ``origin`` times ``s``
+    (top-left ``(x, y)``, integers in ``[0, 240] x [0, 180]``; ``None``: :data:`MARGIN`, the
+    central window), ``image_b(p) = source(T @ H @ p)`` (``H = to_scale(h_ba, s)``, ``h_ba`` in
+    the 320 x 240 frame; ``T`` the translation by the window's corner: image_a's pixel ``H @ p``
+    where that lies in image_a), bilinear, mirrored beyond the source.
 
     Raises:
-      ValueError: a source of another shape.
+      ValueError: a source of another shape, an ``origin`` that is not such a corner.
     """
     source = np.asarray(source, np.float32)
     if source.shape != _times(SOURCE_SIZE, scale)[::-1]:
         raise ValueError(f"source must have shape {list(_times(SOURCE_SIZE, scale)[::-1])}; "
                          f"received shape {source.shape}.")
-    (mx, my), (w, h) = _times(MARGIN, scale), _times(WORK_SIZE, scale)
+    origin = MARGIN if origin is None else tuple(origin)
+    if not (len(origin) == 2 and all(isinstance(v, (int, np.integer)) and 0 <= v <= 2 * m
+                                     for v, m in zip(origin, MARGIN))):
+        raise ValueError(f"origin must be integers (x, y) in [0, {2 * MARGIN[0]}] x "
+                         f"[0, {2 * MARGIN[1]}]; received {origin!r}.")
+    (mx, my), (w, h) = _times(origin, scale), _times(WORK_SIZE, scale)
     image_a = source[my:my + h, mx:mx + w].copy()
     image_b = cv2.warpPerspective(source, geometry.translation(mx, my) @ to_scale(h_ba, scale),
                                   (w, h), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,

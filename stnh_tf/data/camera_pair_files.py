@@ -23,7 +23,7 @@ import os
 import cv2
 import numpy as np
 
-from stnh_tf.data import camera_motions, paper_motions, sources, wide_motions
+from stnh_tf.data import camera_motions, overlap_motions, paper_motions, sources, wide_motions
 from stnh_tf.data.folder_counts import FolderCounts, no_photograph_message
 from stnh_tf.data.camera_motions import (GROUPS, MARGIN, MOTION_SETS, SOURCE_SIZE,
                                          TRAINED_OFFSET, CameraPair, Degradation, MotionRanges)
@@ -60,7 +60,9 @@ def make_image_pairs(gray, image_index: int, image_id: str, pairs_per_image: int
     from ``np.random.default_rng([seed, image_index])``, motion then degradation, pair by pair
     (:func:`~stnh_tf.data.camera_motions.draw_motion`, or
     :func:`~stnh_tf.data.wide_motions.draw_wide_motion` for ``motion_set="wide"``,
-    :func:`~stnh_tf.data.paper_motions.draw_paper_motion` for ``"paper"``).
+    :func:`~stnh_tf.data.paper_motions.draw_paper_motion` for ``"paper"``,
+    :func:`~stnh_tf.data.overlap_motions.draw_overlap_motion` for ``"low_overlap"``, whose
+    pairs' image_a lies at the motion's ``"window_origin"`` in the source).
     ``motions``: ``None``, the set's (:func:`set_motions`); ``"wide_low_light"`` pairs get
     ``wide_motions.LOW_LIGHT`` instead of ``degradation``, the paper groups their own
     (:func:`~stnh_tf.data.paper_motions.group_degradation`; ``motions`` and ``degradation`` do
@@ -84,12 +86,11 @@ def make_image_pairs(gray, image_index: int, image_id: str, pairs_per_image: int
             kind, motion, h = paper_motions.draw_paper_motion(rng)
             photometric = paper_motions.group_degradation(rng, group)
         else:
-            kind, motion, h = (wide_motions.draw_wide_motion(rng, motions)
-                               if motion_set == "wide"
-                               else camera_motions.draw_motion(rng, group, motions))
+            kind, motion, h = _draw_motion(rng, motion_set, group, motions)
             photometric = camera_motions.draw_degradation(
                 rng, wide_motions.LOW_LIGHT if group == "wide_low_light" else degradation)
-        image_a, image_b = camera_motions.render_pair(source, h, scale)
+        image_a, image_b = camera_motions.render_pair(
+            source, h, scale, motion["window_origin"] if motion_set == "low_overlap" else None)
         out.append(CameraPair(k, image_id, group, kind, camera_motions.to_scale(h, scale),
                               float(camera_motions.motion_offset(h)), motion, photometric,
                               np.clip(np.rint(image_a), 0, 255).astype(np.uint8),
@@ -97,10 +98,19 @@ def make_image_pairs(gray, image_index: int, image_id: str, pairs_per_image: int
     return out
 
 
+def _draw_motion(rng, motion_set, group, motions):
+    if motion_set == "wide":
+        return wide_motions.draw_wide_motion(rng, motions)
+    if motion_set == "low_overlap":
+        return overlap_motions.draw_overlap_motion(rng, motions)
+    return camera_motions.draw_motion(rng, group, motions)
+
+
 def set_motions(motion_set: str) -> MotionRanges:
     """The :class:`~stnh_tf.data.camera_motions.MotionRanges` a set of ``motion_set`` draws from
     by default."""
-    return wide_motions.WIDE_MOTIONS if motion_set == "wide" else MotionRanges()
+    return {"wide": wide_motions.WIDE_MOTIONS,
+            "low_overlap": overlap_motions.OVERLAP_MOTIONS}.get(motion_set, MotionRanges())
 
 
 def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
@@ -200,6 +210,13 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
             "paper_degradation": {"paper": dataclasses.asdict(paper_motions.PLAIN),
                                   "paper_exposure": dataclasses.asdict(paper_motions.EXPOSURE)}}
            if motion_set == "paper" else {}),
+        **({"low_overlap": "camera b turned by pan_deg in PAN_DEG (towards pan_dir_deg), kept "
+                           "where overlap lies in OVERLAP and at most MAX_MIRRORED of image_b "
+                           "samples the mirrored source; image_a's window at each pair's "
+                           "window_origin instead of margin (overlap_motions)",
+            "pan_deg": list(overlap_motions.PAN_DEG), "overlap": list(overlap_motions.OVERLAP),
+            "max_mirrored": overlap_motions.MAX_MIRRORED}
+           if motion_set == "low_overlap" else {}),
     }
     atomic_write_json(path, {**manifest, "pairs": records})  # the commit point
     return manifest
