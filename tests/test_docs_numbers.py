@@ -777,6 +777,33 @@ PROSE += [  # issue 79, item 2: the feature start at the images' own resolution
 ]
 
 
+LOW = "low_overlap_seed13"
+
+
+def low_overlap_count(test):
+    """The count of pairs of docs/camera_pairs/low_overlap_seed13.json for which ``test(pair)``."""
+    return lambda sources: str(sum(bool(test(p)) for p in _camera_file(LOW)["pairs"]))
+
+
+PROSE += [  # issue 79, item 4: the low-overlap set
+    native_row("320 x 240, low overlap", LOW, "low_overlap"),
+    ("BENCHMARKS.md", rf"`nice -n 19`, load {N} at the start",
+     [lambda sources: f"{_camera_file(LOW)['machine']['loadavg_at_start'][0]:.2f}"]),
+    ("BENCHMARKS.md",
+     rf"Every estimate more than (\d+) px off is flagged \(so none 10 px or more off is left"
+     rf"{S}unflagged: (\d+) of{S}(\d+)\), and (\d+) of the (\d+) good ones are \({N}%; the goal "
+     rf"is at most 5%\)\. The estimator takes {N}x{S}SIFT \+ RANSAC's time per pair",
+     [lambda sources: f"{_camera_file(LOW)['flag_error_px']:.0f}",
+      low_overlap_count(lambda p: p["estimator_error"] >= 10 and not p["implausible"]),
+      from_file(LOW, cam(LOW, "low_overlap", "estimator", "count")),
+      from_file(LOW, cam(LOW, "low_overlap", "estimator", "flag:flagged_good")),
+      from_file(LOW, cam(LOW, "low_overlap", "estimator", "good")),
+      from_file(LOW, lambda sources: cr.fixed(100 * cr.value(
+          sources, LOW, "groups/low_overlap/estimator/flag/false_alarm_rate"), 1)),
+      from_file(LOW, ratio((LOW, "groups/low_overlap/estimator/ms_per_pair"),
+                           (LOW, "groups/low_overlap/sift_ransac/ms_per_pair"), 1))]),
+]
+
 def _scale(name):
     """docs/scale/``name``.json (written by ``experiments.benchmark_workers``)."""
     with open(os.path.join(ROOT, "docs", "scale", f"{name}.json")) as f:
