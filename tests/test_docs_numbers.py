@@ -1074,3 +1074,14 @@ def test_every_shipped_model_is_named_where_users_look():
     assert _shipped_folders() and not missing, missing
     wrong = _prose_wrong(SCHEDULE_CARD)
     assert not wrong, "\n".join(wrong)
+
+
+def test_ablation_table_is_the_json_s():
+    """BENCHMARKS.md's ablation table (issue 79, item 5) is what
+    :func:`stnh_tf.evaluation.ablation.table` renders from its committed JSON."""
+    from stnh_tf.evaluation import ablation
+
+    text = _read("BENCHMARKS.md")
+    start, end = "<!-- ablation-seed0:start -->\n", "\n<!-- ablation-seed0:end -->"
+    block = text[text.index(start) + len(start):text.index(end)]
+    assert block == ablation.table(_camera_file("ablation_seed0_20"))
