@@ -51,8 +51,17 @@ def test_marks_from_the_card_that_measured_the_same_hierarchy(tmp_path):
     assert inputs["schedule"] == {}  # no paper_schedule card in this weights folder
 
 
+def test_the_committed_figure_has_its_marks():
+    """docs/reproduce_cpu's Fig. 4 takes its marks from the paper recipe's card (README says so)."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    inputs = fig4_render.fig4_inputs(os.path.join(root, "docs", "reproduce_cpu"),
+                                     os.path.join(root, "stnh_tf", "weights"))
+    assert inputs["marks_from"] is not None
+    assert inputs["rejected"] == {"STN-Homography 2 stages": 28, "STN-Homography 3 stages": 44}
+
+
 def test_no_marks_from_a_card_of_other_numbers_and_results_marks_first(tmp_path):
-    repro, weights = _setup(tmp_path, card_mace_2=9.5)
+    repro, weights = _setup(tmp_path, card_mace_2=9.02)  # 0.02 px: another hierarchy
     inputs = fig4_render.fig4_inputs(repro, weights)
     assert inputs["rejected"] == {} and inputs["marks_from"] is None
     repro, weights = _setup(tmp_path / "b", rejected_in_results={"STN-Homography 3 stages": 5})

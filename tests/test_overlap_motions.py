@@ -143,18 +143,22 @@ def test_rendering_is_consistent_with_h_ba(draws):
 
 
 # SHA-256 (first 16 hex digits) of make_image_pairs(skimage camera, image 3, 2 pairs, seed 7)'s
-# images and h_ba, computed at 718d5db, before the low-overlap set: the other sets unchanged.
-OTHER_SETS = {("size", 1): "b27f7fe47c808f69", ("wide", 1): "6fa36be3e5fc2cd3",
-              ("paper", 1): "39d247fe6d42e2c3", ("wide", 2): "1d7990e69afb3d24"}
+# groups, kinds and h_ba (rounded to 1e-6, so that another CPU's last bits do not matter): the
+# same draws as at 718d5db, before the low-overlap set, where a hash of the images too was checked
+# on the development machine (the images themselves pass through OpenCV's CPU-specific kernels;
+# that an unchanged draw renders as before is the origin test above: origin=MARGIN is the old
+# path).
+OTHER_SETS = {("size", 1): "bde4029d7ad96889", ("wide", 1): "b212547eaa06272c",
+              ("paper", 1): "f6092cd137a5c0f3", ("wide", 2): "c4d53278aec2f9ae"}
 
 
 @pytest.mark.parametrize("motion_set, scale", sorted(OTHER_SETS))
-def test_other_sets_are_unchanged_bit_for_bit(motion_set, scale):
+def test_other_sets_draw_as_before(motion_set, scale):
     digest = hashlib.sha256()
     for p in camera_pair_files.make_image_pairs(skimage.data.camera(), 3, "camera", 2, seed=7,
                                                 motion_set=motion_set, scale=scale):
-        for x in (p.image_a, p.image_b, p.h_ba):
-            digest.update(np.ascontiguousarray(x).tobytes())
+        digest.update(f"{p.group},{p.kind},".encode())
+        digest.update((np.round(np.asarray(p.h_ba, np.float64), 6) + 0.0).tobytes())
     assert digest.hexdigest()[:16] == OTHER_SETS[motion_set, scale]
 
 

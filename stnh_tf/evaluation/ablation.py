@@ -307,6 +307,8 @@ def table(result: dict) -> str:
     """:func:`run`'s result as two markdown tables, rows the ablations and columns the groups:
     the numbers (:data:`CELL_LEGEND`), then each ablation's differences from ``"default"``."""
     groups, rows = result["groups"], result["ablations"]
+    order = [n for n in (DEFAULT, *ABLATIONS) if n in rows]  # a JSON read back sorts its keys
+    rows = {n: rows[n] for n in order + sorted(set(rows) - set(order))}
     head = ["| ablation | " + " | ".join(groups) + " |", "|---" * (len(groups) + 1) + "|"]
 
     def numbers(c):

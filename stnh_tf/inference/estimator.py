@@ -334,7 +334,7 @@ class HomographyEstimator:
         # later stages see zeros beyond the image, as in the paper.
         options = dataclasses.replace(self._resolve(options, legacy, self.image_options),
                                       gate_stages=False, fill="zeros")
-        # the feature start matches the images at their own resolution (issue 79)
+        # the feature start may match the images at their own resolution (issue 79)
         wants_start = options.features != "none"
         input_a = input_image(image_a, "image_a", channel_order, wants_start)
         input_b = input_image(image_b, "image_b", channel_order, wants_start)

@@ -5,9 +5,10 @@
 The network was trained on corners moved by up to 32 px in the 128 x 128 patch; the coarse pass
 (:mod:`stnh_tf.inference.coarse`) reaches rotations up to 45 degrees and zooms 0.7-1.4. For wider
 baselines (zoom 0.3-3, any rotation, strong viewpoint changes) the start comes from classical
-matching: OpenCV SIFT keypoints of the two images at their own resolution (up to
-:data:`~stnh_tf.inference.image_input.FEATURE_MAX_SIDE` px on the long side; the work images
-where an image fits in 320 x 240: :class:`StartImages`, issue 79), Lowe's ratio test and
+matching: OpenCV SIFT keypoints of the two work images first and, where their start gives no
+confirmed estimate, of the images at their own resolution (up to
+:data:`~stnh_tf.inference.image_input.FEATURE_MAX_SIDE` px on the long side; :class:`StartImages`,
+issue 79; :func:`candidate`), Lowe's ratio test and
 ``cv2.findHomography`` with ``cv2.USAC_MAGSAC`` (:func:`feature_start`, the SIFT baseline's
 settings), its ``H_ba`` brought into the work frame (:func:`work_start`). image_a is
 warped by that start ``G`` (:func:`stnh_tf.inference.coarse.warp_context`), the estimator's

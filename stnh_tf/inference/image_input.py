@@ -33,8 +33,9 @@ the 320 x 240 frame, the motion between the images is of the size the model was 
 central square holds texture.
 
 The feature start's images (:func:`input_image` with ``feature_image=True``, issue 79). The
-feature start (:mod:`stnh_tf.inference.features`) matches SIFT keypoints on each image at its
-own resolution, where the detail a wide zoom needs is still there: the gray image (the same gray
+feature start (:mod:`stnh_tf.inference.features`), where the work images' start gives no
+confirmed estimate, matches SIFT keypoints on each image at its own resolution, where the detail
+a wide zoom needs is still there: the gray image (the same gray
 version as above) as it is where its long side is at most :data:`FEATURE_MAX_SIDE`, else resized
 down with ``cv2.INTER_AREA`` to that long side (:func:`feature_size`; never enlarged). An image
 that fits in 320 x 240 (``w <= 320`` and ``h <= 240``) has no feature image of its own: its

@@ -7,7 +7,7 @@ What :func:`fig4_inputs` gathers, each from a committed record:
   labelled as assembled where ``results.json`` says so (``assembled``: models from several runs);
 - the marks of the degenerate-prediction rule: ``results.json``'s ``fig4_rejected`` where it has
   them; else the counts of a model card whose ``evaluation`` is the same hierarchy on the same
-  pairs (its identity and its MACE after 2 and 3 stages equal the figure's to 1e-6; the CPU
+  pairs (its identity's MACE equal to the figure's, and after 2 and 3 stages to 0.01 px; the CPU
   budget's hierarchy ships in ``stnh_tf/weights/paper_recipe``), :func:`hierarchy_rejections`;
 - each seed of Table 1's 1:1 row as a dot on the 1-stage bar (``table1_mace_per_seed``: the
   network alone, without the clipping the bar's hierarchy applies);
@@ -52,10 +52,13 @@ def _card_rejections(results: dict, card_path: str):
         evaluation = json.load(f).get("evaluation", {})
     fig4, model = results["fig4_mace"], evaluation.get("model", {})
     stages = model.get("stages", {})
-    same = [(evaluation.get("identity", {}).get("mace"), fig4["Identity"])] + [
-        (stages.get(f"after_{k}_stages", {}).get("mace"), fig4.get(f"STN-Homography {k} stages"))
-        for k in (2, 3)]
-    if any(a is None or b is None or abs(a - b) > 1e-6 for a, b in same):
+    # the same pairs (the identity's MACE exactly) and the same stages: their MACE to 0.01 px, as
+    # a re-measurement with another CPU's bfloat16 kernels may move it (on the same machine it
+    # was the same to the last digit); two different hierarchies do not agree so closely
+    same = [(evaluation.get("identity", {}).get("mace"), fig4["Identity"], 1e-6)] + [
+        (stages.get(f"after_{k}_stages", {}).get("mace"), fig4.get(f"STN-Homography {k} stages"),
+         0.01) for k in (2, 3)]
+    if any(a is None or b is None or abs(a - b) > tol for a, b, tol in same):
         return None
     return hierarchy_rejections(model)
 
