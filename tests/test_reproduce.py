@@ -537,3 +537,11 @@ def test_committed_reproduction_provenance_matches_git_history():
     for row in rows:
         assert row[4].startswith("assembled: trained between ")
         assert all("not recorded" not in cell for cell in row[4:]), row
+
+
+def test_model_provenance_reads_the_file_training_writes():
+    """model_provenance names result.json itself (to stay free of NumPy): the run folder's."""
+    from stnh_tf.paper import model_provenance
+    from stnh_tf.training import run_dir
+
+    assert model_provenance.RESULT_FILE == run_dir.RESULT_FILE
