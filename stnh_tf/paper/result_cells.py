@@ -77,14 +77,17 @@ def provenance_cells(sources, name, models=None, measured=None) -> tuple[str, st
     (all where None): "assembled: trained between A and B" (or "trained at" their commits) and
     their distinct machines; ``measured``, the key of an entry of the same form for what the row
     measures beyond the models (Table 2's latency: ``latency_provenance``), adds "measured ...".
-    A source without ``model_provenance`` falls back to :func:`recorded`; a model named that it
-    lacks is left out (a fresh reproduction trains no ``homographynet_gap``).
+    A source without ``model_provenance``, or without any of the models named, falls back to
+    :func:`recorded`; a model named that it lacks is left out (a fresh reproduction trains no
+    ``homographynet_gap``).
     """
     doc = sources[name]
     if "model_provenance" not in doc:
         return recorded(sources, name)
     prov = doc["model_provenance"]
     entries = [prov[m] for m in (models or prov) if m in prov]
+    if not entries:
+        return recorded(sources, name)
     commit = ("assembled: " if doc.get("assembled") else "") + f"trained {_span(entries)}"
     machines = [machine_label(e) for e in entries]
     if measured and measured in doc:
