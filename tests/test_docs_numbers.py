@@ -587,6 +587,9 @@ PROSE = [
     ("docs/gpu.md", rf"Third chunk, steps 26,399 -> 37,132, on the same machine[^$]*?"
      rf"`paper_schedule/logs/stage3_26399-37132_cpu.log`\): {N} steps/s in the ledger",
      [num("schedule_ledger", "22/steps_per_s")]),
+    ("docs/gpu.md", rf"Fourth chunk, steps 37,132 -> 46,917, on the same machine[^$]*?"
+     rf"`paper_schedule/logs/stage3_37132-46917_cpu.log`\): {N} steps/s in the ledger",
+     [num("schedule_ledger", "23/steps_per_s")]),
     ("docs/gpu.md", rf"Finished at 91,000 steps over (\d+) chunks and {N} hours of wall time",
      [schedule_chunks(2), schedule_hours(2)]),
     ("docs/gpu.md", rf"50 steps per call, {N} steps/s over", [num("schedule_record",
