@@ -119,7 +119,8 @@ def test_feature_and_work_maps_follow_cv2_resize():
         np.testing.assert_array_equal(image_input.work_from_feature(small), np.eye(3))
 
 
-@pytest.mark.parametrize("size", [(1280, 960), (2400, 1800)])
+@pytest.mark.parametrize("size", [(1280, 960), pytest.param(
+    (2400, 1800), marks=pytest.mark.slow)])  # the capped size: SIFT at 1600 x 1200, 9 s
 def test_native_start_is_the_true_homography_in_the_work_frame(size):
     """A smooth texture warped by a known ``H`` (rotation 30 degrees, zoom 1.3, a perspective
     term) at 1280 x 960 (matched at that size) and 2400 x 1800 (matched at 1600 x 1200): the

@@ -90,6 +90,7 @@ def _ones_rendered(h_ba, origin):
                                borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
+@pytest.mark.slow  # (make test-all) 12 s: every window corner checked against OpenCV's sampling
 def test_window_placement_leaves_the_least_of_image_b_mirrored(draws):
     """The recorded share mirrored equals what OpenCV samples beyond the source at the recorded
     origin; no origin of a 10-px grid does better; the central window (the other sets') would
