@@ -249,6 +249,10 @@ def stage_pairs_ms(source, threads):
 
 # (file, regex with one group per number, the expected value of each group). Every match of the
 # regex in the file is checked, and the regex must match at least once.
+# Stage 3's CPU chunks in docs/gpu.md: (ledger row, ordinal, from step, to step).
+STAGE3_CPU_CHUNKS = ((20, "First", 0, 12022), (21, "Second", 12022, 26399),
+                     (22, "Third", 26399, 37132), (23, "Fourth", 37132, 46917))
+
 PROSE = [
     ("docs/estimate.md",
      rf"\| 0, `EstimateOptions\(\)` \| {N} \({N}\) px, (\d+) of 100 \| (\d+) / (\d+) of 100 \| "
@@ -578,18 +582,9 @@ PROSE = [
     ("docs/gpu.md", rf"\(the reproduction's hierarchy rows\) {N} px[^$]*?saved mixed{S}bfloat16, "
      rf"{N} px with the clipping",
      [num("schedule2_eval", "model/mace"), num("schedule2_eval_float32", "model/mace")]),
-    ("docs/gpu.md", rf"First chunk, steps 0 -> 12,022, on the 2-core Intel Xeon with AMX[^$]*?"
-     rf"`paper_schedule/logs/stage3_0-12022_cpu.log`\): {N} steps/s in the ledger",
-     [num("schedule_ledger", "20/steps_per_s")]),
-    ("docs/gpu.md", rf"Second chunk, steps 12,022 -> 26,399, on the same machine[^$]*?"
-     rf"`paper_schedule/logs/stage3_12022-26399_cpu.log`\): {N} steps/s in the ledger",
-     [num("schedule_ledger", "21/steps_per_s")]),
-    ("docs/gpu.md", rf"Third chunk, steps 26,399 -> 37,132, on the same machine[^$]*?"
-     rf"`paper_schedule/logs/stage3_26399-37132_cpu.log`\): {N} steps/s in the ledger",
-     [num("schedule_ledger", "22/steps_per_s")]),
-    ("docs/gpu.md", rf"Fourth chunk, steps 37,132 -> 46,917, on the same machine[^$]*?"
-     rf"`paper_schedule/logs/stage3_37132-46917_cpu.log`\): {N} steps/s in the ledger",
-     [num("schedule_ledger", "23/steps_per_s")]),
+    *[("docs/gpu.md", rf"{nth} chunk, steps {a:,} -> {b:,}, on [^$]*?"
+       rf"`paper_schedule/logs/stage3_{a}-{b}_cpu.log`\): {N} steps/s in the ledger",
+       [num("schedule_ledger", f"{row}/steps_per_s")]) for row, nth, a, b in STAGE3_CPU_CHUNKS],
     ("docs/gpu.md", rf"Finished at 91,000 steps over (\d+) chunks and {N} hours of wall time",
      [schedule_chunks(2), schedule_hours(2)]),
     ("docs/gpu.md", rf"50 steps per call, {N} steps/s over", [num("schedule_record",
@@ -608,6 +603,10 @@ PROSE = [
         for e in ("plain_bundled_test", "plain_coco_mini_test") for i in (0, 1)]
      + [lambda s: "{:.1f}".format(cr.value(s, "card", "evaluation/plain_bundled_test/model/mace")
                                   - cr.value(s, "card", CARD_3))]),
+    ("BENCHMARKS.md", rf"image context, float32: \*\*{N} / {N} / {N} px\*\* after 1 / 2 / 3"
+     rf"{S}stages, against {N} / {N} / {N} on the coco_mini test pairs",
+     [num("card", f"evaluation/plain_bundled_test/model/stages/after_{k}_stages/mace")
+      for k in (1, 2, 3)] + CARD_STAGES),
     ("docs/weights.md", rf"tuned ORB \+ RANSAC {N},{S}SIFT \+ RANSAC {N} on the same pairs",
      [fig4("ORB + RANSAC"), fig4("SIFT + RANSAC")]),
     ("docs/weights.md",
