@@ -21,6 +21,11 @@ reproduction); Ctrl-C or SIGTERM stops it after saving the model's checkpoint, w
 the same command resumes.
 --train_only=semi_supervised runs the semi-supervised table (experiments.semi_supervised with its
 defaults: trains its rows, evaluates them, writes semi_supervised.md and .json).
+--refresh_latency measures Table 2 of the reproduction in --output_dir again on this machine, at
+the runs, warm-up and precision its results.json records, and writes it back with where and under
+what load it was measured; nothing else runs (stnh_tf/paper/table2.py):
+
+  python -m experiments.reproduce --output_dir=docs/reproduce_cpu --refresh_latency
 """
 
 import contextlib
@@ -29,7 +34,7 @@ import dataclasses
 from absl import app, flags
 
 from experiments import common, flags_common
-from stnh_tf.paper import hour_budget, reproduce, semi_supervised
+from stnh_tf.paper import hour_budget, reproduce, semi_supervised, table2
 
 flags.DEFINE_enum("budget", "cpu", sorted([*reproduce.BUDGETS, "hour"]), "Training budget of "
                   "every model: cpu (the default: 4,000 steps each, hours on a CPU), hour (as many "
@@ -49,6 +54,9 @@ flags.DEFINE_list("train_only", [], "Train only these parts (hierarchy, homograp
                   "table1) and stop before evaluation, tables and figures: a long reproduction "
                   "spread over sessions, one part at a time. semi_supervised: the semi-supervised "
                   "table, trained, evaluated and written (experiments.semi_supervised).")
+flags.DEFINE_bool("refresh_latency", False, "Only measure Table 2 (batch-1 latency) of the "
+                  "reproduction in --output_dir again, at the budget its results.json records, "
+                  "on untrained models, and write it back with the machine and its load.")
 FLAGS = flags.FLAGS
 
 
@@ -130,10 +138,27 @@ def interrupt_line(binary: str):
                          "are kept: the same command resumes") from None
 
 
+def refresh_latency() -> None:
+    """``--refresh_latency``: :func:`stnh_tf.paper.table2.refresh` of ``--output_dir``.
+
+    Raises:
+      ValueError: a flag of a reproduction's run given with it (the budget is results.json's),
+        or results.json missing or unreadable (nothing written).
+    """
+    given = [f"--{name}" for name in ("budget", "train_only", "reuse", "max_images", "source",
+                                      "image_dir", "test_image_dir") if FLAGS[name].present]
+    if given:
+        raise ValueError(f"--refresh_latency measures at the budget results.json records; it takes "
+                         f"--output_dir alone (received {', '.join(given)}).")
+    table2.refresh(FLAGS.output_dir, printer=lambda line: print(line, flush=True))
+
+
 def main(argv):
     del argv
     with common.user_errors("reproduce", (ValueError, OSError, reproduce.Stopped)), \
             interrupt_line("reproduce"):
+        if FLAGS.refresh_latency:
+            return refresh_latency()
         run = reproduction_from_flags(hour=True)
         parts = {"hierarchy": run.hierarchy, "homographynet": run.homographynet,
                  "sequence2": run.sequence2, "table1": lambda: run.ablation(run.ablation_weights),

@@ -38,8 +38,8 @@ import sys
 
 from stnh_tf.paths import atomic_write_text
 from stnh_tf.paper.result_cells import (FIG4_MODELS, TABLE1_ROWS, camera_rows, joined,
-                                        latency_machine, provenance_cells, recorded,
-                                        stage_paths, table1_cells)
+                                        latency_cells, latency_command, latency_machine,
+                                        provenance_cells, recorded, stage_paths, table1_cells)
 from stnh_tf.paper.results_json import (NOT_RECORDED, PAPER_STEPS, SOURCES,  # noqa: F401
                                         card_steps, default_root, fixed, load_sources, percent,
                                         value)
@@ -180,8 +180,7 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
          f"on {latency_machine(sources)} "
          "([Table 2](#the-papers-table-2-hierarchy-latency-batch-1): not below the paper's GPU on "
          "other 2-core CPUs)",
-         reproduce, results, *provenance_cells(sources, "results", ("stage1", "stage2", "stage3"),
-                                               "latency_provenance")),
+         latency_command(sources, reproduce), results, *latency_cells(sources)),
         *camera_rows(sources),
     ]
 

@@ -39,7 +39,7 @@ from stnh_tf.provenance import machine_info
 from stnh_tf.paper.budgets import (BUDGETS, SPEED_FIELDS, SPREAD_ROWS, Budget,  # noqa: F401
                                    ablation_name, check_budget, planned_models, table1_seeds)
 from stnh_tf.paper.progress import Progress, Stopped  # noqa: F401
-from stnh_tf.paper import fig4_render
+from stnh_tf.paper import fig4_render, table2
 from stnh_tf.paper.model_provenance import provenance_block
 from stnh_tf.paper.tables import (SMOKE_NOTE, TABLE1_HEAD, schedule_results,  # noqa: F401
                                   table1_claim, table1_line, table1_lines, tables_markdown)
@@ -340,17 +340,15 @@ class Reproduction:
         return result
 
     def latency(self, stage_dirs) -> dict:
-        from stnh_tf.evaluation import mace as evaluation
-
+        """Table 2 of ``stage_dirs`` at the budget's runs, warm-up and precision
+        (:func:`stnh_tf.paper.table2.measure`), cached in ``eval/latency.json``."""
         path = os.path.join(self.out, "eval", "latency.json")
         if os.path.exists(path):
             with open(path) as f:
                 return json.load(f)
-        policy = "mixed_bfloat16" if self.budget.mixed_precision else "float32"
-        result = self._timed("latency", lambda: evaluation.latency(
-            stage_dirs, runs=self.budget.latency_runs, warmup=self.budget.latency_warmup,
-            policy=policy, sequence=True))
-        result["policy"] = policy
+        b = self.budget
+        result = self._timed("latency", lambda: table2.measure(
+            stage_dirs, b.latency_runs, b.latency_warmup, table2.policy(b.mixed_precision)))
         atomic_write_json(path, result)
         return result
 
@@ -390,9 +388,7 @@ class Reproduction:
                   "table1_mace": {k: float(np.mean(v)) for k, v in per_seed.items()},
                   "table1_mace_per_seed": per_seed,
                   "table1_claim": table1_claim(per_seed, fig4["Identity"], self.budget.verdicts),
-                  "table2_latency_ms": {k: v["d_e_ms"] for k, v in lat["hierarchy"].items()},
-                  "sequence_latency_ms": {k: v["forward_ms"]
-                                          for k, v in lat.get("sequence", {}).items()},
+                  **table2.results_fields(lat),
                   "test_pairs": base["count"],
                   "models": {"stages": stages, "homographynet": hnet, "sequence2": seq,
                              "ablation": {f"{a:g},{b:g}": d[0] for (a, b), d in rows.items()},

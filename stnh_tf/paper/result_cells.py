@@ -106,10 +106,52 @@ def provenance_cells(sources, name, models=None, measured=None) -> tuple[str, st
 REPRODUCE_MACHINE = "the CPU machine of BENCHMARKS.md (2 cores, x86_64 with AVX-512/AMX)"
 
 
+def latency_refreshed(sources) -> dict | None:
+    """results.json's ``latency_provenance`` where it records the load (Table 2 measured again
+    by ``experiments.reproduce --refresh_latency``), else ``None`` (as reconstructed, or none)."""
+    measured = sources["results"].get("latency_provenance")
+    return measured if isinstance(measured, dict) and (
+        measured.get("loadavg_at_start") or measured.get("loadavg_at_end")) else None
+
+
+def latency_command(sources, reproduce: str) -> str:
+    """The command cell of Table 2's row: ``reproduce`` (the reproduction's), or the refresh's
+    where Table 2 was measured again (:func:`latency_refreshed`)."""
+    if not latency_refreshed(sources):
+        return reproduce
+    folder = SOURCES["results"].rsplit("/", 1)[0]
+    return (f"`python -m experiments.reproduce --output_dir={folder} --refresh_latency` "
+            "([how](docs/reproduce.md))")
+
+
+def latency_cells(sources) -> tuple[str, str]:
+    """The (commit, machine) cells of Table 2's row: where Table 2 was measured again
+    (:func:`latency_refreshed`), "measured at" its commit on untrained models and its machine
+    alone (the trained stages took no part); else :func:`provenance_cells` of the three stages
+    with ``latency_provenance``."""
+    measured = latency_refreshed(sources)
+    if not measured:
+        return provenance_cells(sources, "results", ("stage1", "stage2", "stage3"),
+                                "latency_provenance")
+    return (f"measured at {measured.get('commit') or NOT_RECORDED} on untrained models",
+            machine_label(measured))
+
+
 def latency_machine(sources) -> str:
-    """Where Table 2's latencies were measured and under what load: results.json's ``machine``
-    block (:func:`recorded`, its ``loadavg_at_start``) where it has one, else
-    :data:`REPRODUCE_MACHINE`, the load "not recorded"."""
+    """Where Table 2's latencies were measured and under what load: results.json's
+    ``latency_provenance`` where it records the load (a measurement of
+    ``experiments.reproduce --refresh_latency``, :func:`stnh_tf.paper.table2.refresh`: its
+    machine, commit, date and 1-minute load averages at the start and end of the measurement,
+    its own load included at the end), else its ``machine`` block (:func:`recorded`, its
+    ``loadavg_at_start``) where it has one, else :data:`REPRODUCE_MACHINE`, the load "not
+    recorded"."""
+    measured = latency_refreshed(sources)
+    if measured:
+        loads = " and ".join(f"{load[0]:.2f} at {when}" for load, when in (
+            (measured.get("loadavg_at_start"), "start"), (measured.get("loadavg_at_end"), "end"))
+            if load)
+        return (f"{machine_label(measured)}, code {measured.get('commit') or NOT_RECORDED}, "
+                f"{str(measured.get('date') or NOT_RECORDED)[:10]}, 1-minute load {loads}")
     commit, machine = recorded(sources, "results")
     if machine == NOT_RECORDED:
         return f"{REPRODUCE_MACHINE}, its load not recorded"

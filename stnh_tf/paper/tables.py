@@ -52,17 +52,7 @@ def tables_markdown(result: dict, latency: dict) -> str:
               *table1_lines(result["table1_mace_per_seed"], result["fig4_mace"].get("Identity"),
                             paper["table1_mace"], schedule.get("table1_mace", {}),
                             result.get("table1_claim", {}).get("text", ""))]
-    lines += ["", f"## Table 2: batch-1 latency ({latency.get('policy', '')}; paper: a GPU)", "",
-              latency_note(latency), "",
-              "| stages | d_e (ms), ours | formula (l_m + l_w) n | paper GPU (ms) |",
-              "| ---: | ---: | ---: | ---: |"]
-    for k, v in latency["hierarchy"].items():
-        lines.append(f"| {k} | {v['d_e_ms']:.2f} | {v['formula_ms']:.2f} | "
-                     f"{paper['table2_gpu_ms'].get(int(k), float('nan')):.2f} |")
-    if latency.get("sequence"):
-        lines += ["", "Sequence models, forward pass: " + ", ".join(
-            f"{k} stage{'s' if k != '1' else ''} {v['forward_ms']:.2f} ms"
-            for k, v in latency["sequence"].items()) + "."]
+    lines += ["", *table2_lines(latency, paper["table2_gpu_ms"])]
     lines += ["", "## Models", "",
               *([assembled_line(result), ""] if "model_provenance" in result else []),
               "| model | directory | trained on |", "| --- | --- | --- |"]
@@ -158,6 +148,25 @@ def table1_claim(per_seed: dict, identity, verdicts: bool = True) -> dict:
                                        f"{span(a)}, 1:1 {span(b)}).")
     return {"verdict": verdict,
             "text": "The paper's claim (L2:L1 = 10:1 gives a lower MACE than 1:1): " + text}
+
+
+def table2_lines(latency: dict, paper_gpu_ms: dict) -> list[str]:
+    """``tables.md``'s Table 2 section, from its heading to the sequence models' line:
+    ``latency`` (:func:`stnh_tf.evaluation.mace.latency`'s result with the budget's ``policy``)
+    beside ``paper_gpu_ms`` (the paper's ms per number of stages, keyed by int, or by str as a
+    ``results.json`` read back holds them)."""
+    lines = [f"## Table 2: batch-1 latency ({latency.get('policy', '')}; paper: a GPU)", "",
+             latency_note(latency), "",
+             "| stages | d_e (ms), ours | formula (l_m + l_w) n | paper GPU (ms) |",
+             "| ---: | ---: | ---: | ---: |"]
+    for k, v in latency["hierarchy"].items():
+        gpu = paper_gpu_ms.get(int(k), paper_gpu_ms.get(str(k), float("nan")))
+        lines.append(f"| {k} | {v['d_e_ms']:.2f} | {v['formula_ms']:.2f} | {gpu:.2f} |")
+    if latency.get("sequence"):
+        lines += ["", "Sequence models, forward pass: " + ", ".join(
+            f"{k} stage{'s' if k != '1' else ''} {v['forward_ms']:.2f} ms"
+            for k, v in latency["sequence"].items()) + "."]
+    return lines
 
 
 def latency_note(latency: dict) -> str:
