@@ -16,10 +16,10 @@ threshold is an upper bound is switched off with :data:`OFF`, which no measure r
 infinite measure (an undefined corner precision) still trips it; each entry says what stays.
 Rules no options value switches off: :data:`WITHOUT_SWITCH`.
 
-    >>> options_for("search").search, options_for("late_start_move").thresholds.late_start_move
+    >>> options_for("verify").verify, options_for("max_corner_std").thresholds.max_corner_std
     ('none', 1000000000.0)
-    >>> resolve(["verify", "search"])
-    ('default', 'verify', 'search')
+    >>> resolve(["verify", "features"])
+    ('default', 'verify', 'features')
 """
 
 from __future__ import annotations
@@ -50,20 +50,12 @@ ABLATIONS = {
         "the feature start, early and late (SIFT + MAGSAC matches refined by the network), and "
         "with it the wide-motion corner rule: the flag's corner rule is the trained range's "
         "(implausible_corner_shift, 48 px) again", {"features": "none"}),
-    "late_start_move": (
-        "the late feature start's move trigger (the finished estimate more than "
-        "late_start_move, 10 px, from the network's own); its trigger on a flagged estimate "
-        "stays", {"thresholds": {"late_start_move": OFF}}),
-    "search": ("the search of poorly aligned estimates (translation peaks, then ECC)",
-               {"search": "none"}),
     "refine_images": (
-        "the whole-image ECC refinement, with its later rounds, its one resolution and the "
-        "move confirmation; the patch ECC refinement stays", {"refine": "ecc"}),
+        "the whole-image ECC refinement, with its one resolution and the move confirmation; "
+        "the patch ECC refinement stays", {"refine": "ecc"}),
     "refine": (
         "every ECC refinement (patch and whole-image, with the move confirmation); the ECC "
         "check of the flag stays", {"refine": "none"}),
-    "image_refine_rounds": ("the whole-image refinement's later rounds (one round)",
-                            {"thresholds": {"image_refine_rounds": 1}}),
     "resolution_sigma": ("the one resolution of the whole-image refinement (no blur of the "
                          "sharper image of a zoom)", {"thresholds": {"resolution_sigma": 0.0}}),
     "max_refine_move": (
@@ -110,19 +102,17 @@ changes are ``EstimateOptions`` fields, ``"thresholds"`` a dict of ``Thresholds`
 (:func:`options_for`)."""
 
 WITHOUT_SWITCH = {
-    "the early feature start (before the search; a confirmed start skips it)":
-        "fixed by features='fallback' with a search and no retry (features.estimate)",
     "the late feature start's trigger on a flagged estimate": "no field (features.late_wanted)",
     "the feature start at the images' own resolution":
         "no field; never runs where the images fit in 320 x 240 (make_camera_pairs' default "
         "scale)",
     "the start G itself as the feature start's candidate": "no field (features.from_start)",
     "the ECC move rule alone (max_verify_move)":
-        "the same number sets the whole-image refinement's second start and later rounds and "
-        "the move confirmation; 'precision_ambiguity' against 'verify' isolates it",
+        "the same number sets the whole-image refinement's second start and the move "
+        "confirmation; 'precision_ambiguity' against 'verify' isolates it",
     "the move confirmation":
-        "tied to refine='images' and verified_ncc, which also bars the search's results and "
-        "the later rounds; 'refine_images' removes it with the refinement",
+        "tied to refine='images' and verified_ncc, which also bars the search's results "
+        "(search='ecc'); 'refine_images' removes it with the refinement",
     "the stage gate and the mirror fill":
         "estimate_images sets gate_stages=False and fill='zeros' (the image is the context)",
 }

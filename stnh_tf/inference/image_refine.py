@@ -43,12 +43,9 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
     the whole images started from that patch refinement and, where it lies more than
     ``thresholds.max_verify_move`` from the estimate, from the estimate too (on a blurred, noisy
     patch_b the patch optimum can be off where the whole images' is not). The one that aligns
-    the images best (:func:`~stnh_tf.inference.coarse.image_ncc`) is kept. Where the kept result
-    is itself that far from patch_b's nearest optimum, another round starts from that optimum (at most
-    ``thresholds.image_refine_rounds`` rounds, while each improves the alignment); as a search's
-    result, a later round's is kept only where it aligns the images at
-    ``thresholds.verified_ncc`` or better. From an estimate beyond ECC's reach the kept result can
-    be further off than the estimate. A refined estimate has ``refined`` set and is flagged by
+    the images best (:func:`~stnh_tf.inference.coarse.image_ncc`) is kept (one round: later
+    rounds from patch_b's optimum changed no estimate of the ablation, issue 79). From an
+    estimate beyond ECC's reach the kept result can be further off than the estimate. A refined estimate has ``refined`` set and is flagged by
     :func:`~stnh_tf.inference.coarse.flag` (the coarse pass's corner rule where
     ``options.wide_motions``, the trained range's without), as any estimate. An estimate kept as it
     is that ``verify="ecc"`` has not checked yet (``verify_move_px`` NaN: ``estimate_images``
@@ -80,28 +77,16 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
                 best, best_ncc = nearest, ncc
         # from the estimate too where the patch optimum lies far from it (else one basin)
         starts = [nearest, h0] if _far(nearest, h0, work_a, origin, t) else [nearest]
-    checked, checked_for = None, None  # patch_b's ECC optimum nearest to checked_for
-    for round_ in range(t.image_refine_rounds):
-        # a later round starts away from the estimate, like a search: kept only if verified
-        floor = best_ncc if round_ == 0 else max(best_ncc, t.verified_ncc)
-        improved = False
-        for start in starts:
-            h = _whole_image_ecc(equal_a, equal_b, start, origin, t)
-            ncc = -math.inf if h is None else ncc_of(h)
-            if ncc > floor:
-                best, best_ncc, floor, improved = h, ncc, ncc, True
-        if not improved:
-            break
-        checked, checked_for = search_lib.ecc_refine(work_a, patch_b, best, origin, t), best
-        if checked is None or not _far(checked, best, work_a, origin, t):
-            break
-        starts = [checked]  # still off patch_b's nearest optimum: another round from there
+    for start in starts:
+        h = _whole_image_ecc(equal_a, equal_b, start, origin, t)
+        ncc = -math.inf if h is None else ncc_of(h)
+        if ncc > best_ncc:
+            best, best_ncc = h, ncc
     if best is h0:
         return _verified(est, nearest, work_a, (equal_a, equal_b), origin, options)
     move, confirmed = est.verify_move_px, est.move_confirmed
     if options.verify == "ecc":
-        if checked_for is not best:
-            checked = search_lib.ecc_refine(work_a, patch_b, best, origin, t)
+        checked = search_lib.ecc_refine(work_a, patch_b, best, origin, t)
         move = np.array([checks.verify_move(checked, best, np.shape(work_a), origin)])
         confirmed = np.array([move_confirmed(move[0], checked, best, equal_a, equal_b,
                                              np.shape(work_a), origin, t)])

@@ -92,8 +92,8 @@ class Thresholds:
         the NCC to be defined.
       search_below_ncc: ``search="ecc"`` searches a pair aligned below this (or implausible).
       verified_ncc: a search result must align the pair at least this well to be kept (and a
-        later round of the whole-image refinement the whole images; a verify move is excused
-        only where they align this well: ``max_verify_move``).
+        verify move is excused only where the whole images align this well:
+        ``max_verify_move``).
       search_template: side (px) of patch_b's central square slid over the warped patch_a:
         translations up to ``(128 - side) / 2`` px are scored.
       search_peaks: translation peaks the search starts ECC from.
@@ -110,11 +110,6 @@ class Thresholds:
         ``estimate_images``, not where ECC over the whole images brings the move back to
         within this of an estimate that aligns them at ``verified_ncc`` or better
         (:func:`stnh_tf.inference.image_refine.move_confirmed`).
-      image_refine_rounds: with ``refine="images"``, the most rounds of whole-image ECC
-        (:mod:`stnh_tf.inference.image_refine`); a round after the first runs only where the
-        previous one improved the alignment and left the estimate more than
-        ``max_verify_move`` from patch_b's nearest ECC optimum, and its result is kept only
-        where its whole-image NCC reaches ``verified_ncc``.
       coarse_corner_shift: with ``coarse`` or ``features`` other than ``"none"``
         (``EstimateOptions.wide_motions``), this replaces ``implausible_corner_shift`` in the
         implausibility rule of ``estimate_images`` where the network's estimate aligns poorly
@@ -149,11 +144,6 @@ class Thresholds:
         flagged implausible (``Estimate.ambiguity_gap``,
         :func:`stnh_tf.inference.checks.ambiguity_gap`): a repeated pattern aligns as well one
         period off (issue 79). 0.005: a near-perfect repetition only.
-      late_start_move: with ``features="fallback"`` in ``estimate_images``, where the feature
-        start was not taken and the finished estimate is flagged, or lies more than this from
-        the network's own estimate (px, ``Estimate.network_move_px``'s measure), the feature
-        start is tried once more after the refinement and the better of the two finished
-        estimates kept (:func:`stnh_tf.inference.features.late_wanted`; issue 64).
     """
 
     implausible_corner_shift: float = 1.5 * geometry.MAX_PERTURBATION
@@ -171,14 +161,12 @@ class Thresholds:
     refine_gaussian: int = 1
     max_refine_move: float = 16.0
     max_verify_move: float = 5.0
-    image_refine_rounds: int = 3
     coarse_corner_shift: float = 4 * geometry.MAX_PERTURBATION
     max_corner_std: float = 1.5
     corner_std_tile: int = 8
     undetermined_corner_std: float = 400.0
     min_ambiguity_gap: float = 0.005
     resolution_sigma: float = 0.8
-    late_start_move: float = 10.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -278,13 +266,15 @@ class EstimateOptions:
         the ECC check of the flag (``verify="ecc"``) and the feature start where the network's
         estimate aligns poorly (``features="fallback"``), which takes motions beyond the trained
         range (``wide_motions``); the coarse pass (``coarse="rotations"``) is opt-in since the
-        feature start (issue 64). ``changes`` override fields.
+        feature start (issue 64), and so is the search (``search="ecc"``) since the ablation
+        (issue 79: it changed no estimate there). ``changes`` override fields.
 
         >>> o = EstimateOptions.photographs()
         >>> o.coarse, o.refine, o.verify, o.search, o.features, o.wide_motions
-        ('none', 'images', 'ecc', 'ecc', 'fallback', True)
+        ('none', 'images', 'ecc', 'none', 'fallback', True)
         """
-        return cls(**{"refine": "images", "verify": "ecc", "features": "fallback", **changes})
+        return cls(**{"refine": "images", "verify": "ecc", "features": "fallback",
+                      "search": "none", **changes})
 
     @property
     def wide_motions(self) -> bool:
