@@ -62,13 +62,12 @@ def test_each_entry_changes_photographs_as_it_says():
 # Which test below shows each ablation's rule acting in the default and not once switched off.
 WITNESSES = {
     "features": "test_features_off", "search": "test_search_off",
-    "late_start_move": "test_late_start_move_and_the_flag_rules_off",
-    "corner_rule": "test_late_start_move_and_the_flag_rules_off",
-    "corner_rule_trained": "test_late_start_move_and_the_flag_rules_off",
-    "min_alignment_ncc": "test_late_start_move_and_the_flag_rules_off",
+    "corner_rule": "test_the_flag_rules_off",
+    "corner_rule_trained": "test_the_flag_rules_off",
+    "min_alignment_ncc": "test_the_flag_rules_off",
     "refine_images": "test_refinements_off", "refine": "test_refinements_off",
     "resolution_sigma": "test_refinements_off",
-    "image_refine_rounds": "test_later_rounds_off", "max_refine_move": "test_refine_guard_off",
+    "max_refine_move": "test_refine_guard_off",
     "verify": "test_checks_of_the_flag_off", "precision_ambiguity": "test_checks_of_the_flag_off",
     "max_corner_std": "test_checks_of_the_flag_off",
     "corner_std_classical": "test_checks_of_the_flag_off",
@@ -142,16 +141,11 @@ def test_search_off(identity, monkeypatch):
     assert not off.searched[0] and not off.found[0]
 
 
-def test_late_start_move_and_the_flag_rules_off(near):
-    """The decisions estimate_images takes with the options (features.late_wanted, the final
-    flag coarse.flag) on the default Estimate with one quantity changed."""
-    est = dataclasses.replace(near[3], feature_start=np.array([False]))
-    # the late start's move trigger; the trigger on a flagged estimate stays
-    assert features.late_wanted(est, 15.0, DEFAULT)
-    assert not features.late_wanted(est, 15.0, OFF("late_start_move"))
-    flagged = dataclasses.replace(est, implausible=np.array([True]))
-    assert features.late_wanted(flagged, 0.0, OFF("late_start_move"))
-    est = dataclasses.replace(est, verify_move_px=np.array([np.nan]))
+def test_the_flag_rules_off(near):
+    """The final flag's decisions (coarse.flag) on the default Estimate with one quantity
+    changed."""
+    est = dataclasses.replace(near[3], feature_start=np.array([False]),
+                              verify_move_px=np.array([np.nan]))
 
     def flag(h, ncc, name):
         moved = dataclasses.replace(est, homography=h[None], alignment_ncc=np.array([ncc]))
@@ -188,17 +182,6 @@ def test_refinements_off(near, monkeypatch):
     assert whole_calls == 0 and not est.refined[0]
     est, whole_calls, used = run("resolution_sigma")
     assert whole_calls and used == {0.0}
-
-
-def test_later_rounds_off():
-    """test_image_refine's pair 32 px off, without the feature start and the search (which
-    would find it first): the later rounds reach the truth; with one round, flagged and far."""
-    estimator, (a, b) = _estimator_off_by((25.0, 20.0)), _pair(TRUTH)
-    base = dataclasses.replace(DEFAULT, features="none", search="none")
-    on = estimator.estimate_images_with_info(a, b, OFF("default", base))
-    off = estimator.estimate_images_with_info(a, b, OFF("image_refine_rounds", base))
-    assert _corner_error(on.homography[0], TRUTH) < 0.1 and not on.implausible[0]
-    assert _corner_error(off.homography[0], TRUTH) > 5 and off.implausible[0]
 
 
 def test_refine_guard_off(monkeypatch):

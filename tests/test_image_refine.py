@@ -91,31 +91,14 @@ def test_refine_images_keeps_the_estimate_where_it_does_not_apply():
 
 
 
-@pytest.mark.parametrize("shift", [(25.0, 20.0), (-30.0, 20.0)])
-def test_later_rounds_reach_the_truth_where_the_first_stops_short(shift):
-    """An estimate off by 32-36 px: one round of whole-image ECC stops 10-44 px off (flagged);
-    the later rounds, started from patch_b's ECC optimum, reach the truth (0.003 px, measured).
-    With ``verified_ncc`` out of reach (1.0) the later rounds' results are not kept."""
+@pytest.mark.parametrize("shift", [(25.0, 20.0), (-30.0, 20.0), (35.0, -25.0)])
+def test_an_estimate_beyond_the_refinements_reach_stays_flagged(shift):
+    """An estimate off by 32-43 px: the whole-image ECC stops short of the truth (10-44 px off,
+    measured) and the estimate stays flagged. (Later rounds from patch_b's ECC optimum reached
+    the truth on the first two; they changed no estimate of the ablation's 480 camera pairs and
+    went in issue 79.)"""
     a, b = _pair(TRUTH)
-    estimator = _estimator_off_by(shift)
-
-    def run(**thresholds):
-        options = EstimateOptions(search="none", refine="images", verify="ecc",
-                                  thresholds=Thresholds(**thresholds))
-        est = estimator.estimate_images_with_info(a, b, options)
-        return image_errors(est.homography, TRUTH[None])[0], est.implausible[0]
-
-    one_error, one_flag = run(image_refine_rounds=1)
-    assert one_error > 5.0 and one_flag
-    error, flag = run()
-    assert error < 0.1 and not flag
-    assert run(verified_ncc=1.0) == (one_error, one_flag)
-
-
-def test_an_estimate_beyond_every_round_stays_flagged():
-    """Off by 43 px (35, -25): no round reaches the truth (29.8 px, measured); still flagged."""
-    a, b = _pair(TRUTH)
-    est = _estimator_off_by((35.0, -25.0)).estimate_images_with_info(
+    est = _estimator_off_by(shift).estimate_images_with_info(
         a, b, EstimateOptions(search="none", refine="images", verify="ecc"))
     assert image_errors(est.homography, TRUTH[None])[0] > 5.0 and est.implausible[0]
 

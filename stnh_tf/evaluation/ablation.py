@@ -16,10 +16,10 @@ threshold is an upper bound is switched off with :data:`OFF`, which no measure r
 infinite measure (an undefined corner precision) still trips it; each entry says what stays.
 Rules no options value switches off: :data:`WITHOUT_SWITCH`.
 
-    >>> options_for("verify").verify, options_for("max_corner_std").thresholds.max_corner_std
+    >>> options_for("search").search, options_for("max_corner_std").thresholds.max_corner_std
     ('none', 1000000000.0)
-    >>> resolve(["verify", "features"])
-    ('default', 'verify', 'features')
+    >>> resolve(["verify", "search"])
+    ('default', 'verify', 'search')
 """
 
 from __future__ import annotations
@@ -50,6 +50,8 @@ ABLATIONS = {
         "the feature start, early and late (SIFT + MAGSAC matches refined by the network), and "
         "with it the wide-motion corner rule: the flag's corner rule is the trained range's "
         "(implausible_corner_shift, 48 px) again", {"features": "none"}),
+    "search": ("the search of poorly aligned estimates (translation peaks, then ECC)",
+               {"search": "none"}),
     "refine_images": (
         "the whole-image ECC refinement, with its one resolution and the move confirmation; "
         "the patch ECC refinement stays", {"refine": "ecc"}),
@@ -102,6 +104,8 @@ changes are ``EstimateOptions`` fields, ``"thresholds"`` a dict of ``Thresholds`
 (:func:`options_for`)."""
 
 WITHOUT_SWITCH = {
+    "the early feature start (before the search; a confirmed start skips it)":
+        "fixed by features='fallback' with a search and no retry (features.estimate)",
     "the late feature start's trigger on a flagged estimate": "no field (features.late_wanted)",
     "the feature start at the images' own resolution":
         "no field; never runs where the images fit in 320 x 240 (make_camera_pairs' default "
@@ -111,8 +115,8 @@ WITHOUT_SWITCH = {
         "the same number sets the whole-image refinement's second start and the move "
         "confirmation; 'precision_ambiguity' against 'verify' isolates it",
     "the move confirmation":
-        "tied to refine='images' and verified_ncc, which also bars the search's results "
-        "(search='ecc'); 'refine_images' removes it with the refinement",
+        "tied to refine='images' and verified_ncc, which also bars the search's results; "
+        "'refine_images' removes it with the refinement",
     "the stage gate and the mirror fill":
         "estimate_images sets gate_stages=False and fill='zeros' (the image is the context)",
 }

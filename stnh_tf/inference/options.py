@@ -266,15 +266,13 @@ class EstimateOptions:
         the ECC check of the flag (``verify="ecc"``) and the feature start where the network's
         estimate aligns poorly (``features="fallback"``), which takes motions beyond the trained
         range (``wide_motions``); the coarse pass (``coarse="rotations"``) is opt-in since the
-        feature start (issue 64), and so is the search (``search="ecc"``) since the ablation
-        (issue 79: it changed no estimate there). ``changes`` override fields.
+        feature start (issue 64). ``changes`` override fields.
 
         >>> o = EstimateOptions.photographs()
         >>> o.coarse, o.refine, o.verify, o.search, o.features, o.wide_motions
-        ('none', 'images', 'ecc', 'none', 'fallback', True)
+        ('none', 'images', 'ecc', 'ecc', 'fallback', True)
         """
-        return cls(**{"refine": "images", "verify": "ecc", "features": "fallback",
-                      "search": "none", **changes})
+        return cls(**{"refine": "images", "verify": "ecc", "features": "fallback", **changes})
 
     @property
     def wide_motions(self) -> bool:
