@@ -1086,6 +1086,8 @@ def test_ablation_table_is_the_json_s():
     from stnh_tf.evaluation import ablation
 
     text = _read("BENCHMARKS.md")
-    start, end = "<!-- ablation-seed0:start -->\n", "\n<!-- ablation-seed0:end -->"
-    block = text[text.index(start) + len(start):text.index(end)]
-    assert block == ablation.table(_camera_file("ablation_seed0_20"))
+    for tag, name in (("seed0", "ablation_seed0_20"), ("seed0-60", "ablation_seed0_60"),
+                      ("seed0-60-after", "ablation_seed0_60_a02fe78")):
+        start, end = f"<!-- ablation-{tag}:start -->\n", f"\n<!-- ablation-{tag}:end -->"
+        block = text[text.index(start) + len(start):text.index(end)]
+        assert block == ablation.table(_camera_file(name)), tag
