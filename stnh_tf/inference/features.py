@@ -233,9 +233,8 @@ def late_wanted(est, options: EstimateOptions) -> bool:
     """Whether ``estimate_images`` tries the feature start again after the refinement and the
     checks (``features="fallback"``): ``est`` (the finished ``Estimate`` of one pair) was not
     made from the feature start, is not flat, and is flagged: the network's estimate passed the
-    early trigger (:func:`wanted`) yet the finished one says it was off. (A trigger on a move of
-    more than 10 px from the network's own estimate changed no estimate of the ablation and went,
-    issue 79.)"""
+    early trigger (:func:`wanted`) yet the finished one says it was off (docs/estimate.md,
+    "What each rule buys")."""
     if (options.features != "fallback" or est.flat[0]
             or (est.feature_start is not None and est.feature_start[0])):
         return False

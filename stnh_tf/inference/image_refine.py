@@ -43,9 +43,9 @@ def refine_images(est, work_a, work_b, options: EstimateOptions, origin):
     the whole images started from that patch refinement and, where it lies more than
     ``thresholds.max_verify_move`` from the estimate, from the estimate too (on a blurred, noisy
     patch_b the patch optimum can be off where the whole images' is not). The one that aligns
-    the images best (:func:`~stnh_tf.inference.coarse.image_ncc`) is kept (one round: later
-    rounds from patch_b's optimum changed no estimate of the ablation, issue 79). From an
-    estimate beyond ECC's reach the kept result can be further off than the estimate. A refined estimate has ``refined`` set and is flagged by
+    the images best (:func:`~stnh_tf.inference.coarse.image_ncc`) is kept: one round. From an
+    estimate beyond ECC's reach the kept result can be further off than the estimate. A refined
+    estimate has ``refined`` set and is flagged by
     :func:`~stnh_tf.inference.coarse.flag` (the coarse pass's corner rule where
     ``options.wide_motions``, the trained range's without), as any estimate. An estimate kept as it
     is that ``verify="ecc"`` has not checked yet (``verify_move_px`` NaN: ``estimate_images``
