@@ -223,13 +223,24 @@ def estimate(steps: int, measured: dict, *, train_images: int, test_images: int,
     return parts
 
 
+def warmup_steps(train_steps: int) -> int:
+    """The hour budget's warm-up: the cpu budget's (100 steps) where it fits in a quarter of
+    ``train_steps``, else that quarter (at least 1). The cpu budget's share (1/40) left the
+    sequence model 4 warm-up steps of 160, and it diverged at step 6 (issue 78's measured hour).
+
+    >>> warmup_steps(160), warmup_steps(1290), warmup_steps(2)
+    (40, 100, 1)
+    """
+    return max(min(BUDGETS["cpu"].warmup_steps, train_steps // 4), 1)
+
+
 def plan_hour(measured: dict, *, train_images: int, test_images: int, ablation_weights,
               limit_s: float = HOUR_S, margin: float = MARGIN,
               floor: int = FIG4_FLOOR_STEPS) -> dict:
     """The hour budget on a machine of ``measured`` rates (:func:`probe`'s result, measured or
     given): the most ``train_steps`` (a multiple of :data:`STEP_UNIT`, at least one unit) whose
-    :func:`estimate` ends within ``limit_s * (1 - margin)``, with ``warmup_steps`` the cpu
-    budget's share (1/40, at least 1), ``samples_per_image`` (:func:`samples_per_image`) and
+    :func:`estimate` ends within ``limit_s * (1 - margin)``, with ``warmup_steps``
+    (:func:`warmup_steps`), ``samples_per_image`` (:func:`samples_per_image`) and
     ``checkpoint_every`` half the steps. Returns the plan: those fields, ``probe``
     (``measured``), ``estimate_s``, ``rates`` (steps/s by model kind, for
     :class:`~stnh_tf.paper.progress.Progress`), ``fixed_s`` (the estimate less the probe and the
@@ -267,7 +278,7 @@ def plan_hour(measured: dict, *, train_images: int, test_images: int, ablation_w
             f"{floor:,} steps per model (the floor) the networks' errors differ by less than a "
             f"seed changes them; {floor:,} steps would take about {floor_h:.1f} h here.")
     return {"budget": "hour", "limit_s": limit_s, "margin": margin, "train_steps": steps,
-            "warmup_steps": max(steps // 40, 1),
+            "warmup_steps": warmup_steps(steps),
             "samples_per_image": samples_per_image(steps, HOUR.batch_size, train_images),
             "checkpoint_every": steps // 2, "train_images": train_images,
             "test_images": test_images, "probe": measured, "estimate_s": parts,
