@@ -155,8 +155,10 @@ def refresh_latency() -> None:
 
 def main(argv):
     del argv
-    with common.user_errors("reproduce", (ValueError, OSError, reproduce.Stopped)), \
-            interrupt_line("reproduce"):
+    from stnh_tf.training.loop import TrainingDiverged
+
+    with common.user_errors("reproduce", (ValueError, OSError, reproduce.Stopped,
+                                          TrainingDiverged)), interrupt_line("reproduce"):
         if FLAGS.refresh_latency:
             return refresh_latency()
         run = reproduction_from_flags(hour=True)

@@ -118,6 +118,27 @@ def test_a_signal_stop_ends_the_reproduction_with_one_line(tmp_path, monkeypatch
     assert logs[1:] == [f"[train] stage1: resuming {cfg.model_dir} from step 1"]
 
 
+def test_a_diverged_model_ends_the_reproduction_naming_it(tmp_path, monkeypatch):
+    """A non-finite loss (training's TrainingDiverged) ends the reproduction with the model's
+    name and warm-up in the message, which the binary prints as one line (issue 78's first
+    measured hour run: the sequence model at step 6, a traceback before)."""
+    from experiments import common
+    from stnh_tf.training import loop
+
+    def fake_train(cfg, **kw):
+        raise loop.TrainingDiverged("non-finite loss at step 6")
+
+    monkeypatch.setattr(loop, "train", fake_train)
+    run = reproduce.Reproduction(reproduce.BUDGETS["tiny"], str(tmp_path), source="bundled",
+                                 printer=lambda line: None)
+    cfg = run.config("sequence2", data_dir=str(tmp_path / "data"), model="sequence",
+                     num_stages=2)
+    with pytest.raises(SystemExit, match=r"^reproduce: sequence2 \(budget 'tiny', 1 warm-up "
+                       r"steps\): non-finite loss at step 6$"):
+        with common.user_errors("reproduce", (loop.TrainingDiverged,)):
+            run.train("sequence2", cfg)
+
+
 @pytest.mark.slow
 def test_ctrl_c_saves_the_models_checkpoint_and_stops_the_reproduction(tmp_path, monkeypatch):
     """A real SIGINT while a tiny model trains (sent at its step 2 of 4): the step's checkpoint

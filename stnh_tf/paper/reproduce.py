@@ -193,7 +193,8 @@ class Reproduction:
     def train(self, name: str, cfg) -> str:
         """Train ``cfg`` unless ``cfg.model_dir`` already holds a finished model of this budget
         (or held one, evaluated and dropped: :meth:`dropped`), printing :class:`Progress` lines;
-        a signal (Ctrl-C, SIGTERM) stops it, its checkpoint saved, and raises :class:`Stopped`.
+        a signal (Ctrl-C, SIGTERM) stops it, its checkpoint saved, and raises :class:`Stopped`;
+        a non-finite loss raises ``TrainingDiverged`` naming the model.
         Where the budget keeps no checkpoints, a finished model's ``checkpoint/`` is removed."""
         from stnh_tf.training import run_dir
         from stnh_tf.training import loop as training
@@ -205,9 +206,14 @@ class Reproduction:
             self.progress.finished(name)
             return cfg.model_dir
         self.printer(f"[train] {name} ({cfg.model}, {cfg.train_steps} steps) -> {cfg.model_dir}")
-        self.progress.check_stop(name, cfg, self._timed(f"train_{name}", lambda: training.train(
-            cfg, printer=self.progress.train_printer(name),
-            extra_callbacks=[self.progress.callback(name, cfg)])))
+        try:
+            result = self._timed(f"train_{name}", lambda: training.train(
+                cfg, printer=self.progress.train_printer(name),
+                extra_callbacks=[self.progress.callback(name, cfg)]))
+        except training.TrainingDiverged as e:
+            raise training.TrainingDiverged(f"{name} (budget '{self.budget.name}', "
+                                            f"{cfg.warmup_steps} warm-up steps): {e}") from None
+        self.progress.check_stop(name, cfg, result)
         if (not self.budget.keep_checkpoints and os.path.exists(final)
                 and name not in self.reuse):
             shutil.rmtree(os.path.join(cfg.model_dir, run_dir.CHECKPOINT_DIR), ignore_errors=True)
