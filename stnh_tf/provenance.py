@@ -79,8 +79,12 @@ def machine_info() -> dict:
     return info
 
 
-STARTED = {"git_commit": git_commit(),
-           "loadavg": ([round(x, 2) for x in os.getloadavg()] if hasattr(os, "getloadavg")
-                       else None)}
+def load_average() -> list | None:
+    """The 1-, 5- and 15-minute load averages now, rounded to 0.01; ``None`` where the OS has
+    none."""
+    return [round(x, 2) for x in os.getloadavg()] if hasattr(os, "getloadavg") else None
+
+
+STARTED = {"git_commit": git_commit(), "loadavg": load_average()}
 """The commit (:func:`git_commit`) and the load average when this module was first imported,
 which :func:`machine_info` reports."""

@@ -19,7 +19,7 @@ from stnh_tf.paths import atomic_write_json, atomic_write_text
 from stnh_tf.paper.model_provenance import machine_summary
 from stnh_tf.paper.results_json import NOT_RECORDED
 from stnh_tf.paper.tables import table2_lines
-from stnh_tf.provenance import machine_info
+from stnh_tf.provenance import load_average, machine_info
 
 REFRESHED_KEYS = ("table2_latency_ms", "sequence_latency_ms", "latency_provenance")
 """The keys of ``results.json`` that :func:`refresh` replaces; it leaves every other as it is."""
@@ -51,12 +51,6 @@ def results_fields(latency: dict) -> dict:
     return {"table2_latency_ms": {k: v["d_e_ms"] for k, v in latency["hierarchy"].items()},
             "sequence_latency_ms": {k: v["forward_ms"]
                                     for k, v in latency.get("sequence", {}).items()}}
-
-
-def _load() -> list | None:
-    """The 1-, 5- and 15-minute load averages now (rounded as
-    :data:`stnh_tf.provenance.STARTED`'s), ``None`` where the OS has none."""
-    return [round(x, 2) for x in os.getloadavg()] if hasattr(os, "getloadavg") else None
 
 
 def _read_results(path: str) -> tuple[str, dict]:
@@ -124,9 +118,9 @@ def refresh(output_dir: str, printer=print) -> dict:
     runs, warmup = int(budget["latency_runs"]), int(budget["latency_warmup"])
     printer(f"[latency] {path}: Table 2 again, {runs} runs after {warmup} warm-up, "
             f"{dtype_policy}, untrained models")
-    date, load_start = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), _load()
+    date, load_start = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), load_average()
     latency = measure((), runs, warmup, dtype_policy)
-    load_end, info = _load(), machine_info()
+    load_end, info = load_average(), machine_info()
     provenance = {
         "commit": info.get("git_commit") or NOT_RECORDED, "machine": machine_summary(info),
         "backend": info.get("keras_backend") or NOT_RECORDED, "date": date,
