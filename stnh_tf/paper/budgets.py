@@ -15,7 +15,7 @@ SPEED_FIELDS = ("steps_per_execution", "workers")
 # Configuration fields a reused model must share with the budget.
 BUDGET_FIELDS = ("model", "stage", "seed", "train_steps", "warmup_steps", "batch_size",
                  "learning_rate", "lr_schedule", "momentum", "l2_weight", "l1_weight",
-                 "batch_norm", "dropout")
+                 "batch_norm", "dropout", "clipnorm")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +38,9 @@ class Budget:
     latency_warmup: int = 20
     num_workers: int = 1             # data-generation processes
     sequence_steps: int = 0          # the sequence model's total steps; 0: as train_steps
+    # The sequence model's global gradient-norm clip (0: none, the paper's recipe): a deviation
+    # of the hour budget, whose short warm-up let a merge blow up (docs/reproduce.md).
+    sequence_clipnorm: float = 0.0
     table1_seeds: int = 1            # seeds of the SPREAD_ROWS of Table 1
     verdicts: bool = True            # False: no claim is judged at this budget (the smoke test)
     keep_checkpoints: bool = True    # False: a finished model's checkpoint/ is removed

@@ -263,7 +263,8 @@ class Reproduction:
         """The 2-stage sequence model trained end to end on the stage-1 pairs; returns its dir."""
         return self.train("sequence2", self.config("sequence2", data_dir=self.stage1_data(),
                                                    model="sequence", num_stages=2,
-                                                   train_steps=self.budget.sequence_train_steps))
+                                                   train_steps=self.budget.sequence_train_steps,
+                                                   clipnorm=self.budget.sequence_clipnorm))
 
     def ablation(self, weights=ABLATION_WEIGHTS) -> dict:
         """Table 1 rows ``{(l2, l1): [model_dir per seed]}`` (seeds: :func:`table1_seeds`); the
