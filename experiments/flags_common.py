@@ -39,12 +39,16 @@ def _define(field, flag_values, choices=None):
         flags.DEFINE_string(default=default, **args)
 
 
-def define_training_flags(scope: str, choices=None, flag_values=flags.FLAGS):
-    """Define a flag for every field of :func:`training_fields` (``scope``) and ``--overwrite``.
+def define_training_flags(scope: str, choices=None, flag_values=flags.FLAGS,
+                          run_flags: bool = True):
+    """Define a flag for every field of :func:`training_fields` (``scope``) and, with
+    ``run_flags``, ``--overwrite`` and ``--time_limit_s`` (what a training run needs).
     ``choices`` narrows enum fields for this binary (``{"model": (...)}``)."""
     choices = choices or {}
     for field in training_fields(scope):
         _define(field, flag_values, choices.get(field.name))
+    if not run_flags:
+        return
     flags.DEFINE_bool("overwrite", False, "Delete and retrain a model_dir that holds a finished "
                       "run or a run of other flags (an unfinished run of the same flags is "
                       "resumed). Only what a run wrote is deleted, and only after every flag and "

@@ -808,6 +808,69 @@ PROSE += [  # issue 79, item 4: the low-overlap set
                            (LOW, "groups/low_overlap/sift_ransac/ms_per_pair"), 1))]),
 ]
 
+
+def _hour(name):
+    """docs/reproduce_hour/``name``.json (issue 78's hour-budget runs and traces)."""
+    with open(os.path.join(ROOT, "docs", "reproduce_hour", f"{name}.json")) as f:
+        return json.load(f)
+
+
+def _trace(name, step, key, digits=2, sub=None):
+    """``key`` (``[sub]``) of 1-based ``step`` of docs/reproduce_hour/trace_``name``.json."""
+    def get(sources):
+        value = _hour(f"trace_{name}")["steps"][step - 1][key]
+        value = value[sub] if sub else value
+        return value if isinstance(value, str) else cr.fixed(value, digits)
+    return get
+
+
+def _thousands(name, step):
+    return lambda sources: f"{_hour(f'trace_{name}')['steps'][step - 1]['grad_norm']:,.0f}"
+
+
+def _trace_row(label, clipped, name, min_step):
+    """A row of BENCHMARKS.md's table of the traces that ends with its step-12 MACE: the norms of
+    steps 1-2, step 3's h_bar_2 MACE, the smallest merge denominator and its step, the largest
+    norm (step 2's in these traces) and step 12's MACE of both stages."""
+    regex = (rf"\| {re.escape(label)} \| {N}, {N}{re.escape(clipped)} \| {N} px \| {N} "
+             rf"\({min_step}\) \| {N} \(2\) \| (?:h_bar_1 / h_bar_2 )?{N} / {N} px \|")
+    return ("BENCHMARKS.md", regex,
+            [_trace(name, 1, "grad_norm", 1), _trace(name, 2, "grad_norm", 1),
+             _trace(name, 3, "mace", 0, "h_bar_2"),
+             _trace(name, min_step, "merge_min_w", 2, "merge_2"),
+             _trace(name, 2, "grad_norm", 1), _trace(name, 12, "mace", 1, "h_bar_1"),
+             _trace(name, 12, "mace", 1, "h_bar_2")])
+
+
+def _fig4_networks(sources):
+    mace = _hour("run3_results")["fig4_mace"]
+    nets = [v for k, v in mace.items() if k not in ("Identity", "ORB + RANSAC", "SIFT + RANSAC")]
+    return cr.fixed(min(nets)), cr.fixed(max(nets)), cr.fixed(mace["Identity"])
+
+
+RUN3_MIN = lambda sources: cr.fixed(_hour("run3_results")["wall_s_this_run"] / 60, 1)  # noqa
+B, F, C = "bf16_noclip", "f32_noclip", "bf16_clip10"
+PROSE += [  # issue 78, item 5: the hour budget's third run and the traces behind its clip
+    ("docs/reproduce.md", rf"a third run finished: {N} minutes", [RUN3_MIN]),
+    ("docs/reproduce.md", rf"networks within 1 px of the identity \({N}-{N} px against {N};",
+     [lambda s: _fig4_networks(s)[0], lambda s: _fig4_networks(s)[1],
+      lambda s: _fig4_networks(s)[2]]),
+    ("docs/reproduce.md", rf"stage's MACE {N} px at step 3", [_trace(B, 3, "mace", 0, "h_bar_2")]),
+    ("docs/reproduce.md", rf"the denominator reached {N} at step 6, where the gradient norm was"
+                          rf"{S}([\d,]+),{S}then ([\d,]+), ([\d,]+) and infinite at step 9",
+     [_trace(B, 6, "merge_min_w", 2, "merge_2"), _thousands(B, 6), _thousands(B, 7),
+      _thousands(B, 8)]),
+    ("docs/reproduce.md", rf"came down to {N} at{S}step 5", [_trace(F, 5, "merge_min_w", 2,
+                                                                    "merge_2")]),
+    ("BENCHMARKS.md", rf"\*\*finished in {N} min\*\*", [RUN3_MIN]),
+    ("BENCHMARKS.md", rf"\| mixed bfloat16, no clip \(the budget before\) \| {N}, {N} \| {N} px "
+                      rf"\| {N} \(6\) \|",
+     [_trace(B, 1, "grad_norm", 1), _trace(B, 2, "grad_norm", 1),
+      _trace(B, 3, "mace", 0, "h_bar_2"), _trace(B, 6, "merge_min_w", 3, "merge_2")]),
+    _trace_row("float32, no clip", "", F, 5),
+    _trace_row("mixed bfloat16, clip 10 (run 3)", " (clipped)", C, 9),
+]
+
 def _scale(name):
     """docs/scale/``name``.json (written by ``experiments.benchmark_workers``)."""
     with open(os.path.join(ROOT, "docs", "scale", f"{name}.json")) as f:

@@ -347,6 +347,12 @@ def test_table1_has_the_identity_row_and_a_verdict_only_where_the_budget_support
     assert "| 1 | 1 | 18.13 | 3 seeds: 18.34, 18.30, 17.74 |" in cpu
     tiny = reproduce.tables_markdown(_result("tiny", per_seed), latency)
     assert "| identity (no model) |  | 24.16 |  |  |  |" in tiny
+    # the hour budget's deviation is stated under the title; no other budget has one
+    assert "gradient norm clipped" not in cpu and "gradient norm clipped" not in tiny
+    hour = _result("cpu", per_seed)
+    hour["budget"] = {**hour["budget"], "sequence_clipnorm": 10.0}
+    assert ("The sequence model's global gradient norm clipped at 10 (not the paper's recipe: "
+            'docs/reproduce.md, "The hour budget").') in reproduce.tables_markdown(hour, latency)
     assert "no verdict at this budget" in tiny and "holds" not in tiny
     assert reproduce.BUDGETS["tiny"].verdicts is False and reproduce.BUDGETS["cpu"].verdicts
     above = reproduce.table1_claim({"1,1": [294.9, 280.1], "10,1": [250.0, 260.0]}, 23.53)

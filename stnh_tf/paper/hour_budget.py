@@ -50,12 +50,11 @@ ESTIMATED_STAGES = 2
 
 SEQUENCE_CLIPNORM = 10.0
 """The hour budget's clip of the sequence model's global gradient norm (a deviation from the
-paper, the hour budget's only one besides its steps). Why, measured (docs/reproduce.md, "The
-hour budget"): with a warm-up of tens of steps, the first updates turn ``H_1 @ H_2'``'s
-``[2,2]`` to about 0 on some pair, the merge divides by it, and one step's gradient norm jumps
-from about 20 to 10^4-10^5; the run's loss is non-finite a few steps later, in float32 as in
-bfloat16. The ordinary steps' norms are below 10 from the fifth step on, so the clip leaves
-them alone."""
+paper's recipe, beside the budget's steps, warm-up and precision). Why, traced on issue 78's
+second hour run's pairs (docs/reproduce.md, "The hour budget"): the first updates, with gradient
+norms of 30-50, bring the merge's denominator ``(H_1 @ H_2')[2,2]`` towards 0 on some pair; in
+mixed bfloat16 it reached 0.05 at step 6, the norm 2,483 there and infinite at step 9. Clipped at
+10, the same steps keep it above 0.84."""
 
 HOUR = Budget("hour", train_steps=0, warmup_steps=0, samples_per_image=0, mixed_precision=True,
               checkpoint_every=0, val_samples=300, num_workers=2, verdicts=False,

@@ -23,6 +23,9 @@ def tables_markdown(result: dict, latency: dict) -> str:
              f"{b['batch_size']}, {'mixed bfloat16' if b['mixed_precision'] else 'float32'}; "
              f"{result['test_pairs']} test pairs (seed 1). The paper trains 91,000 steps on all of "
              "COCO 2014 on a GPU: numbers at a smaller budget are not expected to match it.",
+             *([f"The sequence model's global gradient norm clipped at "
+                f"{b['sequence_clipnorm']:g} (not the paper's recipe: docs/reproduce.md, "
+                "\"The hour budget\")."] if b.get("sequence_clipnorm") else []),
              *([f"Total time of this run: {result['wall_s_this_run'] / 3600:.2f} h."]
                if "wall_s_this_run" in result else []),
              *(["", SMOKE_NOTE] if b["name"] == "tiny" else []),
