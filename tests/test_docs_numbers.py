@@ -871,6 +871,23 @@ PROSE += [  # issue 78, item 5: the hour budget's third run and the traces behin
     _trace_row("mixed bfloat16, clip 10 (run 3)", " (clipped)", C, 9),
 ]
 
+def _heldout_paper(group, test):
+    """How many pairs of ``group`` in docs/camera_pairs/paper_seed13_heldout.json pass ``test``."""
+    return lambda sources: str(sum(test(p) for p in _camera_file("paper_seed13_heldout")["pairs"]
+                                   if p["group"] == group))
+
+
+PROSE += [  # issue 79: the paper's protocol on the held-out seed 13
+    ("BENCHMARKS.md", rf"\(`paper`\): mean {N} px \(goal <= 0.01\), (\d+) of 60 under{S}1 px; "
+                      rf"with an exposure change \(`paper_exposure`\): (\d+) of 60 under 1 px "
+                      rf"against SIFT \+ RANSAC's{S}(\d+) on the same pairs",
+     [lambda sources: cr.fixed(
+         _camera_file("paper_seed13_heldout")["groups"]["paper"]["estimator"]["mace"], 4),
+      _heldout_paper("paper", lambda p: p["estimator_error"] < 1),
+      _heldout_paper("paper_exposure", lambda p: p["estimator_error"] < 1),
+      _heldout_paper("paper_exposure", lambda p: p["sift_ransac_error"] < 1)]),
+]
+
 def _scale(name):
     """docs/scale/``name``.json (written by ``experiments.benchmark_workers``)."""
     with open(os.path.join(ROOT, "docs", "scale", f"{name}.json")) as f:
@@ -1152,7 +1169,9 @@ def test_ablation_table_is_the_json_s():
 
     text = _read("BENCHMARKS.md")
     for tag, name in (("seed0", "ablation_seed0_20"), ("seed0-60", "ablation_seed0_60"),
-                      ("seed0-60-after", "ablation_seed0_60_a02fe78")):
+                      ("seed0-60-after", "ablation_seed0_60_a02fe78"),
+                      ("seed13-60-before", "ablation_seed13_60_aa8d8d3"),
+                      ("seed13-60-after", "ablation_seed13_60_b960763")):
         start, end = f"<!-- ablation-{tag}:start -->\n", f"\n<!-- ablation-{tag}:end -->"
         block = text[text.index(start) + len(start):text.index(end)]
         assert block == ablation.table(_camera_file(name)), tag

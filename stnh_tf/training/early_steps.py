@@ -16,7 +16,8 @@ from stnh_tf import geometry
 from stnh_tf.training.config import TrainConfig
 
 MERGE_PREFIX = "merge_"
-"""The sequence model's merge layers: ``merge_k`` (:func:`stnh_tf.modeling.models.sequence_stages`)."""
+"""The sequence model's merge layers: ``merge_k``
+(:func:`stnh_tf.modeling.models.sequence_stages`)."""
 
 
 def merge_denominators(h_prev, h_res) -> np.ndarray:
