@@ -253,7 +253,8 @@ def stage_pairs_ms(source, threads):
 STAGE3_CPU_CHUNKS = ((20, "First", 0, 12022), (21, "Second", 12022, 26399),
                      (22, "Third", 26399, 37132), (23, "Fourth", 37132, 46917),
                      (24, "Fifth", 46917, 56681),
-                     (25, "Sixth", 56681, 58037))
+                     (25, "Sixth", 56681, 58037),
+                     (26, "Seventh", 58037, 67749))
 
 PROSE = [
     ("docs/estimate.md",
