@@ -49,12 +49,10 @@ ESTIMATED_STAGES = 2
 """The sequence model's stages: its step is estimated as that many STN steps (not probed)."""
 
 SEQUENCE_CLIPNORM = 10.0
-"""The hour budget's clip of the sequence model's global gradient norm (a deviation from the
-paper's recipe, beside the budget's steps, warm-up and precision). Why, traced on issue 78's
-second hour run's pairs (docs/reproduce.md, "The hour budget"): the first updates, with gradient
-norms of 30-50, bring the merge's denominator ``(H_1 @ H_2')[2,2]`` towards 0 on some pair; in
-mixed bfloat16 it reached 0.05 at step 6, the norm 2,483 there and infinite at step 9. Clipped at
-10, the same steps keep it above 0.84."""
+"""The hour budget's clip of the sequence model's global gradient norm: a deviation from the
+paper's recipe, beside the budget's steps, warm-up and precision. Why (the merge's denominator
+near 0 after the first updates of a short warm-up), with the traces: docs/reproduce.md, "The
+hour budget"."""
 
 HOUR = Budget("hour", train_steps=0, warmup_steps=0, samples_per_image=0, mixed_precision=True,
               checkpoint_every=0, val_samples=300, num_workers=2, verdicts=False,
@@ -236,7 +234,7 @@ def warmup_steps(train_steps: int) -> int:
     """The hour budget's warm-up: the cpu budget's (100 steps) where it fits in a quarter of
     ``train_steps``, else that quarter (at least 1). The cpu budget's share (1/40) left the
     sequence model 4 warm-up steps of 160, and it diverged at step 6 (issue 78's measured hour);
-    with 45 of 180 it still diverged, at step 9, which :data:`SEQUENCE_CLIPNORM` prevents.
+    with 45 of 180 it still diverged, at step 9 (hence :data:`SEQUENCE_CLIPNORM`).
 
     >>> warmup_steps(160), warmup_steps(1290), warmup_steps(2)
     (40, 100, 1)
