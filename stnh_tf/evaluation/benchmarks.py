@@ -293,7 +293,7 @@ def time_fit(mode, pair_batches, image_dir, batch_size=64, workers=2, samples_pe
     cfg = train_config.TrainConfig(image_dir=",".join(image_dir), model_dir="-", seed=seed,
                                    batch_size=batch_size, mixed_precision=mixed_precision,
                                    steps_per_execution=k)
-    keras.mixed_precision.set_global_policy("mixed_bfloat16" if mixed_precision else "float32")
+    keras.mixed_precision.set_global_policy(train_config.dtype_policy(mixed_precision))
     keras.utils.set_random_seed(seed)
     t0 = time.perf_counter()
     owned = stream is None

@@ -29,6 +29,7 @@ import time
 
 from stnh_tf.paper.budgets import BUDGETS, Budget, planned_models
 from stnh_tf.paths import atomic_write_json
+from stnh_tf.training.config import dtype_policy
 
 HOUR_S = 3600.0
 """The hour the whole reproduction must fit, seconds."""
@@ -142,7 +143,7 @@ def probe(batch_size: int = 64, mixed_precision: bool = True, *, source: str = "
     from stnh_tf.provenance import machine_info
 
     t0 = time.perf_counter()
-    out = {"batch_size": batch_size, "policy": "mixed_bfloat16" if mixed_precision else "float32",
+    out = {"batch_size": batch_size, "policy": dtype_policy(mixed_precision),
            "steps": steps}
     with tempfile.TemporaryDirectory(prefix="stnh-probe-") as tmp:
         folder = source == "folder" and bool(image_dir)

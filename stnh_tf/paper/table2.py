@@ -20,16 +20,16 @@ from stnh_tf.paper.model_provenance import machine_summary
 from stnh_tf.paper.results_json import NOT_RECORDED
 from stnh_tf.paper.tables import table2_lines
 from stnh_tf.provenance import load_average, machine_info
+from stnh_tf.training.config import dtype_policy
 
 REFRESHED_KEYS = ("table2_latency_ms", "sequence_latency_ms", "latency_provenance")
 """The keys of ``results.json`` that :func:`refresh` replaces; it leaves every other as it is."""
 BUDGET_KEYS = ("latency_runs", "latency_warmup", "mixed_precision")
 
 
-def policy(mixed_precision: bool) -> str:
-    """The Keras dtype policy of a budget: ``"mixed_bfloat16"`` where it trains in mixed
-    precision, else ``"float32"``."""
-    return "mixed_bfloat16" if mixed_precision else "float32"
+policy = dtype_policy
+"""The Keras dtype policy of a budget (:func:`stnh_tf.training.config.dtype_policy` of its
+``mixed_precision``)."""
 
 
 def measure(stage_dirs, runs: int, warmup: int, dtype_policy: str) -> dict:

@@ -31,6 +31,12 @@ STRATEGIES = ("default", "mirrored", "data_parallel")
 SHARED, STAGE, SEQUENCE = "shared", "stage", "sequence"
 
 
+def dtype_policy(mixed_precision: bool) -> str:
+    """The Keras dtype policy a run computes in: ``"mixed_bfloat16"`` with ``mixed_precision``,
+    else ``"float32"``."""
+    return "mixed_bfloat16" if mixed_precision else "float32"
+
+
 def _field(default, help: str, *, scope: str = SHARED, choices=None, comma_list: bool = False,
            item=str, required: bool = False):
     """A TrainConfig field with its flag: ``help`` text, the binaries that take it (``scope``),

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from stnh_tf import geometry
-from stnh_tf.training.config import TrainConfig
+from stnh_tf.training.config import TrainConfig, dtype_policy
 
 MERGE_PREFIX = "merge_"
 """The sequence model's merge layers: ``merge_k``
@@ -57,8 +57,7 @@ def trace(cfg: TrainConfig, steps: int, printer=None) -> list:
     if keras.backend.backend() != "tensorflow":
         raise ValueError(f"trace runs on the TensorFlow backend; this is "
                          f"{keras.backend.backend()!r}.")
-    keras.mixed_precision.set_global_policy("mixed_bfloat16" if cfg.mixed_precision
-                                            else "float32")
+    keras.mixed_precision.set_global_policy(dtype_policy(cfg.mixed_precision))
     try:
         keras.utils.set_random_seed(cfg.seed)
         model = loop.compile_model(model_kinds.build_model(cfg), cfg)

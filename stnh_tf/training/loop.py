@@ -61,7 +61,7 @@ from stnh_tf.training import checkpoints, distribute, fit_calls, model_kinds, ru
 from stnh_tf.training import streams as train_streams
 from stnh_tf.training.callbacks import (NonFiniteGuard, ProgressLogger, StepScalars, TimeLimit,
                                         report_every, stop_on_signals)
-from stnh_tf.training.config import OPTIMIZER_NAMES, TrainConfig
+from stnh_tf.training.config import OPTIMIZER_NAMES, TrainConfig, dtype_policy
 from stnh_tf.training.precision import mixed_precision_warning
 
 
@@ -326,7 +326,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         raise
     distribute.report_start(cluster, ok=True)
     keras.utils.set_random_seed(cfg.seed)
-    keras.mixed_precision.set_global_policy("mixed_bfloat16" if cfg.mixed_precision else "float32")
+    keras.mixed_precision.set_global_policy(dtype_policy(cfg.mixed_precision))
     train_ds = None
     try:
         distribute.activate(cluster, cfg.batch_size)
