@@ -394,22 +394,60 @@ def materialize(batches: PairBatches, workers: int = 0, chunk: int = 256,
     straight into preallocated arrays. The fixed set of ``len(images) * samples_per_image``
     pairs then trains from memory (:class:`stnh_tf.data.pair_datasets.ArrayStream`)."""
     n = batches.num_samples
+    for _, arrays in materialize_slices(batches, workers, max(n, 1), chunk=chunk,
+                                        context=context):
+        return arrays
+
+
+def materialize_slices(batches: PairBatches, workers: int = 0, slice_size: int = 8192,
+                       chunk: int = 256, context: bool = False):
+    """:func:`materialize`'s samples as consecutive slices: yields ``(start, arrays)`` with
+    ``arrays`` the compact form of samples ``start .. start + len(arrays["patch_b"])``, each slice
+    ``slice_size`` samples (rounded up to a multiple of ``chunk``; the last may be shorter), so a
+    caller that keeps only part of each (e.g. the stage-k re-making, which drops ``context_a``)
+    never holds the whole set with context. One pool of ``workers`` processes serves every slice
+    and works at most ``2 * workers`` chunks ahead of the slice being read, so a slow consumer
+    does not make the pending results pile up in memory.
+
+    Raises:
+      ValueError: ``slice_size`` or ``chunk`` below 1.
+    """
+    if slice_size < 1 or chunk < 1:
+        raise ValueError(f"slice_size and chunk must be >= 1; received {slice_size}, {chunk}.")
+    n = batches.num_samples
+    per_slice = -(-slice_size // chunk) * chunk
     tasks = [(a, min(a + chunk, n), context) for a in range(0, n, chunk)]
-    out = None
-
-    def put(a, part):
-        nonlocal out
+    out, start = None, 0
+    for (a, b, _), part in zip(tasks, _parts(batches, workers, tasks)):
         if out is None:
-            out = {k: np.empty((n,) + v.shape[1:], v.dtype) for k, v in part.items()}
+            out = {k: np.empty((min(per_slice, n - start),) + v.shape[1:], v.dtype)
+                   for k, v in part.items()}
         for k, v in part.items():
-            out[k][a:a + len(v)] = v
+            out[k][a - start:b - start] = v
+        if b - start == len(out["patch_b"]):
+            yield start, out
+            out, start = None, b
 
-    if workers > 0:
-        with generator_pool(batches, workers) as pool:
-            for task, part in zip(tasks, pool.imap(_worker_samples, tasks)):
-                put(task[0], part)
-    else:
+
+def _parts(batches: PairBatches, workers: int, tasks: list):
+    """:func:`_samples` of each task, in order: in this process, or in a :func:`generator_pool`
+    with at most ``2 * workers`` tasks pending (``Pool.imap`` would queue every finished result,
+    however far ahead of the reader)."""
+    import collections
+
+    if workers <= 0:
         for task in tasks:
-            put(task[0], _samples(batches, task))
-    return out
-
+            yield _samples(batches, task)
+        return
+    with generator_pool(batches, workers) as pool:
+        pending, todo = collections.deque(), iter(tasks)
+        for task in todo:
+            pending.append(pool.apply_async(_worker_samples, (task,)))
+            if len(pending) >= 2 * workers:
+                break
+        while pending:
+            part = pending.popleft().get()
+            task = next(todo, None)
+            if task is not None:
+                pending.append(pool.apply_async(_worker_samples, (task,)))
+            yield part

@@ -317,6 +317,17 @@ def save_estimates(model_dir: str, split: str, key: str, h_prev: np.ndarray,
     return path
 
 
+def saved_estimates_key(model_dir: str, split: str):
+    """The ``key`` of the estimates :func:`save_estimates` kept for ``split`` in ``model_dir``
+    (what pairs and stages they are of), or ``None`` where there are none or they are
+    unreadable."""
+    try:
+        with np.load(os.path.join(model_dir, ESTIMATES_FILES[split])) as saved:
+            return str(saved["key"])
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
+        return None
+
+
 def load_estimates(model_dir: str, split: str, key: str):
     """``(h_prev, rejected)`` saved by :func:`save_estimates` for ``split`` under the same
     ``key``; ``None`` where there are none, they are unreadable, or they are of other pairs or

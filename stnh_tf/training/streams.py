@@ -143,21 +143,27 @@ def check_labels(cfg: TrainConfig) -> None:
                              f"seed {cfg.seed}), fewer than one batch of {cfg.batch_size}.")
 
 
+# Stage-k pairs are made and re-made this many at a time: only one slice's context_a (36 KB a
+# pair) is held at once, beside the re-made set (48 KB a pair).
+STAGE_SLICE = 8192
+
+
 def stage_pairs(cfg: TrainConfig, pair_batches, split: str = "train") -> dict:
     """``pair_batches``' pairs (``stnh_tf.data.batches.PairBatches``, epoch 0) for stage
     ``cfg.stage``, in the compact form (:func:`stnh_tf.data.batches.stack_samples`), generated with
     ``cfg.workers`` processes. Stage 1: as generated; stage k > 1: re-made in memory from the
     predictions of ``cfg.prev_stages`` (:func:`stnh_tf.hierarchy.next_stage_arrays`, the paper's
     offline re-generation without TFRecords), the pairs without ground truth (``h_mask`` 0)
-    keeping ``h_bar`` zeros (their stage-k target is not kept).
+    keeping ``h_bar`` zeros (their stage-k target is not kept). Stage k > 1 makes and re-makes
+    :data:`STAGE_SLICE` pairs at a time, so the stage-1 pairs' context is never held whole
+    (for stage 3's 184,800 pairs it would be 6.4 GiB more at the peak).
 
     Stage k > 1 keeps the stages' estimates (rounded to float32, as the TFRecord path stores
     them) in ``cfg.model_dir`` (:func:`stnh_tf.training.run_dir.save_estimates`, one file per
     ``split``: ``"train"`` or ``"val"``): a resumed run, on this machine or another, makes the
     same pairs from them without calling the stages, as long as its pairs and stages are those
-    they were made for (:func:`estimates_key`)."""
-    from stnh_tf import hierarchy
-    from stnh_tf.modeling import runner
+    they were made for (:func:`estimates_key`, checked once every slice is made; where it
+    differs, the pairs are made again from the stages)."""
     from stnh_tf.training import run_dir
 
     start = time.perf_counter()
@@ -166,56 +172,111 @@ def stage_pairs(cfg: TrainConfig, pair_batches, split: str = "train") -> dict:
         _log.info("stage-1 pairs: %d made in %.1f s", len(pairs["patch_b"]),
                   time.perf_counter() - start)
         return pairs
-    arrays = batches.materialize(pair_batches, cfg.workers, context=True)
-    made = time.perf_counter()
-    key = estimates_key(arrays, cfg.prev_stages)
-    saved = run_dir.load_estimates(cfg.model_dir, split, key) if cfg.model_dir else None
+    saved_key = run_dir.saved_estimates_key(cfg.model_dir, split) if cfg.model_dir else None
+    saved = run_dir.load_estimates(cfg.model_dir, split, saved_key) if saved_key else None
+    if saved is not None and len(saved[0]) != pair_batches.num_samples:
+        saved = None
+    made = None
     if saved is not None:
-        pairs, _ = hierarchy.next_stage_arrays(arrays, [], in_place=True, estimates=saved[0])
-        _log.info("stage-%d %s pairs: %d made with context in %.1f s, re-made in %.1f s from "
-                  "the stages' estimates saved in %s (degenerate-rule cases then %s)", cfg.stage,
-                  split, len(pairs["patch_b"]), made - start, time.perf_counter() - made,
-                  cfg.model_dir, saved[1])
-    else:
-        stages = [runner.predictor(runner.load_model(d), batch_size=256)
-                  for d in cfg.prev_stages]
-        predicting = [0.0]  # seconds inside the stages' model calls
+        made = _remade_pairs(cfg, pair_batches, saved[0])
+        if made["key"] == saved_key:
+            rejected = saved[1]
+            _log.info("stage-%d %s pairs: %d made with context and re-made in %.1f s from the "
+                      "stages' estimates saved in %s (degenerate-rule cases then %s)", cfg.stage,
+                      split, len(made["pairs"]["patch_b"]), time.perf_counter() - start,
+                      cfg.model_dir, rejected)
+        else:
+            _log.info("stage-%d %s pairs: the estimates saved in %s are of other pairs or stages; "
+                      "made again from the stages", cfg.stage, split, cfg.model_dir)
+            made = None
+    if made is None:
+        made = _remade_pairs(cfg, pair_batches, None)
+        _log.info("stage-%d %s pairs: %d made with context and re-made in %.1f s; %d previous "
+                  "stages loaded in %.1f s, %.1f s in their model calls; degenerate-rule cases "
+                  "%s", cfg.stage, split, len(made["pairs"]["patch_b"]),
+                  time.perf_counter() - start, len(cfg.prev_stages), made["loading_s"],
+                  made["predicting_s"], made["rejected"])
+        if cfg.model_dir:
+            os.makedirs(cfg.model_dir, exist_ok=True)
+            run_dir.save_estimates(cfg.model_dir, split, made["key"], made["h_prev"],
+                                   made["rejected"])
+    pairs = made["pairs"]
+    pairs["h_bar"][pairs["h_mask"] == 0] = 0.0
+    return pairs
+
+
+def _remade_pairs(cfg: TrainConfig, pair_batches, estimates) -> dict:
+    """One pass of :func:`stage_pairs` for stage k > 1: the stage-1 pairs made with context a
+    slice at a time and re-made from ``estimates`` (``h_prev [N, 3, 3]``) or, where ``None``,
+    from the predictions of ``cfg.prev_stages``. Returns ``pairs`` (the compact form),
+    ``h_prev``, ``rejected`` (degenerate-rule counts, none with ``estimates``), ``key``
+    (:func:`estimates_key` of the pairs made) and the seconds spent ``loading_s`` the stages and
+    ``predicting_s`` in their model calls."""
+    from stnh_tf import hierarchy
+    from stnh_tf.modeling import runner
+
+    n = pair_batches.num_samples
+    timing = {"loading_s": 0.0, "predicting_s": 0.0}
+    stages = []
+    if estimates is None:
+        t = time.perf_counter()
+        predictors = [runner.predictor(runner.load_model(d), batch_size=256)
+                      for d in cfg.prev_stages]
+        timing["loading_s"] = time.perf_counter() - t
 
         def timed(predict):
             def call(patch_a, patch_b):
                 t = time.perf_counter()
                 h = predict(patch_a, patch_b)
-                predicting[0] += time.perf_counter() - t
+                timing["predicting_s"] += time.perf_counter() - t
                 return h
             return call
 
-        loaded = time.perf_counter()
-        pairs, rejected = hierarchy.next_stage_arrays(
-            arrays, [timed(p) for p in stages], in_place=True, estimates_dtype=np.float32)
-        _log.info("stage-%d %s pairs: %d made with context in %.1f s, %d previous stages loaded "
-                  "in %.1f s, pairs re-made from their predictions in %.1f s (%.1f s of it in "
-                  "the model calls); degenerate-rule cases %s", cfg.stage, split,
-                  len(pairs["patch_b"]), made - start, len(stages), loaded - made,
-                  time.perf_counter() - loaded, predicting[0], rejected)
-        if cfg.model_dir:
-            os.makedirs(cfg.model_dir, exist_ok=True)
-            run_dir.save_estimates(cfg.model_dir, split, key, pairs["h_prev"], rejected)
-    pairs.pop("h_prev")
-    pairs["h_bar"][pairs["h_mask"] == 0] = 0.0
-    return pairs
+        stages = [timed(p) for p in predictors]
+    pairs, rejected = None, dict.fromkeys(hierarchy.REJECT_REASONS, 0)
+    h_ba, h_prev = np.empty((n, 3, 3)), np.empty((n, 3, 3))
+    sampled = _key_rows(n)
+    context_sample = None
+    for a, arrays in batches.materialize_slices(pair_batches, cfg.workers, STAGE_SLICE,
+                                                chunk=min(256, STAGE_SLICE), context=True):
+        b = a + len(arrays["patch_b"])
+        h_ba[a:b] = arrays["h_ba"]
+        rows = sampled[(sampled >= a) & (sampled < b)]
+        if context_sample is None:
+            context_sample = np.empty((len(sampled),) + arrays["context_a"].shape[1:], np.uint8)
+        context_sample[np.searchsorted(sampled, rows)] = arrays["context_a"][rows - a]
+        part, counts = hierarchy.next_stage_arrays(
+            arrays, stages, in_place=True, estimates_dtype=np.float32,
+            estimates=None if estimates is None else estimates[a:b])
+        for reason, count in counts.items():
+            rejected[reason] += count
+        if pairs is None:
+            pairs = {k: np.empty((n,) + v.shape[1:], v.dtype) for k, v in part.items()
+                     if k != "h_prev"}
+        for k in pairs:
+            pairs[k][a:b] = part[k]
+        h_prev[a:b] = part["h_prev"]
+        del arrays, part  # this slice's context goes before the next slice is made
+    return dict(pairs=pairs, h_prev=h_prev, rejected=rejected,
+                key=estimates_key(h_ba, context_sample, cfg.prev_stages), **timing)
 
 
-def estimates_key(arrays: dict, prev_stages) -> str:
+def _key_rows(n: int) -> np.ndarray:
+    """The pairs whose context :func:`estimates_key` digests: 64 spread over the set."""
+    return np.arange(0, n, max(1, n // 64))
+
+
+def estimates_key(h_ba: np.ndarray, context_sample: np.ndarray, prev_stages) -> str:
     """What a stage-k run's saved estimates are of (sha256, hex): the stage-1 pairs (their count,
-    their ``h_ba`` rounded to 1e-6, the context of 64 of them spread over the set) and the
-    finished stages (their model files' bytes)."""
+    their ``h_ba [N, 3, 3]`` rounded to 1e-6, and ``context_sample``, the ``context_a`` of the
+    pairs :func:`_key_rows` names) and the finished stages (their model files' bytes)."""
     from stnh_tf import paths
     from stnh_tf.training import run_dir
 
-    n = len(arrays["patch_b"])
+    n = len(h_ba)
     digest = hashlib.sha256(str(n).encode())
-    digest.update((np.round(np.asarray(arrays["h_ba"], np.float64), 6) + 0.0).tobytes())
-    digest.update(np.ascontiguousarray(arrays["context_a"][::max(1, n // 64)]).tobytes())
+    digest.update((np.round(np.asarray(h_ba, np.float64), 6) + 0.0).tobytes())
+    digest.update(np.ascontiguousarray(context_sample).tobytes())
     for stage in prev_stages:
         path = run_dir.model_file(stage)
         if not os.path.isfile(path):
