@@ -200,6 +200,31 @@ def test_the_verify_move_is_measured_in_the_coarser_image_beyond_the_trained_zoo
     assert checks.verify_move(None, h, (H, W), ORIGIN) == np.inf
 
 
+def test_verify_move_is_measured_at_the_patch_corners_where_a_frame_corner_is_beyond_the_horizon():
+    """Where the estimate maps a corner of image_b's frame beyond image_a's horizon (the paper's
+    protocol on whole images, strongly projective), the move is measured where the corner
+    precision is (checks.precision_corners: the patch's corners): near the horizon two
+    estimates 1e-6 apart in H's last row lie far apart (issue 79: a good estimate of the paper's
+    protocol, 0.02 px off, flagged by a 153-px move)."""
+    t = geometry.translation(*ORIGIN)
+    # the horizon at u = 310, just inside the frame (as the 153-px move's pair had it); the zoom
+    # keeps the scale at the centre at 1
+    tilted = np.array([[1.0, 0, 0], [0, 1.0, 0], [-1 / 310, 0, 1.0]])
+    zoom = 1 / geometry.centre_scale(tilted, (W, H))
+    tilted = np.diag([zoom, zoom, 1.0]) @ tilted
+    optimum_image = tilted.copy()
+    optimum_image[2, 0] += 1e-6
+    h, optimum = (np.linalg.inv(t) @ m @ t for m in (tilted, optimum_image))  # patch frame
+    square = np.array([[[96, 56], [224, 56], [224, 184], [96, 184]]], np.float64)
+    assert [tuple(c) for c in square[0]] == checks.precision_corners(tilted, (H, W), ORIGIN)
+    expected = np.linalg.norm(cv2.perspectiveTransform(square, optimum_image)
+                              - cv2.perspectiveTransform(square, tilted), axis=-1).mean()
+    move = checks.verify_move(optimum, h, (H, W), ORIGIN)
+    assert move == pytest.approx(expected, rel=1e-9)
+    assert move < 0.1 * Thresholds().max_verify_move
+    assert checks.frame_corner_distance(optimum, h, (H, W), ORIGIN) > 10 * move
+
+
 @pytest.mark.parametrize("optimized", [pytest.param(True, id="opencv_optimized"),
                                        pytest.param(False, id="opencv_unoptimized",
                                                     marks=pytest.mark.slow)])

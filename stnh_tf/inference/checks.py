@@ -44,11 +44,23 @@ def frame_corner_distance(a_from_b, other, source_shape, origin=(0, 0)) -> float
     5.0
     """
     height, width = source_shape[:2]
-    corners = np.array([[0, 0], [width, 0], [width, height], [0, height]], np.float64)
+    return point_distance(a_from_b, other, [(0, 0), (width, 0), (width, height), (0, height)],
+                          origin)
+
+
+def point_distance(a_from_b, other, points, origin=(0, 0)) -> float:
+    """Mean distance (px) between where two patch-frame ``a_from_b`` ``[3, 3]`` map ``points``
+    (``(u, v)`` of the frame whose patch has its top-left corner at ``origin``); ``inf`` where
+    a point maps to infinity.
+
+    >>> point_distance(np.eye(3), geometry.translation(3.0, 4.0), [(96, 56)], (96, 56))
+    5.0
+    """
     t = geometry.translation(*origin)
+    points = np.asarray(points, np.float64)
     with np.errstate(all="ignore"):
-        d = (geometry.warp_points(t @ np.asarray(a_from_b, np.float64) @ np.linalg.inv(t), corners)
-             - geometry.warp_points(t @ np.asarray(other, np.float64) @ np.linalg.inv(t), corners))
+        d = (geometry.warp_points(t @ np.asarray(a_from_b, np.float64) @ np.linalg.inv(t), points)
+             - geometry.warp_points(t @ np.asarray(other, np.float64) @ np.linalg.inv(t), points))
         out = float(np.linalg.norm(d, axis=-1).mean())
     return out if np.isfinite(out) else float("inf")
 
@@ -60,8 +72,10 @@ outwards by 32 px in x and in y."""
 
 def verify_move(optimum, a_from_b, source_shape, origin=(0, 0)) -> float:
     """``verify="ecc"``'s move (px): how far ``optimum``, the ECC alignment started from the
-    patch-frame ``a_from_b`` (both ``[3, 3]``), lies from it at the corners of the ``[h, w]``
-    frame: :func:`frame_corner_distance` in image_a, or, where ``a_from_b`` zooms out beyond
+    patch-frame ``a_from_b`` (both ``[3, 3]``), lies from it in image_a at the points where
+    :func:`corner_std` measures the precision (:func:`precision_corners`: the corners of the
+    ``[h, w]`` frame, or the patch's where a frame corner maps beyond image_a's horizon, where
+    any two estimates lie infinitely far apart; issue 79), or, where ``a_from_b`` zooms out beyond
     the trained range (:func:`~stnh_tf.geometry.centre_scale` above :data:`TRAINED_ZOOM`), in
     image_b, the coarser image (those corners against where ``a_from_b``'s inverse maps
     ``optimum``'s images of them back): there one pixel of image_b spans several of image_a's and
@@ -78,7 +92,9 @@ def verify_move(optimum, a_from_b, source_shape, origin=(0, 0)) -> float:
     height, width = source_shape[:2]
     scale = geometry.centre_scale(geometry.patch_to_image(h, *origin), (width, height))
     if not scale > TRAINED_ZOOM:
-        return frame_corner_distance(optimum, h, source_shape, origin)
+        t = geometry.translation(*origin)
+        points = precision_corners(t @ h @ np.linalg.inv(t), source_shape, origin)
+        return point_distance(optimum, h, points, origin)
     return frame_corner_distance(np.linalg.inv(h) @ optimum, np.eye(3), source_shape, origin)
 
 
