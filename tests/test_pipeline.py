@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from absl import flags
 
-from conftest import cv2_warp, ncc_reference
+from conftest import cv2_warp, ncc_reference, opencv_optimized
 from stnh_tf import geometry
 from stnh_tf.inference import checks, pipeline
 from stnh_tf.inference.options import TTAS, EstimateOptions, Thresholds
@@ -458,20 +458,34 @@ def test_corner_std_of_a_pair_whose_corners_map_beyond_the_horizon(tile):
         got, rel=1e-9)
 
 
-def _ncc_over_shifts(warped, b, r):
+def _ncc_over_shifts(warped, b, r, mask=None):
     """NCC (zero-mean, normalized) of ``b``'s centre (a margin of ``r``) with ``warped`` at every
-    shift ``(dx, dy)`` in ``[-r, r]^2``, written out with NumPy: ``[2r + 1, 2r + 1]``."""
+    shift ``(dx, dy)`` in ``[-r, r]^2``, written out with NumPy: ``[2r + 1, 2r + 1]``; with
+    ``mask`` (over the centre) over its pixels alone, means included (OpenCV's documented
+    masked ``TM_CCOEFF_NORMED``)."""
     t = b[r:-r, r:-r].astype(np.float64)
-    t = t - t.mean()
+    m = np.ones_like(t) if mask is None else mask.astype(np.float64)
+    t = m * (t - (m * t).sum() / m.sum())
     out = np.empty((2 * r + 1, 2 * r + 1))
     for i in range(2 * r + 1):
         rows = warped[i:i + t.shape[0]].astype(np.float64)
         windows = np.moveaxis(np.lib.stride_tricks.sliding_window_view(
             rows, t.shape[1], axis=1), 1, 0)  # [2r + 1, h_t, w_t]
-        windows = windows - windows.mean(axis=(1, 2), keepdims=True)
+        windows = m * (windows - (m * windows).sum(axis=(1, 2), keepdims=True) / m.sum())
         out[i] = (windows * t).sum(axis=(1, 2)) / np.sqrt(
             (windows ** 2).sum(axis=(1, 2)) * (t ** 2).sum())
     return out
+
+
+def _gap_of(scores, r):
+    """The NCC at the estimate (the best within 1 px) less the best local maximum (5 x 5) 8 px
+    or more away: ``checks.ambiguity_gap``'s rule, written out."""
+    ys, xs = np.mgrid[-r:r + 1, -r:r + 1]
+    padded = np.pad(scores, 2, constant_values=-np.inf)
+    local_max = np.all([scores >= padded[2 + dy:2 + dy + scores.shape[0],
+                                         2 + dx:2 + dx + scores.shape[1]]
+                        for dy in range(-2, 3) for dx in range(-2, 3)], axis=0)
+    return scores[r - 1:r + 2, r - 1:r + 2].max() - scores[local_max & (np.hypot(xs, ys) >= 8)].max()
 
 
 @pytest.mark.parametrize("period", [0, 24])
@@ -498,12 +512,30 @@ def test_ambiguity_gap_against_the_ncc_over_shifts_written_out(period):
                                   flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR) > 0.999
     warped[~covered] = warped[covered].mean()
     r = checks.AMBIGUITY_SHIFT_PX
-    scores = _ncc_over_shifts(warped, b, r)
-    ys, xs = np.mgrid[-r:r + 1, -r:r + 1]
-    padded = np.pad(scores, 2, constant_values=-np.inf)
-    local_max = np.all([scores >= padded[2 + dy:2 + dy + scores.shape[0],
-                                         2 + dx:2 + dx + scores.shape[1]]
-                        for dy in range(-2, 3) for dx in range(-2, 3)], axis=0)
-    other = scores[local_max & (np.hypot(xs, ys) >= 8)].max()
-    assert gap == pytest.approx(scores[r - 1:r + 2, r - 1:r + 2].max() - other, abs=1e-4)
+    assert covered[r:-r, r:-r].all()  # the whole centre: no mask
+    assert gap == pytest.approx(_gap_of(_ncc_over_shifts(warped, b, r), r), abs=1e-4)
     assert (abs(gap) < 0.005) if period else (gap > 0.3)
+
+
+@pytest.mark.parametrize("optimized", [True, False])
+def test_ambiguity_gap_of_a_low_overlap_pair_counts_the_covered_pixels_alone(optimized):
+    """A pan of 150 px (53% overlap: image_b's centre lies outside image_a): the NCC is taken
+    over the pixels of image_b's centre that image_a covers (OpenCV's masked matchTemplate,
+    against the same written out with NumPy); with the uncovered ones counted at image_a's mean,
+    as before, the step at the overlap's edge scored other shifts higher than the estimate on 5
+    of the 60 low-overlap development pairs (issue 79)."""
+    rng = np.random.default_rng(3)
+    scene = cv2.GaussianBlur(rng.random((240, 470)), (0, 0), 2).astype(np.float32)
+    a, b = scene[:, :320], scene[:, 150:]
+    pan = geometry.translation(150.0, 0.0)  # image_b(p) = image_a(p + (150, 0))
+    with opencv_optimized(optimized):  # OpenCV's two code paths: two CPUs' numerics
+        gap = checks.ambiguity_gap(a, b, geometry.image_to_patch(pan, 96, 56), (96, 56))
+    warped = cv2.warpPerspective(a, pan, (320, 240), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    covered = cv2.warpPerspective(np.ones_like(a), pan, (320, 240),
+                                  flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR) > 0.999
+    warped[~covered] = warped[covered].mean()
+    r = checks.AMBIGUITY_SHIFT_PX
+    mask = covered[r:-r, r:-r]
+    assert 0.3 < mask.mean() < 0.6
+    assert gap == pytest.approx(_gap_of(_ncc_over_shifts(warped, b, r, mask), r), abs=1e-4)
+    assert gap > 0.3

@@ -292,8 +292,10 @@ def ambiguity_gap(work_a, work_b, a_from_b, origin=(0, 0), min_overlap: float = 
     """How much better the patch-frame ``a_from_b`` aligns ``work_b`` with ``work_a`` than
     any distinct other shift of it: work_a is warped onto work_b's frame by the estimate
     (its pixels beyond work_a set to the mean of the rest), the NCC of work_b's centre (a
-    margin of :data:`AMBIGUITY_SHIFT_PX` on every side) with it is taken at every shift up to
-    that margin (``cv2.matchTemplate``, ``TM_CCOEFF_NORMED``), and the result is the NCC at
+    margin of :data:`AMBIGUITY_SHIFT_PX` on every side; only its pixels that work_a covers under
+    the estimate, where it does not cover them all: on a low-overlap pair work_b's centre can lie
+    outside work_a, issue 79) with it is taken at every shift up to that margin
+    (``cv2.matchTemplate``, ``TM_CCOEFF_NORMED``, the template masked), and the result is the NCC at
     the estimate (the best within 1 px) less the highest local maximum (5 x 5) at least
     :data:`AMBIGUITY_MIN_SHIFT_PX` away. A repeated pattern, which aligns as well one period
     off, gives about 0; a photograph, whose NCC falls away from the estimate, 0.1 or more.
@@ -324,8 +326,10 @@ def ambiguity_gap(work_a, work_b, a_from_b, origin=(0, 0), min_overlap: float = 
         return float("nan")
     warped[~covered] = warped[covered].mean()
     r = AMBIGUITY_SHIFT_PX
+    inside = covered[r:-r, r:-r]
+    mask = {} if inside.all() else {"mask": inside.astype(np.float32)}
     with np.errstate(all="ignore"):
-        scores = cv2.matchTemplate(warped, b[r:-r, r:-r], cv2.TM_CCOEFF_NORMED)
+        scores = cv2.matchTemplate(warped, b[r:-r, r:-r], cv2.TM_CCOEFF_NORMED, **mask)
     if not np.isfinite(scores).all():
         return float("nan")
     own = float(scores[r - 1:r + 2, r - 1:r + 2].max())
