@@ -1172,7 +1172,32 @@ def test_ablation_table_is_the_json_s():
     for tag, name in (("seed0", "ablation_seed0_20"), ("seed0-60", "ablation_seed0_60"),
                       ("seed0-60-after", "ablation_seed0_60_a02fe78"),
                       ("seed13-60-before", "ablation_seed13_60_aa8d8d3"),
-                      ("seed13-60-after", "ablation_seed13_60_b960763")):
+                      ("seed13-60-after", "ablation_seed13_60_b960763"),
+                      ("seed0-60-d947ff0", "ablation_seed0_60_d947ff0"),
+                      ("seed0-60-d228e4c", "ablation_seed0_60_d228e4c"),
+                      ("seed0-60-bc2d7fb", "ablation_seed0_60_bc2d7fb"),
+                      ("seed13-60-bc2d7fb", "ablation_seed13_60_bc2d7fb")):
         start, end = f"<!-- ablation-{tag}:start -->\n", f"\n<!-- ablation-{tag}:end -->"
         block = text[text.index(start) + len(start):text.index(end)]
         assert block == ablation.table(_camera_file(name)), tag
+
+
+def _good_flagged(name, group="all"):
+    return _camera_file(name)["ablations"]["default"]["groups"][group]["good_flagged"]
+
+
+def test_two_flags_measured_where_the_images_say_something_numbers_are_the_json_s():
+    """BENCHMARKS.md's counts for the move and ambiguity flags' change (issue 79, 2026-12-06)
+    are those of the committed ablation and benchmark JSON."""
+    text = " ".join(_read("BENCHMARKS.md").split())
+    counts = [_good_flagged(f"ablation_seed0_60_{c}") for c in ("d947ff0", "d228e4c", "bc2d7fb")]
+    held = [_good_flagged(f"ablation_seed13_60_{c}") for c in ("b960763", "bc2d7fb")]
+    assert (f"go from {counts[0]} to {counts[1]} (the move) and {counts[2]} (both) on seed 0, and "
+            f"from {held[0]} to {held[1]} on the held-out seed 13") in text
+    low = _camera_file("low_overlap_seed0_bc2d7fb")["groups"]["low_overlap"]
+    est, sift = low["estimator"], low["sift_ransac"]
+    good = est["count"] - est["flag"]["bad"]
+    assert (f"{est['flag']['flagged_good']} of {good} good estimates flagged "
+            f"({100 * est['flag']['flagged_good'] / good:.1f}%") in text
+    assert (f"SIFT + RANSAC has {round(sift['success_rate'] * sift['count'])} of {sift['count']} "
+            f"successes against the estimator's {round(est['success_rate'] * est['count'])}") in text
