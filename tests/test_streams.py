@@ -2,6 +2,7 @@
 training from a folder of images, checked against the TFRecords make_dataset writes from the
 same folder."""
 
+import hashlib
 import json
 import os
 import shutil
@@ -16,6 +17,7 @@ from stnh_tf.evaluation import mace as evaluation
 from stnh_tf.training import config as train_config
 from stnh_tf.training import streams as train_streams
 from stnh_tf.training import loop as training
+from stnh_tf.training import run_dir
 from stnh_tf.data import batches
 from stnh_tf.data import tfrecords as data
 from stnh_tf.data import pair_datasets, pairs, sources
@@ -293,8 +295,14 @@ def test_stage_pairs_hold_one_slice_of_context_at_a_time(folder, tmp_path, monke
     from stnh_tf.modeling import runner
 
     per_image = 128  # 512 pairs, 18.9 MB of context
+    calls = []
+
+    def stage(patch_a, patch_b):
+        calls.append(len(patch_b))
+        return _fake_stage(patch_a, patch_b)
+
     monkeypatch.setattr(runner, "load_model", lambda path: path)
-    monkeypatch.setattr(runner, "predictor", lambda model, batch_size: _fake_stage)
+    monkeypatch.setattr(runner, "predictor", lambda model, batch_size: stage)
     monkeypatch.setattr(train_streams, "STAGE_SLICE", 16)
     stage1 = tmp_path / "stage1.keras"
     stage1.write_bytes(b"stage 1")
@@ -304,9 +312,15 @@ def test_stage_pairs_hold_one_slice_of_context_at_a_time(folder, tmp_path, monke
     pb = batches.PairBatches(folder, BATCH, samples_per_image=per_image, seed=0)
     whole = batches.materialize(pb, context=True)
     context_bytes = whole["context_a"].nbytes
+    n = len(whole["patch_b"])
+    old_key = hashlib.sha256(str(n).encode())  # the key as written before the slices (d947ff0^)
+    old_key.update((np.round(whole["h_ba"], 6) + 0.0).tobytes())
+    old_key.update(np.ascontiguousarray(whole["context_a"][::max(1, n // 64)]).tobytes())
+    old_key.update(hashlib.sha256(b"stage 1").digest())
     reference, _ = hierarchy.next_stage_arrays(whole, [_fake_stage], estimates_dtype=np.float32)
     del whole
     for run in ("fresh", "saved estimates"):
+        calls.clear()
         tracemalloc.start()
         try:
             pairs = train_streams.stage_pairs(cfg, pb)
@@ -319,6 +333,9 @@ def test_stage_pairs_hold_one_slice_of_context_at_a_time(folder, tmp_path, monke
         assert peak < held + 0.75 * context_bytes, (run, peak, held, context_bytes)
         for name in pairs:
             np.testing.assert_array_equal(pairs[name], reference[name], err_msg=(run, name))
+        assert sum(calls) == (n if run == "fresh" else 0), run
+    # the committed stage-3 estimates were saved under the key of the whole set at once
+    assert run_dir.saved_estimates_key(cfg.model_dir, "train") == old_key.hexdigest()
 
 
 def test_materialize_slices_cover_the_set_in_order(folder):
@@ -327,12 +344,30 @@ def test_materialize_slices_cover_the_set_in_order(folder):
     pb = batches.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
     whole = batches.materialize(pb, context=True)
     for workers in (0, 2):
-        got = list(batches.materialize_slices(pb, workers, slice_size=5, chunk=2, context=True))
-        assert [a for a, _ in got] == [0, 6]  # 5 rounded up to 3 chunks of 2
-        for name in whole:
-            np.testing.assert_array_equal(np.concatenate([s[name] for _, s in got]), whole[name])
+        for size, chunk, starts in ((5, 2, [0, 6]),  # 5 rounded up to 3 chunks of 2
+                                    (5, 5, [0, 5, 10])):  # the last slice and chunk partial
+            got = list(batches.materialize_slices(pb, workers, slice_size=size, chunk=chunk,
+                                                  context=True))
+            assert [a for a, _ in got] == starts
+            for name in whole:
+                np.testing.assert_array_equal(np.concatenate([s[name] for _, s in got]),
+                                              whole[name])
     with pytest.raises(ValueError, match="slice_size"):
         next(batches.materialize_slices(pb, 0, slice_size=0))
+
+
+def test_materialize_slices_closed_early_stops_its_workers(folder):
+    """A caller that stops after the first slice and closes the generator leaves no worker
+    process running."""
+    import contextlib
+    import multiprocessing
+
+    pb = batches.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
+    before = set(multiprocessing.active_children())
+    with contextlib.closing(batches.materialize_slices(pb, 2, slice_size=2, chunk=2)) as slices:
+        next(slices)
+        assert len(set(multiprocessing.active_children()) - before) == 2
+    assert set(multiprocessing.active_children()) - before == set()
 
 
 @pytest.mark.slow  # (a binary end to end, 6-15 s; make test-all)

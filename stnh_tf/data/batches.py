@@ -406,8 +406,9 @@ def materialize_slices(batches: PairBatches, workers: int = 0, slice_size: int =
     ``slice_size`` samples (rounded up to a multiple of ``chunk``; the last may be shorter), so a
     caller that keeps only part of each (e.g. the stage-k re-making, which drops ``context_a``)
     never holds the whole set with context. One pool of ``workers`` processes serves every slice
-    and works at most ``2 * workers`` chunks ahead of the slice being read, so a slow consumer
-    does not make the pending results pile up in memory.
+    and works at most ``2 * workers`` chunks ahead of the chunk being read, so a slow consumer
+    does not make the pending results pile up in memory. The pool stops when the generator ends
+    or is closed: a caller that stops early closes it (``contextlib.closing``).
 
     Raises:
       ValueError: ``slice_size`` or ``chunk`` below 1.
@@ -417,16 +418,20 @@ def materialize_slices(batches: PairBatches, workers: int = 0, slice_size: int =
     n = batches.num_samples
     per_slice = -(-slice_size // chunk) * chunk
     tasks = [(a, min(a + chunk, n), context) for a in range(0, n, chunk)]
+    parts = _parts(batches, workers, tasks)
     out, start = None, 0
-    for (a, b, _), part in zip(tasks, _parts(batches, workers, tasks)):
-        if out is None:
-            out = {k: np.empty((min(per_slice, n - start),) + v.shape[1:], v.dtype)
-                   for k, v in part.items()}
-        for k, v in part.items():
-            out[k][a - start:b - start] = v
-        if b - start == len(out["patch_b"]):
-            yield start, out
-            out, start = None, b
+    try:
+        for (a, b, _), part in zip(tasks, parts):
+            if out is None:
+                out = {k: np.empty((min(per_slice, n - start),) + v.shape[1:], v.dtype)
+                       for k, v in part.items()}
+            for k, v in part.items():
+                out[k][a - start:b - start] = v
+            if b - start == len(out["patch_b"]):
+                yield start, out
+                out, start = None, b
+    finally:
+        parts.close()  # the pool's processes stop here, not when the generator is collected
 
 
 def _parts(batches: PairBatches, workers: int, tasks: list):

@@ -77,8 +77,8 @@ def verify_move(optimum, a_from_b, source_shape, origin=(0, 0)) -> float:
     ``[h, w]`` frame, or the patch's where a frame corner maps beyond image_a's horizon, where
     any two estimates lie infinitely far apart; issue 79), or, where ``a_from_b`` zooms out beyond
     the trained range (:func:`~stnh_tf.geometry.centre_scale` above :data:`TRAINED_ZOOM`), in
-    image_b, the coarser image (those corners against where ``a_from_b``'s inverse maps
-    ``optimum``'s images of them back): there one pixel of image_b spans several of image_a's and
+    image_b, the coarser image, at the frame's four corners (against where ``a_from_b``'s
+    inverse maps ``optimum``'s images of them back): there one pixel of image_b spans several of image_a's and
     ECC fixes the alignment no finer than that (issue 64). ``inf`` where ECC failed
     (``optimum`` None) or a corner maps to infinity.
 
@@ -90,11 +90,10 @@ def verify_move(optimum, a_from_b, source_shape, origin=(0, 0)) -> float:
         return float("inf")
     h, optimum = np.asarray(a_from_b, np.float64), np.asarray(optimum, np.float64)
     height, width = source_shape[:2]
-    scale = geometry.centre_scale(geometry.patch_to_image(h, *origin), (width, height))
-    if not scale > TRAINED_ZOOM:
-        t = geometry.translation(*origin)
-        points = precision_corners(t @ h @ np.linalg.inv(t), source_shape, origin)
-        return point_distance(optimum, h, points, origin)
+    h_image = geometry.patch_to_image(h, *origin)
+    if not geometry.centre_scale(h_image, (width, height)) > TRAINED_ZOOM:
+        return point_distance(optimum, h, precision_corners(h_image, source_shape, origin),
+                              origin)
     return frame_corner_distance(np.linalg.inv(h) @ optimum, np.eye(3), source_shape, origin)
 
 
@@ -295,7 +294,9 @@ def ambiguity_gap(work_a, work_b, a_from_b, origin=(0, 0), min_overlap: float = 
     margin of :data:`AMBIGUITY_SHIFT_PX` on every side; only its pixels that work_a covers under
     the estimate, where it does not cover them all: on a low-overlap pair work_b's centre can lie
     outside work_a, issue 79) with it is taken at every shift up to that margin
-    (``cv2.matchTemplate``, ``TM_CCOEFF_NORMED``, the template masked), and the result is the NCC at
+    (``cv2.matchTemplate``, ``TM_CCOEFF_NORMED``, the template masked; at other shifts some of
+    its pixels meet the filled ones, which lowers those shifts' NCC near the overlap's edge), and
+    the result is the NCC at
     the estimate (the best within 1 px) less the highest local maximum (5 x 5) at least
     :data:`AMBIGUITY_MIN_SHIFT_PX` away. A repeated pattern, which aligns as well one period
     off, gives about 0; a photograph, whose NCC falls away from the estimate, 0.1 or more.

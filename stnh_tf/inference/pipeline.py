@@ -55,7 +55,9 @@ class Estimate:
       options: the options that made it.
       verify_move_px: with ``verify="ecc"``, how far ECC started from the estimate moved it
         (mean over the corners of the patch, or of the 320 x 240 image in
-        ``estimate_images_with_info``; in image_b's pixels where the estimate zooms out beyond
+        ``estimate_images_with_info``, there the patch's where a corner of the image maps beyond
+        image_a's horizon: :func:`~stnh_tf.inference.checks.precision_corners`; in image_b's
+        pixels where the estimate zooms out beyond
         the trained range: :func:`~stnh_tf.inference.checks.verify_move`; ``inf``: it did not
         converge); NaN where not verified.
       move_confirmed: in ``estimate_images_with_info`` with ``verify="ecc"`` and
@@ -269,7 +271,8 @@ def verify(run: dict, patch_b, sources, origin, options: EstimateOptions) -> dic
     """With ``options.verify == "ecc"``: ECC (:func:`~stnh_tf.inference.search.ecc_refine`, the
     refinement's settings) is started from each finite estimate of a pair that is not flat, and
     how far it moves the estimate is recorded: the mean distance at the corners of the source's
-    frame (the patch for bare patches, the 320 x 240 image with context;
+    frame (the patch for bare patches, the 320 x 240 image with context, there the patch's where
+    a corner of the image maps beyond image_a's horizon;
     :func:`~stnh_tf.inference.checks.verify_move`), ``inf`` where ECC fails. The estimates are
     not changed. An estimate away from the nearest alignment optimum is likely wrong where its alignment NCC
     still looks good (issue 46). Adds ``"verify_move"`` (float64 ``[B]``, NaN where not

@@ -10,6 +10,7 @@ labeled.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
@@ -214,8 +215,15 @@ def _remade_pairs(cfg: TrainConfig, pair_batches, estimates) -> dict:
     ``predicting_s`` in their model calls."""
     from stnh_tf import hierarchy
     from stnh_tf.modeling import runner
+    from stnh_tf.training import run_dir
 
     n = pair_batches.num_samples
+    if n == 0:
+        raise ValueError("stage-k pairs: the photographs give no pairs.")
+    for stage in cfg.prev_stages:  # before the pass, not at its end (estimates_key reads them)
+        if not os.path.isfile(run_dir.model_file(stage)):
+            raise FileNotFoundError(f"stage-k pairs need the finished stage "
+                                    f"{run_dir.model_file(stage)!r}: no such file.")
     timing = {"loading_s": 0.0, "predicting_s": 0.0}
     stages = []
     if estimates is None:
@@ -237,32 +245,36 @@ def _remade_pairs(cfg: TrainConfig, pair_batches, estimates) -> dict:
     h_ba, h_prev = np.empty((n, 3, 3)), np.empty((n, 3, 3))
     sampled = _key_rows(n)
     context_sample = None
-    for a, arrays in batches.materialize_slices(pair_batches, cfg.workers, STAGE_SLICE,
-                                                chunk=min(256, STAGE_SLICE), context=True):
-        b = a + len(arrays["patch_b"])
-        h_ba[a:b] = arrays["h_ba"]
-        rows = sampled[(sampled >= a) & (sampled < b)]
-        if context_sample is None:
-            context_sample = np.empty((len(sampled),) + arrays["context_a"].shape[1:], np.uint8)
-        context_sample[np.searchsorted(sampled, rows)] = arrays["context_a"][rows - a]
-        part, counts = hierarchy.next_stage_arrays(
-            arrays, stages, in_place=True, estimates_dtype=np.float32,
-            estimates=None if estimates is None else estimates[a:b])
-        for reason, count in counts.items():
-            rejected[reason] += count
-        if pairs is None:
-            pairs = {k: np.empty((n,) + v.shape[1:], v.dtype) for k, v in part.items()
-                     if k != "h_prev"}
-        for k in pairs:
-            pairs[k][a:b] = part[k]
-        h_prev[a:b] = part["h_prev"]
-        del arrays, part  # this slice's context goes before the next slice is made
+    slices = batches.materialize_slices(pair_batches, cfg.workers, STAGE_SLICE,
+                                        chunk=min(256, STAGE_SLICE), context=True)
+    with contextlib.closing(slices):  # its worker pool stops also where a model call raises
+        for a, arrays in slices:
+            b = a + len(arrays["patch_b"])
+            h_ba[a:b] = arrays["h_ba"]
+            rows = sampled[(sampled >= a) & (sampled < b)]
+            if context_sample is None:
+                context_sample = np.empty((len(sampled),) + arrays["context_a"].shape[1:],
+                                          arrays["context_a"].dtype)
+            context_sample[np.searchsorted(sampled, rows)] = arrays["context_a"][rows - a]
+            part, counts = hierarchy.next_stage_arrays(
+                arrays, stages, in_place=True, estimates_dtype=np.float32,
+                estimates=None if estimates is None else estimates[a:b])
+            for reason, count in counts.items():
+                rejected[reason] += count
+            if pairs is None:
+                pairs = {k: np.empty((n,) + v.shape[1:], v.dtype) for k, v in part.items()
+                         if k != "h_prev"}
+            for k in pairs:
+                pairs[k][a:b] = part[k]
+            h_prev[a:b] = part["h_prev"]
+            del arrays, part  # this slice's context goes before the next slice is made
     return dict(pairs=pairs, h_prev=h_prev, rejected=rejected,
                 key=estimates_key(h_ba, context_sample, cfg.prev_stages), **timing)
 
 
 def _key_rows(n: int) -> np.ndarray:
-    """The pairs whose context :func:`estimates_key` digests: 64 spread over the set."""
+    """The pairs whose context :func:`estimates_key` digests: every ``max(1, n // 64)``-th (at
+    most 127 of them, spread over the set)."""
     return np.arange(0, n, max(1, n // 64))
 
 
