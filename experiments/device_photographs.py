@@ -13,11 +13,12 @@ one folder, as ``experiments/paper_schedule_gpu.sh`` does, rebuild the whole set
 file rather than by folder keeps working however large the tracked tree grows: it only adds
 calls.
 
-  python -m experiments.device_photographs --set_aside   # the same, models set aside first
+  python -m experiments.device_photographs --set_aside   # the same, unread files set aside first
   python -m experiments.device_photographs --restore     # after the last call: them back
 
-``--set_aside`` first removes from the working tree the tracked models that no chunk reads
-(:data:`ASIDE_PATTERNS`: the shipped weights and the semi-supervised experiment's models), so
+``--set_aside`` first removes from the working tree the tracked files that no chunk reads
+(:data:`ASIDE_PATTERNS`: the shipped weights, the semi-supervised experiment's models and the
+camera-pair benchmarks' JSON records), so
 that each call has room for more photographs and the set travels in fewer calls; they stay in
 git, and ``--restore`` checks them out again. It refuses while any of them differs from HEAD.
 Until they are restored, ``git status`` lists them as deleted: restore them before anything is
@@ -45,7 +46,9 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SHARED = os.path.join(os.path.dirname(REPO), "shared", "data")
 CALL_MIB = 64  # what one call of the device tool carries
 # Tracked files that no chunk on the GPU machine reads (git pathspecs; ``*`` spans folders).
-ASIDE_PATTERNS = ("semi_supervised/*.keras", "stnh_tf/weights/*.keras")
+# Tracked files no chunk reads: models, and the camera-pair benchmarks' records (17 MB).
+ASIDE_PATTERNS = ("semi_supervised/*.keras", "stnh_tf/weights/*.keras",
+                  "docs/camera_pairs/*.json")
 # The list of the files a run wrote under --output_dir, one relative path a line (OutputFiles).
 MARKER = ".device_photographs_files"
 MARKER_HEADER = "# written by experiments.device_photographs; its next run removes these files\n"
@@ -57,9 +60,10 @@ flags.DEFINE_string("wheels_dir", os.path.join(REPO, ".whl"), "The wheels the fi
 flags.DEFINE_integer("call_mib", CALL_MIB, "MiB one call carries, the working tree included (the "
                      "device tool's limit; tests give more, so the repository's size does not "
                      "decide them).")
-flags.DEFINE_bool("set_aside", False, "First remove the models of ASIDE_PATTERNS from the "
-                  "working tree (they stay in git), so that each call carries more photographs.")
-flags.DEFINE_bool("restore", False, "Only check the set-aside models out again, and exit.")
+flags.DEFINE_bool("set_aside", False, "First remove the files of ASIDE_PATTERNS (models and "
+                  "benchmark records no chunk reads) from the working tree (they stay in git), so "
+                  "that each call carries more photographs.")
+flags.DEFINE_bool("restore", False, "Only check the set-aside files out again, and exit.")
 FLAGS = flags.FLAGS
 
 
@@ -81,7 +85,7 @@ def set_aside(repo: str = REPO) -> int:
                              capture_output=True, text=True, check=True).stdout.splitlines()
     changed = [line for line in changed if not line.startswith(" D")]  # set aside already
     if changed:
-        raise RuntimeError("not setting models aside, these differ from HEAD: "
+        raise RuntimeError("not setting files aside, these differ from HEAD: "
                            + "; ".join(changed))
     removed = 0
     for rel in files:

@@ -553,6 +553,10 @@ PROSE = [
      rf"tree took {N} MiB and the photographs (\d+) calls, without them {N} MiB and (\d+) calls",
      [num("device_calls_plain", "tracked_mib", 1), length("device_calls_plain", "calls"),
       num("device_calls_set_aside", "tracked_mib", 1), length("device_calls_set_aside", "calls")]),
+    ("docs/gpu.md", rf"by the committed stage-3 checkpoint and estimates, then took {N} MiB and the "
+     rf"photographs (\d+){S}calls, the wheels in the first",
+     [num("device_calls_set_aside_1206", "tracked_mib", 1),
+      length("device_calls_set_aside_1206", "calls")]),
     ("docs/gpu.md", rf"38,000 -> 40,500 at {N} steps/s in the ledger{S}\(its log went with"
      rf" that machine's disk\), 40,500 -> 44,500 at {N} steps/s{S}"
      rf"\(`paper_schedule/logs/stage2_40500-44500_cpu.log`\) and 44,500 -> 49,000 at {N} steps/s{S}"

@@ -1237,7 +1237,7 @@ def test_device_photographs_set_aside_refuses_a_changed_model_in_one_line(tmp_pa
                                env=dict(os.environ, PYTHONPATH=ROOT, TF_CPP_MIN_LOG_LEVEL="2"))
     assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     assert proc.stderr.strip().splitlines()[-1].startswith(
-        "device_photographs: not setting models aside, these differ from HEAD: ") \
+        "device_photographs: not setting files aside, these differ from HEAD: ") \
         and "stnh_tf/weights/stage1.keras" in proc.stderr
     assert (repo / "stnh_tf/weights/stage1.keras").read_bytes() == b"retrained"
     assert not (tmp_path / "dev").exists()

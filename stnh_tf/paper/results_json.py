@@ -32,6 +32,7 @@ SOURCES = {
     "training_step_zen4": "paper_schedule/logs/training_step_benchmark_zen4_cpu.json",
     "device_calls_plain": "paper_schedule/logs/device_calls_plain.json",
     "device_calls_set_aside": "paper_schedule/logs/device_calls_set_aside.json",
+    "device_calls_set_aside_1206": "paper_schedule/logs/device_calls_set_aside_2026-12-06.json",
     "camera0_default": "docs/camera_pairs/seed0_default.json",
     "camera0_default_estimator": "docs/camera_pairs/seed0_default_estimator.json",
     "camera0_photographs": "docs/camera_pairs/seed0_photographs.json",
