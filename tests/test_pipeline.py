@@ -517,8 +517,7 @@ def test_ambiguity_gap_against_the_ncc_over_shifts_written_out(period):
     assert (abs(gap) < 0.005) if period else (gap > 0.3)
 
 
-@pytest.mark.parametrize("optimized", [True, False])
-def test_ambiguity_gap_of_a_low_overlap_pair_counts_the_covered_pixels_alone(optimized):
+def test_ambiguity_gap_of_a_low_overlap_pair_counts_the_covered_pixels_alone():
     """A pan of 150 px (53% overlap: image_b's centre lies outside image_a): the NCC is taken
     over the pixels of image_b's centre that image_a covers (OpenCV's masked matchTemplate,
     against the same written out with NumPy); with the uncovered ones counted at image_a's mean,
@@ -528,8 +527,10 @@ def test_ambiguity_gap_of_a_low_overlap_pair_counts_the_covered_pixels_alone(opt
     scene = cv2.GaussianBlur(rng.random((240, 470)), (0, 0), 2).astype(np.float32)
     a, b = scene[:, :320], scene[:, 150:]
     pan = geometry.translation(150.0, 0.0)  # image_b(p) = image_a(p + (150, 0))
-    with opencv_optimized(optimized):  # OpenCV's two code paths: two CPUs' numerics
-        gap = checks.ambiguity_gap(a, b, geometry.image_to_patch(pan, 96, 56), (96, 56))
+    gaps = []
+    for optimized in (True, False):  # OpenCV's two code paths: two CPUs' numerics
+        with opencv_optimized(optimized):
+            gaps.append(checks.ambiguity_gap(a, b, geometry.image_to_patch(pan, 96, 56), (96, 56)))
     warped = cv2.warpPerspective(a, pan, (320, 240), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
     covered = cv2.warpPerspective(np.ones_like(a), pan, (320, 240),
                                   flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR) > 0.999
@@ -537,5 +538,6 @@ def test_ambiguity_gap_of_a_low_overlap_pair_counts_the_covered_pixels_alone(opt
     r = checks.AMBIGUITY_SHIFT_PX
     mask = covered[r:-r, r:-r]
     assert 0.3 < mask.mean() < 0.6
-    assert gap == pytest.approx(_gap_of(_ncc_over_shifts(warped, b, r, mask), r), abs=1e-4)
-    assert gap > 0.3
+    expected = _gap_of(_ncc_over_shifts(warped, b, r, mask), r)
+    assert gaps == pytest.approx([expected, expected], abs=1e-4)
+    assert min(gaps) > 0.3
