@@ -284,6 +284,7 @@ def test_stage_pairs_are_made_again_from_the_estimates_saved_in_the_run_folder(f
     assert sum(calls) == 2 * PER_IMAGE
 
 
+@pytest.mark.slow  # (3 s: three passes over 512 pairs; make test-all)
 def test_stage_pairs_hold_one_slice_of_context_at_a_time(folder, tmp_path, monkeypatch):
     """Stage-k pairs are made and re-made a slice at a time: the peak of NumPy's allocations stays
     below the result plus 3/4 of the whole set's context (holding the set with context at once, as
