@@ -239,11 +239,10 @@ def _fake_stage(patch_a, patch_b):
     return np.stack(out)
 
 
-def test_stage_pairs_are_made_again_from_the_estimates_saved_in_the_run_folder(folder, tmp_path,
-                                                                               monkeypatch):
-    """Stage-2 pairs in memory: the first call runs the stage and saves its estimates in the run
-    folder; a second call (a resumed run) makes the same pairs from them without the stage; a
-    changed stage file, or other pairs, run the stage again."""
+@pytest.fixture
+def counted_stage(monkeypatch):
+    """Finished stages loaded as :func:`_fake_stage`: the list of the batch sizes it was called
+    with."""
     from stnh_tf.modeling import runner
 
     calls = []
@@ -254,6 +253,15 @@ def test_stage_pairs_are_made_again_from_the_estimates_saved_in_the_run_folder(f
 
     monkeypatch.setattr(runner, "load_model", lambda path: path)
     monkeypatch.setattr(runner, "predictor", lambda model, batch_size: stage)
+    return calls
+
+
+def test_stage_pairs_are_made_again_from_the_estimates_saved_in_the_run_folder(folder, tmp_path,
+                                                                               counted_stage):
+    """Stage-2 pairs in memory: the first call runs the stage and saves its estimates in the run
+    folder; a second call (a resumed run) makes the same pairs from them without the stage; a
+    changed stage file, or other pairs, run the stage again."""
+    calls = counted_stage
     stage1 = tmp_path / "stage1.keras"
     stage1.write_bytes(b"stage 1")
     cfg = train_config.TrainConfig(image_dir=folder, model_dir=str(tmp_path / "run"), stage=2,
@@ -285,7 +293,8 @@ def test_stage_pairs_are_made_again_from_the_estimates_saved_in_the_run_folder(f
 
 
 @pytest.mark.slow  # (3 s: three passes over 512 pairs; make test-all)
-def test_stage_pairs_hold_one_slice_of_context_at_a_time(folder, tmp_path, monkeypatch):
+def test_stage_pairs_hold_one_slice_of_context_at_a_time(folder, tmp_path, monkeypatch,
+                                                         counted_stage):
     """Stage-k pairs are made and re-made a slice at a time: the peak of NumPy's allocations stays
     below the result plus 3/4 of the whole set's context (holding the set with context at once, as
     before, cost far more: 22.7 GiB resident for stage 3's 184,800 pairs), and the pairs
@@ -293,17 +302,9 @@ def test_stage_pairs_hold_one_slice_of_context_at_a_time(folder, tmp_path, monke
     import tracemalloc
 
     from stnh_tf import hierarchy
-    from stnh_tf.modeling import runner
 
     per_image = 128  # 512 pairs, 18.9 MB of context
-    calls = []
-
-    def stage(patch_a, patch_b):
-        calls.append(len(patch_b))
-        return _fake_stage(patch_a, patch_b)
-
-    monkeypatch.setattr(runner, "load_model", lambda path: path)
-    monkeypatch.setattr(runner, "predictor", lambda model, batch_size: stage)
+    calls = counted_stage
     monkeypatch.setattr(train_streams, "STAGE_SLICE", 16)
     stage1 = tmp_path / "stage1.keras"
     stage1.write_bytes(b"stage 1")
