@@ -16,6 +16,7 @@ import logging
 import os
 import signal
 import sys
+import time
 
 import numpy as np
 
@@ -361,6 +362,24 @@ def generator_pool(batches: PairBatches, workers: int):
             workers, initializer=_init_worker, initargs=(batches,))
 
 
+def stop_pool(pool, in_flight=(), timeout: float = 60.0) -> None:
+    """Stop a :func:`generator_pool` without killing a worker in the middle of a task.
+
+    The results of ``in_flight`` (``AsyncResult``\ s) are let finish first and the workers then
+    exit on their own (``close`` + ``join``); only if those results take longer than ``timeout``
+    seconds are the workers killed (``terminate``). ``Pool.terminate`` while a worker sends a
+    result back can leave the pool's result thread waiting forever for the rest of the message,
+    and the caller with it."""
+    pool.close()
+    deadline = time.monotonic() + timeout
+    for result in in_flight:
+        result.wait(max(deadline - time.monotonic(), 0.0))
+    if all(r.ready() for r in in_flight):
+        pool.join()
+    else:
+        pool.terminate()
+
+
 def step_batch_async(pool, step: int, fresh: bool = False):
     """Ask ``pool`` (:func:`generator_pool`) for :meth:`PairBatches.step_batch`; returns an
     ``AsyncResult`` whose ``get()`` is the compact batch."""
@@ -444,15 +463,19 @@ def _parts(batches: PairBatches, workers: int, tasks: list):
         for task in tasks:
             yield _samples(batches, task)
         return
-    with generator_pool(batches, workers) as pool:
-        pending, todo = collections.deque(), iter(tasks)
+    pool = generator_pool(batches, workers)
+    pending, todo = collections.deque(), iter(tasks)
+    try:
         for task in todo:
             pending.append(pool.apply_async(_worker_samples, (task,)))
             if len(pending) >= 2 * workers:
                 break
         while pending:
-            part = pending.popleft().get()
+            part = pending[0].get()
+            pending.popleft()
             task = next(todo, None)
             if task is not None:
                 pending.append(pool.apply_async(_worker_samples, (task,)))
             yield part
+    finally:  # closed early, or a worker raised: the tasks in flight finish before the pool stops
+        stop_pool(pool, pending)

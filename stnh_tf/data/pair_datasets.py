@@ -15,11 +15,11 @@ Which one: :class:`PairSequence` for one pass over a fixed set (indexable, shuff
 
 from __future__ import annotations
 
-import time
-
 import keras
 
-from stnh_tf.data.batches import PairBatches, generator_pool, model_batch, step_batch_async
+from stnh_tf.data.batches import (PairBatches, generator_pool, model_batch, step_batch_async,
+                                  stop_pool)
+
 
 class PairSequence(keras.utils.PyDataset):
     """:class:`PairBatches` as a ``keras.utils.PyDataset``: ``model.fit(PairSequence(...))``.
@@ -170,21 +170,13 @@ class PairStream(keras.utils.PyDataset):
     def close(self, timeout: float = 60.0):
         """Stop the worker processes (a later item starts new ones).
 
-        The batches in flight are let finish first (``Pool.terminate`` while a worker sends a
-        batch back can hang the pool's result thread); only if they take longer than ``timeout``
-        seconds are the workers killed."""
+        The batches in flight are let finish first; only if they take longer than ``timeout``
+        seconds are the workers killed (:func:`~stnh_tf.data.batches.stop_pool`)."""
         pool, self._pool, self._pending = self._pool, None, {}
         if pool is None:
             return
-        pool.close()
-        deadline = time.monotonic() + timeout
-        for result in self._submitted:
-            result.wait(max(deadline - time.monotonic(), 0.0))
-        if all(r.ready() for r in self._submitted):
-            pool.join()
-        else:
-            pool.terminate()
-        self._submitted = []
+        submitted, self._submitted = self._submitted, []
+        stop_pool(pool, submitted, timeout)
 
     def __del__(self):
         try:
