@@ -352,7 +352,7 @@ def generator_pool(batches: PairBatches, workers: int):
 
     Processes come from a ``forkserver`` (never a fork of this process, whose backend may already
     run threads) and import only NumPy, OpenCV and this module, also when the caller is a binary
-    whose ``__main__`` imports a backend. Use as a context manager or ``terminate()`` it."""
+    whose ``__main__`` imports a backend. Stop it with :func:`stop_pool`."""
     import multiprocessing
 
     if workers < 1:
@@ -365,11 +365,12 @@ def generator_pool(batches: PairBatches, workers: int):
 def stop_pool(pool, in_flight=(), timeout: float = 60.0) -> None:
     """Stop a :func:`generator_pool` without killing a worker in the middle of a task.
 
-    The results of ``in_flight`` (``AsyncResult``\ s) are let finish first and the workers then
-    exit on their own (``close`` + ``join``); only if those results take longer than ``timeout``
-    seconds are the workers killed (``terminate``). ``Pool.terminate`` while a worker sends a
-    result back can leave the pool's result thread waiting forever for the rest of the message,
-    and the caller with it."""
+    The results of ``in_flight`` (``AsyncResult`` objects: every task not yet finished) are let
+    finish first and the workers then exit on their own (``close`` + ``join``); only if those
+    results take longer than ``timeout`` seconds are the workers killed (``terminate``).
+    ``Pool.terminate`` while a worker sends a result back leaves the result queue's lock held
+    by a dead process, and the pool's threads and the caller waiting on it forever."""
+    in_flight = list(in_flight)
     pool.close()
     deadline = time.monotonic() + timeout
     for result in in_flight:
