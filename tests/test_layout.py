@@ -26,7 +26,7 @@ ALLOWED = {
 }
 # Deep-learning backends: the NumPy core and these modules never import them at module level.
 BACKENDS = ("tensorflow", "keras", "jax", "torch")
-BACKEND_FREE = ("core", "data/sources", "data/pairs", "data/batches",
+BACKEND_FREE = ("core", "data/sources", "data/pairs", "data/batches", "data/pools",
                 "data/features", "data/labels", "data/paper_motions", "training/config",
                 "training/presets", "paper/result_cells", "paper/model_provenance",
                 "evaluation/card_evaluation", "paper/fig4_render",

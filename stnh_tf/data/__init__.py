@@ -1,6 +1,7 @@
 """Data: image sources (:mod:`~stnh_tf.data.sources`), the paper's pair protocol
 (:mod:`~stnh_tf.data.pairs`), batches generated from images and their Keras datasets
-(:mod:`~stnh_tf.data.batches`, :mod:`~stnh_tf.data.pair_datasets`; NumPy/OpenCV only), and the
+(:mod:`~stnh_tf.data.batches`, :mod:`~stnh_tf.data.pair_datasets`; NumPy/OpenCV only; their worker
+pools' helpers in :mod:`~stnh_tf.data.pools`), and the
 TFRecord side: the feature spec (:mod:`~stnh_tf.data.features`), reading
 (:mod:`~stnh_tf.data.tfrecords`), the sharded writer and the stage-1 / stage-k dataset libraries
 behind ``python -m data_prep.*`` (:mod:`~stnh_tf.data.writer`, :mod:`~stnh_tf.data.metadata`,

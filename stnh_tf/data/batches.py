@@ -11,18 +11,16 @@ the compact form of :func:`stack_samples` (uint8 patches: what workers send back
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import signal
-import sys
-import time
 
 import numpy as np
 
 from stnh_tf import pixels
 from stnh_tf.data import labels, pairs, sources
 from stnh_tf.data.folder_counts import FolderCounts
+from stnh_tf.data.pools import main_not_rerun, stop_pool
 from stnh_tf.data.sources import (ImageDecodeError, SourceError, bundled_image_files,
                                   scan_image_folders)
 
@@ -325,60 +323,19 @@ def _worker_step(step: int, fresh: bool) -> dict:
     return _WORKER_BATCHES.step_batch(step, fresh)
 
 
-@contextlib.contextmanager
-def _main_not_rerun():
-    """Keep new ``forkserver``/``spawn`` children from re-running ``__main__``.
-
-    multiprocessing rebuilds the parent's main module in each child (``runpy`` of
-    ``python -m experiments.train_stage``, whose imports load Keras and its backend: ~0.7 GB a
-    worker under TensorFlow). Workers need only this module, so while children start the main
-    module names neither a spec nor a file."""
-    main = sys.modules.get("__main__")
-    if main is None:
-        yield
-        return
-    saved = {k: main.__dict__[k] for k in ("__spec__", "__file__") if k in main.__dict__}
-    main.__spec__ = None
-    main.__dict__.pop("__file__", None)
-    try:
-        yield
-    finally:
-        main.__dict__.pop("__spec__", None)
-        main.__dict__.update(saved)
-
-
 def generator_pool(batches: PairBatches, workers: int):
     """A pool of ``workers`` processes, each holding a copy of ``batches``.
 
     Processes come from a ``forkserver`` (never a fork of this process, whose backend may already
     run threads) and import only NumPy, OpenCV and this module, also when the caller is a binary
-    whose ``__main__`` imports a backend. Stop it with :func:`stop_pool`."""
+    whose ``__main__`` imports a backend. Stop it with :func:`~stnh_tf.data.pools.stop_pool`."""
     import multiprocessing
 
     if workers < 1:
         raise ValueError(f"workers must be >= 1; received {workers}.")
-    with _main_not_rerun():  # Pool starts all its processes before returning
+    with main_not_rerun():  # Pool starts all its processes before returning
         return multiprocessing.get_context("forkserver").Pool(
             workers, initializer=_init_worker, initargs=(batches,))
-
-
-def stop_pool(pool, in_flight=(), timeout: float = 60.0) -> None:
-    """Stop a :func:`generator_pool` without killing a worker in the middle of a task.
-
-    The results of ``in_flight`` (``AsyncResult`` objects: every task not yet finished) are let
-    finish first and the workers then exit on their own (``close`` + ``join``); only if those
-    results take longer than ``timeout`` seconds are the workers killed (``terminate``).
-    ``Pool.terminate`` while a worker sends a result back leaves the result queue's lock held
-    by a dead process, and the pool's threads and the caller waiting on it forever."""
-    in_flight = list(in_flight)
-    pool.close()
-    deadline = time.monotonic() + timeout
-    for result in in_flight:
-        result.wait(max(deadline - time.monotonic(), 0.0))
-    if all(r.ready() for r in in_flight):
-        pool.join()
-    else:
-        pool.terminate()
 
 
 def step_batch_async(pool, step: int, fresh: bool = False):

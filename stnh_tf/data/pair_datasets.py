@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import keras
 
-from stnh_tf.data.batches import (PairBatches, generator_pool, model_batch, step_batch_async,
-                                  stop_pool)
+from stnh_tf.data.batches import PairBatches, generator_pool, model_batch, step_batch_async
+from stnh_tf.data.pools import stop_pool
 
 
 class PairSequence(keras.utils.PyDataset):
@@ -171,7 +171,7 @@ class PairStream(keras.utils.PyDataset):
         """Stop the worker processes (a later item starts new ones).
 
         The batches in flight are let finish first; only if they take longer than ``timeout``
-        seconds are the workers killed (:func:`~stnh_tf.data.batches.stop_pool`)."""
+        seconds are the workers killed (:func:`~stnh_tf.data.pools.stop_pool`)."""
         pool, self._pool, self._pending = self._pool, None, {}
         if pool is None:
             return

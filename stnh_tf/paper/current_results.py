@@ -66,6 +66,8 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
     """
     card, paper_card, schedule_card = (f"`{SOURCES[k]}`"
                                        for k in ("card", "paper_card", "schedule_card"))
+    shipped = len(value(sources, "schedule_card", "stages"))  # the paper schedule's stages shipped
+    ks = range(1, shipped + 1)
 
     def card_num(path, digits=2):
         return fixed(value(sources, "card", path), digits)
@@ -137,17 +139,18 @@ def benchmarks_rows(sources: dict[str, dict]) -> list[tuple[str, str, str, str, 
          f"{joined(sources, 'paper_card', stage_paths('evaluation/model'), bold=2)} px",
          refresh.format(" --weights_dir=stnh_tf/weights/paper_recipe"), paper_card,
          *recorded(sources, "paper_card", "evaluation/machine")),
-        ("[Paper's schedule](docs/gpu.md#the-papers-schedule-in-chunks), stages 1-2 "
+        (f"[Paper's schedule](docs/gpu.md#the-papers-schedule-in-chunks), stages 1-{shipped} "
          "(`stnh_tf/weights/paper_schedule/`): the paper's recipe, 91,000 steps a stage, 184,800 "
          "pairs from 1,848 photographs; 300 coco_mini test pairs, image context, the networks "
          "alone (no clipping rule)",
-         "MACE after 1 / 2 stages "
-         f"{joined(sources, 'schedule_card', stage_paths('evaluation/model')[:2], bold=1)} px "
-         "(paper 5.83 / 2.6; identity "
+         f"MACE after {' / '.join(map(str, ks))} stages "
+         f"{joined(sources, 'schedule_card', stage_paths('evaluation/model')[:shipped], bold=shipped - 1)}"
+         f" px (paper {' / '.join(['5.83', '2.6', '1.57'][:shipped])}; identity "
          f"{fixed(value(sources, 'schedule_card', 'evaluation/identity/mace'))})",
-         "`python -m experiments.paper_schedule --stage=K` (chunks, K = 1, 2), then `python -m "
-         "experiments.evaluate --model_dir=paper_schedule/stage1.keras,paper_schedule/stage2.keras"
-         " --data_dir=D --split=test --no_clip`", schedule_card,
+         f"`python -m experiments.paper_schedule --stage=K` (chunks, K = {', '.join(map(str, ks))}),"
+         " then `python -m experiments.evaluate --model_dir="
+         + ",".join(f"paper_schedule/stage{k}.keras" for k in ks)
+         + " --data_dir=D --split=test --no_clip`", schedule_card,
          recorded(sources, "schedule_card", "evaluation/machine")[0],
          "; ".join(dict.fromkeys(m for stage in value(sources, "schedule_card", "stages")
                                  for m in stage["machines"]))),

@@ -27,6 +27,7 @@ SOURCES = {
     "schedule_float32_inference": "paper_schedule/stage1_eval_float32_inference.json",
     "schedule2_eval": "paper_schedule/hierarchy2_eval.json",
     "schedule2_eval_float32": "paper_schedule/hierarchy2_eval_float32_inference.json",
+    "schedule3_eval": "paper_schedule/hierarchy3_eval.json",
     "stage_pairs_before": "paper_schedule/logs/stage_pairs_benchmark_before_cpu.json",
     "stage_pairs_after": "paper_schedule/logs/stage_pairs_benchmark_after_cpu.json",
     "training_step_zen4": "paper_schedule/logs/training_step_benchmark_zen4_cpu.json",
