@@ -6,7 +6,6 @@ computed here from the photographs' names (sha256, the documented rule); the pai
 dataset written without a hold-out. Photographs: copies of a bundled one under made-up names."""
 
 import hashlib
-import json
 import os
 import shutil
 
@@ -228,25 +227,6 @@ def test_a_run_saved_with_the_former_default_resumes(tmp_path):
                 run_dir.prepare_model_dir(cfg)
             run_dir.prepare_model_dir(train_config.TrainConfig(model_dir=str(folder), **base,
                                                                **source))
-
-
-def test_the_committed_paper_schedule_run_resumes_under_the_new_default(tmp_path):
-    """paper_schedule/resume/stage3/config.json (read only here), as saved before the new
-    default (val_split "test", in a copy): the configuration experiments.paper_schedule builds
-    now, val_split at its new default, is the same run (an image-folder run never reads it).
-    The committed file itself is rewritten by later chunks, in either form."""
-    committed = os.path.join(REPO, "paper_schedule", "resume", "stage3", "config.json")
-    if not os.path.exists(committed):
-        pytest.skip("no committed stage-3 checkpoint in this checkout")
-    path = str(tmp_path / "config.json")
-    with open(path, "w") as f:
-        json.dump({**json.load(open(committed)), "val_split": "test"}, f)
-    saved = run_dir.read_run_config(path)
-    assert saved["image_dir"]
-    now = train_config.TrainConfig.from_json({k: v for k, v in saved.items()
-                                              if k != "val_split"})
-    assert now.val_split == "val"
-    assert run_dir._config_diff(now, path) == {}
 
 
 def test_the_holdout_doctests():
