@@ -600,6 +600,9 @@ PROSE = [
          "photometric_unsearched_estimate_mace_3_stages")]
      + [lambda sources: str(cr.value(sources, "schedule_card",
                                      "bundled_check/photometric_unsearched_worse_than_identity_3_stages"))]),
+    ("docs/gpu.md", rf"First chunk, steps 0 -> 1,399, on [^$]*?"
+     rf"`paper_schedule/logs/sequence2_0-1399_cpu.log`\): {N} steps/s in the ledger",
+     [num("schedule_ledger", "29/steps_per_s")]),
     ("docs/gpu.md", rf"- Finished at 91,000 steps over (\d+) chunks and {N} hours of wall time in "
      rf"all, every chunk on the",
      [schedule_chunks(3), schedule_hours(3)]),
