@@ -1602,6 +1602,65 @@ def test_a_truncated_committed_checkpoint_does_not_replace_the_run_folders_own(t
     assert (run / "checkpoint" / weights.name).read_bytes() == weights.read_bytes()
 
 
+def test_a_committed_checkpoint_over_the_file_limit_is_kept_in_parts_and_checked(tmp_path):
+    """Issue 77: the 2-stage sequence model's committed checkpoint (both networks' weights and
+    momentum, 12.5 MB) could not be committed: no file of this project may reach 10 MB. sync_out
+    keeps weights over 8 MiB as parts with a manifest (a smaller checkpoint as one file, as
+    before); sync_in makes them whole bit for bit, and refuses in one line naming it a part that
+    is damaged or missing, the run folder's own checkpoint kept byte for byte."""
+    import h5py
+    from stnh_tf.training import chunks
+
+    run, resume = tmp_path / "run", tmp_path / "repo" / "resume" / "sequence2"
+    cfg = _train_cfg("d", run, train_steps=8)
+    (run / "checkpoint").mkdir(parents=True)
+    (run / "config.json").write_text(_config_json(cfg))
+    name = "ckpt-00000006.weights.h5"
+    with h5py.File(run / "checkpoint" / name, "w") as f:  # 12.6 MB that do not compress
+        f["layers/dense/vars/0"] = np.random.default_rng(0).random((3_150_000,), np.float32)
+        f["optimizer/vars/0"] = np.int64(6)
+    (run / "checkpoint" / "state.json").write_text(json.dumps({"step": 6, "weights": name}))
+    original = (run / "checkpoint" / name).read_bytes()
+    assert len(original) > 12_000_000
+    assert chunks.sync_out(str(run), str(resume)) == 6
+    sizes = {p.name: p.stat().st_size for p in resume.iterdir()}
+    assert name not in sizes and max(sizes.values()) < 10_000_000, sizes  # before: 12.6 MB
+    assert {f"{name}.part-000", f"{name}.part-001", f"{name}.parts.json"} <= set(sizes)
+    assert sum(v for k, v in sizes.items() if ".part-" in k) == len(original)
+    fresh = tmp_path / "fresh"
+    assert chunks.sync_in(str(resume), str(fresh), cfg) == 6
+    assert (fresh / "checkpoint" / name).read_bytes() == original
+    assert not list(fresh.glob("checkpoint/*.part*"))
+    # a run folder with an older checkpoint of its own, and a damaged or missing part
+    older = tmp_path / "older"
+    _fake_checkpoint(older / "checkpoint", 2)
+    (older / "config.json").write_text(_config_json(cfg))
+    part = resume / f"{name}.part-001"
+    good = part.read_bytes()
+    for damage, data in (("a flipped byte", good[:-1] + bytes([good[-1] ^ 1])),
+                         ("cut short", good[:len(good) // 2]), ("missing", None)):
+        part.unlink()
+        if data is not None:
+            part.write_bytes(data)
+        before = _files(older)
+        with pytest.raises(ValueError) as refused:
+            chunks.sync_in(str(resume), str(older), cfg)
+        message = str(refused.value)
+        assert str(part) in message and "\n" not in message, (damage, message)
+        assert "its checkpoint of step 2 is kept" in message, message
+        assert _files(older) == before, damage
+    part.write_bytes(good)
+    assert chunks.sync_in(str(resume), str(older), cfg) == 6
+    assert (older / "checkpoint" / name).read_bytes() == original
+    # a checkpoint within the limit stays one file
+    small = tmp_path / "small_resume"
+    _fake_checkpoint(tmp_path / "small_run" / "checkpoint", 4)
+    (tmp_path / "small_run" / "config.json").write_text(_config_json(cfg))
+    assert chunks.sync_out(str(tmp_path / "small_run"), str(small)) == 4
+    assert sorted(p.name for p in small.iterdir()) == [
+        "ckpt-00000004.weights.h5", "config.json", "state.json"]
+
+
 def _fake_train(calls):
     """loop.train's stand-in for a chunk: records ``cfg.model_dir``, writes the run folder's
     config.json and a checkpoint 2 steps on from the one there."""

@@ -31,7 +31,8 @@ BACKEND_FREE = ("core", "data/sources", "data/pairs", "data/batches", "data/pool
                 "training/presets", "paper/result_cells", "paper/model_provenance",
                 "evaluation/card_evaluation", "paper/fig4_render",
                 "paper/learning_curves",
-                "training/run_dir", "training/run_records", "inference/options",
+                "training/run_dir", "training/run_records", "training/file_parts",
+                "inference/options",
                 "inference/checks", "inference/search", "inference/pipeline", "inference/ecc")
 
 
@@ -153,6 +154,7 @@ DOCTEST_MODULES = ("stnh_tf.geometry", "stnh_tf.pixels", "stnh_tf.paths", "stnh_
                    "stnh_tf.evaluation.ablation",
                    "stnh_tf.paper.model_provenance", "stnh_tf.paper.fig4_render",
                    "stnh_tf.paper.learning_curves", "stnh_tf.paper.budgets",
+                   "stnh_tf.training.file_parts",
                    "stnh_tf.paper.hour_budget")
 
 

@@ -7,7 +7,9 @@ Layout of a chunked run's repository folder ``root`` (e.g. ``paper_schedule/``):
 * ``resume/stage<k>/``: the checkpoint of the unfinished stage k: ``config.json`` (the
   :class:`~stnh_tf.training.config.TrainConfig`, and the sha256 of the finished stages it is
   made from: :func:`~stnh_tf.training.run_dir.config_document`), ``state.json`` (step, RNG
-  states) and the one ``ckpt-<step>.weights.h5`` it names (weights and optimizer state), and
+  states) and the one ``ckpt-<step>.weights.h5`` it names (weights and optimizer state; over
+  8 MiB, as ``.part-NNN`` files and their ``.parts.json`` manifest:
+  :mod:`stnh_tf.training.file_parts`, so that no committed file reaches 10 MB), and
   for k > 1 the finished stages' estimates its pairs are made from
   (``stage_estimates_<split>.npz``: :func:`stnh_tf.training.streams.stage_pairs`); replaced by
   each chunk and removed when the stage is done;
@@ -41,11 +43,13 @@ import datetime
 import os
 import re
 import shutil
+import tempfile
 import time
 
-from stnh_tf.paths import atomic_write_json, atomic_write_text, read_json, stage_record_path
+from stnh_tf.paths import (atomic_write_json, atomic_write_text, inside, read_json,
+                           stage_record_path)
 from stnh_tf.provenance import machine_info
-from stnh_tf.training import checkpoints, run_dir
+from stnh_tf.training import checkpoints, file_parts, run_dir
 from stnh_tf.training.config import TrainConfig
 
 RESUME_DIR = "resume"
@@ -119,21 +123,42 @@ def _step(checkpoint_dir) -> int:
     return -1 if found is None else int(found[1])
 
 
-def _copy_checkpoint(src_dir, dst_dir, extra_files=()):
+def _copy_checkpoint(src_dir, dst_dir, extra_files=(), max_bytes=None) -> int:
     """Copy the checkpoint of ``src_dir`` (the weights :func:`checkpoints.find_checkpoint` finds
     and the state naming them, where there is one) and ``extra_files`` into ``dst_dir``, replaced
-    whole (written beside it, then swapped in)."""
+    whole (written beside it, then swapped in); with ``max_bytes``, weights over it as parts
+    (:func:`stnh_tf.training.file_parts.write_parts`). Returns the checkpoint's step."""
     tmp, old = f"{dst_dir}.tmp-{os.getpid()}", f"{dst_dir}.old-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     os.makedirs(tmp)
-    weights, _, state = checkpoints.find_checkpoint(src_dir)
+    weights, step, state = checkpoints.find_checkpoint(src_dir)
+    file_parts.write_parts(weights, os.path.join(tmp, os.path.basename(weights)),
+                           max_bytes or os.path.getsize(weights))
     state = [os.path.join(src_dir, run_dir.CHECKPOINT_STATE)] if state is not None else []
-    for path in (weights, *state, *extra_files):
+    for path in (*state, *extra_files):
         shutil.copy2(path, os.path.join(tmp, os.path.basename(path)))
     if os.path.exists(dst_dir):
         os.rename(dst_dir, old)
     os.rename(tmp, dst_dir)
     shutil.rmtree(old, ignore_errors=True)
+    return int(step)
+
+
+def _whole_weights(resume: str, tmp: str) -> str:
+    """``resume`` itself where its checkpoint's weights are there whole (or none are named);
+    where :func:`sync_out` kept them in parts, the folder ``tmp`` holding its ``state.json`` and
+    the weights made whole (:func:`stnh_tf.training.file_parts.read_whole`: every part checked
+    against their manifest; ``ValueError`` naming what is wrong)."""
+    state = checkpoints.read_checkpoint_state(resume)
+    if state is None or not isinstance(state.get("weights"), str):
+        return resume
+    weights = inside(resume, state["weights"], f"{os.path.join(resume, run_dir.CHECKPOINT_STATE)!r}"
+                     ", its 'weights'")
+    if os.path.isfile(weights) or not os.path.isfile(file_parts.manifest_path(weights)):
+        return resume
+    file_parts.read_whole(weights, os.path.join(tmp, os.path.basename(weights)))
+    shutil.copy2(os.path.join(resume, run_dir.CHECKPOINT_STATE), tmp)
+    return tmp
 
 
 def _estimates(folder: str) -> list:
@@ -167,23 +192,32 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
                                      "away.")
         return None
     ckpt = os.path.join(model_dir, run_dir.CHECKPOINT_DIR)
-    with run_dir.RunLock(model_dir):  # no other run there while this checks and copies
-        newer = _step(resume) > _step(ckpt)
+
+    def refused(e):
+        own = _step(ckpt)
+        kept = f"its checkpoint of step {own} is kept" if own >= 0 else "it has none"
+        return ValueError(f"{e}; nothing was copied into {model_dir} ({kept}): put back a "
+                          "complete copy of the committed one (git checkout, or the archive it "
+                          "came in).")
+
+    # no other run there while this checks and copies
+    with run_dir.RunLock(model_dir), tempfile.TemporaryDirectory() as tmp:
+        try:
+            committed = _whole_weights(resume, tmp)
+        except ValueError as e:
+            raise refused(e) from None
+        newer = _step(committed) > _step(ckpt)
         estimates = [p for p in _estimates(resume)
                      if not os.path.exists(os.path.join(model_dir, os.path.basename(p)))]
         if not (newer or estimates or cfg is not None):
             return None
         run_dir.check_same_run(model_dir, os.path.join(resume, run_dir.CONFIG_FILE), cfg)
         if newer:
-            weights, step, _ = checkpoints.find_checkpoint(resume)
+            weights, step, _ = checkpoints.find_checkpoint(committed)
             try:
                 checkpoints.check_weights_file(weights, step)
-            except ValueError as e:
-                own = _step(ckpt)
-                kept = f"its checkpoint of step {own} is kept" if own >= 0 else "it has none"
-                raise ValueError(f"{e}; nothing was copied into {model_dir} ({kept}): put "
-                                 "back a complete copy of the committed one (git checkout, or "
-                                 "the archive it came in).") from None
+            except ValueError as e:  # named as committed, made whole from its parts or not
+                raise refused(str(e).replace(tmp, resume)) from None
         for path in estimates:
             shutil.copy2(path, model_dir)
         if not newer:
@@ -191,18 +225,19 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
         config = os.path.join(model_dir, run_dir.CONFIG_FILE)
         if not os.path.exists(config):
             shutil.copy2(os.path.join(resume, run_dir.CONFIG_FILE), config)
-        _copy_checkpoint(resume, ckpt)
-        return _step(ckpt)
+        return _copy_checkpoint(committed, ckpt)
 
 
 def sync_out(model_dir: str, resume: str) -> int:
     """Replace ``resume`` by the run folder's committed checkpoint, ``config.json`` and saved
-    stage estimates. Returns its step."""
+    stage estimates; weights over :data:`stnh_tf.training.file_parts.MAX_PART_BYTES` (the 2-stage
+    sequence model's with their momentum: 12.5 MB) as parts under it and their manifest, which
+    :func:`sync_in` checks and joins. Returns its step."""
     ckpt = os.path.join(model_dir, run_dir.CHECKPOINT_DIR)
     os.makedirs(os.path.dirname(resume), exist_ok=True)
-    _copy_checkpoint(ckpt, resume,
-                     [os.path.join(model_dir, run_dir.CONFIG_FILE), *_estimates(model_dir)])
-    return _step(resume)
+    return _copy_checkpoint(ckpt, resume,
+                            [os.path.join(model_dir, run_dir.CONFIG_FILE), *_estimates(model_dir)],
+                            max_bytes=file_parts.MAX_PART_BYTES)
 
 
 def strip_optimizer(src: str, dst: str) -> None:
