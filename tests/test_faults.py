@@ -1637,11 +1637,11 @@ def test_a_committed_checkpoint_over_the_file_limit_is_kept_in_parts_and_checked
     (older / "config.json").write_text(_config_json(cfg))
     part = resume / f"{name}.part-001"
     good = part.read_bytes()
-    for damage, data in (("a flipped byte", good[:-1] + bytes([good[-1] ^ 1])),
-                         ("cut short", good[:len(good) // 2]), ("missing", None)):
+    for damage, damaged in (("a flipped byte", good[:-1] + bytes([good[-1] ^ 1])),
+                            ("cut short", good[:len(good) // 2]), ("missing", None)):
         part.unlink()
-        if data is not None:
-            part.write_bytes(data)
+        if damaged is not None:
+            part.write_bytes(damaged)
         before = _files(older)
         with pytest.raises(ValueError) as refused:
             chunks.sync_in(str(resume), str(older), cfg)
