@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry, hierarchy
+from stnh_tf.pixels import unclipped
 from stnh_tf.inference import ecc
 from stnh_tf.inference.options import Thresholds
 
@@ -233,6 +234,12 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
     sampled = cv2.remap(channels, *maps, cv2.INTER_LINEAR).reshape(-1, 3)[inside]
     a_q, gx, gy = sampled.T.astype(np.float64)
     b_q = b.ravel()[inside]
+    kept = unclipped(a_q) & unclipped(b_q)
+    if kept.sum() < min_pixels:
+        return float("inf")
+    if not kept.all():
+        inside[inside] = kept
+        a_q, gx, gy, b_q = a_q[kept], gx[kept], gy[kept], b_q[kept]
     a_c = a_q - a_q.mean()
     gain = float(a_c @ (b_q - b_q.mean())) / max(float(a_c @ a_c), 1e-300)  # least squares
     residual = b_q - b_q.mean() - gain * a_c
@@ -365,6 +372,9 @@ def alignment_ncc(source_a, patch_b, a_from_b, origin=(0, 0),
     inside = hierarchy.warp_crop(np.ones(np.shape(source_a), np.float32), a_from_b, origin,
                                  size) > 0.999
     if inside.mean() < min_overlap:
+        return float("nan")
+    inside &= unclipped(patch_b) & unclipped(warped)
+    if not inside.any():
         return float("nan")
     x = warped[inside] - warped[inside].mean()
     y = np.asarray(patch_b, np.float64)[inside]

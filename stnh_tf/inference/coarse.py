@@ -31,6 +31,7 @@ from stnh_tf import geometry
 from stnh_tf.inference import checks
 from stnh_tf.inference.image_input import central_patch
 from stnh_tf.inference.options import COARSES, EstimateOptions
+from stnh_tf.pixels import unclipped
 
 def start_homography(angle_deg: float, zoom: float, size: int = geometry.PATCH_SIZE):
     """``[3, 3]`` float64 ``a_from_b`` in the ``size x size`` patch frame: rotation by
@@ -90,6 +91,9 @@ def _one_way_ncc(work_a, work_b, h_patch, origin, min_overlap: float):
     warped, inside = checks.warped_onto(work_a, h_patch, origin, np.shape(work_b))
     if inside.mean() < min_overlap:
         return None
+    inside = inside & unclipped(work_b) & unclipped(warped)
+    if not inside.any():
+        return -math.inf
     x = warped[inside].astype(np.float64)
     y = np.asarray(work_b, np.float64)[inside]
     x, y = x - x.mean(), y - y.mean()

@@ -21,6 +21,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from stnh_tf.pixels import unclipped
+
 MIN_INSIDE = 0.25
 """Fraction of the template's pixels that must map inside the source for an ECC iteration."""
 
@@ -168,11 +170,18 @@ def opencv_ecc(source, template, source_from_template, iterations: int, eps: flo
     start = np.asarray(source_from_template, np.float64)
     if not np.all(np.isfinite(start)) or abs(start[2, 2]) < 1e-12:
         return None
+    template, source = np.asarray(template, np.float32), np.asarray(source, np.float32)
+    start = (start / start[2, 2]).astype(np.float32)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, eps)
+    masks = [unclipped(template), unclipped(source)]
     try:
-        _, warp = cv2.findTransformECC(
-            np.asarray(template, np.float32), np.asarray(source, np.float32),
-            (start / start[2, 2]).astype(np.float32), cv2.MOTION_HOMOGRAPHY,
-            (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, eps), None, gaussian)
+        if all(m.all() for m in masks):
+            _, warp = cv2.findTransformECC(template, source, start, cv2.MOTION_HOMOGRAPHY,
+                                           criteria, None, gaussian)
+        else:  # clipped pixels left out of both images
+            _, warp = cv2.findTransformECCWithMask(
+                template, source, *(m.astype(np.uint8) for m in masks), start,
+                cv2.MOTION_HOMOGRAPHY, criteria, gaussian)
     except cv2.error:
         return None
     warp = warp.astype(np.float64)
