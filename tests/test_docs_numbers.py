@@ -1201,7 +1201,9 @@ def test_ablation_table_is_the_json_s():
                       ("seed0-60-d947ff0", "ablation_seed0_60_d947ff0"),
                       ("seed0-60-d228e4c", "ablation_seed0_60_d228e4c"),
                       ("seed0-60-bc2d7fb", "ablation_seed0_60_bc2d7fb"),
-                      ("seed13-60-bc2d7fb", "ablation_seed13_60_bc2d7fb")):
+                      ("seed13-60-bc2d7fb", "ablation_seed13_60_bc2d7fb"),
+                      ("seed0-60-88a648c", "ablation_seed0_60_88a648c"),
+                      ("seed13-60-88a648c", "ablation_seed13_60_88a648c")):
         start, end = f"<!-- ablation-{tag}:start -->\n", f"\n<!-- ablation-{tag}:end -->"
         block = text[text.index(start) + len(start):text.index(end)]
         assert block == ablation.table(_camera_file(name)), tag
@@ -1209,6 +1211,29 @@ def test_ablation_table_is_the_json_s():
 
 def _good_flagged(name, group="all"):
     return _camera_file(name)["ablations"]["default"]["groups"][group]["good_flagged"]
+
+
+def test_clipped_pixels_numbers_are_the_json_s():
+    """BENCHMARKS.md's counts for the clipped pixels left out (issue 79, 2026-12-06) are those of
+    the committed ablations before (bc2d7fb) and after (88a648c)."""
+    text = " ".join(_read("BENCHMARKS.md").split())
+
+    def cell(name, group, key):
+        return _camera_file(name)["ablations"]["default"]["groups"][group][key]
+
+    pairs = [[f"ablation_seed{s}_60_{c}" for c in ("bc2d7fb", "88a648c")] for s in (0, 13)]
+    (b0, a0), (b13, a13) = pairs
+    assert (f"successes {cell(b0, 'all', 'successes')} -> {cell(a0, 'all', 'successes')} of 480 "
+            f"on seed 0 and {cell(b13, 'all', 'successes')} -> {cell(a13, 'all', 'successes')} "
+            f"on seed 13, good estimates flagged {_good_flagged(b0)} -> {_good_flagged(a0)} and "
+            f"{_good_flagged(b13)} -> {_good_flagged(a13)}, no silent failure") in text
+    assert all(cell(n, "all", "silently_failed") == 0 for n in (a0, a13))
+    exposure = [_good_flagged(n, "paper_exposure") for n in (b0, a0, b13, a13)]
+    assert (f"good estimates flagged go from {exposure[0]} to {exposure[1]} (seed 0) and from "
+            f"{exposure[2]} to {exposure[3]} (seed 13), and seed 0's mean from "
+            f"{cell(b0, 'paper_exposure', 'mace'):.3g} to "
+            f"{cell(a0, 'paper_exposure', 'mace'):.3g} px") in text
+    assert f"the mean rises to {cell(a13, 'paper_exposure', 'mace'):.3g} px" in text
 
 
 def test_two_flags_measured_where_the_images_say_something_numbers_are_the_json_s():

@@ -119,6 +119,8 @@ WITHOUT_SWITCH = {
         "'refine_images' removes it with the refinement",
     "the stage gate and the mirror fill":
         "estimate_images sets gate_stages=False and fill='zeros' (the image is the context)",
+    "clipped pixels left out of the alignment measures":
+        "no field (stnh_tf.pixels.unclipped); measured by runs before and after it (BENCHMARKS.md)",
 }
 """Rules of ``photographs()`` that no options value switches off alone, and why. Numbers that
 parametrise a measure or an algorithm (``min_overlap``, ``verified_ncc``, ``search_below_ncc``,
