@@ -133,7 +133,7 @@ def _copy_checkpoint(src_dir, dst_dir, extra_files=(), max_bytes=None) -> int:
     os.makedirs(tmp)
     weights, step, state = checkpoints.find_checkpoint(src_dir)
     file_parts.write_parts(weights, os.path.join(tmp, os.path.basename(weights)),
-                           max_bytes or os.path.getsize(weights))
+                           max_bytes or max(os.path.getsize(weights), 1))
     state = [os.path.join(src_dir, run_dir.CHECKPOINT_STATE)] if state is not None else []
     for path in (*state, *extra_files):
         shutil.copy2(path, os.path.join(tmp, os.path.basename(path)))
