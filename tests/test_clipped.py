@@ -46,7 +46,11 @@ def test_corner_precision_of_an_exposure_change_is_that_of_an_exact_alignment():
     # gain and offset fit every pixel not clipped exactly: no residual, no spread
     assert checks.corner_std(a, bright, np.eye(3), tile=8) < 1e-6
     assert checks.corner_std(a, bright, np.eye(3)) < 1e-6
-    noisy = bright + np.random.default_rng(1).normal(0, 0.01, bright.shape) * unclipped(bright)
+    # noise on the pixels not clipped (kept inside the grey range): a spread, the masks still on
+    kept = unclipped(bright)
+    noisy = np.where(kept, np.clip(bright + np.random.default_rng(1).normal(0, 0.01, bright.shape),
+                                   1 / 255, 254 / 255), bright)
+    assert np.array_equal(unclipped(noisy), kept)
     assert 1e-4 < checks.corner_std(a, noisy, np.eye(3)) < 0.1
 
 

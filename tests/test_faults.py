@@ -1649,9 +1649,23 @@ def test_a_committed_checkpoint_over_the_file_limit_is_kept_in_parts_and_checked
         assert str(part) in message and "\n" not in message, (damage, message)
         assert "its checkpoint of step 2 is kept" in message, message
         assert _files(older) == before, damage
+    # a damaged part of a checkpoint not newer than the folder's own stops nothing
+    part.write_bytes(good[:10])
+    assert chunks.sync_in(str(resume), str(fresh), cfg) is None
+    manifest = resume / f"{name}.parts.json"
     part.write_bytes(good)
+    kept = manifest.read_bytes()
+    manifest.unlink()  # parts without their manifest: refused, not taken for a missing file
+    with pytest.raises(ValueError, match=re.escape(f"{manifest} is missing")):
+        chunks.sync_in(str(resume), str(older), cfg)
+    manifest.write_bytes(kept)
     assert chunks.sync_in(str(resume), str(older), cfg) == 6
     assert (older / "checkpoint" / name).read_bytes() == original
+    # a checkpoint found without its state.json: the parts get a state naming them
+    (run / "checkpoint" / "state.json").unlink()
+    assert chunks.sync_out(str(run), str(resume)) == 6
+    assert json.loads((resume / "state.json").read_text()) == {"step": 6, "weights": name}
+    assert chunks.sync_in(str(resume), str(tmp_path / "fresh2"), cfg) == 6
     # a checkpoint within the limit stays one file
     small = tmp_path / "small_resume"
     _fake_checkpoint(tmp_path / "small_run" / "checkpoint", 4)

@@ -167,6 +167,11 @@ def precision_corners(a_from_b, image_b_shape, origin=(0, 0)) -> list:
     return [(x0, y0), (x0 + size, y0), (x0 + size, y0 + size), (x0, y0 + size)]
 
 
+MIN_UNCLIPPED = 100
+"""Fewest pixels, overlapping and clipped in neither image, that an alignment NCC is measured
+over (:func:`alignment_ncc`, :func:`stnh_tf.inference.coarse.image_ncc`)."""
+
+
 def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100,
                tile: int = 0) -> float:
     """How precisely the two images fix ``a_from_b`` at ``image_b``'s corners: the predicted
@@ -193,7 +198,8 @@ def corner_std(source_a, image_b, a_from_b, origin=(0, 0), min_pixels: int = 100
       source_a: ``[h_a, w_a]`` image holding patch_a with its top-left corner at ``origin``.
       image_b: ``[h, w]`` image holding patch_b at ``origin`` (the same frame convention).
       a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame.
-      min_pixels: fewer pixels of image_b inside source_a: ``inf``.
+      min_pixels: fewer pixels of image_b inside source_a, clipped in neither image
+        (:func:`stnh_tf.pixels.unclipped`: they are left out): ``inf``.
       tile: side (px) of the squares of the cluster-robust covariance; 0, or fewer squares
         than :data:`MIN_SQUARES_PER_PARAMETER` per parameter inside source_a: the classical
         one.
@@ -359,9 +365,10 @@ def alignment_ncc(source_a, patch_b, a_from_b, origin=(0, 0),
       a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame.
       min_overlap: the fraction of the pixels that must overlap.
     Returns:
-      NCC in [-1, 1]: 1 for a perfect alignment up to gain and offset, about 0 for unrelated
-      content; NaN where fewer than ``min_overlap`` of the pixels overlap or either side is
-      constant there.
+      NCC in [-1, 1] over the overlapping pixels clipped in neither image
+      (:func:`stnh_tf.pixels.unclipped`): 1 for a perfect alignment up to gain and offset, about
+      0 for unrelated content; NaN where fewer than ``min_overlap`` of the pixels overlap, fewer
+      than :data:`MIN_UNCLIPPED` of them are not clipped, or either side is constant there.
 
     >>> p = np.random.default_rng(0).random((128, 128))
     >>> round(alignment_ncc(p, 2 * p + 1, np.eye(3)), 6)
@@ -374,7 +381,7 @@ def alignment_ncc(source_a, patch_b, a_from_b, origin=(0, 0),
     if inside.mean() < min_overlap:
         return float("nan")
     inside &= unclipped(patch_b) & unclipped(warped)
-    if not inside.any():
+    if inside.sum() < MIN_UNCLIPPED:
         return float("nan")
     x = warped[inside] - warped[inside].mean()
     y = np.asarray(patch_b, np.float64)[inside]

@@ -68,9 +68,11 @@ def image_ncc(work_a, work_b, h_patch, origin, min_overlap: float) -> float:
     """NCC between the whole ``work_b`` and ``work_a`` warped onto it by the patch-frame
     ``a_from_b`` ``h_patch``, over the pixels whose source lies inside ``work_a``; where fewer
     than ``min_overlap`` of them do (image_b sees image_a small: a zoom out), the same the other
-    way (``work_a`` and ``work_b`` warped onto it by ``inv(h_patch)``; issue 64); ``-inf`` where
-    neither way overlaps enough, either side is constant there, or ``h_patch`` is not finite or
-    singular (so that it ranks below every defined NCC)."""
+    way (``work_a`` and ``work_b`` warped onto it by ``inv(h_patch)``; issue 64); over the
+    pixels clipped in neither image (:func:`stnh_tf.pixels.unclipped`); ``-inf`` where neither
+    way overlaps enough, fewer than :data:`~stnh_tf.inference.checks.MIN_UNCLIPPED` pixels are
+    not clipped, either side is constant there, or ``h_patch`` is not finite or singular (so
+    that it ranks below every defined NCC)."""
     forward = _one_way_ncc(work_a, work_b, h_patch, origin, min_overlap)
     if forward is not None:
         return forward
@@ -92,7 +94,7 @@ def _one_way_ncc(work_a, work_b, h_patch, origin, min_overlap: float):
     if inside.mean() < min_overlap:
         return None
     inside = inside & unclipped(work_b) & unclipped(warped)
-    if not inside.any():
+    if inside.sum() < checks.MIN_UNCLIPPED:
         return -math.inf
     x = warped[inside].astype(np.float64)
     y = np.asarray(work_b, np.float64)[inside]

@@ -166,7 +166,9 @@ def opencv_ecc(source, template, source_from_template, iterations: int, eps: flo
                gaussian: int = 1):
     """``cv2.findTransformECC`` (``MOTION_HOMOGRAPHY``) of float32 images from the start
     ``source_from_template``: float64 ``[3, 3]`` (``[2, 2] = 1``), or ``None`` where OpenCV does
-    not converge or the result is not finite."""
+    not converge or the result is not finite. Where a pixel of either image is clipped
+    (:func:`stnh_tf.pixels.unclipped`), ``cv2.findTransformECCWithMask`` with both images'
+    masks of the pixels not clipped instead."""
     start = np.asarray(source_from_template, np.float64)
     if not np.all(np.isfinite(start)) or abs(start[2, 2]) < 1e-12:
         return None

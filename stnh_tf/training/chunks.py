@@ -132,8 +132,11 @@ def _copy_checkpoint(src_dir, dst_dir, extra_files=(), max_bytes=None) -> int:
     shutil.rmtree(tmp, ignore_errors=True)
     os.makedirs(tmp)
     weights, step, state = checkpoints.find_checkpoint(src_dir)
-    file_parts.write_parts(weights, os.path.join(tmp, os.path.basename(weights)),
-                           max_bytes or max(os.path.getsize(weights), 1))
+    written = file_parts.write_parts(weights, os.path.join(tmp, os.path.basename(weights)),
+                                     max_bytes or max(os.path.getsize(weights), 1))
+    if state is None and len(written) > 1:  # parts are found through the state naming them
+        atomic_write_json(os.path.join(tmp, run_dir.CHECKPOINT_STATE),
+                          {"step": int(step), "weights": os.path.basename(weights)})
     state = [os.path.join(src_dir, run_dir.CHECKPOINT_STATE)] if state is not None else []
     for path in (*state, *extra_files):
         shutil.copy2(path, os.path.join(tmp, os.path.basename(path)))
@@ -144,18 +147,26 @@ def _copy_checkpoint(src_dir, dst_dir, extra_files=(), max_bytes=None) -> int:
     return int(step)
 
 
-def _whole_weights(resume: str, tmp: str) -> str:
-    """``resume`` itself where its checkpoint's weights are there whole (or none are named);
-    where :func:`sync_out` kept them in parts, the folder ``tmp`` holding its ``state.json`` and
-    the weights made whole (:func:`stnh_tf.training.file_parts.read_whole`: every part checked
-    against their manifest; ``ValueError`` naming what is wrong)."""
-    state = checkpoints.read_checkpoint_state(resume)
-    if state is None or not isinstance(state.get("weights"), str):
+def _whole_weights(resume: str, state: dict | None, tmp: str) -> str:
+    """``resume`` itself where the weights its ``state`` (its ``state.json``) names are there
+    whole (or there is no state); where :func:`sync_out` kept them in parts, the folder ``tmp``
+    holding that ``state.json`` and the weights made whole
+    (:func:`stnh_tf.training.file_parts.read_whole`: every part checked against their manifest).
+
+    Raises:
+      ValueError: naming the manifest or part that is missing or wrong.
+    """
+    if state is None:
         return resume
-    weights = inside(resume, state["weights"], f"{os.path.join(resume, run_dir.CHECKPOINT_STATE)!r}"
-                     ", its 'weights'")
-    if os.path.isfile(weights) or not os.path.isfile(file_parts.manifest_path(weights)):
+    weights = inside(resume, state.get("weights", checkpoints.CHECKPOINT_WEIGHTS),
+                     f"{os.path.join(resume, run_dir.CHECKPOINT_STATE)!r}, its 'weights'")
+    if os.path.isfile(weights):
         return resume
+    if not os.path.isfile(file_parts.manifest_path(weights)):
+        if os.path.isfile(weights + file_parts.PART_SUFFIX.format(index=0)):
+            raise ValueError(f"{file_parts.manifest_path(weights)} is missing: the parts of "
+                             f"{weights} cannot be checked without it")
+        return resume  # find_checkpoint names the missing file
     file_parts.read_whole(weights, os.path.join(tmp, os.path.basename(weights)))
     shutil.copy2(os.path.join(resume, run_dir.CHECKPOINT_STATE), tmp)
     return tmp
@@ -178,9 +189,10 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
     (``FileExistsError``), nor into a folder that is not a run, or is a run of another
     configuration than the committed one or than ``cfg`` where given (``ValueError``:
     :func:`~stnh_tf.training.run_dir.check_same_run`); ``cfg`` is then checked even when
-    nothing is to be copied. Nor is a committed checkpoint that does not read whole
-    (``ValueError`` naming its weights file:
-    :func:`~stnh_tf.training.checkpoints.check_weights_file`): the folder keeps its own.
+    nothing is to be copied. Nor is a newer committed checkpoint that does not read whole
+    (``ValueError`` in one line naming its weights file, or the part or manifest of weights
+    kept in parts that is missing or wrong: :func:`~stnh_tf.training.checkpoints.check_weights_file`,
+    :func:`~stnh_tf.training.file_parts.read_whole`): the folder keeps its own.
 
     Raises:
       NotADirectoryError: ``resume`` exists and is not a folder (a checkpoint is one).
@@ -203,18 +215,19 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
     # no other run there while this checks and copies
     with run_dir.RunLock(model_dir), tempfile.TemporaryDirectory() as tmp:
         try:
-            committed = _whole_weights(resume, tmp)
+            state = checkpoints.read_checkpoint_state(resume)
         except ValueError as e:
             raise refused(e) from None
-        newer = _step(committed) > _step(ckpt)
+        newer = (state["step"] if state is not None else _step(resume)) > _step(ckpt)
         estimates = [p for p in _estimates(resume)
                      if not os.path.exists(os.path.join(model_dir, os.path.basename(p)))]
         if not (newer or estimates or cfg is not None):
             return None
         run_dir.check_same_run(model_dir, os.path.join(resume, run_dir.CONFIG_FILE), cfg)
         if newer:
-            weights, step, _ = checkpoints.find_checkpoint(committed)
             try:
+                committed = _whole_weights(resume, state, tmp)
+                weights, step, _ = checkpoints.find_checkpoint(committed)
                 checkpoints.check_weights_file(weights, step)
             except ValueError as e:  # named as committed, made whole from its parts or not
                 raise refused(str(e).replace(tmp, resume)) from None

@@ -48,14 +48,14 @@ def write_parts(src: str, dst: str, max_bytes: int = MAX_PART_BYTES) -> list:
     """
     if max_bytes <= 0:
         raise ValueError(f"max_bytes must be positive, not {max_bytes}")
-    size = os.path.getsize(src)
-    if size <= max_bytes:
+    if os.path.getsize(src) <= max_bytes:
         shutil.copy2(src, dst)
         return [dst]
-    written, parts, whole = [], [], hashlib.sha256()
+    written, parts, whole, size = [], [], hashlib.sha256(), 0
     with open(src, "rb") as f:
         while block := f.read(max_bytes):
             whole.update(block)
+            size += len(block)
             part = dst + PART_SUFFIX.format(index=len(parts))
             with open(part, "wb") as out:
                 out.write(block)
@@ -82,9 +82,9 @@ def _parts(path: str) -> list:
 
 
 def read_whole(path: str, dst: str) -> None:
-    """Write the file ``path`` (whole, or from its parts and manifest) to ``dst``, written beside
-    it and renamed into place only once every part and the whole match the manifest's sizes and
-    sha256.
+    """Write the file ``path`` to ``dst``: copied where it is whole; else made from its parts,
+    written beside ``dst`` and renamed into place only once every part and the whole match the
+    manifest's sizes and sha256.
 
     Raises:
       FileNotFoundError: neither ``path`` nor its manifest is there.
