@@ -163,11 +163,16 @@ def rng():
 
 def ncc_reference(a, b, h_pix):
     """NCC of b and a warped by h_pix (OpenCV) over the pixels whose bilinear neighbourhood lies in
-    a; NaN if fewer than a quarter of them do."""
+    a, leaving out those clipped in either (within half a grey level of 0 or 1, for images on the
+    [0, 1] scale: issue 79); NaN if fewer than a quarter of them lie in a."""
     mask = inside_mask(h_pix)
     if mask.mean() < 0.25:
         return float("nan")
-    x = cv2_warp(a.astype(np.float64), h_pix)[mask]
+    warped = cv2_warp(a.astype(np.float64), h_pix)
+    for image in (warped, b):
+        if 0.0 <= image.min() and image.max() <= 1.0:
+            mask = mask & (image > 0.5 / 255) & (image < 1.0 - 0.5 / 255)
+    x = warped[mask]
     y = b.astype(np.float64)[mask]
     x, y = x - x.mean(), y - y.mean()
     return float((x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum()))
