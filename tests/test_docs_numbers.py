@@ -603,6 +603,9 @@ PROSE = [
     ("docs/gpu.md", rf"First chunk, steps 0 -> 1,399, on [^$]*?"
      rf"`paper_schedule/logs/sequence2_0-1399_cpu.log`\): {N} steps/s in the ledger",
      [num("schedule_ledger", "29/steps_per_s")]),
+    ("docs/gpu.md", rf"Second chunk, steps 0 -> 2,322, on [^$]*?"
+     rf"`paper_schedule/logs/sequence2_0-2322_cpu.log`\): {N} steps/s in the ledger",
+     [num("schedule_ledger", "30/steps_per_s")]),
     ("docs/gpu.md", rf"- Finished at 91,000 steps over (\d+) chunks and {N} hours of wall time in "
      rf"all, every chunk on the",
      [schedule_chunks(3), schedule_hours(3)]),
