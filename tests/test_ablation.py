@@ -312,6 +312,7 @@ def _binary(*args):
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow
 def test_binary_on_two_pairs_with_a_constant_network(tmp_path):
     """Two camera pairs, the identity network saved as a model: the JSON's counts and means
     against errors computed here (cv2.perspectiveTransform at the image corners) from the same

@@ -655,6 +655,7 @@ def test_symlinks_leading_out_of_the_image_folder_are_not_followed(tmp_path):
     assert "outside the image folder" in listing.unreadable[0][1]
 
 
+@pytest.mark.slow
 def test_evaluate_json_out_folder_is_made_before_the_evaluation(dataset, tmp_path):
     """--json_out into a missing folder used to fail after the evaluation, losing its result."""
     out = tmp_path / "missing" / "sub" / "result.json"

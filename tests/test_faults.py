@@ -1791,6 +1791,7 @@ def test_a_committed_checkpoint_that_is_a_file_is_refused(tmp_path, monkeypatch)
     assert calls == [] and _files(root) == before and not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_paper_schedule_refuses_a_last_stage_below_the_first(tmp_path):
     """Issue 77 item 2: paper_schedule --last_stage below --stage was accepted (only --stage was
     trained). Refused at parsing, naming both flags, before anything starts (stage 5 has no

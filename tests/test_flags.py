@@ -128,6 +128,7 @@ PHOTO_FOLDER_BINARIES = (
     "experiments.train_sequence", "experiments.benchmark_stream")
 
 
+@pytest.mark.slow
 def test_every_binary_that_reads_a_photograph_folder_takes_max_images():
     found = {m: f.get("max_images") for m, f in binary_flags(PHOTO_FOLDER_BINARIES).items()}
     assert found == {m: 0 for m in PHOTO_FOLDER_BINARIES}  # defined everywhere, 0: every image

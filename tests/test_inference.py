@@ -1073,6 +1073,7 @@ print(json.dumps(out))
 """
 
 
+@pytest.mark.slow
 def test_saved_model_rejects_bad_requests_without_crashing(exported):
     """serving_default checks rank, size, channels, dtype and batch in the graph: a [1, 128, 128]
     request used to abort the whole process (SIGABRT in oneDNN), [1, 64, 64, 1] and

@@ -44,6 +44,7 @@ def commands() -> list:
     return out
 
 
+@pytest.mark.slow
 def test_the_commands_are_the_binaries_own_flags():
     cmds = commands()
     modules = sorted({c[0] for c in cmds})

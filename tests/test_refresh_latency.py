@@ -135,6 +135,7 @@ print(json.dumps(lines))
 """
 
 
+@pytest.mark.slow
 def test_the_binary_refuses_in_one_line_and_takes_output_dir_alone(tmp_path):
     """experiments.reproduce --refresh_latency ends with one line, having written nothing, on a
     folder without results.json, and refuses the flags of a reproduction's run (its budget is

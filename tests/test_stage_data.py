@@ -261,6 +261,7 @@ def test_binary_with_a_real_stage_model(stage1_data, tmp_path, narrow):
     np.testing.assert_allclose(a2["h_bar"], a1["h_bar"], atol=1e-5)
 
 
+@pytest.mark.slow
 def test_binary_without_a_trained_model_is_a_clear_error(stage1_data, tmp_path):
     missing = subprocess.run([sys.executable, "-m", "data_prep.make_stage_dataset", "--stage=2",
                               f"--input_dir={stage1_data}", f"--model_dir={tmp_path / 'none'}",

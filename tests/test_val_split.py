@@ -191,6 +191,7 @@ def test_a_run_never_validates_silently_on_test(datasets, tmp_path, narrow):
 
 
 @pytest.mark.parametrize("split", ["val", "test"])  # (5 s each on 2 shared cores)
+@pytest.mark.slow
 def test_a_run_validates_on_the_split_it_says(datasets, tmp_path, narrow, split):
     """On the held-out dataset by default: its val pairs, no line; on --val_split=test: the test
     pairs, and the line says so. The logged MACE is the evaluation of the final model on that
