@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry, hierarchy
-from stnh_tf.pixels import unclipped
 from stnh_tf.inference import ecc
 from stnh_tf.inference.options import Thresholds
+from stnh_tf.pixels import unclipped
 
 _DEFAULT = Thresholds()
 

@@ -160,13 +160,8 @@ def _whole_weights(resume: str, state: dict | None, tmp: str) -> str:
         return resume
     weights = inside(resume, state.get("weights", checkpoints.CHECKPOINT_WEIGHTS),
                      f"{os.path.join(resume, run_dir.CHECKPOINT_STATE)!r}, its 'weights'")
-    if os.path.isfile(weights):
-        return resume
-    if not os.path.isfile(file_parts.manifest_path(weights)):
-        if os.path.isfile(weights + file_parts.PART_SUFFIX.format(index=0)):
-            raise ValueError(f"{file_parts.manifest_path(weights)} is missing: the parts of "
-                             f"{weights} cannot be checked without it")
-        return resume  # find_checkpoint names the missing file
+    if not file_parts.in_parts(weights):
+        return resume  # whole, or missing: find_checkpoint names the missing file
     file_parts.read_whole(weights, os.path.join(tmp, os.path.basename(weights)))
     shutil.copy2(os.path.join(resume, run_dir.CHECKPOINT_STATE), tmp)
     return tmp

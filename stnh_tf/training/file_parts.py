@@ -38,6 +38,13 @@ def manifest_path(path: str) -> str:
     return path + MANIFEST_SUFFIX
 
 
+def in_parts(path: str) -> bool:
+    """Whether ``path`` is not there whole but kept in parts (its manifest, or its first part
+    without one)."""
+    return not os.path.isfile(path) and (os.path.isfile(manifest_path(path)) or os.path.isfile(
+        path + PART_SUFFIX.format(index=0)))
+
+
 def write_parts(src: str, dst: str, max_bytes: int = MAX_PART_BYTES) -> list:
     """Copy the file ``src`` to ``dst`` (in an existing folder): as it is where it holds at most
     ``max_bytes``, else as parts of ``max_bytes`` beside ``dst`` and their manifest (written
@@ -87,7 +94,7 @@ def read_whole(path: str, dst: str) -> None:
     manifest's sizes and sha256.
 
     Raises:
-      FileNotFoundError: neither ``path`` nor its manifest is there.
+      FileNotFoundError: neither ``path`` nor any part of it is there.
       ValueError: naming the manifest or the part that is missing, another size or other bytes
         (``dst`` is then not written).
     """
@@ -95,6 +102,9 @@ def read_whole(path: str, dst: str) -> None:
         shutil.copy2(path, dst)
         return
     if not os.path.isfile(manifest_path(path)):
+        if in_parts(path):
+            raise ValueError(f"{manifest_path(path)} is missing: the parts of {path} cannot be "
+                             "checked without it")
         raise FileNotFoundError(f"{path} is missing, whole or in parts ({manifest_path(path)})")
     parts, doc = _parts(path), read_json(manifest_path(path), "manifest of a file in parts")
     tmp = f"{dst}.tmp-{os.getpid()}"
