@@ -8,6 +8,7 @@ of a plane, in-plane rotation; blur, exposure change, sensor noise and JPEG on i
   python -m experiments.make_camera_pairs --output_dir=D --motion_set=paper  # paper's protocol
   python -m experiments.make_camera_pairs --output_dir=D --motion_set=low_overlap  # panoramas
   python -m experiments.make_camera_pairs --output_dir=D --motion_set=wide --scale=2  # 640 x 480
+  python -m experiments.make_camera_pairs --output_dir=D --degradation=low_light  # in low light
 
 Writes ``D/{k:05d}_a.png``, ``D/{k:05d}_b.png`` and ``D/pairs.json`` (every parameter, per pair
 ``h_ba``, group, kind, motion and degradation, the SHA-256 of its PNG files); prints the manifest
@@ -48,6 +49,11 @@ flags.DEFINE_integer("scale", 1, "Render the pairs at scale times 320 x 240 (2: 
                      "the photograph resized to scale times 560 x 420, the same motions, h_ba "
                      "and the errors in that frame (issue 79; stnh_tf.data.camera_motions, "
                      "'Larger pairs').", lower_bound=1)
+flags.DEFINE_enum("degradation", "camera", list(camera_pair_files.DEGRADATIONS),
+                  "image_b's degradation: camera (blur, exposure +-1 stop, noise, JPEG) or "
+                  "low_light (1.5-3 stops darker, more blur, noise and compression) for every "
+                  "group but wide_low_light and the paper's (stnh_tf.data.camera_pair_files."
+                  "DEGRADATIONS).")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 
@@ -63,7 +69,9 @@ def main(argv):
                                             overwrite=FLAGS.overwrite,
                                             motion_set=FLAGS.motion_set,
                                             max_images=FLAGS.max_images,
-                                            scale=FLAGS.scale)
+                                            scale=FLAGS.scale,
+                                            degradation=camera_pair_files.DEGRADATIONS[
+                                                FLAGS.degradation])
     print(FolderCounts(**result["photographs"]).line(), file=sys.stderr)
     common.emit_json({"output_dir": FLAGS.output_dir, **result}, FLAGS.json_out)
 

@@ -3,6 +3,7 @@ models against ``cv2.projectPoints``, grouping by motion size, seeding, the file
 library and both binaries. Photographs from scikit-image or made here, nothing from outside the
 package."""
 
+import dataclasses
 import json
 import math
 import os
@@ -231,6 +232,19 @@ def test_binaries_smoke(pair_set, tmp_path):
     assert json.loads(made.stdout)["counts"] == {"within": 2, "1-2x": 1, "2-4x": 1}
     again = run("experiments.make_camera_pairs", f"--image_dir={images}", f"--output_dir={out}")
     assert again.returncode != 0 and "exists" in again.stderr
+    dark = run("experiments.make_camera_pairs", f"--image_dir={images}",
+               f"--output_dir={tmp_path / 'dark'}", "--pairs_per_image=2", "--seed=3",
+               "--degradation=low_light")
+    assert dark.returncode == 0, dark.stderr[-2000:]
+    manifest = json.loads(dark.stdout)
+    assert manifest["degradation"] == json.loads(json.dumps(dataclasses.asdict(wm.LOW_LIGHT)))
+    assert manifest["counts"] == {"within": 2, "1-2x": 1, "2-4x": 1}
+    plain, low = (camera_pair_files.load_pairs(d)[1] for d in (out, tmp_path / "dark"))
+    for p, q in zip(plain, low):  # the same motions, image_b darker, in LOW_LIGHT's ranges
+        np.testing.assert_array_equal(p.h_ba, q.h_ba)
+        assert wm.LOW_LIGHT.exposure_ev[0] <= q.photometric["exposure_ev"] <= \
+            wm.LOW_LIGHT.exposure_ev[1]
+        assert q.image_b.mean() < 0.8 * q.image_a.mean()
     bench = run("experiments.benchmark_camera_pairs", f"--pairs_dir={out}",
                 "--methods=orb_ransac,identity", f"--json_out={tmp_path / 'b.json'}")
     assert bench.returncode == 0, bench.stderr[-2000:]

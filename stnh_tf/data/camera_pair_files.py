@@ -106,6 +106,13 @@ def _draw_motion(rng, motion_set, group, motions):
     return camera_motions.draw_motion(rng, group, motions)
 
 
+DEGRADATIONS = {"camera": Degradation(), "low_light": wide_motions.LOW_LIGHT}
+"""image_b's degradation of a set by name (``make_camera_pairs --degradation``): ``"camera"``,
+:class:`~stnh_tf.data.camera_motions.Degradation`'s defaults; ``"low_light"``, the wide set's
+``wide_motions.LOW_LIGHT`` for every group (the size set's motions in low light, issue 79's
+speed goal). The wide set's ``wide_low_light`` and the paper's groups keep their own."""
+
+
 def set_motions(motion_set: str) -> MotionRanges:
     """The :class:`~stnh_tf.data.camera_motions.MotionRanges` a set of ``motion_set`` draws from
     by default."""
