@@ -1254,3 +1254,33 @@ def test_two_flags_measured_where_the_images_say_something_numbers_are_the_json_
             f"({100 * est['flag']['flagged_good'] / good:.1f}%") in text
     assert (f"SIFT + RANSAC has {round(sift['success_rate'] * sift['count'])} of {sift['count']} "
             f"successes against the estimator's {round(est['success_rate'] * est['count'])}") in text
+
+
+def test_speed_beside_sift_in_low_light_and_at_640_numbers_are_the_json_s():
+    """BENCHMARKS.md's speed table of issue 79 (320 x 240 and 640 x 480, camera and low light)
+    and the ratios quoted below it are those of the committed benchmark JSON."""
+    text = _read("BENCHMARKS.md")
+    ratio = {}
+    for scale, size in ((1, "320 x 240"), (2, "640 x 480")):
+        for deg, label in (("camera", "camera"), ("low_light", "low light")):
+            groups = _camera_file(f"speed_seed13_{deg}_scale{scale}")["groups"]
+            for group in ("within", "1-2x", "2-4x", "all"):
+                e, s = groups[group]["estimator"], groups[group]["sift_ransac"]
+
+                def cell(m):
+                    return (f"{round(m['success_rate'] * m['count'])} of {m['count']}, "
+                            f"{m['mace']:.2f} px, {m['ms_per_pair']:.0f} ms")
+
+                ratio[scale, deg, group] = f"{e['ms_per_pair'] / s['ms_per_pair']:.2f}x"
+                assert (f"| {size}, {label} | {group} | {cell(e)} | {cell(s)} | "
+                        f"{ratio[scale, deg, group]} |") in text
+    prose = " ".join(text.split())
+    for scale, head in ((1, "the goal is not met: "), (2, "it takes ")):
+        w, lw = ratio[scale, "camera", "within"], ratio[scale, "low_light", "within"]
+        a, la = ratio[scale, "camera", "all"], ratio[scale, "low_light", "all"]
+        if scale == 1:
+            assert (f"{head}{w} on `within` and {lw} in low light ({float(a[:-1]):.1f}x and "
+                    f"{float(la[:-1]):.1f}x over the set)") in prose
+        else:
+            assert (f"{head}{w} SIFT + RANSAC's time on `within` and {lw} in low light ({a} "
+                    f"and {la} over the set)") in prose
