@@ -14,7 +14,11 @@ also the step of a run with unlabeled pairs (its model has the output of their L
 patch_b: training with missing labels, docs/training.md) on the same batch with every pair
 unlabeled (``h_mask`` 0) and its ratio to the labeled step. Then
 the batch-1 inference latency of the full model (median over ``--latency_runs`` calls of a
-compiled ``tf.function`` after warm-up). Prints one JSON object.
+compiled ``tf.function`` after warm-up). With ``--onednn_layers``, also oneDNN's own time of
+each primitive of the ``stn`` step (every convolution's three passes, with the kernel it runs)
+per policy (:mod:`stnh_tf.evaluation.onednn_profile`). Prints one JSON object.
+
+  python -m experiments.benchmark_training --policies=mixed_bfloat16 --steps=6 --warmup=2 --latency_runs=5 --onednn_layers
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common, flags_common
-from stnh_tf.evaluation import benchmarks
+from stnh_tf.evaluation import benchmarks, onednn_profile
 
 flags.DEFINE_integer("batch_size", 64, "Training batch size.")
 flags.DEFINE_integer("steps", 20, "Timed training steps per configuration (median reported).")
@@ -34,6 +38,10 @@ flags_common.define_seed("Seed of the batches and weights.")
 flags.DEFINE_bool("unlabeled", False, "Also time the step of a run with unlabeled pairs, every "
                   "pair unlabeled (h_mask 0: the L1 term against patch_b alone), against the "
                   "labeled one.")
+flags.DEFINE_bool("onednn_layers", False, "Also profile the stage's step per oneDNN primitive "
+                  "(each convolution's forward, backward-data and backward-weights pass, with "
+                  "its kernel) for each policy, from ONEDNN_VERBOSE in a child process "
+                  "(stnh_tf.evaluation.onednn_profile; issue 77, item 5).")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS
 flags.adopt_module_key_flags(flags_common)  # --help lists them
@@ -44,6 +52,11 @@ def main(argv):
     result = benchmarks.training_benchmark(FLAGS.batch_size, FLAGS.steps, FLAGS.warmup,
                                            FLAGS.policies, FLAGS.jit, FLAGS.latency_runs,
                                            FLAGS.seed, FLAGS.unlabeled)
+    if FLAGS.onednn_layers:
+        result["onednn_layers"] = {
+            policy: onednn_profile.profile_training_step(policy, FLAGS.batch_size, FLAGS.steps,
+                                                         FLAGS.warmup, FLAGS.seed)
+            for policy in FLAGS.policies}
     common.emit_json(result, FLAGS.json_out)
 
 

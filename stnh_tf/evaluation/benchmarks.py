@@ -136,6 +136,9 @@ def training_benchmark(batch_size=64, steps=20, warmup=3, policies=("float32", "
     result = {"benchmark": "training_step", "batch_size": batch_size, "steps": steps,
               "seed": seed,
               "machine": machine_info(),
+              # the variables TensorFlow, oneDNN and OpenMP read: the run's settings
+              "environment": {k: v for k, v in sorted(os.environ.items())
+                              if k.startswith(("TF_", "ONEDNN_", "DNNL_", "OMP_", "KMP_"))},
               "train_step_s": {}}
     for policy in policies:
         for jit_compile in ([False, True] if jit else [False]):
