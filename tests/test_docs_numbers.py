@@ -1284,3 +1284,51 @@ def test_speed_beside_sift_in_low_light_and_at_640_numbers_are_the_json_s():
         else:
             assert (f"{head}{w} SIFT + RANSAC's time on `within` and {lw} in low light ({a} "
                     f"and {la} over the set)") in prose
+
+
+def test_zen4_step_per_onednn_primitive_numbers_are_the_json_s():
+    """BENCHMARKS.md's per-convolution table of a stage's step on the Zen 4 (issue 77, item 5)
+    and the step times of the settings tried are those of the committed benchmark JSON."""
+    text = _read("BENCHMARKS.md")
+    with open(os.path.join(ROOT, "paper_schedule", "logs",
+                           "training_step_zen4_layers_cpu.json")) as f:
+        run = json.load(f)
+
+    def shapes(profile):
+        out = {}
+        for x in profile["primitives"]:
+            if x["kind"] == "convolution":
+                ci, co, h = map(int, re.search(r"ic(\d+)oc(\d+)_ih(\d+)", x["problem"]).groups())
+                out.setdefault((ci, co, h), {})[x["propagation"]] = x
+        return out
+
+    bf16, fp32 = (shapes(run["onednn_layers"][p]) for p in ("mixed_bfloat16", "float32"))
+    assert len(bf16) == 6
+    for (ci, co, h), passes in bf16.items():
+        cells = [" / ".join(f"{d[(ci, co, h)].get(p, {}).get('ms_per_step', 0):.0f}"
+                            for p in ("forward_training", "backward_data", "backward_weights"))
+                 for d in (bf16, fp32)]
+        layers = passes["forward_training"]["calls_per_step"]
+        assert f"| {ci} -> {co} at {h} x {h} | {layers} | {cells[0]} | {cells[1]} |" in text
+    prose = " ".join(text.split())
+    step = {p: f"{v['stn_homography']:.2f}" for p, v in run["train_step_s"].items()}
+    by_pass = run["onednn_layers"]["mixed_bfloat16"]["ms_per_step_by_propagation"]
+    assert (f"The step took {step['mixed_bfloat16']} s in mixed bfloat16 and {step['float32']} s "
+            f"in float32") in prose
+    assert (f"Of oneDNN's {run['onednn_layers']['mixed_bfloat16']['ms_per_step']:,.0f} ms in "
+            f"mixed bfloat16, the backward-weights passes take {by_pass['backward_weights']:.0f}, "
+            f"backward-data {by_pass['backward_data']:.0f}, forward "
+            f"{by_pass['forward_training']:.0f}") in prose
+    big = bf16[64, 64, 128]
+    assert (f"({big['backward_weights']['ms_per_step']:.0f} against "
+            f"{big['forward_training']['ms_per_step']:.0f} ms)") in prose
+    assert {x["backward_weights"]["implementation"] for x in bf16.values()} == {
+        "jit_bf16:avx512_core_bf16"}
+    for name, policy in (("caller_thread", "mixed_bfloat16"), ("no_memuse_opt", "mixed_bfloat16"),
+                         ("fpmath_bf16", "float32")):
+        with open(os.path.join(ROOT, "paper_schedule", "logs",
+                               f"training_step_zen4_{name}_cpu.json")) as f:
+            tried = json.load(f)
+        seconds = tried["train_step_s"][policy]["stn_homography"]
+        assert f"`training_step_zen4_{name}_cpu.json`) | {seconds:.2f} |" in text
+        assert any(k.startswith(("TF_ONEDNN", "TF_MKL", "TF_SET_ONEDNN")) for k in tried["environment"])
