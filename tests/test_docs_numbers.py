@@ -1332,3 +1332,26 @@ def test_zen4_step_per_onednn_primitive_numbers_are_the_json_s():
         seconds = tried["train_step_s"][policy]["stn_homography"]
         assert f"`training_step_zen4_{name}_cpu.json`) | {seconds:.2f} |" in text
         assert any(k.startswith(("TF_ONEDNN", "TF_MKL", "TF_SET_ONEDNN")) for k in tried["environment"])
+
+
+def test_paper_protocol_pair_by_pair_against_no_feature_start_is_the_json_s():
+    """BENCHMARKS.md's pair-by-pair comparison of the default with ``features="none"`` on the
+    paper's protocol (issue 79, 2026-12-06) is that of the committed per-pair JSON."""
+    text = _read("BENCHMARKS.md")
+
+    def errors(seed, features, group):
+        pairs = _camera_file(f"paper_seed{seed}_features_{features}_7d08166")["pairs"]
+        return [(p["index"], p["estimator_error"]) for p in pairs if p["group"] == group]
+
+    def cell(e):
+        values = [v for _, v in e]
+        mean = sum(values) / len(values)
+        return (f"{mean:.4f}" if mean < 0.1 else f"{mean:.3g}") + \
+            f", {sum(v < 1 for v in values)} of {len(values)}"
+
+    for seed in (0, 13):
+        for group in ("paper", "paper_exposure"):
+            on, off = errors(seed, "fallback", group), errors(seed, "none", group)
+            assert [i for i, _ in on] == [i for i, _ in off]
+            worse = sum(a > b + 0.01 for (_, a), (_, b) in zip(on, off))
+            assert f"| {seed}, `{group}` | {cell(on)} | {cell(off)} | {worse} |" in text
