@@ -245,6 +245,11 @@ def test_binaries_smoke(pair_set, tmp_path):
         assert wm.LOW_LIGHT.exposure_ev[0] <= q.photometric["exposure_ev"] <= \
             wm.LOW_LIGHT.exposure_ev[1]
         assert q.image_b.mean() < 0.8 * q.image_a.mean()
+    paper = run("experiments.make_camera_pairs", f"--image_dir={images}",
+                f"--output_dir={tmp_path / 'paper'}", "--motion_set=paper",
+                "--degradation=low_light")  # the paper's groups keep their own
+    assert paper.returncode != 0 and "their own degradations" in paper.stderr
+    assert not (tmp_path / "paper").exists()
     bench = run("experiments.benchmark_camera_pairs", f"--pairs_dir={out}",
                 "--methods=orb_ransac,identity", f"--json_out={tmp_path / 'b.json'}")
     assert bench.returncode == 0, bench.stderr[-2000:]

@@ -2,6 +2,10 @@
 ``stnh_tf.evaluation.onednn_profile`` reads the verbose lines as oneDNN writes them, and on this
 machine finds the paper's eight convolutions in a stage's step."""
 
+import os
+import platform
+import subprocess
+
 import pytest
 
 from stnh_tf.evaluation import onednn_profile
@@ -24,6 +28,7 @@ def test_parse_verbose_keeps_the_last_steps_of_each_primitive_and_counts_its_lay
          _line("A", "not-a-number")] + steps)
     rows = onednn_profile.parse_verbose(text, runs=3, timed=2)
     assert [r["problem"] for r in rows] == ["A", "B"]  # set-up and a bad time left out
+    assert rows[0]["formats"] == "src:bf16::blocked:acdb::f0"
     a, b = rows
     assert a["calls_per_step"] == 2 and b["calls_per_step"] == 1
     assert a["ms_per_step"] == pytest.approx((11 + 21 + 12 + 22) / 2)  # the last two steps
@@ -38,10 +43,11 @@ def test_a_stage_step_runs_the_papers_eight_convolutions_through_onednn():
     """The VGG-style network's 8 convolutions (conventions.md: 64 x 4 then 128 x 4) each run
     forward and backward-weights once a step, backward-data for all but the first (its input,
     the image pair, needs no gradient), in float32 (every x86 CPU)."""
+    if platform.machine() not in ("x86_64", "AMD64") or os.environ.get(
+            "TF_ENABLE_ONEDNN_OPTS") == "0":
+        pytest.skip("TensorFlow uses oneDNN by default on x86 only, and not with it switched off")
     result = onednn_profile.profile_training_step("float32", batch_size=4, steps=2, warmup=1)
     convs = [r for r in result["primitives"] if r["kind"] == "convolution"]
-    if not convs:
-        pytest.skip("TensorFlow runs no oneDNN convolution on this machine")
     per_pass = {p: sum(r["calls_per_step"] for r in convs if r["propagation"] == p)
                 for p in ("forward_training", "backward_data", "backward_weights")}
     assert per_pass == {"forward_training": 8, "backward_data": 7, "backward_weights": 8}
@@ -49,3 +55,27 @@ def test_a_stage_step_runs_the_papers_eight_convolutions_through_onednn():
         "mb4_ic2oc64", "mb4_ic64oc64", "mb4_ic64oc128", "mb4_ic128oc128"}
     assert result["step_s"] > 0 and result["ms_per_step"] == pytest.approx(
         sum(result["ms_per_step_by_propagation"].values()))
+
+
+def test_a_child_that_times_no_primitive_or_fails_is_an_error(monkeypatch):
+    """No oneDNN line at all (a build without it) is an error, not an empty profile; so is a
+    child that fails, with its last lines."""
+    outputs = iter([subprocess.CompletedProcess([], 0, "STEP_S 1.5\n", ""),
+                    subprocess.CompletedProcess([], 1, "", "Traceback\nMemoryError\n")])
+    monkeypatch.setattr(onednn_profile.subprocess, "run", lambda *a, **k: next(outputs))
+    with pytest.raises(RuntimeError, match="oneDNN timed no primitive"):
+        onednn_profile.profile_training_step("float32")
+    with pytest.raises(RuntimeError, match="(?s)exit 1.*MemoryError"):
+        onednn_profile.profile_training_step("float32")
+
+
+@pytest.mark.slow
+def test_without_onednns_layers_the_profile_holds_eigens_matrix_products(monkeypatch):
+    """With ``TF_ENABLE_ONEDNN_OPTS=0`` TensorFlow's own (Eigen) convolutions run: no oneDNN
+    convolution in the profile, only the matrix products Eigen hands to oneDNN's gemm."""
+    if platform.machine() not in ("x86_64", "AMD64"):
+        pytest.skip("TensorFlow uses oneDNN by default on x86 only")
+    monkeypatch.setenv("TF_ENABLE_ONEDNN_OPTS", "0")
+    result = onednn_profile.profile_training_step("float32", batch_size=4, steps=1, warmup=1)
+    kinds = {r["kind"] for r in result["primitives"]}
+    assert "convolution" not in kinds and "gemm_api" in kinds

@@ -140,7 +140,8 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
     the last, so that a run cut short never leaves a manifest beside files it does not list.
 
     Raises:
-      ValueError: ``pairs_per_image < 1``, no readable photograph (the message counts the
+      ValueError: ``pairs_per_image < 1``, a ``degradation`` other than the default for
+        ``motion_set="paper"``, no readable photograph (the message counts the
         reasons and names the first file skipped), a manifest already in
         ``output_dir`` without ``overwrite``, or a ``pairs.json`` there that is not a camera-pair
         manifest (not replaced). ``SourceError``: ``image_dir`` is not a folder.
@@ -152,6 +153,9 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
     if motion_set not in MOTION_SETS:
         raise ValueError(f"motion_set must be one of {tuple(MOTION_SETS)}; received "
                          f"{motion_set!r}.")
+    if motion_set == "paper" and degradation != Degradation():
+        raise ValueError("the paper's groups have their own degradations (paper_motions); "
+                         "a set of motion_set 'paper' takes no other degradation.")
     motions = set_motions(motion_set) if motions is None else motions
     path = os.path.join(output_dir, MANIFEST)
     if os.path.exists(path):

@@ -126,6 +126,13 @@ def time_latency(runs, seed):
             "runs": runs}
 
 
+SETTINGS_PREFIXES = ("TF_ENABLE_ONEDNN", "TF_ONEDNN_", "TF_SET_ONEDNN", "TF_MKL_", "TF_NUM_",
+                     "TF_CPP_", "TF_XLA_", "TF_INTRA_OP", "TF_INTER_OP", "ONEDNN_", "DNNL_",
+                     "OMP_", "KMP_")
+"""Environment variables :func:`training_benchmark` records (TensorFlow's, oneDNN's, OpenMP's
+settings; not every ``TF_``, which other tools use for their own, tokens included)."""
+
+
 def training_benchmark(batch_size=64, steps=20, warmup=3, policies=("float32", "mixed_bfloat16"),
                        jit=False, latency_runs=200, seed=0, unlabeled=False) -> dict:
     """Training-step seconds of the full model (``stn``; with ``unlabeled`` also with every pair
@@ -138,7 +145,7 @@ def training_benchmark(batch_size=64, steps=20, warmup=3, policies=("float32", "
               "machine": machine_info(),
               # the variables TensorFlow, oneDNN and OpenMP read: the run's settings
               "environment": {k: v for k, v in sorted(os.environ.items())
-                              if k.startswith(("TF_", "ONEDNN_", "DNNL_", "OMP_", "KMP_"))},
+                              if k.startswith(SETTINGS_PREFIXES)},
               "train_step_s": {}}
     for policy in policies:
         for jit_compile in ([False, True] if jit else [False]):

@@ -25,12 +25,14 @@ print("STEP_S", benchmarks.time_training("stn", policy, False, batch_size, steps
 
 
 def parse_verbose(text: str, runs: int, timed: int) -> list:
-    """oneDNN verbose ``text`` of ``runs`` identical training steps, the last ``timed`` of them
-    kept: one dict per primitive (kind, implementation, propagation, problem), with
-    ``calls_per_step`` and ``ms_per_step`` (over the kept steps), ``ms_per_call``; sorted by
-    ``ms_per_step``, largest first. A primitive seen fewer than ``runs`` times (set-up, first-call
-    reorders) is left out; of one seen ``k * runs`` times (k layers of one shape), the last
-    ``k * timed`` calls count.
+    """oneDNN verbose ``text`` (``v1`` lines without timestamps) of ``runs`` identical training
+    steps, the last ``timed`` of them kept: one dict per primitive (kind, implementation,
+    propagation, memory formats, problem), with ``calls_per_step`` and ``ms_per_step`` (over the
+    kept steps), ``ms_per_call``; sorted by ``ms_per_step``, largest first. The lines carry no
+    step, so the steps are told apart by counting: a primitive seen ``n`` times runs
+    ``n // runs`` times a step (the layers of one shape) and its last ``n // runs * timed`` calls
+    count; one seen fewer than ``runs`` times (set-up, first-call reorders) is left out, and
+    calls beyond whole steps are taken for set-up.
 
     Raises:
       ValueError: ``timed`` not in ``1..runs``.
@@ -52,15 +54,15 @@ def parse_verbose(text: str, runs: int, timed: int) -> list:
             ms = float(fields[-1])
         except ValueError:
             continue
-        calls[(fields[5], fields[6], fields[7], fields[-2])].append(ms)
+        calls[(fields[5], fields[6], fields[7], fields[8], fields[-2])].append(ms)
     rows = []
-    for (kind, implementation, propagation, problem), times in calls.items():
+    for (kind, implementation, propagation, formats, problem), times in calls.items():
         per_step = len(times) // runs
         if per_step == 0:
             continue
         kept = times[-per_step * timed:]
         rows.append({"kind": kind, "implementation": implementation,
-                     "propagation": propagation, "problem": problem,
+                     "propagation": propagation, "formats": formats, "problem": problem,
                      "calls_per_step": per_step, "ms_per_step": sum(kept) / timed,
                      "ms_per_call": sum(kept) / len(kept)})
     return sorted(rows, key=lambda r: -r["ms_per_step"])
@@ -76,11 +78,15 @@ def profile_training_step(policy: str, batch_size: int = 64, steps: int = 4, war
     primitives at once, each then timed over the shared cores) and the sums per propagation.
 
     Raises:
-      RuntimeError: the child failed (its last output lines in the message).
+      RuntimeError: the child failed (its last output lines in the message), or oneDNN timed
+        no primitive in it (TensorFlow without oneDNN: ``TF_ENABLE_ONEDNN_OPTS=0``, or a build
+        or CPU without it).
     """
-    env = dict(os.environ, ONEDNN_VERBOSE="1")
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH", "")]))
+    import stnh_tf
+
+    env = dict(os.environ, ONEDNN_VERBOSE="1", ONEDNN_VERBOSE_TIMESTAMP="0")
+    importable = os.path.dirname(os.path.dirname(os.path.abspath(stnh_tf.__file__)))
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [importable, env.get("PYTHONPATH", "")]))
     child = subprocess.run(
         [sys.executable, "-c", _CHILD, policy, str(batch_size), str(steps), str(warmup),
          str(seed)], capture_output=True, text=True, env=env)
@@ -89,6 +95,10 @@ def profile_training_step(policy: str, batch_size: int = 64, steps: int = 4, war
         tail = "\n".join((child.stdout + child.stderr).splitlines()[-5:])
         raise RuntimeError(f"the profiled training step failed (exit {child.returncode}): {tail}")
     rows = parse_verbose(child.stdout, warmup + steps, steps)
+    if not rows:
+        raise RuntimeError("oneDNN timed no primitive of the training step: TensorFlow ran "
+                           "without oneDNN (TF_ENABLE_ONEDNN_OPTS=0, or a build or CPU "
+                           "without it).")
     by_propagation = collections.defaultdict(float)
     for r in rows:
         by_propagation[r["propagation"]] += r["ms_per_step"]
