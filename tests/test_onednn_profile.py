@@ -2,13 +2,17 @@
 ``stnh_tf.evaluation.onednn_profile`` reads the verbose lines as oneDNN writes them, and on this
 machine finds the paper's eight convolutions in a stage's step."""
 
+import json
 import os
 import platform
 import subprocess
+import sys
 
 import pytest
 
 from stnh_tf.evaluation import onednn_profile
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 EXEC = "onednn_verbose,v1,primitive,exec,cpu,{kind},{impl},{prop},src:bf16::blocked:acdb::f0,,alg,{problem},{ms}"
 
@@ -79,3 +83,25 @@ def test_without_onednns_layers_the_profile_holds_eigens_matrix_products(monkeyp
     result = onednn_profile.profile_training_step("float32", batch_size=4, steps=1, warmup=1)
     kinds = {r["kind"] for r in result["primitives"]}
     assert "convolution" not in kinds and "gemm_api" in kinds
+
+
+@pytest.mark.slow
+def test_benchmark_training_binary_records_its_settings_and_the_profile(tmp_path):
+    """``benchmark_training --onednn_layers`` end to end on a tiny batch: the profile per
+    policy beside the step times, and in ``environment`` the oneDNN variable it ran under but
+    not another tool's ``TF_`` variable."""
+    if platform.machine() not in ("x86_64", "AMD64"):
+        pytest.skip("TensorFlow uses oneDNN by default on x86 only")
+    out = tmp_path / "b.json"
+    env = dict(os.environ, ONEDNN_VERBOSE_TIMESTAMP="0", TF_CLI_CONFIG_FILE="/secret/.rc")
+    done = subprocess.run(
+        [sys.executable, "-m", "experiments.benchmark_training", "--batch_size=4", "--steps=1",
+         "--warmup=1", "--latency_runs=1", "--policies=float32", "--onednn_layers",
+         f"--json_out={out}"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads(out.read_text())
+    assert result["environment"].get("ONEDNN_VERBOSE_TIMESTAMP") == "0"
+    assert "TF_CLI_CONFIG_FILE" not in result["environment"]
+    assert list(result["onednn_layers"]) == ["float32"] == list(result["train_step_s"])
+    profile = result["onednn_layers"]["float32"]
+    assert profile["batch_size"] == 4 and profile["primitives"]
