@@ -606,6 +606,9 @@ PROSE = [
     ("docs/gpu.md", rf"Second chunk, steps 0 -> 2,322, on [^$]*?"
      rf"`paper_schedule/logs/sequence2_0-2322_cpu.log`\): {N} steps/s in the ledger",
      [num("schedule_ledger", "30/steps_per_s")]),
+    ("docs/gpu.md", rf"Third chunk, steps 2,322 -> 4,763, on [^$]*?"
+     rf"`paper_schedule/logs/sequence2_2322-4763_cpu.log`\): {N} steps/s in the ledger",
+     [num("schedule_ledger", "31/steps_per_s")]),
     ("docs/gpu.md", rf"- Finished at 91,000 steps over (\d+) chunks and {N} hours of wall time in "
      rf"all, every chunk on the",
      [schedule_chunks(3), schedule_hours(3)]),
