@@ -1264,16 +1264,16 @@ def test_speed_beside_sift_in_low_light_and_at_640_numbers_are_the_json_s():
     and the ratios quoted below it are those of the committed benchmark JSON."""
     text = _read("BENCHMARKS.md")
     ratio = {}
+
+    def cell(m):
+        return (f"{round(m['success_rate'] * m['count'])} of {m['count']}, "
+                f"{m['mace']:.2f} px, {m['ms_per_pair']:.0f} ms")
+
     for scale, size in ((1, "320 x 240"), (2, "640 x 480")):
         for deg, label in (("camera", "camera"), ("low_light", "low light")):
             groups = _camera_file(f"speed_seed13_{deg}_scale{scale}")["groups"]
             for group in ("within", "1-2x", "2-4x", "all"):
                 e, s = groups[group]["estimator"], groups[group]["sift_ransac"]
-
-                def cell(m):
-                    return (f"{round(m['success_rate'] * m['count'])} of {m['count']}, "
-                            f"{m['mace']:.2f} px, {m['ms_per_pair']:.0f} ms")
-
                 ratio[scale, deg, group] = e["ms_per_pair"] / s["ms_per_pair"]
                 assert (f"| {size}, {label} | {group} | {cell(e)} | {cell(s)} | "
                         f"{ratio[scale, deg, group]:.2f}x |") in text

@@ -127,8 +127,7 @@ def time_latency(runs, seed):
 
 
 SETTINGS_PREFIXES = ("TF_ENABLE_ONEDNN", "TF_ONEDNN_", "TF_SET_ONEDNN", "TF_MKL_", "TF_NUM_",
-                     "TF_CPP_", "TF_XLA_", "TF_INTRA_OP", "TF_INTER_OP", "ONEDNN_", "DNNL_",
-                     "OMP_", "KMP_")
+                     "TF_CPP_", "TF_XLA_", "ONEDNN_", "DNNL_", "OMP_", "KMP_")
 """Environment variables :func:`training_benchmark` records (TensorFlow's, oneDNN's, OpenMP's
 settings; not every ``TF_``, which other tools use for their own, tokens included)."""
 
