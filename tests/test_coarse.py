@@ -3,6 +3,8 @@
 input: what the pass finds is then its own start (rotation, zoom and translation), and
 ``coarse="none"`` is the estimator's previous ``estimate_images``."""
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -63,6 +65,27 @@ def test_coarse_pass_finds_the_rotation(estimator, motion, bound):
     assert image_errors(before.homography, h_true[None])[0] > 20.0  # the identity is far off
     assert error < bound
     assert not result.implausible[0]
+
+
+def test_searched_survives_the_coarse_pass(estimator):
+    """The coarse pass's estimate from its rotated start replaces the one from the identity
+    (within 0.5 px, as above); where the search looked at the pair in the replaced one and not in
+    the pass's (``search="none"`` here, the replaced estimate marked as searched),
+    ``searched`` still says it looked (it said False before: the replaced estimate's field was
+    lost)."""
+    h_true = _motion(30.0, 1.0)
+    a, b = _pair(h_true)
+    work_a, work_b = (image_input.work_image(x)[0] for x in (a, b))
+    origin = image_input.PATCH_ORIGIN
+    run = lambda pa, pb, contexts, opts: estimator._run(pa, pb, contexts, origin, opts, 64)  # noqa
+    first = run(image_input.central_patch(work_a), image_input.central_patch(work_b), [work_a],
+                OPTIONS)
+    for searched in (False, True):
+        replaced = dataclasses.replace(first, searched=np.array([searched]))
+        result = coarse.coarse_pass(run, work_a, work_b, replaced, OPTIONS, origin)
+        h = geometry.patch_to_image(result.homography[0], *origin)
+        assert image_errors(h[None], h_true[None])[0] < 0.5
+        assert result.searched[0] == searched and not result.found[0]
 
 
 def test_none_is_the_previous_estimate_images(estimator):

@@ -247,6 +247,39 @@ def test_late_feature_start_rescues_what_the_early_trigger_let_through(estimator
     assert not early_only.feature_start[0]
 
 
+def test_searched_says_the_search_looked_even_where_the_feature_start_won(estimator,
+                                                                          monkeypatch):
+    """``Estimate.searched``: where the feature start is not confirmed early, the search runs
+    from the identity (and looks at this pair: the network's identity aligns it poorly); the
+    feature start's estimate then replaces that one as the better alignment. The estimate
+    returned is the start's (``found`` False: not the search's result; within 3 px of the motion
+    the pair was made with, cv2.perspectiveTransform, unrefined here; the identity is hundreds of
+    px off), and ``searched`` still says the
+    search looked at the pair (it said False before). The same from the late feature start."""
+    h_true = _wide_motion(-100.0, 2.2)
+    a, b = _pair(h_true)
+    monkeypatch.setattr(features, "confirmed", lambda made, options: False)
+    calls = []
+    options = dataclasses.replace(WHOLE, features="fallback", refine="none", verify="none")
+    wa, wb = _work(a), _work(b)
+    est = features.estimate(_pipeline(estimator, calls), wa, wb, options,
+                            image_input.PATCH_ORIGIN)
+    assert calls[-1] == "ecc" and est.feature_start[0]
+    assert est.searched[0] and not est.found[0]
+    h = geometry.patch_to_image(est.homography[0], *image_input.PATCH_ORIGIN)
+    assert _corner_error(h, h_true) < 3.0
+
+    # the late start: its finished estimate replaces a flagged one the search looked at
+    estimate = features.estimate
+    monkeypatch.setattr(features, "estimate", lambda *args: dataclasses.replace(
+        estimate(*args), searched=np.array([True]), feature_start=np.array([False])))
+    monkeypatch.setattr(features, "late_wanted", lambda *args: True)
+    monkeypatch.setattr(features, "late_better", lambda *args: True)
+    late = estimator.estimate_images_with_info(a, b, EstimateOptions.photographs())
+    assert late.searched[0] and late.feature_start[0] and not late.found[0]
+    assert _corner_error(late.homography[0], h_true) < 0.5
+
+
 def test_late_trigger_and_choice(estimator):
     """:func:`features.late_wanted`: only with ``features="fallback"``, never for an estimate
     made from the feature start or a flat pair; where the finished estimate is flagged (not

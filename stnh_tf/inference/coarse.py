@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry
-from stnh_tf.inference import checks
+from stnh_tf.inference import checks, pipeline
 from stnh_tf.inference.image_input import central_patch
 from stnh_tf.inference.options import COARSES, EstimateOptions
 from stnh_tf.pixels import unclipped
@@ -172,7 +172,8 @@ def coarse_pass(run, work_a, work_b, first, options: EstimateOptions, origin):
     if image_ncc(work_a, work_b, total, origin, t.min_overlap) <= image_ncc(
             work_a, work_b, first.homography[0], origin, t.min_overlap):
         return flag(first, options)
-    return flag(dataclasses.replace(est, homography=total[None]), options)
+    return flag(pipeline.replacing(dataclasses.replace(est, homography=total[None]), first),
+                options)
 
 
 def flag(est, options: EstimateOptions, wide: bool = True):

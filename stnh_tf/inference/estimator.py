@@ -363,7 +363,7 @@ class HomographyEstimator:
                     run, dataclasses.replace(made, network_homography=network_h), work_a,
                     work_b, network, options)
                 if features.late_better(late, result, work_a, work_b, options, PATCH_ORIGIN):
-                    result = late
+                    result = pipeline.replacing(late, result)
                     move = pipeline.network_moves(result.homography, network_h,
                                                   [np.shape(work_a)], PATCH_ORIGIN)
         h = patch_to_image_frames(result.homography[0], size_a, size_b)

@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 
 from stnh_tf import geometry, pixels
-from stnh_tf.inference import checks, coarse
+from stnh_tf.inference import checks, coarse, pipeline
 from stnh_tf.inference import search as search_lib
 from stnh_tf.inference.image_input import central_patch, work_from_feature
 from stnh_tf.inference.options import EstimateOptions
@@ -275,7 +275,9 @@ def feature_pass(run, work_a, work_b, first, options: EstimateOptions, origin, m
         return first
     if made is NOT_MADE:
         made = candidate(run, work_a, work_b, options, origin, start)
-    return made if better(made, first, work_a, work_b, options, origin) else first
+    if not better(made, first, work_a, work_b, options, origin):
+        return first
+    return pipeline.replacing(made, first)  # the search may have looked at it in first
 
 
 def estimate(run, work_a, work_b, options: EstimateOptions, origin, start=None):

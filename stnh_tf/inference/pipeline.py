@@ -45,7 +45,9 @@ class Estimate:
       alignment_ncc: NCC of patch_b and patch_a warped by the estimate (NaN: undefined, flat).
       max_corner_shift_px: the largest displacement of a 128 x 128 patch corner.
       flat: patch_a or patch_b varies less than ``thresholds.min_patch_std`` (the identity).
-      searched: the search looked at the pair.
+      searched: the search looked at the pair, also where the estimate returned is another
+        that replaced the one it was run for (the feature start's, the coarse pass's:
+        :func:`replacing`).
       found: the estimate is the search's result.
       refined: the estimate is the ECC refinement.
       retried: the pair was estimated again with ``retry_tta`` (every other field is the retry's).
@@ -314,6 +316,14 @@ def finish(run: dict, options: EstimateOptions) -> Estimate:
         network_move_px=network_moves(run["total"], network, frames, run.get("origin", (0, 0))),
         feature_start=np.zeros(len(shift), bool), corner_std_px=np.full(len(shift), np.nan),
         undetermined=np.zeros(len(shift), bool), ambiguity_gap=np.full(len(shift), np.nan))
+
+
+def replacing(kept: Estimate, replaced: Estimate) -> Estimate:
+    """``kept``, which takes the place of ``replaced`` (the estimates of the same pairs), with
+    ``searched`` also set where the search looked at a pair in ``replaced``: the field says what
+    the estimator did with the pair, whichever estimate it returns.
+    """
+    return dataclasses.replace(kept, searched=kept.searched | replaced.searched)
 
 
 def network_moves(a_from_b, network, frame_shapes, origin) -> np.ndarray:
