@@ -36,7 +36,7 @@ from absl import app, flags, logging
 
 from experiments import common, flags_common
 from stnh_tf.paper.budgets import SCHEDULE, SCHEDULE_PARTS as PARTS
-from stnh_tf.training import chunks
+from stnh_tf.training import chunks, ledger
 from stnh_tf.training.config import TrainConfig
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -64,6 +64,9 @@ flags.DEFINE_integer("steps_per_execution", 1, "Training steps per compiled call
 flags.DEFINE_integer("last_stage", 0, "Where --stage finishes within the time limit, go on with "
                      "the next stages up to this one in the time left (0: --stage only).")
 flags.DEFINE_string("device", None, "The machine, for the ledger (default: described here).")
+flags.DEFINE_bool("step_back", False, "Train on from the newest checkpoint found even where it "
+                  "is below the step the ledger last recorded for the part (that checkpoint "
+                  "lost; the rows past it are then superseded in the part's record).")
 FLAGS = flags.FLAGS
 
 
@@ -106,13 +109,14 @@ def main(argv):
             if part is None:
                 rows = chunks.run_stages(config, FLAGS.stage, max(FLAGS.stage, FLAGS.last_stage),
                                          ROOT, FLAGS.time_limit_s, str(device),
-                                         printer=logging.info, commit=git_commit())
+                                         printer=logging.info, commit=git_commit(),
+                                         step_back=FLAGS.step_back)
             else:
                 rows = [chunks.run_chunk(config(1), ROOT, FLAGS.time_limit_s, str(device),
                                          printer=logging.info, commit=git_commit(),
-                                         part=FLAGS.part)]
+                                         part=FLAGS.part, step_back=FLAGS.step_back)]
         finally:
-            chunks.write_ledger_table(ROOT, os.path.join(REPO, "docs", "gpu.md"))
+            ledger.write_ledger_table(ROOT, os.path.join(REPO, "docs", "gpu.md"))
     for row in rows:
         logging.info("chunk done: %s", row)
         print(row)

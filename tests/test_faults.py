@@ -1455,17 +1455,17 @@ def test_a_checkpoint_without_its_state_is_resumed_not_deleted(_first_checkpoint
 
 
 def _ledger_doc(tmp_path):
-    """chunks.write_ledger_table on docs/gpu.md-like prose with an out-of-date ledger block."""
-    from stnh_tf.training import chunks
+    """ledger.write_ledger_table on docs/gpu.md-like prose with an out-of-date ledger block."""
+    from stnh_tf.training import ledger
 
     root = tmp_path / "root"
     root.mkdir()
-    (root / chunks.LEDGER_FILE).write_text(json.dumps([{
+    (root / ledger.LEDGER_FILE).write_text(json.dumps([{
         "stage": 1, "from_step": 0, "to_step": 500, "device": "2-core CPU",
         "backend": "tensorflow", "steps_per_s": 1.5, "wall_s": 400.0, "date": "2026-12-05"}]))
     doc = tmp_path / "gpu.md"
-    doc.write_text(f"# runbook\nprose\n{chunks.LEDGER_START}\nold\n{chunks.LEDGER_END}\nmore\n")
-    return doc, lambda: chunks.write_ledger_table(str(root), str(doc))
+    doc.write_text(f"# runbook\nprose\n{ledger.LEDGER_START}\nold\n{ledger.LEDGER_END}\nmore\n")
+    return doc, lambda: ledger.write_ledger_table(str(root), str(doc))
 
 
 def _contract_doc(tmp_path):

@@ -767,7 +767,7 @@ def test_chunks_stop_at_the_time_limit_and_continue_on_another_machine(tiny_data
     (another machine) resuming from the checkpoint committed in the repository folder: the
     finished model (without optimizer state) equals the uninterrupted run's, the committed
     checkpoint is gone, and the ledger has one row per chunk."""
-    from stnh_tf.training import chunks
+    from stnh_tf.training import chunks, ledger
 
     monkeypatch.setattr(training, "TimeLimit", _ticking_time_limit())
     repo = tmp_path / "repo"
@@ -810,12 +810,12 @@ def test_chunks_stop_at_the_time_limit_and_continue_on_another_machine(tiny_data
     b = [np.asarray(w) for w in finished.get_weights()]
     assert max(np.abs(u - v).max() for u, v in zip(a, b)) <= 1e-4 * max(np.abs(u).max() for u in a)
     doc = tmp_path / "gpu.md"
-    doc.write_text(f"# ledger\n{chunks.LEDGER_START}\nold\n{chunks.LEDGER_END}\nafter\n")
-    assert chunks.write_ledger_table(str(repo), str(doc))
+    doc.write_text(f"# ledger\n{ledger.LEDGER_START}\nold\n{ledger.LEDGER_END}\nafter\n")
+    assert ledger.write_ledger_table(str(repo), str(doc))
     lines = doc.read_text().splitlines()
     assert lines[4] == "| 1 | 0 -> 2 | machine 0 | tensorflow | %.2f | 0 | %s |" % (
         rows[0]["steps_per_s"], rows[0]["date"]) and lines[-1] == "after"
-    assert not chunks.write_ledger_table(str(repo), str(doc))  # unchanged the second time
+    assert not ledger.write_ledger_table(str(repo), str(doc))  # unchanged the second time
 
 
 @pytest.mark.slow  # (make test-all)
@@ -826,7 +826,7 @@ def test_a_part_other_than_a_stage_is_chunked_under_its_own_name(tiny_data, tmp_
     folder, another machine) is committed under its own name (resume/sequence2/, then
     sequence2.keras and sequence2.json), its ledger rows carry the part and the ledger table
     shows it; a finished part is refused by name, and a hierarchical stage beside it is not."""
-    from stnh_tf.training import chunks
+    from stnh_tf.training import chunks, ledger
 
     monkeypatch.setattr(training, "TimeLimit", _ticking_time_limit())
     repo = tmp_path / "repo"
@@ -848,7 +848,7 @@ def test_a_part_other_than_a_stage_is_chunked_under_its_own_name(tiny_data, tmp_
     assert record["config"]["model"] == "sequence" and record["final_step"] == 4
     model = keras.saving.load_model(str(repo / "sequence2.keras"), compile=False)
     assert {"h_bar_1", "h_bar_2"} <= set(model.output_names)
-    table = chunks.ledger_table(json.loads((repo / "ledger.json").read_text()))
+    table = ledger.ledger_table(json.loads((repo / "ledger.json").read_text()))
     assert table.splitlines()[2].startswith("| sequence2 | 0 -> 2 | machine 0 |")
     with pytest.raises(FileExistsError, match="part sequence2 is finished"):
         chunks.run_chunk(cfg(2), str(repo), 0, "machine 2", printer=_quiet, part="sequence2")
@@ -867,8 +867,8 @@ def test_a_chunk_goes_on_with_the_next_stage_in_the_time_it_leaves(monkeypatch):
 
     clock, calls, plan = [0.0], [], {}
 
-    def chunk(stage, root, left, device, printer, commit):  # a chunk: its time and whether done
-        calls.append((stage, left))
+    def chunk(stage, root, left, device, printer, commit, step_back=False):
+        calls.append((stage, left))  # a chunk: its time and whether done
         spent, done = plan[stage]
         clock[0] += spent
         return {"stage": stage, "done": done}

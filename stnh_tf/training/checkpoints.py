@@ -2,7 +2,8 @@
 (:data:`stnh_tf.training.run_dir.CHECKPOINT_DIR`): written atomically at every epoch end
 (:class:`AtomicCheckpoint`: ``ckpt-<step>.weights.h5`` committed by ``state.json``,
 :data:`~stnh_tf.training.run_dir.CHECKPOINT_STATE`), found (:func:`find_checkpoint`), checked
-without a model (:func:`check_weights_file`) and restored (:func:`load_checkpoint`). The Keras
+without a model (:func:`check_weights_file`), restored (:func:`load_checkpoint`) and copied
+into another folder (:func:`copy_checkpoint`). The Keras
 side of the run's folder: :mod:`stnh_tf.training.run_dir` itself needs no backend."""
 
 from __future__ import annotations
@@ -10,12 +11,15 @@ from __future__ import annotations
 import logging
 import os
 import re
+import shutil
+import tempfile
 import time
 
 import keras
 import numpy as np
 
 from stnh_tf.paths import atomic_write_json, fsync_replace, inside, read_json
+from stnh_tf.training import file_parts
 from stnh_tf.training.run_dir import CHECKPOINT_STATE
 
 CHECKPOINT_WEIGHTS = "ckpt.weights.h5"  # legacy single-file name, still read
@@ -196,3 +200,63 @@ def check_weights_file(path: str, step: int) -> None:
     if held is not None and held != step:
         raise ValueError(f"the checkpoint {path} holds step {held}, not step {step} as its "
                          "state says")
+
+
+def _weights_files(folder: str, name: str) -> list:
+    """The files of ``folder`` that keep the checkpoint weights ``name`` (whole, its parts, their
+    manifest, a copy cut short)."""
+    return [f for f in os.listdir(folder) if f == name or f.startswith(f"{name}.")]
+
+
+def copy_checkpoint(src_dir, dst_dir, extra_files=(), max_bytes=None) -> int:
+    """Copy the checkpoint of ``src_dir`` (the weights :func:`find_checkpoint` finds
+    and the state naming them) and ``extra_files`` into ``dst_dir``, updated in place so that a
+    kill at any moment leaves its ``state.json`` naming complete weights: each extra file
+    written beside its place and renamed; the weights under their step's name (with
+    ``max_bytes``, those over it as parts,
+    :func:`stnh_tf.training.file_parts.write_parts`), unless ``dst_dir`` holds them already;
+    ``state.json`` last (``src_dir``'s, or one naming the weights), the commit point as in
+    :class:`AtomicCheckpoint`; then other weights removed.
+    Returns the checkpoint's step."""
+    weights, step, state = find_checkpoint(src_dir)
+    name, pid = os.path.basename(weights), os.getpid()
+    os.makedirs(dst_dir, exist_ok=True)
+    for path in extra_files:
+        tmp = os.path.join(dst_dir, f"{os.path.basename(path)}.tmp-{pid}")
+        shutil.copy2(path, tmp)
+        os.replace(tmp, os.path.join(dst_dir, os.path.basename(path)))
+    try:
+        held = read_checkpoint_state(dst_dir)
+    except ValueError:  # a broken state: replaced below
+        held = None
+    if not (held and held.get("weights") == name and _same_weights(weights, dst_dir)):
+        for f in _weights_files(dst_dir, name):  # a copy of these weights cut short
+            os.remove(os.path.join(dst_dir, f))
+        size = max_bytes or max(os.path.getsize(weights), 1)
+        if os.path.getsize(weights) <= size:  # whole: written beside, then renamed
+            shutil.copy2(weights, os.path.join(dst_dir, f"{name}.tmp-{pid}"))
+            os.replace(os.path.join(dst_dir, f"{name}.tmp-{pid}"), os.path.join(dst_dir, name))
+        else:
+            file_parts.write_parts(weights, os.path.join(dst_dir, name), size)
+    atomic_write_json(os.path.join(dst_dir, CHECKPOINT_STATE),
+                      state if state is not None else {"step": int(step), "weights": name})
+    kept = set(_weights_files(dst_dir, name))
+    for f in os.listdir(dst_dir):  # the weights of other steps, and copies cut short
+        if f.startswith("ckpt") and ".weights.h5" in f and f not in kept or ".tmp-" in f:
+            os.remove(os.path.join(dst_dir, f))
+    return int(step)
+
+
+def _same_weights(weights: str, folder: str) -> bool:
+    """Whether ``folder`` holds the file ``weights`` under its name, whole or in parts, with the
+    same bytes (the parts checked against their manifest)."""
+    kept = os.path.join(folder, os.path.basename(weights))
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            if file_parts.in_parts(kept):
+                file_parts.read_whole(kept, os.path.join(tmp, "whole"))
+                kept = os.path.join(tmp, "whole")
+            with open(kept, "rb") as a, open(weights, "rb") as b:
+                return a.read() == b.read()
+        except (OSError, ValueError):
+            return False

@@ -16,7 +16,8 @@ Layout of a chunked run's repository folder ``root`` (e.g. ``paper_schedule/``):
 * ``stage<k>.keras``: a finished stage (weights without optimizer state), and beside it
   ``stage<k>.json`` (:func:`stage_record`: the run's configuration and its chunks), what
   ``experiments.ship_weights`` puts in a model card;
-* ``ledger.json``: one row per chunk (stage, steps, machine, steps/s, date);
+* ``ledger.json``: one row per chunk (stage, steps, machine, steps/s, date;
+  :mod:`stnh_tf.training.ledger`);
 * while a chunk runs, its lock (``.stnh_tf_run.lock``, :class:`~stnh_tf.training.run_dir.RunLock`
   on ``root``): one chunk at a time on ``root``, whatever its run folder; a second is refused.
 
@@ -30,58 +31,28 @@ the run folder may be anywhere) and that the committed weights read whole
 A run other than a hierarchical stage (the 2-stage sequence model, a stage 1 with other loss
 weights) is a *part* named by a string (``resume/<part>/``, ``<part>.keras``, ``<part>.json``;
 its ledger rows carry ``"part"``); an int part ``k`` is hierarchical stage k (:func:`part_name`).
-
-    >>> ledger_table([{"stage": 1, "from_step": 0, "to_step": 500, "device": "2-core CPU",
-    ...                "backend": "tensorflow", "steps_per_s": 1.52, "wall_s": 400.0,
-    ...                "date": "2026-11-27"}]).splitlines()[2]
-    '| 1 | 0 -> 500 | 2-core CPU | tensorflow | 1.52 | 7 | 2026-11-27 |'
+The ledger itself: :mod:`stnh_tf.training.ledger`.
 """
 
 from __future__ import annotations
 
 import datetime
 import os
-import re
 import shutil
 import tempfile
 import time
 
-from stnh_tf.paths import (atomic_write_json, atomic_write_text, inside, read_json,
-                           stage_record_path)
+from stnh_tf.paths import atomic_write_json, inside, stage_record_path
 from stnh_tf.provenance import machine_info
 from stnh_tf.training import checkpoints, file_parts, run_dir
 from stnh_tf.training.config import TrainConfig
+from stnh_tf.training.ledger import (add_ledger_row, chain, part_name, read_ledger,
+                                     recorded_step, row_part)
 
 RESUME_DIR = "resume"
-LEDGER_FILE = "ledger.json"
-LEDGER_START = "<!-- ledger:start -->"
-LEDGER_END = "<!-- ledger:end -->"
 ROOT_BUSY = ("another chunk is running on {folder} (it holds {lock}); one chunk at a time "
              "trains a repository folder's runs: wait for it to finish.")
 """:func:`run_chunk`'s refusal while another chunk holds the repository folder's lock."""
-
-
-def part_name(part: int | str) -> str:
-    """The name of a chunked run under ``root``: ``stage<k>`` for hierarchical stage ``k`` (an
-    int), else the part's own name (lower-case letters, digits, ``_``, ``-`` and ``.``).
-
-    >>> part_name(2), part_name("sequence2")
-    ('stage2', 'sequence2')
-
-    Raises:
-      ValueError: an empty name or one with other characters (it names files and folders).
-    """
-    if isinstance(part, int) and not isinstance(part, bool):
-        return f"stage{part}"
-    if not isinstance(part, str) or not re.fullmatch(r"[a-z0-9][a-z0-9_.-]*", part):
-        raise ValueError(f"a part is a stage number or a name of lower-case letters, digits, "
-                         f"'_', '-' and '.'; received {part!r}.")
-    return part
-
-
-def row_part(row: dict) -> str:
-    """The :func:`part_name` of a ledger row (its ``"part"``, else its stage's)."""
-    return row.get("part") or part_name(row["stage"])
 
 
 def resume_dir(root: str, part: int | str) -> str:
@@ -97,11 +68,15 @@ def finished_model(root: str, part: int | str) -> str:
 def stage_record(root: str, part: int | str, config: dict) -> dict:
     """Write and return ``stage<k>.json`` (``<part>.json``) beside the finished part: its run's
     ``config`` (the ``config.json`` fields), the number of training photographs and pairs, the
-    ledger rows of its chunks, and their totals (steps, wall seconds, machines)."""
+    ledger rows of the chunks its model is made of (:func:`~stnh_tf.training.ledger.chain`) and
+    their totals (steps, wall seconds, machines), and apart (``superseded_chunks``, not summed)
+    its rows whose steps were trained again."""
     from stnh_tf.data import sources
 
     name = part_name(part)
-    rows = [r for r in read_ledger(root) if row_part(r) == name]
+    ledger = read_ledger(root)
+    rows = chain(ledger, name)
+    superseded = [r for r in ledger if row_part(r) == name and not any(r is c for c in rows)]
     images = len(sources.scan_image_folders(config["image_dir"],
                                             config.get("max_images", 0)).files) \
         if config.get("image_dir") else None
@@ -109,6 +84,7 @@ def stage_record(root: str, part: int | str, config: dict) -> dict:
               **({"part": name} if isinstance(part, str) else {}), "config": config,
               "training_photographs": images,
               "training_pairs": images and images * config["samples_per_image"], "chunks": rows,
+              **({"superseded_chunks": superseded} if superseded else {}),
               "final_step": max((r["to_step"] for r in rows), default=0),
               "wall_s": round(sum(r["wall_s"] for r in rows), 1),
               "machines": sorted({f"{r['device']} ({r['backend']})" for r in rows})}
@@ -121,30 +97,6 @@ def _step(checkpoint_dir) -> int:
     :func:`stnh_tf.training.checkpoints.find_checkpoint`)."""
     found = checkpoints.find_checkpoint(checkpoint_dir)
     return -1 if found is None else int(found[1])
-
-
-def _copy_checkpoint(src_dir, dst_dir, extra_files=(), max_bytes=None) -> int:
-    """Copy the checkpoint of ``src_dir`` (the weights :func:`checkpoints.find_checkpoint` finds
-    and the state naming them, where there is one) and ``extra_files`` into ``dst_dir``, replaced
-    whole (written beside it, then swapped in); with ``max_bytes``, weights over it as parts
-    (:func:`stnh_tf.training.file_parts.write_parts`). Returns the checkpoint's step."""
-    tmp, old = f"{dst_dir}.tmp-{os.getpid()}", f"{dst_dir}.old-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    os.makedirs(tmp)
-    weights, step, state = checkpoints.find_checkpoint(src_dir)
-    written = file_parts.write_parts(weights, os.path.join(tmp, os.path.basename(weights)),
-                                     max_bytes or max(os.path.getsize(weights), 1))
-    if state is None and len(written) > 1:  # parts are found through the state naming them
-        atomic_write_json(os.path.join(tmp, run_dir.CHECKPOINT_STATE),
-                          {"step": int(step), "weights": os.path.basename(weights)})
-    state = [os.path.join(src_dir, run_dir.CHECKPOINT_STATE)] if state is not None else []
-    for path in (*state, *extra_files):
-        shutil.copy2(path, os.path.join(tmp, os.path.basename(path)))
-    if os.path.exists(dst_dir):
-        os.rename(dst_dir, old)
-    os.rename(tmp, dst_dir)
-    shutil.rmtree(old, ignore_errors=True)
-    return int(step)
 
 
 def _whole_weights(resume: str, state: dict | None, tmp: str) -> str:
@@ -187,7 +139,9 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
     nothing is to be copied. Nor is a newer committed checkpoint that does not read whole
     (``ValueError`` in one line naming its weights file, or the part or manifest of weights
     kept in parts that is missing or wrong: :func:`~stnh_tf.training.checkpoints.check_weights_file`,
-    :func:`~stnh_tf.training.file_parts.read_whole`): the folder keeps its own.
+    :func:`~stnh_tf.training.file_parts.read_whole`), nor a committed checkpoint without its
+    ``config.json``, or weights in parts without the ``state.json`` that names them
+    (``ValueError``): the folder keeps its own.
 
     Raises:
       NotADirectoryError: ``resume`` exists and is not a folder (a checkpoint is one).
@@ -213,11 +167,20 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
             state = checkpoints.read_checkpoint_state(resume)
         except ValueError as e:
             raise refused(e) from None
-        newer = (state["step"] if state is not None else _step(resume)) > _step(ckpt)
+        if state is None and any(f.endswith(file_parts.MANIFEST_SUFFIX)
+                                 or ".part-" in f for f in os.listdir(resume)):
+            raise refused(f"{resume} holds weights in parts but no {run_dir.CHECKPOINT_STATE} "
+                          "naming them")  # before: taken for no checkpoint, trained from 0
+        committed_step = state["step"] if state is not None else _step(resume)
+        newer = committed_step > _step(ckpt)
         estimates = [p for p in _estimates(resume)
                      if not os.path.exists(os.path.join(model_dir, os.path.basename(p)))]
         if not (newer or estimates or cfg is not None):
             return None
+        if (committed_step >= 0 or estimates) and not os.path.isfile(
+                os.path.join(resume, run_dir.CONFIG_FILE)):
+            raise refused(f"{resume} holds a checkpoint but not its {run_dir.CONFIG_FILE}, which "
+                          "says what run it is of")
         run_dir.check_same_run(model_dir, os.path.join(resume, run_dir.CONFIG_FILE), cfg)
         if newer:
             try:
@@ -233,17 +196,39 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
         config = os.path.join(model_dir, run_dir.CONFIG_FILE)
         if not os.path.exists(config):
             shutil.copy2(os.path.join(resume, run_dir.CONFIG_FILE), config)
-        return _copy_checkpoint(committed, ckpt)
+        return checkpoints.copy_checkpoint(committed, ckpt)
+
+
+def _committed_step(resume: str) -> int:
+    """The step of the checkpoint committed in ``resume`` (its ``state.json``'s, else its weights'
+    name's; -1: none, or a state that does not read)."""
+    try:
+        state = checkpoints.read_checkpoint_state(resume) if os.path.isdir(resume) else None
+        return state["step"] if state is not None else _step(resume)
+    except (OSError, ValueError):
+        return -1
 
 
 def sync_out(model_dir: str, resume: str) -> int:
     """Replace ``resume`` by the run folder's committed checkpoint, ``config.json`` and saved
     stage estimates; weights over :data:`stnh_tf.training.file_parts.MAX_PART_BYTES` (the 2-stage
     sequence model's with their momentum: 12.5 MB) as parts under it and their manifest, which
-    :func:`sync_in` checks and joins. Returns its step."""
+    :func:`sync_in` checks and joins; updated in place, ``state.json`` last
+    (:func:`_copy_checkpoint`: a kill at any moment leaves a complete checkpoint there). Returns
+    its step.
+
+    Raises:
+      ValueError: ``resume`` holds a newer checkpoint than the run folder (another chunk's,
+        committed meanwhile): nothing is replaced.
+    """
     ckpt = os.path.join(model_dir, run_dir.CHECKPOINT_DIR)
+    committed, own = _committed_step(resume), _step(ckpt)
+    if committed > own:
+        raise ValueError(f"{resume} holds a checkpoint of step {committed}, newer than the run "
+                         f"folder's {own} ({ckpt}): not replaced (another chunk committed it); "
+                         "the run folder keeps its own.")
     os.makedirs(os.path.dirname(resume), exist_ok=True)
-    return _copy_checkpoint(ckpt, resume,
+    return checkpoints.copy_checkpoint(ckpt, resume,
                             [os.path.join(model_dir, run_dir.CONFIG_FILE), *_estimates(model_dir)],
                             max_bytes=file_parts.MAX_PART_BYTES)
 
@@ -261,7 +246,8 @@ def strip_optimizer(src: str, dst: str) -> None:
 
 
 def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
-              printer=print, commit: str | None = None, part: str | None = None) -> dict:
+              printer=print, commit: str | None = None, part: str | None = None,
+              step_back: bool = False) -> dict:
     """One chunk of ``cfg``'s run: resume from the newest checkpoint (``cfg.model_dir``'s or the
     one committed under ``root``), train until ``time_limit_s`` or a SIGTERM (:func:`stnh_tf.training.loop.train`
     stops within one step and saves that step's checkpoint), then commit the checkpoint back under ``root``, or, once the
@@ -275,12 +261,19 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
     whatever its run folder) from its first check to its ledger row: two chunks of one
     repository folder would train from the same checkpoint, and one of them be lost. Before
     anything is copied or trained, the ledger is read and checked (:func:`read_ledger`), after
-    the check that the stage is not finished.
+    the check that the stage is not finished; before training, the step it starts from is
+    compared with the ledger's last row of the part: below it (the checkpoint of recorded steps
+    missing) the chunk is refused unless ``step_back``. Where training raises after a
+    checkpoint past the start, that checkpoint and a row with the error are committed before
+    the error goes on; a run folder holding the finished run (a chunk stopped while finishing
+    it) is finished without training.
 
     Raises:
       FileExistsError: the stage is finished (``stage<k>.keras`` under ``root``), or another
         chunk holds ``root``'s lock: nothing is trained or written. ``ValueError``: the ledger
-        is broken (:func:`read_ledger`), before anything is copied or trained; as :func:`sync_in`
+        is broken (:func:`read_ledger`), before anything is copied or trained; the chunk would
+        start below the ledger's last step of the part (without ``step_back``), before training;
+        as :func:`sync_in`
         (before anything is copied) and :func:`stnh_tf.training.loop.train`; a bad ``part``
         (:func:`part_name`). ``NotADirectoryError`` / ``OSError``: as :func:`sync_in` and
         :func:`stnh_tf.training.loop.train`.
@@ -299,42 +292,87 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
         except ValueError as e:
             raise ValueError(f"{e} No chunk was started: mend it first (git checkout), so that "
                              "the chunk's row can be added.") from None
-        return _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part)
+        return _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part,
+                          step_back)
 
 
-def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part) -> dict:
+def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step_back) -> dict:
     """:func:`run_chunk`'s chunk, under ``root``'s lock, of the checked part ``key``."""
     import keras
 
     from stnh_tf.training import loop
 
-    finished = finished_model(root, key)
-    resume = resume_dir(root, key)
+    finished, resume, name = finished_model(root, key), resume_dir(root, key), part_name(key)
     copied = sync_in(resume, cfg.model_dir, cfg)
     if copied is not None:
         printer(f"resuming from the committed checkpoint at step {copied} ({resume})")
-    start_step = max(_step(os.path.join(cfg.model_dir, run_dir.CHECKPOINT_DIR)), 0)
+    ckpt = os.path.join(cfg.model_dir, run_dir.CHECKPOINT_DIR)
+    start_step = max(_step(ckpt), 0)
+    recorded = recorded_step(read_ledger(root), name)
+    if recorded is not None and start_step < recorded and not step_back:
+        raise ValueError(
+            f"the ledger's last row of {name} ends at step {recorded}, but the newest checkpoint "
+            f"({resume}, {ckpt}) is of step {start_step}: the steps between are not here. Nothing "
+            f"was trained: put the committed checkpoint back (git checkout {resume}), or pass "
+            f"--step_back to train on from step {start_step} (those rows are then superseded).")
+    if recorded is not None and start_step > recorded:
+        printer(f"the run folder's checkpoint of step {start_step} is past the ledger's last row "
+                f"({recorded}: a chunk that ended without its row); going on from it")
+
     t0 = time.time()
-    result = loop.train(cfg, printer=printer, time_limit_s=time_limit_s)
+
+    def row(to_step, done, wall_this_run, **extra):
+        return {"stage": cfg.stage, **({"part": name} if part is not None else {}),
+                "from_step": start_step, "to_step": to_step, "done": bool(done),
+                "device": device, "backend": keras.backend.backend(),
+                "steps_per_s": round((to_step - start_step) / max(wall_this_run, 1e-9), 3),
+                "wall_s": round(time.time() - t0, 1), "date": datetime.date.today().isoformat(),
+                **({"commit": commit} if commit else {}), "machine": machine_info(), **extra}
+
     final = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
+    if os.path.exists(final) and start_step >= cfg.train_steps:
+        # a chunk that trained to the end was stopped before it finished the part
+        printer(f"{final} is the finished run (step {start_step}): finishing it, no training")
+        result = {"final_step": start_step, "wall_s_this_run": 0.0,
+                  "note": "finished a run trained to its end by a chunk stopped before its row"}
+    else:
+        try:
+            result = loop.train(cfg, printer=printer, time_limit_s=time_limit_s)
+        except BaseException as e:  # what it trained is committed all the same
+            error = f"{type(e).__name__}: {e}"[:300]
+            _commit_stopped(cfg.model_dir, resume, root, start_step, printer,
+                            lambda step: row(step, False, time.time() - t0, error=error))
+            raise
     done = result["final_step"] >= cfg.train_steps and os.path.exists(final)
     if done:
         strip_optimizer(final, finished)
     else:
         sync_out(cfg.model_dir, resume)
-    steps = result["final_step"] - start_step
-    row = {"stage": cfg.stage, **({"part": part_name(part)} if part is not None else {}),
-           "from_step": start_step, "to_step": result["final_step"],
-           "done": bool(done), "device": device, "backend": keras.backend.backend(),
-           "steps_per_s": round(steps / max(result["wall_s_this_run"], 1e-9), 3),
-           "wall_s": round(time.time() - t0, 1), "date": datetime.date.today().isoformat(),
-           **({"commit": commit} if commit else {}), "machine": machine_info()}
-    add_ledger_row(root, row)
+    out = row(result["final_step"], done, result["wall_s_this_run"],
+              **({"note": result["note"]} if "note" in result else {}))
+    add_ledger_row(root, out)
     if done:
         stage_record(root, key,
                      run_dir.read_run_config(os.path.join(cfg.model_dir, run_dir.CONFIG_FILE)))
         shutil.rmtree(resume, ignore_errors=True)
-    return row
+    return out
+
+
+def _commit_stopped(model_dir, resume, root, start_step, printer, make_row) -> None:
+    """Where a chunk's training raised after it saved a checkpoint past ``start_step``: commit
+    that checkpoint (:func:`sync_out`) and its ledger row (``make_row(step)``, with the error),
+    so that the steps trained are not lost with the run folder. A failure here is printed, not
+    raised (the training's error is the one that counts)."""
+    try:
+        step = _step(os.path.join(model_dir, run_dir.CHECKPOINT_DIR))
+        if step > start_step:
+            sync_out(model_dir, resume)
+            add_ledger_row(root, make_row(step))
+            printer(f"training stopped by an error: its checkpoint of step {step} is committed "
+                    f"in {resume} with its ledger row")
+    except Exception as e:  # noqa: BLE001
+        printer(f"training stopped by an error, and its checkpoint could not be committed "
+                f"({type(e).__name__}: {e}); it stays in {model_dir}")
 
 
 MIN_NEXT_STAGE_S = 120.0
@@ -344,14 +382,15 @@ pairs are first re-made from the finished stages' predictions)."""
 
 def run_stages(make_config, first: int, last: int, root: str, time_limit_s: float, device: str,
                printer=print, commit: str | None = None,
-               min_next_s: float = MIN_NEXT_STAGE_S, clock=time.monotonic) -> list:
+               min_next_s: float = MIN_NEXT_STAGE_S, clock=time.monotonic,
+               step_back: bool = False) -> list:
     """:func:`run_chunk` of stage ``first`` (``make_config(k)``: stage k's configuration), then,
     where that chunk finished its stage and ``last`` is further on, the next stage's chunk in the
     time left, and so on: a stage's leftover minutes are spent on the next one. With
     ``time_limit_s`` 0 (no limit) each stage trains to its end. Returns the chunks' ledger rows.
 
     A stage is not started with less than ``min_next_s`` of ``time_limit_s`` left (``clock``:
-    seconds, for the time spent).
+    seconds, for the time spent). ``step_back``: as in :func:`run_chunk`.
 
     Raises:
       ValueError: ``first`` > ``last``. Otherwise as :func:`run_chunk`.
@@ -369,74 +408,6 @@ def run_stages(make_config, first: int, last: int, root: str, time_limit_s: floa
         if rows:
             printer(f"stage {stage - 1} is finished; stage {stage} in the {left:.0f} s left"
                     if time_limit_s else f"stage {stage - 1} is finished; stage {stage} next")
-        rows.append(run_chunk(make_config(stage), root, left, device, printer, commit))
+        rows.append(run_chunk(make_config(stage), root, left, device, printer, commit,
+                              step_back=step_back))
     return rows
-
-
-LEDGER_FIELDS = ("stage", "from_step", "to_step", "device", "backend", "steps_per_s", "wall_s",
-                 "date")
-"""What every ledger row holds (:func:`ledger_table` shows them, :func:`stage_record` sums
-them)."""
-
-
-def read_ledger(root: str) -> list:
-    """``root``'s ledger, a list of rows (``[]`` where it has none yet).
-
-    Raises:
-      ValueError: naming the file, where it is not valid JSON, not a list of JSON objects, or a
-        row lacks one of :data:`LEDGER_FIELDS`.
-    """
-    path = os.path.join(root, LEDGER_FILE)
-    if not os.path.exists(path):
-        return []
-    ledger = read_json(path, "ledger")
-    if not isinstance(ledger, list):
-        raise ValueError(f"ledger {path!r} holds a JSON {type(ledger).__name__}, not a list of "
-                         "rows.")
-    for i, row in enumerate(ledger):
-        missing = [k for k in LEDGER_FIELDS if not isinstance(row, dict) or k not in row]
-        if missing:
-            raise ValueError(f"ledger {path!r}: its row {i} is not a chunk's row (it lacks "
-                             f"{missing}).")
-    return ledger
-
-
-def add_ledger_row(root: str, row: dict) -> list:
-    """Append ``row`` to ``root``'s ledger (:func:`read_ledger`); returns the ledger."""
-    ledger = read_ledger(root)
-    ledger.append(row)
-    atomic_write_json(os.path.join(root, LEDGER_FILE), ledger)
-    return ledger
-
-
-def ledger_table(ledger: list) -> str:
-    """The ledger as a Markdown table (stage, steps, machine, backend, steps/s, minutes, date;
-    a part other than a hierarchical stage shows its name in the stage column)."""
-    lines = ["| stage | steps | machine | backend | steps/s | minutes | date |",
-             "|---|---|---|---|---|---|---|"]
-    for r in ledger:
-        lines.append(f"| {r.get('part', r['stage'])} | {r['from_step']} -> {r['to_step']} | "
-                     f"{r['device']} | "
-                     f"{r['backend']} | {r['steps_per_s']:.2f} | {r['wall_s'] / 60:.0f} | "
-                     f"{r['date']} |")
-    return "\n".join(lines)
-
-
-def write_ledger_table(root: str, doc: str) -> bool:
-    """Rewrite the block between :data:`LEDGER_START` and :data:`LEDGER_END` in the Markdown file
-    ``doc`` with :func:`ledger_table` of ``root``'s ledger. Returns whether it changed.
-
-    Raises:
-      ValueError: ``doc`` lacks the markers.
-    """
-    ledger = read_ledger(root)
-    with open(doc) as f:
-        text = f.read()
-    if LEDGER_START not in text or LEDGER_END not in text:
-        raise ValueError(f"{doc} has no {LEDGER_START} ... {LEDGER_END} block.")
-    head, rest = text.split(LEDGER_START, 1)
-    _, tail = rest.split(LEDGER_END, 1)
-    new = f"{head}{LEDGER_START}\n{ledger_table(ledger)}\n{LEDGER_END}{tail}"
-    if new != text:
-        atomic_write_text(doc, new)
-    return new != text

@@ -1,0 +1,148 @@
+"""The ledger of a chunked run's repository folder ``root`` (``root/ledger.json``): one row per
+chunk (part, steps, machine, steps/s, date), read and checked before a chunk trains, the rows a
+part's checkpoint is made of (:func:`chain`), and its Markdown table in the docs.
+
+A row holds :data:`LEDGER_FIELDS`; a part other than a hierarchical stage carries ``"part"``
+(:func:`part_name`); a chunk stopped by an error carries ``"error"`` (its checkpoint committed
+all the same: :func:`stnh_tf.training.chunks.run_chunk`).
+
+    >>> rows = [{"stage": 1, "from_step": 0, "to_step": 1399}, {"stage": 1, "from_step": 0,
+    ...         "to_step": 2322}, {"stage": 1, "from_step": 2322, "to_step": 4763}]
+    >>> [(r["from_step"], r["to_step"]) for r in chain(rows, "stage1")]
+    [(0, 2322), (2322, 4763)]
+    >>> ledger_table([{"stage": 1, "from_step": 0, "to_step": 500, "device": "2-core CPU",
+    ...                "backend": "tensorflow", "steps_per_s": 1.52, "wall_s": 400.0,
+    ...                "date": "2026-11-27"}]).splitlines()[2]
+    '| 1 | 0 -> 500 | 2-core CPU | tensorflow | 1.52 | 7 | 2026-11-27 |'
+"""
+
+from __future__ import annotations
+
+import os
+import re
+
+from stnh_tf.paths import atomic_write_json, atomic_write_text, read_json
+
+LEDGER_FILE = "ledger.json"
+LEDGER_START = "<!-- ledger:start -->"
+LEDGER_END = "<!-- ledger:end -->"
+
+
+def part_name(part: int | str) -> str:
+    """The name of a chunked run under ``root``: ``stage<k>`` for hierarchical stage ``k`` (an
+    int), else the part's own name (lower-case letters, digits, ``_``, ``-`` and ``.``).
+
+    >>> part_name(2), part_name("sequence2")
+    ('stage2', 'sequence2')
+
+    Raises:
+      ValueError: an empty name or one with other characters (it names files and folders).
+    """
+    if isinstance(part, int) and not isinstance(part, bool):
+        return f"stage{part}"
+    if not isinstance(part, str) or not re.fullmatch(r"[a-z0-9][a-z0-9_.-]*", part):
+        raise ValueError(f"a part is a stage number or a name of lower-case letters, digits, "
+                         f"'_', '-' and '.'; received {part!r}.")
+    return part
+
+
+def row_part(row: dict) -> str:
+    """The :func:`part_name` of a ledger row (its ``"part"``, else its stage's)."""
+    return row.get("part") or part_name(row["stage"])
+
+
+
+
+LEDGER_FIELDS = ("stage", "from_step", "to_step", "device", "backend", "steps_per_s", "wall_s",
+                 "date")
+"""What every ledger row holds (:func:`ledger_table` shows them,
+:func:`stnh_tf.training.chunks.stage_record` sums them)."""
+
+
+def read_ledger(root: str) -> list:
+    """``root``'s ledger, a list of rows (``[]`` where it has none yet).
+
+    Raises:
+      ValueError: naming the file, where it is not valid JSON, not a list of JSON objects, or a
+        row lacks one of :data:`LEDGER_FIELDS`.
+    """
+    path = os.path.join(root, LEDGER_FILE)
+    if not os.path.exists(path):
+        return []
+    ledger = read_json(path, "ledger")
+    if not isinstance(ledger, list):
+        raise ValueError(f"ledger {path!r} holds a JSON {type(ledger).__name__}, not a list of "
+                         "rows.")
+    for i, row in enumerate(ledger):
+        missing = [k for k in LEDGER_FIELDS if not isinstance(row, dict) or k not in row]
+        if missing:
+            raise ValueError(f"ledger {path!r}: its row {i} is not a chunk's row (it lacks "
+                             f"{missing}).")
+    return ledger
+
+
+def add_ledger_row(root: str, row: dict) -> list:
+    """Append ``row`` to ``root``'s ledger (:func:`read_ledger`); returns the ledger."""
+    ledger = read_ledger(root)
+    ledger.append(row)
+    atomic_write_json(os.path.join(root, LEDGER_FILE), ledger)
+    return ledger
+
+
+def ledger_table(ledger: list) -> str:
+    """The ledger as a Markdown table (stage, steps, machine, backend, steps/s, minutes, date;
+    a part other than a hierarchical stage shows its name in the stage column)."""
+    lines = ["| stage | steps | machine | backend | steps/s | minutes | date |",
+             "|---|---|---|---|---|---|---|"]
+    for r in ledger:
+        lines.append(f"| {r.get('part', r['stage'])} | {r['from_step']} -> {r['to_step']} | "
+                     f"{r['device']} | "
+                     f"{r['backend']} | {r['steps_per_s']:.2f} | {r['wall_s'] / 60:.0f} | "
+                     f"{r['date']} |")
+    return "\n".join(lines)
+
+
+def write_ledger_table(root: str, doc: str) -> bool:
+    """Rewrite the block between :data:`LEDGER_START` and :data:`LEDGER_END` in the Markdown file
+    ``doc`` with :func:`ledger_table` of ``root``'s ledger. Returns whether it changed.
+
+    Raises:
+      ValueError: ``doc`` lacks the markers.
+    """
+    ledger = read_ledger(root)
+    with open(doc) as f:
+        text = f.read()
+    if LEDGER_START not in text or LEDGER_END not in text:
+        raise ValueError(f"{doc} has no {LEDGER_START} ... {LEDGER_END} block.")
+    head, rest = text.split(LEDGER_START, 1)
+    _, tail = rest.split(LEDGER_END, 1)
+    new = f"{head}{LEDGER_START}\n{ledger_table(ledger)}\n{LEDGER_END}{tail}"
+    if new != text:
+        atomic_write_text(doc, new)
+    return new != text
+
+
+def chain(rows: list, part: str) -> list:
+    """The rows of ``part`` (a :func:`part_name`) whose chunks its newest checkpoint is made of,
+    in order: its last row, and back from it each time the latest earlier row that ended at or
+    before the step the later one started from (before it: a chunk that ended without its row),
+    to a row from step 0. The rest of the part's rows are superseded: a chunk whose checkpoint
+    was lost (never committed), trained again from an earlier step."""
+    mine = [r for r in rows if row_part(r) == part]
+    if not mine:
+        return []
+    kept, end = [mine[-1]], len(mine) - 1
+    while kept[0]["from_step"] > 0:
+        earlier = [i for i in range(end) if mine[i]["to_step"] <= kept[0]["from_step"]]
+        if not earlier:
+            break
+        end = earlier[-1]
+        kept.insert(0, mine[end])
+    return kept
+
+
+def recorded_step(rows: list, part: str) -> int | None:
+    """The step the ledger last recorded for ``part`` (its last row's ``to_step``; ``None``:
+    no row): where the part's next chunk must start."""
+    mine = [r for r in rows if row_part(r) == part]
+    return mine[-1]["to_step"] if mine else None

@@ -1,0 +1,244 @@
+"""A hostile round on the paper schedule's chunks (issue 77 item 2, continued): what a chunk
+writes is never lost and a chunk never starts from the wrong state, whatever stops it. Each test
+failed on the code before its fix. Training is :func:`test_faults._fake_train` (a checkpoint 2
+steps on from the one there, as ``loop.train`` leaves one); references are the files' bytes and
+the ledger's JSON."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+
+import pytest
+
+from stnh_tf.training import checkpoints, chunks, file_parts
+from stnh_tf.training import ledger as ledger_lib
+from stnh_tf.training import loop as training
+from test_faults import QUIET, _config_json, _fake_checkpoint, _fake_train, _files, _train_cfg
+
+
+def _row(from_step, to_step, part="sequence2", **extra):
+    return {"stage": 1, "part": part, "from_step": from_step, "to_step": to_step,
+            "done": False, "device": "cpu", "backend": "tensorflow", "steps_per_s": 0.3,
+            "wall_s": 100.0 * (to_step - from_step), "date": "2026-12-06", **extra}
+
+
+def _committed(root, cfg, step, part="sequence2"):
+    """``root/resume/<part>`` holding a checkpoint of ``step`` of ``cfg``'s run, as sync_out
+    leaves it."""
+    resume = root / "resume" / part
+    _fake_checkpoint(resume, step)
+    (resume / "config.json").write_text(_config_json(cfg))
+    return resume
+
+
+def _commit_over(tmp_path, committed, own):
+    """``(run, resume, cfg)``: a run folder at step ``own`` and stage 1's committed checkpoint
+    at step ``committed``, of one run."""
+    run, resume = tmp_path / "run", tmp_path / "repo" / "resume" / "stage1"
+    cfg = _train_cfg("d", run, train_steps=100)
+    _committed(tmp_path / "repo", cfg, committed, part="stage1")
+    _fake_checkpoint(run / "checkpoint", own)
+    (run / "config.json").write_text(_config_json(cfg))
+    return run, resume, cfg
+
+
+def test_a_chunk_does_not_start_below_the_step_the_ledger_recorded(tmp_path, monkeypatch):
+    """The ledger's last row of a part ends at step 4, but its committed checkpoint is gone (a
+    deletion committed, a checkout gone wrong) and the run folder is fresh: the chunk trained
+    from step 0, committed that, and its row forked the ledger. Refused in one line naming both
+    steps and the way back, before anything is trained or written; with ``step_back`` it trains
+    on from step 0 (the rows past it then superseded: :func:`ledger.chain`). A run folder ahead
+    of the ledger (a chunk that ended without its row) goes on from it, said in one line."""
+    root, calls = tmp_path / "repo", []
+    root.mkdir()
+    (root / "ledger.json").write_text(json.dumps([_row(0, 2), _row(2, 4)]))
+    monkeypatch.setattr(training, "train", _fake_train(calls))
+    cfg = _train_cfg("d", tmp_path / "run", train_steps=100)
+    before = _files(root)
+    with pytest.raises(ValueError) as refused:
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    message = str(refused.value)
+    assert "ends at step 4" in message and "of step 0" in message and "\n" not in message
+    assert "--step_back" in message and str(root / "resume" / "sequence2") in message
+    assert calls == [] and _files(root) == before
+    row = chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2",
+                           step_back=True)
+    assert (row["from_step"], row["to_step"]) == (0, 2)
+    rows = ledger_lib.read_ledger(str(root))
+    assert [(r["from_step"], r["to_step"]) for r in ledger_lib.chain(rows, "sequence2")] == [
+        (0, 2)]
+    # a run folder ahead of the ledger: its checkpoint of step 8, the ledger's last row at 2
+    _fake_checkpoint(tmp_path / "run" / "checkpoint", 8)
+    lines = []
+    row = chunks.run_chunk(cfg, str(root), 0, "here", printer=lines.append, part="sequence2")
+    assert (row["from_step"], row["to_step"]) == (8, 10)
+    assert any("of step 8 is past the ledger's last row (2" in line for line in lines), lines
+
+
+def test_committed_weights_in_parts_without_their_state_are_refused(tmp_path):
+    """A committed checkpoint kept in parts whose state.json is lost was taken for no
+    checkpoint (its step read from whole files' names only): the chunk trained from step 0.
+    Refused in one line naming the folder, the run folder kept byte for byte."""
+    import h5py
+    import numpy as np
+
+    run, resume = tmp_path / "run", tmp_path / "repo" / "resume" / "sequence2"
+    cfg = _train_cfg("d", run, train_steps=100)
+    (run / "checkpoint").mkdir(parents=True)
+    (run / "config.json").write_text(_config_json(cfg))
+    name = "ckpt-00000006.weights.h5"
+    with h5py.File(run / "checkpoint" / name, "w") as f:  # 1.2 MB, in parts of 0.5 MB
+        f["layers/dense/vars/0"] = np.random.default_rng(0).random((300_000,), np.float32)
+        f["optimizer/vars/0"] = np.int64(6)
+    (run / "checkpoint" / "state.json").write_text(json.dumps({"step": 6, "weights": name}))
+    resume.mkdir(parents=True)
+    file_parts.write_parts(str(run / "checkpoint" / name), str(resume / name), 500_000)
+    (resume / "config.json").write_text(_config_json(cfg))
+    fresh = tmp_path / "fresh"
+    with pytest.raises(ValueError) as refused:
+        chunks.sync_in(str(resume), str(fresh), cfg)  # before: None, and training from 0
+    message = str(refused.value)
+    assert str(resume) in message and "state.json" in message and "\n" not in message
+    assert not fresh.exists()
+
+
+def test_a_committed_checkpoint_without_its_config_is_refused(tmp_path):
+    """A committed checkpoint without its config.json was taken as of this run, unchecked: into
+    a run folder with a checkpoint, copied over it; into a fresh one, the copy failed half-way.
+    Refused in one line naming the folder and the file, nothing copied."""
+    run, resume = tmp_path / "run", tmp_path / "repo" / "resume" / "stage1"
+    cfg = _train_cfg("d", run, train_steps=100)
+    _fake_checkpoint(run / "checkpoint", 2)
+    (run / "config.json").write_text(_config_json(cfg))
+    _fake_checkpoint(resume, 4)
+    for folder in (run, tmp_path / "fresh"):
+        before = _files(folder) if folder.exists() else None
+        with pytest.raises(ValueError) as refused:
+            chunks.sync_in(str(resume), str(folder), cfg)  # before: 4, copied unchecked
+        message = str(refused.value)
+        assert str(resume) in message and "config.json" in message and "\n" not in message
+        assert (_files(folder) if folder.exists() else None) == before
+
+
+def test_an_error_in_training_commits_what_the_chunk_trained(tmp_path, monkeypatch):
+    """An error inside training (a full disk, a crashed pair worker, memory) after the chunk had
+    saved checkpoints lost the chunk: nothing committed, no row, the steps only in the run
+    folder outside the repository. The checkpoint it reached is committed and a row with the
+    error added; the error still goes on (the chunk failed)."""
+    root, calls = tmp_path / "repo", []
+    train = _fake_train(calls)
+    cfg = _train_cfg("d", tmp_path / "run", train_steps=100)
+    _committed(root, cfg, 4)
+    (root / "ledger.json").write_text(json.dumps([_row(0, 4)]))
+
+    def failing(cfg, **kw):  # trains 2 steps (their checkpoint saved), then the disk is full
+        train(cfg, **kw)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(training, "train", failing)
+    with pytest.raises(OSError, match="No space left"):
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    state = json.loads((root / "resume" / "sequence2" / "state.json").read_text())
+    assert state["step"] == 6  # before: 4
+    rows = ledger_lib.read_ledger(str(root))
+    assert (rows[-1]["from_step"], rows[-1]["to_step"]) == (4, 6)  # before: no row
+    assert "No space left" in rows[-1]["error"] and not rows[-1]["done"]
+    # the next chunk goes on from there
+    monkeypatch.setattr(training, "train", train)
+    fresh = _train_cfg("d", tmp_path / "run2", train_steps=100)
+    row = chunks.run_chunk(fresh, str(root), 0, "here", printer=QUIET, part="sequence2")
+    assert (row["from_step"], row["to_step"]) == (6, 8)
+
+
+def test_a_commit_cut_short_leaves_the_committed_checkpoint_whole(tmp_path, monkeypatch):
+    """sync_out renamed the committed folder away, then the new one into its place: a kill in
+    between left no resume/<part> (the new checkpoint in a .tmp- folder nothing reads), and a
+    stale .old-<pid> folder broke a later commit. It now updates the folder in place, state.json
+    last: cut short at any write, the folder still holds the old step complete (sync_in reads
+    it back bit for bit), and the next sync_out completes, leaving no stray file."""
+    run, resume, cfg = _commit_over(tmp_path, committed=2, own=4)
+    old = _files(resume)
+    write_json, replace = checkpoints.atomic_write_json, os.replace
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    def replace_but_weights(src, dst):  # killed as the new weights are renamed into place
+        if ".weights.h5" in os.path.basename(dst):
+            raise KeyboardInterrupt
+        return replace(src, dst)
+
+    for where in ("state", "weights"):
+        if where == "state":  # killed as the new state.json is written
+            monkeypatch.setattr(checkpoints, "atomic_write_json", interrupted)
+        else:
+            monkeypatch.setattr(checkpoints.os, "replace", replace_but_weights)
+        with pytest.raises(KeyboardInterrupt):
+            chunks.sync_out(str(run), str(resume))
+        monkeypatch.setattr(checkpoints, "atomic_write_json", write_json)
+        monkeypatch.setattr(checkpoints.os, "replace", replace)
+        state = json.loads((resume / "state.json").read_text())
+        assert state["step"] == 2, where  # before: resume/stage1 gone
+        back = tmp_path / f"back_{where}"
+        assert chunks.sync_in(str(resume), str(back), cfg) == 2
+        assert (back / "checkpoint" / state["weights"]).read_bytes() == old[state["weights"]]
+    assert chunks.sync_out(str(run), str(resume)) == 4
+    assert sorted(_files(resume)) == ["ckpt-00000004.weights.h5", "config.json", "state.json"]
+    assert not list((tmp_path / "repo" / "resume").glob("stage1.*"))
+
+
+def test_a_commit_never_replaces_a_newer_committed_checkpoint(tmp_path):
+    """Another chunk (on a GPU machine, its resume/ copied back) committed step 10 while this
+    one trained from 2 to 4: sync_out replaced step 10 by step 4, the ledger's row to 10 left
+    without its checkpoint. Refused in one line naming both steps; nothing replaced."""
+    run, resume, cfg = _commit_over(tmp_path, committed=10, own=4)
+    before = _files(resume)
+    with pytest.raises(ValueError) as refused:
+        chunks.sync_out(str(run), str(resume))
+    message = str(refused.value)
+    assert "step 10" in message and " 4 " in message and "\n" not in message, message
+    assert _files(resume) == before
+
+
+def test_the_record_of_a_part_leaves_out_the_chunks_trained_again(tmp_path):
+    """A part's record (stage<k>.json / <part>.json, what its model card lists) summed every row
+    of the part, also a chunk whose checkpoint was never committed and whose steps were
+    trained again (the sequence model's 0 -> 1,399). It lists the rows its model is made of
+    (:func:`ledger.chain`: back from the last, each the latest row ending where the later one
+    began, a gap where a chunk ended without its row) and the others apart, unsummed."""
+    root = tmp_path / "repo"
+    root.mkdir()
+    rows = [_row(0, 1399), _row(0, 2322), _row(0, 500, part="stage3"), _row(2322, 4763),
+            _row(5000, 6000, done=True)]
+    (root / "ledger.json").write_text(json.dumps(rows))
+    record = chunks.stage_record(str(root), "sequence2", {"samples_per_image": 3})
+    assert [(r["from_step"], r["to_step"]) for r in record["chunks"]] == [
+        (0, 2322), (2322, 4763), (5000, 6000)]
+    assert [(r["from_step"], r["to_step"]) for r in record["superseded_chunks"]] == [(0, 1399)]
+    assert record["wall_s"] == 100.0 * (2322 + 2441 + 1000) and record["final_step"] == 6000
+    assert json.loads((root / "sequence2.json").read_text()) == record
+
+
+def test_a_part_stopped_while_finishing_is_finished_by_the_next_call(tmp_path, monkeypatch):
+    """A chunk that trained to the end and was stopped before it finished the part (the model
+    saved in the run folder, stage<k>.keras not yet written: a kill while writing it) could not
+    be finished: the re-run refused the run folder's finished model ("pass --overwrite",
+    which paper_schedule does not have, and train_stage's would delete the run). The next call
+    finishes it without training: the model kept, its row and record written, resume/ removed."""
+    root, calls = tmp_path / "repo", []
+    cfg = _train_cfg("d", tmp_path / "run", train_steps=6)
+    _committed(root, cfg, 4)
+    (root / "ledger.json").write_text(json.dumps([_row(0, 4)]))
+    _fake_checkpoint(tmp_path / "run" / "checkpoint", 6)
+    (tmp_path / "run" / "config.json").write_text(_config_json(cfg))
+    (tmp_path / "run" / "model.keras").write_bytes(b"the finished model")
+    monkeypatch.setattr(training, "train", _fake_train(calls))
+    monkeypatch.setattr(chunks, "strip_optimizer",
+                        lambda src, dst: open(dst, "wb").write(open(src, "rb").read()))
+    row = chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    assert calls == [] and row["done"] and row["to_step"] == 6
+    assert (root / "sequence2.keras").read_bytes() == b"the finished model"
+    assert json.loads((root / "sequence2.json").read_text())["final_step"] == 6
+    assert not (root / "resume" / "sequence2").exists()
