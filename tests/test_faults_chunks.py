@@ -242,3 +242,31 @@ def test_a_part_stopped_while_finishing_is_finished_by_the_next_call(tmp_path, m
     assert (root / "sequence2.keras").read_bytes() == b"the finished model"
     assert json.loads((root / "sequence2.json").read_text())["final_step"] == 6
     assert not (root / "resume" / "sequence2").exists()
+
+
+def test_a_sigterm_during_the_commit_acts_once_it_is_written(tmp_path, monkeypatch):
+    """A SIGTERM (what `timeout` sends at a GPU command's limit) or Ctrl-C after training ended,
+    while the chunk committed its checkpoint and row, cut them short: the signal's default
+    handler ended the process with the steps uncommitted. It now waits for the commit: the
+    handler in place runs once the row is in the ledger (here a test handler that reads the
+    ledger; before, it ran with the row missing)."""
+    import signal
+
+    root, calls = tmp_path / "repo", []
+    monkeypatch.setattr(training, "train", _fake_train(calls))
+    sync_out, seen = chunks.sync_out, []
+
+    def killed_while_committing(model_dir, resume):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return sync_out(model_dir, resume)
+
+    monkeypatch.setattr(chunks, "sync_out", killed_while_committing)
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: seen.append(
+        len(ledger_lib.read_ledger(str(root)))))
+    try:
+        row = chunks.run_chunk(_train_cfg("d", tmp_path / "run", train_steps=100), str(root), 0,
+                               "here", printer=QUIET)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert seen == [1] and row["to_step"] == 2  # the handler ran once, after the row
+    assert json.loads((root / "resume" / "stage1" / "state.json").read_text())["step"] == 2

@@ -246,3 +246,29 @@ def stop_on_signals(limit: TimeLimit | None, signals=(signal.SIGTERM,)):
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
+
+
+@contextlib.contextmanager
+def deferred_signals(signals=(signal.SIGTERM, signal.SIGINT)):
+    """While inside, ``signals`` wait: one that arrives is delivered again (to the handler that
+    was in place) when the block is left, so that a few seconds of writes that must not be cut
+    (a chunk's commit and ledger row: :func:`stnh_tf.training.chunks.run_chunk`) finish first.
+    Does nothing outside the main thread (where Python cannot handle signals).
+
+        >>> with deferred_signals():
+        ...     pass   # sync_out(...); add_ledger_row(...)
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) or signal.SIG_DFL for sig in signals}
+    received = []
+    try:
+        for sig in signals:
+            signal.signal(sig, lambda signum, frame: received.append(signum))
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+        for signum in dict.fromkeys(received):  # each once, in the order they came
+            os.kill(os.getpid(), signum)

@@ -45,6 +45,7 @@ import time
 from stnh_tf.paths import atomic_write_json, inside, stage_record_path
 from stnh_tf.provenance import machine_info
 from stnh_tf.training import checkpoints, file_parts, run_dir
+from stnh_tf.training.callbacks import deferred_signals
 from stnh_tf.training.config import TrainConfig
 from stnh_tf.training.ledger import (add_ledger_row, chain, part_name, read_ledger,
                                      recorded_step, row_part)
@@ -266,7 +267,8 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
     missing) the chunk is refused unless ``step_back``. Where training raises after a
     checkpoint past the start, that checkpoint and a row with the error are committed before
     the error goes on; a run folder holding the finished run (a chunk stopped while finishing
-    it) is finished without training.
+    it) is finished without training. A SIGTERM or Ctrl-C while the chunk commits its checkpoint
+    and row acts once they are written (:func:`~stnh_tf.training.callbacks.deferred_signals`).
 
     Raises:
       FileExistsError: the stage is finished (``stage<k>.keras`` under ``root``), or another
@@ -344,17 +346,18 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
                             lambda step: row(step, False, time.time() - t0, error=error))
             raise
     done = result["final_step"] >= cfg.train_steps and os.path.exists(final)
-    if done:
-        strip_optimizer(final, finished)
-    else:
-        sync_out(cfg.model_dir, resume)
-    out = row(result["final_step"], done, result["wall_s_this_run"],
-              **({"note": result["note"]} if "note" in result else {}))
-    add_ledger_row(root, out)
-    if done:
-        stage_record(root, key,
-                     run_dir.read_run_config(os.path.join(cfg.model_dir, run_dir.CONFIG_FILE)))
-        shutil.rmtree(resume, ignore_errors=True)
+    with deferred_signals():  # a SIGTERM or Ctrl-C now acts once the commit is written
+        if done:
+            strip_optimizer(final, finished)
+        else:
+            sync_out(cfg.model_dir, resume)
+        out = row(result["final_step"], done, result["wall_s_this_run"],
+                  **({"note": result["note"]} if "note" in result else {}))
+        add_ledger_row(root, out)
+        if done:
+            stage_record(root, key, run_dir.read_run_config(
+                os.path.join(cfg.model_dir, run_dir.CONFIG_FILE)))
+            shutil.rmtree(resume, ignore_errors=True)
     return out
 
 
@@ -366,8 +369,9 @@ def _commit_stopped(model_dir, resume, root, start_step, printer, make_row) -> N
     try:
         step = _step(os.path.join(model_dir, run_dir.CHECKPOINT_DIR))
         if step > start_step:
-            sync_out(model_dir, resume)
-            add_ledger_row(root, make_row(step))
+            with deferred_signals():
+                sync_out(model_dir, resume)
+                add_ledger_row(root, make_row(step))
             printer(f"training stopped by an error: its checkpoint of step {step} is committed "
                     f"in {resume} with its ledger row")
     except Exception as e:  # noqa: BLE001
