@@ -270,3 +270,46 @@ def test_a_sigterm_during_the_commit_acts_once_it_is_written(tmp_path, monkeypat
         signal.signal(signal.SIGTERM, previous)
     assert seen == [1] and row["to_step"] == 2  # the handler ran once, after the row
     assert json.loads((root / "resume" / "stage1" / "state.json").read_text())["step"] == 2
+
+
+def test_a_chunk_on_other_photographs_is_refused(tmp_path, monkeypatch):
+    """The photograph folders are not part of a run's identity (a checkout or a machine may keep
+    them anywhere), so a chunk on a machine whose copy differed (a partial copy, a file added)
+    trained on from the same step with another pair stream, silently, and the part's record
+    counted only the last machine's photographs. Each chunk's row now records the photographs
+    (count and sha256 of their ids and sizes, relative to the folders given: the same at any
+    path), and a chunk whose photographs differ from the part's last row's is refused in one
+    line, before training; the same photographs at another path train on."""
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    photos, val = tmp_path / "photos", tmp_path / "val"
+    for folder, n in ((photos, 3), (val, 2)):
+        folder.mkdir()
+        for i in range(n):
+            cv2.imwrite(str(folder / f"{i}.png"), np.full((24, 32), 40 * i, np.uint8))
+    root, calls = tmp_path / "repo", []
+    monkeypatch.setattr(training, "train", _fake_train(calls))
+
+    def cfg(train=photos, run="run"):
+        return _train_cfg("", tmp_path / run, train_steps=100, image_dir=str(train),
+                          val_image_dir=str(val))
+
+    first = chunks.run_chunk(cfg(), str(root), 0, "here", printer=QUIET)
+    assert first["photographs"]["train"]["count"] == 3
+    assert first["photographs"]["val"]["count"] == 2
+    cv2.imwrite(str(photos / "3.png"), np.zeros((24, 32), np.uint8))  # a photograph added
+    before = _files(root)
+    with pytest.raises(ValueError) as refused:
+        chunks.run_chunk(cfg(), str(root), 0, "here", printer=QUIET)  # before: trained on
+    message = str(refused.value)
+    assert str(photos) in message and "\n" not in message and "'count': 4" in message, message
+    assert len(calls) == 1 and _files(root) == before
+    (photos / "3.png").unlink()
+    moved = tmp_path / "elsewhere" / "photos"
+    shutil.copytree(photos, moved)
+    row = chunks.run_chunk(cfg(moved, "run2"), str(root), 0, "here", printer=QUIET)
+    assert (row["from_step"], row["to_step"]) == (2, 4)
+    assert row["photographs"] == first["photographs"]

@@ -120,6 +120,33 @@ def _whole_weights(resume: str, state: dict | None, tmp: str) -> str:
     return tmp
 
 
+def photographs(cfg: TrainConfig) -> dict | None:
+    """What identifies the photographs a run of ``cfg`` trains and validates on, wherever their
+    folders are: ``{"train": ..., "val": ...}``, each ``{"count": N, "sha256": ...}`` over the
+    image ids and sizes of :func:`stnh_tf.data.sources.scan_image_folders`' listing (relative to
+    the folders given); ``None`` for a run without ``image_dir`` (TFRecords), or where a folder
+    cannot be listed here (the run's own check then names it)."""
+    import hashlib
+
+    from stnh_tf.data import sources
+
+    if not cfg.image_dir:
+        return None
+    out = {}
+    for key, folders, most in (("train", cfg.image_dir, cfg.max_images),
+                               ("val", cfg.val_image_dir, 0)):
+        if not folders:
+            continue
+        try:
+            listing = sources.scan_image_folders(folders, most)
+            digest = hashlib.sha256("".join(
+                f"{listing.image_id(p)}\t{os.path.getsize(p)}\n" for p in listing.files).encode())
+        except (OSError, ValueError):  # (SourceError is a ValueError)
+            return None
+        out[key] = {"count": len(listing.files), "sha256": digest.hexdigest()}
+    return out
+
+
 def _estimates(folder: str) -> list:
     """The saved stage estimates (:data:`stnh_tf.training.run_dir.ESTIMATES_FILES`) in
     ``folder``."""
@@ -321,6 +348,15 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
         printer(f"the run folder's checkpoint of step {start_step} is past the ledger's last row "
                 f"({recorded}: a chunk that ended without its row); going on from it")
 
+    seen = photographs(cfg)
+    earlier = [r["photographs"] for r in read_ledger(root)
+               if row_part(r) == name and r.get("photographs")]
+    if seen and earlier and earlier[-1] != seen:
+        raise ValueError(
+            f"the photographs of {cfg.image_dir!r} and {cfg.val_image_dir!r} are not those the "
+            f"last chunk of {name} trained and validated on ({seen} here, {earlier[-1]} in the "
+            "ledger): nothing was trained; point --image_dir and --val_image_dir at the same "
+            "photographs (their pairs would come in another order).")
     t0 = time.time()
 
     def row(to_step, done, wall_this_run, **extra):
@@ -329,7 +365,8 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
                 "device": device, "backend": keras.backend.backend(),
                 "steps_per_s": round((to_step - start_step) / max(wall_this_run, 1e-9), 3),
                 "wall_s": round(time.time() - t0, 1), "date": datetime.date.today().isoformat(),
-                **({"commit": commit} if commit else {}), "machine": machine_info(), **extra}
+                **({"commit": commit} if commit else {}), "machine": machine_info(),
+                **({"photographs": seen} if seen else {}), **extra}
 
     final = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
     if os.path.exists(final) and start_step >= cfg.train_steps:
