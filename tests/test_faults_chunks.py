@@ -102,6 +102,12 @@ def test_committed_weights_in_parts_without_their_state_are_refused(tmp_path):
     message = str(refused.value)
     assert str(resume) in message and "state.json" in message and "\n" not in message
     assert not fresh.exists()
+    # parts without their manifest either: a first commit cut short (the manifest and
+    # state.json come last), nothing committed, not a checkpoint; the next commit replaces them
+    (resume / f"{name}.parts.json").unlink()
+    assert chunks.sync_in(str(resume), str(fresh), cfg) is None
+    assert chunks.sync_out(str(run), str(resume)) == 6
+    assert chunks.sync_in(str(resume), str(tmp_path / "fresh2"), cfg) == 6
 
 
 def test_a_committed_checkpoint_without_its_config_is_refused(tmp_path):
@@ -200,6 +206,30 @@ def test_a_commit_never_replaces_a_newer_committed_checkpoint(tmp_path):
     message = str(refused.value)
     assert "step 10" in message and " 4 " in message and "\n" not in message, message
     assert _files(resume) == before
+
+
+def test_a_commit_never_replaces_other_weights_of_the_same_step(tmp_path):
+    """Two machines trained the same steps from one commit (2 -> 4 each): the second sync_out
+    deleted the committed weights of step 4 before writing its own (a kill in between left
+    state.json naming a missing file) and forked the run silently. Refused in one line naming
+    the step; nothing replaced. The same weights of the same step commit as before (nothing
+    rewritten)."""
+    run, resume, cfg = _commit_over(tmp_path, committed=4, own=4)
+    weights = run / "checkpoint" / "ckpt-00000004.weights.h5"
+    import h5py
+
+    with h5py.File(weights, "r+") as f:  # another machine's step 4
+        f["layers/dense/vars/0"][...] = -1.0
+    before = _files(resume)
+    with pytest.raises(ValueError) as refused:
+        chunks.sync_out(str(run), str(resume))
+    message = str(refused.value)
+    assert "other weights of step 4" in message and "\n" not in message, message
+    assert _files(resume) == before
+    (resume / "ckpt-00000004.weights.h5").write_bytes(weights.read_bytes())
+    assert chunks.sync_out(str(run), str(resume)) == 4
+    assert (resume / "ckpt-00000004.weights.h5").read_bytes() == weights.read_bytes()
+    assert json.loads((resume / "state.json").read_text())["step"] == 4
 
 
 def test_the_record_of_a_part_leaves_out_the_chunks_trained_again(tmp_path):
@@ -313,3 +343,36 @@ def test_a_chunk_on_other_photographs_is_refused(tmp_path, monkeypatch):
     row = chunks.run_chunk(cfg(moved, "run2"), str(root), 0, "here", printer=QUIET)
     assert (row["from_step"], row["to_step"]) == (2, 4)
     assert row["photographs"] == first["photographs"]
+
+
+def test_a_finished_part_moved_away_trains_anew(tmp_path, monkeypatch):
+    """The refusal of a finished part says "move it away to train it anew"; done so, the chunk
+    was then refused for starting below the ledger's last step (the finished run's), although
+    the part is to be trained anew. A part whose last row finished it starts from step 0
+    (:func:`ledger.recorded_step` is None), and its new rows make its chain."""
+    root, calls = tmp_path / "repo", []
+    root.mkdir()
+    (root / "ledger.json").write_text(json.dumps([_row(0, 4), _row(4, 8, done=True)]))
+    monkeypatch.setattr(training, "train", _fake_train(calls))
+    assert ledger_lib.recorded_step(ledger_lib.read_ledger(str(root)), "sequence2") is None
+    row = chunks.run_chunk(_train_cfg("d", tmp_path / "run", train_steps=100), str(root), 0,
+                           "here", printer=QUIET, part="sequence2")
+    assert (row["from_step"], row["to_step"]) == (0, 2)
+    rows = ledger_lib.read_ledger(str(root))
+    assert [(r["from_step"], r["to_step"]) for r in ledger_lib.chain(rows, "sequence2")] == [
+        (0, 2)]
+
+
+def test_step_back_reaches_the_first_stage_only(monkeypatch):
+    """run_stages passed --step_back to every stage it went on to, silencing a later stage's
+    refusal too. Only the first stage's chunk gets it."""
+    seen = []
+
+    def chunk(stage, root, left, device, printer, commit, step_back=False):
+        seen.append((stage, step_back))
+        return {"stage": stage, "done": True}
+
+    monkeypatch.setattr(chunks, "run_chunk", chunk)
+    chunks.run_stages(lambda k: k, 1, 3, "repo", 0.0, "machine", printer=QUIET,
+                      step_back=True)
+    assert seen == [(1, True), (2, False), (3, False)]

@@ -32,6 +32,7 @@ BACKEND_FREE = ("core", "data/sources", "data/pairs", "data/batches", "data/pool
                 "evaluation/card_evaluation", "paper/fig4_render",
                 "paper/learning_curves",
                 "training/run_dir", "training/run_records", "training/file_parts",
+                "training/ledger",
                 "evaluation/onednn_profile", "inference/options",
                 "inference/checks", "inference/search", "inference/pipeline", "inference/ecc")
 
@@ -154,7 +155,8 @@ DOCTEST_MODULES = ("stnh_tf.geometry", "stnh_tf.pixels", "stnh_tf.paths", "stnh_
                    "stnh_tf.evaluation.ablation",
                    "stnh_tf.paper.model_provenance", "stnh_tf.paper.fig4_render",
                    "stnh_tf.paper.learning_curves", "stnh_tf.paper.budgets",
-                   "stnh_tf.training.file_parts", "stnh_tf.evaluation.onednn_profile",
+                   "stnh_tf.training.file_parts", "stnh_tf.training.ledger",
+                   "stnh_tf.evaluation.onednn_profile",
                    "stnh_tf.paper.hour_budget")
 
 

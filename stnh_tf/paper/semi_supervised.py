@@ -200,7 +200,9 @@ class SemiSupervised:
         ``config.json``), its ``resume/<name>/`` removed; an unfinished one's newest checkpoint as
         ``resume/<name>/`` (``config.json``, ``state.json``, the weights it names); a finished
         model's evaluation as ``eval/<key>.json``. Returns ``{name: "finished" | step}`` of the
-        models written (a model already saved as finished is left as it is)."""
+        models written (a model already saved as finished is left as it is), ``"not saved:
+        <why>"`` where :func:`~stnh_tf.training.chunks.sync_out` refused (a newer checkpoint
+        committed there)."""
         from stnh_tf.training import checkpoints, chunks, run_dir
 
         out = {}
@@ -221,7 +223,10 @@ class SemiSupervised:
                 shutil.rmtree(resume, ignore_errors=True)
                 out[name] = "finished"
             elif checkpoints.checkpoint_weights_path(os.path.join(d, run_dir.CHECKPOINT_DIR)):
-                out[name] = chunks.sync_out(d, resume)
+                try:
+                    out[name] = chunks.sync_out(d, resume)
+                except ValueError as e:  # a newer one committed there: kept, and said
+                    out[name] = f"not saved: {e}"
         return out
 
     def restore(self, repo_dir: str) -> dict:

@@ -161,11 +161,12 @@ def load_checkpoint(model, directory) -> int:
         raise ValueError(f"cannot load the checkpoint {weights} ({type(e).__name__}: {e}); it is "
                          "kept: put a complete copy back, or move the folder away to train "
                          "anew.") from None
-    if state is None:
-        _log.warning("%s is missing: resuming from %s, step %d read from its name (the dropout "
-                     "random state starts afresh).", state_path, weights, want)
+    if state is None or "seed_states" not in state:  # (none, or one copy_checkpoint made)
+        _log.warning("%s %s: resuming from %s, step %d (the dropout random state starts "
+                     "afresh).", state_path, "is missing" if state is None else
+                     "records no random states", weights, want)
     else:
-        _restore_seed_states(model, state.get("seed_states", []))
+        _restore_seed_states(model, state["seed_states"])
     step = int(keras.ops.convert_to_numpy(model.optimizer.iterations))
     if step != want:
         raise ValueError(f"checkpoint {weights} holds step {step} but "
@@ -209,37 +210,49 @@ def _weights_files(folder: str, name: str) -> list:
 
 
 def copy_checkpoint(src_dir, dst_dir, extra_files=(), max_bytes=None) -> int:
-    """Copy the checkpoint of ``src_dir`` (the weights :func:`find_checkpoint` finds
-    and the state naming them) and ``extra_files`` into ``dst_dir``, updated in place so that a
-    kill at any moment leaves its ``state.json`` naming complete weights: each extra file
-    written beside its place and renamed; the weights under their step's name (with
-    ``max_bytes``, those over it as parts,
-    :func:`stnh_tf.training.file_parts.write_parts`), unless ``dst_dir`` holds them already;
-    ``state.json`` last (``src_dir``'s, or one naming the weights), the commit point as in
-    :class:`AtomicCheckpoint`; then other weights removed.
-    Returns the checkpoint's step."""
+    """Copy the checkpoint of ``src_dir`` (the weights :func:`find_checkpoint` finds and the
+    state naming them) and ``extra_files`` into ``dst_dir``, updated in place so that a kill at
+    any moment leaves its ``state.json`` naming complete weights: each extra file written
+    beside its place and renamed; the weights under their step's name (with ``max_bytes``,
+    those over it as parts, :func:`stnh_tf.training.file_parts.write_parts`; whole ones written
+    beside, fsynced and renamed), unless ``dst_dir`` holds them already; ``state.json`` last
+    (``src_dir``'s; without one, the one there for the same weights, else one naming them), the
+    commit point as in :class:`AtomicCheckpoint`; then other weights removed. Returns the
+    checkpoint's step.
+
+    Raises:
+      ValueError: ``dst_dir``'s state names other weights of the same name and step (two runs
+        that trained the same steps): nothing is replaced.
+    """
     weights, step, state = find_checkpoint(src_dir)
     name, pid = os.path.basename(weights), os.getpid()
     os.makedirs(dst_dir, exist_ok=True)
-    for path in extra_files:
-        tmp = os.path.join(dst_dir, f"{os.path.basename(path)}.tmp-{pid}")
-        shutil.copy2(path, tmp)
-        os.replace(tmp, os.path.join(dst_dir, os.path.basename(path)))
     try:
         held = read_checkpoint_state(dst_dir)
     except ValueError:  # a broken state: replaced below
         held = None
-    if not (held and held.get("weights") == name and _same_weights(weights, dst_dir)):
-        for f in _weights_files(dst_dir, name):  # a copy of these weights cut short
-            os.remove(os.path.join(dst_dir, f))
+    named = bool(held) and held.get("weights") == name
+    same = named and _same_weights(weights, dst_dir)
+    if named and not same and held.get("step") == step:
+        raise ValueError(f"{dst_dir} holds other weights of step {step} ({name}) than "
+                         f"{weights}: not replaced (two runs trained the same steps).")
+    for path in extra_files:
+        tmp = os.path.join(dst_dir, f"{os.path.basename(path)}.tmp-{pid}")
+        shutil.copy2(path, tmp)
+        os.replace(tmp, os.path.join(dst_dir, os.path.basename(path)))
+    if not same:
+        for f in _weights_files(dst_dir, name):  # a copy cut short, which no state names
+            if f != name:
+                os.remove(os.path.join(dst_dir, f))
         size = max_bytes or max(os.path.getsize(weights), 1)
         if os.path.getsize(weights) <= size:  # whole: written beside, then renamed
             shutil.copy2(weights, os.path.join(dst_dir, f"{name}.tmp-{pid}"))
-            os.replace(os.path.join(dst_dir, f"{name}.tmp-{pid}"), os.path.join(dst_dir, name))
+            fsync_replace(os.path.join(dst_dir, f"{name}.tmp-{pid}"), os.path.join(dst_dir, name))
         else:
             file_parts.write_parts(weights, os.path.join(dst_dir, name), size)
-    atomic_write_json(os.path.join(dst_dir, CHECKPOINT_STATE),
-                      state if state is not None else {"step": int(step), "weights": name})
+    if state is None:
+        state = held if same else {"step": int(step), "weights": name}
+    atomic_write_json(os.path.join(dst_dir, CHECKPOINT_STATE), state)
     kept = set(_weights_files(dst_dir, name))
     for f in os.listdir(dst_dir):  # the weights of other steps, and copies cut short
         if f.startswith("ckpt") and ".weights.h5" in f and f not in kept or ".tmp-" in f:

@@ -11,8 +11,8 @@ Layout of a chunked run's repository folder ``root`` (e.g. ``paper_schedule/``):
   8 MiB, as ``.part-NNN`` files and their ``.parts.json`` manifest:
   :mod:`stnh_tf.training.file_parts`, so that no committed file reaches 10 MB), and
   for k > 1 the finished stages' estimates its pairs are made from
-  (``stage_estimates_<split>.npz``: :func:`stnh_tf.training.streams.stage_pairs`); replaced by
-  each chunk and removed when the stage is done;
+  (``stage_estimates_<split>.npz``: :func:`stnh_tf.training.streams.stage_pairs`); updated in
+  place by each chunk (``state.json`` last) and removed when the stage is done;
 * ``stage<k>.keras``: a finished stage (weights without optimizer state), and beside it
   ``stage<k>.json`` (:func:`stage_record`: the run's configuration and its chunks), what
   ``experiments.ship_weights`` puts in a model card;
@@ -25,8 +25,11 @@ Before a chunk copies or trains anything it checks that the part is not finished
 ledger reads (:func:`read_ledger`), that ``resume/<part>`` is a folder, that the run folder is of
 the same run (:func:`~stnh_tf.training.run_dir.check_same_run`: the finished stages it is made
 from compared by their files' sha256, not by where the checkout is; the photograph folders and
-the run folder may be anywhere) and that the committed weights read whole
+the run folder may be anywhere), that the photographs are those of the part's last chunk
+(:func:`photographs`) and that the committed weights read whole
 (:func:`~stnh_tf.training.checkpoints.check_weights_file`): a refusal leaves everything as it was.
+A chunk that would then start below the step the ledger recorded for its part is refused before
+it trains (the run folder holding the newest checkpoint found).
 
 A run other than a hierarchical stage (the 2-stage sequence model, a stage 1 with other loss
 weights) is a *part* named by a string (``resume/<part>/``, ``<part>.keras``, ``<part>.json``;
@@ -47,8 +50,8 @@ from stnh_tf.provenance import machine_info
 from stnh_tf.training import checkpoints, file_parts, run_dir
 from stnh_tf.training.callbacks import deferred_signals
 from stnh_tf.training.config import TrainConfig
-from stnh_tf.training.ledger import (add_ledger_row, chain, part_name, read_ledger,
-                                     recorded_step, row_part)
+from stnh_tf.training.ledger import (add_ledger_row, chain, part_name, photographs,
+                                     read_ledger, recorded_step, row_part)
 
 RESUME_DIR = "resume"
 ROOT_BUSY = ("another chunk is running on {folder} (it holds {lock}); one chunk at a time "
@@ -120,33 +123,6 @@ def _whole_weights(resume: str, state: dict | None, tmp: str) -> str:
     return tmp
 
 
-def photographs(cfg: TrainConfig) -> dict | None:
-    """What identifies the photographs a run of ``cfg`` trains and validates on, wherever their
-    folders are: ``{"train": ..., "val": ...}``, each ``{"count": N, "sha256": ...}`` over the
-    image ids and sizes of :func:`stnh_tf.data.sources.scan_image_folders`' listing (relative to
-    the folders given); ``None`` for a run without ``image_dir`` (TFRecords), or where a folder
-    cannot be listed here (the run's own check then names it)."""
-    import hashlib
-
-    from stnh_tf.data import sources
-
-    if not cfg.image_dir:
-        return None
-    out = {}
-    for key, folders, most in (("train", cfg.image_dir, cfg.max_images),
-                               ("val", cfg.val_image_dir, 0)):
-        if not folders:
-            continue
-        try:
-            listing = sources.scan_image_folders(folders, most)
-            digest = hashlib.sha256("".join(
-                f"{listing.image_id(p)}\t{os.path.getsize(p)}\n" for p in listing.files).encode())
-        except (OSError, ValueError):  # (SourceError is a ValueError)
-            return None
-        out[key] = {"count": len(listing.files), "sha256": digest.hexdigest()}
-    return out
-
-
 def _estimates(folder: str) -> list:
     """The saved stage estimates (:data:`stnh_tf.training.run_dir.ESTIMATES_FILES`) in
     ``folder``."""
@@ -196,9 +172,11 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
         except ValueError as e:
             raise refused(e) from None
         if state is None and any(f.endswith(file_parts.MANIFEST_SUFFIX)
-                                 or ".part-" in f for f in os.listdir(resume)):
+                                 for f in os.listdir(resume)):
             raise refused(f"{resume} holds weights in parts but no {run_dir.CHECKPOINT_STATE} "
-                          "naming them")  # before: taken for no checkpoint, trained from 0
+                          "naming them (or, never committed, move the folder away)")
+            # before: taken for no checkpoint, trained from 0; parts without their manifest
+            # are a first commit cut short (the manifest and state.json come last): ignored
         committed_step = state["step"] if state is not None else _step(resume)
         newer = committed_step > _step(ckpt)
         estimates = [p for p in _estimates(resume)
@@ -238,16 +216,16 @@ def _committed_step(resume: str) -> int:
 
 
 def sync_out(model_dir: str, resume: str) -> int:
-    """Replace ``resume`` by the run folder's committed checkpoint, ``config.json`` and saved
-    stage estimates; weights over :data:`stnh_tf.training.file_parts.MAX_PART_BYTES` (the 2-stage
+    """Put the run folder's committed checkpoint, ``config.json`` and saved stage estimates into
+    ``resume``; weights over :data:`stnh_tf.training.file_parts.MAX_PART_BYTES` (the 2-stage
     sequence model's with their momentum: 12.5 MB) as parts under it and their manifest, which
     :func:`sync_in` checks and joins; updated in place, ``state.json`` last
-    (:func:`_copy_checkpoint`: a kill at any moment leaves a complete checkpoint there). Returns
-    its step.
+    (:func:`~stnh_tf.training.checkpoints.copy_checkpoint`: a kill at any moment leaves a
+    complete checkpoint there). Returns its step.
 
     Raises:
       ValueError: ``resume`` holds a newer checkpoint than the run folder (another chunk's,
-        committed meanwhile): nothing is replaced.
+        committed meanwhile), or other weights of the same step: nothing is replaced.
     """
     ckpt = os.path.join(model_dir, run_dir.CHECKPOINT_DIR)
     committed, own = _committed_step(resume), _step(ckpt)
@@ -332,6 +310,16 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
     from stnh_tf.training import loop
 
     finished, resume, name = finished_model(root, key), resume_dir(root, key), part_name(key)
+    seen, rows = photographs(cfg), [r for r in read_ledger(root) if row_part(r) == name]
+    if rows and rows[-1].get("done"):
+        rows = []  # a part trained anew after it was finished (its model moved away)
+    earlier = [r["photographs"] for r in rows if r.get("photographs")]
+    if seen and earlier and earlier[-1] != seen:
+        raise ValueError(
+            f"the photographs of {cfg.image_dir!r} and {cfg.val_image_dir!r} are not those the "
+            f"last chunk of {name} trained and validated on ({seen} here, {earlier[-1]} in the "
+            "ledger): nothing was trained; point --image_dir and --val_image_dir at the same "
+            "photographs (their pairs would come in another order).")
     copied = sync_in(resume, cfg.model_dir, cfg)
     if copied is not None:
         printer(f"resuming from the committed checkpoint at step {copied} ({resume})")
@@ -348,15 +336,6 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
         printer(f"the run folder's checkpoint of step {start_step} is past the ledger's last row "
                 f"({recorded}: a chunk that ended without its row); going on from it")
 
-    seen = photographs(cfg)
-    earlier = [r["photographs"] for r in read_ledger(root)
-               if row_part(r) == name and r.get("photographs")]
-    if seen and earlier and earlier[-1] != seen:
-        raise ValueError(
-            f"the photographs of {cfg.image_dir!r} and {cfg.val_image_dir!r} are not those the "
-            f"last chunk of {name} trained and validated on ({seen} here, {earlier[-1]} in the "
-            "ledger): nothing was trained; point --image_dir and --val_image_dir at the same "
-            "photographs (their pairs would come in another order).")
     t0 = time.time()
 
     def row(to_step, done, wall_this_run, **extra):
@@ -404,9 +383,10 @@ def _commit_stopped(model_dir, resume, root, start_step, printer, make_row) -> N
     so that the steps trained are not lost with the run folder. A failure here is printed, not
     raised (the training's error is the one that counts)."""
     try:
-        step = _step(os.path.join(model_dir, run_dir.CHECKPOINT_DIR))
-        if step > start_step:
-            with deferred_signals():
+        # (the run folder's lock: not a checkpoint another process is writing)
+        with run_dir.RunLock(model_dir), deferred_signals():
+            step = _step(os.path.join(model_dir, run_dir.CHECKPOINT_DIR))
+            if step > start_step:
                 sync_out(model_dir, resume)
                 add_ledger_row(root, make_row(step))
             printer(f"training stopped by an error: its checkpoint of step {step} is committed "
@@ -431,7 +411,7 @@ def run_stages(make_config, first: int, last: int, root: str, time_limit_s: floa
     ``time_limit_s`` 0 (no limit) each stage trains to its end. Returns the chunks' ledger rows.
 
     A stage is not started with less than ``min_next_s`` of ``time_limit_s`` left (``clock``:
-    seconds, for the time spent). ``step_back``: as in :func:`run_chunk`.
+    seconds, for the time spent). ``step_back``: as in :func:`run_chunk`, for stage ``first``.
 
     Raises:
       ValueError: ``first`` > ``last``. Otherwise as :func:`run_chunk`.
@@ -450,5 +430,5 @@ def run_stages(make_config, first: int, last: int, root: str, time_limit_s: floa
             printer(f"stage {stage - 1} is finished; stage {stage} in the {left:.0f} s left"
                     if time_limit_s else f"stage {stage - 1} is finished; stage {stage} next")
         rows.append(run_chunk(make_config(stage), root, left, device, printer, commit,
-                              step_back=step_back))
+                              step_back=step_back and not rows))
     return rows

@@ -66,6 +66,8 @@ def write_parts(src: str, dst: str, max_bytes: int = MAX_PART_BYTES) -> list:
             part = dst + PART_SUFFIX.format(index=len(parts))
             with open(part, "wb") as out:
                 out.write(block)
+                out.flush()
+                os.fsync(out.fileno())  # on disk before the manifest that vouches for it
             parts.append({"name": os.path.basename(part), "bytes": len(block),
                           "sha256": hashlib.sha256(block).hexdigest()})
             written.append(part)

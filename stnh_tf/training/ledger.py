@@ -1,6 +1,7 @@
 """The ledger of a chunked run's repository folder ``root`` (``root/ledger.json``): one row per
-chunk (part, steps, machine, steps/s, date), read and checked before a chunk trains, the rows a
-part's checkpoint is made of (:func:`chain`), and its Markdown table in the docs.
+chunk (part, steps, machine, steps/s, date, the photographs: :func:`photographs`), read and
+checked before a chunk trains, the rows a part's checkpoint is made of (:func:`chain`), and its
+Markdown table in the docs.
 
 A row holds :data:`LEDGER_FIELDS`; a part other than a hierarchical stage carries ``"part"``
 (:func:`part_name`); a chunk stopped by an error carries ``"error"`` (its checkpoint committed
@@ -18,6 +19,7 @@ all the same: :func:`stnh_tf.training.chunks.run_chunk`).
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 
@@ -49,8 +51,6 @@ def part_name(part: int | str) -> str:
 def row_part(row: dict) -> str:
     """The :func:`part_name` of a ledger row (its ``"part"``, else its stage's)."""
     return row.get("part") or part_name(row["stage"])
-
-
 
 
 LEDGER_FIELDS = ("stage", "from_step", "to_step", "device", "backend", "steps_per_s", "wall_s",
@@ -143,6 +143,33 @@ def chain(rows: list, part: str) -> list:
 
 def recorded_step(rows: list, part: str) -> int | None:
     """The step the ledger last recorded for ``part`` (its last row's ``to_step``; ``None``:
-    no row): where the part's next chunk must start."""
+    no row, or a last row that finished the part, which is then trained anew): where the
+    part's next chunk must start."""
     mine = [r for r in rows if row_part(r) == part]
-    return mine[-1]["to_step"] if mine else None
+    return mine[-1]["to_step"] if mine and not mine[-1].get("done") else None
+
+
+def photographs(cfg) -> dict | None:
+    """What identifies the photographs a run of ``cfg`` (a
+    :class:`~stnh_tf.training.config.TrainConfig`) trains and validates on, wherever their
+    folders are: ``{"train": ..., "val": ...}``, each ``{"count": N, "sha256": ...}`` over the
+    image ids and sizes of :func:`stnh_tf.data.sources.scan_image_folders`' listing (relative to
+    the folders given); ``None`` for a run without ``image_dir`` (TFRecords), or where a folder
+    cannot be listed here (the run's own check then names it)."""
+    from stnh_tf.data import sources
+
+    if not cfg.image_dir:
+        return None
+    out = {}
+    for key, folders, most in (("train", cfg.image_dir, cfg.max_images),
+                               ("val", cfg.val_image_dir, 0)):
+        if not folders:
+            continue
+        try:
+            listing = sources.scan_image_folders(folders, most)
+            digest = hashlib.sha256("".join(
+                f"{listing.image_id(p)}\t{os.path.getsize(p)}\n" for p in listing.files).encode())
+        except (OSError, ValueError):  # (SourceError is a ValueError)
+            return None
+        out[key] = {"count": len(listing.files), "sha256": digest.hexdigest()}
+    return out
