@@ -376,3 +376,49 @@ def test_step_back_reaches_the_first_stage_only(monkeypatch):
     chunks.run_stages(lambda k: k, 1, 3, "repo", 0.0, "machine", printer=QUIET,
                       step_back=True)
     assert seen == [(1, True), (2, False), (3, False)]
+
+
+def test_a_ledger_broken_while_the_chunk_trained_keeps_its_row(tmp_path, monkeypatch):
+    """The ledger is checked before a chunk trains, but a merge or an edit can break it while
+    the chunk trains (hours): the row was lost, and for a chunk that finished its part so were
+    the part's record and the removal of resume/ (the next call refused it as finished). The
+    row is kept in ledger.pending.json (the error names it); once the ledger reads again the
+    next call adds it, and for a finished part writes the record with it."""
+    root, calls = tmp_path / "repo", []
+    train = _fake_train(calls)
+    good = json.dumps([_row(0, 2)])
+
+    def breaking(cfg, **kw):  # the ledger edited into invalid JSON while this trains
+        result = train(cfg, **kw)
+        (root / "ledger.json").write_text("<<<<<<< HEAD\n")
+        if cfg.train_steps <= result["final_step"]:  # trained to the end
+            (tmp_path / "run" / "model.keras").write_bytes(b"the finished model")
+        return result
+
+    monkeypatch.setattr(training, "train", breaking)
+    monkeypatch.setattr(chunks, "strip_optimizer",
+                        lambda src, dst: open(dst, "wb").write(open(src, "rb").read()))
+    cfg = _train_cfg("d", tmp_path / "run", train_steps=8)
+    _committed(root, cfg, 2)
+    (root / "ledger.json").write_text(good)
+    with pytest.raises(ValueError) as refused:
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    assert str(root / "ledger.pending.json") in str(refused.value)
+    assert json.loads((root / "resume" / "sequence2" / "state.json").read_text())["step"] == 4
+    (root / "ledger.json").write_text(good)  # mended
+    monkeypatch.setattr(training, "train", train)
+    row = chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    rows = ledger_lib.read_ledger(str(root))
+    assert [(r["from_step"], r["to_step"]) for r in rows] == [(0, 2), (2, 4), (4, 6)]
+    assert row == rows[-1] and not (root / "ledger.pending.json").exists()
+    # the chunk that finishes the part, the ledger broken meanwhile
+    monkeypatch.setattr(training, "train", breaking)
+    with pytest.raises(ValueError, match="ledger.pending.json"):
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    assert (root / "sequence2.keras").exists() and not (root / "sequence2.json").exists()
+    (root / "ledger.json").write_text(json.dumps(rows))  # mended
+    with pytest.raises(FileExistsError, match="part sequence2 is finished"):
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    record = json.loads((root / "sequence2.json").read_text())
+    assert record["final_step"] == 8 and record["chunks"][-1]["done"]
+    assert not (root / "resume" / "sequence2").exists()

@@ -50,8 +50,8 @@ from stnh_tf.provenance import machine_info
 from stnh_tf.training import checkpoints, file_parts, run_dir
 from stnh_tf.training.callbacks import deferred_signals
 from stnh_tf.training.config import TrainConfig
-from stnh_tf.training.ledger import (add_ledger_row, chain, part_name, photographs,
-                                     read_ledger, recorded_step, row_part)
+from stnh_tf.training.ledger import (add_ledger_row, add_pending_rows, chain, part_name,
+                                     photographs, read_ledger, recorded_step, row_part)
 
 RESUME_DIR = "resume"
 ROOT_BUSY = ("another chunk is running on {folder} (it holds {lock}); one chunk at a time "
@@ -275,6 +275,10 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
     it) is finished without training. A SIGTERM or Ctrl-C while the chunk commits its checkpoint
     and row acts once they are written (:func:`~stnh_tf.training.callbacks.deferred_signals`).
 
+    A row that could not be added (the ledger changed while the chunk ran and does not read) is
+    kept in ``ledger.pending.json`` and added by the next chunk once the ledger reads (a finished
+    part's record then written: :func:`~stnh_tf.training.ledger.add_ledger_row`).
+
     Raises:
       FileExistsError: the stage is finished (``stage<k>.keras`` under ``root``), or another
         chunk holds ``root``'s lock: nothing is trained or written. ``ValueError``: the ledger
@@ -291,6 +295,8 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
         if os.path.exists(finished):
             what = f"stage {cfg.stage}" if part is None else f"part {part_name(part)}"
             record = stage_record_path(finished)
+            if not os.path.exists(record):  # the chunk that finished it stopped before it
+                _finish_record(cfg, root, key, printer)
             also = f" and {record}" if os.path.exists(record) else ""
             raise FileExistsError(f"{what} is finished: {finished} exists; it is not trained "
                                   f"again (move it{also} away to train it anew).")
@@ -299,8 +305,25 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
         except ValueError as e:
             raise ValueError(f"{e} No chunk was started: mend it first (git checkout), so that "
                              "the chunk's row can be added.") from None
+        if added := add_pending_rows(root):
+            printer(f"{added} ledger row(s) kept while the ledger did not read added to it")
         return _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part,
                           step_back)
+
+
+def _finish_record(cfg, root, key, printer) -> None:
+    """A finished part's record (:func:`stage_record`, with the rows kept while the ledger did
+    not read) and ``resume/`` removed, where the chunk that finished it could not: nothing where
+    the ledger or the run folder's ``config.json`` does not read."""
+    config = os.path.join(cfg.model_dir, run_dir.CONFIG_FILE)
+    try:
+        add_pending_rows(root)
+        stage_record(root, key, run_dir.read_run_config(config) if os.path.exists(config)
+                     else cfg.to_json())
+    except ValueError as e:
+        printer(f"the record of the finished {part_name(key)} is not written: {e}")
+        return
+    shutil.rmtree(resume_dir(root, key), ignore_errors=True)
 
 
 def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step_back) -> dict:

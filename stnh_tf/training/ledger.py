@@ -28,6 +28,8 @@ from stnh_tf.paths import atomic_write_json, atomic_write_text, read_json
 LEDGER_FILE = "ledger.json"
 LEDGER_START = "<!-- ledger:start -->"
 LEDGER_END = "<!-- ledger:end -->"
+PENDING_FILE = "ledger.pending.json"
+"""Rows of chunks that ended while the ledger did not read (:func:`add_ledger_row`)."""
 
 
 def part_name(part: int | str) -> str:
@@ -82,11 +84,38 @@ def read_ledger(root: str) -> list:
 
 
 def add_ledger_row(root: str, row: dict) -> list:
-    """Append ``row`` to ``root``'s ledger (:func:`read_ledger`); returns the ledger."""
-    ledger = read_ledger(root)
+    """Append ``row`` to ``root``'s ledger (:func:`read_ledger`); returns the ledger.
+
+    Raises:
+      ValueError: the ledger does not read (changed while the chunk ran: a merge, an edit); the
+        row is then kept in ``root/ledger.pending.json`` (:data:`PENDING_FILE`), which
+        :func:`add_pending_rows` adds once the ledger reads again.
+    """
+    try:
+        ledger = read_ledger(root)
+    except ValueError as e:
+        pending = os.path.join(root, PENDING_FILE)
+        kept = read_json(pending, "pending ledger rows") if os.path.exists(pending) else []
+        atomic_write_json(pending, [*kept, row])
+        raise ValueError(f"{e} The chunk's row is kept in {pending}: mend the ledger (git "
+                         "checkout) and the next chunk adds it.") from None
     ledger.append(row)
     atomic_write_json(os.path.join(root, LEDGER_FILE), ledger)
     return ledger
+
+
+def add_pending_rows(root: str) -> int:
+    """Add the rows :func:`add_ledger_row` kept in :data:`PENDING_FILE` to ``root``'s ledger
+    (those it does not hold already), then remove the file; returns how many were added.
+    Raises ``ValueError`` as :func:`read_ledger`."""
+    pending = os.path.join(root, PENDING_FILE)
+    if not os.path.exists(pending):
+        return 0
+    ledger = read_ledger(root)
+    rows = [r for r in read_json(pending, "pending ledger rows") if r not in ledger]
+    atomic_write_json(os.path.join(root, LEDGER_FILE), [*ledger, *rows])
+    os.remove(pending)
+    return len(rows)
 
 
 def ledger_table(ledger: list) -> str:
