@@ -609,6 +609,9 @@ PROSE = [
     ("docs/gpu.md", rf"Third chunk, steps 2,322 -> 4,763, on [^$]*?"
      rf"`paper_schedule/logs/sequence2_2322-4763_cpu.log`\): {N} steps/s in the ledger",
      [num("schedule_ledger", "31/steps_per_s")]),
+    ("docs/gpu.md", rf"Fourth chunk, steps 4,763 -> 7,459, on [^$]*?"
+     rf"`paper_schedule/logs/sequence2_4763-7459_cpu.log`\): {N} steps/s in the ledger",
+     [num("schedule_ledger", "32/steps_per_s")]),
     ("docs/gpu.md", rf"- Finished at 91,000 steps over (\d+) chunks and {N} hours of wall time in "
      rf"all, every chunk on the",
      [schedule_chunks(3), schedule_hours(3)]),
