@@ -171,12 +171,13 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
             state = checkpoints.read_checkpoint_state(resume)
         except ValueError as e:
             raise refused(e) from None
+        # parts with their manifest but no state were taken for no checkpoint (trained from
+        # 0); parts without a manifest are a first commit cut short (the manifest and
+        # state.json come last): ignored
         if state is None and any(f.endswith(file_parts.MANIFEST_SUFFIX)
                                  for f in os.listdir(resume)):
             raise refused(f"{resume} holds weights in parts but no {run_dir.CHECKPOINT_STATE} "
                           "naming them (or, never committed, move the folder away)")
-            # before: taken for no checkpoint, trained from 0; parts without their manifest
-            # are a first commit cut short (the manifest and state.json come last): ignored
         committed_step = state["step"] if state is not None else _step(resume)
         newer = committed_step > _step(ckpt)
         estimates = [p for p in _estimates(resume)
