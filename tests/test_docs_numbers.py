@@ -257,6 +257,8 @@ STAGE3_CPU_CHUNKS = ((20, "First", 0, 12022), (21, "Second", 12022, 26399),
                      (26, "Seventh", 58037, 67749),
                      (27, "Eighth", 67749, 80293),
                      (28, "Ninth", 80293, 91000))
+SEQUENCE2_CPU_CHUNKS = ((29, "First", 0, 1399), (30, "Second", 0, 2322),
+                        (31, "Third", 2322, 4763), (32, "Fourth", 4763, 7459))
 
 PROSE = [
     ("docs/estimate.md",
@@ -600,27 +602,17 @@ PROSE = [
          "photometric_unsearched_estimate_mace_3_stages")]
      + [lambda sources: str(cr.value(sources, "schedule_card",
                                      "bundled_check/photometric_unsearched_worse_than_identity_3_stages"))]),
-    ("docs/gpu.md", rf"First chunk, steps 0 -> 1,399, on [^$]*?"
-     rf"`paper_schedule/logs/sequence2_0-1399_cpu.log`\): {N} steps/s in the ledger",
-     [num("schedule_ledger", "29/steps_per_s")]),
-    ("docs/gpu.md", rf"Second chunk, steps 0 -> 2,322, on [^$]*?"
-     rf"`paper_schedule/logs/sequence2_0-2322_cpu.log`\): {N} steps/s in the ledger",
-     [num("schedule_ledger", "30/steps_per_s")]),
-    ("docs/gpu.md", rf"Third chunk, steps 2,322 -> 4,763, on [^$]*?"
-     rf"`paper_schedule/logs/sequence2_2322-4763_cpu.log`\): {N} steps/s in the ledger",
-     [num("schedule_ledger", "31/steps_per_s")]),
-    ("docs/gpu.md", rf"Fourth chunk, steps 4,763 -> 7,459, on [^$]*?"
-     rf"`paper_schedule/logs/sequence2_4763-7459_cpu.log`\): {N} steps/s in the ledger",
-     [num("schedule_ledger", "32/steps_per_s")]),
+    *[("docs/gpu.md", rf"{nth} chunk, steps {a:,} -> {b:,}, on [^$]*?"
+       rf"`paper_schedule/logs/{part}_{a}-{b}_cpu.log`\): {N} steps/s in the ledger",
+       [num("schedule_ledger", f"{row}/steps_per_s")])
+      for row, nth, a, b, part in (*[(*c, "stage3") for c in STAGE3_CPU_CHUNKS],
+                                   *[(*c, "sequence2") for c in SEQUENCE2_CPU_CHUNKS])],
     ("docs/gpu.md", rf"- Finished at 91,000 steps over (\d+) chunks and {N} hours of wall time in "
      rf"all, every chunk on the",
      [schedule_chunks(3), schedule_hours(3)]),
     ("docs/gpu.md", rf"\(the reproduction's hierarchy rows\) {N} px[^$]*?saved mixed{S}bfloat16, "
      rf"{N} px with the clipping",
      [num("schedule2_eval", "model/mace"), num("schedule2_eval_float32", "model/mace")]),
-    *[("docs/gpu.md", rf"{nth} chunk, steps {a:,} -> {b:,}, on [^$]*?"
-       rf"`paper_schedule/logs/stage3_{a}-{b}_cpu.log`\): {N} steps/s in the ledger",
-       [num("schedule_ledger", f"{row}/steps_per_s")]) for row, nth, a, b in STAGE3_CPU_CHUNKS],
     ("docs/gpu.md", rf"Finished at 91,000 steps over (\d+) chunks and {N} hours of wall time in "
      rf"all \(one H100",
      [schedule_chunks(2), schedule_hours(2)]),
