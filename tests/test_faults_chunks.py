@@ -345,6 +345,38 @@ def test_a_chunk_on_other_photographs_is_refused(tmp_path, monkeypatch):
     assert row["photographs"] == first["photographs"]
 
 
+def test_other_validation_photographs_train_on_and_are_said(tmp_path, monkeypatch):
+    """Validation only monitors a chunk (its pairs are apart from the training stream), yet a
+    chunk whose validation folder differed from the part's last row's (a photograph added) was
+    refused like one on other training photographs. It now trains on from the ledger's step,
+    says so in one line naming the folder, and its row records the new validation set; other
+    training photographs are still refused."""
+    import cv2
+    import numpy as np
+
+    photos, val = tmp_path / "photos", tmp_path / "val"
+    for folder, n in ((photos, 3), (val, 2)):
+        folder.mkdir()
+        for i in range(n):
+            cv2.imwrite(str(folder / f"{i}.png"), np.full((24, 32), 40 * i, np.uint8))
+    root, calls, said = tmp_path / "repo", [], []
+    monkeypatch.setattr(training, "train", _fake_train(calls))
+    cfg = _train_cfg("", tmp_path / "run", train_steps=100, image_dir=str(photos),
+                     val_image_dir=str(val))
+    first = chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET)
+    cv2.imwrite(str(val / "2.png"), np.zeros((24, 32), np.uint8))  # a validation photograph added
+    row = chunks.run_chunk(cfg, str(root), 0, "here", printer=said.append)  # before: refused
+    assert (row["from_step"], row["to_step"]) == (2, 4) and len(calls) == 2
+    assert row["photographs"]["train"] == first["photographs"]["train"]
+    assert (first["photographs"]["val"]["count"], row["photographs"]["val"]["count"]) == (2, 3)
+    lines = [line for line in said if "validation photographs" in line]
+    assert len(lines) == 1 and str(val) in lines[0] and "\n" not in lines[0], said
+    cv2.imwrite(str(photos / "3.png"), np.zeros((24, 32), np.uint8))  # a training one added
+    with pytest.raises(ValueError, match="nothing was trained"):
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET)
+    assert len(calls) == 2
+
+
 def test_a_finished_part_moved_away_trains_anew(tmp_path, monkeypatch):
     """The refusal of a finished part says "move it away to train it anew"; done so, the chunk
     was then refused for starting below the ledger's last step (the finished run's), although

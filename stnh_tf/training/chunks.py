@@ -25,8 +25,8 @@ Before a chunk copies or trains anything it checks that the part is not finished
 ledger reads (:func:`read_ledger`), that ``resume/<part>`` is a folder, that the run folder is of
 the same run (:func:`~stnh_tf.training.run_dir.check_same_run`: the finished stages it is made
 from compared by their files' sha256, not by where the checkout is; the photograph folders and
-the run folder may be anywhere), that the photographs are those of the part's last chunk
-(:func:`photographs`) and that the committed weights read whole
+the run folder may be anywhere), that the training photographs are those of the part's last
+chunk (:func:`check_photographs`) and that the committed weights read whole
 (:func:`~stnh_tf.training.checkpoints.check_weights_file`): a refusal leaves everything as it was.
 A chunk that would then start below the step the ledger recorded for its part is refused before
 it trains (the run folder holding the newest checkpoint found).
@@ -51,7 +51,8 @@ from stnh_tf.training import checkpoints, file_parts, run_dir
 from stnh_tf.training.callbacks import deferred_signals
 from stnh_tf.training.config import TrainConfig
 from stnh_tf.training.ledger import (add_ledger_row, add_pending_rows, chain, part_name,
-                                     photographs, read_ledger, recorded_step, row_part)
+                                     check_photographs, photographs, read_ledger,
+                                     recorded_step, row_part)
 
 RESUME_DIR = "resume"
 ROOT_BUSY = ("another chunk is running on {folder} (it holds {lock}); one chunk at a time "
@@ -337,13 +338,7 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
     seen, rows = photographs(cfg), [r for r in read_ledger(root) if row_part(r) == name]
     if rows and rows[-1].get("done"):
         rows = []  # a part trained anew after it was finished (its model moved away)
-    earlier = [r["photographs"] for r in rows if r.get("photographs")]
-    if seen and earlier and earlier[-1] != seen:
-        raise ValueError(
-            f"the photographs of {cfg.image_dir!r} and {cfg.val_image_dir!r} are not those the "
-            f"last chunk of {name} trained and validated on ({seen} here, {earlier[-1]} in the "
-            "ledger): nothing was trained; point --image_dir and --val_image_dir at the same "
-            "photographs (their pairs would come in another order).")
+    check_photographs([r.get("photographs") for r in rows], seen, name, cfg, printer)
     copied = sync_in(resume, cfg.model_dir, cfg)
     if copied is not None:
         printer(f"resuming from the committed checkpoint at step {copied} ({resume})")

@@ -202,3 +202,30 @@ def photographs(cfg) -> dict | None:
             return None
         out[key] = {"count": len(listing.files), "sha256": digest.hexdigest()}
     return out
+
+
+def check_photographs(recorded, seen, part, cfg, printer=print) -> None:
+    """Refuse a chunk of ``part`` on other training photographs than its last chunk's: ``seen``
+    (:func:`photographs` of ``cfg``) against the last of ``recorded`` (the part's rows'
+    ``"photographs"``, in order; ``None`` for rows before they were recorded). Other validation
+    photographs only monitor: said through ``printer``, the chunk goes on.
+
+    Raises:
+      ValueError: in one line naming ``cfg.image_dir`` and both records; nothing was trained.
+
+    >>> same = {"train": {"count": 3, "sha256": "a"}, "val": {"count": 2, "sha256": "b"}}
+    >>> check_photographs([None, same], same, "stage1", None)  # nothing said, nothing raised
+    """
+    earlier = [r for r in recorded if r]
+    if not seen or not earlier:
+        return
+    if earlier[-1].get("train") != seen.get("train"):
+        raise ValueError(
+            f"the photographs of {cfg.image_dir!r} are not those the last chunk of {part} "
+            f"trained on ({seen.get('train')} here, {earlier[-1].get('train')} in the ledger): "
+            "nothing was trained; point --image_dir at the same photographs (their pairs would "
+            "come in another order).")
+    if earlier[-1].get("val") != seen.get("val"):
+        printer(f"the validation photographs of {cfg.val_image_dir!r} are not those of the last "
+                f"chunk of {part} ({seen.get('val')} here, {earlier[-1].get('val')} in the "
+                "ledger): training goes on; its validation numbers are on another set from here")
