@@ -11,10 +11,12 @@ from stnh_tf.paths import atomic_write_text, check_apart
 
 
 def emit_json(result: dict, json_out: str | None = None) -> None:
-    """Print ``result`` as indented JSON and, if ``json_out`` is given, write it there too."""
+    """Print ``result`` as indented JSON and, if ``json_out`` is given, write it there too
+    (``"-"``, standard output, as :func:`stnh_tf.evaluation.summaries.emit` takes it: printed
+    only)."""
     text = json.dumps(result, indent=2)
     print(text)
-    if json_out:
+    if json_out and json_out != "-":
         atomic_write_text(json_out, text + "\n")
 
 

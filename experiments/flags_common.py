@@ -313,4 +313,5 @@ def define_seed(help_text: str, flag_values=flags.FLAGS):
 def define_json_out(flag_values=flags.FLAGS):
     """``--json_out``: where a binary also writes the JSON it prints
     (:func:`experiments.common.emit_json`)."""
-    flags.DEFINE_string("json_out", None, "Also write the JSON here.", flag_values=flag_values)
+    flags.DEFINE_string("json_out", None, "Also write the JSON here ('-': standard output "
+                        "only).", flag_values=flag_values)

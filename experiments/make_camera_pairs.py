@@ -28,6 +28,7 @@ from absl import app, flags
 from experiments import common, flags_common
 from stnh_tf.data import camera_motions, camera_pair_files
 from stnh_tf.data.folder_counts import FolderCounts
+from stnh_tf.evaluation import summaries
 
 flags.DEFINE_string("output_dir", None, "Folder of the pairs (created).", required=True)
 flags.DEFINE_string("image_dir", "../shared/data/coco_mini/test",
@@ -64,6 +65,7 @@ def main(argv):
         common.check_flags_apart(("output_dir", "json_out"), ("image_dir",))
         # the set's folder holds its own files only: --json_out there could be its manifest
         common.check_flags_apart(("json_out",), ("output_dir",))
+        summaries.check_json_out(FLAGS.json_out)  # before the set: not a traceback after it
         result = camera_pair_files.write_pairs(FLAGS.image_dir, FLAGS.output_dir,
                                             FLAGS.pairs_per_image, FLAGS.seed,
                                             overwrite=FLAGS.overwrite,

@@ -49,15 +49,21 @@ def atomic_write_text(path, text: str) -> None:
     ...     sorted(os.listdir(d))
     ['a.md']
     """
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_bytes(path, data: bytes) -> None:
+    """Write ``data`` to ``path`` as :func:`atomic_write_text` writes text (an encoded image,
+    e.g.: ``cv2.imencode``'s bytes)."""
     path = os.fspath(path)
     if os.path.exists(path) and not os.path.isfile(path):
-        with open(path, "w", encoding="utf-8") as f:
-            f.write(text)
+        with open(path, "wb") as f:
+            f.write(data)
         return
     tmp = f"{path}.tmp-{os.getpid()}"
     try:
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(text)
+        with open(tmp, "wb") as f:
+            f.write(data)
         fsync_replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):

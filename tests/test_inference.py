@@ -9,6 +9,7 @@ width does not reach the output).
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -1316,6 +1317,39 @@ def test_predict_outputs_of_pairs_with_the_same_names_do_not_collide(identity_mo
     assert json.loads((out / "a__b_homography.json").read_text())["image_a"] == \
         str(tmp_path / "one" / "a.png")
     assert cv2.imread(str(out / "a__b-2_overlay.png")).shape[0] > photos["two"].shape[0]
+
+
+def test_predict_overlay_cut_short_keeps_the_earlier_one(identity_model_path, tmp_path,
+                                                        monkeypatch):
+    """A re-run of a pair wrote its overlay PNG in place (``cv2.imwrite``): a failure while
+    writing it (a full disk, the process killed) left a truncated overlay beside the earlier
+    JSON. The PNG is now written through a temporary file and renamed: where that fails, the
+    earlier overlay and JSON are left byte for byte, no temporary file stays, and the error is
+    an ``AlignmentError`` naming the PNG."""
+    from stnh_tf import paths
+    from stnh_tf.inference import image_files as alignment
+
+    a, b, out = tmp_path / "a.png", tmp_path / "b.png", tmp_path / "out"
+    cv2.imwrite(str(a), skimage.data.camera())
+    cv2.imwrite(str(b), skimage.data.camera())
+    alignment.align_image_files(str(a), str(b), model=identity_model_path, output_dir=str(out))
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    cv2.imwrite(str(b), skimage.data.camera()[::-1])  # another image_b: another overlay
+    replace = paths.fsync_replace
+
+    def disk_full(tmp, path):
+        if str(path).endswith(".png"):
+            raise OSError(28, "No space left on device")
+        replace(tmp, path)
+
+    monkeypatch.setattr(paths, "fsync_replace", disk_full)
+    with pytest.raises(alignment.AlignmentError, match=re.escape(str(out / "a__b_overlay.png"))):
+        alignment.align_image_files(str(a), str(b), model=identity_model_path,
+                                    output_dir=str(out))
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    monkeypatch.undo()
+    alignment.align_image_files(str(a), str(b), model=identity_model_path, output_dir=str(out))
+    assert (out / "a__b_overlay.png").read_bytes() != before["a__b_overlay.png"]
 
 
 def test_implausibility_check_with_the_identity_model(identity_model_path):

@@ -19,6 +19,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
 
 import cv2
 import numpy as np
@@ -135,16 +136,21 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
     the wide-baseline set, issue 64). ``scale``: the pairs' size in 320 x 240's
     (:func:`make_image_pairs`; recorded as ``"scale"`` and in ``"frame"``).
 
-    Before the first PNG, :data:`MANIFEST` is replaced by an incomplete one (``"complete":
-    false``, which :func:`load_pairs` refuses); the whole manifest is written atomically after
-    the last, so that a run cut short never leaves a manifest beside files it does not list.
+    Once the first photograph decodes, before its PNGs, :data:`MANIFEST` is replaced by an
+    incomplete one (``"complete": false``, which :func:`load_pairs` refuses); the whole manifest
+    is written atomically after the last, so that a run cut short never leaves a manifest beside
+    files it does not list, and a run that finds no readable photograph leaves the folder as it
+    was. Then the folder's pair images that the new manifest does not list (``NNNNN_a.png``,
+    ``NNNNN_b.png``: an earlier, larger set's) are removed, so that readers by name
+    (:mod:`stnh_tf.data.unlabeled_pairs`) see the new set only.
 
     Raises:
       ValueError: ``pairs_per_image < 1``, a ``degradation`` other than the default for
         ``motion_set="paper"``, no readable photograph (the message counts the
         reasons and names the first file skipped), a manifest already in
-        ``output_dir`` without ``overwrite``, or a ``pairs.json`` there that is not a camera-pair
-        manifest (not replaced). ``SourceError``: ``image_dir`` is not a folder.
+        ``output_dir`` or pair images without one there (:data:`PAIR_FILE`) without
+        ``overwrite``, or a ``pairs.json`` there that is not a camera-pair manifest (not
+        replaced). ``SourceError``: ``image_dir`` is not a folder.
     """
     if pairs_per_image < 1:
         raise ValueError(f"pairs_per_image must be >= 1; received {pairs_per_image}.")
@@ -159,17 +165,18 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
     motions = set_motions(motion_set) if motions is None else motions
     path = os.path.join(output_dir, MANIFEST)
     if os.path.exists(path):
+        _read_manifest(path)  # someone else's pairs.json is not replaced
         if not overwrite:
             raise ValueError(f"{path} exists; pass overwrite to replace the set.")
-        _read_manifest(path)  # someone else's pairs.json is not replaced
+    elif _pair_files(output_dir) and not overwrite:
+        raise ValueError(f"{output_dir} holds pair images ({_pair_files(output_dir)[0]}, ...) "
+                         f"without a {MANIFEST}: nothing was written; pass overwrite to replace "
+                         "them, or choose another folder.")
     listing = sources.scan_image_folders([image_dir], max_images)
     skipped = [[listing.image_id(p), reason] for p, reason in listing.unreadable]
     if not listing.files:  # (nothing written)
         raise ValueError(no_photograph_message(
             image_dir, FolderCounts.of(0, [r for _, r in skipped], listing), skipped))
-    os.makedirs(output_dir, exist_ok=True)
-    atomic_write_json(path, {"format": FORMAT, "version": VERSION, "complete": False,
-                             "seed": int(seed), "pairs": []})  # invalid until the end
     records, index = [], 0
     for path_in in listing.files:
         try:
@@ -177,6 +184,10 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
         except (sources.ImageDecodeError, OSError) as e:
             skipped.append([listing.image_id(path_in), str(e)])
             continue
+        if not index:  # the first photograph read: the folder's set is replaced from here
+            os.makedirs(output_dir, exist_ok=True)
+            atomic_write_json(path, {"format": FORMAT, "version": VERSION, "complete": False,
+                                     "seed": int(seed), "pairs": []})  # invalid until the end
         for p in make_image_pairs(gray, index, listing.image_id(path_in), pairs_per_image, seed,
                                   motions, degradation, motion_set, scale):
             names, sha256 = (f"{p.index:05d}_a.png", f"{p.index:05d}_b.png"), []
@@ -230,7 +241,23 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
            if motion_set == "low_overlap" else {}),
     }
     atomic_write_json(path, {**manifest, "pairs": records})  # the commit point
+    listed = {name for r in records for name in (r["image_a"], r["image_b"])}
+    for name in _pair_files(output_dir):
+        if name not in listed:
+            os.remove(os.path.join(output_dir, name))
     return manifest
+
+
+PAIR_FILE = re.compile(r"\d{5}_[ab]\.png")
+"""The names :func:`write_pairs` gives its images (``{k:05d}_a.png``, ``{k:05d}_b.png``)."""
+
+
+def _pair_files(folder) -> list:
+    """The sorted names in ``folder`` (missing: none) that are :data:`PAIR_FILE` s."""
+    try:
+        return sorted(n for n in os.listdir(folder) if PAIR_FILE.fullmatch(n))
+    except FileNotFoundError:
+        return []
 
 
 def load_pairs(folder) -> tuple:

@@ -428,8 +428,13 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
     inputs = [os.path.realpath(image_a_path), os.path.realpath(image_b_path)]
     stem = output_stem(output_dir, inputs)
     png = os.path.join(output_dir, f"{stem}_overlay.png")
-    if not cv2.imwrite(png, panels):
-        raise AlignmentError(f"cannot write {png}.")
+    encoded, data = cv2.imencode(".png", panels)
+    if not encoded:
+        raise AlignmentError(f"cannot encode {png}.")
+    try:  # a re-run cut short keeps the earlier overlay whole
+        paths.atomic_write_bytes(png, data.tobytes())
+    except OSError as e:
+        raise AlignmentError(f"cannot write {png}: {e}") from None
     result = {"image_a": image_a_path, "image_b": image_b_path,
               "image_a_size": list(image_a.size), "image_b_size": list(image_b.size),
               "model": estimator.source, "kind": estimator.kind,
