@@ -140,8 +140,9 @@ def move_confirmed(move, optimum, a_from_b, equal_a, equal_b, work_shape, origin
     """Whether ``verify="ecc"``'s move of the patch-frame ``a_from_b`` (``move`` px, to
     ``optimum``: patch_b's ECC optimum started from it; ``None`` where ECC failed) is excused
     (``Estimate.move_confirmed``): it is above ``thresholds.max_verify_move``, yet the whole
-    work images align at ``thresholds.verified_ncc`` or better under ``a_from_b``
-    (:func:`~stnh_tf.inference.coarse.image_ncc`), and ECC over them started from ``optimum``
+    work images align at least as well under ``a_from_b`` as under ``optimum``
+    (:func:`~stnh_tf.inference.coarse.image_ncc`; no NCC floor: an exposure change lowers
+    both, issue 79), and ECC over them started from ``optimum``
     comes back to within ``max_verify_move`` of ``a_from_b`` (measured as the move is,
     :func:`~stnh_tf.inference.checks.verify_move`, in the ``[h, w]`` ``work_shape``): patch_b's
     optimum then lies in the whole images' basin of the estimate (issue 64). ``equal_a``,
@@ -150,8 +151,9 @@ def move_confirmed(move, optimum, a_from_b, equal_a, equal_b, work_shape, origin
     t = thresholds
     if optimum is None or not t.max_verify_move < move < math.inf:
         return False
-    if not coarse.image_ncc(equal_a, equal_b, a_from_b, origin, t.min_overlap) >= t.verified_ncc:
-        return False
+    if not (coarse.image_ncc(equal_a, equal_b, a_from_b, origin, t.min_overlap)
+            >= coarse.image_ncc(equal_a, equal_b, optimum, origin, t.min_overlap)):
+        return False  # (NaN, an NCC undefined, never confirms)
     back = _whole_image_ecc(equal_a, equal_b, optimum, origin, t)
     return back is not None and checks.verify_move(back, a_from_b, work_shape,
                                                    origin) <= t.max_verify_move

@@ -91,9 +91,7 @@ class Thresholds:
       min_overlap: the fraction of patch_b's pixels that must land inside patch_a's source for
         the NCC to be defined.
       search_below_ncc: ``search="ecc"`` searches a pair aligned below this (or implausible).
-      verified_ncc: a search result must align the pair at least this well to be kept (and a
-        verify move is excused only where the whole images align this well:
-        ``max_verify_move``).
+      verified_ncc: a search result must align the pair at least this well to be kept.
       search_template: side (px) of patch_b's central square slid over the warped patch_a:
         translations up to ``(128 - side) / 2`` px are scored.
       search_peaks: translation peaks the search starts ECC from.
@@ -108,7 +106,7 @@ class Thresholds:
         image_b's pixels where the estimate zooms out beyond the trained range
         (:func:`stnh_tf.inference.checks.verify_move`; issue 64); with ``refine="images"`` in
         ``estimate_images``, not where ECC over the whole images brings the move back to
-        within this of an estimate that aligns them at ``verified_ncc`` or better
+        within this of an estimate that aligns them at least as well as where ECC moved it
         (:func:`stnh_tf.inference.image_refine.move_confirmed`).
       coarse_corner_shift: with ``coarse`` or ``features`` other than ``"none"``
         (``EstimateOptions.wide_motions``), this replaces ``implausible_corner_shift`` in the

@@ -65,8 +65,9 @@ class Estimate:
       move_confirmed: in ``estimate_images_with_info`` with ``verify="ecc"`` and
         ``refine="images"``, ECC moved the estimate by more than ``thresholds.max_verify_move``,
         but ECC over the whole images, started from where it moved it, comes back to within
-        that of the estimate, and the whole images align at ``thresholds.verified_ncc`` or
-        better: the move is patch_b's own optimum, not a sign of another alignment, and does
+        that of the estimate, and the whole images align at least as well under the estimate
+        as where ECC moved it (issue 79; before, at ``thresholds.verified_ncc`` or better): the
+        move is patch_b's own optimum, not a sign of another alignment, and does
         not flag the estimate (:func:`stnh_tf.inference.image_refine.move_confirmed`; issue
         64). False elsewhere.
       network_homography: float64 ``[B, 3, 3]``: the network's own estimate (the stages
