@@ -1204,7 +1204,9 @@ def test_ablation_table_is_the_json_s():
                       ("seed0-60-bc2d7fb", "ablation_seed0_60_bc2d7fb"),
                       ("seed13-60-bc2d7fb", "ablation_seed13_60_bc2d7fb"),
                       ("seed0-60-88a648c", "ablation_seed0_60_88a648c"),
-                      ("seed13-60-88a648c", "ablation_seed13_60_88a648c")):
+                      ("seed13-60-88a648c", "ablation_seed13_60_88a648c"),
+                      ("seed0-60-febe404", "ablation_seed0_60_febe404"),
+                      ("seed13-60-febe404", "ablation_seed13_60_febe404")):
         start, end = f"<!-- ablation-{tag}:start -->\n", f"\n<!-- ablation-{tag}:end -->"
         block = text[text.index(start) + len(start):text.index(end)]
         assert block == ablation.table(_camera_file(name)), tag
@@ -1380,3 +1382,37 @@ def test_the_unclipped_pixel_floor_changes_no_ablation_cell():
             untimed = [{k: v for k, v in cells[group].items() if "ms_per_pair" not in k}
                        for cells in (before, after)]
             assert untimed[0] == untimed[1] and len(untimed[0]) >= 10, group
+
+
+def test_the_move_confirmation_numbers_are_the_json_s():
+    """BENCHMARKS.md's "The move confirmation without its NCC floor" (issue 79, 2026-12-07):
+    against a63dbd3 every untimed cell of both seeds is the same but the flag's counts of seed
+    0's ``paper_exposure`` (and so of all its groups) and the ``searched`` shares; the counts
+    and shares the prose gives are the JSON's."""
+    text = " ".join(_read("BENCHMARKS.md").split())
+    changed = {}
+    for seed in (0, 13):
+        before, after = (_camera_file(f"ablation_seed{seed}_60_{c}")["ablations"]["default"]
+                         ["groups"] for c in ("a63dbd3", "febe404"))
+        assert set(before) == set(after) and len(before) == 9
+        for group in before:
+            keys = [k for k in before[group] if "ms_per_pair" not in k and k != "searched"]
+            differ = [k for k in keys if before[group][k] != after[group][k]]
+            if differ:
+                changed[seed, group] = differ
+        assert after["all"]["silently_failed"] == 0
+    assert set(changed) == {(0, "paper_exposure"), (0, "all")}
+    assert all(set(k) == {"flag", "flag_patch_frame", "good_flagged"} for k in [
+        set(v) for v in changed.values()])
+    b0, a0 = (_camera_file(f"ablation_seed0_60_{c}")["ablations"]["default"]["groups"]
+              for c in ("a63dbd3", "febe404"))
+    before, after = (g["paper_exposure"]["good_flagged"] for g in (b0, a0))
+    n = a0["paper_exposure"]["count"]
+    assert (f"go from {before} to {after} of {n} ({100 * before / n:.1f}% -> "
+            f"{100 * after / n:.1f}%;") in text
+    seed13 = _camera_file("ablation_seed13_60_febe404")["ablations"]["default"]["groups"]
+    good13 = seed13["paper_exposure"]["successes"]
+    assert f"on seed 13 nothing changes ({seed13['paper_exposure']['good_flagged']} of {good13})" \
+        in text
+    assert (f"seed 0 over all groups {b0['all']['searched']:.3f} -> "
+            f"{a0['all']['searched']:.3f})") in text
