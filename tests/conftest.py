@@ -157,6 +157,18 @@ def color_patch():
 
 
 @pytest.fixture
+def pair_photos(tmp_path):
+    """A folder of two photographs (``astronaut.png`` in colour, ``camera.png`` gray) to make
+    camera-pair sets from."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for name, photo in (("astronaut.png", skimage.data.astronaut()[..., ::-1]),
+                        ("camera.png", skimage.data.camera())):
+        cv2.imwrite(str(folder / name), photo)
+    return folder
+
+
+@pytest.fixture
 def rng():
     return np.random.default_rng(1234)
 

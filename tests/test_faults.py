@@ -1253,17 +1253,7 @@ def test_device_photographs_set_aside_refuses_a_changed_model_in_one_line(tmp_pa
     assert not (tmp_path / "dev").exists()
 
 
-@pytest.fixture
-def _pair_photos(tmp_path):
-    folder = tmp_path / "photos"
-    folder.mkdir()
-    for name, photo in (("astronaut.png", skimage.data.astronaut()[..., ::-1]),
-                        ("camera.png", skimage.data.camera())):
-        cv2.imwrite(str(folder / name), photo)
-    return folder
-
-
-def test_a_camera_pair_set_rewritten_and_cut_short_is_refused(_pair_photos, tmp_path,
+def test_a_camera_pair_set_rewritten_and_cut_short_is_refused(pair_photos, tmp_path,
                                                                monkeypatch):
     """Item 2: make_camera_pairs --overwrite killed midway left the old seed's pairs.json beside
     the new seed's PNGs, and load_pairs took the mixture. The manifest is invalidated before the
@@ -1272,8 +1262,8 @@ def test_a_camera_pair_set_rewritten_and_cut_short_is_refused(_pair_photos, tmp_
     from stnh_tf.data import camera_pair_files as files
 
     out, other = tmp_path / "pairs", tmp_path / "other"
-    files.write_pairs(_pair_photos, out, pairs_per_image=2, seed=0)
-    files.write_pairs(_pair_photos, other, pairs_per_image=2, seed=1)
+    files.write_pairs(pair_photos, out, pairs_per_image=2, seed=0)
+    files.write_pairs(pair_photos, other, pairs_per_image=2, seed=1)
     make = files.make_image_pairs
 
     def killed_at_the_second_photograph(gray, index, *args, **kw):
@@ -1283,14 +1273,14 @@ def test_a_camera_pair_set_rewritten_and_cut_short_is_refused(_pair_photos, tmp_
 
     monkeypatch.setattr(files, "make_image_pairs", killed_at_the_second_photograph)
     with pytest.raises(KeyboardInterrupt):
-        files.write_pairs(_pair_photos, out, pairs_per_image=2, seed=1, overwrite=True)
+        files.write_pairs(pair_photos, out, pairs_per_image=2, seed=1, overwrite=True)
     monkeypatch.undo()
     assert (out / "00000_b.png").read_bytes() == (other / "00000_b.png").read_bytes()  # seed 1
     with pytest.raises(ValueError, match=re.escape(str(out / "pairs.json")) + ".*incomplete"):
         files.load_pairs(out)
     with pytest.raises(ValueError, match="exists; pass overwrite"):
-        files.write_pairs(_pair_photos, out, pairs_per_image=2, seed=1)
-    files.write_pairs(_pair_photos, out, pairs_per_image=2, seed=1, overwrite=True)
+        files.write_pairs(pair_photos, out, pairs_per_image=2, seed=1)
+    files.write_pairs(pair_photos, out, pairs_per_image=2, seed=1, overwrite=True)
     manifest, pairs = files.load_pairs(out)
     assert manifest["seed"] == 1 and _files(out) == _files(other)
     shutil.copyfile(other / "00003_b.png", out / "00001_b.png")  # another pair's file
@@ -1301,7 +1291,7 @@ def test_a_camera_pair_set_rewritten_and_cut_short_is_refused(_pair_photos, tmp_
     mine.mkdir()
     (mine / "pairs.json").write_text(json.dumps({"my": "pairs"}))
     with pytest.raises(ValueError, match="is not a stnh_tf.camera_pairs manifest"):
-        files.write_pairs(_pair_photos, mine, pairs_per_image=2, overwrite=True)
+        files.write_pairs(pair_photos, mine, pairs_per_image=2, overwrite=True)
     assert _files(mine) == {"pairs.json": json.dumps({"my": "pairs"}).encode()}
 
 

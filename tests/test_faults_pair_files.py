@@ -16,7 +16,6 @@ import sys
 import cv2
 import numpy as np
 import pytest
-import skimage.data
 
 from stnh_tf.data import camera_pair_files as files
 from stnh_tf.data import unlabeled_pairs
@@ -32,13 +31,8 @@ def _files(folder):
 
 
 @pytest.fixture
-def photos(tmp_path):
-    folder = tmp_path / "photos"
-    folder.mkdir()
-    for name, photo in (("astronaut.png", skimage.data.astronaut()[..., ::-1]),
-                        ("camera.png", skimage.data.camera())):
-        cv2.imwrite(str(folder / name), photo)
-    return folder
+def photos(pair_photos):
+    return pair_photos
 
 
 def test_overwrite_from_unreadable_photographs_keeps_the_set(photos, tmp_path):
