@@ -38,7 +38,8 @@ flags.DEFINE_string("image_dir", "../shared/data/coco_mini/test",
 flags_common.define_max_images()
 flags.DEFINE_integer("pairs_per_image", 3, "Pairs per photograph (groups cycle over the pairs).")
 flags_common.define_seed("Seed: photograph i draws from default_rng([seed, i]).")
-flags.DEFINE_bool("overwrite", False, "Replace a set already in --output_dir.")
+flags.DEFINE_bool("overwrite", False, "Replace a set (or pair images NNNNN_a/b.png) already in "
+                  "--output_dir; pair images the new set does not list are deleted.")
 flags.DEFINE_enum("motion_set", "size", list(camera_motions.MOTION_SETS),
                   "size: groups within / 1-2x / 2-4x the trained range; wide: zoom 0.3-3.0, "
                   "rotation up to 180 deg, a plane's viewpoint up to 60 deg, groups wide and "

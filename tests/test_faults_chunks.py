@@ -308,8 +308,8 @@ def test_a_chunk_on_other_photographs_is_refused(tmp_path, monkeypatch):
     trained on from the same step with another pair stream, silently, and the part's record
     counted only the last machine's photographs. Each chunk's row now records the photographs
     (count and sha256 of their ids and sizes, relative to the folders given: the same at any
-    path), and a chunk whose photographs differ from the part's last row's is refused in one
-    line, before training; the same photographs at another path train on."""
+    path), and a chunk whose training photographs differ from the part's last row's is refused
+    in one line, before training; the same photographs at another path train on."""
     import shutil
 
     import cv2

@@ -80,10 +80,25 @@ def test_a_smaller_set_over_a_larger_leaves_none_of_its_images(photos, tmp_path)
     out, fresh = tmp_path / "pairs", tmp_path / "fresh"
     files.write_pairs(photos, out, pairs_per_image=3, seed=0)
     assert len(unlabeled_pairs.list_pairs(str(out))[0]) == 6
+    kept = {"notes.png": b"mine", "00000_c.png": b"mine too", "0000_a.png": b"four digits"}
+    for name, data in kept.items():
+        (out / name).write_bytes(data)
     files.write_pairs(photos, out, pairs_per_image=1, seed=5, overwrite=True)
     files.write_pairs(photos, fresh, pairs_per_image=1, seed=5)
-    assert _files(out) == _files(fresh)
-    assert len(unlabeled_pairs.list_pairs(str(out))[0]) == 2
+    assert _files(out) == {**_files(fresh), **kept}  # files not named as pairs are left
+    assert len(files.load_pairs(out)[1]) == 2
+    assert files.PAIR_FILE.fullmatch("100000_b.png")  # from pair 100,000 on
+
+
+def test_a_set_among_its_photographs_is_refused(photos):
+    """``write_pairs`` called as a library function (``make_camera_pairs`` checked its flags
+    apart before) would write, and now delete, pair images among the photographs it reads:
+    refused before anything is written."""
+    before = _files(photos)
+    for out in (photos, photos / "pairs"):
+        with pytest.raises(ValueError, match="image_dir"):
+            files.write_pairs(photos, out, pairs_per_image=1)
+    assert _files(photos) == before
 
 
 def test_json_out_dash_is_standard_output_only(tmp_path, monkeypatch, capsys):

@@ -334,6 +334,27 @@ def test_a_move_is_confirmed_where_noise_keeps_the_whole_images_under_the_search
     assert est.move_confirmed[0] and not est.implausible[0]
 
 
+def test_move_confirmed_compares_the_two_alignments(monkeypatch):
+    """The NCC condition of ``image_refine.move_confirmed`` alone (the whole-image ECC made to
+    come back to the estimate): confirmed where the whole images align under the estimate at
+    least as well as under patch_b's optimum, not where worse, and not where the NCC under the
+    estimate is undefined (``coarse.image_ncc``'s ``-inf``), even if the optimum's is too."""
+    from stnh_tf.inference import coarse
+
+    t = Thresholds()
+    estimate, optimum = np.eye(3), geometry.translation(9.0, 0.0)
+    monkeypatch.setattr(image_refine, "_whole_image_ecc", lambda *args: estimate)
+
+    def confirmed(ncc_estimate, ncc_optimum):
+        values = {0.0: ncc_estimate, 9.0: ncc_optimum}
+        monkeypatch.setattr(coarse, "image_ncc", lambda a, b, h, *rest: values[h[0, 2]])
+        return image_refine.move_confirmed(9.0, optimum, estimate, None, None, (H, W), (0, 0), t)
+
+    assert confirmed(0.80, 0.79) and confirmed(0.80, 0.80) and confirmed(0.5, -np.inf)
+    assert not confirmed(0.79, 0.80) and not confirmed(-np.inf, -np.inf)
+    assert not confirmed(-np.inf, 0.3)
+
+
 def test_move_confirmed_needs_a_return_a_good_alignment_and_a_move_beyond_the_limit():
     """``image_refine.move_confirmed`` on the moving-object pair: True for the patch optimum of
     the right estimate; False where the move is within ``max_verify_move`` (nothing to excuse),

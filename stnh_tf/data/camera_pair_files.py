@@ -28,7 +28,7 @@ from stnh_tf.data import camera_motions, overlap_motions, paper_motions, sources
 from stnh_tf.data.folder_counts import FolderCounts, no_photograph_message
 from stnh_tf.data.camera_motions import (GROUPS, MARGIN, MOTION_SETS, SOURCE_SIZE,
                                          TRAINED_OFFSET, CameraPair, Degradation, MotionRanges)
-from stnh_tf.paths import atomic_write_json, inside
+from stnh_tf.paths import atomic_write_json, check_apart, inside
 
 FORMAT = "stnh_tf.camera_pairs"
 VERSION = 2  # 2: each pair's "sha256" of its PNG files, and "complete"
@@ -149,8 +149,9 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
         ``motion_set="paper"``, no readable photograph (the message counts the
         reasons and names the first file skipped), a manifest already in
         ``output_dir`` or pair images without one there (:data:`PAIR_FILE`) without
-        ``overwrite``, or a ``pairs.json`` there that is not a camera-pair manifest (not
-        replaced). ``SourceError``: ``image_dir`` is not a folder.
+        ``overwrite``, a ``pairs.json`` there that is not a camera-pair manifest (not
+        replaced), or an ``output_dir`` that is, lies in or holds ``image_dir``
+        (:func:`~stnh_tf.paths.check_apart`). ``SourceError``: ``image_dir`` is not a folder.
     """
     if pairs_per_image < 1:
         raise ValueError(f"pairs_per_image must be >= 1; received {pairs_per_image}.")
@@ -163,6 +164,7 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
         raise ValueError("the paper's groups have their own degradations (paper_motions); "
                          "a set of motion_set 'paper' takes no other degradation.")
     motions = set_motions(motion_set) if motions is None else motions
+    check_apart({"output_dir": output_dir}, {"image_dir": image_dir})  # (it deletes, below)
     path = os.path.join(output_dir, MANIFEST)
     if os.path.exists(path):
         _read_manifest(path)  # someone else's pairs.json is not replaced
@@ -171,7 +173,8 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
     elif _pair_files(output_dir) and not overwrite:
         raise ValueError(f"{output_dir} holds pair images ({_pair_files(output_dir)[0]}, ...) "
                          f"without a {MANIFEST}: nothing was written; pass overwrite to replace "
-                         "them, or choose another folder.")
+                         "them (those the new set does not list are deleted), or choose another "
+                         "folder.")
     listing = sources.scan_image_folders([image_dir], max_images)
     skipped = [[listing.image_id(p), reason] for p, reason in listing.unreadable]
     if not listing.files:  # (nothing written)
@@ -248,8 +251,9 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
     return manifest
 
 
-PAIR_FILE = re.compile(r"\d{5}_[ab]\.png")
-"""The names :func:`write_pairs` gives its images (``{k:05d}_a.png``, ``{k:05d}_b.png``)."""
+PAIR_FILE = re.compile(r"[0-9]{5,}_[ab]\.png")
+"""The names :func:`write_pairs` gives its images (``{k:05d}_a.png``, ``{k:05d}_b.png``; six
+digits and more from pair 100,000 on)."""
 
 
 def _pair_files(folder) -> list:

@@ -115,8 +115,8 @@ WITHOUT_SWITCH = {
         "the same number sets the whole-image refinement's second start and the move "
         "confirmation; 'precision_ambiguity' against 'verify' isolates it",
     "the move confirmation":
-        "tied to refine='images' and verified_ncc, which also bars the search's results; "
-        "'refine_images' removes it with the refinement",
+        "tied to refine='images' (it compares the whole images' alignments, no threshold of "
+        "its own); 'refine_images' removes it with the refinement",
     "the stage gate and the mirror fill":
         "estimate_images sets gate_stages=False and fill='zeros' (the image is the context)",
     "clipped pixels left out of the alignment measures":

@@ -141,8 +141,8 @@ def move_confirmed(move, optimum, a_from_b, equal_a, equal_b, work_shape, origin
     ``optimum``: patch_b's ECC optimum started from it; ``None`` where ECC failed) is excused
     (``Estimate.move_confirmed``): it is above ``thresholds.max_verify_move``, yet the whole
     work images align at least as well under ``a_from_b`` as under ``optimum``
-    (:func:`~stnh_tf.inference.coarse.image_ncc`; no NCC floor: an exposure change lowers
-    both, issue 79), and ECC over them started from ``optimum``
+    (:func:`~stnh_tf.inference.coarse.image_ncc`, defined under ``a_from_b``; no NCC floor: an
+    exposure change lowers both, issue 79), and ECC over them started from ``optimum``
     comes back to within ``max_verify_move`` of ``a_from_b`` (measured as the move is,
     :func:`~stnh_tf.inference.checks.verify_move`, in the ``[h, w]`` ``work_shape``): patch_b's
     optimum then lies in the whole images' basin of the estimate (issue 64). ``equal_a``,
@@ -151,9 +151,10 @@ def move_confirmed(move, optimum, a_from_b, equal_a, equal_b, work_shape, origin
     t = thresholds
     if optimum is None or not t.max_verify_move < move < math.inf:
         return False
-    if not (coarse.image_ncc(equal_a, equal_b, a_from_b, origin, t.min_overlap)
-            >= coarse.image_ncc(equal_a, equal_b, optimum, origin, t.min_overlap)):
-        return False  # (NaN, an NCC undefined, never confirms)
+    mine = coarse.image_ncc(equal_a, equal_b, a_from_b, origin, t.min_overlap)
+    if not (math.isfinite(mine)  # undefined (-inf) under the estimate: never confirmed
+            and mine >= coarse.image_ncc(equal_a, equal_b, optimum, origin, t.min_overlap)):
+        return False
     back = _whole_image_ecc(equal_a, equal_b, optimum, origin, t)
     return back is not None and checks.verify_move(back, a_from_b, work_shape,
                                                    origin) <= t.max_verify_move

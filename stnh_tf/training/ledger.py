@@ -183,8 +183,9 @@ def photographs(cfg) -> dict | None:
     :class:`~stnh_tf.training.config.TrainConfig`) trains and validates on, wherever their
     folders are: ``{"train": ..., "val": ...}``, each ``{"count": N, "sha256": ...}`` over the
     image ids and sizes of :func:`stnh_tf.data.sources.scan_image_folders`' listing (relative to
-    the folders given); ``None`` for a run without ``image_dir`` (TFRecords), or where a folder
-    cannot be listed here (the run's own check then names it)."""
+    the folders given); ``None`` for a run without ``image_dir`` (TFRecords), or where the
+    training folders cannot be listed here (the run's own check then names it); no ``"val"``
+    where there are no validation folders or they cannot be listed."""
     from stnh_tf.data import sources
 
     if not cfg.image_dir:
@@ -199,7 +200,9 @@ def photographs(cfg) -> dict | None:
             digest = hashlib.sha256("".join(
                 f"{listing.image_id(p)}\t{os.path.getsize(p)}\n" for p in listing.files).encode())
         except (OSError, ValueError):  # (SourceError is a ValueError)
-            return None
+            if key == "train":
+                return None
+            continue
         out[key] = {"count": len(listing.files), "sha256": digest.hexdigest()}
     return out
 
@@ -226,6 +229,7 @@ def check_photographs(recorded, seen, part, cfg, printer=print) -> None:
             "nothing was trained; point --image_dir at the same photographs (their pairs would "
             "come in another order).")
     if earlier[-1].get("val") != seen.get("val"):
-        printer(f"the validation photographs of {cfg.val_image_dir!r} are not those of the last "
-                f"chunk of {part} ({seen.get('val')} here, {earlier[-1].get('val')} in the "
-                "ledger): training goes on; its validation numbers are on another set from here")
+        here = repr(cfg.val_image_dir) if seen.get("val") else "none (or not listed)"
+        printer(f"the validation photographs here, {here}, are not those of the last chunk of "
+                f"{part} ({seen.get('val')} here, {earlier[-1].get('val')} in the ledger): "
+                "training goes on; its validation numbers are on another set from here")
