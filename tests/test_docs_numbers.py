@@ -1416,3 +1416,10 @@ def test_the_move_confirmation_numbers_are_the_json_s():
         in text
     assert (f"seed 0 over all groups {b0['all']['searched']:.3f} -> "
             f"{a0['all']['searched']:.3f})") in text
+    assert "give every cell of the two tables above but the times on both seeds" in text
+    for seed in (0, 13):  # the review's fix (660f1ff) changes no untimed cell
+        runs = [_camera_file(f"ablation_seed{seed}_60_{c}")["ablations"]["default"]["groups"]
+                for c in ("febe404", "660f1ff")]
+        untimed = [{g: {k: v for k, v in cells.items() if "ms_per_pair" not in k}
+                    for g, cells in run.items()} for run in runs]
+        assert untimed[0] == untimed[1] and len(untimed[0]) == 9
