@@ -179,9 +179,10 @@ def test_seeded_pairs_files_and_benchmark_group(tmp_path):
         assert not np.array_equal(p.h_ba, r.h_ba)
         ox, oy = p.motion["window_origin"]
         np.testing.assert_array_equal(p.image_a, source[oy:oy + H, ox:ox + W])
-    cv2.imwrite(str(tmp_path / "camera.png"), photo)
-    manifest = camera_pair_files.write_pairs(tmp_path, tmp_path / "pairs", pairs_per_image=2,
-                                             seed=5, motion_set="low_overlap")
+    (tmp_path / "photos").mkdir()
+    cv2.imwrite(str(tmp_path / "photos" / "camera.png"), photo)
+    manifest = camera_pair_files.write_pairs(tmp_path / "photos", tmp_path / "pairs",
+                                             pairs_per_image=2, seed=5, motion_set="low_overlap")
     assert manifest["counts"] == {"low_overlap": 2} and manifest["overlap"] == [0.3, 0.6]
     _, pairs = camera_pair_files.load_pairs(tmp_path / "pairs")
     first = camera_pair_files.make_image_pairs(photo, 0, "camera", 2, seed=5,
