@@ -42,6 +42,7 @@ def test_plan_by_card_layout():
         card_evaluation.plan({**named, "hand_made": {}})
 
 
+@pytest.mark.slow
 def test_refresh_measures_the_shipped_files_and_refuses_other_pairs(tmp_path, narrow,
                                                                      monkeypatch):
     # two of the named measurements: the test photographs' and the bundled ones' (the others

@@ -314,6 +314,7 @@ def _peak_bytes(fn):
         tracemalloc.stop()
 
 
+@pytest.mark.slow
 def test_memory_of_estimate_does_not_grow_with_the_number_of_pairs():
     """Item 6: NumPy memory (every array the pipeline makes) at the peak of one call on 512 and
     on 2,048 uint8 pairs: float32 copies of all pairs (128 KB a pair) are no longer made."""

@@ -86,6 +86,7 @@ def _check_plain_load(paths, tmp_path):
                                            rtol=1e-5, atol=1e-6, err_msg=f"{path} {name}")
 
 
+@pytest.mark.slow
 def test_the_paper_schedule_stage_1_opens_with_plain_keras_after_import_stnh_tf(tmp_path):
     """The issue's file. Before, ``keras.models.load_model(".../paper_schedule/stage1.keras")``
     raised "TypeError: Functional could not be deserialized" (with ``compile=False`` too): the
@@ -159,6 +160,7 @@ def test_the_fine_tuning_example_of_docs_weights_runs(tmp_path, monkeypatch):
         np.testing.assert_array_equal(u, v)
 
 
+@pytest.mark.slow
 def test_keras_imported_before_stnh_tf_has_the_objects_registered_at_import():
     """The other order: ``import stnh_tf`` after Keras registers at once (no hook to wait for),
     in a fresh process: Keras then knows every name the sources register."""

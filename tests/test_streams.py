@@ -151,6 +151,7 @@ if __name__ == "__main__":
 """
 
 
+@pytest.mark.slow
 def test_generator_workers_import_no_deep_learning_backend(folder, tmp_path):
     pair_batches = batches.PairBatches(folder, BATCH, samples_per_image=PER_IMAGE, seed=0)
     with batches.generator_pool(pair_batches, 1) as pool:
@@ -420,6 +421,7 @@ def test_stage2_from_image_folder_validates_on_make_stage_dataset_pairs(folder, 
     assert saved["stage"] == 2 and saved["prev_stages"] == [s1.model_dir]
 
 
+@pytest.mark.slow
 def test_evaluate_scores_mixed_precision_models_in_float32_on_request(records, tmp_path):
     """``evaluate(compute_dtype="float32")`` scores a model saved in mixed bfloat16 as a float32
     build of the same weights, alone and as a 2-stage hierarchy; by default it runs as saved."""

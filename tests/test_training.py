@@ -162,6 +162,7 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_data, straight
     assert diff <= 1e-4 * moved, (diff, moved)
 
 
+@pytest.mark.slow
 def test_init_from_starts_a_stage_from_a_trained_one(tiny_data, tmp_path, narrow):
     """--init_from (a .keras file or a run dir) sets the stage's regression weights before the
     first step: with a learning rate of 1e-12 the trained model keeps the source's weights, which
