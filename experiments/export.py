@@ -15,7 +15,7 @@ nonzero if it exceeds ``--tolerance``. Only a passed check marks the folder veri
 was killed, or failed) is named as never verified by the next export, which asks for
 ``--overwrite``, and by ``stnh_tf.inference.export.load_serving_signature``. The export holds
 ``--output``'s lock from its checks through the verification: a second export to the same
-folder is refused at once, and the hidden staging folders a killed export left beside it are
+folder is refused at once, and the hidden staging folders a killed export left in it are
 removed. Library code:
 ``stnh_tf.inference.export`` (``export_and_verify``).
 """

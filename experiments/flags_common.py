@@ -275,19 +275,22 @@ def thresholds_from_flag(items, base):
     >>> thresholds_from_flag(["resolution_sigma=0", "search_peaks=4"], Thresholds()).search_peaks
     4
     """
-    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)
-              if not isinstance(getattr(base, f.name), tuple)}
+    from stnh_tf.inference.options import WHOLE_NUMBER_TYPES
+
+    fields = {f.name: int if f.type in WHOLE_NUMBER_TYPES else float
+              for f in dataclasses.fields(base) if not isinstance(getattr(base, f.name), tuple)}
     changes = {}
     for item in items:
         name, sep, text = item.partition("=")
         if not sep or name not in fields:
             raise ValueError(f"--thresholds takes name=value items of Thresholds' number fields "
                              f"({', '.join(fields)}); received {item!r}.")
-        kind = type(fields[name])
+        kind = fields[name]
         try:
             changes[name] = kind(text)
         except ValueError:
-            raise ValueError(f"--thresholds: {name} takes a {kind.__name__}; received "
+            raise ValueError(f"--thresholds: {name} takes "
+                             f"{'a whole number' if kind is int else 'a number'}; received "
                              f"{text!r}.") from None
     return dataclasses.replace(base, **changes)
 

@@ -2,11 +2,12 @@ r"""Estimate the homography between two images and draw the alignment.
 
   python -m experiments.predict --image_a=a.jpg --image_b=b.jpg [--model=runs/stage1] \
       [--output_dir=out] [--tta=dihedral | --retry_tta=dihedral] [--search=none] \
-      [--coarse=none --refine=none --verify=none]
+      [--features=none --refine=none --verify=none]
 
 The estimator's options default to ``estimate_images``' (``EstimateOptions.photographs()``: the
-feature start, the coarse pass, the whole-image refinement, the ECC check of the flag);
-``--features=none --coarse=none --refine=none --verify=none`` give ``EstimateOptions()``.
+feature start, the search, the whole-image refinement, the ECC check of the flag; the coarse
+pass is off: ``--coarse=rotations`` adds it); ``--features=none --refine=none --verify=none`` give
+``EstimateOptions()``.
 
 Prints a JSON object whose ``homography`` maps image_b pixel coordinates (x, y) to image_a pixel
 coordinates (``p_a ~ H @ p_b``, pixel centres at integer coordinates, ``H[2][2] = 1``) and

@@ -246,3 +246,19 @@ def exclusive_lock(lock_path, busy: str):
             yield
         finally:
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+@contextlib.contextmanager
+def folder_lock(folder):
+    """Hold ``fcntl.flock`` on the folder ``folder`` itself (no file is made in it) inside the
+    ``with``, waiting for another holder, in this process or another, to let go: writers that
+    choose names in a folder (``predict``'s output stems) do it one at a time. Goes with the
+    process, as :func:`exclusive_lock`."""
+    import fcntl
+
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing the last descriptor releases the lock

@@ -889,10 +889,12 @@ def test_i61_14_a_manifest_naming_itself_or_another_manifest_is_refused(tmp_path
 
 
 def test_i61_15_a_later_export_removes_the_folders_a_killed_export_left(tmp_path):
-    """Item 15: a kill -9 during export left a hidden .sm.xxxxxxxx folder that no later run
-    removed. The next export to the same output, holding its lock, removes those it made (its
-    marker inside, or the name pattern and nothing but SavedModel entries: what the code before
-    the marker left); a user's folders beside it stay, byte for byte."""
+    """Item 15: a kill -9 during export left a hidden staging folder that no later run removed.
+    The next export to the same output, holding its lock, removes those it made (inside the
+    output, its marker inside; or beside it, left by the code before, holding the marker that
+    names this output); a user's folders beside it stay, byte for byte, among them a backup named
+    like the old staging folders and holding nothing but SavedModel entries (the code before
+    removed that one: issue 79's review)."""
     from stnh_tf.inference import export
 
     out = tmp_path / "sm"
@@ -907,15 +909,19 @@ def test_i61_15_a_later_export_removes_the_folders_a_killed_export_left(tmp_path
     proc = subprocess.run([sys.executable, "-c", script, str(out)], cwd=ROOT, timeout=120,
                           env=dict(os.environ, PYTHONPATH=ROOT), capture_output=True)
     assert proc.returncode == -9, proc.stderr[-2000:]
-    killed = [n for n in os.listdir(tmp_path) if n.startswith(".sm.")]
-    assert len(killed) == 1  # what the kill left
-    legacy = tmp_path / ".sm.k2j_8xqa"  # as tempfile names them, from before the marker
-    (legacy / "variables").mkdir(parents=True)
-    (legacy / "saved_model.pb").write_bytes(b"old partial")
-    users = {".sm.notes": "a user's hidden folder", ".sm.abcdefgh": "not a SavedModel's"}
-    for name, text in users.items():
+    killed = [n for n in os.listdir(out) if n.startswith(".stnh_tf_export_staging.")]
+    assert len(killed) == 1 and not [n for n in os.listdir(tmp_path) if n.startswith(".")]
+    old_style = tmp_path / ".sm.k2j_8xqa"  # the code before: beside the output, with the marker
+    (old_style / "variables").mkdir(parents=True)
+    (old_style / "saved_model.pb").write_bytes(b"old partial")
+    (old_style / ".stnh_tf_export_staging").write_text(json.dumps({"output": str(out)}))
+    users = {".sm.notes": {"notes.txt": "a user's hidden folder"},
+             ".sm.abcdefgh": {"notes.txt": "not a SavedModel's"},
+             ".sm.20240101": {"saved_model.pb": "a user's backup of a SavedModel"}}
+    for name, files in users.items():
         (tmp_path / name).mkdir()
-        (tmp_path / name / "notes.txt").write_text(text)
+        for file, text in files.items():
+            (tmp_path / name / file).write_text(text)
     (tmp_path / ".other.abcdefgh").mkdir()  # another output's (not this one's name)
     (tmp_path / ".other.abcdefgh" / "saved_model.pb").write_bytes(b"x")
     before = {n: _files(tmp_path / n) for n in [*users, ".other.abcdefgh"]}
@@ -924,6 +930,7 @@ def test_i61_15_a_later_export_removes_the_folders_a_killed_export_left(tmp_path
     assert left == sorted([*users, ".other.abcdefgh"])
     assert {n: _files(tmp_path / n) for n in before} == before
     assert os.path.isfile(out / "saved_model.pb")
+    assert not [n for n in os.listdir(out) if n.startswith(".stnh_tf_export_staging")]
 
 
 # ------------------------------------------------------------------------------------------------

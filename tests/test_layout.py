@@ -157,7 +157,7 @@ DOCTEST_MODULES = ("stnh_tf.geometry", "stnh_tf.pixels", "stnh_tf.paths", "stnh_
                    "stnh_tf.paper.learning_curves", "stnh_tf.paper.budgets",
                    "stnh_tf.training.file_parts", "stnh_tf.training.ledger",
                    "stnh_tf.evaluation.onednn_profile",
-                   "stnh_tf.paper.hour_budget")
+                   "stnh_tf.paper.hour_budget", "stnh_tf.inference.overlays")
 
 
 @pytest.mark.parametrize("name", DOCTEST_MODULES)

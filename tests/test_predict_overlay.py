@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import skimage.data
 
-from stnh_tf.inference import image_files
+from stnh_tf.inference import image_files, overlays
 
-GAP = 8  # the black column after each panel (image_files.overlay)
+GAP = 8  # the black column after each panel (overlays.overlay)
 
 
 def _photo(size=(640, 480)):
@@ -38,25 +38,25 @@ def test_the_captions_fit_inside_their_panels():
     (enlarged) to 1280 px wide every wrapped line measures, with cv2.getTextSize at the scale
     used, at most the panel's width less the margins, with no word lost."""
     a = _photo()
-    png, _ = image_files.overlay(a, a, np.eye(3))
+    png, _ = overlays.overlay(a, a, np.eye(3))
     band, columns = _panels(png, (640, 640), 480)
     for cols in columns:
         assert (band[:, cols][:, -3:] > 128).sum() == 0
         assert (band[:, cols] > 128).sum() > 500  # the caption is drawn
     for size_a, size_b in (((640, 480), (640, 480)), ((600, 400), (300, 200)),
                            ((20, 15), (20, 15)), ((1280, 100), (64, 48))):
-        png, _ = image_files.overlay(_photo(size_a), _photo(size_b), np.eye(3))
+        png, _ = overlays.overlay(_photo(size_a), _photo(size_b), np.eye(3))
         # a panel under MIN_PANEL_WIDTH is enlarged by the smallest integer factor reaching it
-        factors = [max(1, -(-image_files.MIN_PANEL_WIDTH // w)) for w, _ in (size_a, size_b)]
+        factors = [max(1, -(-overlays.MIN_PANEL_WIDTH // w)) for w, _ in (size_a, size_b)]
         widths = [w * f for (w, _), f in zip((size_a, size_b), factors)]
         assert png.shape[1] == sum(widths) + 2 * GAP
-        scale = image_files.caption_scale(widths)
-        for caption, width in zip(image_files.OVERLAY_CAPTIONS, widths):
-            lines = image_files.caption_lines(caption, width, scale)
+        scale = overlays.caption_scale(widths)
+        for caption, width in zip(overlays.OVERLAY_CAPTIONS, widths):
+            lines = overlays.caption_lines(caption, width, scale)
             assert " ".join(lines) == caption
             for line in lines:
                 (w, _), _ = cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-                assert w + 2 * image_files.CAPTION_MARGIN <= width, (size_a, size_b, line)
+                assert w + 2 * overlays.CAPTION_MARGIN <= width, (size_a, size_b, line)
         heights = [h * f for (_, h), f in zip((size_a, size_b), factors)]
         band, columns = _panels(png, widths, max(heights))
         for cols in columns:
@@ -79,7 +79,7 @@ def test_aligned_regions_look_gray_under_a_brightness_change(gain, offset):
                                  flags=cv2.WARP_INVERSE_MAP | cv2.INTER_NEAREST)
     inner = cv2.erode(inside, np.ones((9, 9), np.uint8)) > 0  # away from image_a's border
     assert inner.mean() > 0.9
-    png, quad = image_files.overlay(a, b, H_BA)
+    png, quad = overlays.overlay(a, b, H_BA)
     _, columns = _panels(png, (640, 640), 480)
     blend = png[-480:, columns[1]].astype(np.float64)
     green_minus_magenta = np.abs(blend[..., 1] - blend[..., 2])[inner]
@@ -91,7 +91,7 @@ def test_aligned_regions_look_gray_under_a_brightness_change(gain, offset):
                                cv2.cvtColor(b, cv2.COLOR_BGR2GRAY)[inner].mean(), atol=0.01)
     # a misaligned pair stays coloured: shifted by 6 px, the channels differ by far more
     shifted = H_BA @ np.array([[1, 0, 6.0], [0, 1, 0], [0, 0, 1]])
-    png, _ = image_files.overlay(a, b, shifted)
+    png, _ = overlays.overlay(a, b, shifted)
     blend = png[-480:, columns[1]].astype(np.float64)
     assert np.abs(blend[..., 1] - blend[..., 2])[inner].mean() > 5 * green_minus_magenta.mean()
 

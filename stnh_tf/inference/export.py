@@ -51,121 +51,35 @@ Writing (:func:`export_saved_model`; :func:`export_and_verify` for ``experiments
   (:func:`load_serving_signature`) logs a warning where it is missing or its digest is not the
   files', and a re-export without ``overwrite`` says the folder was never verified
   (:func:`verified_problem`).
-* **Atomic.** The SavedModel is written to a hidden folder beside the output
-  (``.<output name>.xxxxxxxx``, holding the marker file ``.stnh_tf_export_staging``) and moved
-  in when complete. One left by a killed export (``kill -9``) is removed by the next export to
-  the same output, under the lock (so no live export owns it): a folder with that name pattern
-  holding the marker, or (left before the marker existed) nothing but SavedModel entries. No
-  other folder is touched.
+* **Atomic.** The SavedModel is written to a hidden staging folder inside the output
+  (``<output>/.stnh_tf_export_staging.xxxxxxxx``, holding the marker file
+  ``.stnh_tf_export_staging``: on the output's own file system, wherever a link or a mount
+  puts it) and moved in only when complete: the old export's entries are first moved aside
+  into the staging folder, and put back if a move fails, so that a failed write or move leaves
+  the old export as it was. One left by a killed export (``kill -9``) is removed by the next
+  export to the same output, under the lock (so no live export owns it); a kill in the instant
+  of the swap itself can leave the old export there, in that hidden folder. The code before
+  this placed the staging folder beside the output (``.<output name>.xxxxxxxx``): those
+  holding the marker naming this output are removed too. No other folder is touched.
 """
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
 import json
+import logging
 import os
-import re
 import shutil
 import tempfile
-
-import logging
 
 import numpy as np
 
 from stnh_tf import geometry, paths
 from stnh_tf.inference import export_contract, serving
+from stnh_tf.inference.export_folder import (STAGING_MARKER, STAGING_PREFIX, VERIFIED_FILE,
+                                             VERIFIED_FORMAT, output_lock, saved_model_digest,
+                                             swap_in, verified_problem)
 
 _log = logging.getLogger(__name__)
-
-VERIFIED_FILE = export_contract.VERIFIED_FILE
-"""The marker of a verified export (module docstring)."""
-VERIFIED_FORMAT = "stnh_tf.export_verified"
-SAVED_MODEL_ENTRIES = (VERIFIED_FILE, "saved_model.pb", "fingerprint.pb", "variables", "assets")
-"""What a SavedModel export writes into its folder: ``overwrite`` replaces these and nothing
-else (the marker first, so that an export cut short leaves none)."""
-LOCK_FILE = ".stnh_tf_export.lock"
-"""The output folder's lock file (module docstring); not part of the export (a folder holding
-only it counts as empty)."""
-STAGING_MARKER = ".stnh_tf_export_staging"
-"""The file inside an export's hidden staging folder that marks it as the export's (its JSON
-names the output)."""
-
-
-def _check_output(output_dir, overwrite):
-    """``FileExistsError`` unless ``output_dir`` is missing, empty (its lock file aside), or a
-    SavedModel with ``overwrite``."""
-    if not os.path.lexists(output_dir):
-        return
-    if not os.path.isdir(output_dir):
-        raise FileExistsError(f"{output_dir} exists and is not a folder; choose another path.")
-    if not set(os.listdir(output_dir)) - {LOCK_FILE}:
-        return
-    is_saved_model = os.path.isfile(os.path.join(output_dir, "saved_model.pb"))
-    if not overwrite or not is_saved_model:
-        unverified = verified_problem(output_dir) if is_saved_model else None
-        why = ("it is not a SavedModel; choose another path" if not is_saved_model else
-               "it holds a SavedModel; pass overwrite=True (--overwrite) to replace it"
-               if unverified is None else f"{unverified}: pass overwrite=True (--overwrite) to "
-               "export it again")
-        raise FileExistsError(f"{output_dir} exists and is not empty; {why}.")
-
-
-def _staging_pattern(output_dir):
-    """The names ``tempfile.mkdtemp(prefix=".<output name>.")`` gives the staging folders."""
-    return re.compile(re.escape(f".{os.path.basename(os.path.abspath(output_dir))}.")
-                      + r"[a-z0-9_]{8}")
-
-
-def _is_stale_staging(folder, output_dir) -> bool:
-    """Whether ``folder`` (named by :func:`_staging_pattern`) is a staging folder of an export
-    to ``output_dir``: it holds :data:`STAGING_MARKER` naming it, or (left by the code before the
-    marker) nothing but :data:`SAVED_MODEL_ENTRIES`."""
-    if os.path.islink(folder) or not os.path.isdir(folder):
-        return False
-    entries = set(os.listdir(folder))
-    if STAGING_MARKER in entries:
-        try:
-            owner = paths.read_json(os.path.join(folder, STAGING_MARKER)).get("output")
-        except (OSError, ValueError, AttributeError):
-            return False
-        return owner == os.path.abspath(output_dir)
-    return entries <= set(SAVED_MODEL_ENTRIES)
-
-
-def _remove_stale_staging(output_dir) -> list:
-    """Remove the staging folders that killed exports to ``output_dir`` left beside it (call
-    with the output's lock held: no live export owns one then); returns their paths."""
-    parent = os.path.dirname(os.path.abspath(output_dir))
-    pattern, removed = _staging_pattern(output_dir), []
-    for name in sorted(os.listdir(parent)):
-        folder = os.path.join(parent, name)
-        if pattern.fullmatch(name) and _is_stale_staging(folder, output_dir):
-            shutil.rmtree(folder)
-            removed.append(folder)
-    return removed
-
-
-@contextlib.contextmanager
-def output_lock(output_dir, overwrite: bool = False):
-    """Check ``output_dir`` (as :func:`export_saved_model`), create it, and hold its lock
-    (:data:`LOCK_FILE`) inside the ``with``, with the checks made again under the lock and the
-    staging folders killed exports left removed (module docstring).
-
-    Raises:
-      FileExistsError: ``output_dir`` cannot be written (see :func:`export_saved_model`), or
-        another export holds its lock (naming the folder).
-    """
-    output_dir = os.fspath(output_dir)
-    _check_output(output_dir, overwrite)  # before anything is created in a user's folder
-    os.makedirs(output_dir, exist_ok=True)
-    lock = os.path.join(output_dir, LOCK_FILE)
-    with paths.exclusive_lock(lock, f"another export is writing to {output_dir} (it holds "
-                                    f"{lock}); wait for it to finish, or export to another "
-                                    "--output."):
-        _check_output(output_dir, overwrite)  # another export may have finished meanwhile
-        _remove_stale_staging(output_dir)
-        yield output_dir
 
 
 def export_saved_model(estimator, output_dir, overwrite: bool = False) -> str:
@@ -174,9 +88,10 @@ def export_saved_model(estimator, output_dir, overwrite: bool = False) -> str:
     An existing ``output_dir`` is replaced only with ``overwrite=True`` and only if it is a
     SavedModel (holds ``saved_model.pb``) or empty; otherwise ``FileExistsError``; another
     export writing to it holds its lock, and this one is refused with ``FileExistsError``
-    (:func:`output_lock`). The new export is written to a temporary folder beside ``output_dir``
-    and moved in only when complete; then only the entries an export writes
-    (:data:`SAVED_MODEL_ENTRIES`) are replaced, so the user's own files in the folder stay, and a
+    (:func:`~stnh_tf.inference.export_folder.output_lock`). The new export is written to a
+    hidden staging folder inside ``output_dir`` and moved in only when complete; then only the
+    entries an export writes (:data:`~stnh_tf.inference.export_folder.SAVED_MODEL_ENTRIES`) are
+    replaced, so the user's own files in the folder stay, and a
     failed write (e.g. a full disk) leaves the old export as it was and raises ``OSError``
     naming the path and the cause.
     """
@@ -209,49 +124,11 @@ def export_and_verify(estimator, output_dir, overwrite: bool = False, check_pair
     return {**report, "documents": written, "kept_user_files": kept, "verified_file": marker}
 
 
-def saved_model_digest(path) -> str:
-    """The SHA-256 of the SavedModel's files in the folder ``path`` (:data:`SAVED_MODEL_ENTRIES`
-    but the marker; each file's path relative to ``path`` and content, in sorted order)."""
-    digest = hashlib.sha256()
-    path = os.fspath(path)
-    for name in SAVED_MODEL_ENTRIES[1:]:
-        top = os.path.join(path, name)
-        files = [top] if os.path.isfile(top) else sorted(
-            os.path.join(folder, f) for folder, _, names in os.walk(top) for f in names)
-        for file in files:
-            digest.update(os.path.relpath(file, path).encode() + b"\0"
-                          + bytes.fromhex(paths.file_sha256(file)))
-    return digest.hexdigest()
-
-
-def verified_problem(path) -> str | None:
-    """Why the export in the folder ``path`` is not known to be verified, or ``None``: no
-    :data:`VERIFIED_FILE` (its export or check was cut short, or the check failed), one that is
-    not an export's, or one whose digest is not the files' (:func:`saved_model_digest`)."""
-    marker = os.path.join(os.fspath(path), VERIFIED_FILE)
-    if not os.path.isfile(marker):
-        return (f"{os.fspath(path)} was never verified (no {VERIFIED_FILE}: its export or its "
-                "check was cut short, the check failed, or it was exported before stnh_tf "
-                "wrote the marker)")
-    try:
-        doc = paths.read_json(marker)
-    except (OSError, ValueError) as e:
-        return f"{marker} cannot be read ({e})"
-    if not isinstance(doc, dict) or doc.get("format") != VERIFIED_FORMAT:
-        return f"{marker} is not an export's marker"
-    if doc.get("saved_model_sha256") != saved_model_digest(path):
-        return (f"the SavedModel files in {os.fspath(path)} changed since they were verified "
-                f"({VERIFIED_FILE})")
-    return None
-
-
 def _write_export(estimator, output_dir) -> list:
     """The write of :func:`export_saved_model`, its output's lock held; returns the paths of the
     files named like the export's documents (``README.md``, ``signature.json``) that an export
     did not write, kept in place of the export's own (a warning is logged for each)."""
-    parent = os.path.dirname(os.path.abspath(output_dir))
-    staging = tempfile.mkdtemp(prefix=f".{os.path.basename(os.path.abspath(output_dir))}.",
-                               dir=parent)
+    staging = tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=output_dir)
     try:
         with open(os.path.join(staging, STAGING_MARKER), "w") as f:
             json.dump({"output": os.path.abspath(output_dir)}, f)
@@ -261,25 +138,7 @@ def _write_export(estimator, output_dir) -> list:
         except Exception as e:  # TensorFlow's write errors are not OSErrors
             raise OSError(f"cannot write the SavedModel to {output_dir}: "
                           f"{type(e).__name__}: {e}") from None
-        for name in SAVED_MODEL_ENTRIES:  # the old export's entries, then the new ones moved in
-            old = os.path.join(output_dir, name)
-            if os.path.isdir(old) and not os.path.islink(old):
-                shutil.rmtree(old)
-            elif os.path.lexists(old):
-                os.remove(old)
-        kept = []
-        for name in export_contract.DOC_FILES:  # an earlier export's replaced, a user's kept
-            old = os.path.join(output_dir, name)
-            if os.path.lexists(old):
-                if os.path.isfile(old) and not os.path.islink(old) \
-                        and export_contract.written_by_export(old):
-                    os.remove(old)
-                else:
-                    kept.append(old)
-                    os.remove(os.path.join(staging, name))
-        for name in os.listdir(staging):
-            if name != STAGING_MARKER:
-                os.replace(os.path.join(staging, name), os.path.join(output_dir, name))
+        kept = swap_in(staging, output_dir)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     for path in kept:

@@ -21,6 +21,7 @@ import sys
 
 import numpy as np
 
+from stnh_tf.inference import overlays
 from stnh_tf.paths import atomic_write_json
 
 
@@ -110,148 +111,6 @@ def output_stem(output_dir, inputs):
                          "another --output_dir.")
 
 
-OVERLAY_CAPTIONS = ("image_a; green: image_b's border mapped into it",
-                    "magenta: image_a warped onto image_b; green: image_b; gray: aligned")
-"""The caption above each panel of :func:`overlay` (wrapped to the panel's width:
-:func:`caption_lines`)."""
-CAPTION_MARGIN = 4
-"""Pixels left free on each side of a caption line."""
-MIN_PANEL_WIDTH = 240
-"""Panels narrower than this are enlarged (nearest neighbour, an integer factor) before their
-caption is drawn, so that the caption stays legible (images down to 20 x 15 px are accepted)."""
-
-
-def caption_scale(widths) -> float:
-    """The font scale of both captions of panels of ``widths`` (one size, so that equal lines
-    are as high): ``min(widths) / 900``, at least 0.35."""
-    return max(min(widths) / 900.0, 0.35)
-
-
-def caption_lines(text, width, scale) -> list:
-    """``text`` wrapped into lines that fit a panel ``width`` px wide at font ``scale`` (each
-    line's ``cv2.getTextSize`` width plus :data:`CAPTION_MARGIN` on each side): whole clauses
-    (split after ``;``) where they fit, else words; a word wider than that on its own is a line
-    of its own (at :func:`caption_scale` none is: the longest word takes about a fifth of the
-    narrowest panel). ``" ".join(lines) == text`` for a text with single spaces.
-
-        >>> caption_lines("magenta: image_a warped; green: image_b", 180, 0.35)
-        ['magenta: image_a warped;', 'green: image_b']
-    """
-    import cv2
-
-    def fits(line):
-        size, _ = cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-        return size[0] + 2 * CAPTION_MARGIN <= width
-
-    def pack(pieces, lines):
-        for piece in pieces:
-            if lines and fits(f"{lines[-1]} {piece}"):
-                lines[-1] = f"{lines[-1]} {piece}"
-            elif fits(piece) or " " not in piece:
-                lines.append(piece)
-            else:
-                pack(piece.split(" "), lines)
-        return lines
-
-    clauses = text.split("; ")
-    return pack([c + ";" for c in clauses[:-1]] + clauses[-1:], [])
-
-
-def _line_step(scale):
-    """``(text height, pixels from one caption line to the next)`` at font ``scale``."""
-    import cv2
-
-    (_, h), base = cv2.getTextSize("Ag", cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-    return h, h + base + 4
-
-
-def _caption_band(lines, width, scale, height):
-    """A black band ``height`` x ``width`` px holding ``lines`` in white (font ``scale``)."""
-    import cv2
-
-    h, step = _line_step(scale)
-    band = np.zeros((height, width, 3), np.uint8)
-    for k, line in enumerate(lines):
-        cv2.putText(band, line, (CAPTION_MARGIN, 4 + h + k * step), cv2.FONT_HERSHEY_SIMPLEX,
-                    scale, (255, 255, 255), 1, cv2.LINE_AA)
-    return band
-
-
-def _enlarged(panel):
-    """``panel`` enlarged by the smallest integer factor that makes it at least
-    :data:`MIN_PANEL_WIDTH` wide (nearest neighbour), or as it is."""
-    import cv2
-
-    factor = -(-MIN_PANEL_WIDTH // panel.shape[1])
-    if factor <= 1:
-        return panel
-    return cv2.resize(panel, None, fx=factor, fy=factor, interpolation=cv2.INTER_NEAREST)
-
-
-def matched_brightness(warped_a, gray_b, valid) -> np.ndarray:
-    """``warped_a`` (uint8 ``[h, w]``) with its gray levels mapped onto those of ``gray_b``
-    (histogram matching over ``valid``, bool ``[h, w]``: where image_a reaches; 0 elsewhere), so
-    that a change of brightness, contrast, gamma or clipping between the photographs does not
-    tint the overlay's aligned regions: a level whose share of ``warped_a``'s pixels at or below
-    it is q becomes the lowest level of ``gray_b`` with a share of at least q.
-
-        >>> a = np.arange(256, dtype=np.uint8).reshape(16, 16)
-        >>> b = np.clip(a * 1.5, 0, 255).astype(np.uint8)
-        >>> bool((matched_brightness(a, b, np.ones_like(a, bool)) == b).all())
-        True
-    """
-    if not valid.any():
-        return np.zeros_like(warped_a)
-    share_a, share_b = (np.cumsum(np.bincount(x[valid], minlength=256)) / valid.sum()
-                        for x in (warped_a, gray_b))
-    lut = np.searchsorted(share_b, share_a - 1e-9).clip(0, 255).astype(np.uint8)
-    return np.where(valid, lut[warped_a], 0).astype(np.uint8)
-
-
-def overlay(image_a, image_b, h_ba, gray_a=None, gray_b=None):
-    """Two captioned panels (uint8 BGR, :data:`OVERLAY_CAPTIONS`): image_a with image_b's border
-    mapped into it, and the colour overlay of image_b (green) on image_a warped onto image_b's
-    frame by ``h_ba`` (magenta), of ``gray_a`` and ``gray_b`` (the gray images estimated on, when
-    given; else the BGR images made gray), image_a's gray levels matched to image_b's over
-    their overlap (:func:`matched_brightness`): aligned regions look gray, also across an
-    exposure change.
-    Each caption is wrapped to its panel's width (:func:`caption_lines`), a panel narrower than
-    :data:`MIN_PANEL_WIDTH` enlarged first. Returns ``(panels, quad)``, ``quad`` the ``[4, 2]``
-    border of image_b in image_a."""
-    import cv2
-
-    from stnh_tf import geometry
-
-    (ha, wa), (hb, wb) = image_a.shape[:2], image_b.shape[:2]
-    if gray_a is None:
-        gray_a = cv2.cvtColor(image_a, cv2.COLOR_BGR2GRAY)
-    if gray_b is None:
-        gray_b = cv2.cvtColor(image_b, cv2.COLOR_BGR2GRAY)
-    warped_a = cv2.warpPerspective(gray_a, h_ba, (wb, hb),
-                                   flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
-    valid = cv2.warpPerspective(np.ones((ha, wa), np.uint8), h_ba, (wb, hb),
-                                flags=cv2.WARP_INVERSE_MAP | cv2.INTER_NEAREST) > 0
-    warped_a = matched_brightness(warped_a, gray_b, valid)
-    blend = np.stack([warped_a, gray_b, warped_a], axis=-1)  # BGR: a -> magenta, b -> green
-    left = image_a.copy()
-    border_b = np.array([[0, 0], [wb - 1, 0], [wb - 1, hb - 1], [0, hb - 1]], np.float64)
-    quad = geometry.warp_points(h_ba, border_b)
-    thickness = max(1, round(max(wa, ha) / 300))
-    cv2.polylines(left, [np.round(quad).astype(np.int32).reshape(-1, 1, 2)], True, (0, 255, 0),
-                  thickness, cv2.LINE_AA)
-    left, blend = _enlarged(left), _enlarged(blend)
-    widths = (left.shape[1], blend.shape[1])
-    scale = caption_scale(widths)
-    lines = [caption_lines(c, w, scale) for c, w in zip(OVERLAY_CAPTIONS, widths)]
-    band_height = _line_step(scale)[1] * max(map(len, lines)) + 4  # both panels start level
-    panels = [np.concatenate([_caption_band(ls, w, scale, band_height), p], axis=0)
-              for ls, w, p in zip(lines, widths, (left, blend))]
-    height = max(p.shape[0] for p in panels)
-    panels = [cv2.copyMakeBorder(p, 0, height - p.shape[0], 0, 8, cv2.BORDER_CONSTANT, value=0)
-              for p in panels]
-    return np.concatenate(panels, axis=1), quad
-
-
 def _warn_stderr(message):
     print(f"warning: {message}", file=sys.stderr)
 
@@ -312,8 +171,12 @@ def _estimate_json(estimate, shape_b, quad) -> dict:
     center_b = np.array([[(shape_b[1] - 1) / 2, (shape_b[0] - 1) / 2]])
     return {"direction": "homography maps image_b pixel (x, y) to image_a pixel: p_a ~ H @ p_b",
             "homography": np.asarray(h, np.float64).tolist(),
-            "image_b_border_in_a": np.asarray(quad).tolist(),
-            "image_b_center_in_a": geometry.warp_points(h, center_b)[0].tolist(),
+            # null for a point beyond image_a's horizon (no place in image_a)
+            "image_b_border_in_a": [_point_or_none(p) for p in np.asarray(quad)],
+            "image_b_center_in_a": _point_or_none(
+                geometry.warp_points(h, center_b)[0] if float(
+                    np.r_[center_b[0], 1.0] @ np.asarray(h, np.float64)[2])
+                > overlays.IN_FRONT else [np.nan, np.nan]),
             "implausible": bool(estimate.implausible[0]), "flat": bool(estimate.flat[0]),
             "refine": used.refine, "refined": bool(estimate.refined[0]),
             "tta": used.tta, "tta_choice": str(estimate.tta_choice[0]),
@@ -379,6 +242,11 @@ def summary_line(result) -> str:
             f"{' '.join(f'--{k}=none' for k in steps)} gives the network alone.")
 
 
+def _point_or_none(point):
+    """``[x, y]`` as floats, or ``None`` where a coordinate is not finite."""
+    return [float(v) for v in point] if np.isfinite(point).all() else None
+
+
 def _finite_or_none(x):
     """``float(x)``, or ``None`` for a non-finite value (strict JSON has no NaN or infinity)."""
     import math
@@ -423,24 +291,26 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         warn(warning)
     for line in deviation_notes(estimate):
         note(line)
-    panels, quad = overlay(image_a.colour, image_b.colour, estimate.homography[0], image_a.gray,
+    panels, quad = overlays.overlay(image_a.colour, image_b.colour, estimate.homography[0], image_a.gray,
                            image_b.gray)
     inputs = [os.path.realpath(image_a_path), os.path.realpath(image_b_path)]
-    stem = output_stem(output_dir, inputs)
-    png = os.path.join(output_dir, f"{stem}_overlay.png")
     encoded, data = cv2.imencode(".png", panels)
     if not encoded:
-        raise AlignmentError(f"cannot encode {png}.")
-    try:  # a re-run cut short keeps the earlier overlay whole
-        paths.atomic_write_bytes(png, data.tobytes())
-    except OSError as e:
-        raise AlignmentError(f"cannot write {png}: {e}") from None
+        raise AlignmentError(f"cannot encode the overlay of {image_a_path}, {image_b_path}.")
     result = {"image_a": image_a_path, "image_b": image_b_path,
               "image_a_size": list(image_a.size), "image_b_size": list(image_b.size),
               "model": estimator.source, "kind": estimator.kind,
               "num_stages": estimator.num_stages,
-              **_estimate_json(estimate, image_b.gray.shape, quad), "overlay_png": png,
-              "input_paths": inputs}
-    atomic_write_json(os.path.join(output_dir, f"{stem}_homography.json"), result,
-                      sort_keys=False)
+              **_estimate_json(estimate, image_b.gray.shape, quad)}
+    with paths.folder_lock(output_dir):  # another run choosing a name in it waits
+        stem = output_stem(output_dir, inputs)
+        png = os.path.join(output_dir, f"{stem}_overlay.png")
+        result.update(overlay_png=png, input_paths=inputs)
+        doc = os.path.join(output_dir, f"{stem}_homography.json")
+        for path, write in ((png, lambda: paths.atomic_write_bytes(png, data.tobytes())),
+                            (doc, lambda: atomic_write_json(doc, result, sort_keys=False))):
+            try:  # atomic: a re-run cut short keeps the earlier file whole
+                write()
+            except OSError as e:
+                raise AlignmentError(f"cannot write {path}: {e}") from None
     return result

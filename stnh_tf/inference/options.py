@@ -25,6 +25,8 @@ import dataclasses
 import math
 import numbers
 
+import numpy as np
+
 from stnh_tf import geometry
 
 REFINES = ("none", "ecc", "images")
@@ -74,6 +76,16 @@ TTAS = {"none": ("identity",),
 """Test-time augmentation by name (a deviation from the paper): the symmetries
 (:data:`stnh_tf.geometry.DIHEDRAL`) the stages also run on; ``"none"`` (the paper) runs them
 once."""
+
+
+WHOLE_NUMBER_TYPES = ("int", "tuple[int, ...]")
+"""The annotations of :class:`Thresholds`' fields that hold whole numbers (counts, sizes in px);
+the others take any real number."""
+
+
+def _values(value) -> tuple:
+    """A field's value as a tuple of numbers (a tuple field's own)."""
+    return value if isinstance(value, tuple) else (value,)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,7 +164,7 @@ class Thresholds:
     verified_ncc: float = 0.95
     search_template: int = 64
     search_peaks: int = 8
-    search_coarse_iterations: tuple = (100, 50)
+    search_coarse_iterations: tuple[int, ...] = (100, 50)
     search_ecc_iterations: int = 100
     refine_iterations: int = 50
     refine_eps: float = 1e-5
@@ -169,11 +181,21 @@ class Thresholds:
     def __post_init__(self):
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            values = value if isinstance(value, tuple) else (value,)
+            values = _values(value)
             if not values or any(isinstance(v, bool) or not isinstance(v, numbers.Real)
                                  or not math.isfinite(v) or v < 0 for v in values):
                 raise ValueError(f"Thresholds.{f.name} must be finite and >= 0; received "
                                  f"{value!r}.")
+            if f.type in WHOLE_NUMBER_TYPES and not all(
+                    isinstance(v, numbers.Integral) for v in values):
+                raise ValueError(f"Thresholds.{f.name} must be a whole number (a count or a "
+                                 f"size in px); received {value!r}.")
+        if self.min_overlap > 1:
+            raise ValueError(f"Thresholds.min_overlap is a fraction of patch_b's pixels, in "
+                             f"[0, 1]; received {self.min_overlap!r}.")
+        if self.refine_gaussian % 2 != 1:
+            raise ValueError("Thresholds.refine_gaussian must be odd (OpenCV's ECC pre-filter "
+                             f"size; 1: none); received {self.refine_gaussian!r}.")
         if not 0 < self.search_template <= geometry.PATCH_SIZE:
             raise ValueError(f"Thresholds.search_template must be in (0, {geometry.PATCH_SIZE}]; "
                              f"received {self.search_template}.")
@@ -242,7 +264,7 @@ class EstimateOptions:
             value = getattr(self, name)
             if not isinstance(value, str) or value not in table:
                 raise ValueError(f"{name} must be one of {tuple(table)}; received {value!r}.")
-        if not isinstance(self.gate_stages, (bool, numbers.Integral)):
+        if not isinstance(self.gate_stages, (bool, np.bool_)) and self.gate_stages not in (0, 1):
             raise ValueError(f"gate_stages must be a bool; received {self.gate_stages!r}.")
         object.__setattr__(self, "gate_stages", bool(self.gate_stages))
         if not isinstance(self.thresholds, Thresholds):
