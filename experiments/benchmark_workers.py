@@ -221,14 +221,14 @@ def lost_worker(repeats: int) -> dict:
     the step the next start (the line's commands) resumed from."""
     import shutil
 
-    from stnh_tf.data import sources
+    from stnh_tf.data import bundled_photos
     from stnh_tf.training import checkpoints, run_dir, watchdog
 
     address = f"127.0.0.1:{_free_port()}"
     with tempfile.TemporaryDirectory(prefix="lost_worker_") as tmp:
         images = os.path.join(tmp, "images")
         os.makedirs(images)
-        for k, (_, path) in enumerate(sources.bundled_image_files()):
+        for k, (_, path) in enumerate(bundled_photos.bundled_image_files()):
             shutil.copy(path, os.path.join(images, f"{k}{os.path.splitext(path)[1]}"))
         model_dir = os.path.join(tmp, "run")
         state_dir = os.path.join(model_dir, run_dir.CHECKPOINT_DIR)

@@ -12,7 +12,8 @@ short table (:func:`stnh_tf.evaluation.summaries.evaluation_table`): the identit
 than the identity, and "worse than the identity" where its mean is above the identity's; a note
 under it (``notes`` in the JSON) where a model was trained as another stage (its run's
 ``config.json``) than the pairs are for (the dataset's ``metadata.json``), e.g. a stage-1 model
-on stage-2 data.
+on stage-2 data, and where the split was made from the same photograph folders as another split
+of the dataset (or one inside the other), so that its photographs are not unseen.
 --json_out=FILE writes the full JSON (mean/median/p90/p99 MACE, the identity on the same pairs,
 the number of pairs, ``worse_than_identity``); --json_out=- prints it instead of the table.
 Uncertainty: ``mace_se`` over the pairs, and by photograph (the pairs' ``image_id``) a percentile

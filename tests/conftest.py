@@ -190,6 +190,20 @@ def ncc_reference(a, b, h_pix):
     return float((x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum()))
 
 
+def photo_folder(root, names):
+    """``root`` (made if missing) holding a copy of one bundled photograph under each of
+    ``names``."""
+    import shutil
+
+    from stnh_tf.data import bundled_photos
+
+    root.mkdir(parents=True, exist_ok=True)
+    photo = bundled_photos.bundled_image_files()[0][1]
+    for name in names:
+        shutil.copy(photo, root / name)
+    return root
+
+
 def constant_stage(h_pix, name="constant"):
     """A single-stage model that outputs H_bar = M @ h_pix @ inv(M) whatever its input (the narrow
     network, fc2's kernel zeroed: its width does not reach the output)."""

@@ -29,7 +29,7 @@ from conftest import (NARROW_FILTERS, cv2_warp, inside_mask, narrow_network, nor
                       paper_homography, to_bar)
 from stnh_tf.training import config as train_config
 from stnh_tf.training import loop as training
-from stnh_tf.data import sources
+from stnh_tf.data import bundled_photos
 from stnh_tf.modeling import models, runner
 from stnh_tf.modeling.layers import SpatialTransformer
 
@@ -140,7 +140,7 @@ def backend_run(request, tmp_path_factory, photo_patches):
     np.savez(work / "inputs.npz", images=images, h8=h8, weights=weights, a=a, b=b)
     img_dir = work / "images"
     img_dir.mkdir()
-    for k, (_, path) in enumerate(sources.bundled_image_files()[:2]):
+    for k, (_, path) in enumerate(bundled_photos.bundled_image_files()[:2]):
         shutil.copy(path, img_dir / f"{k}{os.path.splitext(path)[1]}")
     train = dict(image_dir=str(img_dir), samples_per_image=2, train_steps=2, warmup_steps=1,
                  batch_size=4, checkpoint_every=2, val_samples=0, learning_rate=0.01,
@@ -277,7 +277,7 @@ def test_gpu_recipe_trains_two_stages_without_tensorflow(tmp_path):
     (hide / "sitecustomize.py").write_text(HIDE_TENSORFLOW)
     images = tmp_path / "images"
     images.mkdir()
-    for k, (_, path) in enumerate(sources.bundled_image_files()[:2]):
+    for k, (_, path) in enumerate(bundled_photos.bundled_image_files()[:2]):
         shutil.copy(path, images / f"{k}{os.path.splitext(path)[1]}")
     out = tmp_path / "gpu"
     env = dict(os.environ, PYTHONPATH=f"{hide}{os.pathsep}{ROOT}", JAX_PLATFORMS="cpu",
@@ -312,7 +312,7 @@ def test_semi_supervised_rows_run_in_memory_without_tensorflow(tmp_path):
     hide = tmp_path / "hide"
     hide.mkdir()
     (hide / "sitecustomize.py").write_text(HIDE_TENSORFLOW)
-    files = [path for _, path in sources.bundled_image_files()[:6]]
+    files = [path for _, path in bundled_photos.bundled_image_files()[:6]]
     for name, chosen in (("train", files[:4]), ("test", files[4:])):
         (tmp_path / name).mkdir()
         for k, path in enumerate(chosen):

@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 
 from test_ship_weights import _constant_run, _mace_numpy
-from stnh_tf.data import sources, stage1
+from stnh_tf.data import bundled_photos, stage1
 from stnh_tf.data import tfrecords as data
 from stnh_tf.evaluation import card_evaluation
 
 
 def _photographs(folder, ids):
     os.makedirs(folder)
-    for image_id, gray in sources.bundled_images():
+    for image_id, gray in bundled_photos.bundled_images():
         if image_id in ids:
             cv2.imwrite(os.path.join(folder, image_id.replace("/", "_")), gray)
     return str(folder)
@@ -97,7 +97,7 @@ def test_refresh_measures_the_shipped_files_and_refuses_other_pairs(tmp_path, na
     assert entry["test_pairs"] == {**settings, "image_dir": photos, "photometric": False}
     bundled = new["evaluation"]["plain_bundled_test"]
     assert bundled["test_pairs"]["source"] == "bundled" and bundled["test_pairs"]["image_dir"] is None
-    assert bundled["count"] == 3 * len(sources.bundled_images())
+    assert bundled["count"] == 3 * len(bundled_photos.bundled_images())
     assert entry["machine"]["cpu_count"] == os.cpu_count() and "git_commit" in entry["machine"]
     assert "data_dir" not in entry  # a temporary folder, gone
 

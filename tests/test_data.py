@@ -18,10 +18,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import cv2_warp, inside_mask, to_bar
+from conftest import cv2_warp, inside_mask, photo_folder, to_bar
 from stnh_tf.data import stage1, writer
 from stnh_tf.data import tfrecords as data
 from stnh_tf.data import features, image_checks, pair_datasets, pairs, sources
+from stnh_tf.data import bundled_photos
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CORNERS = np.array([[0, 0], [128, 0], [128, 128], [0, 128]], np.float64)
@@ -68,7 +69,7 @@ def arrays(dataset):
 # The protocol against a literal, independent implementation
 # ------------------------------------------------------------------------------------------------
 def test_protocol_matches_literal_reference():
-    image_id, path = sources.bundled_image_files()[2]
+    image_id, path = bundled_photos.bundled_image_files()[2]
     image_a = _resize(_ref_gray(path))
     np.testing.assert_array_equal(sources.load_gray_320x240(path), image_a)
     seed, index = 5, 11
@@ -102,7 +103,7 @@ def test_protocol_matches_literal_reference():
 # TFRecords: round trip, geometry on read-back data, metadata
 # ------------------------------------------------------------------------------------------------
 def test_round_trip_every_field(dataset, arrays):
-    files = sources.bundled_image_files()[:3]
+    files = bundled_photos.bundled_image_files()[:3]
     expected = [s for i, (image_id, p) in enumerate(files)
                 for s in pairs.make_image_samples(sources.load_gray_320x240(p), 7, i, image_id)]
     assert len(arrays["index"]) == len(expected) == 9
@@ -250,7 +251,7 @@ def messy_folder(tmp_path_factory):
     """A folder with good, convertible and broken files (made here, from a bundled photo)."""
     root = tmp_path_factory.mktemp("messy")
     (root / "sub" / "deeper").mkdir(parents=True)
-    rgb = cv2.cvtColor(cv2.imread(sources.bundled_image_files()[0][1]), cv2.COLOR_BGR2RGB)
+    rgb = cv2.cvtColor(cv2.imread(bundled_photos.bundled_image_files()[0][1]), cv2.COLOR_BGR2RGB)
     rgb = cv2.resize(rgb, (400, 300), interpolation=cv2.INTER_AREA)
     pil = Image.fromarray(rgb)
     pil.save(root / "good.jpg", quality=95)
@@ -403,7 +404,8 @@ def test_interrupted_run_never_looks_finished_and_rerun_replaces(tmp_path, datas
         data.load_split(out, "train", 2)
     ok = functools.partial(pairs.generate_item_samples, seed=0,
                            protocol=pairs.Protocol(samples_per_image=1))
-    files = [writer.WorkItem(i, f, p) for i, (f, p) in enumerate(sources.bundled_image_files()[:4])]
+    files = [writer.WorkItem(i, f, p)
+             for i, (f, p) in enumerate(bundled_photos.bundled_image_files()[:4])]
     writer.write_sharded(out, "train", files, ok, num_shards=2, top_metadata={"stage": 1},
                          log=lambda m: None)
     writer.write_sharded(out, "test", files[:1], ok, num_shards=1, top_metadata={"stage": 1},
@@ -643,16 +645,19 @@ def test_symlinks_leading_out_of_the_image_folder_are_not_followed(tmp_path):
     folder, elsewhere = tmp_path / "images", tmp_path / "elsewhere"
     folder.mkdir()
     elsewhere.mkdir()
-    photo = sources.bundled_image_files()[0][1]
+    photo = bundled_photos.bundled_image_files()[0][1]
     shutil.copy(photo, folder / "real.png")
     shutil.copy(photo, elsewhere / "secret.png")
-    os.symlink(folder / "real.png", folder / "alias.png")  # inside the folder: listed
+    os.symlink(folder / "real.png", folder / "alias.png")  # inside, to a listed file: named
     os.symlink(elsewhere / "secret.png", folder / "outside.png")
     os.symlink(elsewhere, folder / "linked_dir")  # directories behind links are not entered
     listing = sources.scan_image_folder(str(folder))
-    assert [os.path.basename(p) for p in listing.files] == ["alias.png", "real.png"]
-    assert [os.path.basename(p) for p, _ in listing.unreadable] == ["outside.png"]
-    assert "outside the image folder" in listing.unreadable[0][1]
+    assert [os.path.basename(p) for p in listing.files] == ["real.png"]
+    why = {os.path.basename(p): reason for p, reason in listing.unreadable}
+    assert sorted(why) == ["alias.png", "linked_dir", "outside.png"]
+    assert "outside the image folder" in why["outside.png"]
+    assert why["alias.png"] == "the same file (a link) as real.png"
+    assert why["linked_dir"].startswith("symbolic link to a folder")
 
 
 @pytest.mark.slow
@@ -686,21 +691,13 @@ def test_evaluate_refuses_bad_numbers_before_reading():
 # Issue 62, item 5: --max_images wherever a binary reads a photograph folder; skipped files
 # counted by reason (a link leading out of the folder named, not dropped)
 # ------------------------------------------------------------------------------------------------
-def _photo_folder(root, names):
-    root.mkdir(parents=True, exist_ok=True)
-    photo = sources.bundled_image_files()[0][1]
-    for name in names:
-        shutil.copy(photo, root / name)
-    return root
-
-
 def test_max_images_keeps_the_first_n_of_the_sorted_listing(tmp_path):
     """The first N of the listing's order (path relative to the folder, folder after folder),
     the same whatever order the files were made in; the others counted, not listed."""
-    one = _photo_folder(tmp_path / "one", ["z.png", "b.jpg", "sub_a.png", "m.png"])
+    one = photo_folder(tmp_path / "one", ["z.png", "b.jpg", "sub_a.png", "m.png"])
     (one / "sub").mkdir()
     shutil.copy(one / "m.png", one / "sub" / "a.png")
-    two = _photo_folder(tmp_path / "two", ["c.png", "a.png"])
+    two = photo_folder(tmp_path / "two", ["c.png", "a.png"])
     every = sorted(os.path.relpath(os.path.join(d, f), one).replace(os.sep, "/")
                    for d, _, fs in os.walk(one) for f in fs)
     listing = sources.scan_image_folders(str(one), max_images=3)
@@ -725,7 +722,7 @@ def counted_folder(messy_folder, tmp_path):
     files, a text file) and a symbolic link to a photograph outside the folder."""
     root = tmp_path / "messy"
     shutil.copytree(messy_folder[0], root, ignore=shutil.ignore_patterns("locked"))
-    elsewhere = _photo_folder(tmp_path / "elsewhere", ["photo.png"])
+    elsewhere = photo_folder(tmp_path / "elsewhere", ["photo.png"])
     os.symlink(elsewhere / "photo.png", root / "link.png")
     return root
 
@@ -762,7 +759,7 @@ def test_a_folder_of_links_outside_it_says_why_and_writes_nothing(tmp_path):
     the reason; it now counts them and says why links out of a folder are not followed."""
     from stnh_tf.data import camera_pair_files
 
-    real = _photo_folder(tmp_path / "real", ["a.png", "b.png"])
+    real = photo_folder(tmp_path / "real", ["a.png", "b.png"])
     links = tmp_path / "links"
     links.mkdir()
     for name in ("a.png", "b.png"):
@@ -782,7 +779,7 @@ def test_a_folder_of_links_outside_it_says_why_and_writes_nothing(tmp_path):
 
 
 def test_make_camera_pairs_prints_the_counts_line(tmp_path):
-    real = _photo_folder(tmp_path / "real", ["a.png", "b.png"])
+    real = photo_folder(tmp_path / "real", ["a.png", "b.png"])
     (real / "0broken.jpg").write_bytes(b"not a jpeg")  # first of the sorted listing
     proc = subprocess.run([sys.executable, "-m", "experiments.make_camera_pairs",
                            f"--image_dir={real}", f"--output_dir={tmp_path / 'pairs'}",

@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 from conftest import NARROW_FILTERS
-from stnh_tf.data import batches, pair_datasets, sources, stage1
+from stnh_tf.data import batches, bundled_photos, pair_datasets, stage1
 from stnh_tf.data import tfrecords as data
 from stnh_tf.modeling import runner
 from stnh_tf.training import config as train_config
@@ -40,7 +40,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def images(tmp_path_factory):
     """Four bundled photographs in a folder: 8 pairs at 2 a photograph, 2 batches of 4."""
     d = tmp_path_factory.mktemp("images")
-    for k, (_, path) in enumerate(sources.bundled_image_files()[:4]):
+    for k, (_, path) in enumerate(bundled_photos.bundled_image_files()[:4]):
         shutil.copy(path, d / f"{k}{os.path.splitext(path)[1]}")
     return str(d)
 

@@ -21,6 +21,7 @@ from stnh_tf.training import presets
 from stnh_tf.data import batches
 from stnh_tf.data import tfrecords as data
 from stnh_tf.data import pairs, sources
+from stnh_tf.data import bundled_photos
 from stnh_tf.modeling import models, runner
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -34,7 +35,7 @@ def _quiet(*args, **kwargs):
 @pytest.fixture(scope="module")
 def two_folders(tmp_path_factory):
     """Two folders of two bundled photographs each, with the same file names in both."""
-    files = [p for _, p in sources.bundled_image_files()[:4]]
+    files = [p for _, p in bundled_photos.bundled_image_files()[:4]]
     out = []
     for k in range(2):
         d = tmp_path_factory.mktemp(f"folder{k}")
@@ -217,7 +218,7 @@ def test_run_without_the_new_fields_resumes_as_the_paper_recipe(tmp_path):
 # Photometric change of patch_b
 # ------------------------------------------------------------------------------------------------
 def _image(k=0):
-    return sources.as_gray_320x240(sources.bundled_image_files()[k][1])
+    return sources.as_gray_320x240(bundled_photos.bundled_image_files()[k][1])
 
 
 def test_photometric_pairs_keep_the_geometry():

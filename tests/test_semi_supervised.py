@@ -19,6 +19,7 @@ import pytest
 import tensorflow as tf
 
 from stnh_tf.data import batches, labels, sources, stage1
+from stnh_tf.data import bundled_photos
 from stnh_tf.data import tfrecords as data
 from stnh_tf.data import unlabeled_pairs
 from stnh_tf.modeling import runner
@@ -157,7 +158,7 @@ def test_fresh_pairs_keep_the_slots_decision_every_epoch():
 def _bundled_folders(root, counts: dict) -> list:
     """Folders ``root/<name>`` holding the next ``counts[name]`` bundled photographs each (named
     ``<name's first letter><k>``); returns their paths."""
-    files = iter(path for _, path in sources.bundled_image_files())
+    files = iter(path for _, path in bundled_photos.bundled_image_files())
     for name, count in counts.items():
         (root / name).mkdir()
         for k in range(count):

@@ -257,8 +257,9 @@ def test_a_strongly_projective_pair_of_the_papers_protocol_keeps_its_estimate(
     import cv2
 
     from stnh_tf.data import sources
+    from stnh_tf.data import bundled_photos
 
-    path = dict(sources.bundled_image_files())[image_id]
+    path = dict(bundled_photos.bundled_image_files())[image_id]
     image_a = sources.load_gray_320x240(path)
     square = np.float32([[96, 56], [224, 56], [224, 184], [96, 184]])
     perturbed = np.float32(STRONGLY_PROJECTIVE[image_id])

@@ -20,7 +20,7 @@ from stnh_tf.training import loop as training
 from stnh_tf.training import run_dir
 from stnh_tf.data import batches
 from stnh_tf.data import tfrecords as data
-from stnh_tf.data import pair_datasets, pairs, sources
+from stnh_tf.data import bundled_photos, pair_datasets, pairs, sources
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 N_IMAGES, PER_IMAGE, BATCH = 4, 3, 4  # 12 samples, 3 batches per data epoch
@@ -30,7 +30,7 @@ N_IMAGES, PER_IMAGE, BATCH = 4, 3, 4  # 12 samples, 3 batches per data epoch
 def folder(tmp_path_factory):
     """Four bundled photographs copied into a folder (the form users train from)."""
     d = tmp_path_factory.mktemp("images")
-    for k, (_, path) in enumerate(sources.bundled_image_files()[:N_IMAGES]):
+    for k, (_, path) in enumerate(bundled_photos.bundled_image_files()[:N_IMAGES]):
         shutil.copy(path, d / f"{k:02d}{os.path.splitext(path)[1]}")
     return str(d)
 

@@ -22,7 +22,7 @@ import tensorflow as tf
 
 from conftest import NARROW_FILTERS, narrow_network
 from stnh_tf.data import stage1
-from stnh_tf.data.sources import bundled_image_files
+from stnh_tf.data.bundled_photos import bundled_image_files
 from stnh_tf import geometry
 from stnh_tf.training import checkpoints, run_dir
 from stnh_tf.training import config as train_config
@@ -1008,10 +1008,10 @@ def test_tensorboard_scalars_are_against_the_global_step(tiny_data, tmp_path, na
 def test_fit_timing_counts_the_steps_of_each_call(monkeypatch, narrow):
     """``benchmark_stream``'s timing: with k steps per compiled call, each callback gap is k
     steps (a fake clock that ticks 1 s per reading gives exactly k steps/s)."""
-    from stnh_tf.data import batches, pair_datasets, sources
+    from stnh_tf.data import batches, bundled_photos, pair_datasets
     from stnh_tf.evaluation import benchmarks
 
-    images = sources.bundled_image_files()[:2]
+    images = bundled_photos.bundled_image_files()[:2]
     pb = batches.PairBatches(images, 4, samples_per_image=4, seed=0)
     arrays = batches.materialize(pb, 0)
     ticks = iter(range(10**6))

@@ -12,7 +12,7 @@ import shutil
 import numpy as np
 import pytest
 
-from stnh_tf.data import holdout, sources, stage1, stage_k
+from stnh_tf.data import bundled_photos, holdout, stage1, stage_k
 from stnh_tf.data import tfrecords as data
 from stnh_tf.training import config as train_config
 from stnh_tf.training import loop as training
@@ -32,7 +32,7 @@ def _oracle_held_out(name: str, fraction: float) -> bool:
 
 
 def _folder(root, names):
-    photo = sources.bundled_image_files()[0][1]
+    photo = bundled_photos.bundled_image_files()[0][1]
     for name in names:
         os.makedirs(os.path.dirname(os.path.join(root, name)), exist_ok=True)
         shutil.copy(photo, os.path.join(root, name))

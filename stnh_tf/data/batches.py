@@ -21,8 +21,8 @@ from stnh_tf import pixels
 from stnh_tf.data import labels, pairs, sources
 from stnh_tf.data.folder_counts import FolderCounts
 from stnh_tf.data.pools import main_not_rerun, stop_pool
-from stnh_tf.data.sources import (ImageDecodeError, SourceError, bundled_image_files,
-                                  scan_image_folders)
+from stnh_tf.data.bundled_photos import bundled_image_files
+from stnh_tf.data.sources import ImageDecodeError, SourceError, scan_image_folders
 
 _log = logging.getLogger(__name__)
 

@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import dataclasses
 
-from stnh_tf.data import sources
+from stnh_tf.data import bundled_photos, sources
 
 SKIP_KINDS = (
     ("link outside the folder", sources.LINK_OUTSIDE),
+    ("linked folder", sources.LINK_FOLDER),
+    ("hidden", sources.HIDDEN),
+    ("listed already", sources.SAME_FILE),
     ("unreadable folder", "unreadable directory"),
     ("unreadable file", "unreadable file"),
     ("empty file", "empty file"),
@@ -140,14 +143,14 @@ def read_gray_folder(image_dir, max_images: int = 0) -> tuple:
 def load_gray_images(image_dir=None, max_images: int = 0) -> list:
     """uint8 ``[240, 320]`` grayscale images (``sources.load_gray_320x240``): every image file
     below ``image_dir`` (sorted; unreadable files skipped and counted: :func:`read_gray_folder`)
-    or, without it, the bundled photographs (``sources.bundled_images``); the first
+    or, without it, the bundled photographs (``bundled_photos.bundled_images``); the first
     ``max_images`` of them (0: all).
 
     Raises:
       ValueError: no readable image in ``image_dir`` (``SourceError``: the reasons counted).
     """
     if not image_dir:
-        images = [img for _, img in sources.bundled_images()]
+        images = [img for _, img in bundled_photos.bundled_images()]
         return images[:max_images] if max_images > 0 else images
     return read_gray_folder(image_dir, max_images)[0]
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import hashlib
 import math
 import numbers
+import os
 
 VAL_SPLIT = "val"
 SPLITS = ("train", VAL_SPLIT)
@@ -134,3 +135,41 @@ def check_beside(meta: dict, split: str, fraction: float, section: dict, where: 
             f"{where} holds a {other} split of other photographs ({theirs.get('source')} "
             f"{theirs.get('image_dir', '')}); the val split is a share of the train split's "
             f"own photographs: give the same --source and --image_dir to both.")
+
+
+def _folders(section: dict) -> list:
+    """The real paths of the photograph folders a split's section names (none for another
+    source)."""
+    spec = section.get("image_dir") if section.get("source") == "folder" else None
+    return [os.path.realpath(f) for f in spec.split(",")] if spec else []
+
+
+def sharing_splits(meta: dict, split: str, section: dict) -> list:
+    """The other splits of the dataset whose ``metadata.json`` is ``meta`` that ``split`` (the
+    source fields of ``section``) shares photographs with by its folders: one of its photograph
+    folders is, holds or lies in one of theirs (a folder's listing takes every folder below it:
+    a train split of ``photos`` holds a test split of ``photos/test``). The two splits of one
+    hold-out share their folders by design and are not counted (:func:`check_beside`).
+
+        >>> meta = {"splits": {"train": {"source": "folder", "image_dir": "/p"}}}
+        >>> sharing_splits(meta, "test", {"source": "folder", "image_dir": "/p/test"})
+        ['train']
+        >>> sharing_splits(meta, "test", {"source": "folder", "image_dir": "/q"})
+        []
+    """
+    mine, out = _folders(section), []
+    for other, theirs in sorted(meta.get("splits", {}).items()):
+        if other == split or (split in SPLITS and other in SPLITS):
+            continue
+        if any(os.path.commonpath([a, b]) in (a, b) for a in mine for b in _folders(theirs)):
+            out.append(other)
+    return out
+
+
+def sharing_line(where: str, split: str, others: list) -> str:
+    """The line that says ``split`` of the dataset ``where`` shares photographs with
+    ``others`` (:func:`sharing_splits`)."""
+    return (f"note: the {split} split of {where} is made from the same photograph folders as "
+            f"its {' and '.join(others)} split (or one inside the other): its pairs come from "
+            "photographs those splits also hold, so numbers on it are not on unseen photographs; "
+            "give folders apart (e.g. photos/train and photos/test) for a held-out test.")

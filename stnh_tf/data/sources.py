@@ -41,8 +41,9 @@ from stnh_tf.data.image_checks import (MAX_IMAGE_PIXELS, ImageDecodeError, Image
                                        check_image_size, check_pixel_count, header_size)
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".pgm", ".ppm", ".pbm", ".pnm", ".tif",
-                    ".tiff")
-"""File name endings (case-insensitive) that the ``folder`` source treats as images."""
+                    ".tiff", ".webp", ".gif")
+"""File name endings (case-insensitive) that the ``folder`` source treats as images (a GIF's
+first frame)."""
 
 RESIZE_POLICY = "cv2.INTER_AREA if both sides shrink else cv2.INTER_LINEAR"
 GRAY_POLICY = ("ITU-R 601 luma (cv2 BGR2GRAY; JPEG decoded to gray by libjpeg), 16-bit scaled by "
@@ -50,16 +51,6 @@ GRAY_POLICY = ("ITU-R 601 luma (cv2 BGR2GRAY; JPEG decoded to gray by libjpeg), 
                "composited onto black, EXIF orientation ignored")
 
 _JPEG_MAGIC = b"\xff\xd8"
-
-# Natural photographs shipped inside scikit-image's wheel (no download needed); synthetic
-# images (checkerboards, logos, colour wheels, silhouettes) are left out on purpose.
-_SKIMAGE_PHOTOS = ("astronaut.png", "brick.png", "camera.png", "cell.png", "chelsea.png",
-                   "clock_motion.png", "coffee.png", "coins.png", "grass.png", "gravel.png",
-                   "hubble_deep_field.jpg", "ihc.png", "moon.png", "motorcycle_left.png",
-                   "motorcycle_right.png", "page.png", "retina.jpg", "rocket.jpg", "text.png")
-_MATPLOTLIB_PHOTOS = ("grace_hopper.jpg",)
-_SKLEARN_PHOTOS = ("china.jpg", "flower.jpg")
-
 
 class SourceError(ValueError):
     """A source that cannot be used at all (missing folder, no images, no download possible)."""
@@ -72,6 +63,10 @@ LINK_OUTSIDE_WHY = (
     "cannot pull in files from elsewhere on the disk): copy the files in (cp -L), or give the "
     "folder they are in as an image folder too")
 """Why a symbolic link leading out of an image folder is left out (:func:`scan_image_folder`)."""
+LINK_FOLDER, SAME_FILE = "symbolic link to a folder", "the same file (a link) as"
+HIDDEN = "hidden (a name starting with '.': a system's thumbnails, trash or ._ files): not used"
+"""Reasons :func:`scan_image_folder` names what else it leaves out: a linked folder (not
+entered), a link to a file listed already, a hidden folder or file (not photographs)."""
 
 # ------------------------------------------------------------------------------------------------
 # Listing
@@ -84,8 +79,9 @@ class FolderListing:
       root: absolute path of the scanned folder.
       files: absolute paths of image files, sorted by their path relative to ``root`` (POSIX
         separators), so the order (and hence every image index) is the same on every machine.
-      unreadable: ``(path, reason)`` for directories that could not be listed and for symbolic
-        links leading outside the folder (left out).
+      unreadable: ``(path, reason)`` of what was left out: directories that could not be
+        listed, symbolic links leading outside the folder, linked and hidden folders (not
+        entered), hidden files, links to a file listed already.
       ignored: number of files skipped because of their extension (not image files).
       beyond_max_images: image files left out because they come after the first ``max_images``
         of the sorted listing (:func:`scan_image_folders`; 0 without a limit).
@@ -99,11 +95,14 @@ class FolderListing:
     beyond_max_images: int = 0
 
     def image_id(self, path: str) -> str:
-        """The id stored with each sample: the path relative to ``root``, POSIX separators (for
-        several folders: ``<k>:`` and the path relative to folder ``k``)."""
+        """The id stored with each sample: the path relative to ``root``, POSIX separators, the
+        bytes of a name that is not UTF-8 escaped (for several folders: ``<k>:`` and the path
+        relative to folder ``k``)."""
         if self.ids is not None:
             return self.ids[path]
-        return os.path.relpath(path, self.root).replace(os.sep, "/")
+        relative = os.path.relpath(path, self.root).replace(os.sep, "/")
+        # a name that is not UTF-8 (an old archive's Latin-1) as its bytes escaped: "caf\\xe9"
+        return relative.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 def split_folders(spec) -> list:
@@ -188,9 +187,9 @@ def scan_image_folders(folders, max_images: int = 0) -> FolderListing:
 def scan_image_folder(folder: str) -> FolderListing:
     """Every image file below ``folder`` (recursively; extensions in :data:`IMAGE_EXTENSIONS`).
 
-    Symbolic links to directories are not entered; a symbolic link to a file outside ``folder``
-    is left out and listed in ``unreadable`` with the reason (one inside it is listed):
-    :data:`LINK_OUTSIDE_WHY`.
+    Left out, each in ``unreadable`` with its reason: symbolic links to directories (not
+    entered), a link to a file outside ``folder`` (:data:`LINK_OUTSIDE_WHY`) or to a file listed
+    already, hidden folders and files (:data:`HIDDEN`).
 
     Raises:
       SourceError: if ``folder`` is not an existing directory (:func:`check_folder`).
@@ -204,56 +203,41 @@ def scan_image_folder(folder: str) -> FolderListing:
 
     real_root = os.path.realpath(root)
     for dirpath, dirnames, filenames in os.walk(root, onerror=onerror, followlinks=False):
-        dirnames.sort()
+        left = [(os.path.join(dirpath, n), HIDDEN if n.startswith(".") else
+                 f"{LINK_FOLDER} ({os.path.realpath(os.path.join(dirpath, n))}): not entered")
+                for n in dirnames if n.startswith(".") or os.path.islink(os.path.join(dirpath, n))]
+        unreadable += left
+        dirnames[:] = sorted(set(dirnames) - {os.path.basename(p) for p, _ in left})
         for name in filenames:
             if not name.lower().endswith(IMAGE_EXTENSIONS):
                 ignored += 1
                 continue
             path = os.path.join(dirpath, name)
-            if os.path.islink(path) and os.path.commonpath(
+            if name.startswith("."):
+                unreadable.append((path, HIDDEN))
+            elif os.path.islink(path) and os.path.commonpath(
                     [real_root, os.path.realpath(path)]) != real_root:
                 unreadable.append((path, f"{LINK_OUTSIDE} ({os.path.realpath(path)}): not "
                                          "followed"))
-                continue
-            files.append(path)
-    listing = FolderListing(root=root, files=[], unreadable=sorted(unreadable), ignored=ignored)
-    listing.files = sorted(files, key=listing.image_id)
+            else:
+                files.append(path)
+    listing = FolderListing(root=root, files=[], unreadable=[], ignored=ignored)
+    kept = {}  # one path per file: the file itself before a link to it, then the first id
+    for path in sorted(files, key=lambda p: (os.path.islink(p), listing.image_id(p))):
+        kept.setdefault(os.path.realpath(path), path)
+    for path in sorted(files, key=listing.image_id):
+        first = kept[os.path.realpath(path)]
+        if first == path:
+            listing.files.append(path)
+        else:
+            unreadable.append((path, f"{SAME_FILE} {listing.image_id(first)}"))
+    listing.unreadable = sorted(unreadable)
     return listing
 
 
 def list_image_files(folder: str) -> list:
     """Absolute paths of every image file below ``folder``, sorted (:func:`scan_image_folder`)."""
     return scan_image_folder(folder).files
-
-
-def bundled_image_files() -> list:
-    """``(image_id, path)`` of the natural photographs shipped inside installed packages.
-
-    scikit-image's bundled photographs (no download), matplotlib's sample photograph(s), and
-    scikit-learn's two sample images when scikit-learn is installed. Sorted by id; ids look like
-    ``"skimage/camera.png"``.
-    """
-    import importlib
-
-    import skimage
-
-    found = [(f"skimage/{n}", os.path.join(os.path.dirname(skimage.__file__), "data", n))
-             for n in _SKIMAGE_PHOTOS]
-    for package, names, folder in (  # optional: scikit-learn is not a dependency of this project
-            ("matplotlib", _MATPLOTLIB_PHOTOS, lambda m: (m.get_data_path(), "sample_data")),
-            ("sklearn", _SKLEARN_PHOTOS, lambda m: (os.path.dirname(m.__file__), "datasets",
-                                                    "images"))):
-        try:
-            module = importlib.import_module(package)
-        except ImportError:
-            continue
-        found += [(f"{package}/{n}", os.path.join(*folder(module), n)) for n in names]
-    return sorted((i, p) for i, p in found if os.path.isfile(p))
-
-
-def bundled_images() -> list:
-    """``(image_id, uint8 [240, 320])`` for every :func:`bundled_image_files` photograph."""
-    return [(i, load_gray_320x240(p)) for i, p in bundled_image_files()]
 
 
 # ------------------------------------------------------------------------------------------------

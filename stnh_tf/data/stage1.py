@@ -16,7 +16,7 @@ import sys
 
 from stnh_tf.data import holdout, metadata, writer
 from stnh_tf import paths
-from stnh_tf.data import pairs, sources
+from stnh_tf.data import bundled_photos, pairs, sources
 
 SOURCES = ("folder", "bundled", "coco2014")
 COCO_TFDS_SPLITS = {"train": "train+validation", "test": "test"}
@@ -49,7 +49,7 @@ def folder_items(image_dir, max_images: int = 0, split: str = "train", val_fract
 def bundled_items(max_images: int = 0, split: str = "train", val_fraction: float = 0.0):
     """WorkItems (payload = path) of the photographs bundled with installed packages (those
     ``split`` holds under a hold-out of ``val_fraction``; the first ``max_images``)."""
-    files = sources.bundled_image_files()
+    files = bundled_photos.bundled_image_files()
     items, section = _first(
         [writer.WorkItem(i, image_id, p) for i, (image_id, p) in enumerate(files)],
         max_images, split, val_fraction, lambda it: it.item_id)
@@ -169,8 +169,11 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
         extra = f" ({len(preskipped)} unreadable directories)" if preskipped else ""
         raise sources.SourceError(f"no image files found in {where}{extra}; image files end in "
                                   f"{', '.join(sources.IMAGE_EXTENSIONS)}.")
-    holdout.check_beside(metadata.read_metadata_file(output_dir), split, val_fraction,
-                         {"source": source, **info}, output_dir)
+    beside = metadata.read_metadata_file(output_dir)
+    holdout.check_beside(beside, split, val_fraction, {"source": source, **info}, output_dir)
+    shared = holdout.sharing_splits(beside, split, {"source": source, **info})
+    if shared:
+        log(holdout.sharing_line(output_dir, split, shared))
     output_dir = paths.check_output_dir(output_dir)
     if num_shards == 0:
         num_shards = writer.auto_num_shards(num_items, samples_per_image)

@@ -48,7 +48,8 @@ class Evaluation:
       compute_dtype: ``"float32"`` or ``None`` (the stages as saved).
       search: ``"implausibility"``: ``EstimateOptions.search``.
       source: the pairs' photographs: ``"folder"`` (``--test_image_dir``) or ``"bundled"``
-        (those shipped inside installed packages, :func:`stnh_tf.data.sources.bundled_images`:
+        (those shipped inside installed packages,
+        :func:`stnh_tf.data.bundled_photos.bundled_images`:
         photographs no shipped model was trained on or chosen with).
     """
 

@@ -118,19 +118,24 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
       ``{"data_dir", "split", "count", "identity", "model" (if any), "baselines" (if any),
       "bootstrap_by_photograph", "notes"}`` (:func:`evaluate_arrays`; every stored pair names its
       photograph, ``image_id``), ``notes`` the lines of :func:`stage_notes` (a model of another
-      stage than the data's).
+      stage than the data's) and one where ``split`` shares photograph folders with another
+      split (:func:`stnh_tf.data.holdout.sharing_splits`).
     Raises:
       ValueError: ``batch_size`` < 1 or ``max_samples`` < 1, or ``clip_to_context=False``
         without a hierarchy (checked before anything is read); a missing split, a model or
         baseline that does not fit the data.
     """
+    from stnh_tf.data import holdout
     from stnh_tf.data import tfrecords as data
 
     check_evaluation(model_dirs, batch_size, clip_to_context)
     if max_samples is not None and max_samples < 1:
         raise ValueError(f"max_samples must be >= 1 (or unset: all pairs); received {max_samples}.")
     samples = data.load_arrays(data_dir, split, max_samples=max_samples)
-    notes = stage_notes(model_dirs, int(data.read_metadata(data_dir).get("stage", 1)), data_dir)
+    meta = data.read_metadata(data_dir)
+    notes = stage_notes(model_dirs, int(meta.get("stage", 1)), data_dir)
+    shared = holdout.sharing_splits(meta, split, meta.get("splits", {}).get(split, {}))
+    notes += [holdout.sharing_line(data_dir, split, shared)] if shared else []
     return {"data_dir": data_dir, "split": split,
             **evaluate_arrays(samples, model_dirs, baselines, batch_size, compute_dtype,
                               clip_to_context, source=data_dir), "notes": notes}

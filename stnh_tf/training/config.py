@@ -302,6 +302,16 @@ class TrainConfig:
                    "write them with data_prep.make_dataset --photometric.")
         if self.in_memory and self.fresh_pairs:
             yield ("in_memory holds one fixed set of pairs; it excludes fresh_pairs.")
+        if self.data_dir and not self.image_dir:
+            for f in dataclasses.fields(self):  # the fields whose help says "With --image_dir"
+                value, low = getattr(self, f.name), _INTEGER_MINIMUMS.get(f.name)
+                if (f.metadata["help"].startswith("With --image_dir") and f.name not in (
+                        "max_images", "photometric", "prev_stages", "unlabeled_image_dir")
+                        and value != f.default
+                        and not (low is not None and isinstance(value, int) and value < low)):
+                    yield (f"{f.name} applies to pairs generated from image_dir; with data_dir "
+                           "the TFRecords fix the pairs (data_prep.make_dataset), and "
+                           f"{f.name}={value!r} would be recorded but not used.")
 
     def _label_problems(self):
         fraction = self.label_fraction

@@ -1,0 +1,130 @@
+"""A hostile read of training on one's own photographs (2026-12-07), kept as tests: a test split
+made from a folder inside the train split's (``photos/test`` beside ``photos``) shared every one
+of its photographs with training; a link to a listed photograph, and hidden folders (thumbnails,
+a trash), put copies of photographs in the listing, one of them possibly in the val split; a
+linked folder was dropped without a word; a file name that is not UTF-8 stopped a hold-out;
+WebP and GIF photographs were "non-image files"; flags of generated pairs were accepted with
+``--data_dir``, recorded and ignored.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import photo_folder
+from stnh_tf.data import bundled_photos, folder_counts, holdout, sources, stage1
+
+
+@pytest.mark.parametrize("first", ["train", "test"])
+def test_a_split_from_a_folder_inside_anothers_is_said_when_made_and_evaluated(tmp_path,
+                                                                              first):
+    """``--split=train --image_dir=photos`` and ``--split=test --image_dir=photos/test`` into
+    one dataset: the train listing takes ``photos/test`` too, so every test photograph was
+    trained on, without a word, and ``evaluate`` reported MACE on training photographs. (The
+    project's own checks make a test split of the training folder with another seed on purpose,
+    so it is said, not refused.) make_dataset says it in one line, whichever split comes
+    second, and ``evaluate``'s notes say it of the test split; folders side by side say
+    nothing."""
+    from stnh_tf.evaluation import mace
+
+    photos = photo_folder(tmp_path / "photos", ["a.png", "b.png"])
+    photo_folder(photos / "test", ["t.png"])
+    folders = {"train": photos, "test": photos / "test"}
+    out, apart_out = tmp_path / "data", tmp_path / "apart"
+    second = "test" if first == "train" else "train"
+    for split in (first, second):
+        lines = []
+        stage1.make_dataset("folder", str(out), split, image_dir=str(folders[split]),
+                            samples_per_image=1, num_workers=1, log=lines.append)
+        said = [line for line in lines if "same photograph folders" in str(line)]
+        assert len(said) == (split == second), lines
+    assert said[0].startswith(f"note: the {second} split of {out} is made from the same "
+                              f"photograph folders as its {first} split")
+    notes = mace.evaluate([], str(out), "test", baselines=("identity",))["notes"]
+    assert notes == [holdout.sharing_line(str(out), "test", ["train"])]
+    elsewhere = photo_folder(tmp_path / "b", ["c.png"])
+    for split, folder in (("train", photos / "test"), ("test", elsewhere)):
+        stage1.make_dataset("folder", str(apart_out), split, image_dir=str(folder),
+                            samples_per_image=1, num_workers=1, log=lambda *_: None)
+    assert mace.evaluate([], str(apart_out), "test", baselines=("identity",))["notes"] == []
+
+
+def test_links_hidden_and_linked_folders_are_named_not_listed(tmp_path):
+    """A link to a listed photograph counted it twice (and the hold-out, keyed by path, could
+    put one copy in val); hidden folders (``.thumbnails``) were entered and hidden files used;
+    a linked folder was left out without being named. Now the photograph itself is listed once
+    and each of the others is named with its reason and counted in the run's line."""
+    folder = photo_folder(tmp_path / "photos", ["a.png", "b.png", ".hidden.png"])
+    photo_folder(folder / ".thumbnails", ["a.png"])
+    other = photo_folder(tmp_path / "album", ["x.png", "y.png"])
+    os.symlink(folder / "b.png", folder / "0_link_to_b.png")
+    os.symlink(other, folder / "album2020")
+    listing = sources.scan_image_folder(str(folder))
+    assert [listing.image_id(p) for p in listing.files] == ["a.png", "b.png"]
+    why = {os.path.relpath(p, folder): r for p, r in listing.unreadable}
+    assert why == {"0_link_to_b.png": "the same file (a link) as b.png",
+                   ".hidden.png": sources.HIDDEN, ".thumbnails": sources.HIDDEN,
+                   "album2020": f"symbolic link to a folder ({other}): not entered"}
+    line = folder_counts.FolderCounts.of(len(listing.files), [r for _, r in listing.unreadable],
+                                         listing).line()
+    assert line == ("photographs: 2 used; skipped 4 (hidden: 2, linked folder: 1, "
+                    "listed already: 1)")
+
+
+def test_a_name_that_is_not_utf8_is_used_with_its_bytes_escaped(tmp_path):
+    """``caf\\xe9.png`` (Latin-1, as old archives write names): with ``--val_fraction`` the hold-out
+    stopped the whole run on ``str.encode``; without it the photograph was skipped. Its id now
+    escapes the byte, and it is held out or kept like any other."""
+    folder = photo_folder(tmp_path / "photos", ["a.png"])
+    name = os.fsdecode(b"caf\xe9.png")
+    shutil.copy(folder / "a.png", os.path.join(str(folder), name))
+    listing = sources.scan_image_folder(str(folder))
+    ids = [listing.image_id(p) for p in listing.files]
+    assert ids == ["a.png", "caf\\xe9.png"]
+    assert [holdout.held_out(i, 0.5) for i in ids] == [holdout.held_out(i, 0.5) for i in
+                                                       ("a.png", "caf\\xe9.png")]
+    items, _, _ = stage1.folder_items(str(folder), split="val", val_fraction=0.999)
+    assert [it.item_id for it in items] == ids
+
+
+def test_webp_and_gif_photographs_are_used(tmp_path):
+    """WebP and GIF files were counted as non-image files (with ``.DS_Store``), although the
+    reader decodes them: now listed and decoded, the same pixels as the PNG they were made from
+    (WebP lossless, GIF of a gray image)."""
+    from PIL import Image
+
+    gray = cv2.cvtColor(cv2.imread(bundled_photos.bundled_image_files()[0][1]),
+                        cv2.COLOR_BGR2GRAY)
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.webp"), gray, [cv2.IMWRITE_WEBP_QUALITY, 101])
+    Image.fromarray(gray).save(folder / "b.GIF")
+    (folder / ".DS_Store").write_bytes(b"\0\0")
+    listing = sources.scan_image_folder(str(folder))
+    assert [listing.image_id(p) for p in listing.files] == ["a.webp", "b.GIF"]
+    assert listing.ignored == 1
+    for path in listing.files:
+        np.testing.assert_array_equal(sources.read_gray(path), gray)
+
+
+def test_flags_of_generated_pairs_are_refused_with_tfrecords():
+    """``--data_dir`` with ``--samples_per_image=100 --fresh_pairs --val_image_dir=...``
+    trained on the TFRecords, validated on their val split and wrote the three into
+    ``config.json`` as if they had applied. Each is refused naming it; at their defaults, or
+    with ``--image_dir``, they stay accepted."""
+    from stnh_tf.training.config import TrainConfig
+
+    changes = {"samples_per_image": 100, "fresh_pairs": True, "val_image_dir": "/v",
+               "val_seed": 7, "workers": 2, "in_memory": True}
+    problems = TrainConfig(model_dir="/m", data_dir="/d", **changes).problems()
+    for name in changes:
+        assert sum(p.startswith(f"{name} applies to pairs generated from image_dir")
+                   for p in problems) == 1, (name, problems)
+    assert not TrainConfig(model_dir="/m", data_dir="/d").problems()
+    generated = TrainConfig(model_dir="/m", image_dir="/i", **dict(changes, fresh_pairs=False))
+    assert not [p for p in generated.problems() if "applies to pairs" in p]
