@@ -9,6 +9,7 @@ WebP and GIF photographs were "non-image files"; flags of generated pairs were a
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 
@@ -128,3 +129,42 @@ def test_flags_of_generated_pairs_are_refused_with_tfrecords():
     assert not TrainConfig(model_dir="/m", data_dir="/d").problems()
     generated = TrainConfig(model_dir="/m", image_dir="/i", **dict(changes, fresh_pairs=False))
     assert not [p for p in generated.problems() if "applies to pairs" in p]
+
+
+def test_a_run_resumed_on_other_training_data_is_refused(tmp_path):
+    """A run stopped at step 2 on one dataset resumed on another (``--data_dir`` is free to
+    change, so that a run can move between machines): it trained on, and its ``config.json``
+    named the second dataset only; ``--overwrite`` with the first one's path then resumed the
+    wrong run. ``config.json`` now records what identifies the data wherever it lies (the train
+    split's shards, seed and protocol; a photograph folder's listing), and a resumption on
+    other data is refused as other flags are (``--overwrite`` starts over); the same dataset
+    moved elsewhere, and a run saved before the record, resume."""
+    from stnh_tf.training import run_dir
+    from stnh_tf.training.config import TrainConfig
+
+    data = {}
+    for seed in (0, 1):
+        data[seed] = tmp_path / f"ds{seed}"
+        stage1.make_dataset("bundled", str(data[seed]), "train", samples_per_image=1, seed=seed,
+                            max_images=2, num_shards=1, num_workers=1, log=lambda *_: None)
+    moved = tmp_path / "elsewhere" / "ds0"
+    shutil.copytree(data[0], moved)
+    run = str(tmp_path / "run")
+
+    def cfg(folder):
+        return TrainConfig(model_dir=run, data_dir=str(folder), train_steps=4)
+
+    assert run_dir.prepare_model_dir(cfg(data[0]))
+    doc = run_dir.read_run_config(os.path.join(run, "config.json"), digests=True)
+    assert set(doc[run_dir.DATA_DIGESTS]) == {"data_dir"} and doc[run_dir.DATA_DIGESTS]["data_dir"]
+    assert "data_sha256" not in run_dir.read_run_config(os.path.join(run, "config.json"))
+    with pytest.raises(ValueError, match=r"different configuration .*'data_dir \(its data\)'"):
+        run_dir.prepare_model_dir(cfg(data[1]))
+    assert not run_dir.prepare_model_dir(cfg(moved))  # the same data elsewhere: resumed
+    assert run_dir.prepare_model_dir(cfg(data[1]), overwrite=True)  # over: a new run
+    config = os.path.join(run, "config.json")
+    old = {k: v for k, v in json.loads(open(config).read()).items()
+           if k != run_dir.DATA_DIGESTS}
+    with open(config, "w") as f:  # a run saved before the record: resumed
+        json.dump(old, f)
+    assert not run_dir.prepare_model_dir(cfg(data[0]))  # (it cannot tell the data apart)

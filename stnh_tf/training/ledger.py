@@ -186,8 +186,6 @@ def photographs(cfg) -> dict | None:
     the folders given); ``None`` for a run without ``image_dir`` (TFRecords), or where the
     training folders cannot be listed here (the run's own check then names it); no ``"val"``
     where there are no validation folders or they cannot be listed."""
-    from stnh_tf.data import sources
-
     if not cfg.image_dir:
         return None
     out = {}
@@ -195,16 +193,27 @@ def photographs(cfg) -> dict | None:
                                ("val", cfg.val_image_dir, 0)):
         if not folders:
             continue
-        try:
-            listing = sources.scan_image_folders(folders, most)
-            digest = hashlib.sha256("".join(
-                f"{listing.image_id(p)}\t{os.path.getsize(p)}\n" for p in listing.files).encode())
-        except (OSError, ValueError):  # (SourceError is a ValueError)
+        out[key] = listing_digest(folders, most)
+        if out[key] is None:
             if key == "train":
                 return None
-            continue
-        out[key] = {"count": len(listing.files), "sha256": digest.hexdigest()}
+            del out[key]
     return out
+
+
+def listing_digest(folders, most: int = 0) -> dict | None:
+    """``{"count": N, "sha256": ...}`` over the image ids and sizes of
+    :func:`stnh_tf.data.sources.scan_image_folders`' listing of ``folders`` (its first ``most``;
+    0: all), the same wherever the folders are; ``None`` where they cannot be listed here."""
+    from stnh_tf.data import sources
+
+    try:
+        listing = sources.scan_image_folders(folders, most)
+        digest = hashlib.sha256("".join(
+            f"{listing.image_id(p)}\t{os.path.getsize(p)}\n" for p in listing.files).encode())
+    except (OSError, ValueError):  # (SourceError is a ValueError)
+        return None
+    return {"count": len(listing.files), "sha256": digest.hexdigest()}
 
 
 def check_photographs(recorded, seen, part, cfg, printer=print) -> None:

@@ -35,6 +35,9 @@ CONFIG_MARKER = {"format": "stnh_tf.train_config", "format_version": 1}
 # Written into config.json beside the fields: {field: [sha256 of each model file it names]} for
 # the fields of MODEL_FILE_FIELDS (config_document), what a resumption compares them by.
 MODEL_DIGESTS = "model_sha256"
+# Written into config.json with the fields: {source field: sha256} of the data the run trains on,
+# wherever it lies (data_digests); a resumption compares the sources both sides record.
+DATA_DIGESTS = "data_sha256"
 # The format of the record beside a chunked run's finished stage (stnh_tf.training.chunks).
 STAGE_RECORD_FORMAT = "stnh_tf.chunked_stage"
 CHECKPOINT_DIR = "checkpoint"  # its files: stnh_tf.training.checkpoints, committed by:
@@ -95,7 +98,8 @@ def _legacy_config_problem(doc: dict) -> str | None:
 
 def read_run_config(config_path: str, digests: bool = False) -> dict:
     """The saved fields of the training run whose ``config.json`` is ``config_path`` (with
-    ``digests``, and the model files' digests it records: :data:`MODEL_DIGESTS`).
+    ``digests``, and the model files' and the data's digests it records: :data:`MODEL_DIGESTS`,
+    :data:`DATA_DIGESTS`).
 
     A run's ``config.json`` holds :data:`CONFIG_MARKER` (``format`` and ``format_version``) with
     the :class:`TrainConfig` fields (:func:`prepare_model_dir` writes it); one written before the
@@ -128,7 +132,7 @@ def read_run_config(config_path: str, digests: bool = False) -> dict:
                 f"marker: {why}); its folder is neither resumed nor deleted, with or without "
                 "--overwrite: choose another --model_dir, or move the folder away.")
     return {k: v for k, v in doc.items()
-            if k not in CONFIG_MARKER and (digests or k != MODEL_DIGESTS)}
+            if k not in CONFIG_MARKER and (digests or k not in (MODEL_DIGESTS, DATA_DIGESTS))}
 
 
 def model_file(path: str) -> str:
@@ -147,12 +151,45 @@ def model_digests(fields: dict) -> dict:
                    for p in fields.get(name) or ()] for name in MODEL_FILE_FIELDS}
 
 
+def data_digests(fields: dict) -> dict:
+    """``{field: sha256 or None}`` of the training data each source field of ``fields`` (a
+    configuration's, as :meth:`TrainConfig.to_json`) names, wherever the data lie: ``data_dir``
+    by its ``train`` split's shards as its ``metadata.json`` lists them (names, bytes, pairs)
+    with the split's seed and protocol; ``image_dir`` (its first ``max_images``),
+    ``unlabeled_image_dir`` and ``unlabeled_pairs_dir`` by their listing's ids and sizes
+    (:func:`stnh_tf.training.ledger.listing_digest`); ``None`` where they cannot be read here."""
+    import hashlib
+
+    from stnh_tf.training import ledger
+
+    out = {}
+    if fields.get("data_dir"):
+        try:
+            split = read_json(os.path.join(fields["data_dir"], "metadata.json"),
+                              "dataset metadata")["splits"]["train"]
+            key = json.dumps({"shards": [(os.path.basename(s["file"]), s["num_bytes"],
+                                          s["num_samples"]) for s in split["shards"]],
+                              "seed": split.get("seed"), "protocol": split.get("protocol")},
+                             sort_keys=True)
+            out["data_dir"] = hashlib.sha256(key.encode()).hexdigest()
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            out["data_dir"] = None
+    for name in ("image_dir", "unlabeled_image_dir", "unlabeled_pairs_dir"):
+        if fields.get(name):
+            found = ledger.listing_digest(fields[name],
+                                          fields.get("max_images", 0) if name == "image_dir" else 0)
+            out[name] = found and found["sha256"]
+    return out
+
+
 def config_document(cfg: TrainConfig) -> dict:
     """What a run's ``config.json`` holds (:func:`prepare_model_dir` writes it): ``cfg``'s
-    fields, :data:`CONFIG_MARKER`, and the digests of the model files it names
-    (:data:`MODEL_DIGESTS`: :func:`model_digests`)."""
+    fields, :data:`CONFIG_MARKER`, the digests of the model files it names
+    (:data:`MODEL_DIGESTS`: :func:`model_digests`) and of its training data
+    (:data:`DATA_DIGESTS`: :func:`data_digests`)."""
     fields = cfg.to_json()
-    return {**fields, **CONFIG_MARKER, MODEL_DIGESTS: model_digests(fields)}
+    return {**fields, **CONFIG_MARKER, MODEL_DIGESTS: model_digests(fields),
+            DATA_DIGESTS: data_digests(fields)}
 
 
 def _resume_form(doc: dict) -> dict:
@@ -167,7 +204,8 @@ def _resume_form(doc: dict) -> dict:
     orders); ``val_split`` only for TFRecords, the one source reading it (an ``image_dir`` run
     saved under its former default, ``"test"``, resumes under ``"val"``)."""
     fields = {**TrainConfig().to_json(),
-              **{k: v for k, v in doc.items() if k != MODEL_DIGESTS and k not in CONFIG_MARKER}}
+              **{k: v for k, v in doc.items()
+                 if k not in (MODEL_DIGESTS, DATA_DIGESTS) and k not in CONFIG_MARKER}}
     recorded, here = doc.get(MODEL_DIGESTS), model_digests(fields)
     form = {k: v for k, v in fields.items() if k not in RESUME_FREE_FIELDS}
     for name in MODEL_FILE_FIELDS:
@@ -192,10 +230,17 @@ def _config_diff(new: TrainConfig | str, config_path: str) -> dict:
     (:func:`read_run_config`)."""
     if not os.path.exists(config_path):
         return {}
-    old = _resume_form(read_run_config(config_path, digests=True))
-    new = _resume_form(config_document(new) if isinstance(new, TrainConfig)
-                       else read_run_config(new, digests=True))
-    return {k: (old.get(k), v) for k, v in new.items() if old.get(k) != v}
+    old_doc = read_run_config(config_path, digests=True)
+    new_doc = (config_document(new) if isinstance(new, TrainConfig)
+               else read_run_config(new, digests=True))
+    old, new = _resume_form(old_doc), _resume_form(new_doc)
+    diff = {k: (old.get(k), v) for k, v in new.items() if old.get(k) != v}
+    was, now = (d.get(DATA_DIGESTS) if isinstance(d.get(DATA_DIGESTS), dict) else {}
+                for d in (old_doc, new_doc))
+    for name in sorted(was.keys() & now.keys()):  # where both record the data: the same data
+        if was[name] and now[name] and was[name] != now[name]:
+            diff[f"{name} (its data)"] = (f"sha256:{was[name][:12]}", f"sha256:{now[name][:12]}")
+    return diff
 
 
 def _check_run_folder(model_dir: str) -> None:
