@@ -41,16 +41,20 @@ def machine_info() -> dict:
     """The commit, the machine and the library versions, as a JSON object.
 
     Keys: ``git_commit`` (:func:`git_commit` at :data:`STARTED`), ``platform``, ``cpu``
-    (``/proc/cpuinfo``'s model name), ``cpu_count``, ``loadavg_at_start`` (at :data:`STARTED`,
+    (``/proc/cpuinfo``'s model name), ``cpu_bf16`` (its bfloat16 flags among ``avx512_bf16``
+    and ``amx_bf16``), ``cpu_count``, ``loadavg_at_start`` (at :data:`STARTED`,
     where the OS has one), ``command``, and the
     versions ``python``, ``numpy``, ``opencv``, ``stnh_tf``; where the caller imported them,
     ``tensorflow`` and ``gpus``, ``jax`` and ``jax_devices``, ``keras`` and ``keras_backend``.
     """
-    model = platform.processor()
+    model, flags = platform.processor(), set()
     try:
         with open("/proc/cpuinfo") as f:
-            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")),
-                         model)
+            lines = f.read().splitlines()
+        model = next((ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model name")),
+                     model)
+        flags = set(next((ln.split(":", 1)[1].split() for ln in lines
+                          if ln.startswith("flags")), ()))
     except OSError:
         pass
     import cv2
@@ -61,7 +65,9 @@ def machine_info() -> dict:
     info = {"platform": platform.platform(), "cpu": model or None, "cpu_count": os.cpu_count(),
             "python": platform.python_version(), "numpy": np.__version__, "opencv": cv2.__version__,
             "stnh_tf": __version__, "git_commit": STARTED["git_commit"],
-            "command": " ".join([os.path.basename(sys.executable)] + sys.argv)}
+            "command": " ".join([os.path.basename(sys.executable)] + sys.argv),
+            # bfloat16 in hardware (mixed-precision results differ with it: BENCHMARKS.md)
+            "cpu_bf16": sorted(flags & {"avx512_bf16", "amx_bf16"})}
     if STARTED["loadavg"] is not None:
         info["loadavg_at_start"] = STARTED["loadavg"]
     tf = sys.modules.get("tensorflow")  # (None also where an import of it was blocked)

@@ -130,12 +130,14 @@ def evaluation_table(result: dict) -> str:
             for reason, n in stage.items():
                 reasons[reason] = reasons.get(reason, 0) + n
         if sum(reasons.values()):
+            clipped = model.get("clip_to_context", True)
             notes.append(
                 f"degenerate-prediction rule: {sum(reasons.values())} of "
-                f"{len(model['model_dirs']) * result['count']} stage predictions rejected ("
+                f"{len(model['model_dirs']) * result['count']} stage predictions caught ("
                 + ", ".join(f"{r} {n}" for r, n in sorted(reasons.items()) if n)
                 + "; non-finite or singular ones keep the estimate before that stage, those "
-                "outside the context are clipped onto it)")
+                + ("outside the context are clipped onto it)" if clipped else
+                   "outside the context are kept as predicted: --no_clip)"))
     elif model is not None:
         name = model.get("model_dir", "model")
         outputs = sorted(model.get("stages", {}).items()) or [(None, model)]

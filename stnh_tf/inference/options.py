@@ -273,8 +273,9 @@ class EstimateOptions:
     @classmethod
     def network_only(cls, **changes) -> "EstimateOptions":
         """The network's composed estimate alone: every stage composed (no gate), no search, no
-        flat rule; what the paper's evaluation, the tables and the exported SavedModel compute
-        (with the mirror fill of bare patches, as the export does). ``changes`` override fields.
+        flat rule; what the exported SavedModel computes (with the mirror fill of bare patches,
+        as the export does), and the paper's evaluation for one stage (a hierarchy's later
+        stages see the stored context there: docs/estimate.md). ``changes`` override fields.
         """
         return cls(**{"search": "none", "gate_stages": False,
                       "thresholds": Thresholds(min_patch_std=0.0), **changes})
