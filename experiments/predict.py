@@ -18,7 +18,9 @@ coarse pass, ...) moved the network's own estimate, with the flags that give the
 model worse than the identity, the move is not small then. It writes
 to ``--output_dir`` (default: the current directory) ``<a>__<b>_overlay.png`` and the same JSON as
 ``<a>__<b>_homography.json`` (``<a>__<b>-2_...`` and so on when the folder holds the outputs of
-another pair of images with the same base names; a re-run of the same pair replaces its own).
+another pair of images with the same base names; a re-run of the same pair replaces its own;
+the name is chosen and both files written under the lock file ``.stnh_tf_predict.lock`` there,
+so that runs into one folder at once never share a name).
 The PNG has two panels: image_a with the quadrilateral where image_b's border lands (green), and
 image_b (green channel) over image_a warped onto image_b by the estimate (magenta), image_a's
 gray levels matched to image_b's over their overlap: aligned regions look gray, also across an

@@ -216,13 +216,15 @@ def stage_record_path(model_file) -> str:
 
 
 @contextlib.contextmanager
-def exclusive_lock(lock_path, busy: str):
+def exclusive_lock(lock_path, busy: str, wait: bool = False):
     """Hold ``fcntl.flock`` on the file ``lock_path`` (created if missing, never removed) for one
     writer: a second holder, in this process or another, fails at once with
-    ``FileExistsError(busy)`` instead of waiting or writing over the first one's files. The lock
-    goes with the process, so a killed writer leaves none held (its lock file stays and is
-    reused). make_dataset's split lock (:func:`stnh_tf.data.metadata.split_lock`) and the
-    SavedModel export's (:func:`stnh_tf.inference.export.export_saved_model`) are this lock.
+    ``FileExistsError(busy)`` instead of waiting or writing over the first one's files (with
+    ``wait``, it waits for the first to let go: writers that only choose names, as ``predict``'s
+    output stems). The lock goes with the process, so a killed writer leaves none held (its lock
+    file stays and is reused). make_dataset's split lock
+    (:func:`stnh_tf.data.metadata.split_lock`), the SavedModel export's
+    (:func:`stnh_tf.inference.export.export_saved_model`) and ``predict``'s are this lock.
 
         >>> import tempfile
         >>> with tempfile.TemporaryDirectory() as folder:
@@ -239,7 +241,7 @@ def exclusive_lock(lock_path, busy: str):
 
     with open(lock_path, "a") as f:
         try:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
         except BlockingIOError:
             raise FileExistsError(busy) from None
         try:
@@ -247,18 +249,3 @@ def exclusive_lock(lock_path, busy: str):
         finally:
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
-
-@contextlib.contextmanager
-def folder_lock(folder):
-    """Hold ``fcntl.flock`` on the folder ``folder`` itself (no file is made in it) inside the
-    ``with``, waiting for another holder, in this process or another, to let go: writers that
-    choose names in a folder (``predict``'s output stems) do it one at a time. Goes with the
-    process, as :func:`exclusive_lock`."""
-    import fcntl
-
-    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
-        os.close(fd)  # closing the last descriptor releases the lock

@@ -19,6 +19,7 @@ import pytest
 
 from conftest import photo_folder
 from stnh_tf.data import bundled_photos, folder_counts, holdout, sources, stage1
+from stnh_tf.data import tfrecords as data
 
 
 @pytest.mark.parametrize("first", ["train", "test"])
@@ -87,10 +88,15 @@ def test_a_name_that_is_not_utf8_is_used_with_its_bytes_escaped(tmp_path):
     listing = sources.scan_image_folder(str(folder))
     ids = [listing.image_id(p) for p in listing.files]
     assert ids == ["a.png", "caf\\xe9.png"]
-    assert [holdout.held_out(i, 0.5) for i in ids] == [holdout.held_out(i, 0.5) for i in
-                                                       ("a.png", "caf\\xe9.png")]
-    items, _, _ = stage1.folder_items(str(folder), split="val", val_fraction=0.999)
-    assert [it.item_id for it in items] == ids
+    out, written = tmp_path / "data", {}
+    for split in ("train", "val"):  # the hold-out of 0.5 divides the two photographs
+        stage1.make_dataset("folder", str(out), split, image_dir=str(folder),
+                            samples_per_image=1, val_fraction=0.5, num_workers=1,
+                            log=lambda *_: None)
+        stored = data.load_arrays(str(out), split)["image_id"]
+        written[split] = {x.decode() if isinstance(x, bytes) else str(x) for x in stored}
+    assert written == {split: {i for i in ids if holdout.held_out(i, 0.5) == (split == "val")}
+                       for split in ("train", "val")}
 
 
 def test_webp_and_gif_photographs_are_used(tmp_path):
@@ -117,17 +123,21 @@ def test_flags_of_generated_pairs_are_refused_with_tfrecords():
     """``--data_dir`` with ``--samples_per_image=100 --fresh_pairs --val_image_dir=...``
     trained on the TFRecords, validated on their val split and wrote the three into
     ``config.json`` as if they had applied. Each is refused naming it; at their defaults, or
-    with ``--image_dir``, they stay accepted."""
+    with ``--image_dir``, they stay accepted, and so do the speed fields ``workers`` and
+    ``in_memory`` (they change no result; ``experiments.semi_supervised --workers`` sets
+    ``workers`` on its TFRecords rows too)."""
     from stnh_tf.training.config import TrainConfig
 
     changes = {"samples_per_image": 100, "fresh_pairs": True, "val_image_dir": "/v",
-               "val_seed": 7, "workers": 2, "in_memory": True}
+               "val_seed": 7}
     problems = TrainConfig(model_dir="/m", data_dir="/d", **changes).problems()
     for name in changes:
         assert sum(p.startswith(f"{name} applies to pairs generated from image_dir")
                    for p in problems) == 1, (name, problems)
+    assert len(problems) == len(changes)
     assert not TrainConfig(model_dir="/m", data_dir="/d").problems()
-    generated = TrainConfig(model_dir="/m", image_dir="/i", **dict(changes, fresh_pairs=False))
+    assert not TrainConfig(model_dir="/m", data_dir="/d", workers=4, in_memory=True).problems()
+    generated = TrainConfig(model_dir="/m", image_dir="/i", **dict(changes, workers=2))
     assert not [p for p in generated.problems() if "applies to pairs" in p]
 
 
@@ -168,3 +178,35 @@ def test_a_run_resumed_on_other_training_data_is_refused(tmp_path):
     with open(config, "w") as f:  # a run saved before the record: resumed
         json.dump(old, f)
     assert not run_dir.prepare_model_dir(cfg(data[0]))  # (it cannot tell the data apart)
+    # Same names, seed, sizes and counts, other photographs (records are of one size): the
+    # shards' first and last bytes tell them apart.
+    photos = [p for _, p in bundled_photos.bundled_image_files()]
+    for name, picks in (("A", photos[:2]), ("B", photos[5:7])):
+        folder = tmp_path / f"photos{name}"
+        folder.mkdir()
+        for k, path in enumerate(picks):
+            shutil.copy(path, folder / f"img{k}.png")
+        data[name] = tmp_path / f"ds{name}"
+        stage1.make_dataset("folder", str(data[name]), "train", image_dir=str(folder),
+                            samples_per_image=1, num_shards=1, num_workers=1,
+                            log=lambda *_: None)
+    assert run_dir.prepare_model_dir(cfg(data["A"]), overwrite=True)
+    with pytest.raises(ValueError, match=r"'data_dir \(its data\)'"):
+        run_dir.prepare_model_dir(cfg(data["B"]))
+    # A source of unlabeled pairs dropped on resumption: other data too.
+    mixed = TrainConfig(model_dir=run, data_dir=str(data["A"]), train_steps=4,
+                        unlabeled_pairs_dir=str(tmp_path / "photosB"))
+    assert run_dir.prepare_model_dir(mixed, overwrite=True)
+    with pytest.raises(ValueError, match=r"'unlabeled_pairs_dir \(its data\)': \('sha256:"):
+        run_dir.prepare_model_dir(cfg(data["A"]))
+
+
+def test_a_folder_of_hidden_files_says_what_was_left_out(tmp_path):
+    """A folder holding only macOS's ``._`` files: "no image files found ... (2 unreadable
+    directories)" counted the hidden files as directories; the message now says what was left
+    out, by kind."""
+    folder = photo_folder(tmp_path / "photos", ["._IMG_1.jpg", "._IMG_2.jpg"])
+    with pytest.raises(sources.SourceError, match=r"no image files found in .*photos "
+                                                  r"\(left out: hidden 2\)"):
+        stage1.make_dataset("folder", str(tmp_path / "data"), "train", image_dir=str(folder),
+                            num_workers=1, log=lambda *_: None)

@@ -116,7 +116,7 @@ def test_two_predict_runs_into_one_folder_never_share_a_name(estimator, tmp_path
     """Two runs on different pairs with the same base names (dir1/a, b and dir2/a, b) into one
     ``--output_dir``: each chose its name before writing, so both took ``a__b`` and one pair's
     results were lost (the PNG and the JSON could even come from different pairs). The name is
-    chosen and the files written under the folder's lock: here the first run waits, its name
+    chosen and the files written under the folder's lock file: here the first run waits, its name
     chosen, for the second to choose one (up to 1 s); with the lock the second cannot, and the
     two pairs get ``a__b`` and ``a__b-2``, each JSON naming its own images."""
     import threading
@@ -259,6 +259,50 @@ def test_gate_stages_takes_booleans_and_refuses_other_numbers():
     """``gate_stages=5`` and ``-1`` were taken as True, NumPy's ``True`` refused."""
     for value, want in ((True, True), (np.True_, True), (np.False_, False), (0, False)):
         assert EstimateOptions(gate_stages=value).gate_stages is want
-    for value in (5, -1, 0.5):
+    for value in (5, -1, 0.5, 1.0):
         with pytest.raises(ValueError, match="gate_stages must be a bool"):
             EstimateOptions(gate_stages=value)
+
+
+def test_a_border_far_larger_than_image_a_is_still_drawn():
+    """A 400x zoom into image_b (its border mapped 127,600 px wide, every corner in front): the
+    first clipping cut the whole border away and drew nothing; clipped against the FAR box as
+    well, the border is kept where it lies within reach and fills image_a (all of it covered,
+    as NumPy's inverse mapping says)."""
+    import cv2
+
+    from stnh_tf.inference import overlays
+
+    polygon = overlays.border_polygon(np.diag([400.0, 400.0, 1.0]), (320, 240))
+    assert len(polygon) == 4 and np.abs(polygon).max() <= overlays.FAR
+    filled = cv2.fillPoly(np.zeros((240, 320), np.uint8),
+                          [np.round(polygon).astype(np.int32).reshape(-1, 1, 2)], 1)
+    assert filled.all()
+
+
+def test_an_old_export_that_cannot_be_put_back_is_kept_and_named(estimator, tmp_path,
+                                                                 monkeypatch):
+    """Where the move in fails and so does the move back, the staging folder holding the old
+    export aside was removed with it; it is kept now and the error names it: the old export's
+    files are there byte for byte."""
+    out = tmp_path / "out"
+    monkeypatch.setattr(export, "_write_archive", _fake_archive(b"old"))
+    export.export_saved_model(estimator, out)
+    before = {k: v for k, v in _files(out).items() if not k.startswith(".")}
+    real_replace = os.replace
+
+    def both_fail(src, dst):
+        parent = os.path.basename(os.path.dirname(src))
+        if (parent.startswith(export_folder.STAGING_PREFIX) and os.path.basename(src) ==
+                "variables") or parent == export_folder.ASIDE:
+            raise OSError(errno.EXDEV, "Invalid cross-device link", src)
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(export, "_write_archive", _fake_archive(b"new"))
+    monkeypatch.setattr(export_folder.os, "replace", both_fail)
+    with pytest.raises(OSError, match="nor the old export back .*the old export's entries are "
+                                      "in (.*); move them back by hand") as info:
+        export.export_saved_model(estimator, out, overwrite=True)
+    monkeypatch.setattr(export_folder.os, "replace", real_replace)
+    aside = str(info.value).split("entries are in ")[1].split(";")[0]
+    assert {k: v for k, v in _files(aside).items()} == before

@@ -14,7 +14,7 @@ import shlex
 import socket
 import sys
 
-from stnh_tf.data import holdout, metadata, writer
+from stnh_tf.data import folder_counts, holdout, metadata, writer
 from stnh_tf import paths
 from stnh_tf.data import bundled_photos, pairs, sources
 
@@ -166,7 +166,9 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
                          f"{0 if split == holdout.VAL_SPLIT else 1}.")
     if num_items == 0:
         where = info.get("image_dir", source)
-        extra = f" ({len(preskipped)} unreadable directories)" if preskipped else ""
+        left = folder_counts.FolderCounts.of(0, [why for _, why in preskipped]).skipped
+        extra = (" (left out: " + ", ".join(f"{k} {n}" for k, n in sorted(left.items())) + ")"
+                 if left else "")
         raise sources.SourceError(f"no image files found in {where}{extra}; image files end in "
                                   f"{', '.join(sources.IMAGE_EXTENSIONS)}.")
     beside = metadata.read_metadata_file(output_dir)

@@ -75,9 +75,9 @@ import numpy as np
 
 from stnh_tf import geometry, paths
 from stnh_tf.inference import export_contract, serving
-from stnh_tf.inference.export_folder import (STAGING_MARKER, STAGING_PREFIX, VERIFIED_FILE,
-                                             VERIFIED_FORMAT, output_lock, saved_model_digest,
-                                             swap_in, verified_problem)
+from stnh_tf.inference.export_folder import (ASIDE, STAGING_MARKER, STAGING_PREFIX,
+                                             VERIFIED_FILE, VERIFIED_FORMAT, output_lock,
+                                             saved_model_digest, swap_in, verified_problem)
 
 _log = logging.getLogger(__name__)
 
@@ -139,8 +139,12 @@ def _write_export(estimator, output_dir) -> list:
             raise OSError(f"cannot write the SavedModel to {output_dir}: "
                           f"{type(e).__name__}: {e}") from None
         kept = swap_in(staging, output_dir)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    except BaseException:  # the old export, where a failed swap left it aside, is kept
+        aside = os.path.join(staging, ASIDE)
+        if not (os.path.isdir(aside) and os.listdir(aside)):
+            shutil.rmtree(staging, ignore_errors=True)
+        raise
+    shutil.rmtree(staging, ignore_errors=True)
     for path in kept:
         _log.warning("export: kept %s (not written by an export); the export's own %s is not "
                      "written", path, os.path.basename(path))

@@ -176,12 +176,17 @@ def swap_in(staging, output_dir) -> list:
                 os.replace(os.path.join(staging, name), os.path.join(output_dir, name))
                 moved_in.append(name)
     except OSError as e:
-        for name in moved_in:
-            new = os.path.join(output_dir, name)
-            shutil.rmtree(new) if os.path.isdir(new) and not os.path.islink(new) \
-                else os.remove(new)
-        for name in moved_aside:
-            os.replace(os.path.join(aside, name), os.path.join(output_dir, name))
+        try:
+            for name in moved_in:
+                new = os.path.join(output_dir, name)
+                shutil.rmtree(new) if os.path.isdir(new) and not os.path.islink(new) \
+                    else os.remove(new)
+            for name in moved_aside:
+                os.replace(os.path.join(aside, name), os.path.join(output_dir, name))
+        except OSError as again:  # the old export stays where it was moved aside
+            raise OSError(f"cannot move the new SavedModel into {output_dir} ({e}), nor the old "
+                          f"export back ({again}): the old export's entries are in {aside}; "
+                          "move them back by hand") from None
         raise OSError(f"cannot move the new SavedModel into {output_dir} ({e}); the old export "
                       "there is kept as it was") from None
     return kept

@@ -14,6 +14,7 @@ depth their values use (their colours too), and the pixel frame is the file's st
 colours are used only to draw the overlay.
 """
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -87,6 +88,11 @@ def read_image(path, name, max_pixels: int | None = None) -> ImageFile:
     except ValueError as e:
         raise AlignmentError(str(e)) from None
     return image
+
+
+PREDICT_LOCK = ".stnh_tf_predict.lock"
+"""The lock file in ``predict``'s output folder under which a run chooses its outputs' name and
+writes them (:func:`align_image_files`)."""
 
 
 def output_stem(output_dir, inputs):
@@ -302,7 +308,12 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
               "model": estimator.source, "kind": estimator.kind,
               "num_stages": estimator.num_stages,
               **_estimate_json(estimate, image_b.gray.shape, quad)}
-    with paths.folder_lock(output_dir):  # another run choosing a name in it waits
+    with contextlib.ExitStack() as held:
+        try:  # another run choosing a name in the folder waits
+            held.enter_context(paths.exclusive_lock(os.path.join(output_dir, PREDICT_LOCK), "",
+                                                    wait=True))
+        except OSError as e:
+            raise AlignmentError(f"cannot lock {output_dir} ({PREDICT_LOCK}): {e}") from None
         stem = output_stem(output_dir, inputs)
         png = os.path.join(output_dir, f"{stem}_overlay.png")
         result.update(overlay_png=png, input_paths=inputs)

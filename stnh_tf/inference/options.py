@@ -264,7 +264,8 @@ class EstimateOptions:
             value = getattr(self, name)
             if not isinstance(value, str) or value not in table:
                 raise ValueError(f"{name} must be one of {tuple(table)}; received {value!r}.")
-        if not isinstance(self.gate_stages, (bool, np.bool_)) and self.gate_stages not in (0, 1):
+        if not isinstance(self.gate_stages, (bool, np.bool_)) and not (
+                isinstance(self.gate_stages, numbers.Integral) and self.gate_stages in (0, 1)):
             raise ValueError(f"gate_stages must be a bool; received {self.gate_stages!r}.")
         object.__setattr__(self, "gate_stages", bool(self.gate_stages))
         if not isinstance(self.thresholds, Thresholds):

@@ -111,18 +111,18 @@ IN_FRONT = 1e-6
 """A point of image_b maps in front of camera a where its homogeneous coordinate under ``H_ba``
 (``H[2][2] = 1``) is above this (:func:`stnh_tf.geometry.in_front`'s bound)."""
 FAR = 1e5
-"""How far (px) the border drawn by :func:`border_polygon` may reach: where it goes to the
-horizon it is cut that far out, beyond any image."""
+"""How far (px) the border drawn by :func:`border_polygon` may reach: cut that far out (where it
+goes to the horizon, or an image_b far larger than image_a), beyond any image."""
 
 
 def border_polygon(h_ba, size_b) -> np.ndarray:
     """The part of image_b's border (``size_b = (w, h)``) in front of camera a, mapped into
-    image_a by ``h_ba`` (``[3, 3]``, ``H[2][2] = 1``): ``[N, 2]`` vertices (N from 0, nothing in
-    front, to 5), finite and within :data:`FAR` px. The border is clipped at the line of image_b
-    whose homogeneous coordinate is just large enough to keep the mapped points within
-    :data:`FAR` (Sutherland-Hodgman against that one half-plane; hand-written: OpenCV clips
-    polygons against rectangles only): points beyond image_a's horizon are never drawn at the
-    mirrored places plain division gives them.
+    image_a by ``h_ba`` (``[3, 3]``, ``H[2][2] = 1``) and cut at :data:`FAR` px: ``[N, 2]``
+    vertices (none where nothing of it is in front), finite. image_b's quadrilateral is clipped
+    (Sutherland-Hodgman; hand-written: OpenCV clips polygons against rectangles only) against
+    the half-planes of image_b, linear in its homogeneous coordinates, where a point maps in
+    front (``w > IN_FRONT``) and within ``FAR`` px (``|x|, |y| <= FAR w``): points beyond image_a's
+    horizon are never drawn at the mirrored places plain division gives them.
 
         >>> border_polygon(np.eye(3), (320, 240)).tolist()
         [[0.0, 0.0], [319.0, 0.0], [319.0, 239.0], [0.0, 239.0]]
@@ -133,20 +133,22 @@ def border_polygon(h_ba, size_b) -> np.ndarray:
 
     h_ba = np.asarray(h_ba, np.float64)
     w, h = size_b
-    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
-    mapped = corners @ h_ba.T
-    bound = max(IN_FRONT, float(np.abs(mapped[:, :2]).max()) / FAR)
-    depth = mapped[:, 2] - bound  # linear over image_b: the clip keeps depth >= 0
-    kept = []
-    for k in range(4):
-        p, q, dp, dq = corners[k], corners[(k + 1) % 4], depth[k], depth[(k + 1) % 4]
-        if dp >= 0:
-            kept.append(p[:2])
-        if (dp >= 0) != (dq >= 0):
-            kept.append((p + (q - p) * dp / (dp - dq))[:2])
-    if not kept:
-        return np.zeros((0, 2))
-    return geometry.warp_points(h_ba, np.array(kept))
+    polygon = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
+    x, y, z = h_ba
+    for plane in (z - np.array([0, 0, IN_FRONT]), FAR * z - x, FAR * z + x, FAR * z - y,
+                  FAR * z + y):  # keep plane . p >= 0
+        depth, kept = polygon @ plane, []
+        for k in range(len(polygon)):
+            p, q, dp, dq = polygon[k], polygon[(k + 1) % len(polygon)], depth[k], \
+                depth[(k + 1) % len(polygon)]
+            if dp >= 0:
+                kept.append(p)
+            if (dp >= 0) != (dq >= 0):
+                kept.append(p + (q - p) * dp / (dp - dq))
+        if not kept:
+            return np.zeros((0, 2))
+        polygon = np.array(kept)
+    return geometry.warp_points(h_ba, polygon[:, :2])
 
 
 def overlay(image_a, image_b, h_ba, gray_a=None, gray_b=None):

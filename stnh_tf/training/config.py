@@ -306,7 +306,8 @@ class TrainConfig:
             for f in dataclasses.fields(self):  # the fields whose help says "With --image_dir"
                 value, low = getattr(self, f.name), _INTEGER_MINIMUMS.get(f.name)
                 if (f.metadata["help"].startswith("With --image_dir") and f.name not in (
-                        "max_images", "photometric", "prev_stages", "unlabeled_image_dir")
+                        "max_images", "photometric", "prev_stages", "unlabeled_image_dir",
+                        "workers", "in_memory")  # (speed alone: they change no result)
                         and value != f.default
                         and not (low is not None and isinstance(value, int) and value < low)):
                     yield (f"{f.name} applies to pairs generated from image_dir; with data_dir "

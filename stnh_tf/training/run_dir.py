@@ -154,9 +154,11 @@ def model_digests(fields: dict) -> dict:
 def data_digests(fields: dict) -> dict:
     """``{field: sha256 or None}`` of the training data each source field of ``fields`` (a
     configuration's, as :meth:`TrainConfig.to_json`) names, wherever the data lie: ``data_dir``
-    by its ``train`` split's shards as its ``metadata.json`` lists them (names, bytes, pairs)
-    with the split's seed and protocol; ``image_dir`` (its first ``max_images``),
-    ``unlabeled_image_dir`` and ``unlabeled_pairs_dir`` by their listing's ids and sizes
+    by its ``train`` split's shards as its ``metadata.json`` lists them (names, bytes, pairs,
+    and the sha256 of each shard's first and last 64 KiB: records are of one size, so the
+    sizes alone do not tell two datasets apart) with the split's seed and protocol;
+    ``image_dir`` (its first ``max_images``), ``unlabeled_image_dir`` and
+    ``unlabeled_pairs_dir`` by their listing's ids and sizes
     (:func:`stnh_tf.training.ledger.listing_digest`); ``None`` where they cannot be read here."""
     import hashlib
 
@@ -168,7 +170,10 @@ def data_digests(fields: dict) -> dict:
             split = read_json(os.path.join(fields["data_dir"], "metadata.json"),
                               "dataset metadata")["splits"]["train"]
             key = json.dumps({"shards": [(os.path.basename(s["file"]), s["num_bytes"],
-                                          s["num_samples"]) for s in split["shards"]],
+                                          s["num_samples"],
+                                          _ends_sha256(os.path.join(fields["data_dir"],
+                                                                    s["file"])))
+                                         for s in split["shards"]],
                               "seed": split.get("seed"), "protocol": split.get("protocol")},
                              sort_keys=True)
             out["data_dir"] = hashlib.sha256(key.encode()).hexdigest()
@@ -180,6 +185,17 @@ def data_digests(fields: dict) -> dict:
                                           fields.get("max_images", 0) if name == "image_dir" else 0)
             out[name] = found and found["sha256"]
     return out
+
+
+def _ends_sha256(path: str, size: int = 1 << 16) -> str:
+    """The sha256 of the first and last ``size`` bytes of the file ``path`` (``OSError`` where
+    it cannot be read): what tells two shards of the same size apart at little cost."""
+    import hashlib
+
+    with open(path, "rb") as f:
+        head = f.read(size)
+        f.seek(max(os.fstat(f.fileno()).st_size - size, 0))
+        return hashlib.sha256(head + f.read(size)).hexdigest()
 
 
 def config_document(cfg: TrainConfig) -> dict:
@@ -235,11 +251,13 @@ def _config_diff(new: TrainConfig | str, config_path: str) -> dict:
                else read_run_config(new, digests=True))
     old, new = _resume_form(old_doc), _resume_form(new_doc)
     diff = {k: (old.get(k), v) for k, v in new.items() if old.get(k) != v}
-    was, now = (d.get(DATA_DIGESTS) if isinstance(d.get(DATA_DIGESTS), dict) else {}
-                for d in (old_doc, new_doc))
-    for name in sorted(was.keys() & now.keys()):  # where both record the data: the same data
-        if was[name] and now[name] and was[name] != now[name]:
-            diff[f"{name} (its data)"] = (f"sha256:{was[name][:12]}", f"sha256:{now[name][:12]}")
+    was, now = (d.get(DATA_DIGESTS) for d in (old_doc, new_doc))
+    if isinstance(was, dict) and isinstance(now, dict):  # both record the data: the same data
+        for name in sorted(was.keys() | now.keys()):  # (a source dropped or added: other data)
+            a, b = was.get(name, "none"), now.get(name, "none")
+            if a and b and a != b:
+                diff[f"{name} (its data)"] = (f"sha256:{a[:12]}" if a != "none" else a,
+                                              f"sha256:{b[:12]}" if b != "none" else b)
     return diff
 
 
