@@ -68,20 +68,25 @@ def test_a_no_clip_note_says_the_estimates_were_kept(pairs, models):
 def test_a_hierarchys_time_per_pair_leaves_out_its_first_call(pairs, models, monkeypatch):
     """``ms_per_pair_batched`` of a hierarchy timed the stages' first calls (building and
     tracing their functions: 129 against 69 ms a pair in the review); the single-model path
-    ran one pair before starting the clock, and now so does the hierarchy. A stage whose first
-    call takes 2 s (a stand-in for a slow trace) leaves the timed pass well under that."""
-    real = runner.predictor
+    ran one pair before starting the clock, and now so does the hierarchy: each stage's first
+    call comes before the clock is read (the order of the calls, recorded; no timing)."""
+    real, events, now, made = runner.predictor, [], time.perf_counter, []
 
-    def slow_first(model, batch_size=64, output=None):
-        predict, calls = real(model, batch_size, output), []
+    def recorded(model, batch_size=64, output=None):
+        predict, k = real(model, batch_size, output), len(made)
+        made.append(k)
 
         def call(patch_a, patch_b):
-            if not calls:
-                time.sleep(2.0)
-            calls.append(1)
+            events.append(("stage", k))
             return predict(patch_a, patch_b)
         return call
 
-    monkeypatch.setattr(runner, "predictor", slow_first)
-    result = mace.evaluate_arrays(pairs, [models["float32"]] * 2)["model"]
-    assert result["ms_per_pair_batched"] * len(pairs["h_ba"]) < 1000.0
+    def clock():
+        events.append(("clock", None))
+        return now()
+
+    monkeypatch.setattr(runner, "predictor", recorded)
+    monkeypatch.setattr(mace.time, "perf_counter", clock)
+    mace.evaluate_arrays(pairs, [models["float32"]] * 2)
+    first_clock = events.index(("clock", None))
+    assert {e for e in events[:first_clock] if e[0] == "stage"} == {("stage", 0), ("stage", 1)}
