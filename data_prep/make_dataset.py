@@ -35,7 +35,8 @@ flags.DEFINE_string("output_dir", None, "Dataset directory (created; may hold se
 flags.DEFINE_string("split", "train", "Split name, e.g. train or test.")
 flags.DEFINE_integer("samples_per_image", 3, "Random squares per image (paper: 3).")
 flags_common.define_seed("Seed; image i uses np.random.default_rng([seed, i]).")
-flags.DEFINE_integer("num_shards", 0, "Number of shards; 0 = about 128 MiB each, at least 8.")
+flags.DEFINE_integer("num_shards", 0, "Number of shards; 0 = about 128 MiB each, at least 8 "
+                     "(one per photograph where there are fewer).")
 flags.DEFINE_integer("num_workers", os.cpu_count() or 1,
                      "Generation processes (<= 1: in-process). Does not change the output.")
 flags_common.define_max_images()

@@ -38,8 +38,8 @@ def main(argv):
     del argv
     with common.user_errors("ablate_estimator"):
         names = ablation.resolve(FLAGS.ablations)
-        summaries.check_json_out(FLAGS.json_out)
         common.check_flags_apart(("json_out",), ("pairs_dirs",), models=("model",))
+        summaries.check_json_out(FLAGS.json_out)
         result = ablation.run_folders(FLAGS.pairs_dirs, names, FLAGS.model,
                                       FLAGS.max_pairs_per_group)
     summaries.emit(result, ablation.table(result), FLAGS.json_out)

@@ -50,8 +50,8 @@ flags.adopt_module_key_flags(flags_common)  # --help lists them
 def main(argv):
     del argv
     with common.user_errors("benchmark_camera_pairs"):
-        summaries.check_json_out(FLAGS.json_out)
         common.check_flags_apart(("json_out",), ("pairs_dir",), models=("model",))
+        summaries.check_json_out(FLAGS.json_out)
         result = camera_pairs.benchmark_folder(
             FLAGS.pairs_dir, tuple(FLAGS.methods), FLAGS.model, flags_common.options_from_flags(),
             FLAGS.max_pairs, FLAGS.per_pair)

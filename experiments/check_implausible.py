@@ -33,8 +33,8 @@ flags.adopt_module_key_flags(flags_common)  # --help lists them
 def main(argv):
     del argv
     with common.user_errors("check_implausible"):
-        summaries.check_json_out(FLAGS.json_out)
         common.check_flags_apart(("json_out",), ("data_dir",), models=("model",))
+        summaries.check_json_out(FLAGS.json_out)
         result = mace.implausibility_check(FLAGS.model, FLAGS.data_dir, FLAGS.split,
                                            photometric=FLAGS.photometric,
                                            options=flags_common.options_from_flags())

@@ -12,6 +12,7 @@ import sys
 
 from absl import app, flags
 
+from experiments import common
 from stnh_tf.paper import current_results
 
 flags.DEFINE_string("root", None, "Repository root (default: the checkout holding stnh_tf/).")
@@ -25,7 +26,9 @@ def main(argv):
     if FLAGS.write and FLAGS.check:
         raise app.UsageError("--write and --check exclude each other.")
     action = "write" if FLAGS.write else "check" if FLAGS.check else "print"
-    sys.exit(current_results.run(action, FLAGS.root))
+    with common.user_errors("current_results"):
+        code = current_results.run(action, FLAGS.root)
+    sys.exit(code)
 
 
 if __name__ == "__main__":

@@ -18,19 +18,21 @@ import sys
 
 from absl import app, flags
 
-from experiments import flags_common
+from experiments import common, flags_common
 from stnh_tf.paper import demo
 
 flags.DEFINE_string("output_dir", "demo_output", "Where the test set, results.json and the PNG go.")
 flags_common.define_seed("Seed of the test pairs.")
-flags.DEFINE_integer("samples_per_image", 3, "Pairs per bundled photograph.")
-flags.DEFINE_integer("examples", 4, "Pairs drawn in the figure.")
+flags.DEFINE_integer("samples_per_image", 3, "Pairs per bundled photograph.", lower_bound=1)
+flags.DEFINE_integer("examples", 4, "Pairs drawn in the figure.", lower_bound=0)
 FLAGS = flags.FLAGS
 
 
 def main(argv):
     del argv
-    result = demo.run_demo(FLAGS.output_dir, FLAGS.seed, FLAGS.samples_per_image, FLAGS.examples)
+    with common.user_errors("demo"):
+        result = demo.run_demo(FLAGS.output_dir, FLAGS.seed, FLAGS.samples_per_image,
+                               FLAGS.examples)
     if not result["conventions"]["ok"]:
         sys.exit("demo: a convention check failed (see results.json).")
 

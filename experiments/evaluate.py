@@ -25,13 +25,14 @@ bootstrap that resamples whole photographs, their pairs together: ``mace_se_by_p
 from absl import app, flags
 
 from experiments import common
+from stnh_tf.evaluation import baselines as baselines_lib
 from stnh_tf.evaluation import summaries
 
 flags.DEFINE_list("model_dir", [], "Model directory, or several (comma-separated) for a hierarchy.")
 flags.DEFINE_string("data_dir", None, "Dataset directory (data_prep output).", required=True)
 flags.DEFINE_string("split", "test", "Split to evaluate.")
 flags.DEFINE_list("baselines", [],
-                  "Classical baselines: identity, orb_ransac, sift_ransac, orb_default.")
+                  f"Classical baselines: {', '.join(baselines_lib.BASELINES)}.")
 flags.DEFINE_integer("max_samples", None, "Evaluate only the first N pairs.")
 flags.DEFINE_integer("batch_size", 64, "Inference batch size.")
 flags.DEFINE_enum("compute_dtype", None, ["float32"],
@@ -53,8 +54,8 @@ def main(argv):
     if not FLAGS.model_dir and not FLAGS.baselines:
         raise SystemExit("evaluate: give --model_dir and/or --baselines.")
     with common.user_errors("evaluate"):
-        summaries.check_json_out(FLAGS.json_out)  # before: the result must not be lost at the end
         common.check_flags_apart(("json_out",), ("model_dir", "data_dir"))
+        summaries.check_json_out(FLAGS.json_out)  # before: the result must not be lost at the end
         result = evaluation.evaluate(FLAGS.model_dir, FLAGS.data_dir, FLAGS.split, FLAGS.baselines,
                                      FLAGS.max_samples, FLAGS.batch_size,
                                      FLAGS.compute_dtype, clip_to_context=not FLAGS.no_clip)

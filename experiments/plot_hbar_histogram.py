@@ -16,14 +16,15 @@ from absl import app, flags
 
 flags.DEFINE_string("data_dir", None, "Dataset directory (metadata.json + shards).")
 flags.DEFINE_string("split", "train", "Split to histogram.")
-flags.DEFINE_string("output", None, "Output PNG path.")
-flags.DEFINE_integer("bins", 100, "Histogram bins per entry.")
+flags.DEFINE_string("output", None, "Output PNG path (ending in .png; the statistics go beside "
+                    "it, ending in .json).")
+flags.DEFINE_integer("bins", 100, "Histogram bins per entry.", lower_bound=1)
 flags.DEFINE_integer("max_samples", 0, "Use only the first N samples (0 = all).")
 FLAGS = flags.FLAGS
 
 # The library pieces (the reproduce driver draws the same figure).
 from experiments import common  # noqa: E402
-from stnh_tf.paths import atomic_write_json, check_apart  # noqa: E402
+from stnh_tf.paths import atomic_write_json, check_apart, check_output_file  # noqa: E402
 from stnh_tf.paper.figures import ENTRY_NAMES, read_h_bar  # noqa: E402,F401
 from stnh_tf.paper.figures import hbar_histogram as plot_histogram  # noqa: E402
 
@@ -34,13 +35,18 @@ def main(argv):
         raise app.UsageError("--data_dir and --output are required.")
     stats_json = os.path.splitext(FLAGS.output)[0] + ".json"
     with common.user_errors("plot_hbar_histogram"):
+        if not FLAGS.output.lower().endswith(".png"):
+            raise ValueError(f"--output is the figure's PNG path, ending in .png; received "
+                             f"{FLAGS.output!r}.")
         check_apart({"--output": [FLAGS.output, stats_json]}, {"--data_dir": FLAGS.data_dir})
-    h_bar = read_h_bar(FLAGS.data_dir, FLAGS.split, FLAGS.max_samples)
-    stats = plot_histogram(h_bar, FLAGS.output, FLAGS.bins,
-                           f"Value histogram of H_bar, {FLAGS.split} split of {FLAGS.data_dir} "
-                           f"({len(h_bar)} samples)")
-    stats.update(data_dir=os.path.abspath(FLAGS.data_dir), split=FLAGS.split)
-    atomic_write_json(stats_json, stats, sort_keys=False)
+        for path in (FLAGS.output, stats_json):
+            check_output_file(path)
+        h_bar = read_h_bar(FLAGS.data_dir, FLAGS.split, FLAGS.max_samples)
+        stats = plot_histogram(h_bar, FLAGS.output, FLAGS.bins,
+                               f"Value histogram of H_bar, {FLAGS.split} split of "
+                               f"{FLAGS.data_dir} ({len(h_bar)} samples)")
+        stats.update(data_dir=os.path.abspath(FLAGS.data_dir), split=FLAGS.split)
+        atomic_write_json(stats_json, stats, sort_keys=False)
     print(json.dumps(stats["entries"], indent=1))
 
 

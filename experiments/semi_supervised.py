@@ -22,6 +22,8 @@ and writes them back at the end; --save_only writes them back without training (
 session ends, from a run still training).
 """
 
+import math
+
 from absl import app, flags
 
 from experiments import common
@@ -56,9 +58,13 @@ def main(argv):
     with common.user_errors("semi_supervised"):
         if FLAGS.save_only and not FLAGS.repo_dir:
             raise ValueError("--save_only needs --repo_dir.")
+        if not (math.isfinite(FLAGS.close_px) and FLAGS.close_px >= 0):
+            raise ValueError(f"--close_px must be a finite number of px >= 0; received "
+                             f"{FLAGS.close_px}.")
         speed = {"steps_per_execution": FLAGS.steps_per_execution,
                  **({"workers": FLAGS.workers} if FLAGS.workers else {})}
         run = reproduction_from_flags(in_memory=FLAGS.in_memory, speed=speed)
+        run.config("stage1", data_dir=run.data_dir(1)).validate()  # the speed flags, at once
         experiment = semi_supervised.SemiSupervised(run, FLAGS.label_fraction or None,
                                                     close_px=FLAGS.close_px,
                                                     max_seeds=FLAGS.max_seeds)

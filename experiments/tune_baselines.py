@@ -42,8 +42,8 @@ FLAGS = flags.FLAGS
 def main(argv):
     del argv
     with common.user_errors("tune_baselines"):
-        summaries.check_json_out(FLAGS.json_out)
         common.check_flags_apart(("json_out",), ("image_dir",))
+        summaries.check_json_out(FLAGS.json_out)
     with common.user_errors("tune_baselines", (SourceError,)):  # (no photograph there)
         result = baseline_tuning.run_tuning(FLAGS.image_dir, FLAGS.num_pairs, FLAGS.seed,
                                             FLAGS.grid, FLAGS.max_images)

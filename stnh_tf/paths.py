@@ -138,13 +138,40 @@ def check_output_dir(output_dir) -> str:
 
 def check_output_file(path) -> str:
     """Prepare to write the file ``path`` later: its folder is created if needed and proved
-    writable (:func:`check_output_dir`), and ``path`` itself must not be a folder. Returns the
-    absolute path. Raises ``OSError`` naming the path."""
+    writable (:func:`check_output_dir`), ``path`` itself must not be a folder, nor a record
+    this project keeps (:func:`project_record`: a dataset's ``metadata.json``, a run's
+    ``config.json``, a shard or a model). Returns the absolute path. Raises ``OSError`` naming
+    the path."""
     path = os.path.abspath(os.fspath(path))
     if os.path.isdir(path):
         raise IsADirectoryError(f"output file {path!r} is a directory.")
+    what = project_record(path)
+    if what:
+        raise FileExistsError(f"output file {path!r} is {what}, which this output would replace; "
+                              "choose another path.")
     check_output_dir(os.path.dirname(path))
     return path
+
+
+def project_record(path) -> str | None:
+    """What the existing file ``path`` is, where it is a record stnh_tf keeps and an output must
+    never replace: a JSON file whose ``format`` is one of this project's (``stnh_tf.*``: a
+    dataset's ``metadata.json``, a run's ``config.json``, a hierarchy manifest, a camera-pair
+    set's manifest, an export's marker...), a TFRecord shard or a model file; else ``None``."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        return None
+    if path.endswith((".tfrecord", ".keras", ".h5")):
+        return "a shard or model file"
+    if path.endswith(".json") and os.path.getsize(path) < 64 << 20:
+        try:
+            with open(path, encoding="utf-8") as f:
+                kind = json.load(f).get("format")
+        except (OSError, ValueError, AttributeError):
+            return None
+        if isinstance(kind, str) and kind.startswith("stnh_tf."):
+            return f"a {kind} record"
+    return None
 
 
 def _named_paths(named: dict):

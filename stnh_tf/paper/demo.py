@@ -94,7 +94,15 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
     printer(f"conventions vs OpenCV: {'ok' if check['ok'] else 'FAILED'} "
             f"(STN mean abs diff {check['stn_vs_opencv_mean_abs_gray_levels']:.3f} gray levels)")
     data_dir = os.path.join(output_dir, "bundled_test")
-    if not data.has_split(data_dir, "test"):
+    if data.has_split(data_dir, "test"):  # made before: of this seed and count, or made anew
+        made = data.split_info(data_dir, "test")
+        if (made.get("seed"), made.get("protocol", {}).get("samples_per_image")) != (
+                seed, samples_per_image):
+            raise ValueError(f"{data_dir} holds test pairs of seed {made.get('seed')} and "
+                             f"{made.get('protocol', {}).get('samples_per_image')} a "
+                             f"photograph; this demo asks for seed {seed} and "
+                             f"{samples_per_image}: give those, or another --output_dir.")
+    else:
         stage1.make_dataset("bundled", data_dir, "test", seed=seed,
                             samples_per_image=samples_per_image,
                             num_shards=1, num_workers=1, log=lambda *a, **k: None)

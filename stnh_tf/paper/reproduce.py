@@ -269,18 +269,21 @@ class Reproduction:
     def ablation(self, weights=ABLATION_WEIGHTS) -> dict:
         """Table 1 rows ``{(l2, l1): [model_dir per seed]}`` (seeds: :func:`table1_seeds`); the
         (1, 1) row's seed 0 at the ablation budget is stage 1."""
-        rows = {}
-        d = self.stage1_data()
-        steps = self.budget.ablation_train_steps
+        steps, planned = self.budget.ablation_train_steps, []
         for l2, l1 in weights:
-            rows[(l2, l1)] = []
             for seed in table1_seeds(self.budget, l2, l1):
                 same_as_stage1 = ((l2, l1, seed) == (1.0, 1.0, 0)
                                   and steps == self.budget.train_steps)
                 name = "stage1" if same_as_stage1 else ablation_name(l2, l1, seed)
-                cfg = self.config(name, data_dir=d, l2_weight=l2, l1_weight=l1, train_steps=steps,
+                cfg = self.config(name, data_dir=self.data_dir(1), l2_weight=l2, l1_weight=l1,
+                                  train_steps=steps,
                                   warmup_steps=min(self.budget.warmup_steps, steps), seed=seed)
-                rows[(l2, l1)].append(self.train(name, cfg))
+                cfg.validate()  # every row before the data and the first row's training
+                planned.append(((l2, l1), name, cfg))
+        rows = {key: [] for key, _, _ in planned}
+        self.stage1_data()
+        for key, name, cfg in planned:
+            rows[key].append(self.train(name, cfg))
         return rows
 
     def table1(self, rows: dict, schedule=None) -> dict:

@@ -1,0 +1,129 @@
+"""A hostile read of the command-line binaries (2026-12-07), kept as tests: ``evaluate
+--json_out`` and ``plot_hbar_histogram --output`` replaced another dataset's ``metadata.json`` or
+a run's ``config.json``; ``loss_weight_ablation --weights=`` (or a subset) rewrote Table 1
+without the rows it left out; a row's bad loss weights, ``semi_supervised``'s bad speed flags
+and ``--close_px=nan`` were found after minutes of data making and training, or never.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from stnh_tf import paths
+from stnh_tf.data import stage1
+from stnh_tf.evaluation import summaries
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, "-m", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = str(tmp_path_factory.mktemp("data"))
+    stage1.make_dataset("bundled", out, "test", seed=1, max_images=2, samples_per_image=1,
+                        num_shards=1, num_workers=1, log=lambda *_: None)
+    return out
+
+
+def test_an_output_never_replaces_a_record_the_project_keeps(dataset, tmp_path):
+    """``evaluate --json_out=D/metadata.json`` (another dataset's) wrote its result there and
+    the dataset could no longer be read; a run's ``config.json`` went the same way. Every
+    ``--json_out`` (``summaries.check_json_out``) refuses a file whose ``format`` is one of
+    this project's records, a shard or a model, before the work; a result JSON of its own, or a
+    new file, stays writable."""
+    from stnh_tf.training import run_dir
+    from stnh_tf.training.config import TrainConfig
+
+    metadata = os.path.join(dataset, "metadata.json")
+    run_dir.prepare_model_dir(TrainConfig(model_dir=str(tmp_path / "run"), data_dir=dataset))
+    config = str(tmp_path / "run" / "config.json")
+    before = {p: open(p, "rb").read() for p in (metadata, config)}
+    for path, kind in ((metadata, "stnh_tf.dataset"), (config, "stnh_tf.train_config")):
+        with pytest.raises(FileExistsError, match=f"is a {kind} record, which this output "
+                                                  "would replace"):
+            summaries.check_json_out(path)
+    shard = next(os.path.join(dataset, n) for n in os.listdir(dataset) if n.endswith(".tfrecord"))
+    with pytest.raises(FileExistsError, match="a shard or model file"):
+        summaries.check_json_out(shard)
+    assert {p: open(p, "rb").read() for p in before} == before
+    result = tmp_path / "result.json"
+    result.write_text(json.dumps({"count": 2, "identity": {"mace": 1.0}}))
+    summaries.check_json_out(str(result))  # a result of its own: written over on a re-run
+    assert paths.project_record(str(result)) is None
+    summaries.check_json_out(str(tmp_path / "new" / "result.json"))
+
+
+def test_table1_keeps_the_rows_a_run_leaves_out_or_refuses(tmp_path):
+    """``--weights=`` rewrote ``table1.json`` as an empty table, and ``--weights=1:1`` dropped
+    the other rows: an empty list is refused, and so is a list that leaves out rows the table
+    holds (its rows are kept when given again: finished rows are not trained anew)."""
+    from stnh_tf.paper.tables import check_rows_kept
+
+    table = tmp_path / "table1.json"
+    table.write_text(json.dumps({"1,1": {"mace": 18.1}, "10,1": {"mace": 16.9},
+                                 "model_provenance": {}}))
+    with pytest.raises(ValueError, match=r"holds the rows \['10,1'\] that --weights leaves out"):
+        check_rows_kept(str(table), [(1.0, 1.0)])
+    check_rows_kept(str(table), [(1.0, 1.0), (10.0, 1.0), (1.0, 10.0)])
+    check_rows_kept(str(tmp_path / "none.json"), [(1.0, 1.0)])
+
+
+@pytest.mark.slow
+def test_the_binaries_refuse_at_once(dataset, tmp_path):
+    """Each refused in one line before any data is made or model trained: an empty
+    ``--weights``; a row with a negative loss weight (it trained the rows before it first);
+    ``semi_supervised --close_px=nan`` (accepted: no row ever counted as close) and
+    ``--steps_per_execution=0`` (refused after the data); ``plot_hbar_histogram`` whose
+    statistics JSON would replace a dataset's ``metadata.json``, and a ``--bins=0``."""
+    common = ["--budget=tiny", "--source=bundled"]
+    cases = [
+        (["experiments.loss_weight_ablation", "--weights=", *common,
+          f"--output_dir={tmp_path / 'a'}"], "--weights entries are l2:l1, one or more"),
+        (["experiments.loss_weight_ablation", "--weights=1:1,-1:1", *common,
+          f"--output_dir={tmp_path / 'b'}"], "l2_weight must be a finite number >= 0"),
+        (["experiments.semi_supervised", "--close_px=nan", *common,
+          f"--output_dir={tmp_path / 'c'}"], "--close_px must be a finite number"),
+        (["experiments.semi_supervised", "--steps_per_execution=0", *common,
+          f"--output_dir={tmp_path / 'd'}"], "steps_per_execution must be an integer >= 1"),
+    ]
+    for args, message in cases:
+        proc = _run(*args)
+        assert proc.returncode != 0 and message in proc.stderr, (args, proc.stderr[-2000:])
+        assert "Traceback" not in proc.stderr
+        out = [a.split("=", 1)[1] for a in args if a.startswith("--output_dir=")][0]
+        assert not os.path.exists(os.path.join(out, "data")), args
+        assert not os.path.exists(os.path.join(out, "models")), args
+    other = tmp_path / "other"
+    stage1.make_dataset("bundled", str(other), "test", seed=2, max_images=1,
+                        samples_per_image=1, num_shards=1, num_workers=1, log=lambda *_: None)
+    before = (other / "metadata.json").read_bytes()
+    proc = _run("experiments.plot_hbar_histogram", f"--data_dir={dataset}", "--split=test",
+                f"--output={other / 'metadata.png'}")
+    assert proc.returncode != 0 and "stnh_tf.dataset record" in proc.stderr, proc.stderr[-2000:]
+    assert (other / "metadata.json").read_bytes() == before
+    assert not (other / "metadata.png").exists()
+    proc = _run("experiments.plot_hbar_histogram", f"--data_dir={dataset}", "--split=test",
+                f"--output={tmp_path / 'h.png'}", "--bins=0")
+    assert proc.returncode != 0 and "bins" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_the_demo_refuses_test_pairs_of_another_seed(tmp_path):
+    """``demo --seed=7 --samples_per_image=5`` into a folder holding seed 0's test pairs used
+    them and reported seed 7: refused now, naming both; the same seed and count reuse them."""
+    from stnh_tf.paper import demo
+
+    made = tmp_path / "bundled_test"
+    stage1.make_dataset("bundled", str(made), "test", seed=0, max_images=2, samples_per_image=1,
+                        num_shards=1, num_workers=1, log=lambda *_: None)
+    with pytest.raises(ValueError, match="holds test pairs of seed 0 and 1 a photograph; this "
+                                         "demo asks for seed 7 and 5"):
+        demo.run_demo(str(tmp_path), 7, 5, 0, printer=lambda *_: None)
