@@ -127,3 +127,28 @@ def test_the_demo_refuses_test_pairs_of_another_seed(tmp_path):
     with pytest.raises(ValueError, match="holds test pairs of seed 0 and 1 a photograph; this "
                                          "demo asks for seed 7 and 5"):
         demo.run_demo(str(tmp_path), 7, 5, 0, printer=lambda *_: None)
+
+
+def test_a_reproduction_refuses_its_stage1_pairs_made_under_other_flags(tmp_path):
+    """``reproduce`` (and ``loss_weight_ablation``, ``semi_supervised``) reused the stage-1 pairs
+    of an earlier run in its ``--output_dir`` whatever the flags: the first 2 photographs'
+    pairs went on being used under ``max_images=3`` and reported as such. Refused now, naming
+    the differences; the same flags reuse them; a dataset named by ``--reuse`` stays the
+    user's."""
+    import dataclasses
+
+    from stnh_tf.paper import reproduce
+
+    tiny = reproduce.BUDGETS["tiny"]
+    two = dataclasses.replace(tiny, max_images=2, test_max_images=2)
+    out = str(tmp_path / "run")
+    quiet = dict(source="bundled", printer=lambda *_: None)
+    made = reproduce.Reproduction(two, out, **quiet).stage1_data()
+    assert reproduce.Reproduction(two, out, **quiet).stage1_data() == made
+    three = dataclasses.replace(two, max_images=3)
+    with pytest.raises(ValueError, match=r"holds the stage-1 train pairs of other flags "
+                                         r"\{'max_images': \(2, 3\)\}"):
+        reproduce.Reproduction(three, out, **quiet).stage1_data()
+    reused = reproduce.Reproduction(three, str(tmp_path / "other"),
+                                    reuse={"data_stage1": made}, **quiet)
+    assert reused.stage1_data() == made

@@ -125,6 +125,8 @@ class Reproduction:
         for split in ("train", "test"):
             image_dir, per_image, seed, max_images = self.stage1_protocol(split)
             if data.has_split(d, split):
+                stage1.check_made(d, split, self.source, image_dir, per_image, seed, max_images,
+                                  reused=d != os.path.join(self.out, "data", "stage1"))
                 continue
             self.printer(f"[data] stage-1 {split} pairs -> {d}")
             self._timed("data", lambda: stage1.make_dataset(
@@ -272,12 +274,11 @@ class Reproduction:
         steps, planned = self.budget.ablation_train_steps, []
         for l2, l1 in weights:
             for seed in table1_seeds(self.budget, l2, l1):
-                same_as_stage1 = ((l2, l1, seed) == (1.0, 1.0, 0)
-                                  and steps == self.budget.train_steps)
-                name = "stage1" if same_as_stage1 else ablation_name(l2, l1, seed)
+                name = ("stage1" if (l2, l1, seed) == (1.0, 1.0, 0)
+                        and steps == self.budget.train_steps else ablation_name(l2, l1, seed))
                 cfg = self.config(name, data_dir=self.data_dir(1), l2_weight=l2, l1_weight=l1,
-                                  train_steps=steps,
-                                  warmup_steps=min(self.budget.warmup_steps, steps), seed=seed)
+                                  train_steps=steps, warmup_steps=min(self.budget.warmup_steps,
+                                                                      steps), seed=seed)
                 cfg.validate()  # every row before the data and the first row's training
                 planned.append(((l2, l1), name, cfg))
         rows = {key: [] for key, _, _ in planned}
