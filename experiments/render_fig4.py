@@ -29,6 +29,9 @@ def main(argv):
     from stnh_tf.paper import fig4_render
 
     with common.user_errors("render_fig4", errors=(ValueError, OSError, KeyError)):
+        if FLAGS.output and not FLAGS.output.lower().endswith(".png"):
+            raise ValueError(f"--output is the PNG to write, ending in .png; received "
+                             f"{FLAGS.output!r}.")
         print(json.dumps(fig4_render.render(FLAGS.reproduce_dir, FLAGS.output)))
 
 

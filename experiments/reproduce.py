@@ -29,6 +29,7 @@ what load it was measured; nothing else runs (stnh_tf/paper/table2.py):
 """
 
 import contextlib
+import os
 import dataclasses
 
 from absl import app, flags
@@ -66,6 +67,9 @@ def parse_reuse(items) -> dict:
         name, sep, path = item.partition("=")
         if not sep or not path:
             raise SystemExit(f"--reuse entries are name=dir; received {item!r}.")
+        if not os.path.exists(path.strip()):  # (else a typo's folder got a model trained anew)
+            raise SystemExit(f"--reuse: {name.strip()}={path.strip()} does not exist; --reuse "
+                             "names finished models and datasets to use in place.")
         out[name.strip()] = path.strip()
     return out
 

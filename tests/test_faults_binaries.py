@@ -79,8 +79,8 @@ def test_table1_keeps_the_rows_a_run_leaves_out_or_refuses(tmp_path):
 
 @pytest.mark.slow
 def test_the_binaries_refuse_at_once(dataset, tmp_path):
-    """Each refused in one line before any data is made or model trained: an empty
-    ``--weights``; a row with a negative loss weight (it trained the rows before it first);
+    """Each refused in one line before any data is made or model trained: a ``--reuse`` of a
+    folder that does not exist (a model was trained there instead); an empty ``--weights``; a row with a negative loss weight (it trained the rows before it first);
     ``semi_supervised --close_px=nan`` (accepted: no row ever counted as close) and
     ``--steps_per_execution=0`` (refused after the data); ``plot_hbar_histogram`` whose
     statistics JSON would replace a dataset's ``metadata.json``, and a ``--bins=0``."""
@@ -94,6 +94,9 @@ def test_the_binaries_refuse_at_once(dataset, tmp_path):
           f"--output_dir={tmp_path / 'c'}"], "--close_px must be a finite number"),
         (["experiments.semi_supervised", "--steps_per_execution=0", *common,
           f"--output_dir={tmp_path / 'd'}"], "steps_per_execution must be an integer >= 1"),
+        (["experiments.reproduce", "--train_only=homographynet", *common,
+          f"--reuse=homographynet={tmp_path / 'typo'}", f"--output_dir={tmp_path / 'e'}"],
+         "does not exist; --reuse names finished models and datasets"),
     ]
     for args, message in cases:
         proc = _run(*args)
@@ -102,6 +105,7 @@ def test_the_binaries_refuse_at_once(dataset, tmp_path):
         out = [a.split("=", 1)[1] for a in args if a.startswith("--output_dir=")][0]
         assert not os.path.exists(os.path.join(out, "data")), args
         assert not os.path.exists(os.path.join(out, "models")), args
+    assert not (tmp_path / "typo").exists()  # no model trained in a mistyped --reuse folder
     other = tmp_path / "other"
     stage1.make_dataset("bundled", str(other), "test", seed=2, max_images=1,
                         samples_per_image=1, num_shards=1, num_workers=1, log=lambda *_: None)
