@@ -57,6 +57,11 @@ def main(argv):
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     sources.quiet_opencv()
     with common.user_errors("make_dataset", (sources.SourceError, ValueError, OSError)):
+        for flag, source in (("image_dir", "folder"), ("tfds_split", "coco2014"),
+                             ("tfds_data_dir", "coco2014")):
+            if FLAGS[flag].value and FLAGS.source != source:  # (ignored, and recorded nowhere)
+                raise ValueError(f"--{flag} is for --source={source}; --source={FLAGS.source} "
+                                 "does not read it.")
         common.check_flags_apart(("output_dir",), ("image_dir", "tfds_data_dir"))
         common.check_not_a_run(FLAGS.output_dir)
         split = stage1.make_dataset(

@@ -79,7 +79,8 @@ def test_table1_keeps_the_rows_a_run_leaves_out_or_refuses(tmp_path):
 
 @pytest.mark.slow
 def test_the_binaries_refuse_at_once(dataset, tmp_path):
-    """Each refused in one line before any data is made or model trained: a ``--reuse`` of a
+    """Each refused in one line before any data is made or model trained: make_dataset's
+    ``--image_dir`` with another source (ignored before); a ``--reuse`` of a
     folder that does not exist (a model was trained there instead); an empty ``--weights``; a row with a negative loss weight (it trained the rows before it first);
     ``semi_supervised --close_px=nan`` (accepted: no row ever counted as close) and
     ``--steps_per_execution=0`` (refused after the data); ``plot_hbar_histogram`` whose
@@ -106,6 +107,10 @@ def test_the_binaries_refuse_at_once(dataset, tmp_path):
         assert not os.path.exists(os.path.join(out, "data")), args
         assert not os.path.exists(os.path.join(out, "models")), args
     assert not (tmp_path / "typo").exists()  # no model trained in a mistyped --reuse folder
+    proc = _run("data_prep.make_dataset", "--source=bundled", f"--image_dir={tmp_path}",
+                f"--output_dir={tmp_path / 'f'}")  # --image_dir was ignored, exit 0
+    assert proc.returncode != 0 and "--image_dir is for --source=folder" in proc.stderr
+    assert not (tmp_path / "f").exists()
     other = tmp_path / "other"
     stage1.make_dataset("bundled", str(other), "test", seed=2, max_images=1,
                         samples_per_image=1, num_shards=1, num_workers=1, log=lambda *_: None)
