@@ -7,7 +7,6 @@ import os
 
 import numpy as np
 
-from stnh_tf import paths
 from stnh_tf.paper.model_provenance import assembled_line
 
 SMOKE_NOTE = ("**Smoke test** (`--budget=tiny`: 2 steps of every model, 1 warm-up step, batch 4, "
@@ -261,17 +260,3 @@ def _trained_on(model_dir: str) -> str:
         return (f"pairs from `{cfg['image_dir']}` ({cfg.get('samples_per_image')} per image, "
                 f"seed {cfg.get('seed')}, {how})")
     return f"TFRecords `{cfg.get('data_dir')}`"
-
-
-def check_rows_kept(table_json, weights) -> None:
-    """Refuse ``weights`` (``[(l2, l1)]``) that leave out rows ``table_json`` (an earlier
-    run's ``table1.json``) holds: the table is written anew from the rows given, and would lose
-    them (``ValueError`` naming them; finished rows are kept, not trained again)."""
-    if not os.path.isfile(table_json):
-        return
-    held = {key for key in paths.read_json(table_json, "Table 1") if "," in key}
-    dropped = sorted(held - {f"{a:g},{b:g}" for a, b in weights})
-    if dropped:
-        raise ValueError(f"{table_json} holds the rows {dropped} that --weights leaves out; the "
-                         "table is written anew from the rows given: give them too (finished "
-                         "rows are kept, not trained again), or another --output_dir.")
