@@ -137,11 +137,16 @@ def check_beside(meta: dict, split: str, fraction: float, section: dict, where: 
             f"own photographs: give the same --source and --image_dir to both.")
 
 
+def real_folders(spec) -> list:
+    """The real paths, sorted, of the folders a comma-separated ``spec`` names (none for an
+    empty one)."""
+    return sorted(os.path.realpath(f) for f in spec.split(",")) if spec else []
+
+
 def _folders(section: dict) -> list:
     """The real paths of the photograph folders a split's section names (none for another
     source)."""
-    spec = section.get("image_dir") if section.get("source") == "folder" else None
-    return [os.path.realpath(f) for f in spec.split(",")] if spec else []
+    return real_folders(section.get("image_dir") if section.get("source") == "folder" else None)
 
 
 def sharing_splits(meta: dict, split: str, section: dict) -> list:

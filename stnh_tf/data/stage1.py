@@ -9,7 +9,6 @@ when it is not prepared and cannot be downloaded). NumPy/OpenCV only at import.
 from __future__ import annotations
 
 import functools
-import os
 import platform
 import shlex
 import socket
@@ -199,27 +198,24 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
 
 
 def check_made(data_dir, split, source: str, image_dir, samples_per_image: int, seed: int,
-               max_images: int, reused: bool = False) -> None:
+               max_images: int) -> None:
     """Refuse the complete ``split`` of ``data_dir`` where :func:`make_dataset` did not make it
     with these arguments (its folders compared by their real paths): a run that reuses the
     pairs it made before under other flags would report them under the new flags
-    (``ValueError`` naming each difference); a dataset the user named for reuse
-    (``reused``) is taken as given."""
+    (``ValueError`` naming each difference)."""
     from stnh_tf.data import tfrecords
 
     made = tfrecords.split_info(data_dir, split)
-    def folders(spec):
-        return sorted(os.path.realpath(f) for f in spec.split(",")) if spec else None
-
+    folder = source == "folder"
     asked = {"source": source, "seed": seed, "samples_per_image": samples_per_image,
              "max_images": max_images,
-             "image_dir": folders(image_dir) if source == "folder" else None}
+             "image_dir": holdout.real_folders(image_dir) if folder else None}
     have = {"source": made.get("source"), "seed": made.get("seed"),
             "samples_per_image": made.get("protocol", {}).get("samples_per_image"),
             "max_images": made.get("max_images"),
-            "image_dir": folders(made.get("image_dir")) if source == "folder" else None}
+            "image_dir": holdout.real_folders(made.get("image_dir")) if folder else None}
     differ = {k: (have[k], asked[k]) for k in asked if have[k] != asked[k]}
-    if differ and not reused:
+    if differ:
         raise ValueError(f"{data_dir} holds the stage-1 {split} pairs of other flags {differ} "
                          "(made, asked): give the flags it was made with, or another "
                          "--output_dir.")

@@ -65,19 +65,16 @@ Writing (:func:`export_saved_model`; :func:`export_and_verify` for ``experiments
 
 from __future__ import annotations
 
-import json
 import logging
 import os
-import shutil
-import tempfile
 
 import numpy as np
 
 from stnh_tf import geometry, paths
 from stnh_tf.inference import export_contract, serving
-from stnh_tf.inference.export_folder import (ASIDE, STAGING_MARKER, STAGING_PREFIX,
-                                             VERIFIED_FILE, VERIFIED_FORMAT, output_lock,
-                                             saved_model_digest, swap_in, verified_problem)
+from stnh_tf.inference.export_folder import (VERIFIED_FILE, VERIFIED_FORMAT, output_lock,
+                                             saved_model_digest, staging, swap_in,
+                                             verified_problem)
 
 _log = logging.getLogger(__name__)
 
@@ -128,23 +125,14 @@ def _write_export(estimator, output_dir) -> list:
     """The write of :func:`export_saved_model`, its output's lock held; returns the paths of the
     files named like the export's documents (``README.md``, ``signature.json``) that an export
     did not write, kept in place of the export's own (a warning is logged for each)."""
-    staging = tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=output_dir)
-    try:
-        with open(os.path.join(staging, STAGING_MARKER), "w") as f:
-            json.dump({"output": os.path.abspath(output_dir)}, f)
+    with staging(output_dir) as folder:
         try:
-            _write_archive(estimator, staging)
-            export_contract.write_files(estimator, staging)
+            _write_archive(estimator, folder)
+            export_contract.write_files(estimator, folder)
         except Exception as e:  # TensorFlow's write errors are not OSErrors
             raise OSError(f"cannot write the SavedModel to {output_dir}: "
                           f"{type(e).__name__}: {e}") from None
-        kept = swap_in(staging, output_dir)
-    except BaseException:  # the old export, where a failed swap left it aside, is kept
-        aside = os.path.join(staging, ASIDE)
-        if not (os.path.isdir(aside) and os.listdir(aside)):
-            shutil.rmtree(staging, ignore_errors=True)
-        raise
-    shutil.rmtree(staging, ignore_errors=True)
+        kept = swap_in(folder, output_dir)
     for path in kept:
         _log.warning("export: kept %s (not written by an export); the export's own %s is not "
                      "written", path, os.path.basename(path))

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import os
 import re
 import shutil
+import tempfile
 
 from stnh_tf import paths
 from stnh_tf.inference import export_contract
@@ -23,8 +25,8 @@ SAVED_MODEL_ENTRIES = (VERIFIED_FILE, "saved_model.pb", "fingerprint.pb", "varia
 """What a SavedModel export writes into its folder: ``overwrite`` replaces these and nothing
 else (the marker first, so that an export cut short leaves none)."""
 LOCK_FILE = ".stnh_tf_export.lock"
-"""The output folder's lock file (:mod:`stnh_tf.inference.export`); not part of the export (a folder holding
-only it counts as empty)."""
+"""The output folder's lock file (:mod:`stnh_tf.inference.export`); not part of the export (a
+folder holding only it counts as empty)."""
 STAGING_MARKER = ".stnh_tf_export_staging"
 """The file inside an export's hidden staging folder that marks it as the export's (its JSON
 names the output)."""
@@ -94,13 +96,15 @@ def _remove_stale_staging(output_dir) -> list:
 
 @contextlib.contextmanager
 def output_lock(output_dir, overwrite: bool = False):
-    """Check ``output_dir`` (as :func:`stnh_tf.inference.export.export_saved_model`), create it, and hold its lock
-    (:data:`LOCK_FILE`) inside the ``with``, with the checks made again under the lock and the
-    staging folders killed exports left removed (:mod:`stnh_tf.inference.export`).
+    """Check ``output_dir`` (as :func:`stnh_tf.inference.export.export_saved_model`), create
+    it, and hold its lock (:data:`LOCK_FILE`) inside the ``with``, with the checks made again
+    under the lock and the staging folders killed exports left removed
+    (:mod:`stnh_tf.inference.export`).
 
     Raises:
-      FileExistsError: ``output_dir`` cannot be written (see :func:`stnh_tf.inference.export.export_saved_model`), or
-        another export holds its lock (naming the folder).
+      FileExistsError: ``output_dir`` cannot be written (see
+        :func:`stnh_tf.inference.export.export_saved_model`), or another export holds its lock
+        (naming the folder).
     """
     output_dir = os.fspath(output_dir)
     _check_output(output_dir, overwrite)  # before anything is created in a user's folder
@@ -112,6 +116,24 @@ def output_lock(output_dir, overwrite: bool = False):
         _check_output(output_dir, overwrite)  # another export may have finished meanwhile
         _remove_stale_staging(output_dir)
         yield output_dir
+
+
+@contextlib.contextmanager
+def staging(output_dir):
+    """A new staging folder inside ``output_dir`` (:data:`STAGING_PREFIX`, holding the marker
+    that names the output) for the ``with``; removed at its end, except where a failed
+    :func:`swap_in` left the old export aside in it (the error names it then)."""
+    folder = tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=output_dir)
+    try:
+        with open(os.path.join(folder, STAGING_MARKER), "w") as f:
+            json.dump({"output": os.path.abspath(output_dir)}, f)
+        yield folder
+    except BaseException:
+        aside = os.path.join(folder, ASIDE)
+        if not (os.path.isdir(aside) and os.listdir(aside)):
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 def saved_model_digest(path) -> str:

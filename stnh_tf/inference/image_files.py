@@ -171,18 +171,13 @@ def _estimate_json(estimate, shape_b, quad) -> dict:
     """The JSON fields of ``predict`` that describe the (first) pair's estimate."""
     import numpy as np
 
-    from stnh_tf import geometry
-
     h, used, ncc = estimate.homography[0], estimate.options, float(estimate.alignment_ncc[0])
     center_b = np.array([[(shape_b[1] - 1) / 2, (shape_b[0] - 1) / 2]])
     return {"direction": "homography maps image_b pixel (x, y) to image_a pixel: p_a ~ H @ p_b",
             "homography": np.asarray(h, np.float64).tolist(),
             # null for a point beyond image_a's horizon (no place in image_a)
             "image_b_border_in_a": [_point_or_none(p) for p in np.asarray(quad)],
-            "image_b_center_in_a": _point_or_none(
-                geometry.warp_points(h, center_b)[0] if float(
-                    np.r_[center_b[0], 1.0] @ np.asarray(h, np.float64)[2])
-                > overlays.IN_FRONT else [np.nan, np.nan]),
+            "image_b_center_in_a": _point_or_none(overlays.points_in_a(h, center_b)[0]),
             "implausible": bool(estimate.implausible[0]), "flat": bool(estimate.flat[0]),
             "refine": used.refine, "refined": bool(estimate.refined[0]),
             "tta": used.tta, "tta_choice": str(estimate.tta_choice[0]),
@@ -297,8 +292,8 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         warn(warning)
     for line in deviation_notes(estimate):
         note(line)
-    panels, quad = overlays.overlay(image_a.colour, image_b.colour, estimate.homography[0], image_a.gray,
-                           image_b.gray)
+    panels, quad = overlays.overlay(image_a.colour, image_b.colour, estimate.homography[0],
+                                    image_a.gray, image_b.gray)
     inputs = [os.path.realpath(image_a_path), os.path.realpath(image_b_path)]
     encoded, data = cv2.imencode(".png", panels)
     if not encoded:

@@ -115,6 +115,22 @@ FAR = 1e5
 goes to the horizon, or an image_b far larger than image_a), beyond any image."""
 
 
+def points_in_a(h_ba, points_b) -> np.ndarray:
+    """``points_b`` (``[N, 2]``) mapped into image_a by ``h_ba`` (``[3, 3]``, ``H[2][2] = 1``),
+    NaN for a point beyond image_a's horizon (homogeneous coordinate at or below
+    :data:`IN_FRONT`), which has no place in image_a.
+
+        >>> points_in_a([[1, 0, 0], [0, 1, 0], [-0.004, 0, 1]], [[0, 0], [300, 0]]).tolist()
+        [[0.0, 0.0], [nan, nan]]
+    """
+    from stnh_tf import geometry
+
+    h_ba, points_b = np.asarray(h_ba, np.float64), np.asarray(points_b, np.float64)
+    mapped = geometry.warp_points(h_ba, points_b)
+    mapped[points_b @ h_ba[2, :2] + h_ba[2, 2] <= IN_FRONT] = np.nan
+    return mapped
+
+
 def border_polygon(h_ba, size_b) -> np.ndarray:
     """The part of image_b's border (``size_b = (w, h)``) in front of camera a, mapped into
     image_a by ``h_ba`` (``[3, 3]``, ``H[2][2] = 1``) and cut at :data:`FAR` px: ``[N, 2]``
@@ -164,8 +180,6 @@ def overlay(image_a, image_b, h_ba, gray_a=None, gray_b=None):
     (:func:`border_polygon`)."""
     import cv2
 
-    from stnh_tf import geometry
-
     (ha, wa), (hb, wb) = image_a.shape[:2], image_b.shape[:2]
     if gray_a is None:
         gray_a = cv2.cvtColor(image_a, cv2.COLOR_BGR2GRAY)
@@ -182,8 +196,7 @@ def overlay(image_a, image_b, h_ba, gray_a=None, gray_b=None):
     blend = np.stack([warped_a, gray_b, warped_a], axis=-1)  # BGR: a -> magenta, b -> green
     left = image_a.copy()
     border_b = np.array([[0, 0], [wb - 1, 0], [wb - 1, hb - 1], [0, hb - 1]], np.float64)
-    quad = geometry.warp_points(h64, border_b)
-    quad[border_b @ h64[2, :2] + h64[2, 2] <= IN_FRONT] = np.nan  # beyond the horizon
+    quad = points_in_a(h64, border_b)
     thickness = max(1, round(max(wa, ha) / 300))
     drawn = border_polygon(h64, (wb, hb))
     if len(drawn):

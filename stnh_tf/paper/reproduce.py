@@ -125,8 +125,8 @@ class Reproduction:
         for split in ("train", "test"):
             image_dir, per_image, seed, max_images = self.stage1_protocol(split)
             if data.has_split(d, split):
-                stage1.check_made(d, split, self.source, image_dir, per_image, seed, max_images,
-                                  reused=d != os.path.join(self.out, "data", "stage1"))
+                if d == os.path.join(self.out, "data", "stage1"):  # (a reused one: as given)
+                    stage1.check_made(d, split, self.source, *self.stage1_protocol(split))
                 continue
             self.printer(f"[data] stage-1 {split} pairs -> {d}")
             self._timed("data", lambda: stage1.make_dataset(

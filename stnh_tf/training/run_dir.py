@@ -13,6 +13,7 @@ trains, its lock (:class:`RunLock`, ``.stnh_tf_run.lock``).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import numbers
 import os
@@ -160,15 +161,13 @@ def data_digests(fields: dict) -> dict:
     ``image_dir`` (its first ``max_images``), ``unlabeled_image_dir`` and
     ``unlabeled_pairs_dir`` by their listing's ids and sizes
     (:func:`stnh_tf.training.ledger.listing_digest`); ``None`` where they cannot be read here."""
-    import hashlib
-
+    from stnh_tf.data import tfrecords
     from stnh_tf.training import ledger
 
     out = {}
     if fields.get("data_dir"):
         try:
-            split = read_json(os.path.join(fields["data_dir"], "metadata.json"),
-                              "dataset metadata")["splits"]["train"]
+            split = tfrecords.split_info(fields["data_dir"], "train")
             key = json.dumps({"shards": [(os.path.basename(s["file"]), s["num_bytes"],
                                           s["num_samples"],
                                           _ends_sha256(os.path.join(fields["data_dir"],
@@ -190,8 +189,6 @@ def data_digests(fields: dict) -> dict:
 def _ends_sha256(path: str, size: int = 1 << 16) -> str:
     """The sha256 of the first and last ``size`` bytes of the file ``path`` (``OSError`` where
     it cannot be read): what tells two shards of the same size apart at little cost."""
-    import hashlib
-
     with open(path, "rb") as f:
         head = f.read(size)
         f.seek(max(os.fstat(f.fileno()).st_size - size, 0))
@@ -254,10 +251,10 @@ def _config_diff(new: TrainConfig | str, config_path: str) -> dict:
     was, now = (d.get(DATA_DIGESTS) for d in (old_doc, new_doc))
     if isinstance(was, dict) and isinstance(now, dict):  # both record the data: the same data
         for name in sorted(was.keys() | now.keys()):  # (a source dropped or added: other data)
-            a, b = was.get(name, "none"), now.get(name, "none")
-            if a and b and a != b:
-                diff[f"{name} (its data)"] = (f"sha256:{a[:12]}" if a != "none" else a,
-                                              f"sha256:{b[:12]}" if b != "none" else b)
+            pair = tuple(d[name] and f"sha256:{d[name][:12]}" if name in d else "none"
+                         for d in (was, now))
+            if None not in pair and pair[0] != pair[1]:  # (None: not readable where recorded)
+                diff[f"{name} (its data)"] = pair
     return diff
 
 
