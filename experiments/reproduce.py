@@ -89,6 +89,7 @@ def reproduction_from_flags(budget=None, hour: bool = False, **kwargs):
         without ``hour`` (it plans a whole reproduction).
     """
     common.check_flags_apart(("output_dir",), ("image_dir", "test_image_dir"))
+    reuse = parse_reuse(FLAGS.reuse)  # (before --budget=hour's timed probe)
     if budget is None and FLAGS.budget == "hour":
         if not hour:
             raise ValueError("--budget=hour plans a whole reproduction: run experiments.reproduce "
@@ -106,7 +107,7 @@ def reproduction_from_flags(budget=None, hour: bool = False, **kwargs):
     print(budget_line(budget, FLAGS["budget"].present), flush=True)
     return reproduce.Reproduction(budget, FLAGS.output_dir,
                                   image_dir=FLAGS.image_dir, test_image_dir=FLAGS.test_image_dir,
-                                  source=FLAGS.source, reuse=parse_reuse(FLAGS.reuse), **kwargs)
+                                  source=FLAGS.source, reuse=reuse, **kwargs)
 
 
 def budget_line(budget, given: bool) -> str:
@@ -157,6 +158,10 @@ def refresh_latency() -> None:
     table2.refresh(FLAGS.output_dir, printer=lambda line: print(line, flush=True))
 
 
+TRAIN_ONLY_PARTS = ("hierarchy", "homographynet", "sequence2", "table1", "semi_supervised")
+"""The parts ``--train_only`` names."""
+
+
 def main(argv):
     del argv
     from stnh_tf.training.loop import TrainingDiverged
@@ -165,14 +170,14 @@ def main(argv):
                                           TrainingDiverged)), interrupt_line("reproduce"):
         if FLAGS.refresh_latency:
             return refresh_latency()
+        unknown = sorted(set(FLAGS.train_only) - set(TRAIN_ONLY_PARTS))
+        if unknown:  # (before --budget=hour's timed probe)
+            raise ValueError(f"--train_only names must be among {sorted(TRAIN_ONLY_PARTS)}; "
+                             f"received {unknown}.")
         run = reproduction_from_flags(hour=True)
         parts = {"hierarchy": run.hierarchy, "homographynet": run.homographynet,
                  "sequence2": run.sequence2, "table1": lambda: run.ablation(run.ablation_weights),
                  "semi_supervised": lambda: semi_supervised.SemiSupervised(run).table()}
-        unknown = sorted(set(FLAGS.train_only) - set(parts))
-        if unknown:
-            raise ValueError(f"--train_only names must be among {sorted(parts)}; "
-                             f"received {unknown}.")
         for name in FLAGS.train_only:
             parts[name]()
         if not FLAGS.train_only:

@@ -83,11 +83,17 @@ def test_the_binaries_refuse_at_once(dataset, tmp_path):
         (["experiments.reproduce", "--train_only=homographynet", *common,
           f"--reuse=homographynet={tmp_path / 'typo'}", f"--output_dir={tmp_path / 'e'}"],
          "does not exist; --reuse names finished models and datasets"),
+        # --budget=hour: refused before its timed probe (minutes of training), not after it
+        (["experiments.reproduce", "--budget=hour", "--source=bundled",
+          f"--reuse=homographynet={tmp_path / 'typo'}", f"--output_dir={tmp_path / 'g'}"],
+         "does not exist; --reuse names finished models and datasets"),
+        (["experiments.reproduce", "--budget=hour", "--source=bundled", "--train_only=stage9",
+          f"--output_dir={tmp_path / 'i'}"], "--train_only names must be among"),
     ]
     for args, message in cases:
         proc = _run(*args)
         assert proc.returncode != 0 and message in proc.stderr, (args, proc.stderr[-2000:])
-        assert "Traceback" not in proc.stderr
+        assert "Traceback" not in proc.stderr and "[plan]" not in proc.stdout
         out = [a.split("=", 1)[1] for a in args if a.startswith("--output_dir=")][0]
         assert not os.path.exists(os.path.join(out, "data")), args
         assert not os.path.exists(os.path.join(out, "models")), args
@@ -146,3 +152,37 @@ def test_a_reproduction_refuses_its_stage1_pairs_made_under_other_flags(tmp_path
     reused = reproduce.Reproduction(three, str(tmp_path / "other"),
                                     reuse={"data_stage1": made}, **quiet)
     assert reused.stage1_data() == made
+
+
+def test_a_run_of_some_table1_rows_keeps_the_others(tmp_path):
+    """``loss_weight_ablation --weights=10:1`` wrote ``table1.json`` with that row alone: the
+    earlier table's other rows were dropped although their models were still there. The rows it
+    keeps are those whose models are all finished and trained as many steps; others (a model
+    gone, trained at another ``--steps``, an unreadable config) are left out."""
+    from stnh_tf.paper import tables
+    from stnh_tf.training import run_dir
+
+    def model(name, steps, final=True, config=None):
+        d = tmp_path / "models" / name
+        d.mkdir(parents=True)
+        (d / run_dir.CONFIG_FILE).write_text(config or json.dumps({"train_steps": steps}))
+        if final:
+            (d / run_dir.FINAL_MODEL).write_text("a finished model")
+        return str(d)
+
+    rows = {"1,1": [model("stage1", 40)], "1,10": [model("a", 40), model("b", 40)],
+            "1,0.1": [model("c", 40), model("d", 40, final=False)],  # a seed unfinished
+            "0.1,1": [model("e", 60)],  # another --steps
+            "2,1": [model("f", 40, config="{")]}
+    earlier = {k: {"mace": 5.0, "model_dirs": v} for k, v in rows.items()}
+    table = tmp_path / "table1.json"
+    table.write_text(json.dumps({**earlier, "10,1": {"model_dirs": ["x"]},
+                                 "model_provenance": {}, "assembled": False}))
+    kept = tables.earlier_table1_rows(str(table), {(10.0, 1.0): ["new"]}, 40)
+    assert kept == {(1.0, 1.0): rows["1,1"], (1.0, 10.0): rows["1,10"]}
+    assert tables.earlier_table1_rows(str(table), {(1.0, 1.0): ["new"]}, 40) == {
+        (1.0, 10.0): rows["1,10"]}  # a row run again is the new one
+    assert tables.earlier_table1_rows(str(tmp_path / "none.json"), {}, 40) == {}
+    table.write_text("[1, 2]")
+    with pytest.raises(ValueError, match="not a Table 1 written by this project"):
+        tables.earlier_table1_rows(str(table), {}, 40)

@@ -157,6 +157,8 @@ def test_rerun_skips_finished_work_and_ablation_binary_reuses_rows(tiny_run):
     assert len(table["10,1"]["model_dirs"]) == 2  # the tiny budget's 2 seeds
     assert table["10,1"]["mace"] == pytest.approx(
         np.mean([_model_mace(d, samples) for d in table["10,1"]["model_dirs"]]), rel=1e-4)
+    for row, dirs in first["models"]["ablation_seeds"].items():  # the rows left out: kept
+        assert table[row]["model_dirs"] == dirs, row
 
 
 def test_reuse_refuses_a_model_of_another_budget(tmp_path):

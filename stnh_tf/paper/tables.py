@@ -111,6 +111,55 @@ def table1_lines(per_seed: dict, identity, paper: dict, schedule: dict, claim: s
     return lines + (["", claim] if claim else [])
 
 
+def earlier_table1_rows(path: str, rows: dict, steps: int) -> dict:
+    """The rows of an earlier ``table1.json`` at ``path`` that ``rows`` (``{(l2, l1): [model
+    dir per seed]}``) lacks and whose models are all still finished there, trained ``steps``
+    steps: ``{(l2, l1): [model dir per seed]}`` (``{}`` where there is no such file). A run of
+    some rows (``loss_weight_ablation --weights=10:1``) keeps the table's other rows this way.
+
+    Raises:
+      ValueError: ``path`` is not a JSON object.
+    """
+    import json
+
+    from stnh_tf.training import run_dir
+
+    if not os.path.exists(path):
+        return {}
+    try:
+        with open(path) as f:
+            earlier = json.load(f)
+        if not isinstance(earlier, dict):
+            raise ValueError
+    except ValueError:
+        raise ValueError(f"{path} is not a Table 1 written by this project (not a JSON "
+                         "object); move it aside to write a new one") from None
+    kept = {}
+    for key, row in earlier.items():
+        dirs = row.get("model_dirs") if isinstance(row, dict) else None
+        try:
+            weights = tuple(float(v) for v in key.split(","))
+        except ValueError:
+            continue  # (the provenance entries)
+        if weights in rows or not dirs or len(weights) != 2:
+            continue
+        if all(os.path.exists(os.path.join(d, run_dir.FINAL_MODEL))
+               and _trained_steps(os.path.join(d, run_dir.CONFIG_FILE)) == steps for d in dirs):
+            kept[weights] = list(dirs)
+    return kept
+
+
+def _trained_steps(config_path: str):
+    """``train_steps`` of a run's ``config.json`` (None where it is missing or unreadable)."""
+    import json
+
+    try:
+        with open(config_path) as f:
+            return json.load(f).get("train_steps")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
 def table1_claim(per_seed: dict, identity, verdicts: bool = True) -> dict:
     """The paper's Table 1 claim (L2:L1 = 10:1 below 1:1, :data:`CLAIM_ROWS`) judged on
     ``per_seed`` (``{"l2,l1": [MACE per seed]}``): ``{"verdict", "text"}`` with ``verdict`` one
