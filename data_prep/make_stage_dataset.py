@@ -29,7 +29,8 @@ flags.DEFINE_list("splits", None, "Splits to build (default: train and test, and
                   "--input_dir holds it).")
 flags.DEFINE_integer("num_shards", 0, "Shards per split; 0 = as many as the input split has.")
 flags.DEFINE_integer("num_workers", os.cpu_count() or 1, "Re-cropping processes.")
-flags.DEFINE_bool("overwrite", False, "Regenerate splits that are already complete.")
+flags.DEFINE_bool("overwrite", False, "Regenerate splits that are already complete (without it, "
+                  "those made from the same data and model are kept and the others made).")
 FLAGS = flags.FLAGS
 
 
@@ -61,10 +62,17 @@ def main(argv):
         splits = (stage_k.default_splits(FLAGS.input_dir) if FLAGS.splits is None
                   else FLAGS.splits)
         stage_k.check_stage_arguments(FLAGS.stage, FLAGS.input_dir, FLAGS.output_dir, splits,
-                                      num_shards=FLAGS.num_shards)
+                                      num_shards=FLAGS.num_shards, model_dir=FLAGS.model_dir)
         common.check_flags_apart(("output_dir",), ("input_dir", "model_dir"))
         common.check_not_a_run(FLAGS.output_dir)
         check_model_stage(FLAGS.model_dir, FLAGS.stage)
+        if not FLAGS.overwrite:  # (a run cut short: the same command makes the rest)
+            done = stage_k.check_one_source(FLAGS.output_dir, splits,
+                                            stage_k.made_from(FLAGS.input_dir, FLAGS.model_dir))
+            for split in done:
+                logging.info("%s: complete in %s, made from the same data and model: kept "
+                             "(--overwrite makes it again)", split, FLAGS.output_dir)
+            splits = [s for s in splits if s not in done]
     for split in splits:
         with common.user_errors("make_stage_dataset"):
             result = stage_k.make_stage_dataset(

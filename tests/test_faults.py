@@ -453,10 +453,10 @@ def _failing_writer(tf, where, error):
 def _fail_metadata_at_the_end(error):
     real = writer_lib.update_metadata
 
-    def update(output_dir, split, section, top=None):
+    def update(output_dir, split, section, top=None, check=None):
         if section is not None and section.get("status") == "complete":
             raise error
-        return real(output_dir, split, section, top)
+        return real(output_dir, split, section, top, check)
 
     return update
 

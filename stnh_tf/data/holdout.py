@@ -108,10 +108,12 @@ def _photographs(section: dict) -> tuple:
 def check_beside(meta: dict, split: str, fraction: float, section: dict, where: str) -> None:
     """Before ``split`` (with ``val_fraction`` ``fraction`` and the source fields of
     ``section``) is written into the dataset ``where`` whose ``metadata.json`` is ``meta``:
-    where that dataset holds the other split of the hold-out complete, both were divided with
-    the same fraction from the same photographs, so that no photograph is in both. A ``val``
-    split is refused beside a train split that kept every photograph, and a train split that
-    keeps every photograph beside a ``val`` split.
+    where that dataset holds the other split of the hold-out, complete or being written (or
+    left incomplete), both are divided with the same fraction from the same photographs, so that
+    no photograph is in both. A ``val`` split is refused beside a train split that kept every
+    photograph, and a train split that keeps every photograph beside a ``val`` split. The
+    writer calls it again under the metadata's lock (``write_sharded``'s ``check``), so that two
+    runs writing the two splits at once cannot both pass.
 
     Raises:
       ValueError: naming both splits, their ``--val_fraction`` and what to give.
@@ -120,19 +122,21 @@ def check_beside(meta: dict, split: str, fraction: float, section: dict, where: 
         return
     other = SPLITS[1 - SPLITS.index(split)]
     theirs = meta.get("splits", {}).get(other, {})
-    if theirs.get("status") != "complete":
-        return
+    if theirs.get("status") != "complete" and "val_fraction" not in theirs:
+        return  # (none, or an incomplete one of a version that did not record its flags)
+    state = ("" if theirs.get("status") == "complete"
+             else " being written or left incomplete (its flags recorded)")
     their_fraction = float(theirs.get("val_fraction", 0.0))
     if their_fraction != fraction:
         raise ValueError(
-            f"{where} holds a {other} split written with --val_fraction={their_fraction:g}; "
+            f"{where} holds a {other} split{state} written with --val_fraction={their_fraction:g}; "
             f"this {split} split with --val_fraction={fraction:g} would share photographs with "
             f"it: give --val_fraction={their_fraction:g}"
             + (f", or rewrite {other} with the same value (--overwrite)." if fraction else
                " (val holds out a share of the train split's photographs)."))
     if _photographs(theirs) != _photographs(section):
         raise ValueError(
-            f"{where} holds a {other} split of other photographs ({theirs.get('source')} "
+            f"{where} holds a {other} split{state} of other photographs ({theirs.get('source')} "
             f"{theirs.get('image_dir', '')}); the val split is a share of the train split's "
             f"own photographs: give the same --source and --image_dir to both.")
 

@@ -100,14 +100,18 @@ def read_metadata_file(output_dir: str) -> dict:
 
 
 def update_metadata(output_dir: str, split: str, section: Optional[dict],
-                    top: Optional[dict] = None) -> dict:
-    """Merge ``top`` into metadata.json and set ``splits[split] = section`` (locked, atomic).
+                    top: Optional[dict] = None, check=None) -> dict:
+    """Merge ``top`` into metadata.json and set ``splits[split] = section`` (locked, atomic;
+    ``section`` None: the split's section is left as it is). ``check(metadata)`` is called under
+    the lock first: what it raises leaves the file unchanged.
 
     Raises:
       ValueError: ``top`` contradicts a value already there (e.g. another ``stage``).
     """
     with _metadata_lock(output_dir):
         meta = read_metadata_file(output_dir)
+        if check is not None:
+            check(meta)
         for key, value in (top or {}).items():
             if key in meta and meta[key] != value and key in ("stage", "feature_spec"):
                 raise ValueError(f"{os.path.join(output_dir, METADATA_FILE)} has {key}="

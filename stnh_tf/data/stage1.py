@@ -194,26 +194,33 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
     return writer.write_sharded(
         output_dir, split, items, worker_fn, num_shards=num_shards, num_items=num_items,
         num_workers=num_workers, split_metadata=split_metadata, top_metadata={"stage": 1},
-        preskipped=preskipped, chunk_size=chunk_size, log=log, overwrite=overwrite)
+        preskipped=preskipped, chunk_size=chunk_size, log=log, overwrite=overwrite,
+        check=functools.partial(holdout.check_beside, split=split, fraction=val_fraction,
+                                section={"source": source, **info}, where=output_dir))
 
 
 def check_made(data_dir, split, source: str, image_dir, samples_per_image: int, seed: int,
                max_images: int) -> None:
     """Refuse the complete ``split`` of ``data_dir`` where :func:`make_dataset` did not make it
-    with these arguments (its folders compared by their real paths): a run that reuses the
-    pairs it made before under other flags would report them under the new flags
-    (``ValueError`` naming each difference)."""
+    with these arguments and the paper's protocol otherwise (every photograph, no photometric
+    change: every field of :class:`~stnh_tf.data.pairs.Protocol` compared; its folders by their
+    real paths): a run that reuses the pairs it made before under other flags would report them
+    under the new flags (``ValueError`` naming each difference)."""
+    import dataclasses
+
     from stnh_tf.data import tfrecords
 
     made = tfrecords.split_info(data_dir, split)
     folder = source == "folder"
-    asked = {"source": source, "seed": seed, "samples_per_image": samples_per_image,
-             "max_images": max_images,
-             "image_dir": holdout.real_folders(image_dir) if folder else None}
+    protocol = dataclasses.asdict(pairs.Protocol(samples_per_image=samples_per_image))
+    made_protocol = made.get("protocol") or {}
+    asked = {"source": source, "seed": seed, "max_images": max_images, "val_fraction": 0.0,
+             "image_dir": holdout.real_folders(image_dir) if folder else None, **protocol}
     have = {"source": made.get("source"), "seed": made.get("seed"),
-            "samples_per_image": made.get("protocol", {}).get("samples_per_image"),
             "max_images": made.get("max_images"),
-            "image_dir": holdout.real_folders(made.get("image_dir")) if folder else None}
+            "val_fraction": float(made.get("val_fraction") or 0.0),
+            "image_dir": holdout.real_folders(made.get("image_dir")) if folder else None,
+            **{k: made_protocol.get(k) for k in protocol}}
     differ = {k: (have[k], asked[k]) for k in asked if have[k] != asked[k]}
     if differ:
         raise ValueError(f"{data_dir} holds the stage-1 {split} pairs of other flags {differ} "

@@ -53,12 +53,66 @@ def stage_sample(item: writer.WorkItem) -> list:
 
 
 def _records(paths):
-    """Serialized records of the shards, in shard order then file order (no shuffling)."""
-    import tensorflow as tf
+    """Serialized records of the shards, in shard order then file order (no shuffling); a
+    corrupted shard raises ``ShardError`` naming it."""
+    from stnh_tf.data.tfrecords import _iter_records
 
     for path in paths:
-        for record in tf.data.TFRecordDataset(path):
+        for record in _iter_records(path):
             yield record.numpy()
+
+
+def made_from(input_dir: str, model_dir) -> dict:
+    """What a stage-k split records of the stage-(k-1) dataset and model it is made from:
+    ``input_dir`` and ``model_dir`` as absolute paths, and the model file's ``model_sha256``
+    (a folder's ``model.keras``; None where there is no such file)."""
+    from stnh_tf.paths import file_sha256
+
+    model_file = os.path.join(model_dir, "model.keras") if os.path.isdir(model_dir) else model_dir
+    return {"input_dir": os.path.abspath(input_dir), "model_dir": os.path.abspath(model_dir),
+            "model_sha256": file_sha256(model_file) if os.path.isfile(model_file) else None}
+
+
+def _same_source(section: dict, source: dict) -> bool:
+    """Whether a split's ``section`` was made from ``source`` (:func:`made_from`): the same
+    input folder and model (by the model's bytes where both record them, else by its path)."""
+    def real(path):
+        return os.path.realpath(path) if isinstance(path, str) else path
+
+    if real(section.get("input_dir")) != real(source["input_dir"]):
+        return False
+    if section.get("model_sha256") and source.get("model_sha256"):
+        return section["model_sha256"] == source["model_sha256"]
+    return real(section.get("model_dir")) == real(source["model_dir"])
+
+
+def check_one_source(output_dir: str, splits, source: dict) -> list:
+    """The splits of ``splits`` that ``output_dir`` holds complete and made from ``source``
+    (:func:`made_from`): those a re-run of the same command can skip. The splits of
+    ``output_dir`` that ``splits`` leaves out (complete, or being written) must come from
+    ``source`` too: one stage-k dataset holds the pairs of one stage-(k-1) dataset and model, or
+    its test pairs would not be those of the model it trains.
+
+    Raises:
+      ValueError: naming a split of ``output_dir`` made from another dataset or model.
+    """
+    meta = metadata.read_metadata_file(output_dir) if os.path.isdir(output_dir) else {}
+    done = []
+    for name, section in meta.get("splits", {}).items():
+        if "input_dir" not in section:
+            continue  # (an incomplete section of a version that did not record it)
+        same = _same_source(section, source)
+        if name in splits:
+            if same and section.get("status") == "complete":
+                done.append(name)
+        elif not same:
+            raise ValueError(
+                f"{output_dir} holds a {name!r} split made from {section.get('input_dir')} and "
+                f"the model {section.get('model_dir')}, not from {source['input_dir']} and "
+                f"{source['model_dir']}: every split of one stage-k dataset comes from one "
+                f"dataset and model; make {name!r} again too (--splits with it, --overwrite), or "
+                "write to another --output_dir.")
+    return [s for s in splits if s in done]
 
 
 def _items(paths, predict, counts: dict):
@@ -103,12 +157,14 @@ def default_splits(input_dir: str) -> list:
 
 
 def check_stage_arguments(stage: int, input_dir: str, output_dir: str, splits, *,
-                          num_shards: int = 0) -> list:
+                          num_shards: int = 0, model_dir=None) -> list:
     """Check what :func:`make_stage_dataset` is given, before any model is loaded or folder
     made: ``stage >= 2``; ``num_shards`` an integer >= 0; ``splits`` (a list of names) not empty,
     without repeats, each a plain name present and complete in ``input_dir``, which holds
     stage-(k-1) data; ``output_dir`` another folder, and one whose ``metadata.json``, if any, is a
-    dataset's (:func:`stnh_tf.data.metadata.read_metadata_file`). Returns the splits as a list.
+    dataset's (:func:`stnh_tf.data.metadata.read_metadata_file`), and (given ``model_dir``)
+    whose other splits come from the same input and model (:func:`check_one_source`). Returns
+    the splits as a list.
 
     Raises:
       ValueError: naming the argument (``--stage``, ``--num_shards``, ``--splits``...) or file.
@@ -140,6 +196,8 @@ def check_stage_arguments(stage: int, input_dir: str, output_dir: str, splits, *
         raise ValueError("output_dir must differ from input_dir.")
     if os.path.isdir(output_dir):
         metadata.read_metadata_file(output_dir)
+    if model_dir is not None:
+        check_one_source(output_dir, splits, made_from(input_dir, model_dir))
     return splits
 
 
@@ -167,7 +225,8 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
 
     if (model_dir is None) == (predict is None):
         raise ValueError("give exactly one of model_dir and predict.")
-    check_stage_arguments(stage, input_dir, output_dir, [split], num_shards=num_shards)
+    check_stage_arguments(stage, input_dir, output_dir, [split], num_shards=num_shards,
+                          model_dir=model_dir)
     info = data.split_info(input_dir, split)
     paths = data.shard_paths(input_dir, split, "size")
     made_dir = not os.path.exists(output_dir)
@@ -181,8 +240,9 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
             raise
     counts = collections.Counter()
     split_metadata = {
-        "source": "stage", "input_dir": os.path.abspath(input_dir),
-        "model_dir": os.path.abspath(model_dir) if model_dir else repr(predict),
+        "source": "stage",
+        **(made_from(input_dir, model_dir) if model_dir else
+           {"input_dir": os.path.abspath(input_dir), "model_dir": repr(predict)}),
         "input_seed": info.get("seed"),
         "protocol": info.get("protocol"),
         "degenerate_rule": "non-finite or near-singular (|det| < 1e-6, or w <= 0 at a corner) "
@@ -191,12 +251,9 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
                            "the context border and H refitted (stnh_tf.hierarchy)",
         "command": command or " ".join(shlex.quote(a) for a in getattr(sys, "orig_argv", sys.argv)),
     }
-    result = writer.write_sharded(
+    return writer.write_sharded(
         output_dir, split, _items(paths, predict, counts), stage_sample,
         num_shards=num_shards or len(paths), num_items=int(info["num_samples"]),
         num_workers=num_workers, split_metadata=split_metadata, top_metadata={"stage": stage},
-        log=log, overwrite=overwrite)
-    counts_dict = {k: int(counts.get(k, 0)) for k in ("accepted", *hierarchy.REJECT_REASONS)}
-    metadata.update_metadata(output_dir, split, {**result, "degenerate_predictions": counts_dict})
-    result["degenerate_predictions"] = counts_dict
-    return result
+        log=log, overwrite=overwrite, final_metadata=lambda: {"degenerate_predictions": {
+            k: int(counts.get(k, 0)) for k in ("accepted", *hierarchy.REJECT_REASONS)}})

@@ -80,9 +80,20 @@ def split_info(data_dir: str, split: str) -> dict:
     path = os.path.join(data_dir, METADATA_FILE)
     if info is None:
         raise ValueError(f"split {split!r} not in {path!r} (has: {sorted(meta['splits'])}).")
+    if info.get("status") == "empty":
+        raise ValueError(f"split {split!r} in {path!r} is empty: every item of its generation "
+                         "was skipped (its 'skipped' list says why).")
     if info.get("status") != "complete":
         raise ValueError(f"split {split!r} in {path!r} has status {info.get('status')!r}: its "
                          "generation did not finish; re-run the same make_dataset command.")
+    shards = info.get("shards")
+    if not isinstance(shards, list) or not all(
+            isinstance(s, dict) and isinstance(s.get("file"), str)
+            and all(isinstance(s.get(k), int) and not isinstance(s.get(k), bool)
+                    for k in ("num_bytes", "num_samples")) for s in shards):
+        raise ValueError(f"split {split!r} in {path!r} is complete but does not list its shards "
+                         "(a 'shards' list of file, num_bytes and num_samples): not a section "
+                         "the writer made; make the split again (--overwrite).")
     return info
 
 

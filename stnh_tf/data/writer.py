@@ -15,17 +15,20 @@ dicts hold :data:`stnh_tf.data.features.FEATURE_NAMES`).
 * **One writer per split.** A run holds the split's lock (:func:`stnh_tf.data.metadata.split_lock`)
   from start to end; a second run on the same split fails at once instead of deleting the first
   one's files.
-* **Atomicity.** Each shard is written to ``<name>.tmp-<pid>`` and renamed when complete; the
-  split's section of ``metadata.json`` is marked ``"incomplete"`` before any shard is touched and
-  replaced only at the end, so a killed run never leaves a split that looks finished. A re-run
-  removes stale temporary files, rewrites every shard, and removes old shards of the split that the
-  new layout no longer has (e.g. another ``num_shards``).
+* **Atomicity.** Every shard is written to ``<name>.tmp-<pid>``; once all are written, the split
+  is marked ``"incomplete"``, the shards renamed into place, the shards of the earlier split
+  that the new layout no longer has (e.g. another ``num_shards``) removed, and the section
+  written: a killed or failed run never leaves a split that looks finished, and one that
+  regenerates a complete split (``overwrite``) leaves it complete and readable until that swap
+  (it needs the disk space of both meanwhile). A new split is marked ``"incomplete"`` from the
+  start. A re-run removes its split's stale temporary files. Files named like the split's shards
+  that no ``metadata.json`` lists are never written over or removed: the run is refused.
 * **Bad input.** An exception from ``worker_fn`` skips that item: it is counted and listed with its
   reason in the split's ``skipped`` list (and logged); it never stops the run.
 * **A failed write** (a full disk, a file size limit) stops the run with an ``OSError`` naming
   the file and the cause, whether the operating system or TensorFlow's writer reported it
-  (``OutOfRangeError: File too large``, ``ResourceExhaustedError``); the split stays marked
-  ``"incomplete"`` and the same command regenerates it.
+  (``OutOfRangeError: File too large``, ``ResourceExhaustedError``); a new split stays marked
+  ``"incomplete"`` (an earlier complete one stays as it was) and the same command regenerates it.
 * **metadata.json** (``{"stage": ..., "feature_spec": ..., "splits": {split: {...}}}``) is
   read-modify-written under a file lock and replaced atomically, so separate commands can write
   ``train`` and ``test`` into one directory (:mod:`stnh_tf.data.metadata`).
@@ -218,6 +221,33 @@ def _naming_write_errors(path: str, split: str):
         raise error from None
 
 
+def _remove_temporary(temps):
+    for path in temps:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(path)
+
+
+def _swap_in(output_dir, split, temps, names, existing, marker, top, check):
+    """Mark the split incomplete (where ``check`` still passes), rename the written ``temps`` to
+    their ``names`` and remove the shards of the ``existing`` section the new layout lacks (and
+    those a swap cut short had listed: ``replacing``). A kill in this instant leaves the split
+    incomplete, never a complete one mixing two runs."""
+    earlier = [s.get("file") for s in existing.get("shards", [])] + existing.get("replacing", [])
+    meta_path = os.path.join(output_dir, METADATA_FILE)
+    with _naming_write_errors(meta_path, split):
+        try:
+            update_metadata(output_dir, split, {**marker, "replacing": earlier}, top, check)
+        except BaseException:
+            _remove_temporary(temps)
+            raise
+        for temp, name in zip(temps, names):
+            os.replace(temp, os.path.join(output_dir, name))
+        for old in earlier:
+            if isinstance(old, str) and old not in names and os.path.basename(old) == old:
+                with contextlib.suppress(FileNotFoundError):
+                    os.remove(os.path.join(output_dir, old))
+
+
 def _fsync_path(path):
     fd = os.open(path, os.O_RDONLY)
     try:
@@ -230,7 +260,9 @@ def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: 
                   num_shards: int, num_items: Optional[int] = None, num_workers: int = 1,
                   split_metadata: Optional[dict] = None, top_metadata: Optional[dict] = None,
                   preskipped: Iterable = (), chunk_size: int = 4, log: Callable = print,
-                  progress_interval_s: float = 5.0, overwrite: bool = False) -> dict:
+                  progress_interval_s: float = 5.0, overwrite: bool = False,
+                  check: Optional[Callable] = None,
+                  final_metadata: Optional[Callable] = None) -> dict:
     """Generate and write ``split`` as ``num_shards`` TFRecord shards in ``output_dir``.
 
     Args:
@@ -252,14 +284,21 @@ def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: 
       chunk_size: items per task sent to a worker.
       log: progress/warning printer; progress every ``progress_interval_s`` seconds.
       overwrite: regenerate a split that ``metadata.json`` records as complete (otherwise
-        refused before anything is touched: the shards are replaced one by one, so a regeneration
-        that stops half-way leaves neither the old split nor a new one).
+        refused before anything is touched); the complete split stays readable until the new
+        one is written, and stays as it was where the new one fails or is empty.
+      check: ``check(metadata)``, called with the folder's ``metadata.json`` (a dict) under its
+        lock before the split is marked and again before the swap; raises to refuse the split
+        (what other splits being written meanwhile record: e.g. the hold-out's fraction).
+      final_metadata: ``final_metadata() -> dict`` of keys known once every item is generated
+        (e.g. counts made while generating), merged into the section.
     Returns:
       The split's metadata section (also written to ``metadata.json``).
     Raises:
       ValueError: no work items, bad ``num_shards``/``split``, every item skipped, or
         ``output_dir`` holds a ``metadata.json`` this project did not write
-        (:func:`stnh_tf.data.metadata.read_metadata_file`; checked before anything is written).
+        (:func:`stnh_tf.data.metadata.read_metadata_file`; checked before anything is written),
+        or files named like the split's shards that its ``metadata.json`` does not list; what
+        ``check`` raises.
       OSError: ``output_dir`` not writable, or a write failed (the message names the file and
         the cause: a full disk, a file size limit).
       FileExistsError: the split is complete and ``overwrite`` is off, or another process is
@@ -279,27 +318,37 @@ def write_sharded(output_dir: str, split: str, work_items: Iterable, worker_fn: 
                             num_items=num_items, num_workers=num_workers,
                             split_metadata=split_metadata, top_metadata=top_metadata,
                             preskipped=preskipped, chunk_size=chunk_size, log=log,
-                            progress_interval_s=progress_interval_s, overwrite=overwrite)
+                            progress_interval_s=progress_interval_s, overwrite=overwrite,
+                            check=check, final_metadata=final_metadata)
 
 
 def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_items, num_workers,
                  split_metadata, top_metadata, preskipped, chunk_size, log, progress_interval_s,
-                 overwrite) -> dict:
+                 overwrite, check, final_metadata) -> dict:
     """:func:`write_sharded` once its arguments are checked, holding the split's lock: no other
     writer of the split runs, so temporary shards left in the folder are stale ones."""
     existing = read_metadata_file(output_dir).get("splits", {}).get(split, {})
     if existing.get("status") == "complete" and not overwrite:
         raise FileExistsError(
             f"{output_dir} already holds a complete {split!r} split ({existing.get('num_samples')} "
-            "samples); pass --overwrite to regenerate it (it is unreadable until the new one is "
-            "finished).")
+            "samples); pass --overwrite to regenerate it (it stays readable until the new one "
+            "is written).")
+    foreign = [os.path.basename(p) for p in _shard_pattern_matches(output_dir, split)]
+    if foreign and not existing:
+        raise ValueError(
+            f"{output_dir} holds files named like the {split!r} split's shards ({foreign[:3]}) "
+            f"that its {METADATA_FILE} does not list: they are not written over; move them "
+            "aside, or write to another --output_dir.")
     top = {"feature_spec": features.spec_as_dict(), **(top_metadata or {})}
     meta_path = os.path.join(output_dir, METADATA_FILE)
-    with _naming_write_errors(meta_path, split):
-        update_metadata(output_dir, split, {"status": "incomplete", "started_pid": os.getpid()},
-                        top)
-    for stale in glob.glob(os.path.join(output_dir, f"{glob.escape(split)}-*.tfrecord.tmp-*")):
-        os.remove(stale)
+    marker = {**(split_metadata or {}), "status": "incomplete", "started_pid": os.getpid()}
+    with _naming_write_errors(meta_path, split):  # (an earlier complete split stays readable)
+        update_metadata(output_dir, split,
+                        None if existing.get("status") == "complete" else marker, top, check)
+    if existing:  # (temporary files of this split's earlier runs; none of a user's)
+        for stale in glob.glob(os.path.join(output_dir,
+                                            f"{glob.escape(split)}-*.tfrecord.tmp-*")):
+            os.remove(stale)
 
     import tensorflow as tf  # the parent writes; workers never import TensorFlow
 
@@ -310,24 +359,22 @@ def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_it
         log(f"[{split}] skipped {entry['item_id']}: {entry['reason']}")
     progress = _Progress(split, num_items, log, progress_interval_s)
     t0 = time.perf_counter()
-    writer, current, tmp_path = None, -1, None
+    writer, current = None, -1
+    temps = [os.path.join(output_dir, f"{n}.tmp-{os.getpid()}") for n in names]
 
     def open_shard(k):
-        nonlocal writer, current, tmp_path
+        nonlocal writer, current
         current = k
-        tmp_path = os.path.join(output_dir, f"{names[k]}.tmp-{os.getpid()}")
         with _naming_write_errors(os.path.join(output_dir, names[k]), split):
-            writer = tf.io.TFRecordWriter(tmp_path)
+            writer = tf.io.TFRecordWriter(temps[k])
 
     def close_shard():
-        nonlocal writer, tmp_path
-        final = os.path.join(output_dir, names[current])
-        with _naming_write_errors(final, split):
+        nonlocal writer
+        with _naming_write_errors(os.path.join(output_dir, names[current]), split):
             writer.close()
-            _fsync_path(tmp_path)
-            os.replace(tmp_path, final)
-        shards[current]["num_bytes"] = os.path.getsize(final)
-        writer, tmp_path = None, None
+            _fsync_path(temps[current])
+        shards[current]["num_bytes"] = os.path.getsize(temps[current])
+        writer = None
 
     results = _ordered_results(work_items, worker_fn, num_workers, chunk_size)
     try:
@@ -361,17 +408,18 @@ def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_it
         if writer is not None:
             with contextlib.suppress(Exception):
                 writer.close()
-        if tmp_path and os.path.exists(tmp_path):
-            os.remove(tmp_path)
+        _remove_temporary(temps)
         raise
     wall = time.perf_counter() - t0
-    for old in _shard_pattern_matches(output_dir, split):
-        if os.path.basename(old) not in names:
-            os.remove(old)
-
     num_samples = sum(s["num_samples"] for s in shards)
     num_bytes = sum(s["num_bytes"] for s in shards)
+    if not num_samples and existing.get("status") == "complete":
+        _remove_temporary(temps)
+        reasons = "; ".join(f"{s['item_id']}: {s['reason']}" for s in skipped[:5])
+        raise ValueError(f"every item of split {split!r} was skipped: nothing written, the "
+                         f"earlier complete split is kept (first reasons: {reasons}).")
     section = dict(split_metadata or {})
+    section.update(**(final_metadata() if final_metadata else {}))
     section.update(
         status="complete" if num_samples else "empty",
         num_items=num_items,
@@ -389,6 +437,7 @@ def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_it
         samples_per_s=round(num_samples / wall, 1) if wall > 0 else None,
         finished_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     )
+    _swap_in(output_dir, split, temps, names, existing, marker, top, check)
     with _naming_write_errors(meta_path, split):
         update_metadata(output_dir, split, section, top)
     log(f"[{split}] wrote {num_samples} samples from {section['num_items_used']} items "
