@@ -181,6 +181,15 @@ def test_the_splits_of_a_stage_k_dataset_come_from_one_model(stage1_data, tmp_pa
     assert stage_k.check_one_source(out, ["train"], source) == []
     assert stage_k.check_one_source(out, ["test"], stage_k.made_from(stage1_data,
                                                                      model_b)) == []
+    stage_k.check_made(out, "test", stage1_data, model_a)  # what a reproduction re-run checks
+    with pytest.raises(ValueError, match="the 'test' pairs made from .* move it aside"):
+        stage_k.check_made(out, "test", stage1_data, model_b)
+    import shutil
+
+    moved = str(tmp_path / "moved_input")  # a folder moved is the same input (its digest)
+    shutil.copytree(stage1_data, moved)
+    stage_k.check_made(out, "test", moved, link)
+    assert stage_k.check_one_source(out, ["test"], stage_k.made_from(moved, model_a)) == ["test"]
 
 
 def test_a_corrupted_input_shard_is_named(stage1_data, tmp_path):

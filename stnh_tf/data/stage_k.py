@@ -64,26 +64,30 @@ def _records(paths):
 
 def made_from(input_dir: str, model_dir) -> dict:
     """What a stage-k split records of the stage-(k-1) dataset and model it is made from:
-    ``input_dir`` and ``model_dir`` as absolute paths, and the model file's ``model_sha256``
-    (a folder's ``model.keras``; None where there is no such file)."""
+    ``input_dir`` and ``model_dir`` as absolute paths, the input's ``input_sha256`` (its train
+    split: :func:`stnh_tf.data.tfrecords.split_digest`) and the model file's ``model_sha256``
+    (a folder's ``model.keras``); None where there is no such split or file."""
+    from stnh_tf.data.tfrecords import split_digest
     from stnh_tf.paths import file_sha256
 
     model_file = os.path.join(model_dir, "model.keras") if os.path.isdir(model_dir) else model_dir
     return {"input_dir": os.path.abspath(input_dir), "model_dir": os.path.abspath(model_dir),
+            "input_sha256": split_digest(input_dir, "train"),
             "model_sha256": file_sha256(model_file) if os.path.isfile(model_file) else None}
 
 
 def _same_source(section: dict, source: dict) -> bool:
     """Whether a split's ``section`` was made from ``source`` (:func:`made_from`): the same
-    input folder and model (by the model's bytes where both record them, else by its path)."""
-    def real(path):
-        return os.path.realpath(path) if isinstance(path, str) else path
+    input dataset and model, each by its digest where both record one (wherever the folders lie
+    now: a folder moved is the same), else by its path."""
+    def same(name):
+        digest = f"{name}_sha256"
+        if section.get(digest) and source.get(digest):
+            return section[digest] == source[digest]
+        paths = [section.get(f"{name}_dir"), source[f"{name}_dir"]]
+        return len({os.path.realpath(p) if isinstance(p, str) else p for p in paths}) == 1
 
-    if real(section.get("input_dir")) != real(source["input_dir"]):
-        return False
-    if section.get("model_sha256") and source.get("model_sha256"):
-        return section["model_sha256"] == source["model_sha256"]
-    return real(section.get("model_dir")) == real(source["model_dir"])
+    return same("input") and same("model")
 
 
 def check_one_source(output_dir: str, splits, source: dict) -> list:
@@ -154,6 +158,24 @@ def default_splits(input_dir: str) -> list:
 
     return ["train", *([holdout.VAL_SPLIT] if data.has_split(input_dir, holdout.VAL_SPLIT)
                        else []), "test"]
+
+
+def check_made(output_dir: str, split: str, input_dir: str, model_dir: str) -> None:
+    """Refuse the complete ``split`` of ``output_dir`` where it was not made from ``input_dir``
+    and ``model_dir`` (:func:`made_from`; a run that reuses the pairs it made would otherwise
+    take those of an earlier model for its own).
+
+    Raises:
+      ValueError: naming the split, what it was made from and what is asked.
+    """
+    from stnh_tf.data import tfrecords as data
+
+    section, source = data.split_info(output_dir, split), made_from(input_dir, model_dir)
+    if not _same_source(section, source):
+        raise ValueError(f"{output_dir} holds the {split!r} pairs made from "
+                         f"{section.get('input_dir')} and the model {section.get('model_dir')}, "
+                         f"not from {source['input_dir']} and {source['model_dir']}: move it "
+                         "aside to make them again.")
 
 
 def check_stage_arguments(stage: int, input_dir: str, output_dir: str, splits, *,

@@ -97,6 +97,38 @@ def split_info(data_dir: str, split: str) -> dict:
     return info
 
 
+def split_digest(data_dir: str, split: str):
+    """The sha256 (hex) that tells ``split`` of ``data_dir`` apart wherever the dataset lies:
+    its shards as ``metadata.json`` lists them (names, bytes, pairs, and the sha256 of each
+    shard's first and last 64 KiB: records are of one size, so the sizes alone do not tell two
+    datasets apart) with the split's seed and protocol; ``None`` where it cannot be read."""
+    import hashlib
+    import json
+
+    try:
+        info = split_info(data_dir, split)
+        key = json.dumps({"shards": [(os.path.basename(s["file"]), s["num_bytes"],
+                                      s["num_samples"],
+                                      _ends_sha256(os.path.join(data_dir, s["file"])))
+                                     for s in info["shards"]],
+                          "seed": info.get("seed"), "protocol": info.get("protocol")},
+                         sort_keys=True)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+    return hashlib.sha256(key.encode()).hexdigest()
+
+
+def _ends_sha256(path: str, size: int = 1 << 16) -> str:
+    """The sha256 of the first and last ``size`` bytes of the file ``path`` (``OSError`` where
+    it cannot be read): what tells two shards of the same size apart at little cost."""
+    import hashlib
+
+    with open(path, "rb") as f:
+        head = f.read(size)
+        f.seek(max(os.fstat(f.fileno()).st_size - size, 0))
+        return hashlib.sha256(head + f.read(size)).hexdigest()
+
+
 def shard_paths(data_dir: str, split: str, verify: str = "size") -> list:
     """Paths of ``split``'s shards, in order, as listed in ``metadata.json``.
 

@@ -169,16 +169,15 @@ class Reproduction:
         from stnh_tf.data import stage_k
         from stnh_tf.data import tfrecords as data
 
-        d = self.data_dir(stage)
+        d, model = self.data_dir(stage), self.model_dir(f"stage{stage - 1}")
         for split in ("train", "test"):
-            if data.has_split(d, split):
+            if data.has_split(d, split):  # (made from this stage-(k-1) model, or refused)
+                stage_k.check_made(d, split, self.data_dir(stage - 1), model)
                 continue
-            self.printer(f"[data] stage-{stage} {split} pairs from "
-                         f"{self.model_dir(f'stage{stage - 1}')}")
+            self.printer(f"[data] stage-{stage} {split} pairs from {model}")
             self._timed("data", lambda: stage_k.make_stage_dataset(
-                stage, self.data_dir(stage - 1), d, split,
-                model_dir=self.model_dir(f"stage{stage - 1}"), num_workers=self.budget.num_workers,
-                log=lambda *a, **k: None))
+                stage, self.data_dir(stage - 1), d, split, model_dir=model,
+                num_workers=self.budget.num_workers, log=lambda *a, **k: None))
         return d
 
     # -- training -------------------------------------------------------------------------------

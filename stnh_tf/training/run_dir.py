@@ -13,7 +13,6 @@ trains, its lock (:class:`RunLock`, ``.stnh_tf_run.lock``).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import numbers
 import os
@@ -166,33 +165,13 @@ def data_digests(fields: dict) -> dict:
 
     out = {}
     if fields.get("data_dir"):
-        try:
-            split = tfrecords.split_info(fields["data_dir"], "train")
-            key = json.dumps({"shards": [(os.path.basename(s["file"]), s["num_bytes"],
-                                          s["num_samples"],
-                                          _ends_sha256(os.path.join(fields["data_dir"],
-                                                                    s["file"])))
-                                         for s in split["shards"]],
-                              "seed": split.get("seed"), "protocol": split.get("protocol")},
-                             sort_keys=True)
-            out["data_dir"] = hashlib.sha256(key.encode()).hexdigest()
-        except (OSError, ValueError, KeyError, TypeError, AttributeError):
-            out["data_dir"] = None
+        out["data_dir"] = tfrecords.split_digest(fields["data_dir"], "train")
     for name in ("image_dir", "unlabeled_image_dir", "unlabeled_pairs_dir"):
         if fields.get(name):
             found = ledger.listing_digest(fields[name],
                                           fields.get("max_images", 0) if name == "image_dir" else 0)
             out[name] = found and found["sha256"]
     return out
-
-
-def _ends_sha256(path: str, size: int = 1 << 16) -> str:
-    """The sha256 of the first and last ``size`` bytes of the file ``path`` (``OSError`` where
-    it cannot be read): what tells two shards of the same size apart at little cost."""
-    with open(path, "rb") as f:
-        head = f.read(size)
-        f.seek(max(os.fstat(f.fileno()).st_size - size, 0))
-        return hashlib.sha256(head + f.read(size)).hexdigest()
 
 
 def config_document(cfg: TrainConfig) -> dict:
