@@ -15,7 +15,14 @@ library versions of the run that wrote the card (:func:`stnh_tf.provenance.machi
 
 replaces one stage of the weights already shipped (same file name, the other stages' files and
 card entries kept; with ``--init_from_previous`` the replaced stage's entry is kept as the new
-entry's ``init_from_run``) and re-computes the bundled check.
+entry's ``init_from_run``) and re-computes the bundled check; without ``--eval_json`` the card's
+evaluation is kept marked ``evaluation_stale``.
+
+Every model and ``--eval_json`` is read and the new files written and checked in a staging folder
+inside ``--weights_dir`` before anything shipped is replaced; files, manifest and card then go in
+together, or nothing does. Weights whose bundled check is worse than the card they replace says
+are refused unless ``--allow_worse``; the printed JSON's ``bundled_check_change`` lists the
+numbers that moved (old, new).
 
   python -m experiments.ship_weights --refresh_check
 
@@ -52,11 +59,17 @@ flags.DEFINE_bool("refresh_evaluation", False, "Only re-measure the card's evalu
                   "shipped weights in --weights_dir on pairs made from --test_image_dir.")
 flags.DEFINE_string("test_image_dir", None, "--refresh_evaluation: the test photographs the "
                     "card was measured on (the coco_mini test photographs).")
+flags.DEFINE_bool("allow_worse", False, "Ship weights whose bundled check is worse than the "
+                  "card they replace says (refused without it, nothing replaced).")
 FLAGS = flags.FLAGS
 
 
 def main(argv):
     del argv
+    from stnh_tf.inference import model_files
+
+    if not FLAGS.weights_dir:  # (so that the package's folder is checked apart from the inputs)
+        FLAGS.weights_dir = model_files.default_weights_dir()
     with common.user_errors("ship_weights"):
         common.check_flags_apart(("weights_dir",), ("model_dir", "eval_json"))
     if FLAGS.refresh_evaluation != bool(FLAGS.test_image_dir):
@@ -73,8 +86,9 @@ def main(argv):
                 card = card_evaluation.refresh_card(FLAGS.weights_dir, FLAGS.test_image_dir)
             out["evaluation"] = sorted(card["evaluation"])
         if FLAGS.refresh_check:
-            out["bundled_check"] = shipped_weights.refresh_check(FLAGS.weights_dir)[
-                "bundled_check"]
+            with common.user_errors("ship_weights"):
+                out["bundled_check"] = shipped_weights.refresh_check(FLAGS.weights_dir)[
+                    "bundled_check"]
         print(json.dumps(out))
         return
     if not FLAGS.model_dir:
@@ -82,15 +96,22 @@ def main(argv):
     if FLAGS.replace_stage is not None:
         if len(FLAGS.model_dir) != 1:
             raise app.UsageError("--replace_stage takes exactly one --model_dir.")
-        card = shipped_weights.replace_stage(FLAGS.replace_stage, FLAGS.model_dir[0],
-                                             FLAGS.weights_dir, FLAGS.eval_json,
-                                             FLAGS.init_from_previous)
-        print(json.dumps({"replaced": card["stages"][FLAGS.replace_stage - 1]["file"]}))
+        with common.user_errors("ship_weights"):
+            card = shipped_weights.replace_stage(FLAGS.replace_stage, FLAGS.model_dir[0],
+                                                 FLAGS.weights_dir, FLAGS.eval_json,
+                                                 FLAGS.init_from_previous, FLAGS.allow_worse)
+        print(json.dumps({"replaced": card["stages"][FLAGS.replace_stage - 1]["file"],
+                          "bundled_check_change": card["bundled_check_change"],
+                          **({"evaluation_stale": card["evaluation_stale"]}
+                             if "evaluation_stale" in card else {})}))
         return
     if FLAGS.init_from_previous:
         raise app.UsageError("--init_from_previous goes with --replace_stage.")
-    card = shipped_weights.ship(FLAGS.model_dir, FLAGS.weights_dir, FLAGS.eval_json)
-    print(json.dumps({"shipped": [s["file"] for s in card["stages"]]}))
+    with common.user_errors("ship_weights"):
+        card = shipped_weights.ship(FLAGS.model_dir, FLAGS.weights_dir, FLAGS.eval_json,
+                                    FLAGS.allow_worse)
+    print(json.dumps({"shipped": [s["file"] for s in card["stages"]],
+                      "bundled_check_change": card["bundled_check_change"]}))
 
 
 if __name__ == "__main__":

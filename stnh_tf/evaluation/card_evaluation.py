@@ -190,5 +190,6 @@ def refresh_card(weights_dir: str | None, test_image_dir: str, log=print) -> dic
     with open(path) as f:
         card = json.load(f)
     card = refresh(weights_dir, card, test_image_dir, log)
+    card.pop("evaluation_stale", None)  # (re-measured on the files shipped now)
     atomic_write_json(path, card)
     return card

@@ -13,83 +13,226 @@ from __future__ import annotations
 import json
 import os
 
-from stnh_tf.paths import atomic_write_json, stage_record_path
+from stnh_tf.paths import atomic_write_bytes, atomic_write_json, stage_record_path
 from stnh_tf.provenance import machine_info
 
 
-def ship(model_dirs, weights_dir=None, eval_json=None) -> dict:
+def ship(model_dirs, weights_dir=None, eval_json=None, allow_worse: bool = False) -> dict:
     """Copy the trained stages ``model_dirs`` (in order) into ``weights_dir`` (default: the
-    package's ``stnh_tf/weights``) with the manifest and the model card; returns the card."""
+    package's ``stnh_tf/weights``) with the manifest and the model card; returns the card.
+
+    Every model and ``eval_json`` is read, and the new files written and checked in a staging
+    folder, before anything shipped is replaced; the files, manifest and card then go in
+    together (:func:`_install`), or nothing does.
+
+    Raises:
+      FileNotFoundError: a model or ``eval_json`` that is not there.
+      ValueError: a bundled-check number worse than the card being replaced says
+        (:func:`worse_checks`) while ``allow_worse`` is off.
+    """
     from stnh_tf.inference import model_files
 
     weights_dir = weights_dir or model_files.default_weights_dir()
-    os.makedirs(weights_dir, exist_ok=True)
-    card = {"stages": []}
-    names = []
-    for k, d in enumerate(model_dirs, start=1):
-        card["stages"].append(_copy_stage(d, weights_dir, f"stage{k}.keras"))
-        names.append(os.path.join(weights_dir, card["stages"][-1]["file"]))
-    model_files.write_manifest(os.path.join(weights_dir, "default.json"), names,
-                               description=f"{len(names)}-stage hierarchy shipped with stnh-tf")
+    stages = [_read_stage(d, f"stage{k}.keras") for k, d in enumerate(model_dirs, start=1)]
+    card = {"stages": [entry for _, entry in stages]}
     if eval_json:
-        with open(eval_json) as f:
-            card["evaluation"] = json.load(f)
-    return _write_rechecked(weights_dir, card)
+        card["evaluation"] = _read_json(eval_json)
+    os.makedirs(weights_dir, exist_ok=True)
+    old_card = _card_if_any(weights_dir)
+    return _install(weights_dir, {e["file"]: m for m, e in stages}, card, old_card, allow_worse,
+                    manifest=f"{len(stages)}-stage hierarchy shipped with stnh-tf")
 
 
-def _copy_stage(model_dir, weights_dir, name) -> dict:
-    """Save run ``model_dir``'s model as ``weights_dir/name``; returns its card entry (file,
-    source, the run's config and result without the history). ``model_dir`` may also be a
-    chunked run's finished ``stage<k>.keras`` (:mod:`stnh_tf.training.chunks`): its config and
-    chunks then come from the ``stage<k>.json`` beside it."""
+def _read_stage(model_dir, name) -> tuple:
+    """``(model, card entry)`` of run ``model_dir`` to ship as ``name``: the entry holds the
+    file, the source, the run's config and result without the history. ``model_dir`` may also
+    be a chunked run's finished ``stage<k>.keras`` (:mod:`stnh_tf.training.chunks`): its config
+    and chunks then come from the ``stage<k>.json`` beside it."""
     from stnh_tf.modeling import runner
 
-    runner.load_model(model_dir).save(os.path.join(weights_dir, name))  # no optimizer state
+    model = runner.load_model(model_dir)
     entry = {"file": name, "source": os.path.abspath(model_dir)}
     record = stage_record_path(model_dir)
     if os.path.isfile(model_dir) and os.path.exists(record):
-        with open(record) as f:
-            doc = json.load(f)
+        doc = _read_json(record)
         entry.update(config=doc["config"], chunks=doc["chunks"], final_step=doc["final_step"],
                      wall_s=doc["wall_s"], machines=doc["machines"])
     for extra in ("config.json", "result.json"):
         path = os.path.join(model_dir, extra)
         if os.path.exists(path):
-            with open(path) as f:
-                doc = json.load(f)
+            doc = _read_json(path)
             entry[extra[:-5]] = ({key: v for key, v in doc.items() if key != "history"}
                                  if extra == "result.json" else doc)
-    return entry
+    return model, entry
 
 
 def replace_stage(stage: int, model_dir, weights_dir=None, eval_json=None,
-                  init_from_previous: bool = False) -> dict:
+                  init_from_previous: bool = False, allow_worse: bool = False) -> dict:
     """Replace stage ``stage`` (1-based) of already shipped weights by the trained run
     ``model_dir``, keeping the other stages' files and card entries; returns the card.
 
     The card's entry for the stage is rebuilt from the run; with ``init_from_previous`` (the run
     was initialised from the stage it replaces) the replaced entry is kept in it as
     ``init_from_run``, so the card records the whole chain of runs. ``eval_json`` (if given)
-    replaces the card's ``evaluation``; the bundled check is re-computed.
+    replaces the card's ``evaluation``; without it the evaluation, measured on the old stage, is
+    kept marked ``evaluation_stale`` (``ship_weights --refresh_evaluation`` re-measures it). The
+    bundled check is re-computed; files and card go in together (:func:`_install`).
 
     Raises:
-      FileNotFoundError: no model card in ``weights_dir``.
-      ValueError: ``stage`` is not one of the shipped stages.
+      FileNotFoundError: no model card in ``weights_dir``, no model in ``model_dir``, or no
+        ``eval_json``.
+      ValueError: ``stage`` is not one of the shipped stages; a bundled-check number worse than
+        the card says (:func:`worse_checks`) while ``allow_worse`` is off.
     """
     weights_dir, card = _shipped_card(weights_dir)
     if isinstance(stage, bool) or not 1 <= int(stage) <= len(card["stages"]):
         raise ValueError(f"stage must be one of 1..{len(card['stages'])} (the shipped stages); "
                          f"received {stage!r}.")
     stage = int(stage)
+    old_card = json.loads(json.dumps(card))
     previous = card["stages"][stage - 1]
-    entry = _copy_stage(model_dir, weights_dir, previous["file"])  # the manifest's name stays
+    model, entry = _read_stage(model_dir, previous["file"])  # the manifest's name stays
     if init_from_previous:
         entry["init_from_run"] = previous
     card["stages"][stage - 1] = entry
     if eval_json:
-        with open(eval_json) as f:
-            card["evaluation"] = json.load(f)
-    return _write_rechecked(weights_dir, card)
+        card["evaluation"] = _read_json(eval_json)
+        card.pop("evaluation_stale", None)
+    elif "evaluation" in card:
+        card["evaluation_stale"] = (
+            f"stage {stage} ({previous['file']}) was replaced after this evaluation was "
+            "measured: re-measure it (experiments.ship_weights --refresh_evaluation).")
+    return _install(weights_dir, {previous["file"]: model}, card, old_card, allow_worse)
+
+
+WORSE_TOLERANCE = (0.05, 0.05)
+"""``(relative, px)``: a bundled-check MACE counts as worse beyond ``old * 1.05 + 0.05`` px
+(the same model's number moves by far less between CPUs and OpenCV paths)."""
+
+
+def worse_checks(old: dict, new: dict) -> dict:
+    """``{key: [old, new]}`` of the bundled-check MACEs (``[photometric_]estimate_mace_{k}_stages``
+    and their ``unsearched``/``tta`` forms) both checks hold where ``new`` is worse than ``old``
+    beyond :data:`WORSE_TOLERANCE`.
+
+    >>> worse_checks({"estimate_mace_1_stages": 2.0}, {"estimate_mace_1_stages": 3.1})
+    {'estimate_mace_1_stages': [2.0, 3.1]}
+    """
+    import re
+
+    rel, px = WORSE_TOLERANCE
+    return {k: [old[k], v] for k, v in (new or {}).items()
+            if re.fullmatch(r"(photometric_)?((un)?searched_|tta_)?estimate_mace_\d+_stages", k)
+            and isinstance(old.get(k) if old else None, (int, float))
+            and v > old[k] * (1 + rel) + px}
+
+
+def _install(weights_dir, models: dict, card: dict, old_card, allow_worse, manifest=None):
+    """Save ``models`` (``{file name: Keras model}``) into a staging folder inside
+    ``weights_dir``, re-compute ``card``'s bundled check there (with the shipped files of the
+    stages not replaced), refuse a worse check than ``old_card``'s unless ``allow_worse``, then
+    move the files into place, the old ones aside, and write the manifest (``manifest``: its
+    description; None: kept) and the card; where any of that fails, the old files, manifest and
+    card are put back. The card records ``bundled_check_change`` (the numbers that moved)."""
+    import shutil
+
+    for stale in os.listdir(weights_dir):  # (left by a run killed before)
+        pid = stale[len(STAGING_PREFIX):]
+        if stale.startswith(STAGING_PREFIX) and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(os.path.join(weights_dir, stale), ignore_errors=True)
+    staging = os.path.join(weights_dir, f"{STAGING_PREFIX}{os.getpid()}")
+    os.makedirs(staging)  # (FileExistsError: this process is shipping into it already)
+    return _install_staged(weights_dir, staging, models, card, old_card, allow_worse, manifest)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, manifest):
+    """:func:`_install` in the staging folder ``staging`` (removed at the end)."""
+    import shutil
+
+    from stnh_tf.inference import model_files
+
+    try:
+        for name, model in models.items():
+            model.save(os.path.join(staging, name))  # (a save cut short: in staging only)
+        card["bundled_check"] = bundled_check([
+            os.path.join(staging if s["file"] in models else weights_dir, s["file"])
+            for s in card["stages"]])
+        card["machine"] = machine_info()
+        before = (old_card or {}).get("bundled_check") or {}
+        worse = worse_checks(before, card["bundled_check"])
+        if worse and not allow_worse:
+            raise ValueError(f"the new weights' bundled check is worse than the card in "
+                             f"{weights_dir} says ({_pairs_text(worse)}): nothing replaced; "
+                             "pass --allow_worse to ship them anyway.")
+        card["bundled_check_change"] = {
+            k: [before[k], v] for k, v in card["bundled_check"].items()
+            if isinstance(v, float) and isinstance(before.get(k), float) and v != before[k]}
+        kept = {n: _bytes_if_any(os.path.join(weights_dir, n))
+                for n in ("default.json", "model_card.json")}
+        aside = os.path.join(staging, ".previous")
+        os.makedirs(aside)
+        moved, placed = [], []
+        try:
+            for name in models:
+                target = os.path.join(weights_dir, name)
+                if os.path.exists(target):
+                    os.replace(target, os.path.join(aside, name))
+                    moved.append(name)
+                os.replace(os.path.join(staging, name), target)
+                placed.append(name)
+            if manifest is not None:
+                model_files.write_manifest(os.path.join(weights_dir, "default.json"),
+                                           [os.path.join(weights_dir, s["file"])
+                                            for s in card["stages"]], description=manifest)
+            atomic_write_json(os.path.join(weights_dir, "model_card.json"), card)
+        except BaseException:
+            for name in placed:
+                os.replace(os.path.join(weights_dir, name), os.path.join(staging, name))
+            for name in moved:
+                os.replace(os.path.join(aside, name), os.path.join(weights_dir, name))
+            for name, data in kept.items():
+                if data is not None:
+                    atomic_write_bytes(os.path.join(weights_dir, name), data)
+            raise
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return card
+
+
+STAGING_PREFIX = ".stnh_tf_ship."
+"""The hidden folder inside the weights folder that new files are written and checked in (its
+name ends in the shipping process's id; one of a process no longer running is removed)."""
+
+
+def _pairs_text(worse: dict) -> str:
+    return ", ".join(f"{k} {a:.3f} -> {b:.3f} px" for k, (a, b) in sorted(worse.items()))
+
+
+def _bytes_if_any(path):
+    if not os.path.exists(path):
+        return None
+    with open(path, "rb") as f:
+        return f.read()
+
+
+def _read_json(path):
+    with open(path) as f:
+        return json.load(f)
+
+
+def _card_if_any(weights_dir):
+    path = os.path.join(weights_dir, "model_card.json")
+    return _read_json(path) if os.path.exists(path) else None
 
 
 BUNDLED_CHECK = {"source": "bundled", "split": "test", "seed": 0, "samples_per_image": 3,

@@ -1,0 +1,176 @@
+"""A hostile review of ``experiments.ship_weights`` (issue 79's fourth round): each test fails
+on the code before it.
+
+Data loss: ``ship`` replaced the shipped files one by one, so a wrong second ``--model_dir``, a
+mistyped ``--eval_json`` or a failed check left new weights under the old card; a save cut short
+truncated a shipped ``.keras`` (Keras opens the target for writing first); a model worse on the
+bundled check replaced a better one without a word; without ``--weights_dir`` the package's folder
+was not checked apart from ``--model_dir`` (swapping two shipped stages lost one). Silently
+wrong: ``replace_stage`` without ``--eval_json`` kept the old stage's evaluation as the card's.
+Crashes: ordinary errors of the binary ended in tracebacks.
+
+The bundled check itself (minutes) is replaced by a stand-in here: these tests are about which
+files end where; ``tests/test_ship_weights.py`` tests the check."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import narrow_network, to_bar
+from stnh_tf.inference import shipped_weights
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _constant_model(path, h_pix):
+    from stnh_tf.modeling import models
+
+    with narrow_network():
+        model = models.build_stn_homography()
+    fc2 = model.get_layer("regression").get_layer("fc2")
+    kernel, _ = fc2.get_weights()
+    fc2.set_weights([np.zeros_like(kernel), to_bar(h_pix).ravel()[:8].astype("float32")])
+    model.save(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("runs")
+    shift = np.array([[1.0, 0, 3.0], [0, 1.0, -2.0], [0, 0, 1.0]])
+    return {"a": _constant_model(str(d / "a.keras"), np.eye(3)),
+            "b": _constant_model(str(d / "b.keras"), shift)}
+
+
+@pytest.fixture()
+def check(monkeypatch):
+    """The bundled check's stand-in: the MACE ``scores`` gives each stage file's bytes."""
+    scores = {}
+
+    def stand_in(paths):
+        digest = hashlib.sha256(b"".join(open(p, "rb").read() for p in paths)).hexdigest()
+        return {"estimate_mace_1_stages": scores.get("next", 1.0), "files": digest}
+
+    monkeypatch.setattr(shipped_weights, "bundled_check", stand_in)
+    return scores
+
+
+def _state(folder):
+    return {n: hashlib.sha256(open(os.path.join(folder, n), "rb").read()).hexdigest()
+            for n in sorted(os.listdir(folder))}
+
+
+@pytest.fixture()
+def shipped(tmp_path, runs, check):
+    w = tmp_path / "weights"
+    check["next"] = 2.0
+    shipped_weights.ship([runs["a"], runs["a"]], str(w),
+                         eval_json=_eval(tmp_path, 0.79))
+    return str(w), _state(w)
+
+
+def _eval(tmp_path, mace):
+    path = tmp_path / f"eval_{mace}.json"
+    path.write_text(json.dumps({"model": {"mace": mace}}))
+    return str(path)
+
+
+def test_a_failed_ship_replaces_nothing(shipped, runs, tmp_path):
+    w, before = shipped
+    with pytest.raises(FileNotFoundError):
+        shipped_weights.ship([runs["b"], str(tmp_path / "typo")], w)
+    assert _state(w) == before
+    with pytest.raises(FileNotFoundError):
+        shipped_weights.ship([runs["b"], runs["b"]], w, eval_json=str(tmp_path / "typo.json"))
+    assert _state(w) == before
+
+
+def test_a_save_cut_short_leaves_the_shipped_file(shipped, runs, monkeypatch):
+    import keras
+
+    w, before = shipped
+
+    def full_disk(self, path, *a, **k):
+        with open(path, "wb") as f:
+            f.write(b"PK\x03\x04 cut")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(keras.Model, "save", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        shipped_weights.replace_stage(2, runs["b"], w)
+    assert _state(w) == before  # (was: stage2.keras of 11 bytes)
+
+
+def test_a_failed_card_write_puts_the_old_files_back(shipped, runs, monkeypatch):
+    w, before = shipped
+    real = shipped_weights.atomic_write_json
+
+    def failing(path, doc):
+        if path.endswith("model_card.json"):
+            raise OSError(28, "No space left on device")
+        return real(path, doc)
+
+    monkeypatch.setattr(shipped_weights, "atomic_write_json", failing)
+    with pytest.raises(OSError):
+        shipped_weights.ship([runs["b"]], w)
+    assert _state(w) == before
+
+
+def test_worse_weights_are_refused_unless_allowed(shipped, runs, check):
+    w, before = shipped
+    check["next"] = 3.1  # the card says 2.0
+    with pytest.raises(ValueError, match=r"worse than the card .* 2.000 -> 3.100 px.*allow_worse"):
+        shipped_weights.replace_stage(1, runs["b"], w)
+    assert _state(w) == before
+    check["next"] = 2.04  # within the tolerance: the same model on another CPU
+    card = shipped_weights.replace_stage(1, runs["b"], w)
+    assert card["bundled_check_change"] == {"estimate_mace_1_stages": [2.0, 2.04]}
+    check["next"] = 3.1
+    card = shipped_weights.replace_stage(1, runs["a"], w, allow_worse=True)
+    assert card["bundled_check_change"] == {"estimate_mace_1_stages": [2.04, 3.1]}
+    assert json.load(open(os.path.join(w, "model_card.json"))) == card
+    assert not [n for n in os.listdir(w) if n.startswith(".")]  # no staging folder left
+
+
+def test_a_replaced_stage_marks_the_old_evaluation_stale(shipped, runs, tmp_path):
+    w, _ = shipped
+    card = shipped_weights.replace_stage(2, runs["b"], w)
+    assert card["evaluation"] == {"model": {"mace": 0.79}}  # kept, but said to be stale
+    assert "stage 2 (stage2.keras) was replaced" in card["evaluation_stale"]
+    card = shipped_weights.replace_stage(2, runs["b"], w, eval_json=_eval(tmp_path, 0.5))
+    assert card["evaluation"] == {"model": {"mace": 0.5}} and "evaluation_stale" not in card
+
+
+def _binary(*args, default_dir=None):
+    """experiments.ship_weights in a subprocess; ``default_dir`` stands in for the package's
+    weights folder (so that no test can write into the checkout's)."""
+    code = ("import sys; from absl import app; from stnh_tf.inference import model_files\n"
+            f"model_files.default_weights_dir = lambda: {default_dir!r}\n"
+            "import experiments.ship_weights as m; sys.argv = ['ship_weights', *sys.argv[1:]]\n"
+            "app.run(m.main)")
+    return subprocess.run([sys.executable, "-c", code, *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_the_binary_checks_the_default_folder_and_says_errors_in_one_line(shipped, tmp_path):
+    w, before = shipped
+    proc = _binary(f"--model_dir={w}/stage2.keras,{w}/stage1.keras", default_dir=w)
+    assert proc.returncode != 0 and "holds --model_dir" in proc.stderr, proc.stderr[-2000:]
+    assert _state(w) == before
+    for args, message in (
+            (["--replace_stage=5", f"--model_dir={w}/stage1.keras",
+              f"--weights_dir={tmp_path / 'other'}"], "model_card.json"),
+            ([f"--model_dir={tmp_path / 'no_such_run'}", f"--weights_dir={tmp_path / 'x'}"],
+             "no trained model at"),
+            (["--refresh_check", f"--weights_dir={tmp_path / 'empty'}"], "model_card.json")):
+        proc = _binary(*args, default_dir=w)
+        assert proc.returncode != 0 and message in proc.stderr, (args, proc.stderr[-2000:])
+        assert "Traceback" not in proc.stderr, args
+    assert _state(w) == before
