@@ -145,6 +145,7 @@ def test_a_config_json_is_a_run_only_if_this_project_wrote_it(tmp_path, name, co
         with pytest.raises(FileExistsError, match="holds a finished model"):
             run_dir.prepare_model_dir(cfg)
         assert run_dir.prepare_model_dir(cfg, overwrite=True) is True
+        run_dir.discard_previous_run(str(folder))  # (as a training call that ends well)
         assert sorted(os.listdir(folder)) == ["config.json", "notes.txt"]
         assert json.loads((folder / "config.json").read_text())["format_version"] == 1
         return

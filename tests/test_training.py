@@ -369,7 +369,10 @@ def test_overwrite_deletes_finished_or_other_runs_and_resumes_an_unfinished_one(
     done = make_run("finished", True)
     with pytest.raises(FileExistsError, match="--overwrite"):
         run_dir.prepare_model_dir(done)
-    run_dir.prepare_model_dir(done, overwrite=True)
+    run_dir.prepare_model_dir(done, overwrite=True)  # (set aside until the new run ends well)
+    assert sorted(p.name for p in (tmp_path / "finished").iterdir()) == [".previous_run",
+                                                                          "config.json"]
+    run_dir.discard_previous_run(str(tmp_path / "finished"))
     assert sorted(p.name for p in (tmp_path / "finished").iterdir()) == ["config.json"]
 
 
@@ -641,7 +644,8 @@ def test_overwrite_never_deletes_a_folder_that_is_not_a_run(tmp_path):
         with pytest.raises(ValueError, match=re.escape(str(mine / "config.json"))):
             run_dir.prepare_model_dir(_cfg("d", mine), overwrite=True)
         assert (mine / "notes.txt").exists()
-    # A real finished run: --overwrite deletes what the run wrote, and only that.
+    # A real finished run: --overwrite replaces what the run wrote, and only that (set aside
+    # until the new run ends well, then deleted).
     run = tmp_path / "run"
     run_dir.prepare_model_dir(_cfg("d", run))
     assert json.loads((run / "config.json").read_text())["format"] == "stnh_tf.train_config"
@@ -649,6 +653,9 @@ def test_overwrite_never_deletes_a_folder_that_is_not_a_run(tmp_path):
     (run / "logs").mkdir()
     (run / "my_notes.txt").write_text("kept")
     run_dir.prepare_model_dir(_cfg("d", run, learning_rate=0.5), overwrite=True)
+    assert sorted(p.name for p in (run / run_dir.PREVIOUS_RUN).iterdir()) == [
+        "config.json", "logs", "model.keras"]
+    run_dir.discard_previous_run(str(run))
     assert sorted(p.name for p in run.iterdir()) == ["config.json", "my_notes.txt"]
 
 
@@ -686,6 +693,30 @@ def test_failed_start_leaves_the_folder_as_it_was(tiny_data, tmp_path, narrow):
             training.train(_cfg(tiny_data, model_dir), printer=_quiet, stream_fn=broken_stream)
         assert model_dir.exists() == existed and not (existed and list(model_dir.iterdir()))
         assert run_dir.prepare_model_dir(_cfg(tiny_data, model_dir, learning_rate=0.02)) is True
+
+
+def test_an_overwrite_failing_before_its_first_checkpoint_puts_the_finished_run_back(
+        tiny_data, tmp_path, narrow):
+    """--overwrite deleted the finished run before the new one had anything: a retrain that
+    failed in its first step (here the stream; an out-of-memory, an I/O error) left an empty
+    folder. The finished run is set aside and put back; a retrain that ends well deletes it."""
+    run = tmp_path / "run"
+    run_dir.prepare_model_dir(_cfg(tiny_data, run))
+    (run / "model.keras").write_text("finished model")
+    (run / "result.json").write_text('{"final_step": 7}')
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+
+    def broken_stream(cfg, split, start_step):
+        raise MemoryError("the retrain's first step")
+
+    new = _cfg(tiny_data, run, learning_rate=0.02, train_steps=2, checkpoint_every=2)
+    with pytest.raises(MemoryError):
+        training.train(new, overwrite=True, printer=_quiet, stream_fn=broken_stream)
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+    assert sorted(p.name for p in run.iterdir()) == ["config.json", "model.keras", "result.json"]
+    result = training.train(new, overwrite=True, printer=_quiet)
+    assert result["final_step"] == 2 and not (run / run_dir.PREVIOUS_RUN).exists()
+    assert (run / "model.keras").read_bytes() != before["model.keras"]
 
 
 def test_corrupted_shard_during_training_names_the_file(tiny_data, tmp_path, narrow):

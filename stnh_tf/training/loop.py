@@ -314,7 +314,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     stream_fn = stream_fn or (train_streams.generated_stream if generated
                               else train_streams.training_stream)
     made_dir = not os.path.exists(cfg.model_dir)
-    lock, new_run = None, False
+    lock, new_run, failed = None, False, False
     try:
         if cluster.is_chief:  # several processes: only the chief touches model_dir
             lock = run_dir.RunLock(cfg.model_dir)  # one run per folder, held to the end
@@ -435,10 +435,13 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             atomic_write_json(os.path.join(cfg.model_dir, run_dir.RESULT_FILE), result)
         return result
     except BaseException:
+        failed = True
         if new_run:
             run_dir.undo_new_run(cfg.model_dir, made_dir)
         raise
     finally:
+        if not failed and cluster.is_chief:  # (the run --overwrite replaced: no longer needed)
+            run_dir.discard_previous_run(cfg.model_dir)
         keras.mixed_precision.set_global_policy("float32")
         if hasattr(train_ds, "close"):  # a PairStream's generator processes
             train_ds.close()

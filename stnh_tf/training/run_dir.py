@@ -44,7 +44,7 @@ CHECKPOINT_DIR = "checkpoint"  # its files: stnh_tf.training.checkpoints, commit
 CHECKPOINT_STATE = "state.json"
 # The finished stages' estimates of an in-memory stage-k run's pairs, per split (save_estimates).
 ESTIMATES_FILES = {"train": "stage_estimates_train.npz", "val": "stage_estimates_val.npz"}
-# What a run writes in model_dir besides config.json: all that --overwrite deletes (remove_run).
+# What a run writes in model_dir besides config.json: all that --overwrite replaces (set_aside).
 RUN_ENTRIES = (FINAL_MODEL, RESULT_FILE, CHECKPOINT_DIR, LOGS_DIR, *ESTIMATES_FILES.values())
 # The fields by which a config.json written before CONFIG_MARKER is recognised as a run's (with
 # their values: _legacy_config_problem).
@@ -284,9 +284,10 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
     ``model_dir`` must be missing, empty, or a training run (its ``config.json`` is one of ours:
     :func:`read_run_config`); any other folder is refused (``FileExistsError``/``ValueError``),
     with or without ``overwrite``. A finished run is refused without ``overwrite``, and so is an
-    unfinished run of another configuration. ``overwrite`` deletes, from a finished run or a run
-    of another configuration, only what a run writes (:func:`remove_run`; other files in the
-    folder stay); an unfinished run of the same configuration is resumed even then, so that
+    unfinished run of another configuration. ``overwrite`` moves, from a finished run or a run
+    of another configuration, only what a run writes aside (:func:`set_aside`; other files in
+    the folder stay): :func:`train` puts it back where the new run fails before its first
+    checkpoint and deletes it once a training call ends well; an unfinished run of the same configuration is resumed even then, so that
     re-running an interrupted ``--overwrite`` command continues it instead of wiping its
     checkpoints. :func:`train` runs every check of the flags and data (:func:`check_start`)
     before this."""
@@ -297,12 +298,13 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
     if os.path.exists(final) and not overwrite:
         raise FileExistsError(f"{cfg.model_dir} holds a finished model ({final}); pass --overwrite "
                               "to train it again.")
+    if not os.access(cfg.model_dir if os.path.exists(cfg.model_dir) else
+                     os.path.dirname(os.path.abspath(cfg.model_dir)), os.W_OK):
+        raise PermissionError(f"model_dir {cfg.model_dir} is not writable.")
     if overwrite and (os.path.exists(final) or diff):
-        remove_run(cfg.model_dir)
+        set_aside(cfg.model_dir)
         diff = {}
     os.makedirs(cfg.model_dir, exist_ok=True)
-    if not os.access(cfg.model_dir, os.W_OK):
-        raise PermissionError(f"model_dir {cfg.model_dir} is not writable.")
     if diff:
         # val_split's default changed (issue 78): the old value resumes, --overwrite would not
         hint = (f" (--val_split={diff['val_split'][0]} resumes it: the default was "
@@ -311,7 +313,12 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
                          f"{diff} (old, new); use the same flags to resume{hint}, or --overwrite "
                          "(which deletes its checkpoints).")
     new_run = not os.path.exists(config_path)
-    atomic_write_json(config_path, config_document(cfg))
+    try:
+        atomic_write_json(config_path, config_document(cfg))
+    except BaseException:
+        if new_run:
+            _put_back(cfg.model_dir)  # (the run --overwrite set aside)
+        raise
     return new_run
 
 
@@ -319,10 +326,7 @@ def remove_run(model_dir: str) -> None:
     """Delete what a training run writes in ``model_dir`` (:data:`RUN_ENTRIES` and its temporary
     files; ``config.json`` last, so that a deletion cut short still leaves a run) and nothing
     else."""
-    names = os.listdir(model_dir)
-    temporary = sorted(n for n in names if n.startswith("tmp-") and n.endswith(FINAL_MODEL)
-                       or ".json.tmp-" in n)
-    for name in [*RUN_ENTRIES, *temporary, CONFIG_FILE]:
+    for name in _run_names(model_dir):
         path = os.path.join(model_dir, name)
         if os.path.isdir(path) and not os.path.islink(path):
             shutil.rmtree(path)
@@ -330,17 +334,62 @@ def remove_run(model_dir: str) -> None:
             os.remove(path)
 
 
+PREVIOUS_RUN = ".previous_run"
+"""The folder inside ``model_dir`` that ``--overwrite`` moves the run it replaces into
+(:func:`set_aside`)."""
+
+
+def _run_names(model_dir: str) -> list:
+    """What a run wrote in ``model_dir`` that is there: :data:`RUN_ENTRIES`, its temporary
+    files and ``config.json`` last."""
+    names = os.listdir(model_dir)
+    temporary = sorted(n for n in names if n.startswith("tmp-") and n.endswith(FINAL_MODEL)
+                       or ".json.tmp-" in n)
+    return [n for n in [*RUN_ENTRIES, *temporary, CONFIG_FILE] if n in names]
+
+
+def set_aside(model_dir: str) -> None:
+    """Move what a run wrote in ``model_dir`` into its :data:`PREVIOUS_RUN` folder
+    (``config.json`` last), for ``--overwrite``: :func:`undo_new_run` puts it back where the new
+    run fails before its first checkpoint, :func:`discard_previous_run` deletes it. Where that
+    folder already holds a whole run (a run set aside before, whose replacement has not ended
+    well yet), what ``model_dir`` holds is that replacement's and is deleted instead; where it
+    holds part of one (a move cut short), the rest is moved in."""
+    aside = os.path.join(model_dir, PREVIOUS_RUN)
+    if os.path.isfile(os.path.join(aside, CONFIG_FILE)):
+        remove_run(model_dir)
+        return
+    os.makedirs(aside, exist_ok=True)
+    for name in _run_names(model_dir):
+        os.replace(os.path.join(model_dir, name), os.path.join(aside, name))
+
+
+def discard_previous_run(model_dir: str) -> None:
+    """Delete the run :func:`set_aside` kept, once the run replacing it has ended well."""
+    shutil.rmtree(os.path.join(model_dir, PREVIOUS_RUN), ignore_errors=True)
+
+
 def undo_new_run(model_dir: str, made_dir: bool) -> None:
     """After a failed start of a new run: unless a checkpoint was committed (then the same
-    command resumes it), remove what the start wrote (:func:`remove_run`), and ``model_dir``
-    itself if the start created it, so that the folder is as it was and a corrected command
-    starts cleanly."""
+    command resumes it), remove what the start wrote (:func:`remove_run`), put back the run
+    ``--overwrite`` set aside (:func:`set_aside`), and remove ``model_dir`` itself if the start
+    created it, so that the folder is as it was and a corrected command starts cleanly."""
     if os.path.exists(os.path.join(model_dir, CHECKPOINT_DIR, CHECKPOINT_STATE)) \
             or not os.path.isdir(model_dir):
         return
     remove_run(model_dir)
+    _put_back(model_dir)
     if made_dir and not os.listdir(model_dir):
         os.rmdir(model_dir)
+
+
+def _put_back(model_dir: str) -> None:
+    """Move the run :func:`set_aside` kept back into ``model_dir`` (which holds no run)."""
+    aside = os.path.join(model_dir, PREVIOUS_RUN)
+    if os.path.isdir(aside):
+        for name in _run_names(aside):
+            os.replace(os.path.join(aside, name), os.path.join(model_dir, name))
+        shutil.rmtree(aside, ignore_errors=True)
 
 
 def save_estimates(model_dir: str, split: str, key: str, h_prev: np.ndarray,
