@@ -238,3 +238,22 @@ def test_make_stage_dataset_cut_short_resumes_with_the_same_command(stage1_data,
     assert "train: complete in" in proc.stderr and "kept" in proc.stderr
     assert _digests(out, "train") == before
     assert data.split_info(out, "test")["num_samples"] == 2
+
+
+def _dies_on_the_second_item(item):
+    if item.index == 1:
+        os._exit(3)  # (as a decoder crashing in native code)
+    return []
+
+
+def test_a_worker_that_dies_is_said_in_one_line(tmp_path):
+    """A worker process dying (a decoder crash) ended make_dataset in a BrokenProcessPool
+    traceback; it is a ``ChildProcessError`` (an ``OSError``: the binaries' one-line errors)
+    naming the items and the way to find the one, and no temporary shard is left."""
+    from stnh_tf.data import writer
+
+    items = [writer.WorkItem(i, f"photo{i}.png") for i in range(4)]
+    with pytest.raises(ChildProcessError, match=r"photo\d.png \.\.\. photo\d.png .*num_workers=1"):
+        writer.write_sharded(str(tmp_path), "train", items, _dies_on_the_second_item,
+                             num_shards=1, num_workers=2, chunk_size=1, log=QUIET)
+    assert not [p for p in os.listdir(tmp_path) if ".tmp" in p or p.endswith(".tfrecord")]

@@ -142,9 +142,10 @@ def _ordered_results(items: Iterable, worker_fn: Callable, num_workers: int, chu
             cv2.setNumThreads(threads)
         return
     from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
 
     # spawn: workers start clean (no TensorFlow state forked from the parent); a worker that
-    # dies (e.g. a decoder crash) raises BrokenProcessPool here instead of hanging the run.
+    # dies (e.g. a decoder crash) breaks the pool: ChildProcessError below, not a hang.
     pool = ProcessPoolExecutor(num_workers, mp_context=multiprocessing.get_context("spawn"),
                                initializer=_init_worker)
     try:
@@ -162,7 +163,14 @@ def _ordered_results(items: Iterable, worker_fn: Callable, num_workers: int, chu
             if not pending:
                 break
             chunk, future = pending.popleft()
-            for item, (records, reason) in zip(chunk, future.result()):
+            try:
+                done = future.result()
+            except BrokenProcessPool:
+                raise ChildProcessError(
+                    f"a worker process stopped abruptly on one of the items {chunk[0].item_id} "
+                    f"... {chunk[-1].item_id} (a crash in an image decoder, or out of memory); "
+                    "run again with --num_workers=1 to see which item it is.") from None
+            for item, (records, reason) in zip(chunk, done):
                 yield item, records, reason
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
