@@ -8,21 +8,21 @@ Rows (1,1), (1,10), (1,0.1), (10,1), (0.1,1) by default (--weights=l2:l1,...), e
 budget's schedule (--steps overrides it for the ablation only; say so next to the table) and
 evaluated on the same stage-1 test pairs; the (1,1) and (10,1) rows with the budget's number of
 seeds (mean and range). Resumable: finished rows are kept, an interrupted row
-resumes from its checkpoint. Writes OUTPUT_DIR/table1.md and table1.json, keeping the rows of an
-earlier table there that --weights leaves out (where their models are still there, trained as many
-steps). Shares its data and models with experiments.reproduce (same OUTPUT_DIR, same --reuse).
+resumes from its checkpoint. Writes OUTPUT_DIR/table1.md and table1.json (table1_steps<N>.* with
+--steps other than the budget's), keeping the rows of an earlier table there that --weights leaves
+out (where their models are still there, trained as many steps). Shares its data and models with
+experiments.reproduce (same OUTPUT_DIR, same --reuse).
 """
 
 import dataclasses
-import os
 
 from absl import app, flags
 
 from experiments import common
 # (importing experiments.reproduce also defines the shared flags: --budget, --output_dir,
 # --source, --image_dir, --test_image_dir, --reuse)
-from experiments.reproduce import reproduction_from_flags
-from stnh_tf.paper import reproduce, tables
+from experiments.reproduce import interrupt_line, reproduction_from_flags
+from stnh_tf.paper import reproduce
 
 flags.DEFINE_integer("steps", 0, "Steps per row (0: the budget's).", lower_bound=0)
 flags.DEFINE_list("weights", [f"{a:g}:{b:g}" for a, b in reproduce.ABLATION_WEIGHTS],
@@ -39,14 +39,19 @@ def main(argv):
     except ValueError:
         raise SystemExit(f"--weights entries are l2:l1, one or more; received "
                          f"{FLAGS.weights}.") from None
-    with common.user_errors("loss_weight_ablation"):
+    repeated = sorted({f"{a:g}:{b:g}" for a, b in weights if weights.count((a, b)) > 1})
+    if repeated:  # (a repeated row was counted as more seeds of it)
+        raise SystemExit(f"--weights names {repeated} more than once; received {FLAGS.weights}.")
+    from stnh_tf.training.loop import TrainingDiverged
+
+    with common.user_errors("loss_weight_ablation", (ValueError, OSError, reproduce.Stopped,
+                                                     TrainingDiverged)), \
+            interrupt_line("loss_weight_ablation"):
         budget = reproduce.BUDGETS.get(FLAGS.budget)  # (None: hour, which reproduce alone takes)
         if budget and FLAGS.steps:
             budget = dataclasses.replace(budget, ablation_steps=FLAGS.steps)
         run = reproduction_from_flags(budget, ablation_weights=weights)
-        rows = run.ablation(run.ablation_weights)
-        table = run.table1({**rows, **tables.earlier_table1_rows(
-            os.path.join(run.out, "table1.json"), rows, run.budget.ablation_train_steps)})
+        table = run.table1(run.ablation(run.ablation_weights))
     for (l2, l1), maces in table.items():
         seeds = f" (seeds: {', '.join(f'{m:.2f}' for m in maces)})" if len(maces) > 1 else ""
         print(f"l2={l2:g} l1={l1:g}: MACE {sum(maces) / len(maces):.2f} px{seeds} "

@@ -11,6 +11,7 @@ its validation against the step with the learning rate, and prints ``{"output", 
 
 from __future__ import annotations
 
+import glob
 import json
 
 from absl import app, flags
@@ -29,9 +30,12 @@ FLAGS = flags.FLAGS
 def main(argv):
     del argv
     from stnh_tf.paper import learning_curves
-    from stnh_tf.paths import atomic_write_json
+    from stnh_tf.paths import atomic_write_json, check_apart
 
     with common.user_errors("plot_learning_curves"):
+        logs = [f for p in FLAGS.logs for f in (glob.glob(p) if glob.has_magic(p) else [p])]
+        check_apart({"--output": FLAGS.output, "--json_out": FLAGS.json_out},
+                    {"--logs": logs})  # (a log written over by a typo)
         curve = learning_curves.read_logs(FLAGS.logs)
         drawn = learning_curves.plot(curve, FLAGS.output, FLAGS.metric, FLAGS.title)
         if FLAGS.json_out:

@@ -67,10 +67,18 @@ def parse_reuse(items) -> dict:
         name, sep, path = item.partition("=")
         if not sep or not path:
             raise SystemExit(f"--reuse entries are name=dir; received {item!r}.")
-        if not os.path.exists(path.strip()):  # (else a typo's folder got a model trained anew)
-            raise SystemExit(f"--reuse: {name.strip()}={path.strip()} does not exist; --reuse "
-                             "names finished models and datasets to use in place.")
-        out[name.strip()] = path.strip()
+        name, path = name.strip(), path.strip()
+        if not os.path.exists(path):  # (else a typo's folder got a model trained anew)
+            raise SystemExit(f"--reuse: {name}={path} does not exist; --reuse names finished "
+                             "models and datasets to use in place.")
+        # (else an empty or unfinished folder got a model trained in it, recorded as reused)
+        needs = (["metadata.json"] if name.startswith("data_") else
+                 ["model.keras", "result.json"] if os.path.isdir(path) else [])
+        if needs and not any(os.path.exists(os.path.join(path, n)) for n in needs):
+            raise SystemExit(f"--reuse: {name}={path} holds no {' or '.join(needs)}: not a "
+                             f"finished {'dataset' if name.startswith('data_') else 'model'}; "
+                             "--reuse names finished models and datasets to use in place.")
+        out[name] = path
     return out
 
 

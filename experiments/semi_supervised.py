@@ -29,8 +29,8 @@ from absl import app, flags
 from experiments import common
 # (importing experiments.reproduce also defines the shared flags: --budget, --output_dir,
 # --source, --image_dir, --test_image_dir, --reuse)
-from experiments.reproduce import reproduction_from_flags
-from stnh_tf.paper import semi_supervised
+from experiments.reproduce import interrupt_line, reproduction_from_flags
+from stnh_tf.paper import reproduce, semi_supervised
 
 flags.DEFINE_float("label_fraction", 0.0, "Labeled share of the two partly labeled rows (0: the "
                    "budget's, 0.1; --budget=tiny: 0.75).")
@@ -55,7 +55,11 @@ FLAGS = flags.FLAGS
 
 def main(argv):
     del argv
-    with common.user_errors("semi_supervised"):
+    from stnh_tf.training.loop import TrainingDiverged
+
+    with common.user_errors("semi_supervised", (ValueError, OSError, reproduce.Stopped,
+                                                TrainingDiverged)), \
+            interrupt_line("semi_supervised"):
         if FLAGS.save_only and not FLAGS.repo_dir:
             raise ValueError("--save_only needs --repo_dir.")
         if not (math.isfinite(FLAGS.close_px) and FLAGS.close_px >= 0):

@@ -89,6 +89,13 @@ def test_the_binaries_refuse_at_once(dataset, tmp_path):
          "does not exist; --reuse names finished models and datasets"),
         (["experiments.reproduce", "--budget=hour", "--source=bundled", "--train_only=stage9",
           f"--output_dir={tmp_path / 'i'}"], "--train_only names must be among"),
+        # a repeated row (counted as more seeds of it); an empty folder as a finished model
+        # (a model was trained in it, recorded as reused)
+        (["experiments.loss_weight_ablation", "--weights=10:1,10:1.0", *common,
+          f"--output_dir={tmp_path / 'j'}"], "more than once"),
+        (["experiments.loss_weight_ablation", "--weights=0.1:1", *common,
+          f"--reuse=ablation_l2-0.1_l1-1={tmp_path}", f"--output_dir={tmp_path / 'k'}"],
+         "holds no model.keras or result.json: not a finished model"),
     ]
     for args, message in cases:
         proc = _run(*args)
@@ -111,6 +118,13 @@ def test_the_binaries_refuse_at_once(dataset, tmp_path):
     assert proc.returncode != 0 and "stnh_tf.dataset record" in proc.stderr, proc.stderr[-2000:]
     assert (other / "metadata.json").read_bytes() == before
     assert not (other / "metadata.png").exists()
+    log = tmp_path / "stage1_0-1000_cpu.log"
+    log.write_text("I1207 callbacks.py:83] step 500/1000 lr=0.05 h_bar_mace=9.0 (1 steps/s)\n")
+    before = log.read_bytes()
+    proc = _run("experiments.plot_learning_curves", f"--logs={tmp_path / '*.log'}",
+                f"--output={tmp_path / 'c.png'}", f"--json_out={log}")
+    assert proc.returncode != 0 and "--json_out" in proc.stderr, proc.stderr[-2000:]
+    assert log.read_bytes() == before  # (was: replaced by the curve's JSON)
     proc = _run("experiments.plot_hbar_histogram", f"--data_dir={dataset}", "--split=test",
                 f"--output={tmp_path / 'h.png'}", "--bins=0")
     assert proc.returncode != 0 and "bins" in proc.stderr and "Traceback" not in proc.stderr

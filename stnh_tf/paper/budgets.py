@@ -125,6 +125,19 @@ hierarchy's stages (``--stage``), then, on the stage-1 pairs, Fig. 4's 2-stage s
 and Table 1's L2:L1 = 10:1 row, each with the ``TrainConfig`` fields that make it that run."""
 
 
+def budget_diff(saved: dict, cfg) -> dict:
+    """``{field: (saved, wanted)}`` of the :data:`BUDGET_FIELDS` (and a sequence model's
+    ``num_stages``) where a run's saved configuration ``saved`` (its ``config.json`` fields)
+    differs from ``cfg``'s."""
+    # A field the saved run predates had its default value then (e.g. lr_schedule="cosine").
+    saved = {**train_config.TrainConfig().to_json(), **saved}
+    want = cfg.to_json()
+    diff = {k: (saved.get(k), want[k]) for k in BUDGET_FIELDS if saved.get(k) != want[k]}
+    if cfg.model == "sequence" and saved.get("num_stages") != cfg.num_stages:
+        diff["num_stages"] = (saved.get("num_stages"), cfg.num_stages)
+    return diff
+
+
 def check_budget(model_dir: str, cfg) -> None:
     """Raise ``ValueError`` unless the finished model in ``model_dir`` was trained with ``cfg``'s
     budget (model kind, schedule, loss weights, network options) and, where ``cfg`` trains on
@@ -133,12 +146,7 @@ def check_budget(model_dir: str, cfg) -> None:
     from stnh_tf.training import run_dir
 
     saved = run_dir.read_run_config(os.path.join(model_dir, run_dir.CONFIG_FILE))
-    # A field the saved run predates had its default value then (e.g. lr_schedule="cosine").
-    saved = {**train_config.TrainConfig().to_json(), **saved}
-    want = cfg.to_json()
-    diff = {k: (saved.get(k), want[k]) for k in BUDGET_FIELDS if saved.get(k) != want[k]}
-    if cfg.model == "sequence" and saved.get("num_stages") != cfg.num_stages:
-        diff["num_stages"] = (saved.get("num_stages"), cfg.num_stages)
+    diff = budget_diff(saved, cfg)
     if diff:
         raise ValueError(f"{model_dir} holds a model trained with a different budget {diff} "
                          "(saved, wanted); reuse only models of the same budget.")

@@ -39,10 +39,12 @@ from stnh_tf.provenance import machine_info
 from stnh_tf.paper.budgets import (BUDGETS, SPEED_FIELDS, SPREAD_ROWS, Budget,  # noqa: F401
                                    ablation_name, check_budget, planned_models, table1_seeds)
 from stnh_tf.paper.progress import Progress, Stopped  # noqa: F401
-from stnh_tf.paper import fig4_render, table2
+from stnh_tf.paper import eval_cache, fig4_render, table2
+from stnh_tf.paper.eval_cache import check_pairs_kind  # noqa: F401 (its name here before)
 from stnh_tf.paper.model_provenance import provenance_block
-from stnh_tf.paper.tables import (SMOKE_NOTE, TABLE1_HEAD, schedule_results,  # noqa: F401
-                                  table1_claim, table1_line, table1_lines, tables_markdown)
+from stnh_tf.paper.tables import (SMOKE_NOTE, TABLE1_HEAD, earlier_table1_rows,  # noqa: F401
+                                  schedule_results, table1_claim, table1_line, table1_lines,
+                                  tables_markdown)
 
 # The paper's numbers (Zhou & Li 2019; the 2-stage sequence model's 2.14 px is in its section 5;
 # the 3-stage sequence latency of 13.85 ms that BENCHMARKS.md quotes is only in the journal
@@ -287,10 +289,17 @@ class Reproduction:
         return rows
 
     def table1(self, rows: dict, schedule=None) -> dict:
-        """Evaluate the ablation rows (:meth:`ablation`'s result); writes ``table1.md`` (with the
-        paper's schedule column from ``schedule``: :func:`schedule_results`) and ``table1.json``;
-        returns ``{(l2, l1): [MACE per seed]}``. The table has the identity's row and, where
-        the budget supports a verdict, the paper's claim judged (:func:`table1_claim`)."""
+        """Evaluate the ablation rows (:meth:`ablation`'s result) with the earlier table's other
+        rows still there (:func:`earlier_table1_rows`); writes ``table1.md`` (with the paper's
+        schedule column from ``schedule``: :func:`schedule_results`) and ``table1.json``
+        (``table1_steps<N>.*`` where ``--steps`` set other steps than the budget's); returns
+        ``{(l2, l1): [MACE per seed]}``. The table has the identity's row and, where the budget
+        supports a verdict, the paper's claim judged (:func:`table1_claim`)."""
+        steps = self.budget.ablation_train_steps
+        # A table of other steps (--steps) is written beside the budget's, never over it.
+        name = ("table1" if steps == BUDGETS.get(self.budget.name, self.budget).ablation_train_steps
+                else f"table1_steps{steps}")
+        rows = {**rows, **earlier_table1_rows(os.path.join(self.out, f"{name}.json"), rows, steps)}
         table, identity = {}, None
         for (l2, l1), dirs in rows.items():
             table[(l2, l1)] = []
@@ -300,7 +309,6 @@ class Reproduction:
                 table[(l2, l1)].append(result["model"]["mace"])
                 identity = result["identity"]["mace"]
         per_seed = {f"{a:g},{b:g}": v for (a, b), v in table.items()}
-        steps = self.budget.ablation_train_steps
         lines = [f"# Table 1: loss weights, single stage, {steps} steps per row (budget "
                  f"'{self.budget.name}')", "",
                  *([SMOKE_NOTE, ""] if self.budget.name == "tiny" else []),
@@ -309,34 +317,36 @@ class Reproduction:
                                (schedule or {}).get("table1_mace", {}),
                                table1_claim(per_seed, identity, self.budget.verdicts).get(
                                    "text", ""))]
-        atomic_write_text(os.path.join(self.out, "table1.md"), "\n".join(lines) + "\n")
-        atomic_write_json(os.path.join(self.out, "table1.json"), {**{
+        atomic_write_text(os.path.join(self.out, f"{name}.md"), "\n".join(lines) + "\n")
+        dirs = [d for row in rows.values() for d in row]  # (every row's, kept ones included)
+        own = os.path.abspath(os.path.join(self.out, "models"))
+        elsewhere = {os.path.basename(d) for d in dirs if os.path.dirname(os.path.abspath(d)) != own}
+        atomic_write_json(os.path.join(self.out, f"{name}.json"), {**{
             f"{a:g},{b:g}": {"mace": float(np.mean(v)), "mace_per_seed": v,
                              "seeds": list(range(len(v))), "model_dir": rows[(a, b)][0],
                              "model_dirs": rows[(a, b)], "paper": PAPER_TABLE1.get((a, b))}
             for (a, b), v in table.items()}, **provenance_block(
-                self.models, self.reuse, {d for dirs in rows.values() for d in dirs})})
+                {**{os.path.basename(d): d for d in dirs}, **self.models},
+                {*self.reuse, *elsewhere}, set(dirs))})
         return table
 
     # -- evaluation -----------------------------------------------------------------------------
     def evaluate(self, key: str, model_dirs=(), baselines=()) -> dict:
         """``evaluation.evaluate`` on the stage-1 test pairs (with ``in_memory``,
         ``evaluation.evaluate_arrays`` on :meth:`test_pairs`), cached in ``eval/{key}.json``
-        (kept while it is newer than every model it evaluated that is still there).
+        (kept for the same model files on the same pairs: :mod:`stnh_tf.paper.eval_cache`).
 
         Raises:
           ValueError: the cached evaluation was made on pairs of the other kind (TFRecords
             against pairs made in memory).
         """
         from stnh_tf.evaluation import mace as evaluation
-        from stnh_tf.training import run_dir
 
         path = os.path.join(self.out, "eval", f"{key}.json")
-        finals = [os.path.join(d, run_dir.FINAL_MODEL) for d in model_dirs]
-        if os.path.exists(path) and all(os.path.getmtime(f) < os.path.getmtime(path)
-                                        for f in finals if os.path.exists(f)):
-            with open(path) as f:
-                return check_pairs_kind(json.load(f), path, self.in_memory)
+        wanted = eval_cache.key(model_dirs, eval_cache.pairs_digest(self))
+        found = eval_cache.cached(path, wanted, model_dirs)
+        if found is not None:
+            return eval_cache.check_pairs_kind(found, path, self.in_memory)
         if self.in_memory:
             pairs = self.test_pairs()
             result = {"image_dir": self.test_image_dir, "split": "test", "in_memory": True,
@@ -346,7 +356,7 @@ class Reproduction:
         else:
             result = self._timed("evaluate", lambda: evaluation.evaluate(
                 list(model_dirs), self.data_dir(1), "test", list(baselines)))
-        atomic_write_json(path, result)
+        atomic_write_json(path, {**result, eval_cache.CACHE_KEY: wanted})
         return result
 
     def latency(self, stage_dirs) -> dict:
@@ -443,17 +453,3 @@ class Reproduction:
             titles=[str(samples["image_id"][i]) for i in idx])
         return out
 
-
-def check_pairs_kind(result: dict, path: str, in_memory: bool) -> dict:
-    """``result``, an evaluation read from ``path``, after checking it was made on the pairs of
-    the kind a reproduction uses: made in memory (``in_memory``) or read from TFRecords.
-
-    Raises:
-      ValueError: naming ``path`` and the two kinds.
-    """
-    if bool(result.get("in_memory")) != bool(in_memory):
-        kinds = ("pairs made in memory", "TFRecords")
-        made, wanted = (kinds[0], kinds[1]) if result.get("in_memory") else (kinds[1], kinds[0])
-        raise ValueError(f"{path} is an evaluation on {made}; this reproduction evaluates on "
-                         f"{wanted}: give it an output folder of its own.")
-    return result

@@ -55,7 +55,7 @@ import shutil
 
 import numpy as np
 
-from stnh_tf.paper import reproduce
+from stnh_tf.paper import eval_cache, reproduce
 from stnh_tf.paths import atomic_write_json, atomic_write_text
 
 CLOSE_PX = 1.0
@@ -171,7 +171,13 @@ class SemiSupervised:
                 or checkpoints.checkpoint_weights_path(os.path.join(d, run_dir.CHECKPOINT_DIR))):
             return None
         with open(path) as f:
-            return reproduce.check_pairs_kind(json.load(f), path, self.run.in_memory)
+            doc = eval_cache.check_pairs_kind(json.load(f), path, self.run.in_memory)
+        measured = doc.get(eval_cache.CACHE_KEY, {}).get("pairs")
+        if measured is not None and measured != eval_cache.pairs_digest(self.run):
+            raise ValueError(f"{path}, the evaluation of {name} (restored without its model), "
+                             "was measured on other test pairs than this reproduction's: "
+                             "remove it to train and evaluate the model here.")
+        return doc
 
     def evaluation(self, row: Row, seed: int) -> dict:
         """``evaluation.evaluate``'s result for the row's model of ``seed`` on the stage-1 test
@@ -194,6 +200,30 @@ class SemiSupervised:
         max_seeds - 1``)."""
         return [self.model_name(r, s) for r in self.rows for s in range(self.max_seeds)]
 
+    def check_repo(self, repo_dir: str) -> None:
+        """Refuse a ``repo_dir`` holding a model of this experiment trained with another budget
+        (its ``<name>.json`` against the row's configuration: :func:`budgets.budget_diff`), before
+        :meth:`save` or :meth:`restore` copies anything (a smoke test's models and evaluations
+        replaced the CPU budget's committed ones).
+
+        Raises:
+          ValueError: naming the model and the fields (saved, wanted).
+        """
+        from stnh_tf.paper import budgets
+        from stnh_tf.training import run_dir
+
+        for row in self.rows:
+            for seed in range(self.max_seeds):
+                name = self.model_name(row, seed)
+                path = os.path.join(repo_dir, f"{name}.json")
+                if not os.path.exists(path):
+                    continue
+                diff = budgets.budget_diff(run_dir.read_run_config(path), self.config(row, seed))
+                if diff:
+                    raise ValueError(f"{repo_dir} holds {name} trained with another budget "
+                                     f"{diff} (saved, wanted): give a --repo_dir of this "
+                                     f"budget ('{self.run.budget.name}'); nothing copied.")
+
     def save(self, repo_dir: str) -> dict:
         """Copy the experiment's models from the reproduction's folder into ``repo_dir``: a
         finished one as ``<name>.keras`` (weights without optimizer state) and ``<name>.json`` (its
@@ -205,14 +235,17 @@ class SemiSupervised:
         committed there)."""
         from stnh_tf.training import checkpoints, chunks, run_dir
 
+        self.check_repo(repo_dir)
         out = {}
         for name in self.model_names():
             d, resume = self.run.model_dir(name), os.path.join(repo_dir, chunks.RESUME_DIR, name)
             src, dst = self.eval_file(name), self.eval_file(name, repo_dir)
-            if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)) and os.path.exists(src):
+            saved_before = os.path.exists(os.path.join(repo_dir, f"{name}.keras"))
+            if (os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)) and os.path.exists(src)
+                    and not (saved_before and os.path.exists(dst))):  # (the repo's stays)
                 os.makedirs(os.path.dirname(dst), exist_ok=True)
                 shutil.copyfile(src, dst)
-            if os.path.exists(os.path.join(repo_dir, f"{name}.keras")):
+            if saved_before:
                 continue  # finished and saved before
             if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
                 os.makedirs(repo_dir, exist_ok=True)
@@ -238,6 +271,7 @@ class SemiSupervised:
         ``{name: "finished" | step}`` of the models put in."""
         from stnh_tf.training import chunks, run_dir
 
+        self.check_repo(repo_dir)
         out = {}
         for name in self.model_names():
             d, keras_file = self.run.model_dir(name), os.path.join(repo_dir, f"{name}.keras")

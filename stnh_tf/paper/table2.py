@@ -47,10 +47,14 @@ def measure(stage_dirs, runs: int, warmup: int, dtype_policy: str) -> dict:
 def results_fields(latency: dict) -> dict:
     """``results.json``'s Table 2 keys from :func:`measure`'s result: ``table2_latency_ms`` (each
     number of stages' end-to-end ``d_e``) and ``sequence_latency_ms`` (each sequence model's
-    forward pass), in ms, keyed ``"1"``, ``"2"``, ``"3"``."""
+    forward pass), in ms, keyed ``"1"``, ``"2"``, ``"3"``; and ``latency_provenance`` where the
+    result is ``eval/latency.json`` of :func:`refresh` (its ``provenance``)."""
     return {"table2_latency_ms": {k: v["d_e_ms"] for k, v in latency["hierarchy"].items()},
             "sequence_latency_ms": {k: v["forward_ms"]
-                                    for k, v in latency.get("sequence", {}).items()}}
+                                    for k, v in latency.get("sequence", {}).items()},
+            # (a measurement of --refresh_latency: its own commit, machine and load)
+            **({"latency_provenance": latency["provenance"]} if "provenance" in latency
+               else {})}
 
 
 def _read_results(path: str) -> tuple[str, dict]:

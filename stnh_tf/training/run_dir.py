@@ -298,13 +298,14 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
     if os.path.exists(final) and not overwrite:
         raise FileExistsError(f"{cfg.model_dir} holds a finished model ({final}); pass --overwrite "
                               "to train it again.")
-    if not os.access(cfg.model_dir if os.path.exists(cfg.model_dir) else
-                     os.path.dirname(os.path.abspath(cfg.model_dir)), os.W_OK):
-        raise PermissionError(f"model_dir {cfg.model_dir} is not writable.")
     if overwrite and (os.path.exists(final) or diff):
+        if not os.access(cfg.model_dir, os.W_OK):
+            raise PermissionError(f"model_dir {cfg.model_dir} is not writable.")
         set_aside(cfg.model_dir)
         diff = {}
     os.makedirs(cfg.model_dir, exist_ok=True)
+    if not os.access(cfg.model_dir, os.W_OK):
+        raise PermissionError(f"model_dir {cfg.model_dir} is not writable.")
     if diff:
         # val_split's default changed (issue 78): the old value resumes, --overwrite would not
         hint = (f" (--val_split={diff['val_split'][0]} resumes it: the default was "
