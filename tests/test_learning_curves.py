@@ -64,3 +64,15 @@ def test_missing_or_empty_logs_refused(tmp_path):
     empty = _lines(tmp_path, "x.log", ["nothing here"])
     with pytest.raises(ValueError, match="no training progress line"):
         learning_curves.read_logs([empty])
+
+
+def test_a_diverged_runs_nan_is_kept_not_dropped():
+    """``loss=nan`` ended the line's match: the nan and every metric after it were dropped, so a
+    diverged run's curve looked clean."""
+    import math
+
+    curve = learning_curves.parse_lines([
+        "I1205 loop.py] step 500/91000 lr=0.025 loss=nan h_bar_mace=inf (1.0 steps/s)",
+        "x] step 500 validation val_loss=-inf val_h_bar_mace=7.13"])
+    assert math.isnan(curve[500]["loss"]) and curve[500]["h_bar_mace"] == math.inf
+    assert curve[500]["val_loss"] == -math.inf and curve[500]["val_h_bar_mace"] == 7.13

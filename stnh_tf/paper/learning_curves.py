@@ -24,9 +24,10 @@ import glob
 import os
 import re
 
-_TRAIN = re.compile(r"\bstep (\d+)/(\d+) ((?:\w+=[-+\d.eE]+(?:\s|$))+)")
-_VAL = re.compile(r"\bstep (\d+) validation ((?:\w+=[-+\d.eE]+(?:\s|$))+)")
-_PAIR = re.compile(r"(\w+)=([-+\d.eE]+)")
+_NUMBER = r"(?:[-+]?(?:nan|inf)|[-+\d.eE]+)"  # (a diverged run logs nan: kept, not dropped)
+_TRAIN = re.compile(rf"\bstep (\d+)/(\d+) ((?:\w+={_NUMBER}(?:\s|$))+)")
+_VAL = re.compile(rf"\bstep (\d+) validation ((?:\w+={_NUMBER}(?:\s|$))+)")
+_PAIR = re.compile(rf"(\w+)=({_NUMBER})")
 
 
 def parse_lines(lines) -> dict[int, dict[str, float]]:

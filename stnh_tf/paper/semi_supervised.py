@@ -249,10 +249,10 @@ class SemiSupervised:
                 continue  # finished and saved before
             if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
                 os.makedirs(repo_dir, exist_ok=True)
+                shutil.copy2(os.path.join(d, run_dir.CONFIG_FILE),  # (before the .keras, which
+                             os.path.join(repo_dir, f"{name}.json"))  # marks the model saved)
                 chunks.strip_optimizer(os.path.join(d, run_dir.FINAL_MODEL),
                                        os.path.join(repo_dir, f"{name}.keras"))
-                shutil.copy2(os.path.join(d, run_dir.CONFIG_FILE),
-                             os.path.join(repo_dir, f"{name}.json"))
                 shutil.rmtree(resume, ignore_errors=True)
                 out[name] = "finished"
             elif checkpoints.checkpoint_weights_path(os.path.join(d, run_dir.CHECKPOINT_DIR)):
