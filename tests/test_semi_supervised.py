@@ -777,7 +777,8 @@ def test_no_verdict_at_the_smoke_budget_nor_from_rows_worse_than_the_identity(tm
 
 
 @pytest.mark.slow
-def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_path, narrow):
+def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_path, narrow,
+                                                               monkeypatch):
     """A finished model goes to the repository folder without optimizer state (same weights) with
     its config; an unfinished one as its checkpoint; both come back into a fresh output folder,
     and a second restore changes nothing."""
@@ -789,6 +790,9 @@ def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_pat
                                      reuse={"data_stage1": tiny_data})
         return semi_supervised.SemiSupervised(run)
 
+    # (these models have no budget: the repository's budget check has its own test,
+    # tests/test_faults_reproduce.py)
+    monkeypatch.setattr(semi_supervised.SemiSupervised, "check_repo", lambda self, repo: None)
     first, repo = experiment(tmp_path / "a"), str(tmp_path / "repo")
     done, busy = (first.model_name(first.rows[k], 0) for k in (2, 3))
     for name in (done, busy):
@@ -816,10 +820,18 @@ def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_pat
     # The evaluation came along: the restored model is not evaluated again.
     key = os.path.join(second.run.out, "eval", f"{done}.json")
     assert json.load(open(key))["model"]["mace"] == done_mace
-    os.utime(key, (1e9, 1e9))  # older than the model: evaluated again, to the same value
+    from stnh_tf.paper import eval_cache
+
+    doc = json.load(open(key))
+    assert doc[eval_cache.CACHE_KEY]["models"] == [eval_cache.key(
+        [second.run.model_dir(done)], None)["models"][0]]  # the restored model's own bytes
+    del doc[eval_cache.CACHE_KEY]  # one written before the record, older than the model:
+    with open(key, "w") as f:  # evaluated again, to the same value
+        json.dump(doc, f)
+    os.utime(key, (1e9, 1e9))
     again = second.run.evaluate(done, [second.run.model_dir(done)])["model"]["mace"]
     assert again == pytest.approx(done_mace, rel=1e-4)
-    assert os.path.getmtime(key) > 1e9
+    assert os.path.getmtime(key) > 1e9 and eval_cache.CACHE_KEY in json.load(open(key))
 
 
 def test_a_model_evaluated_elsewhere_is_not_trained_again(tiny_data, tmp_path):

@@ -20,11 +20,11 @@ CACHE_KEY = "measured_on"
 def pairs_digest(run) -> str | None:
     """The digest of reproduction ``run``'s stage-1 test pairs: its TFRecord test split's
     (:func:`stnh_tf.data.tfrecords.split_digest`), or, with ``in_memory``, the sha256 of the
-    pairs' ``h_ba``, ``patch_b`` and ``image_id`` arrays."""
+    pairs' ``h_ba``, ``patch_a`` and ``patch_b`` arrays."""
     if run.in_memory:
         pairs = run.test_pairs()
         digest = hashlib.sha256()
-        for name in ("h_ba", "patch_b", "image_id"):
+        for name in ("h_ba", "patch_a", "patch_b"):
             digest.update(json.dumps([name, str(pairs[name].dtype), pairs[name].shape]).encode())
             digest.update(pairs[name].tobytes())
         return digest.hexdigest()

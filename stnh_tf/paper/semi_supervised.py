@@ -243,8 +243,7 @@ class SemiSupervised:
             saved_before = os.path.exists(os.path.join(repo_dir, f"{name}.keras"))
             if (os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)) and os.path.exists(src)
                     and not (saved_before and os.path.exists(dst))):  # (the repo's stays)
-                os.makedirs(os.path.dirname(dst), exist_ok=True)
-                shutil.copyfile(src, dst)
+                self._save_evaluation(src, dst, os.path.join(repo_dir, f"{name}.keras"), d)
             if saved_before:
                 continue  # finished and saved before
             if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
@@ -254,6 +253,8 @@ class SemiSupervised:
                 chunks.strip_optimizer(os.path.join(d, run_dir.FINAL_MODEL),
                                        os.path.join(repo_dir, f"{name}.keras"))
                 shutil.rmtree(resume, ignore_errors=True)
+                if os.path.exists(src):  # (its record names the saved file now)
+                    self._save_evaluation(src, dst, os.path.join(repo_dir, f"{name}.keras"), d)
                 out[name] = "finished"
             elif checkpoints.checkpoint_weights_path(os.path.join(d, run_dir.CHECKPOINT_DIR)):
                 try:
@@ -261,6 +262,20 @@ class SemiSupervised:
                 except ValueError as e:  # a newer one committed there: kept, and said
                     out[name] = f"not saved: {e}"
         return out
+
+    @staticmethod
+    def _save_evaluation(src: str, dst: str, saved_model: str, model_dir: str) -> None:
+        """Copy the evaluation ``src`` of the run ``model_dir`` to ``dst``; where it records the
+        run's own model file (:data:`eval_cache.CACHE_KEY`) and ``saved_model``, the file saved
+        without optimizer state, is there, the record names the saved file, so that the model
+        restored from it keeps its evaluation."""
+        with open(src) as f:
+            doc = json.load(f)
+        here = eval_cache.key([model_dir], None)["models"]
+        if doc.get(eval_cache.CACHE_KEY, {}).get("models") == here and os.path.exists(saved_model):
+            doc[eval_cache.CACHE_KEY]["models"] = eval_cache.key([saved_model], None)["models"]
+        os.makedirs(os.path.dirname(dst), exist_ok=True)
+        atomic_write_json(dst, doc)
 
     def restore(self, repo_dir: str) -> dict:
         """Put the models :meth:`save` wrote in ``repo_dir`` into the reproduction's folder where
