@@ -315,6 +315,20 @@ def test_plan_is_written_first_and_kept_by_a_resume(tmp_path):
         hour_budget.plan_for_folder(str(tmp_path / "c"), source="coco2014", image_dir="",
                                     test_image_dir="", max_images=0, ablation_weights=(),
                                     probe_fn=no_probe)
+    # A folder of another budget is refused before the probe (it ran, and wrote its plan
+    # there, before the folder was refused); a plan missing its fields in one line.
+    other = tmp_path / "cpu_run"
+    (other / "models").mkdir(parents=True)
+    with pytest.raises(ValueError, match="holds a reproduction of another budget"):
+        hour_budget.plan_for_folder(str(other), source="bundled", image_dir="",
+                                    test_image_dir="", max_images=4, ablation_weights=(),
+                                    probe_fn=no_probe)
+    assert not (other / "budget_plan.json").exists()
+    with open(os.path.join(out, "budget_plan.json"), "w") as f:
+        json.dump({"train_steps": 120}, f)
+    with pytest.raises(ValueError, match="not a plan this project wrote"):
+        hour_budget.plan_for_folder(out, source="bundled", image_dir="", test_image_dir="",
+                                    max_images=4, ablation_weights=(), probe_fn=no_probe)
 
 
 def test_docs_name_the_hour_budget_and_its_floor():

@@ -324,17 +324,28 @@ def plan_for_folder(output_dir: str, *, source: str, image_dir: str, test_image_
 
     Raises:
       ValueError: ``source`` is coco2014 (the hour is planned for photograph folders or the
-        bundled photographs).
+        bundled photographs); ``output_dir`` holds a reproduction of another budget, or a
+        ``budget_plan.json`` that is not a plan.
     """
     from stnh_tf.data import stage1
 
     path = os.path.join(output_dir, PLAN_FILE)
     if os.path.exists(path):
-        with open(path) as f:
-            plan = json.load(f)
+        try:
+            with open(path) as f:
+                plan = json.load(f)
+            planned_budget(plan)
+        except (ValueError, KeyError, TypeError, AttributeError):
+            raise ValueError(f"{path} is not a plan this project wrote (no train_steps, "
+                             "warmup_steps, samples_per_image and checkpoint_every); move it "
+                             "aside to plan again.") from None
         printer(f"[plan] the plan of this folder's first run ({plan.get('planned_at', '?')}, "
                 f"{path}): kept, so that its models stay of one budget")
     else:
+        if any(os.path.exists(os.path.join(output_dir, n)) for n in ("results.json", "models")):
+            raise ValueError(f"{output_dir} holds a reproduction of another budget (models or "
+                             f"results.json, no {PLAN_FILE}): --budget=hour plans a folder of "
+                             "its own; give another --output_dir.")  # (before the probe)
         if source not in ("folder", "bundled"):
             raise ValueError(f"--budget=hour plans for --source=folder or bundled; received "
                              f"--source={source} (its photographs would not fit an hour).")
