@@ -1424,3 +1424,28 @@ def test_the_move_confirmation_numbers_are_the_json_s():
         untimed = [{g: {k: v for k, v in cells.items() if "ms_per_pair" not in k}
                     for g, cells in run.items()} for run in runs]
         assert untimed[0] == untimed[1] and len(untimed[0]) == 9
+
+
+def _baseline_cells(before, after, group, wide):
+    """The row of BENCHMARKS.md's "SIFT + RANSAC's check on whole images" table: SIFT before and
+    after, SIFT's wide settings after (where the set has them), ORB before and after, the
+    estimator (before: its run is the earlier one)."""
+    cells = [(before, "sift_ransac"), (after, "sift_ransac"),
+             *([(after, "sift_wide")] if wide else []), (before, "orb_ransac"),
+             (after, "orb_ransac"), (before, "estimator")]
+    return [f for source, method in cells for f in (cam(source, group, method, "ok"),
+                                                     cam(source, group, method, "count"),
+                                                     cam(source, group, method, "mace"))]
+
+
+PROSE += [  # the baselines' plausibility check at image_b's centre (c3ba783)
+    ("BENCHMARKS.md",
+     rf"\| `{group}` \| " + (rf"(\d+) of (\d+), {N} px \| " * 2)
+     + (rf"(\d+) of (\d+), {N} px \| " if wide else r"- \| ")
+     + (rf"(\d+) of (\d+), {N} px \| " * 3).rstrip(),
+     _baseline_cells(before, after, group, wide))
+    for before, after, groups, wide in (
+        ("camera0_late", "camera0_baselines_fixed", ("within", "1-2x", "2-4x"), True),
+        ("camera0_wide_late", "camera0_wide_baselines_fixed", ("wide", "wide_low_light"), True),
+        ("camera0_paper", "camera0_paper_baselines_fixed", ("paper", "paper_exposure"), False))
+    for group in groups]

@@ -96,6 +96,12 @@ SOURCES = {
     **{f"camera{s}_late": f"docs/camera_pairs/seed{s}_photographs_late.json" for s in (0, 1, 2)},
     **{f"camera{s}_nolate": f"docs/camera_pairs/seed{s}_photographs_nolate.json"
        for s in (0, 1, 2)},
+    # the baselines with their plausibility check at image_b's centre (c3ba783), on the pairs of
+    # camera0_late, camera0_wide_late and camera0_paper
+    "camera0_paper": "docs/camera_pairs/paper_seed0.json",
+    "camera0_baselines_fixed": "docs/camera_pairs/seed0_photographs_baselines_fixed.json",
+    "camera0_wide_baselines_fixed": "docs/camera_pairs/wide_seed0_baselines_fixed.json",
+    "camera0_paper_baselines_fixed": "docs/camera_pairs/paper_seed0_baselines_fixed.json",
     "readme_example": "docs/readme_example.json",
     "semi_all_seed0": "semi_supervised/eval/stage1_alone.json",
     "semi_labeled_alone_seed0": "semi_supervised/eval/semi_labels-0.1_drop.json",
