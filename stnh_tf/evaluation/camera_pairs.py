@@ -113,11 +113,14 @@ def run_estimator(estimator, pairs, options=None, warm_up: bool = True) -> dict:
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def run_baseline(name, pairs) -> dict:
-    """A :data:`stnh_tf.evaluation.baselines.BASELINES` method's ``estimate_images`` on each pair.
+def run_baseline(name, pairs, warm_up: bool = True) -> dict:
+    """A :data:`stnh_tf.evaluation.baselines.BASELINES` method's ``estimate_images`` on each pair
+    (after one untimed call on the first, as :func:`run_estimator`, unless ``warm_up`` is False).
     Returns per pair ``h`` ``[B, 3, 3]``, ``seconds`` and ``ok`` (False: it fell back to the
     identity)."""
     method = baselines.make_baseline(name)
+    if warm_up:  # (OpenCV's first call allocates; the estimator's first call is untimed too)
+        method.estimate_images(pairs[0].image_a, pairs[0].image_b)
     out = {"h": [], "seconds": [], "ok": []}
     for p in pairs:
         t0 = time.perf_counter()

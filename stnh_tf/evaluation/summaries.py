@@ -180,9 +180,10 @@ photographs (0.19 over the 300 pairs)
 
 def camera_pairs_table(result: dict) -> str:
     """The tables of :func:`stnh_tf.evaluation.camera_pairs.benchmark`'s result, one per group of
-    motion size and one over all pairs (errors at the 320 x 240 image's corners)."""
-    parts = [f"Camera pairs in {result.get('folder', '?')}: error at the 320 x 240 image's "
-             "corners"]
+    motion size and one over all pairs, titled with the result's ``error_frame`` (where the
+    errors are measured: the image's corners at its size, the patch's in the paper's groups)."""
+    frame = result.get("error_frame", "error at the 320 x 240 image's corners")
+    parts = [f"Camera pairs in {result.get('folder', '?')}: {frame}"]
     for group, methods in result["groups"].items():
         rows = [Row.of(m, s) for m, s in methods.items() if m != "identity"]
         parts.append(summary_table(Row.of("identity", methods["identity"]), rows,
