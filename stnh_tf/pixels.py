@@ -33,13 +33,26 @@ CLIP_MARGIN = 0.5 / 255
 """How near 0 or 1 a value in [0, 1] is clipped: within half a grey level of uint8."""
 
 
+BINARY_SHARE = 0.02
+"""Where fewer than this share of an image's values are unclipped, the image is binary (a scan,
+a mask, text without anti-aliasing): its content is its 0s and 1s, and none is left out."""
+
+
 def unclipped(unit) -> np.ndarray:
     """bool mask of the values of an image on the [0, 1] scale more than :data:`CLIP_MARGIN`
     from 0 and 1. A clipped pixel (black, or saturated by an exposure change) holds no intensity
     that gain and offset relate to the other image's, so the alignment measures leave it out. An
     array with values beyond [0, 1] (by more than float rounding) is on another scale, where
-    nothing is known to be clipped: all True."""
+    nothing is known to be clipped: all True; so is a binary image (fewer than
+    :data:`BINARY_SHARE` of its values unclipped), whose content the clipped values are.
+
+    >>> bool(unclipped(np.array([0.0, 1.0] * 50)).all())  # black and white only: all kept
+    True
+    """
     unit = np.asarray(unit)
     if unit.size and not -1e-6 <= unit.min() <= unit.max() <= 1.0 + 1e-6:
         return np.ones(unit.shape, bool)
-    return (unit > CLIP_MARGIN) & (unit < 1.0 - CLIP_MARGIN)
+    mask = (unit > CLIP_MARGIN) & (unit < 1.0 - CLIP_MARGIN)
+    if mask.size and mask.mean() < BINARY_SHARE:
+        return np.ones(unit.shape, bool)
+    return mask
