@@ -90,3 +90,41 @@ def test_a_hierarchys_time_per_pair_leaves_out_its_first_call(pairs, models, mon
     mace.evaluate_arrays(pairs, [models["float32"]] * 2)
     first_clock = events.index(("clock", None))
     assert {e for e in events[:first_clock] if e[0] == "stage"} == {("stage", 0), ("stage", 1)}
+
+
+def test_a_stage_k_models_mace_composes_it_after_the_earlier_estimate():
+    """Nothing checked that a stage-k model's MACE on stage-k pairs is that of ``h_prev @ H_k``
+    (a test audit: swapping the order, or dropping ``h_prev``, went unnoticed). A constant stage
+    H_k on pairs with known, non-identity ``h_prev``: the MACE is recomputed here with
+    ``cv2.perspectiveTransform`` at the patch corners, and the wrong order is far from it."""
+    import cv2
+
+    from conftest import constant_stage
+    from stnh_tf.evaluation import mace
+
+    rng = np.random.default_rng(5)
+    square = np.float32([[0, 0], [128, 0], [128, 128], [0, 128]])
+
+    def motion(scale):
+        return cv2.getPerspectiveTransform(
+            square, square + rng.uniform(-scale, scale, (4, 2)).astype(np.float32))
+
+    n = 6
+    h_prev = np.stack([motion(20) for _ in range(n)])
+    h_k = motion(6)
+    h_ba = np.stack([p @ h_k @ motion(1) for p in h_prev])  # the right composition, about 1 px off
+    samples = {"patch_a": rng.random((n, 128, 128, 1), np.float32),  # (the output is constant)
+               "patch_b": rng.random((n, 128, 128, 1), np.float32),
+               "h_ba": h_ba, "h_prev": h_prev}
+    got = mace.evaluate_model_on_arrays(constant_stage(h_k), samples)["mace"]
+
+    def mean_corner_error(h_est):
+        return np.mean([np.linalg.norm(
+            cv2.perspectiveTransform(square.reshape(-1, 1, 2), e)
+            - cv2.perspectiveTransform(square.reshape(-1, 1, 2), t), axis=-1).mean()
+            for e, t in zip(h_est, h_ba)])
+
+    expected = mean_corner_error(h_prev @ h_k)
+    assert got == pytest.approx(expected, abs=0.01)  # (float32 H_bar: about 1e-3 px)
+    assert abs(mean_corner_error(h_k @ h_prev) - expected) > 0.5
+    assert abs(mean_corner_error(np.broadcast_to(h_k, h_ba.shape)) - expected) > 0.5
