@@ -442,3 +442,16 @@ def test_degenerate_homography_gives_finite_output_and_gradient(photo_patches):
     assert np.abs(out[0, :, :90, 0] - ref[:, :90]).mean() < 0.5
     nan_out = layer([patch, np.full((1, 8), np.nan, np.float32)]).numpy()
     np.testing.assert_array_equal(nan_out, 0.0)
+
+
+@pytest.mark.parametrize("name", ("stnh_tf.modeling.losses", "stnh_tf.modeling.layers",
+                                  "stnh_tf.inference.shipped_weights", "stnh_tf.paper.tables"))
+def test_doctests_of_modules_with_a_backend(name):
+    """The examples in the docstrings of modules that need Keras (test_layout runs those that
+    need no backend): a test audit found them never run, and PatchStandardization's stale."""
+    import doctest
+    import importlib
+
+    result = doctest.testmod(importlib.import_module(name), optionflags=doctest.ELLIPSIS)
+    assert result.attempted > 0, f"{name} has no doctest"
+    assert result.failed == 0, f"{result.failed} of {name}'s doctests failed"

@@ -34,7 +34,7 @@ class PatchStandardization(keras.layers.Layer):
     Input ``[B, h, w, C]``; output the same shape, float32 (statistics are computed in float32
     whatever the policy). A constant channel maps to zeros.
 
-    >>> x = np.stack([np.linspace(0, 1, 16), 0.5 + 0.2 * np.linspace(0, 1, 16)], -1)
+    >>> x = np.stack([np.linspace(0, 1, 16), 0.2 + 0.5 * np.linspace(0, 1, 16)], -1)
     >>> y = PatchStandardization()(x.reshape(1, 4, 4, 2).astype("float32"))
     >>> bool(np.allclose(y[..., 0], y[..., 1], atol=1e-2))
     True
