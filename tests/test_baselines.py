@@ -120,3 +120,20 @@ def test_the_plausibility_check_refuses_folds_mirrors_and_corners_behind():
     assert baselines.is_plausible_homography(accepted)
     for h in (folded, mirror, behind):
         assert not baselines.is_plausible_homography(h), h
+
+
+def test_orbs_mutual_match_filter_drops_one_sided_matches():
+    """ORB's tuned settings keep a match only where it is mutual (no ratio test): never tested (a
+    test audit: replacing the filter by nothing went unnoticed). Hand-made descriptors: b0 and b1
+    both match a0 best, a0 matches b0 best; with the filter (a0, b1) goes, without it (a ratio
+    test of 1.0 in its place, which keeps both) it stays."""
+    desc_a = np.zeros((3, 32), np.uint8)
+    desc_a[1] = 255
+    desc_a[2] = 0x0F
+    desc_b = np.zeros((2, 32), np.uint8)
+    desc_b[1, 0] = 0x01  # Hamming 1 from a0, 0 for b0
+    mutual = baselines.OrbRansac().match(desc_a, desc_b)
+    assert baselines.OrbRansac().settings["cross_check"] is True
+    assert sorted(map(tuple, mutual)) == [(0, 0)]
+    one_sided = baselines.OrbRansac(cross_check=False, ratio=1.0).match(desc_a, desc_b)
+    assert sorted(map(tuple, one_sided)) == [(0, 0), (0, 1)]
