@@ -66,6 +66,7 @@ def main(argv):
         common.check_flags_apart(("output_dir",), ("input_dir", "model_dir"))
         common.check_not_a_run(FLAGS.output_dir)
         check_model_stage(FLAGS.model_dir, FLAGS.stage)
+        writing = list(splits)
         if not FLAGS.overwrite:  # (a run cut short: the same command makes the rest)
             done = stage_k.check_one_source(FLAGS.output_dir, splits,
                                             stage_k.made_from(FLAGS.input_dir, FLAGS.model_dir))
@@ -78,7 +79,7 @@ def main(argv):
             result = stage_k.make_stage_dataset(
                 FLAGS.stage, FLAGS.input_dir, FLAGS.output_dir, split, model_dir=FLAGS.model_dir,
                 num_shards=FLAGS.num_shards, num_workers=FLAGS.num_workers, log=logging.info,
-                overwrite=FLAGS.overwrite)
+                overwrite=FLAGS.overwrite, writing=writing)
         logging.info("%s: %d samples; degenerate predictions %s", split, result["num_samples"],
                      result["degenerate_predictions"])
 

@@ -257,3 +257,37 @@ def test_a_worker_that_dies_is_said_in_one_line(tmp_path):
         writer.write_sharded(str(tmp_path), "train", items, _dies_on_the_second_item,
                              num_shards=1, num_workers=2, chunk_size=1, log=QUIET)
     assert not [p for p in os.listdir(tmp_path) if ".tmp" in p or p.endswith(".tfrecord")]
+
+
+def test_a_stage_k_folder_is_made_again_from_a_new_model_split_after_split(stage1_data,
+                                                                          tmp_path):
+    """The final read of this round: with the one-source rule, making train again from a new
+    model was refused because test (still the old model's) was 'left out'; the command names
+    every split it writes (``writing``), which may then be made again one after another."""
+    out = str(tmp_path / "s2")
+    model_a = os.path.join(WEIGHTS, "stage1.keras")
+    model_b = os.path.join(WEIGHTS, "paper_recipe", "stage1.keras")
+    for split in ("train", "test"):
+        stage_k.make_stage_dataset(2, stage1_data, out, split, model_dir=model_a, log=QUIET)
+    for split in ("train", "test"):
+        stage_k.make_stage_dataset(2, stage1_data, out, split, model_dir=model_b, log=QUIET,
+                                   overwrite=True, writing=["train", "test"])
+    source = stage_k.made_from(stage1_data, model_b)
+    assert stage_k.check_one_source(out, ["train", "test"], source) == ["train", "test"]
+
+
+def test_an_incomplete_splits_old_shards_are_removed_by_the_next_run(tmp_path):
+    """A run cut short kept, in its incomplete section, the shards it was to replace
+    (``replacing``); the next run removes them (the start marker dropped the list before)."""
+    out = tmp_path / "ds"
+    stage1.make_dataset("bundled", str(out), "train", max_images=3, samples_per_image=1,
+                        num_shards=3, log=QUIET)
+    old = sorted(p.name for p in out.glob("train-*.tfrecord"))
+    section = data.split_info(str(out), "train")
+    metadata.update_metadata(str(out), "train", {"status": "incomplete", "started_pid": 1,
+                                                 "replacing": [s["file"] for s in
+                                                               section["shards"]]})
+    stage1.make_dataset("bundled", str(out), "train", max_images=3, samples_per_image=1,
+                        num_shards=1, log=QUIET)
+    assert len(old) == 3 and sorted(p.name for p in out.glob("train-*.tfrecord")) == [
+        "train-00000-of-00001.tfrecord"]

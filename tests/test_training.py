@@ -719,6 +719,19 @@ def test_an_overwrite_failing_before_its_first_checkpoint_puts_the_finished_run_
     assert (run / "model.keras").read_bytes() != before["model.keras"]
 
 
+def test_a_run_set_aside_with_nothing_in_its_place_is_put_back(tiny_data, tmp_path):
+    """A kill between --overwrite's set-aside and the new config.json left only .previous_run:
+    every later command was refused ("holds no training run"). The run is put back first."""
+    run = tmp_path / "run"
+    run_dir.prepare_model_dir(_cfg(tiny_data, run))
+    (run / "model.keras").write_text("finished model")
+    run_dir.set_aside(str(run))  # (then killed)
+    assert sorted(p.name for p in run.iterdir()) == [run_dir.PREVIOUS_RUN]
+    with pytest.raises(FileExistsError, match="holds a finished model"):
+        run_dir.prepare_model_dir(_cfg(tiny_data, run))
+    assert (run / "model.keras").read_text() == "finished model"
+
+
 def test_corrupted_shard_during_training_names_the_file(tiny_data, tmp_path, narrow):
     data_dir = tmp_path / "data"
     shutil.copytree(tiny_data, data_dir)

@@ -226,7 +226,7 @@ def check_stage_arguments(stage: int, input_dir: str, output_dir: str, splits, *
 def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, *,
                        model_dir: str | None = None, predict=None, num_shards: int = 0,
                        num_workers: int = 1, log=print, command=None,
-                       overwrite: bool = False) -> dict:
+                       overwrite: bool = False, writing=None) -> dict:
     """Write the stage-``stage`` ``split`` from the stage-(k-1) data and model. Returns the split's
     metadata section (``degenerate_predictions`` counts by reason).
 
@@ -237,6 +237,9 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
       model_dir: the trained stage-(k-1) model; or
       predict: ``predict(patch_a [N,S,S,1], patch_b [N,S,S,1]) -> pixel H [N,3,3]`` (float
         patches in [0, 1]; e.g. an oracle in tests).
+      writing: every split the caller writes with this input and model (``split`` among them;
+        default ``[split]``): the folder's other splits must come from them
+        (:func:`check_one_source`), these may be made again one after another.
     Raises:
       ValueError: ``stage < 2``, a bad ``num_shards`` or split name, the input is not stage
         ``k-1`` data, or the split is missing.
@@ -247,8 +250,8 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
 
     if (model_dir is None) == (predict is None):
         raise ValueError("give exactly one of model_dir and predict.")
-    check_stage_arguments(stage, input_dir, output_dir, [split], num_shards=num_shards,
-                          model_dir=model_dir)
+    check_stage_arguments(stage, input_dir, output_dir, list(writing or [split]),
+                          num_shards=num_shards, model_dir=model_dir)
     info = data.split_info(input_dir, split)
     paths = data.shard_paths(input_dir, split, "size")
     made_dir = not os.path.exists(output_dir)

@@ -240,11 +240,11 @@ def _swap_in(output_dir, split, temps, names, existing, marker, top, check):
     their ``names`` and remove the shards of the ``existing`` section the new layout lacks (and
     those a swap cut short had listed: ``replacing``). A kill in this instant leaves the split
     incomplete, never a complete one mixing two runs."""
-    earlier = [s.get("file") for s in existing.get("shards", [])] + existing.get("replacing", [])
+    earlier = marker["replacing"]
     meta_path = os.path.join(output_dir, METADATA_FILE)
     with _naming_write_errors(meta_path, split):
         try:
-            update_metadata(output_dir, split, {**marker, "replacing": earlier}, top, check)
+            update_metadata(output_dir, split, marker, top, check)
         except BaseException:
             _remove_temporary(temps)
             raise
@@ -349,7 +349,9 @@ def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_it
             "aside, or write to another --output_dir.")
     top = {"feature_spec": features.spec_as_dict(), **(top_metadata or {})}
     meta_path = os.path.join(output_dir, METADATA_FILE)
-    marker = {**(split_metadata or {}), "status": "incomplete", "started_pid": os.getpid()}
+    earlier = [x.get("file") for x in existing.get("shards", [])] + existing.get("replacing", [])
+    marker = {**(split_metadata or {}), "status": "incomplete", "started_pid": os.getpid(),
+              "replacing": earlier}  # (kept: a later run removes them if this one is cut short)
     with _naming_write_errors(meta_path, split):  # (an earlier complete split stays readable)
         update_metadata(output_dir, split,
                         None if existing.get("status") == "complete" else marker, top, check)

@@ -20,7 +20,8 @@ CACHE_KEY = "measured_on"
 def pairs_digest(run) -> str | None:
     """The digest of reproduction ``run``'s stage-1 test pairs: its TFRecord test split's
     (:func:`stnh_tf.data.tfrecords.split_digest`), or, with ``in_memory``, the sha256 of the
-    pairs' ``h_ba``, ``patch_a`` and ``patch_b`` arrays."""
+    pairs' ``h_ba``, ``patch_a`` and ``patch_b`` arrays; None where the TFRecords are not there
+    (an evaluation is then taken for these pairs: :func:`cached`)."""
     if run.in_memory:
         pairs = run.test_pairs()
         digest = hashlib.sha256()
@@ -30,7 +31,7 @@ def pairs_digest(run) -> str | None:
         return digest.hexdigest()
     from stnh_tf.data.tfrecords import split_digest
 
-    return split_digest(run.stage1_data(), "test")
+    return split_digest(run.data_dir(1), "test")  # (None where not made: nothing is made here)
 
 
 def key(model_dirs, pairs: str | None) -> dict:
@@ -59,7 +60,7 @@ def cached(path: str, wanted: dict, model_dirs) -> dict | None:
         doc = json.load(f)
     if CACHE_KEY in doc:
         had = doc[CACHE_KEY]
-        same = (had.get("pairs") == wanted["pairs"]
+        same = (wanted["pairs"] is None or had.get("pairs") == wanted["pairs"]
                 and len(had.get("models", [])) == len(wanted["models"])
                 and all(w is None or w == h for w, h in zip(wanted["models"], had["models"])))
         return doc if same else None

@@ -335,6 +335,7 @@ def plan_for_folder(output_dir: str, *, source: str, image_dir: str, test_image_
             with open(path) as f:
                 plan = json.load(f)
             planned_budget(plan)
+            plan_lines(plan)  # (every key the printed plan reads)
         except (ValueError, KeyError, TypeError, AttributeError):
             raise ValueError(f"{path} is not a plan this project wrote (no train_steps, "
                              "warmup_steps, samples_per_image and checkpoint_every); move it "

@@ -173,7 +173,8 @@ class SemiSupervised:
         with open(path) as f:
             doc = eval_cache.check_pairs_kind(json.load(f), path, self.run.in_memory)
         measured = doc.get(eval_cache.CACHE_KEY, {}).get("pairs")
-        if measured is not None and measured != eval_cache.pairs_digest(self.run):
+        here = eval_cache.pairs_digest(self.run)
+        if measured is not None and here is not None and measured != here:
             raise ValueError(f"{path}, the evaluation of {name} (restored without its model), "
                              "was measured on other test pairs than this reproduction's: "
                              "remove it to train and evaluate the model here.")
@@ -218,7 +219,10 @@ class SemiSupervised:
                 path = os.path.join(repo_dir, f"{name}.json")
                 if not os.path.exists(path):
                     continue
-                diff = budgets.budget_diff(run_dir.read_run_config(path), self.config(row, seed))
+                cfg = self.run.config(name, data_dir=self.run.data_dir(1), seed=seed,
+                                      label_fraction=row.label_fraction,
+                                      drop_unlabeled=row.drop_unlabeled)  # (no data made)
+                diff = budgets.budget_diff(run_dir.read_run_config(path), cfg)
                 if diff:
                     raise ValueError(f"{repo_dir} holds {name} trained with another budget "
                                      f"{diff} (saved, wanted): give a --repo_dir of this "
@@ -242,8 +246,8 @@ class SemiSupervised:
             src, dst = self.eval_file(name), self.eval_file(name, repo_dir)
             saved_before = os.path.exists(os.path.join(repo_dir, f"{name}.keras"))
             if (os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)) and os.path.exists(src)
-                    and not (saved_before and os.path.exists(dst))):  # (the repo's stays)
-                self._save_evaluation(src, dst, os.path.join(repo_dir, f"{name}.keras"), d)
+                    and saved_before and not os.path.exists(dst)):  # (the repo's stays)
+                self._save_evaluation(src, dst, None, d)  # (its record: this run's own file)
             if saved_before:
                 continue  # finished and saved before
             if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
@@ -272,7 +276,8 @@ class SemiSupervised:
         with open(src) as f:
             doc = json.load(f)
         here = eval_cache.key([model_dir], None)["models"]
-        if doc.get(eval_cache.CACHE_KEY, {}).get("models") == here and os.path.exists(saved_model):
+        if (saved_model is not None and os.path.exists(saved_model)
+                and doc.get(eval_cache.CACHE_KEY, {}).get("models") == here):
             doc[eval_cache.CACHE_KEY]["models"] = eval_cache.key([saved_model], None)["models"]
         os.makedirs(os.path.dirname(dst), exist_ok=True)
         atomic_write_json(dst, doc)

@@ -293,6 +293,9 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
     before this."""
     final = os.path.join(cfg.model_dir, FINAL_MODEL)
     config_path = os.path.join(cfg.model_dir, CONFIG_FILE)
+    if not os.path.exists(config_path) and os.path.isfile(
+            os.path.join(cfg.model_dir, PREVIOUS_RUN, CONFIG_FILE)):
+        _put_back(cfg.model_dir)  # (a kill between set_aside and the new config: the old run)
     _check_run_folder(cfg.model_dir)
     diff = _config_diff(cfg, config_path)
     if os.path.exists(final) and not overwrite:
