@@ -203,9 +203,8 @@ class SemiSupervised:
 
     def check_repo(self, repo_dir: str) -> None:
         """Refuse a ``repo_dir`` holding a model of this experiment trained with another budget
-        (its ``<name>.json`` against the row's configuration: :func:`budgets.budget_diff`), before
-        :meth:`save` or :meth:`restore` copies anything (a smoke test's models and evaluations
-        replaced the CPU budget's committed ones).
+        (its ``<name>.json`` against the row's configuration: :func:`budgets.budget_diff`),
+        before :meth:`save` or :meth:`restore` copies anything.
 
         Raises:
           ValueError: naming the model and the fields (saved, wanted).
@@ -234,9 +233,8 @@ class SemiSupervised:
         ``config.json``), its ``resume/<name>/`` removed; an unfinished one's newest checkpoint as
         ``resume/<name>/`` (``config.json``, ``state.json``, the weights it names); a finished
         model's evaluation as ``eval/<key>.json``. Returns ``{name: "finished" | step}`` of the
-        models written (a model already saved as finished is left as it is), ``"not saved:
-        <why>"`` where :func:`~stnh_tf.training.chunks.sync_out` refused (a newer checkpoint
-        committed there)."""
+        models written (one saved as finished before is left), ``"not saved: <why>"`` where
+        :func:`~stnh_tf.training.chunks.sync_out` refused (a newer checkpoint committed there)."""
         from stnh_tf.training import checkpoints, chunks, run_dir
 
         self.check_repo(repo_dir)
@@ -269,10 +267,9 @@ class SemiSupervised:
 
     @staticmethod
     def _save_evaluation(src: str, dst: str, saved_model: str, model_dir: str) -> None:
-        """Copy the evaluation ``src`` of the run ``model_dir`` to ``dst``; where it records the
-        run's own model file (:data:`eval_cache.CACHE_KEY`) and ``saved_model``, the file saved
-        without optimizer state, is there, the record names the saved file, so that the model
-        restored from it keeps its evaluation."""
+        """Copy the evaluation ``src`` of the run ``model_dir`` to ``dst``, its record
+        (:data:`eval_cache.CACHE_KEY`) naming ``saved_model`` (the file just saved without
+        optimizer state; None: kept) where it named the run's own file."""
         with open(src) as f:
             doc = json.load(f)
         here = eval_cache.key([model_dir], None)["models"]
