@@ -159,6 +159,7 @@ def _binary(*args, default_dir=None):
                           text=True, timeout=300)
 
 
+@pytest.mark.slow  # (four subprocesses: the make test time)
 def test_the_binary_checks_the_default_folder_and_says_errors_in_one_line(shipped, tmp_path):
     w, before = shipped
     proc = _binary(f"--model_dir={w}/stage2.keras,{w}/stage1.keras", default_dir=w)
