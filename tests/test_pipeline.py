@@ -458,42 +458,65 @@ def test_corner_std_of_a_pair_whose_corners_map_beyond_the_horizon(tile):
         got, rel=1e-9)
 
 
-def _ncc_over_shifts(warped, b, r, mask=None):
-    """NCC (zero-mean, normalized) of ``b``'s centre (a margin of ``r``) with ``warped`` at every
-    shift ``(dx, dy)`` in ``[-r, r]^2``, written out with NumPy: ``[2r + 1, 2r + 1]``; with
-    ``mask`` (over the centre) over its pixels alone, means included (OpenCV's documented
-    masked ``TM_CCOEFF_NORMED``)."""
-    t = b[r:-r, r:-r].astype(np.float64)
-    m = np.ones_like(t) if mask is None else mask.astype(np.float64)
-    t = m * (t - (m * t).sum() / m.sum())
-    out = np.empty((2 * r + 1, 2 * r + 1))
-    for i in range(2 * r + 1):
-        rows = warped[i:i + t.shape[0]].astype(np.float64)
-        windows = np.moveaxis(np.lib.stride_tricks.sliding_window_view(
-            rows, t.shape[1], axis=1), 1, 0)  # [2r + 1, h_t, w_t]
-        windows = m * (windows - (m * windows).sum(axis=(1, 2), keepdims=True) / m.sum())
-        out[i] = (windows * t).sum(axis=(1, 2)) / np.sqrt(
-            (windows ** 2).sum(axis=(1, 2)) * (t ** 2).sum())
-    return out
+def _ncc_at(image, covered, template, dx, dy):
+    """NCC of ``template(p)`` with ``image(p + (dx, dy))`` over the ``p`` inside both whose
+    ``covered(p + (dx, dy))`` holds, written out with NumPy (``np.corrcoef``): (ncc, count)."""
+    h, w = template.shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    qy, qx = ys + dy, xs + dx
+    inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
+    inside[inside] &= covered[qy[inside], qx[inside]]
+    values_a = image[qy[inside], qx[inside]].astype(np.float64)
+    return float(np.corrcoef(values_a, template[inside].astype(np.float64))[0, 1]), int(inside.sum())
 
 
-def _gap_of(scores, r):
+def _gap_of(scores, count, r):
     """The NCC at the estimate (the best within 1 px) less the best local maximum (5 x 5) 8 px
-    or more away: ``checks.ambiguity_gap``'s rule, written out."""
+    or more away among the shifts comparing at least half the estimate's pixels:
+    ``checks.ambiguity_gap``'s rule, written out; and that maximum's shift ``(dx, dy)``."""
     ys, xs = np.mgrid[-r:r + 1, -r:r + 1]
     padded = np.pad(scores, 2, constant_values=-np.inf)
     local_max = np.all([scores >= padded[2 + dy:2 + dy + scores.shape[0],
                                          2 + dx:2 + dx + scores.shape[1]]
                         for dy in range(-2, 3) for dx in range(-2, 3)], axis=0)
-    return scores[r - 1:r + 2, r - 1:r + 2].max() - scores[local_max & (np.hypot(xs, ys) >= 8)].max()
+    other = np.where(local_max & (np.hypot(xs, ys) >= 8) & (count >= 0.5 * count[r, r]),
+                     scores, -np.inf)
+    best = np.unravel_index(np.argmax(other), other.shape)
+    return (scores[r - 1:r + 2, r - 1:r + 2].max() - other[best],
+            (int(best[1]) - r, int(best[0]) - r))
 
 
-@pytest.mark.parametrize("period", [0, 24])
-def test_ambiguity_gap_against_the_ncc_over_shifts_written_out(period):
+@pytest.mark.parametrize("optimized", [True, False])
+def test_overlap_ncc_against_the_ncc_written_out(optimized):
+    """checks.overlap_ncc (the NCC over the pixels the shifted image covers, from sums by
+    matchTemplate and integral images) against np.corrcoef over those pixels at 40 random
+    shifts and the four extreme ones, on OpenCV's two code paths, to 1e-6 (float32 sums of
+    standardized values; measured 3e-8), and the pixel counts exactly."""
+    rng = np.random.default_rng(5)
+    image = cv2.GaussianBlur(rng.random((240, 320)), (0, 0), 1.5) * 200 + 30
+    template = np.roll(image, (7, -11), axis=(0, 1)) + rng.normal(0, 0.02, image.shape)
+    covered = np.ones(image.shape, bool)
+    covered[:, 250:] = False  # a pan: the right of the image not covered
+    covered[:30, :60] = False
+    r = 80
+    with opencv_optimized(optimized):
+        scores, count = checks.overlap_ncc(image, covered, template, r)
+    shifts = [(int(dx), int(dy)) for dx, dy in rng.integers(-r, r + 1, (40, 2))]
+    for dx, dy in shifts + [(-r, -r), (r, r), (-r, r), (r, -r), (11, -7)]:
+        ncc, n = _ncc_at(image, covered, template, dx, dy)
+        assert scores[r + dy, r + dx] == pytest.approx(ncc, abs=1e-6)
+        assert count[r + dy, r + dx] == n
+    # template(y, x) = image(y - 7, x + 11) up to the noise (the roll wraps beyond the overlap)
+    assert scores[r - 7, r + 11] > 0.99
+
+
+@pytest.mark.parametrize("period", [0, 24, 60])
+def test_ambiguity_gap_against_the_rule_written_out(period):
     """checks.ambiguity_gap on a shifted pair: the NCC at the estimate less the best local
-    maximum 8 px or more away, against the NCC over every shift computed with NumPy (to 1e-4:
-    OpenCV's matchTemplate sums in float32). A texture repeated every ``period`` px aligns as
-    well one period off (gap about 0); a smooth random one does not (gap above 0.3)."""
+    maximum 8 px or more away (the rule written out over checks.overlap_ncc's scores, whose two
+    NCCs are checked against np.corrcoef). A texture repeated every ``period`` px aligns as
+    well one period off (gap about 0; 60 px is beyond the 40 px the check reached before, issue
+    79); a smooth random one does not (gap above 0.3)."""
     rng = np.random.default_rng(2)
     if period:
         tiles = cv2.GaussianBlur(np.tile(rng.random((period, period)), (3, 3)), (0, 0), 1.5)
@@ -504,41 +527,40 @@ def test_ambiguity_gap_against_the_ncc_over_shifts_written_out(period):
     shift = geometry.translation(5.0, -3.0)
     b = cv2.warpPerspective(a, shift, (320, 240), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
                             borderMode=cv2.BORDER_REFLECT_101)
-    patch_shift = geometry.image_to_patch(shift, 96, 56)
-    gap = checks.ambiguity_gap(a, b, patch_shift, (96, 56))
-    warped = cv2.warpPerspective(a, shift, (320, 240),
-                                 flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
-    covered = cv2.warpPerspective(np.ones_like(a), shift, (320, 240),
-                                  flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR) > 0.999
-    warped[~covered] = warped[covered].mean()
+    gap = checks.ambiguity_gap(a, b, geometry.image_to_patch(shift, 96, 56), (96, 56))
+    warped, covered = checks.warped_onto(a, geometry.image_to_patch(shift, 96, 56), (96, 56),
+                                         b.shape)
     r = checks.AMBIGUITY_SHIFT_PX
-    assert covered[r:-r, r:-r].all()  # the whole centre: no mask
-    assert gap == pytest.approx(_gap_of(_ncc_over_shifts(warped, b, r), r), abs=1e-4)
-    assert (abs(gap) < 0.005) if period else (gap > 0.3)
+    scores, count = checks.overlap_ncc(warped, covered, b, r)
+    expected, (dx, dy) = _gap_of(scores, count, r)
+    assert gap == pytest.approx(expected, abs=1e-9)
+    assert scores[r + dy, r + dx] == pytest.approx(_ncc_at(warped, covered, b, dx, dy)[0], abs=1e-6)
+    assert scores[r, r] == pytest.approx(_ncc_at(warped, covered, b, 0, 0)[0], abs=1e-6)
+    if period:
+        assert abs(gap) < 0.005 and (dx, dy) != (0, 0)
+        assert abs((dx + 2) % period - 2) <= 1 and abs((dy + 2) % period - 2) <= 1  # a lattice point
+    else:
+        assert gap > 0.3
 
 
-@pytest.mark.slow  # (2.5 s: the NumPy reference over 81 x 81 shifts; make test-all)
 def test_ambiguity_gap_of_a_low_overlap_pair_counts_the_covered_pixels_alone():
     """A pan of 150 px (53% overlap: image_b's centre lies outside image_a): the NCC is taken
-    over the pixels of image_b's centre that image_a covers (OpenCV's masked matchTemplate,
-    against the same written out with NumPy); with the uncovered ones counted at image_a's mean,
-    as before, the step at the overlap's edge scored other shifts higher than the estimate on 5
-    of the 60 low-overlap development pairs (issue 79)."""
+    over the pixels that image_a covers; with the uncovered ones counted at image_a's mean the
+    step at the overlap's edge scored other shifts higher than the estimate on 5 of the 60
+    low-overlap development pairs (issue 79). Both OpenCV code paths."""
     rng = np.random.default_rng(3)
     scene = cv2.GaussianBlur(rng.random((240, 470)), (0, 0), 2).astype(np.float32)
     a, b = scene[:, :320], scene[:, 150:]
-    pan = geometry.translation(150.0, 0.0)  # image_b(p) = image_a(p + (150, 0))
+    pan = geometry.image_to_patch(geometry.translation(150.0, 0.0), 96, 56)
     gaps = []
     for optimized in (True, False):  # OpenCV's two code paths: two CPUs' numerics
         with opencv_optimized(optimized):
-            gaps.append(checks.ambiguity_gap(a, b, geometry.image_to_patch(pan, 96, 56), (96, 56)))
-    warped = cv2.warpPerspective(a, pan, (320, 240), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
-    covered = cv2.warpPerspective(np.ones_like(a), pan, (320, 240),
-                                  flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR) > 0.999
-    warped[~covered] = warped[covered].mean()
+            gaps.append(checks.ambiguity_gap(a, b, pan, (96, 56)))
+    warped, covered = checks.warped_onto(a, pan, (96, 56), b.shape)
+    assert 0.4 < covered.mean() < 0.6
     r = checks.AMBIGUITY_SHIFT_PX
-    mask = covered[r:-r, r:-r]
-    assert 0.3 < mask.mean() < 0.6
-    expected = _gap_of(_ncc_over_shifts(warped, b, r, mask), r)
-    assert gaps == pytest.approx([expected, expected], abs=1e-4)
+    expected, (dx, dy) = _gap_of(*checks.overlap_ncc(warped, covered, b, r), r)
+    assert gaps == pytest.approx([expected, expected], abs=1e-6)
     assert min(gaps) > 0.3
+    filled = np.where(covered, warped, warped[covered].mean())  # the rule before, at (dx, dy)
+    assert _ncc_at(filled, np.ones_like(covered), b, 0, 0)[0] < _ncc_at(warped, covered, b, 0, 0)[0]

@@ -283,3 +283,40 @@ def test_a_checkerboard_pair_is_flagged_ambiguous(default_estimator_float32, ope
     est = default_estimator_float32.estimate_images_with_info(image_a, image_b)
     assert est.implausible[0]
     assert est.ambiguity_gap[0] < est.options.thresholds.min_ambiguity_gap
+
+
+@pytest.mark.slow  # (8 estimates of the shipped hierarchy on 640 x 480 images)
+@pytest.mark.parametrize("period", [52, 72])
+@pytest.mark.parametrize("noise", [0.0, 0.1])
+def test_a_pattern_repeated_beyond_the_trained_range_is_found_or_flagged(
+        default_estimator_float32, opencv_path, period, noise):
+    """Issue 79, item 3: a photograph's square tiled every 2P px of a 640 x 480 image (P px at
+    the 320 x 240 work size, P = 52, 72 beyond the 40 px the ambiguity check reached before),
+    image_b the tiling shifted by 2(P + 6) px. The default estimate_images came back one period
+    off (2P px, NCC 1.0) unflagged; it is now flagged (another shift aligns as well). With 10%
+    noise over the whole tiling the true shift aligns better than the period-off one: the flag
+    makes the late feature start run, which finds it (it came back 2P px off unflagged, NCC
+    0.91)."""
+    import cv2
+
+    from stnh_tf import geometry
+    from stnh_tf.data import bundled_photos
+
+    photo = cv2.imread(dict(bundled_photos.bundled_image_files())["skimage/camera.png"],
+                       cv2.IMREAD_GRAYSCALE)
+    tile = cv2.resize(photo[156:356, 156:356], (2 * period, 2 * period),
+                      interpolation=cv2.INTER_AREA).astype(np.float32)
+    tiling = np.tile(tile, (960 // (2 * period) + 3, 1280 // (2 * period) + 3))
+    tiling += noise * 255 * np.random.default_rng(0).standard_normal(tiling.shape, np.float32)
+    tiling = np.clip(tiling, 0, 255).astype(np.uint8)
+    shift = 2 * (period + 6)
+    image_a, image_b = tiling[:480, :640], tiling[:480, shift:shift + 640]
+    est = default_estimator_float32.estimate_images_with_info(image_a, image_b)
+    corners = np.float64([[[0, 0]], [[640, 0]], [[640, 480]], [[0, 480]]])
+    error = np.linalg.norm(cv2.perspectiveTransform(corners, est.homography[0])
+                           - cv2.perspectiveTransform(corners, geometry.translation(shift, 0.0)),
+                           axis=-1).mean()
+    if noise:
+        assert error < 0.5 and not est.implausible[0]
+    else:
+        assert est.implausible[0] and abs(est.ambiguity_gap[0]) < 0.005

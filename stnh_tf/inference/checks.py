@@ -294,34 +294,80 @@ def warped_onto(work_a, a_from_b, origin, shape_b) -> tuple:
     return warped, cv2.warpPerspective(np.ones_like(a), h, size, flags=flags) > 0.999
 
 
-AMBIGUITY_SHIFT_PX = 40
-""":func:`ambiguity_gap`'s reach: other shifts up to this many px (beyond the trained 32)."""
+AMBIGUITY_SHIFT_PX = 80
+""":func:`ambiguity_gap`'s reach: other shifts up to this many px at the 320 x 240 work size (a
+quarter of its width; a repeated pattern of a longer period is not seen)."""
 AMBIGUITY_MIN_SHIFT_PX = 8
 """:func:`ambiguity_gap`: a peak nearer the estimate than this is its own peak's shoulder."""
+AMBIGUITY_MIN_SHARE = 0.5
+""":func:`ambiguity_gap`: a shift counts where the pixels compared are at least this share of
+those compared at the estimate."""
+
+
+def overlap_ncc(image, covered, template, reach: int) -> tuple:
+    """Masked NCC (Padfield 2012; OpenCV's ``matchTemplate`` masks the template alone):
+    ``score[reach + dy, reach + dx]`` is the NCC of ``template(p)`` with ``image(p + (dx, dy))``
+    over the ``p`` inside both where ``covered(p + (dx, dy))``, ``count`` their number.
+
+    Args:
+      image, template: ``[h, w]``; covered: ``[h, w]`` bool, the image's valid pixels.
+      reach: the largest shift along each axis, px.
+    Returns:
+      ``(score, count)``, float64 ``[2 reach + 1, 2 reach + 1]``; the score is NaN where either
+      side is constant over the pixels compared or none is.
+
+    >>> img = np.random.default_rng(0).random((60, 80))
+    >>> score, count = overlap_ncc(img, np.ones((60, 80), bool), np.roll(img, 3, axis=1), 5)
+    >>> round(float(score[5, 2]), 6), int(count[5, 2]), bool(score[5, 5] < 0.2)
+    (1.0, 4620, True)
+    """
+    h, w = np.shape(template)
+    covered = np.asarray(covered, bool)
+    image = np.asarray(image, np.float64)
+    template = np.asarray(template, np.float64)
+    values = image[covered]  # standardized: float32 sums keep the NCC's digits
+    a = np.where(covered, (image - values.mean()) / (values.std() or 1.0), 0.0)
+    b = (template - template.mean()) / (template.std() or 1.0)
+
+    def padded(x):
+        return np.pad(x, reach).astype(np.float32)
+
+    def box_sums(x):  # the sum over every h x w window, from the integral image
+        s = cv2.integral(padded(x).astype(np.float64), sdepth=cv2.CV_64F)
+        return s[h:, w:] - s[:-h, w:] - s[h:, :-w] + s[:-h, :-w]
+
+    def correlate(x, t):
+        return cv2.matchTemplate(padded(x), t.astype(np.float32), cv2.TM_CCORR).astype(np.float64)
+
+    count, sum_a, sum_aa = box_sums(covered), box_sums(a), box_sums(a * a)
+    mask = covered.astype(np.float64)
+    sum_b, sum_bb, sum_ab = correlate(mask, b), correlate(mask, b * b), correlate(a, b)
+    with np.errstate(all="ignore"):
+        cov = sum_ab - sum_a * sum_b / count
+        var = (sum_aa - sum_a ** 2 / count) * (sum_bb - sum_b ** 2 / count)
+        score = np.where(var > 1e-9 * count ** 2, cov / np.sqrt(var), np.nan)
+    return score, np.rint(count)
 
 
 def ambiguity_gap(work_a, work_b, a_from_b, origin=(0, 0), min_overlap: float = 0.3) -> float:
     """How much better the patch-frame ``a_from_b`` aligns ``work_b`` with ``work_a`` than
-    any distinct other shift of it: work_a is warped onto work_b's frame by the estimate
-    (its pixels beyond work_a set to the mean of the rest), the NCC of work_b's centre (a
-    margin of :data:`AMBIGUITY_SHIFT_PX` on every side; only its pixels that work_a covers under
-    the estimate, where it does not cover them all: on a low-overlap pair work_b's centre can lie
-    outside work_a, issue 79) with it is taken at every shift up to that margin
-    (``cv2.matchTemplate``, ``TM_CCOEFF_NORMED``, the template masked; at other shifts some of
-    its pixels meet the filled ones, which lowers those shifts' NCC near the overlap's edge), and
-    the result is the NCC at
-    the estimate (the best within 1 px) less the highest local maximum (5 x 5) at least
-    :data:`AMBIGUITY_MIN_SHIFT_PX` away. A repeated pattern, which aligns as well one period
-    off, gives about 0; a photograph, whose NCC falls away from the estimate, 0.1 or more.
+    any distinct other shift of it: work_a is warped onto work_b's frame by the estimate and
+    the NCC of work_b with it, each time over the pixels that the warped work_a covers, is taken
+    at every shift up to :data:`AMBIGUITY_SHIFT_PX` (:func:`overlap_ncc`); the result is the NCC
+    at the estimate (the best within 1 px) less the highest local maximum (5 x 5) at least
+    :data:`AMBIGUITY_MIN_SHIFT_PX` away among the shifts that compare at least
+    :data:`AMBIGUITY_MIN_SHARE` as many pixels as the estimate. A repeated pattern, which aligns
+    as well one period off, gives about 0 (below 0 where another shift aligns better: the estimate
+    is a period off); a photograph, whose NCC falls away from the estimate, 0.1 or more.
 
     Args:
-      work_a, work_b: ``[h, w]`` images (work_b's sides above twice the margin); the patch has
+      work_a, work_b: ``[h, w]`` images (work_b's sides above twice the reach); the patch has
         its top-left corner at ``origin`` in both.
       a_from_b: ``[3, 3]`` pixel ``H_ba`` in the patch frame.
       min_overlap: the share of work_b that work_a must cover under the estimate.
     Returns:
       The gap (NCC units, at most 2); NaN where the estimate covers less than ``min_overlap``,
-      is not finite, or the NCC is undefined (a flat image); 1.0 where no other peak exists.
+      is not finite, or the NCC at it is undefined (a flat image); 1.0 where no other peak exists.
 
     >>> ys, xs = np.mgrid[0:240, 0:320]
     >>> board = ((xs // 16 + ys // 16) % 2).astype(np.float64)
@@ -338,19 +384,17 @@ def ambiguity_gap(work_a, work_b, a_from_b, origin=(0, 0), min_overlap: float = 
     warped, covered = warped_onto(work_a, a_from_b, origin, b.shape)
     if covered.mean() < min_overlap:
         return float("nan")
-    warped[~covered] = warped[covered].mean()
     r = AMBIGUITY_SHIFT_PX
-    inside = covered[r:-r, r:-r]
-    mask = {} if inside.all() else {"mask": inside.astype(np.float32)}
-    with np.errstate(all="ignore"):
-        scores = cv2.matchTemplate(warped, b[r:-r, r:-r], cv2.TM_CCOEFF_NORMED, **mask)
-    if not np.isfinite(scores).all():
+    scores, count = overlap_ncc(warped, covered, b, r)
+    own = scores[r - 1:r + 2, r - 1:r + 2]
+    if not np.isfinite(own).any():
         return float("nan")
-    own = float(scores[r - 1:r + 2, r - 1:r + 2].max())
     ys, xs = np.mgrid[-r:r + 1, -r:r + 1]
-    peaks = ((scores == cv2.dilate(scores, np.ones((5, 5), np.uint8)))
-             & (np.hypot(xs, ys) >= AMBIGUITY_MIN_SHIFT_PX))
-    return own - float(scores[peaks].max()) if peaks.any() else 1.0
+    filled = np.where(np.isfinite(scores), scores, -np.inf).astype(np.float32)
+    peaks = ((filled == cv2.dilate(filled, np.ones((5, 5), np.uint8)))
+             & (np.hypot(xs, ys) >= AMBIGUITY_MIN_SHIFT_PX) & np.isfinite(scores)
+             & (count >= AMBIGUITY_MIN_SHARE * count[r, r]))
+    return float(np.nanmax(own)) - float(scores[peaks].max()) if peaks.any() else 1.0
 
 
 def alignment_ncc(source_a, patch_b, a_from_b, origin=(0, 0),

@@ -149,8 +149,8 @@ class Thresholds:
         returned in its place, flagged (``Estimate.undetermined``), as SIFT + RANSAC returns
         the identity where it finds no model.
       min_ambiguity_gap: with ``verify="ecc"`` in ``estimate_images``, an estimate under which
-        image_b's centre aligns with image_a warped by it at another shift (8 to 40 px, a
-        distinct peak of the NCC over shifts) within this much of the estimate's own NCC is
+        image_b aligns with image_a warped by it at another shift (8 to 80 px at the work size,
+        a distinct peak of the NCC over shifts) within this much of the estimate's own NCC is
         flagged implausible (``Estimate.ambiguity_gap``,
         :func:`stnh_tf.inference.checks.ambiguity_gap`): a repeated pattern aligns as well one
         period off (issue 79). 0.005: a near-perfect repetition only.
