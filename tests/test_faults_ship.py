@@ -175,3 +175,61 @@ def test_the_binary_checks_the_default_folder_and_says_errors_in_one_line(shippe
         assert proc.returncode != 0 and message in proc.stderr, (args, proc.stderr[-2000:])
         assert "Traceback" not in proc.stderr, args
     assert _state(w) == before
+
+
+_KILLED_IN_THE_SWAP = """
+import os, signal, sys
+from stnh_tf.inference import shipped_weights
+shipped_weights.bundled_check = lambda paths: {"estimate_mace_1_stages": 1.0}
+real = shipped_weights.atomic_write_json
+def killed(path, doc):  # the new models and manifest are in place, the card not yet
+    if path.endswith("model_card.json"):
+        os.kill(os.getpid(), signal.SIGKILL)
+    return real(path, doc)
+shipped_weights.atomic_write_json = killed
+shipped_weights.ship([sys.argv[1], sys.argv[1]], sys.argv[2])
+"""
+
+
+@pytest.mark.slow  # (a subprocess loading TensorFlow: the make test time)
+def test_a_ship_killed_in_its_swap_is_put_back_by_the_next(shipped, runs, check):
+    """A ship killed (SIGKILL) between placing the new models and writing the card left new
+    weights under the old card, and the next ship deleted its staging folder with the old files
+    set aside in it. The next ship (or ``replace_stage``) puts them back first."""
+    w, before = shipped
+    proc = subprocess.run([sys.executable, "-c", _KILLED_IN_THE_SWAP, runs["b"], w],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == -9, proc.stderr[-2000:]
+    # new stage files under the old card, and the staging folder with the old ones
+    assert [n for n in os.listdir(w) if n.startswith(shipped_weights.STAGING_PREFIX)]
+    stage1 = hashlib.sha256(open(os.path.join(w, "stage1.keras"), "rb").read()).hexdigest()
+    assert stage1 != before["stage1.keras"]
+    assert shipped_weights.put_back(w) == ["default.json", "model_card.json", "stage1.keras",
+                                           "stage2.keras"]
+    assert _state(w) == before
+
+
+def test_a_failed_put_back_keeps_the_old_files_for_the_next_ship(shipped, runs, monkeypatch):
+    """Where putting the old files back fails too (after a failed card write), the staging folder
+    was removed with them; it is kept now, the error names it, and a later ship from another
+    process puts them back."""
+    w, before = shipped
+    real_json, real_bytes = shipped_weights.atomic_write_json, shipped_weights.atomic_write_bytes
+
+    def failing_json(path, doc):
+        if path.endswith("model_card.json"):
+            raise OSError(28, "No space left on device")
+        return real_json(path, doc)
+
+    def failing_bytes(path, data):
+        if os.path.dirname(path) == w:  # the card's old bytes back: fails too
+            raise OSError(5, "Input/output error")
+        return real_bytes(path, data)
+
+    monkeypatch.setattr(shipped_weights, "atomic_write_json", failing_json)
+    monkeypatch.setattr(shipped_weights, "atomic_write_bytes", failing_bytes)
+    with pytest.raises(RuntimeError, match="so did putting the old files back"):
+        shipped_weights.ship([runs["b"], runs["b"]], w)
+    monkeypatch.setattr(shipped_weights, "_alive", lambda pid: False)  # (another process's)
+    assert "model_card.json" in shipped_weights.put_back(w)
+    assert _state(w) == before

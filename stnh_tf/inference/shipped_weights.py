@@ -38,6 +38,7 @@ def ship(model_dirs, weights_dir=None, eval_json=None, allow_worse: bool = False
     if eval_json:
         card["evaluation"] = _read_json(eval_json)
     os.makedirs(weights_dir, exist_ok=True)
+    put_back(weights_dir)
     old_card = _card_if_any(weights_dir)
     return _install(weights_dir, {e["file"]: m for m, e in stages}, card, old_card, allow_worse,
                     manifest=f"{len(stages)}-stage hierarchy shipped with stnh-tf")
@@ -133,16 +134,30 @@ def _install(weights_dir, models: dict, card: dict, old_card, allow_worse, manif
     stages not replaced), refuse a worse check than ``old_card``'s unless ``allow_worse``, then
     move the files into place, the old ones aside, and write the manifest (``manifest``: its
     description; None: kept) and the card; where any of that fails, the old files, manifest and
-    card are put back. The card records ``bundled_check_change`` (the numbers that moved)."""
-    import shutil
-
-    for stale in os.listdir(weights_dir):  # (left by a run killed before)
-        pid = stale[len(STAGING_PREFIX):]
-        if stale.startswith(STAGING_PREFIX) and pid.isdigit() and not _alive(int(pid)):
-            shutil.rmtree(os.path.join(weights_dir, stale), ignore_errors=True)
+    card are put back (a process killed meanwhile: :func:`put_back`, by the next ship). The
+    card records ``bundled_check_change`` (the numbers that moved)."""
     staging = os.path.join(weights_dir, f"{STAGING_PREFIX}{os.getpid()}")
     os.makedirs(staging)  # (FileExistsError: this process is shipping into it already)
     return _install_staged(weights_dir, staging, models, card, old_card, allow_worse, manifest)
+
+
+def put_back(weights_dir) -> list:
+    """Undo what a ship killed in ``weights_dir`` left (a staging folder of a process no longer
+    running): the files it had set aside in the folder's ``.previous`` (models, manifest, card)
+    go back over what it had placed, the old weights whole as before it, and the folder goes.
+    Called first by :func:`ship` and :func:`replace_stage`; returns the names put back."""
+    import shutil
+
+    names = []
+    for stale in sorted(os.listdir(weights_dir)):
+        pid = stale[len(STAGING_PREFIX):]
+        if stale.startswith(STAGING_PREFIX) and pid.isdigit() and not _alive(int(pid)):
+            aside = os.path.join(weights_dir, stale, PREVIOUS)
+            for name in sorted(os.listdir(aside)) if os.path.isdir(aside) else []:
+                os.replace(os.path.join(aside, name), os.path.join(weights_dir, name))
+                names.append(name)
+            shutil.rmtree(os.path.join(weights_dir, stale), ignore_errors=True)
+    return names
 
 
 def _alive(pid: int) -> bool:
@@ -179,8 +194,11 @@ def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, m
             if isinstance(v, float) and isinstance(before.get(k), float) and v != before[k]}
         kept = {n: _bytes_if_any(os.path.join(weights_dir, n))
                 for n in ("default.json", "model_card.json")}
-        aside = os.path.join(staging, ".previous")
+        aside = os.path.join(staging, PREVIOUS)
         os.makedirs(aside)
+        for name, data in kept.items():  # (for put_back, should this process be killed)
+            if data is not None:
+                atomic_write_bytes(os.path.join(aside, name), data)
         moved, placed = [], []
         try:
             for name in models:
@@ -195,18 +213,30 @@ def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, m
                                            [os.path.join(weights_dir, s["file"])
                                             for s in card["stages"]], description=manifest)
             atomic_write_json(os.path.join(weights_dir, "model_card.json"), card)
-        except BaseException:
-            for name in placed:
-                os.replace(os.path.join(weights_dir, name), os.path.join(staging, name))
-            for name in moved:
-                os.replace(os.path.join(aside, name), os.path.join(weights_dir, name))
-            for name, data in kept.items():
-                if data is not None:
-                    atomic_write_bytes(os.path.join(weights_dir, name), data)
+            os.replace(aside, os.path.join(staging, ".shipped"))  # the swap is done: no put_back
+        except BaseException as e:
+            try:
+                for name in placed:
+                    os.replace(os.path.join(weights_dir, name), os.path.join(staging, name))
+                for name in moved:
+                    os.replace(os.path.join(aside, name), os.path.join(weights_dir, name))
+                for name, data in kept.items():
+                    if data is not None:
+                        atomic_write_bytes(os.path.join(weights_dir, name), data)
+            except BaseException as undo:
+                staging = None  # kept: its .previous holds the old files
+                raise RuntimeError(f"shipping failed ({e!r}) and so did putting the old files "
+                                   f"back ({undo!r}): they are in {aside}; the next ship into "
+                                   f"{weights_dir} from another process puts them back.") from e
             raise
     finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
     return card
+
+
+PREVIOUS = ".previous"
+""":func:`_install_staged`'s folder, inside the staging folder, of the files it replaces."""
 
 
 STAGING_PREFIX = ".stnh_tf_ship."
@@ -329,6 +359,8 @@ def _shipped_card(weights_dir=None):
     from stnh_tf.inference import model_files
 
     weights_dir = weights_dir or model_files.default_weights_dir()
+    if os.path.isdir(weights_dir):
+        put_back(weights_dir)
     with open(os.path.join(weights_dir, "model_card.json")) as f:
         return weights_dir, json.load(f)
 
