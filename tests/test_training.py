@@ -198,6 +198,7 @@ def test_init_from_starts_a_stage_from_a_trained_one(tiny_data, tmp_path, narrow
         np.testing.assert_array_equal(g, s)
 
 
+@pytest.mark.slow  # (8 s: a training run and its provenance; make test-all)
 def test_finished_run_records_its_commit_machine_and_backend(tiny_data, tmp_path, narrow):
     """result.json of a finished run holds, beside its final step, the commit, CPU, cores and
     Keras backend of the process that finished it (what a reproduction's model_provenance reads),
@@ -223,6 +224,7 @@ def test_init_from_rejects_a_stage_of_another_build(tiny_data, tmp_path, narrow)
             _cfg(tiny_data, tmp_path / "run2", **bad).validate()
 
 
+@pytest.mark.slow  # (11 s: two training runs; make test-all)
 def test_steps_per_execution_makes_the_same_updates(tiny_data, straight_run, tmp_path):
     """Two steps per compiled call: the same six updates as the straight run (one step a call),
     checkpoints at the same steps, and the resume check lets the two settings continue one run."""
@@ -382,6 +384,7 @@ def test_homographynet_refuses_loss_weights_it_would_ignore():
         model_kinds.loss_spec(_cfg("d", "m", model="homographynet", l2_weight=10.0))
 
 
+@pytest.mark.slow  # (4 s: a training run; make test-all)
 def test_non_finite_loss_stops_with_step_and_checkpoint(tiny_data, tmp_path, narrow):
     cfg = _cfg(tiny_data, tmp_path / "nan", learning_rate=1e12, warmup_steps=0, train_steps=20,
                checkpoint_every=2)
@@ -717,6 +720,28 @@ def test_an_overwrite_failing_before_its_first_checkpoint_puts_the_finished_run_
     result = training.train(new, overwrite=True, printer=_quiet)
     assert result["final_step"] == 2 and not (run / run_dir.PREVIOUS_RUN).exists()
     assert (run / "model.keras").read_bytes() != before["model.keras"]
+
+
+def test_an_overwrite_failing_between_the_folder_and_the_model_puts_the_run_back(
+        tiny_data, tmp_path, monkeypatch):
+    """A failure after the folder was prepared but before the training loop's guard (setting the
+    seed or the precision policy; an interrupt) kept the folder locked and the finished run set
+    aside: the next command was refused while nothing ran. Both are undone now."""
+    run = tmp_path / "run"
+    run_dir.prepare_model_dir(_cfg(tiny_data, run))
+    (run / "model.keras").write_text("finished model")
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+
+    def interrupted(seed):
+        raise KeyboardInterrupt("between the folder and the model")
+
+    monkeypatch.setattr(keras.utils, "set_random_seed", interrupted)
+    new = _cfg(tiny_data, run, learning_rate=0.02, train_steps=2, checkpoint_every=2)
+    with pytest.raises(KeyboardInterrupt):
+        training.train(new, overwrite=True, printer=_quiet)
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+    assert sorted(p.name for p in run.iterdir()) == ["config.json", "model.keras"]
+    run_dir.RunLock(str(run)).release()  # not held: taken and given back at once
 
 
 def test_a_run_set_aside_with_nothing_in_its_place_is_put_back(tiny_data, tmp_path):

@@ -324,11 +324,11 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             lock.release()
         distribute.report_start(cluster, ok=False)
         raise
-    distribute.report_start(cluster, ok=True)
-    keras.utils.set_random_seed(cfg.seed)
-    keras.mixed_precision.set_global_policy(dtype_policy(cfg.mixed_precision))
     train_ds = None
-    try:
+    try:  # (from here a failure puts a set-aside run back and releases the lock)
+        distribute.report_start(cluster, ok=True)
+        keras.utils.set_random_seed(cfg.seed)
+        keras.mixed_precision.set_global_policy(dtype_policy(cfg.mixed_precision))
         distribute.activate(cluster, cfg.batch_size)
         with _strategy_scope(cfg):
             model = model_kinds.build_model(cfg)
