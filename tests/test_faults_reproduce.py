@@ -16,7 +16,7 @@ import os
 
 import pytest
 
-from stnh_tf.paper import eval_cache, reproduce, semi_supervised, table2
+from stnh_tf.paper import eval_cache, model_provenance, reproduce, semi_supervised, table2
 from stnh_tf.training import run_dir
 
 QUIET = lambda *a, **k: None  # noqa: E731
@@ -98,6 +98,23 @@ def test_table1_keeps_rows_writes_other_steps_beside_and_records_every_rows_prov
     beside = json.load(open(os.path.join(tiny.out, f"table1_steps{steps + 5}.json")))
     assert [k for k in beside if "," in k] == ["3,1"]
     assert os.path.exists(os.path.join(tiny.out, f"table1_steps{steps + 5}.md"))
+
+
+def test_a_reused_model_appears_once_in_table1s_provenance(tiny, tmp_path, monkeypatch):
+    """A model given by ``--reuse=stage1=DIR`` whose folder is not named ``stage1`` was listed
+    twice in Table 1's provenance (under its name and its folder's), "2 of 2 models reused"."""
+    monkeypatch.setattr(tiny, "evaluate", lambda key, model_dirs=(), baselines=(): {
+        "model": {"mace": 5.0}, "identity": {"mace": 24.0}})
+    steps = tiny.budget.ablation_train_steps
+    reused = _model(tmp_path / "elsewhere" / "my_first_stage", steps=steps)
+    own = _model(os.path.join(tiny.out, "models", "ablation_l2-10_l1-1"), steps=steps)
+    tiny.reuse, tiny.models = {"stage1": reused}, {"stage1": reused}
+    tiny.table1({(1.0, 1.0): [reused], (10.0, 1.0): [own]})
+    table = json.load(open(os.path.join(tiny.out, "table1.json")))
+    assert sorted(table["model_provenance"]) == ["ablation_l2-10_l1-1", "stage1"]
+    assert table["model_provenance"]["stage1"]["reused"] is True
+    assert table["model_provenance"]["ablation_l2-10_l1-1"]["reused"] is False
+    assert "1 of 2 models were trained elsewhere" in model_provenance.assembled_line(table)
 
 
 def test_a_repository_of_another_budget_is_refused_before_anything_is_copied(tiny, tmp_path):

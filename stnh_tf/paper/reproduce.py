@@ -320,14 +320,15 @@ class Reproduction:
         atomic_write_text(os.path.join(self.out, f"{name}.md"), "\n".join(lines) + "\n")
         dirs = [d for row in rows.values() for d in row]  # (every row's, kept ones included)
         own = os.path.abspath(os.path.join(self.out, "models"))
-        elsewhere = {os.path.basename(d) for d in dirs if os.path.dirname(os.path.abspath(d)) != own}
+        names = {os.path.abspath(d): n for n, d in self.models.items()}  # one entry a folder
+        models = {names.get(os.path.abspath(d), os.path.basename(d)): d for d in dirs}
+        elsewhere = {n for n, d in models.items() if os.path.dirname(os.path.abspath(d)) != own}
         atomic_write_json(os.path.join(self.out, f"{name}.json"), {**{
             f"{a:g},{b:g}": {"mace": float(np.mean(v)), "mace_per_seed": v,
                              "seeds": list(range(len(v))), "model_dir": rows[(a, b)][0],
                              "model_dirs": rows[(a, b)], "paper": PAPER_TABLE1.get((a, b))}
             for (a, b), v in table.items()}, **provenance_block(
-                {**{os.path.basename(d): d for d in dirs}, **self.models},
-                {*self.reuse, *elsewhere}, set(dirs))})
+                models, {*self.reuse, *elsewhere})})
         return table
 
     # -- evaluation -----------------------------------------------------------------------------
