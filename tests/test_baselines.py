@@ -6,7 +6,7 @@ import re
 import numpy as np
 import pytest
 
-from conftest import photo_pairs
+from conftest import opencv_optimized, photo_pairs
 from stnh_tf import geometry
 from stnh_tf.evaluation import baselines
 
@@ -137,3 +137,34 @@ def test_orbs_mutual_match_filter_drops_one_sided_matches():
     assert sorted(map(tuple, mutual)) == [(0, 0)]
     one_sided = baselines.OrbRansac(cross_check=False, ratio=1.0).match(desc_a, desc_b)
     assert sorted(map(tuple, one_sided)) == [(0, 0), (0, 1)]
+
+
+@pytest.mark.parametrize("optimized", [True, False])
+def test_too_few_ransac_inliers_give_the_identity_and_a_failure(monkeypatch, optimized):
+    """``min_inliers`` was never exercised (a test audit). Five exact correspondences of a known
+    H (all RANSAC inliers, whatever OpenCV's path): with ``min_inliers=6`` (the default) the
+    estimate is the identity and a failure; with 5 it is that H (to 1e-3 px at the patch
+    corners: the points are float32, measured 1.1e-5 px)."""
+    import cv2
+
+    a_from_b = cv2.getPerspectiveTransform(
+        np.float32([[0, 0], [128, 0], [128, 128], [0, 128]]),
+        np.float32([[6, -4], [131, 5], [124, 133], [-3, 122]])).astype(np.float64)
+    pts_b = np.float32([[20, 30], [100, 25], [90, 110], [30, 95], [64, 60]])
+    pts_a = cv2.perspectiveTransform(pts_b[None], a_from_b)[0].astype(np.float32)
+    corners = np.float64([[[0, 0]], [[128, 0]], [[128, 128]], [[0, 128]]])
+    results = {}
+    for min_inliers in (6, 5):
+        sift = baselines.SiftRansac(min_inliers=min_inliers)
+        monkeypatch.setattr(sift, "detect", lambda image: (
+            (pts_a, None) if image[0, 0] == 1 else (pts_b, None)))
+        monkeypatch.setattr(sift, "match", lambda d_a, d_b: np.stack([np.arange(5)] * 2, 1))
+        a, b = np.ones((128, 128), np.uint8), np.zeros((128, 128), np.uint8)
+        cv2.setRNGSeed(0)
+        with opencv_optimized(optimized):
+            results[min_inliers] = sift._estimate_uint8(a, b)
+    h, ok = results[6]
+    assert not ok and np.array_equal(h, np.eye(3))
+    h, ok = results[5]
+    assert ok and np.abs(cv2.perspectiveTransform(corners, h)
+                         - cv2.perspectiveTransform(corners, a_from_b)).max() < 1e-3
