@@ -276,7 +276,8 @@ def _assert_same_estimate(got, want):
 @pytest.mark.parametrize("options, batch_size, n, chunk_pairs", [
     (EstimateOptions.network_only(), 3, 23, 8),
     (EstimateOptions(search="none", retry_tta="flips"), 4, 23, 8),
-    (EstimateOptions(), 3, 7, 2),  # (the search takes about 0.5 s a pair here)
+    pytest.param(EstimateOptions(), 3, 7, 2,  # (5 s: the search, 0.5 s a pair; make test-all)
+                 marks=pytest.mark.slow),
 ], ids=["network only", "retry", "default (search)"])
 def test_large_batches_go_through_the_pipeline_in_chunks_with_the_result_of_one_pass(
         two_stages, monkeypatch, options, batch_size, n, chunk_pairs):
@@ -1024,6 +1025,7 @@ def _stop_by_the_time_limit(cfg, monkeypatch, limit_s=3500.0):
     return result, clock, lines
 
 
+@pytest.mark.slow  # (4 s: a training run; make test-all)
 def test_the_time_limit_stops_within_one_step_and_saves_that_step(tiny_data, tmp_path, narrow,
                                                                   monkeypatch):
     """Item 10: the time limit was only checked at checkpoints (``--time_limit_s=1

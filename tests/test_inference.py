@@ -1089,6 +1089,7 @@ def test_saved_model_rejects_bad_requests_without_crashing(exported):
     assert out == {name: "InvalidArgumentError" for name in out}, out
 
 
+@pytest.mark.slow  # (5 s: a hierarchy's SavedModel export; make test-all)
 def test_saved_model_hierarchy_matches_estimator(saved, pairs, tmp_path):
     a, b, _ = pairs
     est = HomographyEstimator([saved["stage1"], saved["stage2"]])
@@ -1390,6 +1391,7 @@ def test_implausibility_check_with_the_identity_model(identity_model_path):
     assert result["search"] == "none" and result["ordinary"]["searched"] == 0.0
 
 
+@pytest.mark.slow  # (4 s: the search on both OpenCV paths; make test-all)
 def test_search_stability_measures_both_opencv_paths_and_moved_starts(pairs, identity_model_path):
     """stnh_tf.evaluation.search_stability with the identity model: every pair's identity estimate
     aligns it poorly (NCC recomputed here below 0.9), so every pair is searched; the search's

@@ -34,6 +34,7 @@ def _copy(tmp_path, runs=2, warmup=1):
     return text
 
 
+@pytest.mark.slow  # (4 s: the latency binary; make test-all)
 def test_refresh_writes_what_the_latency_function_measured_and_nothing_else(tmp_path,
                                                                              monkeypatch):
     from stnh_tf.evaluation import mace

@@ -834,6 +834,7 @@ def test_save_and_restore_carry_the_models_to_another_machine(tiny_data, tmp_pat
     assert os.path.getmtime(key) > 1e9 and eval_cache.CACHE_KEY in json.load(open(key))
 
 
+@pytest.mark.slow  # (5 s: a training run and its evaluation; make test-all)
 def test_a_model_evaluated_elsewhere_is_not_trained_again(tiny_data, tmp_path):
     """An evaluation committed without its model (Table 1's 1:1 seed 1, trained and evaluated
     on another machine) is restored and used as the row's MACE; with a checkpoint of that model

@@ -169,6 +169,7 @@ TEST_LINE = ("validation on the 'test' split of {} (--val_split), the test pairs
              "only; a test number of this run is then not apart from what was watched")
 
 
+@pytest.mark.slow  # (4 s: training runs; make test-all)
 def test_a_run_never_validates_silently_on_test(datasets, tmp_path, narrow):
     """Default: the val split where the dataset has one, else no validation and one line saying
     so, though the test split is there (before: the test split, silently); the test split only
