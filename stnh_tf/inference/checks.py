@@ -295,13 +295,11 @@ def warped_onto(work_a, a_from_b, origin, shape_b) -> tuple:
 
 
 AMBIGUITY_SHIFT_PX = 80
-""":func:`ambiguity_gap`'s reach: other shifts up to this many px at the 320 x 240 work size (a
-quarter of its width; a repeated pattern of a longer period is not seen)."""
+""":func:`ambiguity_gap`'s reach, px at the 320 x 240 work size (a longer period is not seen)."""
 AMBIGUITY_MIN_SHIFT_PX = 8
 """:func:`ambiguity_gap`: a peak nearer the estimate than this is its own peak's shoulder."""
 AMBIGUITY_MIN_SHARE = 0.5
-""":func:`ambiguity_gap`: a shift counts where the pixels compared are at least this share of
-those compared at the estimate."""
+""":func:`ambiguity_gap`: a shift counts where it compares this share of the estimate's pixels."""
 
 
 def overlap_ncc(image, covered, template, reach: int) -> tuple:
@@ -323,25 +321,27 @@ def overlap_ncc(image, covered, template, reach: int) -> tuple:
     """
     h, w = np.shape(template)
     covered = np.asarray(covered, bool)
-    image = np.asarray(image, np.float64)
-    template = np.asarray(template, np.float64)
+    image, template = np.asarray(image, np.float32), np.asarray(template, np.float32)
     values = image[covered]  # standardized: float32 sums keep the NCC's digits
-    a = np.where(covered, (image - values.mean()) / (values.std() or 1.0), 0.0)
-    b = (template - template.mean()) / (template.std() or 1.0)
+    # a circular correlation over this size wraps nothing around within the reach
+    size = (cv2.getOptimalDFTSize(h + reach), cv2.getOptimalDFTSize(w + reach))
+    a, mask, b = (np.zeros(size, np.float32) for _ in range(3))
+    a[:h, :w] = np.where(covered, (image - values.mean()) / (values.std() or 1.0), 0)
+    mask[:h, :w], b[:h, :w] = covered, (template - template.mean()) / (template.std() or 1.0)
+    rows, cols = (np.arange(-reach, reach + 1) % n for n in size)
+    spectra = [cv2.dft(x) for x in (a, mask, b, b * b)]
 
-    def padded(x):
-        return np.pad(x, reach).astype(np.float32)
+    def correlate(i, j):  # sum over p of x_i(p + s) x_j(p), at every shift s within the reach
+        c = cv2.idft(cv2.mulSpectrums(spectra[i], spectra[j], 0, conjB=True),
+                     flags=cv2.DFT_SCALE | cv2.DFT_REAL_OUTPUT)
+        return c[np.ix_(rows, cols)].astype(np.float64)
 
-    def box_sums(x):  # the sum over every h x w window, from the integral image
-        s = cv2.integral(padded(x).astype(np.float64), sdepth=cv2.CV_64F)
+    def box_sums(x):  # the sum over every h x w window of x padded by the reach
+        s = cv2.integral(np.pad(x[:h, :w], reach), sdepth=cv2.CV_64F)
         return s[h:, w:] - s[:-h, w:] - s[h:, :-w] + s[:-h, :-w]
 
-    def correlate(x, t):
-        return cv2.matchTemplate(padded(x), t.astype(np.float32), cv2.TM_CCORR).astype(np.float64)
-
-    count, sum_a, sum_aa = box_sums(covered), box_sums(a), box_sums(a * a)
-    mask = covered.astype(np.float64)
-    sum_b, sum_bb, sum_ab = correlate(mask, b), correlate(mask, b * b), correlate(a, b)
+    count, sum_a, sum_aa = box_sums(mask), box_sums(a), box_sums(a * a)
+    sum_ab, sum_b, sum_bb = correlate(0, 2), correlate(1, 2), correlate(1, 3)
     with np.errstate(all="ignore"):
         cov = sum_ab - sum_a * sum_b / count
         var = (sum_aa - sum_a ** 2 / count) * (sum_bb - sum_b ** 2 / count)
