@@ -1208,7 +1208,11 @@ def test_ablation_table_is_the_json_s():
                       ("seed0-60-88a648c", "ablation_seed0_60_88a648c"),
                       ("seed13-60-88a648c", "ablation_seed13_60_88a648c"),
                       ("seed0-60-febe404", "ablation_seed0_60_febe404"),
-                      ("seed13-60-febe404", "ablation_seed13_60_febe404")):
+                      ("seed13-60-febe404", "ablation_seed13_60_febe404"),
+                      ("seed0-60-56e6384", "ablation_seed0_60_56e6384"),
+                      ("seed0-60-7d229e5", "ablation_seed0_60_7d229e5"),
+                      ("seed13-60-56e6384", "ablation_seed13_60_56e6384"),
+                      ("seed13-60-7d229e5", "ablation_seed13_60_7d229e5")):
         start, end = f"<!-- ablation-{tag}:start -->\n", f"\n<!-- ablation-{tag}:end -->"
         block = text[text.index(start) + len(start):text.index(end)]
         assert block == ablation.table(_camera_file(name)), tag
@@ -1450,3 +1454,16 @@ PROSE += [  # the baselines' plausibility check at image_b's centre (c3ba783)
         ("camera0_wide_late", "camera0_wide_baselines_fixed", ("wide", "wide_low_light"), True),
         ("camera0_paper", "camera0_paper_baselines_fixed", ("paper", "paper_exposure"), False))
     for group in groups]
+
+
+def test_the_80_px_ambiguity_reach_changes_no_untimed_cell():
+    """BENCHMARKS.md, "Repeated patterns up to 80 px": before (56e6384) and after (7d229e5) give
+    every cell but the times on both seeds, as the prose says."""
+    text = " ".join(_read("BENCHMARKS.md").split())
+    assert "Every cell but the times is the same before and after on both seeds" in text
+    for seed in (0, 13):
+        runs = [_camera_file(f"ablation_seed{seed}_60_{c}") for c in ("56e6384", "7d229e5")]
+        assert [r["commit"] for r in runs] == ["56e6384", "7d229e5"]
+        untimed = [{g: {k: v for k, v in cells.items() if "ms_per_pair" not in k}
+                    for g, cells in r["ablations"]["default"]["groups"].items()} for r in runs]
+        assert untimed[0] == untimed[1] and len(untimed[0]) == 9
