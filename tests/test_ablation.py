@@ -23,7 +23,7 @@ from test_image_refine import TRUTH, _estimator_off_by
 from stnh_tf import geometry
 from stnh_tf.data import camera_pair_files
 from stnh_tf.evaluation import ablation
-from stnh_tf.inference import checks, coarse, features, image_refine, pipeline
+from stnh_tf.inference import ambiguity, checks, coarse, features, image_refine, pipeline
 from stnh_tf.inference.estimator import HomographyEstimator
 from stnh_tf.inference.options import EstimateOptions
 
@@ -72,7 +72,8 @@ WITNESSES = {
     "max_corner_std": "test_checks_of_the_flag_off",
     "corner_std_classical": "test_checks_of_the_flag_off",
     "undetermined_corner_std": "test_checks_of_the_flag_off",
-    "min_ambiguity_gap": "test_checks_of_the_flag_off", "flat": "test_flat_off",
+    "min_ambiguity_gap": "test_checks_of_the_flag_off",
+    "min_tile_ambiguity_gap": "test_checks_of_the_flag_off", "flat": "test_flat_off",
 }
 
 
@@ -205,17 +206,20 @@ def test_checks_of_the_flag_off(near, monkeypatch):
     identity, undetermined) and each ablation lets the good estimate through."""
     estimator, a, b, on = near
     off = estimator.estimate_images_with_info(a, b, OFF("verify"))
-    assert np.isfinite([on.verify_move_px[0], on.corner_std_px[0], on.ambiguity_gap[0]]).all()
-    assert np.isnan([off.verify_move_px[0], off.corner_std_px[0], off.ambiguity_gap[0]]).all()
+    assert np.isfinite([on.verify_move_px[0], on.corner_std_px[0], on.ambiguity_gap[0],
+                        on.tile_ambiguity_gap[0]]).all()
+    assert np.isnan([off.verify_move_px[0], off.corner_std_px[0], off.ambiguity_gap[0],
+                     off.tile_ambiguity_gap[0]]).all()
     tiles, corner_std = [], checks.corner_std
     monkeypatch.setattr(checks, "corner_std",
                         lambda *args, **kw: tiles.append(kw["tile"]) or corner_std(*args, **kw))
     estimator.estimate_images_with_info(a, b, OFF("corner_std_classical"))
     assert set(tiles) == {0}
 
-    def run(name, std=0.1, gap=0.5):
+    def run(name, std=0.1, gap=0.5, tile_gap=0.5):
         monkeypatch.setattr(checks, "corner_std", lambda *args, **kw: std)
-        monkeypatch.setattr(checks, "ambiguity_gap", lambda *args, **kw: gap)
+        monkeypatch.setattr(ambiguity, "ambiguity_gap", lambda *args, **kw: gap)
+        monkeypatch.setattr(ambiguity, "tile_ambiguity_gap", lambda *args, **kw: tile_gap)
         est = estimator.estimate_images_with_info(a, b, OFF(name))
         return bool(est.implausible[0]), bool(est.undetermined[0])
 
@@ -228,6 +232,9 @@ def test_checks_of_the_flag_off(near, monkeypatch):
     assert run("default", gap=0.001) == (True, False)
     assert run("min_ambiguity_gap", gap=0.001) == run("precision_ambiguity", gap=0.001) == (
         False, False)
+    assert run("default", tile_gap=0.05) == (True, False)
+    assert run("min_tile_ambiguity_gap", tile_gap=0.05) == run(
+        "precision_ambiguity", tile_gap=0.05) == (False, False)
 
 
 def test_flat_off(identity):

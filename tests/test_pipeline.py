@@ -11,7 +11,7 @@ from absl import flags
 
 from conftest import cv2_warp, ncc_reference, opencv_optimized
 from stnh_tf import geometry
-from stnh_tf.inference import checks, pipeline
+from stnh_tf.inference import ambiguity, checks, pipeline
 from stnh_tf.inference.options import TTAS, EstimateOptions, Thresholds
 
 
@@ -473,7 +473,7 @@ def _ncc_at(image, covered, template, dx, dy):
 def _gap_of(scores, count, r):
     """The NCC at the estimate (the best within 1 px) less the best local maximum (5 x 5) 8 px
     or more away among the shifts comparing at least half the estimate's pixels:
-    ``checks.ambiguity_gap``'s rule, written out; and that maximum's shift ``(dx, dy)``."""
+    ``ambiguity.ambiguity_gap``'s rule, written out; and that maximum's shift ``(dx, dy)``."""
     ys, xs = np.mgrid[-r:r + 1, -r:r + 1]
     padded = np.pad(scores, 2, constant_values=-np.inf)
     local_max = np.all([scores >= padded[2 + dy:2 + dy + scores.shape[0],
@@ -488,7 +488,7 @@ def _gap_of(scores, count, r):
 
 @pytest.mark.parametrize("optimized", [True, False])
 def test_overlap_ncc_against_the_ncc_written_out(optimized):
-    """checks.overlap_ncc (the NCC over the pixels the shifted image covers, from sums by
+    """ambiguity.overlap_ncc (the NCC over the pixels the shifted image covers, from sums by
     matchTemplate and integral images) against np.corrcoef over those pixels at 40 random
     shifts and the four extreme ones, on OpenCV's two code paths, to 1e-6 (float32 sums of
     standardized values; measured 3e-8), and the pixel counts exactly."""
@@ -500,7 +500,7 @@ def test_overlap_ncc_against_the_ncc_written_out(optimized):
     covered[:30, :60] = False
     r = 80
     with opencv_optimized(optimized):
-        scores, count = checks.overlap_ncc(image, covered, template, r)
+        scores, count = ambiguity.overlap_ncc(np.pad(image, r), np.pad(covered, r), template, r)
     shifts = [(int(dx), int(dy)) for dx, dy in rng.integers(-r, r + 1, (40, 2))]
     for dx, dy in shifts + [(-r, -r), (r, r), (-r, r), (r, -r), (11, -7)]:
         ncc, n = _ncc_at(image, covered, template, dx, dy)
@@ -512,8 +512,8 @@ def test_overlap_ncc_against_the_ncc_written_out(optimized):
 
 @pytest.mark.parametrize("period", [0, 24, 60])
 def test_ambiguity_gap_against_the_rule_written_out(period):
-    """checks.ambiguity_gap on a shifted pair: the NCC at the estimate less the best local
-    maximum 8 px or more away (the rule written out over checks.overlap_ncc's scores, whose two
+    """ambiguity.ambiguity_gap on a shifted pair: the NCC at the estimate less the best local
+    maximum 8 px or more away (the rule written out over ambiguity.overlap_ncc's scores, whose two
     NCCs are checked against np.corrcoef). A texture repeated every ``period`` px aligns as
     well one period off (gap about 0; 60 px is beyond the 40 px the check reached before, issue
     79); a smooth random one does not (gap above 0.3)."""
@@ -527,11 +527,11 @@ def test_ambiguity_gap_against_the_rule_written_out(period):
     shift = geometry.translation(5.0, -3.0)
     b = cv2.warpPerspective(a, shift, (320, 240), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR,
                             borderMode=cv2.BORDER_REFLECT_101)
-    gap = checks.ambiguity_gap(a, b, geometry.image_to_patch(shift, 96, 56), (96, 56))
+    gap = ambiguity.ambiguity_gap(a, b, geometry.image_to_patch(shift, 96, 56), (96, 56))
     warped, covered = checks.warped_onto(a, geometry.image_to_patch(shift, 96, 56), (96, 56),
                                          b.shape)
-    r = checks.AMBIGUITY_SHIFT_PX
-    scores, count = checks.overlap_ncc(warped, covered, b, r)
+    r = ambiguity.AMBIGUITY_SHIFT_PX
+    scores, count = ambiguity.overlap_ncc(np.pad(warped, r), np.pad(covered, r), b, r)
     expected, (dx, dy) = _gap_of(scores, count, r)
     assert gap == pytest.approx(expected, abs=1e-9)
     assert scores[r + dy, r + dx] == pytest.approx(_ncc_at(warped, covered, b, dx, dy)[0], abs=1e-6)
@@ -555,11 +555,11 @@ def test_ambiguity_gap_of_a_low_overlap_pair_counts_the_covered_pixels_alone():
     gaps = []
     for optimized in (True, False):  # OpenCV's two code paths: two CPUs' numerics
         with opencv_optimized(optimized):
-            gaps.append(checks.ambiguity_gap(a, b, pan, (96, 56)))
+            gaps.append(ambiguity.ambiguity_gap(a, b, pan, (96, 56)))
     warped, covered = checks.warped_onto(a, pan, (96, 56), b.shape)
     assert 0.4 < covered.mean() < 0.6
-    r = checks.AMBIGUITY_SHIFT_PX
-    expected, (dx, dy) = _gap_of(*checks.overlap_ncc(warped, covered, b, r), r)
+    r = ambiguity.AMBIGUITY_SHIFT_PX
+    expected, (dx, dy) = _gap_of(*ambiguity.overlap_ncc(np.pad(warped, r), np.pad(covered, r), b, r), r)
     assert gaps == pytest.approx([expected, expected], abs=1e-6)
     assert min(gaps) > 0.3
     filled = np.where(covered, warped, warped[covered].mean())  # the rule before, at (dx, dy)

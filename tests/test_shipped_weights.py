@@ -275,7 +275,7 @@ def test_a_strongly_projective_pair_of_the_papers_protocol_keeps_its_estimate(
 def test_a_checkerboard_pair_is_flagged_ambiguous(default_estimator_float32, opencv_path):
     """Issue 79, item 3: a checkerboard of 16-px squares shifted by (8, -6) aligns as well one
     square diagonally off (NCC 1 there too). The default estimate_images came back 22.6 px off
-    with NCC 1.0 and unflagged; it is now flagged as ambiguous (checks.ambiguity_gap under
+    with NCC 1.0 and unflagged; it is now flagged as ambiguous (ambiguity.ambiguity_gap under
     Thresholds.min_ambiguity_gap), whatever shift it lands on."""
     ys, xs = np.mgrid[0:400, 0:480]
     board = (((xs // 16) + (ys // 16)) % 2 * 255).astype(np.uint8)

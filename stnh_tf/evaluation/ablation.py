@@ -71,7 +71,7 @@ ABLATIONS = {
         "only ECC's move (and its confirmation) stays, so that against 'verify' this row "
         "says what the move rule buys; an undefined precision still flags",
         {"thresholds": {"max_corner_std": OFF, "undetermined_corner_std": OFF,
-                        "min_ambiguity_gap": 0.0}}),
+                        "min_ambiguity_gap": 0.0, "min_tile_ambiguity_gap": 0.0}}),
     "max_corner_std": (
         "the corner-precision flag (precision worse than max_corner_std, 1.5 px); an undefined "
         "precision (inf) still flags", {"thresholds": {"max_corner_std": OFF}}),
@@ -87,6 +87,9 @@ ABLATIONS = {
         "the ambiguity flag (another shift aligning within 0.005 of the estimate); a shift "
         "aligning better than the estimate (a negative gap) still flags",
         {"thresholds": {"min_ambiguity_gap": 0.0}}),
+    "min_tile_ambiguity_gap": (
+        "the tile-by-tile ambiguity flag (a second peak within 0.1 of the estimate's NCC, the "
+        "median over 80 x 80 tiles)", {"thresholds": {"min_tile_ambiguity_gap": 0.0}}),
     "min_alignment_ncc": (
         "the flag's alignment rule (NCC below 0.7); an undefined or negative NCC still flags",
         {"thresholds": {"min_alignment_ncc": 0.0}}),

@@ -54,7 +54,7 @@ import warnings
 import numpy as np
 
 from stnh_tf import geometry
-from stnh_tf.inference import checks, coarse, features, image_refine, pipeline
+from stnh_tf.inference import ambiguity, checks, coarse, features, image_refine, pipeline
 # Public names of this module before the pipeline was split (stnh_tf.inference.<name>).
 from stnh_tf.inference.checks import alignment_ncc, corner_shift  # noqa: F401
 from stnh_tf.inference.image_input import (PATCH_ORIGIN, PATCH_SIZE, central_patch,  # noqa: F401
@@ -392,15 +392,19 @@ class HomographyEstimator:
             std = checks.corner_std(work_a, work_b, result.homography[0], PATCH_ORIGIN,
                                     tile=options.thresholds.corner_std_tile)
             undetermined = std > options.thresholds.undetermined_corner_std
-            # and whether another shift of it aligns the images as well (issue 79)
-            gap = checks.ambiguity_gap(work_a, work_b, result.homography[0], PATCH_ORIGIN)
+            # and whether another shift of it, or of its tiles, aligns them as well (issue 79)
+            gap = ambiguity.ambiguity_gap(work_a, work_b, result.homography[0], PATCH_ORIGIN)
+            tile_gap = (ambiguity.tile_ambiguity_gap(work_a, work_b, result.homography[0],
+                                                     PATCH_ORIGIN)
+                        if options.thresholds.min_tile_ambiguity_gap > 0 else float("nan"))
             result = dataclasses.replace(
                 result, corner_std_px=np.array([std]), undetermined=np.array([undetermined]),
                 homography=np.eye(3)[None] if undetermined else result.homography,
-                ambiguity_gap=np.array([gap]),
+                ambiguity_gap=np.array([gap]), tile_ambiguity_gap=np.array([tile_gap]),
                 implausible=(result.implausible | undetermined
                              | (std > options.thresholds.max_corner_std)
-                             | (gap < options.thresholds.min_ambiguity_gap)))
+                             | (gap < options.thresholds.min_ambiguity_gap)
+                             | (tile_gap < options.thresholds.min_tile_ambiguity_gap)))
         return result
 
     def estimate_images(self, image_a, image_b, options: EstimateOptions | None = None,

@@ -204,7 +204,8 @@ def _estimate_json(estimate, shape_b, quad) -> dict:
             # above Thresholds.undetermined_corner_std: the identity in the estimate's place
             "undetermined": bool(estimate.undetermined[0]),
             # another shift of it aligns the images as well (verify="ecc"; a repeated pattern)
-            "ambiguity_gap": _finite_or_none(estimate.ambiguity_gap[0])}
+            "ambiguity_gap": _finite_or_none(estimate.ambiguity_gap[0]),
+            "tile_ambiguity_gap": _finite_or_none(estimate.tile_ambiguity_gap[0])}
 
 
 BEYOND_NETWORK = ("search", "refine", "coarse", "features", "retry_tta")

@@ -152,8 +152,12 @@ class Thresholds:
         image_b aligns with image_a warped by it at another shift (8 to 80 px at the work size,
         a distinct peak of the NCC over shifts) within this much of the estimate's own NCC is
         flagged implausible (``Estimate.ambiguity_gap``,
-        :func:`stnh_tf.inference.checks.ambiguity_gap`): a repeated pattern aligns as well one
+        :func:`stnh_tf.inference.ambiguity.ambiguity_gap`): a repeated pattern aligns as well one
         period off (issue 79). 0.005: a near-perfect repetition only.
+      min_tile_ambiguity_gap: the same tile by tile (``Estimate.tile_ambiguity_gap``,
+        :func:`stnh_tf.inference.ambiguity.tile_ambiguity_gap`, the median over 80 x 80 tiles of
+        the gap to a second peak that a valley separates): a pattern in perspective (a facade,
+        blinds) aligns one period off tile by tile, by no single shift. 0: off.
     """
 
     implausible_corner_shift: float = 1.5 * geometry.MAX_PERTURBATION
@@ -176,6 +180,7 @@ class Thresholds:
     corner_std_tile: int = 8
     undetermined_corner_std: float = 400.0
     min_ambiguity_gap: float = 0.005
+    min_tile_ambiguity_gap: float = 0.1
     resolution_sigma: float = 0.8
 
     def __post_init__(self):

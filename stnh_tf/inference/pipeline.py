@@ -90,8 +90,11 @@ class Estimate:
         identity in place of the estimate (flagged); False elsewhere.
       ambiguity_gap: in ``estimate_images_with_info`` with ``verify="ecc"``, how much better
         the estimate aligns image_b's centre than the best other shift of it
-        (:func:`~stnh_tf.inference.checks.ambiguity_gap`); under
+        (:func:`~stnh_tf.inference.ambiguity.ambiguity_gap`); under
         ``thresholds.min_ambiguity_gap`` the estimate is flagged. NaN elsewhere.
+      tile_ambiguity_gap: the same tile by tile
+        (:func:`~stnh_tf.inference.ambiguity.tile_ambiguity_gap`); under
+        ``thresholds.min_tile_ambiguity_gap`` the estimate is flagged. NaN elsewhere.
     """
 
     homography: np.ndarray
@@ -116,6 +119,7 @@ class Estimate:
     corner_std_px: np.ndarray = None
     undetermined: np.ndarray = None
     ambiguity_gap: np.ndarray = None
+    tile_ambiguity_gap: np.ndarray = None
 
     def __len__(self):
         return len(self.homography)
@@ -316,7 +320,8 @@ def finish(run: dict, options: EstimateOptions) -> Estimate:
         network_homography=network,
         network_move_px=network_moves(run["total"], network, frames, run.get("origin", (0, 0))),
         feature_start=np.zeros(len(shift), bool), corner_std_px=np.full(len(shift), np.nan),
-        undetermined=np.zeros(len(shift), bool), ambiguity_gap=np.full(len(shift), np.nan))
+        undetermined=np.zeros(len(shift), bool), ambiguity_gap=np.full(len(shift), np.nan),
+        tile_ambiguity_gap=np.full(len(shift), np.nan))
 
 
 def replacing(kept: Estimate, replaced: Estimate) -> Estimate:
