@@ -1212,7 +1212,8 @@ def test_ablation_table_is_the_json_s():
                       ("seed0-60-56e6384", "ablation_seed0_60_56e6384"),
                       ("seed0-60-7d229e5", "ablation_seed0_60_7d229e5"),
                       ("seed13-60-56e6384", "ablation_seed13_60_56e6384"),
-                      ("seed13-60-7d229e5", "ablation_seed13_60_7d229e5")):
+                      ("seed13-60-7d229e5", "ablation_seed13_60_7d229e5"),
+                      ("urban100-b21ba37", "ablation_urban100_b21ba37")):
         start, end = f"<!-- ablation-{tag}:start -->\n", f"\n<!-- ablation-{tag}:end -->"
         block = text[text.index(start) + len(start):text.index(end)]
         assert block == ablation.table(_camera_file(name)), tag
@@ -1467,3 +1468,21 @@ def test_the_80_px_ambiguity_reach_changes_no_untimed_cell():
         untimed = [{g: {k: v for k, v in cells.items() if "ms_per_pair" not in k}
                     for g, cells in r["ablations"]["default"]["groups"].items()} for r in runs]
         assert untimed[0] == untimed[1] and len(untimed[0]) == 9
+
+
+def test_the_tile_ambiguity_numbers_are_the_json_s():
+    """BENCHMARKS.md, "Repeated patterns in perspective": Urban100's silent failures with the
+    rule and without it (the row switched off), the good estimates it flags more, and the
+    coco_mini seeds unchanged from 7d229e5 but for the times."""
+    text = " ".join(_read("BENCHMARKS.md").split())
+    urban = _camera_file("ablation_urban100_b21ba37")["ablations"]
+    on, off = urban["default"]["groups"]["all"], urban["min_tile_ambiguity_gap"]["groups"]["all"]
+    assert (f"silent failures go from {off['silently_failed']} to {on['silently_failed']} (those "
+            f"10 px or more off from {off['unflagged_far']} to {on['unflagged_far']})") in text
+    assert (f"{on['good_flagged'] - off['good_flagged']} right estimates more are flagged (of "
+            f"{on['successes']};") in text
+    for seed in (0, 13):
+        runs = [_camera_file(f"ablation_seed{seed}_60_{c}") for c in ("7d229e5", "b21ba37")]
+        untimed = [{g: {k: v for k, v in cells.items() if "ms_per_pair" not in k}
+                    for g, cells in r["ablations"]["default"]["groups"].items()} for r in runs]
+        assert untimed[0] == untimed[1] and runs[1]["commit"] == "b21ba37"

@@ -564,3 +564,26 @@ def test_ambiguity_gap_of_a_low_overlap_pair_counts_the_covered_pixels_alone():
     assert min(gaps) > 0.3
     filled = np.where(covered, warped, warped[covered].mean())  # the rule before, at (dx, dy)
     assert _ncc_at(filled, np.ones_like(covered), b, 0, 0)[0] < _ncc_at(warped, covered, b, 0, 0)[0]
+
+
+@pytest.mark.parametrize("optimized", [True, False])
+def test_tile_ambiguity_gap_sees_a_pattern_in_perspective_that_no_shift_aligns(optimized):
+    """Stripes whose period grows across the image (a facade or blinds in perspective), image_b
+    the stripes themselves (any estimate on them): no single shift of the whole aligns them one
+    period off (the whole-image gap 0.49, far above its 0.005), each tile's does (the median
+    tile gap 0.037, under half Thresholds.min_tile_ambiguity_gap). A photograph and a smooth
+    random texture: 0.36 and 0.81, above twice it. Both OpenCV code paths."""
+    import skimage.data
+
+    ys, xs = np.mgrid[0:240, 0:320].astype(np.float64)
+    phase = 2 * np.pi * ys / (16 + 0.05 * xs)  # horizontal stripes, period 16 -> 32 px
+    stripes = 128 + 100 * np.sin(phase)
+    photo = cv2.resize(skimage.data.camera(), (320, 240), interpolation=cv2.INTER_AREA)
+    smooth = cv2.GaussianBlur(np.random.default_rng(4).random((240, 320)), (0, 0), 2) * 255
+    limit = Thresholds().min_tile_ambiguity_gap
+    with opencv_optimized(optimized):
+        tile_stripes = ambiguity.tile_ambiguity_gap(stripes, stripes, np.eye(3), (96, 56))
+        whole_stripes = ambiguity.ambiguity_gap(stripes, stripes, np.eye(3), (96, 56))
+        others = [ambiguity.tile_ambiguity_gap(x, x, np.eye(3), (96, 56)) for x in (photo, smooth)]
+    assert tile_stripes < limit / 2 and whole_stripes > 0.05
+    assert min(others) > 2 * limit
