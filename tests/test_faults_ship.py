@@ -187,7 +187,7 @@ def killed(path, doc):  # the new models and manifest are in place, the card not
         os.kill(os.getpid(), signal.SIGKILL)
     return real(path, doc)
 shipped_weights.atomic_write_json = killed
-shipped_weights.ship([sys.argv[1], sys.argv[1]], sys.argv[2])
+shipped_weights.ship([sys.argv[1]] * 3, sys.argv[2])  # (three stages over two)
 """
 
 
@@ -195,7 +195,8 @@ shipped_weights.ship([sys.argv[1], sys.argv[1]], sys.argv[2])
 def test_a_ship_killed_in_its_swap_is_put_back_by_the_next(shipped, runs, check):
     """A ship killed (SIGKILL) between placing the new models and writing the card left new
     weights under the old card, and the next ship deleted its staging folder with the old files
-    set aside in it. The next ship (or ``replace_stage``) puts them back first."""
+    set aside in it. The next ship (or ``replace_stage``) puts them back first, and removes a
+    stage file that had no old version (three stages shipped over two)."""
     w, before = shipped
     proc = subprocess.run([sys.executable, "-c", _KILLED_IN_THE_SWAP, runs["b"], w],
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
@@ -204,8 +205,26 @@ def test_a_ship_killed_in_its_swap_is_put_back_by_the_next(shipped, runs, check)
     assert [n for n in os.listdir(w) if n.startswith(shipped_weights.STAGING_PREFIX)]
     stage1 = hashlib.sha256(open(os.path.join(w, "stage1.keras"), "rb").read()).hexdigest()
     assert stage1 != before["stage1.keras"]
-    assert shipped_weights.put_back(w) == ["default.json", "model_card.json", "stage1.keras",
-                                           "stage2.keras"]
+    assert os.path.exists(os.path.join(w, "stage3.keras"))
+    assert sorted(shipped_weights.put_back(w)) == ["default.json", "model_card.json",
+                                                   "stage1.keras", "stage2.keras", "stage3.keras"]
+    assert _state(w) == before
+
+
+def test_put_back_moves_only_what_the_plan_names(shipped, monkeypatch):
+    """A ship killed while copying the old card into its staging folder left a half-written
+    temporary file there, which put_back moved into the weights folder; one killed after its
+    swap (no ``.previous`` left) must not be undone. Neither touches the weights now."""
+    w, before = shipped
+    monkeypatch.setattr(shipped_weights, "_alive", lambda pid: False)  # (another process's)
+    early = os.path.join(w, f"{shipped_weights.STAGING_PREFIX}1", shipped_weights.PREVIOUS)
+    os.makedirs(early)
+    open(os.path.join(early, "model_card.json.tmp-1"), "w").write("{half")
+    done = os.path.join(w, f"{shipped_weights.STAGING_PREFIX}2")
+    os.makedirs(os.path.join(done, ".shipped"))
+    with open(os.path.join(done, shipped_weights.PLAN), "w") as f:
+        json.dump({"swap": ["stage1.keras"], "new": ["stage1.keras"], "kept": []}, f)
+    assert shipped_weights.put_back(w) == []
     assert _state(w) == before
 
 

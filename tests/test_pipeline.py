@@ -489,7 +489,7 @@ def _gap_of(scores, count, r):
 @pytest.mark.parametrize("optimized", [True, False])
 def test_overlap_ncc_against_the_ncc_written_out(optimized):
     """ambiguity.overlap_ncc (the NCC over the pixels the shifted image covers, from sums by
-    matchTemplate and integral images) against np.corrcoef over those pixels at 40 random
+    DFTs and integral images) against np.corrcoef over those pixels at 40 random
     shifts and the four extreme ones, on OpenCV's two code paths, to 1e-6 (float32 sums of
     standardized values; measured 3e-8), and the pixel counts exactly."""
     rng = np.random.default_rng(5)

@@ -52,6 +52,8 @@ def overlap_ncc(image, covered, template, reach: int) -> tuple:
     """
     h, w = np.shape(template)
     covered = np.asarray(covered, bool)
+    if not covered.any():
+        return np.full((2 * reach + 1,) * 2, np.nan), np.zeros((2 * reach + 1,) * 2)
     image, template = np.asarray(image, np.float32), np.asarray(template, np.float32)
     values = image[covered]  # standardized: float32 sums keep the NCC's digits
     # a circular correlation over this size wraps nothing around within the reach
@@ -172,8 +174,9 @@ def tile_ambiguity_gap(work_a, work_b, a_from_b, origin=(0, 0)) -> float:
                 continue
             scores, count = overlap_ncc(warped[y:y + t + 2 * r, x:x + t + 2 * r],
                                         covered[y:y + t + 2 * r, x:x + t + 2 * r], tile, r)
-            own = np.nanmax(scores[r - 1:r + 2, r - 1:r + 2])
-            if not own >= TILE_MIN_NCC:
+            own = scores[r - 1:r + 2, r - 1:r + 2]
+            own = own[np.isfinite(own)].max(initial=-np.inf)
+            if not own >= TILE_MIN_NCC:  # (a tile flat in either image: none aligns)
                 continue
             other = -np.inf
             for py, px in _peaks(scores, count, r):

@@ -143,20 +143,31 @@ def _install(weights_dir, models: dict, card: dict, old_card, allow_worse, manif
 
 def put_back(weights_dir) -> list:
     """Undo what a ship killed in ``weights_dir`` left (a staging folder of a process no longer
-    running): the files it had set aside in the folder's ``.previous`` (models, manifest, card)
-    go back over what it had placed, the old weights whole as before it, and the folder goes.
-    Called first by :func:`ship` and :func:`replace_stage`; returns the names put back."""
+    running): by the plan it wrote before moving anything, the files it had set aside in the
+    folder's ``.previous`` (models, manifest, card) go back over what it had placed, a model file
+    it placed where none was goes, and the folder goes: the old weights as before it. Called
+    first by :func:`ship` and :func:`replace_stage`; returns the names put back or removed."""
     import shutil
 
     names = []
     for stale in sorted(os.listdir(weights_dir)):
-        pid = stale[len(STAGING_PREFIX):]
-        if stale.startswith(STAGING_PREFIX) and pid.isdigit() and not _alive(int(pid)):
-            aside = os.path.join(weights_dir, stale, PREVIOUS)
-            for name in sorted(os.listdir(aside)) if os.path.isdir(aside) else []:
-                os.replace(os.path.join(aside, name), os.path.join(weights_dir, name))
+        pid, folder = stale[len(STAGING_PREFIX):], os.path.join(weights_dir, stale)
+        if not (stale.startswith(STAGING_PREFIX) and pid.isdigit() and not _alive(int(pid))):
+            continue
+        # no plan: killed before it moved anything; no .previous: killed after the swap
+        plan = (_read_json(os.path.join(folder, PLAN))
+                if os.path.isdir(os.path.join(folder, PREVIOUS))
+                and os.path.exists(os.path.join(folder, PLAN))
+                else {"swap": [], "new": [], "kept": []})
+        for name in plan["swap"] + plan["kept"]:  # (nothing else: no half-written temp file)
+            old, target = os.path.join(folder, PREVIOUS, name), os.path.join(weights_dir, name)
+            if os.path.exists(old):
+                os.replace(old, target)
                 names.append(name)
-            shutil.rmtree(os.path.join(weights_dir, stale), ignore_errors=True)
+            elif name in plan["new"] and os.path.exists(target):
+                os.remove(target)
+                names.append(name)
+        shutil.rmtree(folder, ignore_errors=True)
     return names
 
 
@@ -199,6 +210,9 @@ def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, m
         for name, data in kept.items():  # (for put_back, should this process be killed)
             if data is not None:
                 atomic_write_bytes(os.path.join(aside, name), data)
+        atomic_write_json(os.path.join(staging, PLAN), {
+            "swap": list(models), "kept": [n for n, d in kept.items() if d is not None],
+            "new": [n for n in models if not os.path.exists(os.path.join(weights_dir, n))]})
         moved, placed = [], []
         try:
             for name in models:
@@ -227,7 +241,7 @@ def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, m
                 staging = None  # kept: its .previous holds the old files
                 raise RuntimeError(f"shipping failed ({e!r}) and so did putting the old files "
                                    f"back ({undo!r}): they are in {aside}; the next ship into "
-                                   f"{weights_dir} from another process puts them back.") from e
+                                   f"{weights_dir} from a new process puts them back.") from e
             raise
     finally:
         if staging is not None:
@@ -235,8 +249,9 @@ def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, m
     return card
 
 
-PREVIOUS = ".previous"
-""":func:`_install_staged`'s folder, inside the staging folder, of the files it replaces."""
+PREVIOUS, PLAN = ".previous", ".plan.json"
+""":func:`_install_staged`'s folder, inside the staging folder, of the files it replaces, and its
+record of the swap (the model files, those new, the manifest and card kept) for :func:`put_back`."""
 
 
 STAGING_PREFIX = ".stnh_tf_ship."
