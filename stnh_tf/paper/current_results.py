@@ -12,7 +12,7 @@ paths from the repository root):
 - ``stnh_tf/weights/paper_recipe/model_card.json``: the paper recipe's CPU-budget hierarchy;
 - ``docs/reproduce_cpu/results.json`` and ``docs/reproduce_cpu/table1.json``:
   ``experiments.reproduce --budget=cpu`` (Fig. 4, Table 1, Table 2);
-- ``docs/camera_pairs/seed0_photographs_late.json`` and ``wide_seed0_late.json``:
+- ``docs/camera_pairs/seed0_photographs_a99ebf6.json`` and ``wide_seed0_a99ebf6.json``:
   ``experiments.benchmark_camera_pairs`` (``estimate_images``' default beside SIFT, ORB and the
   identity on every group of the camera-pair benchmark,
   :data:`stnh_tf.paper.result_cells.CAMERA_SETS`).

@@ -99,6 +99,10 @@ SOURCES = {
     # the baselines with their plausibility check at image_b's centre (c3ba783), on the pairs of
     # camera0_late, camera0_wide_late and camera0_paper
     "camera0_paper": "docs/camera_pairs/paper_seed0.json",
+    # the "Current results" tables' camera pairs: every method at a99ebf6 (the tile-by-tile
+    # ambiguity flag, the baselines' check at image_b's centre)
+    "camera0_current": "docs/camera_pairs/seed0_photographs_a99ebf6.json",
+    "camera0_wide_current": "docs/camera_pairs/wide_seed0_a99ebf6.json",
     "camera0_baselines_fixed": "docs/camera_pairs/seed0_photographs_baselines_fixed.json",
     "camera0_wide_baselines_fixed": "docs/camera_pairs/wide_seed0_baselines_fixed.json",
     "camera0_paper_baselines_fixed": "docs/camera_pairs/paper_seed0_baselines_fixed.json",
