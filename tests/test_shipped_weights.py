@@ -320,3 +320,27 @@ def test_a_pattern_repeated_beyond_the_trained_range_is_found_or_flagged(
         assert error < 0.5 and not est.implausible[0]
     else:
         assert est.implausible[0] and abs(est.ambiguity_gap[0]) < 0.005
+
+
+def test_an_undetermined_estimate_reports_the_identity_it_returns(default_estimator_float32):
+    """A chirp varying along x alone (no vertical detail: the images fix no estimate), image_b
+    shifted 9 px: estimate_images returns the identity, undetermined. Its corner shift, NCC and
+    warning described the estimate thrown away (30.2 px, NCC -0.12; a reviewer's find); they
+    describe the identity now (0 px; the NCC of the identity, computed here independently)."""
+    import cv2
+
+    from stnh_tf.inference import image_files
+
+    x = np.arange(640)
+    row = 128 + 100 * np.sin(2 * np.pi * (x / 80.0) * (1 + x / 400.0))
+    image_a = np.tile(row, (480, 1)).astype(np.uint8)
+    image_b = np.tile(np.roll(row, 9), (480, 1)).astype(np.uint8)
+    est = default_estimator_float32.estimate_images_with_info(image_a, image_b)
+    assert est.undetermined[0] and est.implausible[0]
+    assert np.array_equal(est.homography[0], np.eye(3)) and est.max_corner_shift_px[0] == 0
+    work_a, work_b = (cv2.resize(i, (320, 240), interpolation=cv2.INTER_AREA).astype(np.float64)
+                      for i in (image_a, image_b))
+    patch_a, patch_b = work_a[56:184, 96:224], work_b[56:184, 96:224]
+    assert est.alignment_ncc[0] == pytest.approx(np.corrcoef(patch_a.ravel(),
+                                                             patch_b.ravel())[0, 1], abs=0.01)
+    assert "the identity is returned in its place" in image_files.implausibility_warning(est)

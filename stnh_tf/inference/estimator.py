@@ -397,6 +397,11 @@ class HomographyEstimator:
             tile_gap = (ambiguity.tile_ambiguity_gap(work_a, work_b, result.homography[0],
                                                      PATCH_ORIGIN)
                         if options.thresholds.min_tile_ambiguity_gap > 0 else float("nan"))
+            if undetermined:  # what is returned is the identity: its own shift and NCC
+                result = dataclasses.replace(
+                    result, max_corner_shift_px=np.zeros(1), alignment_ncc=np.array([
+                        checks.alignment_ncc(work_a, central_patch(work_b)[0, ..., 0], np.eye(3),
+                                             PATCH_ORIGIN, options.thresholds.min_overlap)]))
             result = dataclasses.replace(
                 result, corner_std_px=np.array([std]), undetermined=np.array([undetermined]),
                 homography=np.eye(3)[None] if undetermined else result.homography,

@@ -159,6 +159,10 @@ def implausibility_warning(estimate) -> str | None:
     if estimate.flat[0]:
         return ("the central patch of image_a or image_b is flat (nothing to align): the "
                 "estimate is the identity, flagged implausible.")
+    if estimate.undetermined is not None and estimate.undetermined[0]:
+        return (f"the two images do not fix the estimate (its corner precision "
+                f"{estimate.corner_std_px[0]:.0f} px is beyond Thresholds.undetermined_corner_std):"
+                " the identity is returned in its place, flagged implausible.")
     return (f"the estimate is implausible for this model (a patch corner moved "
             f"{estimate.max_corner_shift_px[0]:.1f} px at 128-px patch scale, the models were "
             f"trained on up to 32 px; {int(estimate.rejected_stages[0])} stage(s) skipped as "
