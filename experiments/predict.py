@@ -28,7 +28,8 @@ exposure change; the captions wrap to fit their panels. ``--model`` takes what
 ``HomographyEstimator.load`` takes (``.keras`` file, run directory, hierarchy manifest); without
 it the shipped default weights are used. Resizing rule: see ``stnh_tf.inference.image_input``.
 The files are read as ``make_dataset`` reads them (``stnh_tf.inference.image_files``): a
-truncated or corrupt file is refused, an alpha channel is composited onto black, pixel frames
+truncated or unreadable file is refused (corrupt data inside a JPEG's stream is decoded as
+libjpeg decodes it), an alpha channel is composited onto black, pixel frames
 are the files' stored pixel order (EXIF orientation ignored); an image under 20 x 15 px is
 refused (too small for the patch), and one whose header declares more than
 ``--max_image_pixels`` pixels before it is decoded (a decompression bomb).

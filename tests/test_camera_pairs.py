@@ -513,3 +513,19 @@ def test_every_baseline_is_warmed_up_before_its_clock(pair_set, monkeypatch):
     monkeypatch.setattr(baselines.SiftRansac, "estimate_images", counted)
     run = camera_pairs.run_baseline("sift_ransac", pairs[:3])
     assert calls == [True, True, False, False] and len(run["seconds"]) == 3
+
+
+def test_photographs_too_small_for_the_patch_are_skipped_named(tmp_path):
+    """make_dataset and predict refuse an image under 20 x 15 px (its motion is not observable);
+    make_camera_pairs built pairs from a 4 x 4 image and a 2000 x 3 strip (a review's find). They
+    are skipped now, each with the reason, and the photograph beside them gives its pairs."""
+    images = tmp_path / "photos"
+    images.mkdir()
+    cv2.imwrite(str(images / "camera.png"), _photos()[0])
+    cv2.imwrite(str(images / "strip.png"), np.full((3, 2000), 128, np.uint8))
+    cv2.imwrite(str(images / "tiny.png"), np.full((4, 4), 128, np.uint8))
+    manifest = camera_pair_files.write_pairs(images, tmp_path / "pairs", pairs_per_image=2)
+    assert manifest["images"] == 1 and sum(manifest["counts"].values()) == 2
+    reasons = dict(manifest["skipped"])
+    assert sorted(reasons) == ["strip.png", "tiny.png"]
+    assert all("too small to estimate a homography" in r for r in reasons.values())

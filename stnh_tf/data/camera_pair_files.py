@@ -26,6 +26,7 @@ import numpy as np
 
 from stnh_tf.data import camera_motions, overlap_motions, paper_motions, sources, wide_motions
 from stnh_tf.data.folder_counts import FolderCounts, no_photograph_message
+from stnh_tf.data.image_checks import ImageTooSmallError
 from stnh_tf.data.camera_motions import (GROUPS, MARGIN, MOTION_SETS, SOURCE_SIZE,
                                          TRAINED_OFFSET, CameraPair, Degradation, MotionRanges)
 from stnh_tf.paths import atomic_write_json, check_apart, inside
@@ -184,7 +185,8 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
     for path_in in listing.files:
         try:
             gray = sources.decode_gray(open(path_in, "rb").read())
-        except (sources.ImageDecodeError, OSError) as e:
+            sources.check_image_size(gray.shape[1::-1])  # (as make_dataset and predict)
+        except (sources.ImageDecodeError, ImageTooSmallError, OSError) as e:
             skipped.append([listing.image_id(path_in), str(e)])
             continue
         if not index:  # the first photograph read: the folder's set is replaced from here

@@ -7,8 +7,8 @@ The homography maps image_b pixel coordinates (x, y) to image_a pixel coordinate
 :mod:`stnh_tf.inference.image_input`.
 
 Files are read as make_dataset reads them (:func:`stnh_tf.data.sources.read_gray`, one
-implementation): a truncated or corrupt file is refused (OpenCV's ``imread`` would fill in a
-truncated JPEG), an alpha channel is composited onto black, 16-bit images are scaled by the bit
+implementation): a truncated or unreadable file is refused (OpenCV's ``imread`` would fill in
+a truncated JPEG; corrupt data inside a JPEG's stream is decoded as libjpeg decodes it), an alpha channel is composited onto black, 16-bit images are scaled by the bit
 depth their values use (their colours too), and the pixel frame is the file's stored pixel order
 (EXIF orientation ignored). The network sees the patch make_dataset would cut from the file; the
 colours are used only to draw the overlay.
