@@ -24,7 +24,7 @@ import pytest
 import skimage.data
 
 from conftest import binary_flags, constant_stage
-from stnh_tf.data import folder_counts, sources, stage1, stage_k
+from stnh_tf.data import folder_counts, image_checks, sources, stage1, stage_k
 from stnh_tf.inference import export, image_files
 from stnh_tf.inference.estimator import HomographyEstimator
 from stnh_tf.paths import atomic_write_json
@@ -293,3 +293,26 @@ def test_a_negative_seed_is_refused_naming_the_flag(module, args, tmp_path):
     assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     assert "--seed=-1" in proc.stderr and "non-negative" in proc.stderr, proc.stderr[-2000:]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("header", [
+    b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 12000 +X 12000\n",  # Radiance HDR
+    b"Pf\n12000 12000\n-1.0\n"])  # PFM
+def test_an_opencv_only_format_is_held_to_the_pixel_cap(header, monkeypatch, tmp_path):
+    """Pillow reads no header of Radiance HDR or PFM, so the cap was not checked and OpenCV
+    decoded them whatever their size (a 9 MB HDR declaring 144 megapixels: 1.7 GB; a review's
+    find). Their headers are read now: refused before decoding. OpenCV's own small HDR and PFM
+    files report their true size and decode as before."""
+    decoded = []
+    monkeypatch.setattr(cv2, "imdecode", lambda *a, **k: decoded.append(a) or None)
+    path = tmp_path / "big.img"
+    path.write_bytes(header + bytes(1000))
+    with pytest.raises(image_files.AlignmentError, match="12,000 x 12,000"):
+        image_files.read_image(str(path), "image_a")
+    assert decoded == []
+    monkeypatch.undo()
+    image = np.random.default_rng(0).random((30, 40, 3)).astype(np.float32)
+    for ext in (".hdr", ".pfm"):
+        data = cv2.imencode(ext, image)[1].tobytes()
+        assert image_checks.header_size(data) == (40, 30)
+        assert sources.decode_gray(data).shape == (30, 40)

@@ -54,6 +54,29 @@ def header_size(data: bytes):
                 return int(im.size[0]), int(im.size[1])
         except Exception:  # noqa: BLE001 - not this format's header, as Image.open goes on
             continue
+    return _opencv_only_header_size(data)
+
+
+def _opencv_only_header_size(data: bytes):
+    r"""``(w, h)`` of a Radiance HDR or a PFM header, formats that OpenCV decodes and Pillow does
+    not read (hand-written: neither library reads a header alone); ``None`` for anything else.
+
+        >>> _opencv_only_header_size(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 30 +X 40\n")
+        (40, 30)
+        >>> _opencv_only_header_size(b"Pf\n40 30\n-1.0\n")
+        (40, 30)
+    """
+    head = data[:4096]
+    if head.startswith((b"#?RADIANCE", b"#?RGBE")) and b"\n\n" in head:
+        axes = head.split(b"\n\n", 1)[1].split(b"\n", 1)[0].split()  # e.g. -Y 30 +X 40
+        if len(axes) == 4 and axes[0][1:] in (b"X", b"Y") and axes[1].isdigit() \
+                and axes[3].isdigit():
+            first, second = int(axes[1]), int(axes[3])
+            return (second, first) if axes[0][1:] == b"Y" else (first, second)
+    if head[:3] in (b"PF\n", b"Pf\n"):
+        size = head[3:].split(b"\n", 1)[0].split()
+        if len(size) == 2 and all(s.isdigit() for s in size):
+            return int(size[0]), int(size[1])
     return None
 
 
