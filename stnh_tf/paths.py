@@ -74,7 +74,36 @@ def atomic_write_bytes(path, data: bytes) -> None:
 def atomic_write_json(path, obj, sort_keys: bool = True) -> None:
     """Write ``obj`` as JSON (indented, keys sorted unless ``sort_keys`` is False, NumPy scalars
     as floats) to ``path`` by :func:`atomic_write_text`."""
-    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=sort_keys, default=float) + "\n")
+    atomic_write_text(path, json_text(obj, sort_keys))
+
+
+def json_text(obj, sort_keys: bool = True) -> str:
+    """:func:`atomic_write_json`'s text of ``obj``."""
+    return json.dumps(obj, indent=2, sort_keys=sort_keys, default=float) + "\n"
+
+
+def atomic_write_files(named: dict) -> None:
+    """Write ``{path: bytes}`` as a set: every temporary file first (``<path>.tmp-<pid>``), then
+    each renamed into place, so that a failure while writing them (a full disk) leaves every old
+    file as it was, never a new one beside an old one (an overlay and its JSON)."""
+    staged = [f"{os.fspath(path)}.tmp-{os.getpid()}" for path in named]
+    try:
+        for tmp, data in zip(staged, named.values()):
+            write_synced(tmp, data)
+        for tmp, path in zip(staged, named):  # (renames in one folder: a moment apart)
+            os.replace(tmp, path)
+    finally:
+        for tmp in staged:
+            with contextlib.suppress(OSError):
+                os.remove(tmp)
+
+
+def write_synced(path, data: bytes) -> None:
+    """Write ``data`` to ``path`` and flush it to disk."""
+    with open(path, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def inside(folder, name, what: str) -> str:

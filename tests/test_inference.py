@@ -1324,9 +1324,10 @@ def test_predict_overlay_cut_short_keeps_the_earlier_one(identity_model_path, tm
                                                         monkeypatch):
     """A re-run of a pair wrote its overlay PNG in place (``cv2.imwrite``): a failure while
     writing it (a full disk, the process killed) left a truncated overlay beside the earlier
-    JSON. The PNG is now written through a temporary file and renamed: where that fails, the
-    earlier overlay and JSON are left byte for byte, no temporary file stays, and the error is
-    an ``AlignmentError`` naming the PNG."""
+    JSON; later, a failure while writing the JSON left the new overlay beside the earlier JSON
+    (a review's find). Both are now written to temporary files first and renamed together: where
+    writing either fails, the earlier overlay and JSON are left byte for byte, no temporary file
+    stays, and the error is an ``AlignmentError`` naming the files."""
     from stnh_tf import paths
     from stnh_tf.inference import image_files as alignment
 
@@ -1336,18 +1337,19 @@ def test_predict_overlay_cut_short_keeps_the_earlier_one(identity_model_path, tm
     alignment.align_image_files(str(a), str(b), model=identity_model_path, output_dir=str(out))
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     cv2.imwrite(str(b), skimage.data.camera()[::-1])  # another image_b: another overlay
-    replace = paths.fsync_replace
+    write = paths.write_synced
+    for failing in (".png", ".json"):
+        def disk_full(path, data):
+            write(path, data[:10])
+            if failing in str(path):
+                raise OSError(28, "No space left on device")
 
-    def disk_full(tmp, path):
-        if str(path).endswith(".png"):
-            raise OSError(28, "No space left on device")
-        replace(tmp, path)
-
-    monkeypatch.setattr(paths, "fsync_replace", disk_full)
-    with pytest.raises(alignment.AlignmentError, match=re.escape(str(out / "a__b_overlay.png"))):
-        alignment.align_image_files(str(a), str(b), model=identity_model_path,
-                                    output_dir=str(out))
-    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+        monkeypatch.setattr(paths, "write_synced", disk_full)
+        with pytest.raises(alignment.AlignmentError,
+                           match=re.escape(str(out / "a__b_overlay.png"))):
+            alignment.align_image_files(str(a), str(b), model=identity_model_path,
+                                        output_dir=str(out))
+        assert {p.name: p.read_bytes() for p in out.iterdir()} == before, failing
     monkeypatch.undo()
     alignment.align_image_files(str(a), str(b), model=identity_model_path, output_dir=str(out))
     assert (out / "a__b_overlay.png").read_bytes() != before["a__b_overlay.png"]

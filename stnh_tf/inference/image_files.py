@@ -23,7 +23,6 @@ import sys
 import numpy as np
 
 from stnh_tf.inference import overlays
-from stnh_tf.paths import atomic_write_json
 
 
 class AlignmentError(Exception):
@@ -318,10 +317,9 @@ def align_image_files(image_a_path, image_b_path, model=None, output_dir=".", wa
         png = os.path.join(output_dir, f"{stem}_overlay.png")
         result.update(overlay_png=png, input_paths=inputs)
         doc = os.path.join(output_dir, f"{stem}_homography.json")
-        for path, write in ((png, lambda: paths.atomic_write_bytes(png, data.tobytes())),
-                            (doc, lambda: atomic_write_json(doc, result, sort_keys=False))):
-            try:  # atomic: a re-run cut short keeps the earlier file whole
-                write()
-            except OSError as e:
-                raise AlignmentError(f"cannot write {path}: {e}") from None
+        try:  # together: a re-run that fails keeps the earlier overlay and JSON, both whole
+            paths.atomic_write_files({png: data.tobytes(), doc: paths.json_text(
+                result, sort_keys=False).encode()})
+        except OSError as e:
+            raise AlignmentError(f"cannot write {png} and {doc}: {e}") from None
     return result
