@@ -529,3 +529,19 @@ def test_photographs_too_small_for_the_patch_are_skipped_named(tmp_path):
     reasons = dict(manifest["skipped"])
     assert sorted(reasons) == ["strip.png", "tiny.png"]
     assert all("too small to estimate a homography" in r for r in reasons.values())
+
+
+def test_overwrite_replaces_a_linked_pair_file_not_its_target(pair_set, tmp_path):
+    """--overwrite wrote a pair PNG through a symbolic link in the output folder, over the file
+    it points to outside the folder (a review's find). The link is replaced now."""
+    images, _, _ = pair_set
+    out = tmp_path / "pairs"
+    camera_pair_files.write_pairs(images, out, pairs_per_image=1, seed=0)
+    precious = tmp_path / "precious.png"
+    precious.write_bytes(b"the user's file")
+    (out / "00000_a.png").unlink()
+    (out / "00000_a.png").symlink_to(precious)
+    camera_pair_files.write_pairs(images, out, pairs_per_image=1, seed=0, overwrite=True)
+    assert precious.read_bytes() == b"the user's file"
+    assert not (out / "00000_a.png").is_symlink()
+    assert cv2.imread(str(out / "00000_a.png")) is not None
