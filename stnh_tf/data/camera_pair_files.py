@@ -197,7 +197,8 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
                                   motions, degradation, motion_set, scale):
             names, sha256 = (f"{p.index:05d}_a.png", f"{p.index:05d}_b.png"), []
             for name, image in zip(names, (p.image_a, p.image_b)):
-                data, target = cv2.imencode(".png", image)[1].tobytes(), os.path.join(output_dir, name)
+                data = cv2.imencode(".png", image)[1].tobytes()
+                target = os.path.join(output_dir, name)
                 if os.path.islink(target):  # (the link goes, never the file it points to)
                     os.remove(target)
                 with open(target, "wb") as f:
