@@ -1318,6 +1318,16 @@ def test_predict_outputs_of_pairs_with_the_same_names_do_not_collide(identity_mo
     assert json.loads((out / "a__b_homography.json").read_text())["image_a"] == \
         str(tmp_path / "one" / "a.png")
     assert cv2.imread(str(out / "a__b-2_overlay.png")).shape[0] > photos["two"].shape[0]
+    # the first pair's outputs deleted: a re-run of the second still replaces its own (it took
+    # the free a__b and left a stale a__b-2 before; a review's find)
+    for end in ("_homography.json", "_overlay.png"):
+        (out / f"a__b{end}").unlink()
+    again = alignment.align_image_files(str(tmp_path / "two" / "a.png"),
+                                        str(tmp_path / "two" / "b.png"),
+                                        model=identity_model_path, output_dir=str(out))
+    assert os.path.basename(again["overlay_png"]) == "a__b-2_overlay.png"
+    assert sorted(p.name for p in out.iterdir() if p.name != alignment.PREDICT_LOCK) == [
+        "a__b-2_homography.json", "a__b-2_overlay.png"]
 
 
 def test_predict_overlay_cut_short_keeps_the_earlier_one(identity_model_path, tmp_path,

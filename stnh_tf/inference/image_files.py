@@ -100,18 +100,20 @@ def output_stem(output_dir, inputs):
     names (its JSON's ``input_paths`` differ): the outputs of one pair are replaced on a re-run,
     never those of another."""
     base = "__".join(os.path.splitext(os.path.basename(p))[0] for p in inputs)
-    for k in range(1, 10_000):
-        stem = base if k == 1 else f"{base}-{k}"
-        existing = os.path.join(output_dir, f"{stem}_homography.json")
-        if not os.path.exists(existing) and \
-                not os.path.exists(os.path.join(output_dir, f"{stem}_overlay.png")):
-            return stem
+    stems = [base if k == 1 else f"{base}-{k}" for k in range(1, 10_000)]
+    names = set(os.listdir(output_dir)) if os.path.isdir(output_dir) else set()
+    for stem in stems:  # this pair's own outputs first, wherever they lie (gaps included)
+        if f"{stem}_homography.json" not in names:
+            continue
         try:
-            with open(existing) as f:
+            with open(os.path.join(output_dir, f"{stem}_homography.json")) as f:
                 if json.load(f).get("input_paths") == inputs:
                     return stem
         except (OSError, ValueError, AttributeError):
             pass  # not ours to replace
+    for stem in stems:
+        if not {f"{stem}_homography.json", f"{stem}_overlay.png"} & names:
+            return stem
     raise AlignmentError(f"{output_dir} holds outputs of 9,999 pairs named {base}; choose "
                          "another --output_dir.")
 
