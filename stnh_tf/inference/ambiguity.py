@@ -83,6 +83,16 @@ def overlap_ncc(image, covered, template, reach: int) -> tuple:
     return score, np.rint(count)
 
 
+def _warped(work_a, work_b, a_from_b, origin):
+    """``(work_b as float32, warped, covered)`` (:func:`~stnh_tf.inference.checks.warped_onto`),
+    or ``None`` where the estimate maps the patch to no finite place."""
+    with np.errstate(all="ignore"):
+        if not np.isfinite(geometry.patch_to_image(a_from_b, *origin)).all():
+            return None
+    b = np.asarray(work_b, np.float32)
+    return (b, *warped_onto(work_a, a_from_b, origin, b.shape))
+
+
 def _peaks(scores, count, reach):
     """The distinct other peaks of a score map: local maxima (5 x 5) at least
     :data:`AMBIGUITY_MIN_SHIFT_PX` from the centre comparing at least :data:`AMBIGUITY_MIN_SHARE`
@@ -121,11 +131,9 @@ def ambiguity_gap(work_a, work_b, a_from_b, origin=(0, 0), min_overlap: float = 
     >>> ambiguity_gap(smooth, smooth, np.eye(3), (96, 56)) > 0.5
     True
     """
-    with np.errstate(all="ignore"):
-        if not np.isfinite(geometry.patch_to_image(a_from_b, *origin)).all():
-            return float("nan")
-    b = np.asarray(work_b, np.float32)
-    warped, covered = warped_onto(work_a, a_from_b, origin, b.shape)
+    if (warp := _warped(work_a, work_b, a_from_b, origin)) is None:
+        return float("nan")
+    b, warped, covered = warp
     if covered.mean() < min_overlap:
         return float("nan")
     r = AMBIGUITY_SHIFT_PX
@@ -158,11 +166,9 @@ def tile_ambiguity_gap(work_a, work_b, a_from_b, origin=(0, 0)) -> float:
     >>> float(tile_ambiguity_gap(stripes, stripes, np.eye(3), (96, 56))) < 0.05
     True
     """
-    with np.errstate(all="ignore"):
-        if not np.isfinite(geometry.patch_to_image(a_from_b, *origin)).all():
-            return float("nan")
-    b = np.asarray(work_b, np.float32)
-    warped, covered = warped_onto(work_a, a_from_b, origin, b.shape)
+    if (warp := _warped(work_a, work_b, a_from_b, origin)) is None:
+        return float("nan")
+    b, warped, covered = warp
     r, t = TILE_SHIFT_PX, TILE_PX
     warped, covered = np.pad(warped, r), np.pad(covered, r)
     steps = np.linspace(0.0, 1.0, 24)
