@@ -22,7 +22,9 @@ Every model and ``--eval_json`` is read and the new files written and checked in
 inside ``--weights_dir`` before anything shipped is replaced; files, manifest and card then go in
 together, or nothing does. Weights whose bundled check is worse than the card they replace says
 are refused unless ``--allow_worse``; the printed JSON's ``bundled_check_change`` lists the
-numbers that moved (old, new).
+numbers that moved (old, new). One command writes in a weights folder at a time (a second,
+whichever of these, is refused while the first holds the folder's lock); what a command killed
+in its swap left is put back by the next, unless its card was written (then it stands).
 
   python -m experiments.ship_weights --refresh_check
 

@@ -273,14 +273,15 @@ def stage_record_path(model_file) -> str:
 
 @contextlib.contextmanager
 def exclusive_lock(lock_path, busy: str, wait: bool = False):
-    """Hold ``fcntl.flock`` on the file ``lock_path`` (created if missing, never removed) for one
-    writer: a second holder, in this process or another, fails at once with
+    """Hold ``fcntl.flock`` on the file ``lock_path`` (created if missing, never removed; an
+    existing folder is locked as itself, nothing created in it) for one writer: a second holder, in this process or another, fails at once with
     ``FileExistsError(busy)`` instead of waiting or writing over the first one's files (with
     ``wait``, it waits for the first to let go: writers that only choose names, as ``predict``'s
     output stems). The lock goes with the process, so a killed writer leaves none held (its lock
     file stays and is reused). make_dataset's split lock
     (:func:`stnh_tf.data.metadata.split_lock`), the SavedModel export's
-    (:func:`stnh_tf.inference.export.export_saved_model`) and ``predict``'s are this lock.
+    (:func:`stnh_tf.inference.export.export_saved_model`), ``predict``'s and the shipped weights'
+    folder's (:mod:`stnh_tf.inference.shipped_weights`) are this lock.
 
         >>> import tempfile
         >>> with tempfile.TemporaryDirectory() as folder:
@@ -295,13 +296,18 @@ def exclusive_lock(lock_path, busy: str, wait: bool = False):
     """
     import fcntl
 
-    with open(lock_path, "a") as f:
+    # a folder is locked as itself: nothing is created in it (the shipped weights' folder)
+    fd = os.open(lock_path, os.O_RDONLY if os.path.isdir(lock_path)
+                 else os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
         try:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+            fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
         except BlockingIOError:
             raise FileExistsError(busy) from None
         try:
             yield
         finally:
-            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
 

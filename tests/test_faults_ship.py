@@ -252,3 +252,85 @@ def test_a_failed_put_back_keeps_the_old_files_for_the_next_ship(shipped, runs, 
     monkeypatch.setattr(shipped_weights, "_alive", lambda pid: False)  # (another process's)
     assert "model_card.json" in shipped_weights.put_back(w)
     assert _state(w) == before
+
+
+def test_two_ships_at_once_the_second_is_refused(shipped, runs, check, monkeypatch):
+    """Two ``ship_weights`` into one folder at once each read the old card and swapped files in
+    turn: the second's card could describe files the first had placed (or put them back as its
+    own old ones). The folder is locked now: while one ship holds it, another ship,
+    ``--replace_stage``, ``--refresh_check`` and ``--refresh_evaluation`` are refused, nothing
+    replaced, and the first finishes whole."""
+    import threading
+
+    from stnh_tf.evaluation import card_evaluation
+
+    w, before = shipped
+    entered, release = threading.Event(), threading.Event()
+    stand_in = shipped_weights.bundled_check
+
+    def slow_check(paths):  # the first ship, paused inside its check
+        entered.set()
+        assert release.wait(60)
+        return stand_in(paths)
+
+    monkeypatch.setattr(shipped_weights, "bundled_check", slow_check)
+    first = {}
+    thread = threading.Thread(target=lambda: first.update(
+        card=shipped_weights.ship([runs["b"], runs["b"]], w)))
+    thread.start()
+    try:
+        assert entered.wait(60)
+        for second in (lambda: shipped_weights.ship([runs["a"]] * 3, w),
+                       lambda: shipped_weights.replace_stage(1, runs["a"], w),
+                       lambda: shipped_weights.refresh_check(w),
+                       lambda: card_evaluation.refresh_card(w, "unused")):
+            with pytest.raises(FileExistsError, match="another ship_weights is writing"):
+                second()
+    finally:
+        release.set()
+        thread.join(60)
+    card = json.load(open(os.path.join(w, "model_card.json")))
+    assert card == first["card"]
+    assert [s["source"] for s in card["stages"]] == [os.path.abspath(runs["b"])] * 2
+    assert sorted(_state(w)) == sorted(before)  # two stages, no staging folder left
+    assert _state(w)["stage1.keras"] != before["stage1.keras"]
+
+
+def _killed_after_its_card(w, before_dir, new_card: bytes):
+    """The staging folder a ship killed just after writing its card leaves (``new_card``: the
+    card it was writing), the old files of ``before_dir`` set aside in it."""
+    import shutil
+
+    staging = os.path.join(w, f"{shipped_weights.STAGING_PREFIX}1")
+    aside = os.path.join(staging, shipped_weights.PREVIOUS)
+    os.makedirs(aside)
+    for name in ("stage1.keras", "stage2.keras", "default.json", "model_card.json"):
+        shutil.copy(os.path.join(before_dir, name), os.path.join(aside, name))
+    with open(os.path.join(staging, shipped_weights.PLAN), "w") as f:
+        json.dump({"swap": ["stage1.keras", "stage2.keras"], "new": [],
+                   "kept": ["default.json", "model_card.json"]}, f)
+    with open(os.path.join(staging, shipped_weights.NEW_CARD), "wb") as f:
+        f.write(new_card)
+
+
+def test_a_ship_killed_after_writing_its_card_is_kept(shipped, runs, tmp_path, monkeypatch):
+    """A ship killed after its card was written (the swap done, its staging folder not yet
+    marked) was undone by the next ship: the new weights silently went back to the old. It is
+    kept now; killed before the card was written it is still put back (the control)."""
+    import shutil
+
+    w, before = shipped
+    before_dir = str(tmp_path / "before")
+    shutil.copytree(w, before_dir)
+    shipped_weights.ship([runs["b"], runs["b"]], w)
+    after = _state(w)
+    assert after != before
+    monkeypatch.setattr(shipped_weights, "_alive", lambda pid: False)  # (another process's)
+    card = open(os.path.join(w, "model_card.json"), "rb").read()
+    _killed_after_its_card(w, before_dir, card)
+    assert shipped_weights.put_back(w) == []
+    assert _state(w) == after
+    _killed_after_its_card(w, before_dir, card.replace(b"stage", b"other"))  # not yet written
+    assert sorted(shipped_weights.put_back(w)) == ["default.json", "model_card.json",
+                                                   "stage1.keras", "stage2.keras"]
+    assert _state(w) == before

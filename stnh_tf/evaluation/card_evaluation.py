@@ -179,17 +179,20 @@ def refresh(weights_dir: str, card: dict, test_image_dir: str, log=print) -> dic
 def refresh_card(weights_dir: str | None, test_image_dir: str, log=print) -> dict:
     """Re-measure the card in ``weights_dir`` (default: the package's ``stnh_tf/weights``) with
     :func:`refresh` and write it back atomically; returns the new card. Raises as
-    :func:`refresh` (nothing written) and ``FileNotFoundError`` without a card."""
+    :func:`refresh` (nothing written), ``FileNotFoundError`` without a card, and
+    ``FileExistsError`` while a ship holds the folder (:func:`~stnh_tf.inference.shipped_weights.
+    locked`)."""
     import json
 
-    from stnh_tf.inference import model_files
+    from stnh_tf.inference import model_files, shipped_weights
     from stnh_tf.paths import atomic_write_json
 
     weights_dir = weights_dir or model_files.default_weights_dir()
     path = os.path.join(weights_dir, "model_card.json")
-    with open(path) as f:
-        card = json.load(f)
-    card = refresh(weights_dir, card, test_image_dir, log)
-    card.pop("evaluation_stale", None)  # (re-measured on the files shipped now)
-    atomic_write_json(path, card)
+    with shipped_weights.locked(weights_dir):  # (no ship may replace the files meanwhile)
+        with open(path) as f:
+            card = json.load(f)
+        card = refresh(weights_dir, card, test_image_dir, log)
+        card.pop("evaluation_stale", None)  # (re-measured on the files shipped now)
+        atomic_write_json(path, card)
     return card

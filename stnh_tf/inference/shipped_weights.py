@@ -10,10 +10,12 @@ weights already shipped.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 
-from stnh_tf.paths import atomic_write_bytes, atomic_write_json, stage_record_path
+from stnh_tf.paths import (atomic_write_bytes, atomic_write_json, exclusive_lock, json_text,
+                           stage_record_path)
 from stnh_tf.provenance import machine_info
 
 
@@ -38,10 +40,33 @@ def ship(model_dirs, weights_dir=None, eval_json=None, allow_worse: bool = False
     if eval_json:
         card["evaluation"] = _read_json(eval_json)
     os.makedirs(weights_dir, exist_ok=True)
-    put_back(weights_dir)
-    old_card = _card_if_any(weights_dir)
-    return _install(weights_dir, {e["file"]: m for m, e in stages}, card, old_card, allow_worse,
-                    manifest=f"{len(stages)}-stage hierarchy shipped with stnh-tf")
+    with locked(weights_dir):
+        old_card = _card_if_any(weights_dir)
+        return _install(weights_dir, {e["file"]: m for m, e in stages}, card, old_card,
+                        allow_worse, manifest=f"{len(stages)}-stage hierarchy shipped with stnh-tf")
+
+
+@contextlib.contextmanager
+def locked(weights_dir):
+    """Hold the weights folder ``weights_dir`` (an existing folder) for one writer of its files
+    or card (:func:`ship`, :func:`replace_stage`, :func:`refresh_check`,
+    :func:`stnh_tf.evaluation.card_evaluation.refresh_card`), after putting back what a ship
+    killed there left (:func:`put_back`). The lock is the folder's own ``flock``
+    (:func:`stnh_tf.paths.exclusive_lock`): nothing is written for it, and a killed holder
+    leaves none held.
+
+    Raises:
+      FileExistsError: another writer holds it (nothing is read or replaced).
+      FileNotFoundError: ``weights_dir`` is not a folder.
+    """
+    if not os.path.isdir(weights_dir):
+        raise FileNotFoundError(f"no weights folder {weights_dir} (its model_card.json and "
+                                "stage files).")
+    with exclusive_lock(weights_dir, f"another ship_weights is writing in {weights_dir} (it "
+                                     "holds the folder's lock): nothing replaced; run one at "
+                                     "a time."):
+        put_back(weights_dir)
+        yield
 
 
 def _read_stage(model_dir, name) -> tuple:
@@ -85,7 +110,17 @@ def replace_stage(stage: int, model_dir, weights_dir=None, eval_json=None,
       ValueError: ``stage`` is not one of the shipped stages; a bundled-check number worse than
         the card says (:func:`worse_checks`) while ``allow_worse`` is off.
     """
-    weights_dir, card = _shipped_card(weights_dir)
+    from stnh_tf.inference import model_files
+
+    weights_dir = weights_dir or model_files.default_weights_dir()
+    with locked(weights_dir):
+        return _replace_stage(stage, model_dir, weights_dir, eval_json, init_from_previous,
+                              allow_worse)
+
+
+def _replace_stage(stage, model_dir, weights_dir, eval_json, init_from_previous, allow_worse):
+    """:func:`replace_stage` in the locked folder ``weights_dir``."""
+    card = _shipped_card(weights_dir)
     if isinstance(stage, bool) or not 1 <= int(stage) <= len(card["stages"]):
         raise ValueError(f"stage must be one of 1..{len(card['stages'])} (the shipped stages); "
                          f"received {stage!r}.")
@@ -145,8 +180,10 @@ def put_back(weights_dir) -> list:
     """Undo what a ship killed in ``weights_dir`` left (a staging folder of a process no longer
     running): by the plan it wrote before moving anything, the files it had set aside in the
     folder's ``.previous`` (models, manifest, card) go back over what it had placed, a model file
-    it placed where none was goes, and the folder goes: the old weights as before it. Called
-    first by :func:`ship` and :func:`replace_stage`; returns the names put back or removed."""
+    it placed where none was goes, and the folder goes: the old weights as before it. A ship
+    killed after writing its card (the swap done, its folder not yet marked so) is left as it
+    finished. Called first by :func:`locked` (every writer of the folder); returns the names put
+    back or removed."""
     import shutil
 
     names = []
@@ -154,10 +191,14 @@ def put_back(weights_dir) -> list:
         pid, folder = stale[len(STAGING_PREFIX):], os.path.join(weights_dir, stale)
         if not (stale.startswith(STAGING_PREFIX) and pid.isdigit() and not _alive(int(pid))):
             continue
-        # no plan: killed before it moved anything; no .previous: killed after the swap
+        # no plan: killed before it moved anything; no .previous, or the new card in place:
+        # killed after the swap
+        new_card = _bytes_if_any(os.path.join(folder, NEW_CARD))
+        done = (new_card is not None
+                and new_card == _bytes_if_any(os.path.join(weights_dir, "model_card.json")))
         plan = (_read_json(os.path.join(folder, PLAN))
                 if os.path.isdir(os.path.join(folder, PREVIOUS))
-                and os.path.exists(os.path.join(folder, PLAN))
+                and os.path.exists(os.path.join(folder, PLAN)) and not done
                 else {"swap": [], "new": [], "kept": []})
         for name in plan["swap"] + plan["kept"]:  # (nothing else: no half-written temp file)
             old, target = os.path.join(folder, PREVIOUS, name), os.path.join(weights_dir, name)
@@ -206,6 +247,8 @@ def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, m
         kept = {n: _bytes_if_any(os.path.join(weights_dir, n))
                 for n in ("default.json", "model_card.json")}
         aside = os.path.join(staging, PREVIOUS)
+        # the card as it will be written: put_back's sign that the swap was done
+        atomic_write_bytes(os.path.join(staging, NEW_CARD), json_text(card).encode())
         os.makedirs(aside)
         for name, data in kept.items():  # (for put_back, should this process be killed)
             if data is not None:
@@ -249,9 +292,10 @@ def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, m
     return card
 
 
-PREVIOUS, PLAN = ".previous", ".plan.json"
-""":func:`_install_staged`'s folder, inside the staging folder, of the files it replaces, and its
-record of the swap (the model files, those new, the manifest and card kept) for :func:`put_back`."""
+PREVIOUS, PLAN, NEW_CARD = ".previous", ".plan.json", ".new_card.json"
+""":func:`_install_staged`'s folder, inside the staging folder, of the files it replaces, its
+record of the swap (the model files, those new, the manifest and card kept) for :func:`put_back`,
+and the card it writes last (in place: the swap was done)."""
 
 
 STAGING_PREFIX = ".stnh_tf_ship."
@@ -365,19 +409,19 @@ def bundled_check(stage_paths) -> dict:
 
 
 def refresh_check(weights_dir=None) -> dict:
-    """Re-compute ``bundled_check`` in the model card of already shipped weights."""
-    return _write_rechecked(*_shipped_card(weights_dir))
-
-
-def _shipped_card(weights_dir=None):
-    """``(weights_dir, card)`` of already shipped weights (default: the package's)."""
+    """Re-compute ``bundled_check`` in the model card of already shipped weights (default: the
+    package's)."""
     from stnh_tf.inference import model_files
 
     weights_dir = weights_dir or model_files.default_weights_dir()
-    if os.path.isdir(weights_dir):
-        put_back(weights_dir)
+    with locked(weights_dir):
+        return _write_rechecked(weights_dir, _shipped_card(weights_dir))
+
+
+def _shipped_card(weights_dir):
+    """The model card of the weights shipped in ``weights_dir``."""
     with open(os.path.join(weights_dir, "model_card.json")) as f:
-        return weights_dir, json.load(f)
+        return json.load(f)
 
 
 def _write_rechecked(weights_dir, card) -> dict:
