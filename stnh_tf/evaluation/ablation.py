@@ -99,6 +99,10 @@ ABLATIONS = {
         "the wide-motion corner rule: the flag's corner rule is the trained range's (48 px) "
         "as without the feature start",
         {"thresholds": {"coarse_corner_shift": _TRAINED_CORNER_RULE}}),
+    "late_start_below_ncc": (
+        "the late feature start's trigger on an unflagged estimate aligning the work images "
+        "below late_start_below_ncc (0.95); the trigger on a flagged one stays",
+        {"thresholds": {"late_start_below_ncc": 0.0}}),
     "flat": ("the flat rule (the identity, flagged, for a patch varying less than half a grey "
              "level)", {"thresholds": {"min_patch_std": 0.0}}),
 }

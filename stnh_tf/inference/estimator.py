@@ -355,7 +355,7 @@ class HomographyEstimator:
         # what the network alone gave from the identity start, and how far the result is from it
         move = pipeline.network_moves(result.homography, network_h, [np.shape(work_a)],
                                       PATCH_ORIGIN)
-        if features.late_wanted(result, options):
+        if features.late_wanted(result, options, work_a, work_b, PATCH_ORIGIN):
             # the finished estimate says the network's was off: the feature start after all
             made = features.candidate(run, work_a, work_b, network, PATCH_ORIGIN, start)
             if made is not None:

@@ -158,6 +158,12 @@ class Thresholds:
         :func:`stnh_tf.inference.ambiguity.tile_ambiguity_gap`, the median over 80 x 80 tiles of
         the gap to a second peak that a valley separates): a pattern in perspective (a facade,
         blinds) aligns one period off tile by tile, by no single shift. 0: off.
+      late_start_below_ncc: with ``features="fallback"`` in ``estimate_images``, a finished
+        estimate (not the feature start's, not flagged) under which the two work images align
+        below this (:func:`stnh_tf.inference.coarse.image_ncc`) gets the feature start after
+        all, whose estimate replaces it where it aligns them better
+        (:func:`stnh_tf.inference.features.late_wanted`): a facade one period off aligns its
+        patch well and the whole images less so (issue 79). 0: off (flagged estimates only).
     """
 
     implausible_corner_shift: float = 1.5 * geometry.MAX_PERTURBATION
@@ -182,6 +188,7 @@ class Thresholds:
     min_ambiguity_gap: float = 0.005
     min_tile_ambiguity_gap: float = 0.1
     resolution_sigma: float = 0.8
+    late_start_below_ncc: float = 0.95
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
