@@ -74,6 +74,7 @@ WITNESSES = {
     "undetermined_corner_std": "test_checks_of_the_flag_off",
     "min_ambiguity_gap": "test_checks_of_the_flag_off",
     "min_tile_ambiguity_gap": "test_checks_of_the_flag_off", "flat": "test_flat_off",
+    "late_start_below_ncc": "test_late_start_off",
 }
 
 
@@ -129,6 +130,31 @@ def test_features_off(identity):
     assert _corner_error(on.homography[0], h) < 0.5
     assert not off.feature_start[0] and off.implausible[0]
     assert _corner_error(off.homography[0], h) > 50 and not OFF("features").wide_motions
+
+
+def test_late_start_off(identity, monkeypatch):
+    """A wrong estimate that the flag misses (the early start kept out, the first finished
+    estimate's flag cleared: a facade one period off, issue 79) but that aligns the work images
+    poorly: by default the late feature start replaces it by its own, within 0.5 px of the motion
+    the pair was made with (cv2.perspectiveTransform); off, the wrong estimate stays, unflagged
+    (hundreds of px off)."""
+    h = _wide_motion(-100.0, 2.2)
+    a, b = _pair(h)
+    monkeypatch.setattr(features, "wanted", lambda first, options: False)
+    finish = HomographyEstimator._finish_images
+
+    def first_unflagged(run, result, *args):
+        est = finish(run, result, *args)
+        return (est if result.feature_start[0]
+                else dataclasses.replace(est, implausible=np.array([False])))
+
+    monkeypatch.setattr(HomographyEstimator, "_finish_images", staticmethod(first_unflagged))
+    on = identity.estimate_images_with_info(a, b, DEFAULT)
+    off = identity.estimate_images_with_info(a, b, OFF("late_start_below_ncc"))
+    assert on.feature_start[0] and not on.implausible[0]
+    assert _corner_error(on.homography[0], h) < 0.5
+    assert not off.feature_start[0] and not off.implausible[0]
+    assert _corner_error(off.homography[0], h) > 100
 
 
 def test_search_off(identity, monkeypatch):

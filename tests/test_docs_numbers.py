@@ -1213,7 +1213,10 @@ def test_ablation_table_is_the_json_s():
                       ("seed0-60-7d229e5", "ablation_seed0_60_7d229e5"),
                       ("seed13-60-56e6384", "ablation_seed13_60_56e6384"),
                       ("seed13-60-7d229e5", "ablation_seed13_60_7d229e5"),
-                      ("urban100-b21ba37", "ablation_urban100_b21ba37")):
+                      ("urban100-b21ba37", "ablation_urban100_b21ba37"),
+                      ("urban100-d8ab62b", "ablation_urban100_d8ab62b"),
+                      ("seed0-60-d8ab62b", "ablation_seed0_60_d8ab62b"),
+                      ("seed13-60-d8ab62b", "ablation_seed13_60_d8ab62b")):
         start, end = f"<!-- ablation-{tag}:start -->\n", f"\n<!-- ablation-{tag}:end -->"
         block = text[text.index(start) + len(start):text.index(end)]
         assert block == ablation.table(_camera_file(name)), tag
@@ -1486,3 +1489,32 @@ def test_the_tile_ambiguity_numbers_are_the_json_s():
         untimed = [{g: {k: v for k, v in cells.items() if "ms_per_pair" not in k}
                     for g, cells in r["ablations"]["default"]["groups"].items()} for r in runs]
         assert untimed[0] == untimed[1] and runs[1]["commit"] == "b21ba37"
+
+
+def test_the_late_start_numbers_are_the_json_s():
+    """BENCHMARKS.md, "The late start on a poorly aligned estimate": Urban100's silent failures
+    and successes with the trigger and without it (the row switched off, which gives b21ba37's
+    default on every untimed cell of the three sets), no good estimate more flagged, and the
+    coco_mini seeds' successes, flags and failures unchanged."""
+    text = " ".join(_read("BENCHMARKS.md").split())
+
+    def untimed(groups):
+        return {g: {k: v for k, v in cells.items() if "ms_per_pair" not in k}
+                for g, cells in groups.items()}
+
+    for name in ("urban100", "seed0_60", "seed13_60"):
+        run = _camera_file(f"ablation_{name}_d8ab62b")
+        assert run["commit"].startswith("d8ab62b")
+        rows = run["ablations"]
+        before = _camera_file(f"ablation_{name}_b21ba37")["ablations"]["default"]["groups"]
+        assert untimed(rows["late_start_below_ncc"]["groups"]) == untimed(before), name
+        on, off = rows["default"]["groups"]["all"], rows["late_start_below_ncc"]["groups"]["all"]
+        assert on["good_flagged"] == off["good_flagged"], name
+        if name == "urban100":
+            assert (f"silent failures go from {off['silently_failed']} to "
+                    f"{on['silently_failed']} and its successes from {off['successes']} to "
+                    f"{on['successes']}") in text
+        else:
+            for g, cells in rows["default"]["groups"].items():
+                for key in ("successes", "good_flagged", "silently_failed", "unflagged_far"):
+                    assert cells[key] == before[g][key], (name, g, key)

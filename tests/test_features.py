@@ -13,7 +13,7 @@ import skimage.data
 
 from conftest import constant_stage
 from stnh_tf import geometry
-from stnh_tf.inference import features, image_input
+from stnh_tf.inference import coarse, features, image_input
 from stnh_tf.inference.estimator import HomographyEstimator
 from stnh_tf.inference.options import EstimateOptions
 
@@ -283,26 +283,37 @@ def test_searched_says_the_search_looked_even_where_the_feature_start_won(estima
 def test_late_trigger_and_choice(estimator):
     """:func:`features.late_wanted`: only with ``features="fallback"``, never for an estimate
     made from the feature start or a flat pair; where the finished estimate is flagged (not
-    where it merely lies far from the network's: that trigger went in issue 79).
+    where it merely lies far from the network's: that trigger went in issue 79), or unflagged
+    but aligning the whole work images below ``Thresholds.late_start_below_ncc``
+    (coarse.image_ncc: the identity of a rotated pair; issue 79, facades one period off).
     :func:`features.late_better`: an unflagged estimate beats a flagged one; otherwise the
     better whole-image NCC (the estimate on a tie)."""
     h_true = _wide_motion(5.0, 1.05)
     a, b = _pair(h_true)
+    wa, wb, origin = _work(a), _work(b), image_input.PATCH_ORIGIN
     est = estimator.estimate_images_with_info(a, b, EstimateOptions.photographs())
     assert _corner_error(est.homography[0], h_true) < 0.5 and not est.implausible[0]
-    est = dataclasses.replace(est, feature_start=np.array([False]))  # as if the network's
+    est = dataclasses.replace(est, feature_start=np.array([False]),  # as if the network's
+                              homography=geometry.image_to_patch(est.homography[0], *origin)[None])
     fallback = EstimateOptions.photographs()
     flagged = dataclasses.replace(est, implausible=np.array([True]))
-    assert not features.late_wanted(est, fallback)
-    assert features.late_wanted(flagged, fallback)
+    wanted = lambda e, options=fallback: features.late_wanted(e, options, wa, wb, origin)  # noqa
+    assert not wanted(est)
+    assert wanted(flagged)
     for options in (EstimateOptions(), dataclasses.replace(fallback, features="always")):
-        assert not features.late_wanted(flagged, options)
-    assert not features.late_wanted(dataclasses.replace(
-        flagged, feature_start=np.array([True])), fallback)
-    assert not features.late_wanted(dataclasses.replace(flagged, flat=np.array([True])),
-                                     fallback)
-    # patch frame, as estimate_images compares them: the true motion, and the identity
-    wa, wb, origin = _work(a), _work(b), image_input.PATCH_ORIGIN
+        assert not wanted(flagged, options)
+    assert not wanted(dataclasses.replace(flagged, feature_start=np.array([True])))
+    assert not wanted(dataclasses.replace(flagged, flat=np.array([True])))
+    # unflagged but off: the identity aligns the rotated pair's work images poorly
+    off = dataclasses.replace(est, homography=np.eye(3)[None])
+    ncc = coarse.image_ncc(wa, wb, np.eye(3), origin, fallback.thresholds.min_overlap)
+    aligned = coarse.image_ncc(wa, wb, est.homography[0], origin,
+                               fallback.thresholds.min_overlap)
+    assert ncc < fallback.thresholds.late_start_below_ncc <= aligned
+    assert wanted(off)
+    assert not wanted(off, dataclasses.replace(fallback, thresholds=dataclasses.replace(
+        fallback.thresholds, late_start_below_ncc=0.0)))
+    assert not wanted(dataclasses.replace(off, feature_start=np.array([True])))
     right = dataclasses.replace(est, homography=geometry.image_to_patch(h_true, *origin)[None])
     wrong = dataclasses.replace(right, homography=np.eye(3)[None])
     assert features.late_better(right, wrong, wa, wb, fallback, origin)
