@@ -23,7 +23,8 @@ from test_image_refine import TRUTH, _estimator_off_by
 from stnh_tf import geometry
 from stnh_tf.data import camera_pair_files
 from stnh_tf.evaluation import ablation
-from stnh_tf.inference import ambiguity, checks, coarse, features, image_refine, pipeline
+from stnh_tf.inference import (ambiguity, checks, coarse, features, image_input, image_refine,
+                               pipeline)
 from stnh_tf.inference.estimator import HomographyEstimator
 from stnh_tf.inference.options import EstimateOptions
 
@@ -64,7 +65,7 @@ WITNESSES = {
     "features": "test_features_off", "search": "test_search_off",
     "corner_rule": "test_the_flag_rules_off",
     "corner_rule_trained": "test_the_flag_rules_off",
-    "min_alignment_ncc": "test_the_flag_rules_off",
+    "min_alignment_ncc": "test_the_flag_rules_off",  # and test_the_whole_images_alignment_floor_off
     "refine_images": "test_refinements_off", "refine": "test_refinements_off",
     "resolution_sigma": "test_refinements_off",
     "max_refine_move": "test_refine_guard_off",
@@ -155,6 +156,33 @@ def test_late_start_off(identity, monkeypatch):
     assert _corner_error(on.homography[0], h) < 0.5
     assert not off.feature_start[0] and not off.implausible[0]
     assert _corner_error(off.homography[0], h) > 100
+
+
+def test_the_whole_images_alignment_floor_off(identity, monkeypatch):
+    """image_b holds image_a's central patch (the identity aligns it exactly) in an unrelated
+    photograph (image_a turned upside down): the whole work images align under the identity far
+    below min_alignment_ncc (coarse.image_ncc), and the estimate is flagged by default (its
+    patch refinement only); with the floor off, the same estimate is not (issue 79: a facade one
+    period off aligns its patch, the whole images less)."""
+    monkeypatch.setattr(features, "feature_start", lambda *images: None)  # (no other start)
+    # the flag's other measures as on a clean pair (test_checks_of_the_flag_off has them)
+    monkeypatch.setattr(checks, "corner_std", lambda *args, **kw: 0.01)
+    monkeypatch.setattr(ambiguity, "ambiguity_gap", lambda *args, **kw: 0.5)
+    monkeypatch.setattr(ambiguity, "tile_ambiguity_gap", lambda *args, **kw: 0.5)
+    a, _ = _pair(np.eye(3))
+    b = np.ascontiguousarray(a[::-1, ::-1])
+    (x0, y0), size = image_input.PATCH_ORIGIN, geometry.PATCH_SIZE
+    b[y0:y0 + size, x0:x0 + size] = a[y0:y0 + size, x0:x0 + size]
+    # the patch's refinement only: the whole-image ECC would chase the unrelated surroundings
+    on, off = (identity.estimate_images_with_info(a, b, dataclasses.replace(o, refine="ecc"))
+               for o in (DEFAULT, OFF("min_alignment_ncc")))
+    np.testing.assert_allclose(on.homography[0], np.eye(3), atol=1e-3)
+    np.testing.assert_array_equal(on.homography, off.homography)
+    assert on.alignment_ncc[0] > 0.99
+    whole = coarse.image_ncc(*(image_input.work_image(x, "x", "rgb")[0] for x in (a, b)),
+                             np.eye(3), image_input.PATCH_ORIGIN, DEFAULT.thresholds.min_overlap)
+    assert whole < DEFAULT.thresholds.min_alignment_ncc
+    assert on.implausible[0] and not off.implausible[0]
 
 
 def test_search_off(identity, monkeypatch):

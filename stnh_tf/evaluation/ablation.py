@@ -91,7 +91,8 @@ ABLATIONS = {
         "the tile-by-tile ambiguity flag (a second peak within 0.1 of the estimate's NCC, the "
         "median over 80 x 80 tiles)", {"thresholds": {"min_tile_ambiguity_gap": 0.0}}),
     "min_alignment_ncc": (
-        "the flag's alignment rule (NCC below 0.7); an undefined or negative NCC still flags",
+        "the flag's alignment rule (the patch's NCC, and the whole work images', below 0.7); "
+        "an undefined or negative NCC still flags",
         {"thresholds": {"min_alignment_ncc": 0.0}}),
     "corner_rule": ("the flag's corner rule (a patch corner moved beyond coarse_corner_shift, "
                     "128 px)", {"thresholds": {"coarse_corner_shift": OFF}}),

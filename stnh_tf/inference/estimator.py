@@ -374,8 +374,10 @@ class HomographyEstimator:
     @staticmethod
     def _finish_images(run, result, work_a, work_b, network, options):
         """What follows the network and the feature start in :meth:`estimate_images_with_info`
-        (one pair, patch frame): the coarse pass or its corner rule, the whole-image refinement
-        and the flag's corner-precision check."""
+        (one pair, patch frame): the coarse pass or its corner rule, the whole-image refinement,
+        the flag's corner-precision and ambiguity checks, and its alignment floor
+        (``thresholds.min_alignment_ncc``) on the whole work images
+        (:func:`~stnh_tf.inference.coarse.image_ncc`; undefined: flagged)."""
         confirmed = bool(result.feature_start[0] and not result.implausible[0])
         if options.coarse != "none" and not confirmed:
             # a deviation (issue 46): motions beyond the trained range
@@ -410,6 +412,11 @@ class HomographyEstimator:
                              | (std > options.thresholds.max_corner_std)
                              | (gap < options.thresholds.min_ambiguity_gap)
                              | (tile_gap < options.thresholds.min_tile_ambiguity_gap)))
+        t = options.thresholds
+        if not result.flat[0] and not coarse.image_ncc(  # the alignment floor on the whole
+                work_a, work_b, result.homography[0], PATCH_ORIGIN,  # images too (issue 79)
+                t.min_overlap) >= t.min_alignment_ncc:
+            result = dataclasses.replace(result, implausible=np.array([True]))
         return result
 
     def estimate_images(self, image_a, image_b, options: EstimateOptions | None = None,

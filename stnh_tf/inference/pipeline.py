@@ -37,8 +37,8 @@ class Estimate:
       homography: float64 ``[B, 3, 3]`` ``H_ba`` (``[2, 2] = 1``): patch frame from
         ``estimate_with_info``, the images' own frames from ``estimate_images_with_info``.
       implausible: a stage was skipped as degenerate, a corner moved beyond the trained range,
-        the alignment NCC is below ``thresholds.min_alignment_ncc`` or undefined, a patch is
-        flat, or (``verify="ecc"``) ECC moved the estimate by more than
+        the alignment NCC is below ``thresholds.min_alignment_ncc`` or undefined (in
+        ``estimate_images_with_info`` also that of the whole work images), a patch is flat, or (``verify="ecc"``) ECC moved the estimate by more than
         ``thresholds.max_verify_move`` (unless ``move_confirmed``) or did not converge (with
         ``coarse`` in ``estimate_images_with_info``: a corner moved beyond
         ``thresholds.coarse_corner_shift`` instead, :func:`stnh_tf.inference.coarse.flag`).
