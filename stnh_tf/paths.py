@@ -298,7 +298,7 @@ def exclusive_lock(lock_path, busy: str, wait: bool = False):
 
     # a folder is locked as itself: nothing is created in it (the shipped weights' folder)
     fd = os.open(lock_path, os.O_RDONLY if os.path.isdir(lock_path)
-                 else os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+                 else os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)  # (open()'s, less umask)
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))

@@ -1216,7 +1216,8 @@ def test_ablation_table_is_the_json_s():
                       ("urban100-b21ba37", "ablation_urban100_b21ba37"),
                       ("urban100-d8ab62b", "ablation_urban100_d8ab62b"),
                       ("seed0-60-d8ab62b", "ablation_seed0_60_d8ab62b"),
-                      ("seed13-60-d8ab62b", "ablation_seed13_60_d8ab62b")):
+                      ("seed13-60-d8ab62b", "ablation_seed13_60_d8ab62b"),
+                      ("urban100-5f57abf", "ablation_urban100_5f57abf")):
         start, end = f"<!-- ablation-{tag}:start -->\n", f"\n<!-- ablation-{tag}:end -->"
         block = text[text.index(start) + len(start):text.index(end)]
         assert block == ablation.table(_camera_file(name)), tag
@@ -1518,3 +1519,25 @@ def test_the_late_start_numbers_are_the_json_s():
             for g, cells in rows["default"]["groups"].items():
                 for key in ("successes", "good_flagged", "silently_failed", "unflagged_far"):
                     assert cells[key] == before[g][key], (name, g, key)
+
+
+def test_the_whole_images_floor_numbers_are_the_json_s():
+    """BENCHMARKS.md, "The alignment floor on the whole images": Urban100's silent failures
+    before (d8ab62b) and with the floor (5f57abf), no good estimate more flagged, and the
+    coco_mini seeds' untimed cells unchanged."""
+    text = " ".join(_read("BENCHMARKS.md").split())
+
+    def untimed(name):
+        groups = _camera_file(name)["ablations"]["default"]["groups"]
+        return {g: {k: v for k, v in cells.items() if "ms_per_pair" not in k}
+                for g, cells in groups.items()}
+
+    before, after = (untimed(f"ablation_urban100_{c}")["all"] for c in ("d8ab62b", "5f57abf"))
+    assert (f"silent failures go from {before['silently_failed']} to "
+            f"{after['silently_failed']} (the 67 px estimate flagged), no good estimate more "
+            f"flagged") in text
+    assert before["good_flagged"] == after["good_flagged"]
+    for seed in (0, 13):
+        assert untimed(f"ablation_seed{seed}_60_d8ab62b") == untimed(
+            f"ablation_seed{seed}_60_5f57abf")
+        assert _camera_file(f"ablation_seed{seed}_60_5f57abf")["commit"].startswith("5f57abf")

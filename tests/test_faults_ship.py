@@ -334,3 +334,39 @@ def test_a_ship_killed_after_writing_its_card_is_kept(shipped, runs, tmp_path, m
     assert sorted(shipped_weights.put_back(w)) == ["default.json", "model_card.json",
                                                    "stage1.keras", "stage2.keras"]
     assert _state(w) == before
+    # killed while undoing a failed swap, its card in place but a new model moved back into the
+    # staging folder already: not done, put back
+    shipped_weights.ship([runs["b"], runs["b"]], w)
+    card = open(os.path.join(w, "model_card.json"), "rb").read()
+    _killed_after_its_card(w, before_dir, card)
+    staging = os.path.join(w, f"{shipped_weights.STAGING_PREFIX}1")
+    os.replace(os.path.join(w, "stage1.keras"), os.path.join(staging, "stage1.keras"))
+    assert "stage1.keras" in shipped_weights.put_back(w)
+    assert _state(w) == before
+
+
+def test_the_card_a_ship_writes_marks_its_swap_done(shipped, runs, monkeypatch):
+    """The ship's own record of the card it writes: a ship stopped right after writing its card
+    (the rename that marks the swap done, and the staging folder's removal, not reached) is kept
+    by the next put_back, its files as the ship left them."""
+    import shutil
+
+    w, before = shipped
+    real_replace = os.replace
+    with monkeypatch.context() as m:  # (the process ends here, as if killed)
+        m.setattr(os, "replace", lambda src, dst: None if str(dst).endswith(".shipped")
+                  else real_replace(src, dst))
+        m.setattr(shutil, "rmtree", lambda *args, **kwargs: None)
+        shipped_weights.ship([runs["b"], runs["b"]], w)
+    staging = [n for n in os.listdir(w) if n.startswith(shipped_weights.STAGING_PREFIX)]
+    assert len(staging) == 1
+    after = _state_files(w)
+    assert after != before
+    monkeypatch.setattr(shipped_weights, "_alive", lambda pid: False)  # (another process's)
+    assert shipped_weights.put_back(w) == []
+    assert _state(w) == after
+
+
+def _state_files(folder):
+    return {n: hashlib.sha256(open(os.path.join(folder, n), "rb").read()).hexdigest()
+            for n in sorted(os.listdir(folder)) if os.path.isfile(os.path.join(folder, n))}

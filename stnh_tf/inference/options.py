@@ -162,8 +162,9 @@ class Thresholds:
       late_start_below_ncc: with ``features="fallback"`` in ``estimate_images``, a finished
         estimate (not the feature start's, not flagged) under which the two work images align
         below this (:func:`stnh_tf.inference.coarse.image_ncc`) gets the feature start after
-        all, whose estimate replaces it where it aligns them better
-        (:func:`stnh_tf.inference.features.late_wanted`): a facade one period off aligns its
+        all (:func:`stnh_tf.inference.features.late_wanted`), whose finished estimate replaces
+        it where unflagged and aligning them better
+        (:func:`~stnh_tf.inference.features.late_better`): a facade one period off aligns its
         patch well and the whole images less so (issue 79). 0: off (flagged estimates only).
     """
 

@@ -191,15 +191,14 @@ def put_back(weights_dir) -> list:
         pid, folder = stale[len(STAGING_PREFIX):], os.path.join(weights_dir, stale)
         if not (stale.startswith(STAGING_PREFIX) and pid.isdigit() and not _alive(int(pid))):
             continue
-        # no plan: killed before it moved anything; no .previous, or the new card in place:
-        # killed after the swap
-        new_card = _bytes_if_any(os.path.join(folder, NEW_CARD))
-        done = (new_card is not None
-                and new_card == _bytes_if_any(os.path.join(weights_dir, "model_card.json")))
+        # no plan: killed before it moved anything; no .previous, or its new card and every
+        # new model in place (none left in the staging folder): killed after the swap
         plan = (_read_json(os.path.join(folder, PLAN))
                 if os.path.isdir(os.path.join(folder, PREVIOUS))
-                and os.path.exists(os.path.join(folder, PLAN)) and not done
+                and os.path.exists(os.path.join(folder, PLAN))
                 else {"swap": [], "new": [], "kept": []})
+        if _swap_done(weights_dir, folder, plan):
+            plan = {"swap": [], "new": [], "kept": []}
         for name in plan["swap"] + plan["kept"]:  # (nothing else: no half-written temp file)
             old, target = os.path.join(folder, PREVIOUS, name), os.path.join(weights_dir, name)
             if os.path.exists(old):
@@ -210,6 +209,17 @@ def put_back(weights_dir) -> list:
                 names.append(name)
         shutil.rmtree(folder, ignore_errors=True)
     return names
+
+
+def _swap_done(weights_dir, folder, plan) -> bool:
+    """Whether the ship whose staging folder is ``folder`` (its ``plan``) had finished its swap:
+    the card it was writing is the folder's, and each model it swapped is in the weights folder,
+    none in the staging folder (a swap being undone moves them back there first)."""
+    new_card = _bytes_if_any(os.path.join(folder, NEW_CARD))
+    return (new_card is not None
+            and new_card == _bytes_if_any(os.path.join(weights_dir, "model_card.json"))
+            and all(os.path.exists(os.path.join(weights_dir, n))
+                    and not os.path.exists(os.path.join(folder, n)) for n in plan["swap"]))
 
 
 def _alive(pid: int) -> bool:
@@ -273,6 +283,7 @@ def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, m
             os.replace(aside, os.path.join(staging, ".shipped"))  # the swap is done: no put_back
         except BaseException as e:
             try:
+                os.remove(os.path.join(staging, NEW_CARD))  # (undoing: never a finished swap)
                 for name in placed:
                     os.replace(os.path.join(weights_dir, name), os.path.join(staging, name))
                 for name in moved:
