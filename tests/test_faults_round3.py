@@ -295,6 +295,36 @@ def test_a_negative_seed_is_refused_naming_the_flag(module, args, tmp_path):
     assert not out.exists()
 
 
+_EXR_OF_40_BY_30 = """
+import sys, cv2, numpy as np
+image = np.random.default_rng(0).random((30, 40)).astype(np.float32)
+sys.stdout.buffer.write(cv2.imencode(".exr", image)[1].tobytes())
+"""
+
+
+def test_an_exr_is_held_to_the_pixel_cap(monkeypatch, tmp_path):
+    """OpenCV decodes OpenEXR where ``OPENCV_IO_ENABLE_OPENEXR`` is set, and Pillow reads no EXR
+    header, so the cap did not hold for it (a review's find, left open last round). Its
+    ``dataWindow`` is read now: OpenCV's own EXR of 40 x 30 px (written in a subprocess with the
+    variable set) reports that size, and the same file declaring 12,000 x 12,000 px is refused
+    before decoding."""
+    env = dict(os.environ, OPENCV_IO_ENABLE_OPENEXR="1")
+    data = subprocess.run([sys.executable, "-c", _EXR_OF_40_BY_30], env=env, check=True,
+                          capture_output=True, timeout=120).stdout
+    assert image_checks.header_size(data) == (40, 30)
+    at = data.index(b"dataWindow\0box2i\0") + len(b"dataWindow\0box2i\0") + 4
+    assert struct.unpack_from("<4i", data, at) == (0, 0, 39, 29)
+    big = data[:at] + struct.pack("<4i", 0, 0, 11999, 11999) + data[at + 16:]
+    decoded = []
+    monkeypatch.setattr(cv2, "imdecode", lambda *a, **k: decoded.append(a) or None)
+    path = tmp_path / "big.exr"
+    path.write_bytes(big)
+    with pytest.raises(image_files.AlignmentError, match="12,000 x 12,000"):
+        image_files.read_image(str(path), "image_a")
+    assert decoded == []
+    assert image_checks.header_size(big[:at + 8]) is None  # cut short: the decoder's to judge
+
+
 @pytest.mark.parametrize("header", [
     b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 12000 +X 12000\n",  # Radiance HDR
     b"Pf\n12000 12000\n-1.0\n"])  # PFM

@@ -58,14 +58,17 @@ def header_size(data: bytes):
 
 
 def _opencv_only_header_size(data: bytes):
-    r"""``(w, h)`` of a Radiance HDR or a PFM header, formats that OpenCV decodes and Pillow does
-    not read (hand-written: neither library reads a header alone); ``None`` for anything else.
+    r"""``(w, h)`` of a Radiance HDR, a PFM or an OpenEXR header, formats that OpenCV decodes
+    (EXR where ``OPENCV_IO_ENABLE_OPENEXR`` is set) and Pillow does not read (hand-written:
+    neither library reads a header alone); ``None`` for anything else.
 
         >>> _opencv_only_header_size(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 30 +X 40\n")
         (40, 30)
         >>> _opencv_only_header_size(b"Pf\n40 30\n-1.0\n")
         (40, 30)
     """
+    if data[:4] == EXR_MAGIC:
+        return _exr_size(data)
     head = data[:4096]
     if head.startswith((b"#?RADIANCE", b"#?RGBE")) and b"\n\n" in head:
         axes = head.split(b"\n\n", 1)[1].split(b"\n", 1)[0].split()  # e.g. -Y 30 +X 40
@@ -77,6 +80,35 @@ def _opencv_only_header_size(data: bytes):
         size = head[3:].split(b"\n", 1)[0].split()
         if len(size) == 2 and all(s.isdigit() for s in size):
             return int(size[0]), int(size[1])
+    return None
+
+
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+"""The first four bytes of an OpenEXR file."""
+
+
+def _exr_size(data: bytes):
+    """``(w, h)`` of an OpenEXR file's (first part's) ``dataWindow`` attribute (``box2i``: four
+    little-endian int32 ``xMin, yMin, xMax, yMax``, inclusive), found among the header's
+    attributes (each a name and a type, both NUL-terminated, an int32 size, the value) after the
+    magic number and the version field; ``None`` where the header holds none or is cut short."""
+    import struct
+
+    at = 8
+    while at < len(data) and data[at] != 0:  # an empty name ends the header
+        name_end = data.find(b"\0", at)
+        type_end = data.find(b"\0", name_end + 1) if name_end >= 0 else -1
+        if type_end < 0 or type_end + 5 > len(data):
+            return None
+        name, kind = data[at:name_end], data[name_end + 1:type_end]
+        (size,) = struct.unpack_from("<i", data, type_end + 1)
+        at = type_end + 5
+        if size < 0 or at + size > len(data):
+            return None
+        if name == b"dataWindow" and kind == b"box2i" and size == 16:
+            x0, y0, x1, y1 = struct.unpack_from("<4i", data, at)
+            return max(x1 - x0 + 1, 0), max(y1 - y0 + 1, 0)
+        at += size
     return None
 
 
