@@ -274,7 +274,8 @@ def stage_record_path(model_file) -> str:
 @contextlib.contextmanager
 def exclusive_lock(lock_path, busy: str, wait: bool = False):
     """Hold ``fcntl.flock`` on the file ``lock_path`` (created if missing, never removed; an
-    existing folder is locked as itself, nothing created in it) for one writer: a second holder, in this process or another, fails at once with
+    existing folder is locked as itself, nothing created in it) for one writer: a second holder,
+    in this process or another, fails at once with
     ``FileExistsError(busy)`` instead of waiting or writing over the first one's files (with
     ``wait``, it waits for the first to let go: writers that only choose names, as ``predict``'s
     output stems). The lock goes with the process, so a killed writer leaves none held (its lock

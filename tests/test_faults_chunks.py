@@ -454,3 +454,77 @@ def test_a_ledger_broken_while_the_chunk_trained_keeps_its_row(tmp_path, monkeyp
     record = json.loads((root / "sequence2.json").read_text())
     assert record["final_step"] == 8 and record["chunks"][-1]["done"]
     assert not (root / "resume" / "sequence2").exists()
+
+
+def test_a_full_disk_at_the_finishing_row_keeps_the_row_and_the_record_whole(tmp_path,
+                                                                            monkeypatch):
+    """The chunk that finishes a part wrote the finished model, then its row: a full disk (or a
+    kill) between lost the row, and the next call wrote the part's record from the rows before
+    it (final_step 6 of 8, its wall time short) and removed resume/. The row is now kept
+    (ledger.pending.json) before the model is written, so the next call adds it and writes the
+    whole record."""
+    root, calls = tmp_path / "repo", []
+    cfg = _train_cfg("d", tmp_path / "run", train_steps=8)
+    _committed(root, cfg, 6)
+    (root / "ledger.json").write_text(json.dumps([_row(0, 6)]))
+    train = _fake_train(calls)
+
+    def to_the_end(cfg, **kw):
+        result = train(cfg, **kw)
+        (tmp_path / "run" / "model.keras").write_bytes(b"the finished model")
+        return result
+
+    monkeypatch.setattr(training, "train", to_the_end)
+    monkeypatch.setattr(chunks, "strip_optimizer",
+                        lambda src, dst: open(dst, "wb").write(open(src, "rb").read()))
+    real = ledger_lib.atomic_write_json
+
+    def full_disk(path, doc):
+        if os.path.basename(path) == ledger_lib.LEDGER_FILE:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(path, doc)
+
+    monkeypatch.setattr(ledger_lib, "atomic_write_json", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    assert (root / "sequence2.keras").exists() and not (root / "sequence2.json").exists()
+    monkeypatch.setattr(ledger_lib, "atomic_write_json", real)
+    with pytest.raises(FileExistsError, match="part sequence2 is finished"):
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    record = json.loads((root / "sequence2.json").read_text())
+    assert record["final_step"] == 8 and record["chunks"][-1]["done"]
+    assert [(r["from_step"], r["to_step"]) for r in record["chunks"]] == [(0, 6), (6, 8)]
+    assert not (root / "resume" / "sequence2").exists()
+
+
+def test_a_finished_part_without_its_finishing_row_keeps_resume(tmp_path):
+    """A finished model whose finishing row is nowhere (a ledger mended from an older commit,
+    the pending rows lost) got a record from the rows there were (final_step 4) and its
+    committed checkpoint removed. The record is not written now, resume/ is kept, and the
+    message says why."""
+    root, said = tmp_path / "repo", []
+    cfg = _train_cfg("d", tmp_path / "run", train_steps=8)
+    _committed(root, cfg, 4)
+    (root / "ledger.json").write_text(json.dumps([_row(0, 4)]))
+    (root / "sequence2.keras").write_bytes(b"a finished model")
+    with pytest.raises(FileExistsError, match="part sequence2 is finished"):
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=said.append, part="sequence2")
+    assert not (root / "sequence2.json").exists()
+    assert (root / "resume" / "sequence2" / "state.json").exists()
+    assert any("no row that finished it" in line and "step 4" in line for line in said), said
+
+
+def test_a_finished_model_cut_short_leaves_no_temporary_file(tmp_path, monkeypatch):
+    """strip_optimizer's save cut short (a full disk) left ``stage<k>.keras.tmp-<pid>.keras``
+    in the committed folder; it is removed now, and nothing is at the finished model's path."""
+    from stnh_tf.modeling import runner
+
+    class Cut:
+        def save(self, path):
+            open(path, "wb").write(b"PK\x03\x04 cut")
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(runner, "load_model", lambda src: Cut())
+    with pytest.raises(OSError, match="No space left"):
+        chunks.strip_optimizer(str(tmp_path / "final.keras"), str(tmp_path / "stage3.keras"))
+    assert os.listdir(tmp_path) == []

@@ -45,13 +45,13 @@ import shutil
 import tempfile
 import time
 
-from stnh_tf.paths import atomic_write_json, inside, stage_record_path
+from stnh_tf.paths import atomic_write_json, fsync_replace, inside, stage_record_path
 from stnh_tf.provenance import machine_info
 from stnh_tf.training import checkpoints, file_parts, run_dir
 from stnh_tf.training.callbacks import deferred_signals
 from stnh_tf.training.config import TrainConfig
 from stnh_tf.training.ledger import (add_ledger_row, add_pending_rows, chain, part_name,
-                                     check_photographs, photographs, read_ledger,
+                                     check_photographs, keep_pending, photographs, read_ledger,
                                      recorded_step, row_part)
 
 RESUME_DIR = "resume"
@@ -249,8 +249,12 @@ def strip_optimizer(src: str, dst: str) -> None:
 
     tmp = f"{dst}.tmp-{os.getpid()}.keras"
     os.makedirs(os.path.dirname(os.path.abspath(dst)), exist_ok=True)
-    runner.load_model(src).save(tmp)
-    os.replace(tmp, dst)
+    try:
+        runner.load_model(src).save(tmp)
+        fsync_replace(tmp, dst)  # on disk before the committed checkpoint goes
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
 
 
 def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
@@ -320,6 +324,11 @@ def _finish_record(cfg, root, key, printer) -> None:
     config = os.path.join(cfg.model_dir, run_dir.CONFIG_FILE)
     try:
         add_pending_rows(root)
+        rows = chain(read_ledger(root), part_name(key))
+        if not rows or not rows[-1].get("done"):
+            raise ValueError(f"the ledger holds no row that finished it (its last ends at step "
+                             f"{rows[-1]['to_step'] if rows else 0}); {resume_dir(root, key)} "
+                             "is kept")
         stage_record(root, key, run_dir.read_run_config(config) if os.path.exists(config)
                      else cfg.to_json())
     except ValueError as e:
@@ -382,17 +391,23 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
             raise
     done = result["final_step"] >= cfg.train_steps and os.path.exists(final)
     with deferred_signals():  # a SIGTERM or Ctrl-C now acts once the commit is written
-        if done:
-            strip_optimizer(final, finished)
-        else:
-            sync_out(cfg.model_dir, resume)
         out = row(result["final_step"], done, result["wall_s_this_run"],
                   **({"note": result["note"]} if "note" in result else {}))
-        add_ledger_row(root, out)
-        if done:
-            stage_record(root, key, run_dir.read_run_config(
-                os.path.join(cfg.model_dir, run_dir.CONFIG_FILE)))
-            shutil.rmtree(resume, ignore_errors=True)
+        if not done:
+            sync_out(cfg.model_dir, resume)
+            add_ledger_row(root, out)
+            return out
+        # the finishing row first, where the next chunk finds it should this one stop (a kill,
+        # a full disk) between the model's write and the record's (_finish_record)
+        note = keep_pending(root, out)
+        strip_optimizer(final, finished)
+        try:
+            add_pending_rows(root)
+        except ValueError as e:
+            raise ValueError(f"{e} {note}") from None
+        stage_record(root, key, run_dir.read_run_config(
+            os.path.join(cfg.model_dir, run_dir.CONFIG_FILE)))
+        shutil.rmtree(resume, ignore_errors=True)
     return out
 
 

@@ -94,14 +94,20 @@ def add_ledger_row(root: str, row: dict) -> list:
     try:
         ledger = read_ledger(root)
     except ValueError as e:
-        pending = os.path.join(root, PENDING_FILE)
-        kept = read_json(pending, "pending ledger rows") if os.path.exists(pending) else []
-        atomic_write_json(pending, [*kept, row])
-        raise ValueError(f"{e} The chunk's row is kept in {pending}: mend the ledger (git "
-                         "checkout) and the next chunk adds it.") from None
+        raise ValueError(f"{e} {keep_pending(root, row)}") from None
     ledger.append(row)
     atomic_write_json(os.path.join(root, LEDGER_FILE), ledger)
     return ledger
+
+
+def keep_pending(root: str, row: dict) -> str:
+    """Append ``row`` to ``root/``:data:`PENDING_FILE` (the rows :func:`add_pending_rows` adds
+    to the ledger); returns the sentence that says so."""
+    pending = os.path.join(root, PENDING_FILE)
+    kept = read_json(pending, "pending ledger rows") if os.path.exists(pending) else []
+    atomic_write_json(pending, [*kept, row])
+    return (f"The chunk's row is kept in {pending}: mend the ledger (git checkout) and the next "
+            "chunk adds it.")
 
 
 def add_pending_rows(root: str) -> int:
