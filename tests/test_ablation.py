@@ -428,3 +428,16 @@ def test_binary_faults_end_in_one_line_before_any_work(tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("ablate_estimator: ")
     assert str(tmp_path / "file") in lines[0] and "/no/such/pairs" not in lines[0]
+
+
+def test_a_set_named_twice_in_two_spellings_is_refused(tmp_path):
+    """``--pairs_dirs=D,D/`` (a shell's completion), ``D,./D`` or a link to D scored every pair
+    of D twice (counts and silent failures doubled): only the same spelling was refused. The
+    folders are compared where they lead, before anything is loaded."""
+    d = tmp_path / "pairs"
+    d.mkdir()
+    (tmp_path / "link").symlink_to(d)
+    for folders in ([str(d), f"{d}/"], [str(d), f"{tmp_path}/./pairs"],
+                    [str(d), str(tmp_path / "link")]):
+        with pytest.raises(ValueError, match="give each set of pairs once"):
+            ablation.run_folders(folders, ["default"])

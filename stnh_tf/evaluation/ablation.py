@@ -278,9 +278,11 @@ def run_folders(folders, names, model=None, max_pairs_per_group: int = 0) -> dic
     from stnh_tf.evaluation import benchmarks
     from stnh_tf.inference.estimator import HomographyEstimator
 
+    import os
+
     names = resolve(names)
-    twice = sorted({f for f in folders if list(folders).count(f) > 1})
-    if twice or not folders:
+    real = [os.path.realpath(f) for f in folders]  # (D, D/, ./D and a link to D: one set)
+    if len(set(real)) < len(real) or not folders:
         raise ValueError(f"give each set of pairs once (received {list(folders)}).")
     loaded = [(folder, *camera_pair_files.load_pairs(folder)) for folder in folders]
     estimator = HomographyEstimator.load(model)
