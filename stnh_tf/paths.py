@@ -186,7 +186,9 @@ def project_record(path) -> str | None:
     """What the existing file ``path`` is, where it is a record stnh_tf keeps and an output must
     never replace: a JSON file whose ``format`` is one of this project's (``stnh_tf.*``: a
     dataset's ``metadata.json``, a run's ``config.json``, a hierarchy manifest, a camera-pair
-    set's manifest, an export's marker...), a TFRecord shard or a model file; else ``None``."""
+    set's manifest, an export's marker...), a model card (``stages`` and ``bundled_check``), a
+    chunk ledger (a list of rows with ``from_step`` and ``to_step``), a TFRecord shard or a
+    model file; else ``None``."""
     path = os.fspath(path)
     if not os.path.isfile(path):
         return None
@@ -195,11 +197,17 @@ def project_record(path) -> str | None:
     if path.endswith(".json") and os.path.getsize(path) < 64 << 20:
         try:
             with open(path, encoding="utf-8") as f:
-                kind = json.load(f).get("format")
-        except (OSError, ValueError, AttributeError):
+                doc = json.load(f)
+        except (OSError, ValueError):
             return None
+        kind = doc.get("format") if isinstance(doc, dict) else None
         if isinstance(kind, str) and kind.startswith("stnh_tf."):
             return f"a {kind} record"
+        if isinstance(doc, dict) and {"stages", "bundled_check"} <= set(doc):
+            return "a model card of shipped weights"
+        if isinstance(doc, list) and doc and all(
+                isinstance(r, dict) and {"from_step", "to_step"} <= set(r) for r in doc):
+            return "a ledger of training chunks"
     return None
 
 

@@ -62,6 +62,28 @@ def test_an_output_never_replaces_a_record_the_project_keeps(dataset, tmp_path):
     summaries.check_json_out(str(tmp_path / "new" / "result.json"))
 
 
+def test_an_output_never_replaces_a_model_card_a_ledger_or_a_document(tmp_path):
+    """``benchmark_camera_pairs --json_out=stnh_tf/weights/model_card.json`` (no ``--model``:
+    the stage files were the only inputs checked) replaced the shipped weights' card with a
+    benchmark result, and the paper schedule's ``ledger.json`` (a list) or ``README.md`` went
+    the same way: a card and a ledger are records now, and a file that is not JSON is not an
+    earlier result. The package's own card and ledger are refused as they are; an empty file
+    and a JSON result stay writable."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    card = os.path.join(root, "stnh_tf", "weights", "model_card.json")
+    ledger = os.path.join(root, "paper_schedule", "ledger.json")
+    for path, what in ((card, "a model card"), (ledger, "a ledger of training chunks"),
+                       (os.path.join(root, "README.md"), "exists and is not JSON")):
+        before = open(path, "rb").read()
+        with pytest.raises(FileExistsError, match=what):
+            summaries.check_json_out(path)
+        assert open(path, "rb").read() == before
+    (tmp_path / "empty.json").write_bytes(b"")
+    summaries.check_json_out(str(tmp_path / "empty.json"))
+    (tmp_path / "rows.json").write_text(json.dumps([{"mace": 1.0}]))
+    summaries.check_json_out(str(tmp_path / "rows.json"))
+
+
 @pytest.mark.slow
 def test_the_binaries_refuse_at_once(dataset, tmp_path):
     """Each refused in one line before any data is made or model trained: make_dataset's

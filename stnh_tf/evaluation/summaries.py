@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 
 JSON_OUT_HELP = ("Write the full JSON result here (its folder is created if missing and checked "
                  "before the work starts); '-': print the JSON instead of the table.")
@@ -86,12 +87,20 @@ def summary_table(identity: Row, rows, title: str = "", notes=()) -> str:
 
 def check_json_out(json_out) -> None:
     """Before the work: ``json_out``'s folder is made and proved writable
-    (:func:`stnh_tf.paths.check_output_file`); nothing for ``None`` or ``"-"``. Raises
-    ``OSError`` naming the path."""
+    (:func:`stnh_tf.paths.check_output_file`), and an existing file there must be JSON (an
+    earlier result), not a document or code (``--json_out=README.md``); nothing for ``None`` or
+    ``"-"``. Raises ``OSError`` naming the path."""
     from stnh_tf import paths
 
     if json_out and json_out != "-":
-        paths.check_output_file(json_out)
+        path = paths.check_output_file(json_out)
+        if os.path.isfile(path) and os.path.getsize(path):
+            try:
+                with open(path, encoding="utf-8") as f:
+                    json.load(f)
+            except (UnicodeDecodeError, ValueError):
+                raise FileExistsError(f"output file {path!r} exists and is not JSON, which this "
+                                      "output would replace; choose another path.") from None
 
 
 def emit(result: dict, table: str, json_out=None, printer=print) -> None:
