@@ -306,3 +306,35 @@ def test_an_old_export_that_cannot_be_put_back_is_kept_and_named(estimator, tmp_
     monkeypatch.setattr(export_folder.os, "replace", real_replace)
     aside = str(info.value).split("entries are in ")[1].split(";")[0]
     assert {k: v for k, v in _files(aside).items()} == before
+
+
+def test_an_old_export_left_aside_is_put_back_by_the_next_export(estimator, tmp_path,
+                                                                 monkeypatch):
+    """After a swap whose move back failed too (above), the output held only the lock and the
+    staging folder with the old export aside: the next export, even without ``overwrite``,
+    took the output for empty, removed that folder with the old export and wrote its own. The
+    old export is put back first now, and that export is refused as into any output holding
+    one; the old export's files are in the output byte for byte."""
+    out = tmp_path / "out"
+    monkeypatch.setattr(export, "_write_archive", _fake_archive(b"old"))
+    export.export_saved_model(estimator, out)
+    before = {k: v for k, v in _files(out).items() if not k.startswith(".")}
+    real_replace = os.replace
+
+    def both_fail(src, dst):
+        parent = os.path.basename(os.path.dirname(src))
+        if (parent.startswith(export_folder.STAGING_PREFIX) and os.path.basename(src) ==
+                "variables") or parent == export_folder.ASIDE:
+            raise OSError(errno.EXDEV, "Invalid cross-device link", src)
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(export, "_write_archive", _fake_archive(b"new"))
+    monkeypatch.setattr(export_folder.os, "replace", both_fail)
+    with pytest.raises(OSError, match="nor the old export back"):
+        export.export_saved_model(estimator, out, overwrite=True)
+    monkeypatch.setattr(export_folder.os, "replace", real_replace)
+    assert not (out / "saved_model.pb").exists()  # the old export is aside, in staging
+    with pytest.raises(FileExistsError, match="holds a SavedModel|was never verified"):
+        export.export_saved_model(estimator, out)
+    assert {k: v for k, v in _files(out).items() if not k.startswith(".")} == before
+    assert not [n for n in os.listdir(out) if n.startswith(export_folder.STAGING_PREFIX)]

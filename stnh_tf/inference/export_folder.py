@@ -79,7 +79,10 @@ def _remove_stale_staging(output_dir) -> list:
     """Remove the staging folders that killed exports to ``output_dir`` left (call with the
     output's lock held: no live export owns one then): inside it, those named
     :data:`STAGING_PREFIX` holding the marker; beside it, those the code before left (named by
-    :func:`_staging_pattern`, holding the marker naming this output). Returns their paths."""
+    :func:`_staging_pattern`, holding the marker naming this output). An old export that a
+    killed or failed swap (:func:`swap_in`) left aside in one (:data:`ASIDE`) is put back first
+    where the output has no entry of its name; a folder still holding some of it is kept.
+    Returns the paths removed."""
     output_dir = os.path.abspath(output_dir)
     parent, removed = os.path.dirname(output_dir), []
     inside = [os.path.join(output_dir, name) for name in sorted(os.listdir(output_dir))
@@ -88,9 +91,17 @@ def _remove_stale_staging(output_dir) -> list:
               if _staging_pattern(output_dir).fullmatch(name)]
     for folder in inside + beside:
         owner = _marker_owner(folder)
-        if owner is not None and (folder in inside or owner == output_dir):
-            shutil.rmtree(folder)
-            removed.append(folder)
+        if owner is None or not (folder in inside or owner == output_dir):
+            continue
+        aside = os.path.join(folder, ASIDE)
+        if os.path.isdir(aside) and not os.path.islink(aside):
+            for name in sorted(os.listdir(aside)):
+                if not os.path.lexists(os.path.join(output_dir, name)):
+                    os.replace(os.path.join(aside, name), os.path.join(output_dir, name))
+            if os.listdir(aside):  # an old entry beside a new one of its name: the user's call
+                continue
+        shutil.rmtree(folder)
+        removed.append(folder)
     return removed
 
 
@@ -113,8 +124,8 @@ def output_lock(output_dir, overwrite: bool = False):
     with paths.exclusive_lock(lock, f"another export is writing to {output_dir} (it holds "
                                     f"{lock}); wait for it to finish, or export to another "
                                     "--output."):
+        _remove_stale_staging(output_dir)  # (an old export it puts back is checked as any)
         _check_output(output_dir, overwrite)  # another export may have finished meanwhile
-        _remove_stale_staging(output_dir)
         yield output_dir
 
 
@@ -208,7 +219,8 @@ def swap_in(staging, output_dir) -> list:
         except OSError as again:  # the old export stays where it was moved aside
             raise OSError(f"cannot move the new SavedModel into {output_dir} ({e}), nor the old "
                           f"export back ({again}): the old export's entries are in {aside}; "
-                          "move them back by hand") from None
+                          "move them back by hand (the next export to it puts them back "
+                          "first)") from None
         raise OSError(f"cannot move the new SavedModel into {output_dir} ({e}); the old export "
                       "there is kept as it was") from None
     return kept
