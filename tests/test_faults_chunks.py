@@ -528,3 +528,27 @@ def test_a_finished_model_cut_short_leaves_no_temporary_file(tmp_path, monkeypat
     with pytest.raises(OSError, match="No space left"):
         chunks.strip_optimizer(str(tmp_path / "final.keras"), str(tmp_path / "stage3.keras"))
     assert os.listdir(tmp_path) == []
+
+
+def test_the_ledger_table_keeps_the_rest_of_the_document_as_it_was(tmp_path):
+    """write_ledger_table read docs/gpu.md in the locale's encoding with newlines translated
+    and wrote it back as UTF-8 with ``\\n``: a document with CRLF line endings (or, under a
+    non-UTF-8 locale, a non-ASCII character) came back changed outside the block, and a
+    document holding the markers twice had its text between the two blocks dropped. The rest
+    of the document stays byte for byte now, and two blocks are refused."""
+    root = tmp_path / "root"
+    root.mkdir()
+    (root / ledger_lib.LEDGER_FILE).write_text(json.dumps([_row(0, 4)]))
+    doc = tmp_path / "gpu.md"
+    head = "# runbook \u2014 \u00b5s\r\nprose\r\n".encode()
+    doc.write_bytes(head + f"{ledger_lib.LEDGER_START}\nold\n{ledger_lib.LEDGER_END}".encode()
+                    + b"\r\nmore\r\n")
+    assert ledger_lib.write_ledger_table(str(root), str(doc))
+    data = doc.read_bytes()
+    assert data.startswith(head + ledger_lib.LEDGER_START.encode())
+    assert data.endswith(ledger_lib.LEDGER_END.encode() + b"\r\nmore\r\n")
+    twice = data + b"between\r\n" + f"{ledger_lib.LEDGER_START}\n{ledger_lib.LEDGER_END}".encode()
+    doc.write_bytes(twice)
+    with pytest.raises(ValueError, match="one .* block"):
+        ledger_lib.write_ledger_table(str(root), str(doc))
+    assert doc.read_bytes() == twice

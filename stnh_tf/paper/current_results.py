@@ -301,7 +301,7 @@ def differing(root: str) -> dict[str, str]:
     """
     out = {}
     for name, block in render(load_sources(root)).items():
-        with open(os.path.join(root, name)) as f:
+        with open(os.path.join(root, name), encoding="utf-8", newline="") as f:
             text = f.read()
         new = replace_block(text, block, name)
         if new != text:
@@ -316,7 +316,7 @@ def write(root: str) -> list[str]:
     changed = []
     for name, block in render(load_sources(root)).items():
         path = os.path.join(root, name)
-        with open(path) as f:
+        with open(path, encoding="utf-8", newline="") as f:  # (written back as read)
             text = f.read()
         new = replace_block(text, block, name)
         if new != text:

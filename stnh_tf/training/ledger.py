@@ -142,13 +142,13 @@ def write_ledger_table(root: str, doc: str) -> bool:
     ``doc`` with :func:`ledger_table` of ``root``'s ledger. Returns whether it changed.
 
     Raises:
-      ValueError: ``doc`` lacks the markers.
+      ValueError: ``doc`` lacks the markers or holds them more than once.
     """
     ledger = read_ledger(root)
-    with open(doc) as f:
+    with open(doc, encoding="utf-8", newline="") as f:  # (written back as read)
         text = f.read()
-    if LEDGER_START not in text or LEDGER_END not in text:
-        raise ValueError(f"{doc} has no {LEDGER_START} ... {LEDGER_END} block.")
+    if text.count(LEDGER_START) != 1 or text.count(LEDGER_END) != 1:
+        raise ValueError(f"{doc} must hold one {LEDGER_START} ... {LEDGER_END} block.")
     head, rest = text.split(LEDGER_START, 1)
     _, tail = rest.split(LEDGER_END, 1)
     new = f"{head}{LEDGER_START}\n{ledger_table(ledger)}\n{LEDGER_END}{tail}"
