@@ -297,23 +297,27 @@ def test_late_trigger_and_choice(estimator):
                               homography=geometry.image_to_patch(est.homography[0], *origin)[None])
     fallback = EstimateOptions.photographs()
     flagged = dataclasses.replace(est, implausible=np.array([True]))
-    wanted = lambda e, options=fallback: features.late_wanted(e, options, wa, wb, origin)  # noqa
-    assert not wanted(est)
-    assert wanted(flagged)
+    wanted = features.late_wanted
+    assert not wanted(est, fallback)
+    assert wanted(flagged, fallback)
     for options in (EstimateOptions(), dataclasses.replace(fallback, features="always")):
         assert not wanted(flagged, options)
-    assert not wanted(dataclasses.replace(flagged, feature_start=np.array([True])))
-    assert not wanted(dataclasses.replace(flagged, flat=np.array([True])))
-    # unflagged but off: the identity aligns the rotated pair's work images poorly
-    off = dataclasses.replace(est, homography=np.eye(3)[None])
-    ncc = coarse.image_ncc(wa, wb, np.eye(3), origin, fallback.thresholds.min_overlap)
+    assert not wanted(dataclasses.replace(flagged, feature_start=np.array([True])), fallback)
+    assert not wanted(dataclasses.replace(flagged, flat=np.array([True])), fallback)
+    # the estimate's image_ncc is the whole work images' NCC under it
     aligned = coarse.image_ncc(wa, wb, est.homography[0], origin,
                                fallback.thresholds.min_overlap)
+    # (atol: the frames' round trip; 0 on both OpenCV paths here)
+    np.testing.assert_allclose(est.image_ncc[0], aligned, atol=1e-6)
+    # unflagged but off: the identity aligns the rotated pair's work images poorly
+    ncc = coarse.image_ncc(wa, wb, np.eye(3), origin, fallback.thresholds.min_overlap)
+    off = dataclasses.replace(est, homography=np.eye(3)[None], image_ncc=np.array([ncc]))
     assert ncc < fallback.thresholds.late_start_below_ncc <= aligned
-    assert wanted(off)
+    assert wanted(off, fallback)
+    assert wanted(dataclasses.replace(off, image_ncc=np.array([np.nan])), fallback)  # undefined
     assert not wanted(off, dataclasses.replace(fallback, thresholds=dataclasses.replace(
         fallback.thresholds, late_start_below_ncc=0.0)))
-    assert not wanted(dataclasses.replace(off, feature_start=np.array([True])))
+    assert not wanted(dataclasses.replace(off, feature_start=np.array([True])), fallback)
     right = dataclasses.replace(est, homography=geometry.image_to_patch(h_true, *origin)[None])
     wrong = dataclasses.replace(right, homography=np.eye(3)[None])
     assert features.late_better(right, wrong, wa, wb, fallback, origin)

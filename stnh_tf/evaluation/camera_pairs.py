@@ -95,13 +95,13 @@ def run_estimator(estimator, pairs, options=None, warm_up: bool = True) -> dict:
     """``estimate_images_with_info`` on each pair (after one untimed call on the first, unless
     ``warm_up`` is False). Returns per pair: ``h`` ``[B, 3, 3]``, ``seconds``, ``implausible``,
     ``searched``, ``found``, ``alignment_ncc``, ``verify_move_px``, ``move_confirmed``,
-    ``corner_std_px`` (NaN where the estimate has none), ``undetermined``, ``ambiguity_gap`` and
-    ``tile_ambiguity_gap`` (NaN where none)."""
+    ``corner_std_px`` (NaN where the estimate has none), ``undetermined``, ``ambiguity_gap``,
+    ``tile_ambiguity_gap`` and ``image_ncc`` (NaN where none)."""
     if warm_up:
         estimator.estimate_images_with_info(pairs[0].image_a, pairs[0].image_b, options)
     fields = ("implausible", "searched", "found", "alignment_ncc", "verify_move_px",
               "move_confirmed", "corner_std_px", "undetermined", "ambiguity_gap",
-              "tile_ambiguity_gap")
+              "tile_ambiguity_gap", "image_ncc")
     out = {k: [] for k in ("h", "seconds") + fields}
     for p in pairs:
         t0 = time.perf_counter()
@@ -243,7 +243,8 @@ def benchmark(pairs, methods=DEFAULT_METHODS, estimator=None, options=None, succ
                  "undetermined": bool(runs["estimator"]["undetermined"][i]),
                  "ambiguity_gap": _json_number(runs["estimator"]["ambiguity_gap"][i]),
                  "tile_ambiguity_gap": _json_number(
-                     runs["estimator"]["tile_ambiguity_gap"][i])}
+                     runs["estimator"]["tile_ambiguity_gap"][i]),
+                 "image_ncc": _json_number(runs["estimator"]["image_ncc"][i])}
                 if "estimator" in runs else {})}
             for i, p in enumerate(pairs)]
     return result

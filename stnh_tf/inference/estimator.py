@@ -355,7 +355,7 @@ class HomographyEstimator:
         # what the network alone gave from the identity start, and how far the result is from it
         move = pipeline.network_moves(result.homography, network_h, [np.shape(work_a)],
                                       PATCH_ORIGIN)
-        if features.late_wanted(result, options, work_a, work_b, PATCH_ORIGIN):
+        if features.late_wanted(result, options):
             # the finished estimate says the network's was off: the feature start after all
             made = features.candidate(run, work_a, work_b, network, PATCH_ORIGIN, start)
             if made is not None:
@@ -375,9 +375,8 @@ class HomographyEstimator:
     def _finish_images(run, result, work_a, work_b, network, options):
         """What follows the network and the feature start in :meth:`estimate_images_with_info`
         (one pair, patch frame): the coarse pass or its corner rule, the whole-image refinement,
-        the flag's corner-precision and ambiguity checks, and its alignment floor
-        (``thresholds.min_alignment_ncc``) on the whole work images
-        (:func:`~stnh_tf.inference.coarse.image_ncc`; undefined: flagged)."""
+        the flag's corner-precision and ambiguity checks, and ``image_ncc`` with its alignment
+        floor (``thresholds.min_alignment_ncc``; undefined: flagged)."""
         confirmed = bool(result.feature_start[0] and not result.implausible[0])
         if options.coarse != "none" and not confirmed:
             # a deviation (issue 46): motions beyond the trained range
@@ -412,12 +411,13 @@ class HomographyEstimator:
                              | (std > options.thresholds.max_corner_std)
                              | (gap < options.thresholds.min_ambiguity_gap)
                              | (tile_gap < options.thresholds.min_tile_ambiguity_gap)))
-        t = options.thresholds
-        if not result.flat[0] and not coarse.image_ncc(  # the alignment floor on the whole
-                work_a, work_b, result.homography[0], PATCH_ORIGIN,  # images too (issue 79)
-                t.min_overlap) >= t.min_alignment_ncc:
-            result = dataclasses.replace(result, implausible=np.array([True]))
-        return result
+        t = options.thresholds  # the alignment floor on the whole work images too (issue 79)
+        whole = -np.inf if result.flat[0] else coarse.image_ncc(
+            work_a, work_b, result.homography[0], PATCH_ORIGIN, t.min_overlap)
+        return dataclasses.replace(
+            result, image_ncc=np.array([whole if np.isfinite(whole) else np.nan]),
+            implausible=result.implausible | bool(not result.flat[0]
+                                                  and not whole >= t.min_alignment_ncc))
 
     def estimate_images(self, image_a, image_b, options: EstimateOptions | None = None,
                         channel_order: str = "rgb", **legacy) -> np.ndarray:

@@ -229,20 +229,21 @@ def better(made, first, work_a, work_b, options: EstimateOptions, origin) -> boo
     return score(made.homography[0]) > score(first.homography[0])
 
 
-def late_wanted(est, options: EstimateOptions, work_a, work_b, origin) -> bool:
+def late_wanted(est, options: EstimateOptions) -> bool:
     """Whether ``estimate_images`` tries the feature start again after the refinement and the
     checks (``features="fallback"``): ``est`` (the finished ``Estimate`` of one pair) was not
-    made from the feature start, is not flat, and is flagged, or aligns the work images below
-    ``thresholds.late_start_below_ncc`` (:func:`stnh_tf.inference.coarse.image_ncc`; undefined,
-    ``-inf``, is below; 0 switches that trigger off): the
-    network's estimate passed the early trigger (:func:`wanted`) yet the finished one says it
-    may be off (docs/estimate.md, "What each rule buys")."""
+    made from the feature start, is not flat, and is flagged, or aligns the whole work images
+    below ``thresholds.late_start_below_ncc`` (``Estimate.image_ncc``; undefined, NaN, is
+    below; 0 switches that trigger off): the network's estimate passed the early trigger
+    (:func:`wanted`) yet the finished one says it may be off (docs/estimate.md, "What each rule
+    buys")."""
     if (options.features != "fallback" or est.flat[0]
             or (est.feature_start is not None and est.feature_start[0])):
         return False
     t = options.thresholds
-    return bool(est.implausible[0]) or (t.late_start_below_ncc > 0 and coarse.image_ncc(
-        work_a, work_b, est.homography[0], origin, t.min_overlap) < t.late_start_below_ncc)
+    return bool(est.implausible[0]) or bool(
+        t.late_start_below_ncc > 0 and est.image_ncc is not None
+        and not est.image_ncc[0] >= t.late_start_below_ncc)
 
 
 def late_better(late, est, work_a, work_b, options: EstimateOptions, origin) -> bool:

@@ -210,7 +210,9 @@ def _estimate_json(estimate, shape_b, quad) -> dict:
             "undetermined": bool(estimate.undetermined[0]),
             # another shift of it aligns the images as well (verify="ecc"; a repeated pattern)
             "ambiguity_gap": _finite_or_none(estimate.ambiguity_gap[0]),
-            "tile_ambiguity_gap": _finite_or_none(estimate.tile_ambiguity_gap[0])}
+            "tile_ambiguity_gap": _finite_or_none(estimate.tile_ambiguity_gap[0]),
+            # how well the whole work images align under it (below min_alignment_ncc: flagged)
+            "image_ncc": _finite_or_none(estimate.image_ncc[0])}
 
 
 BEYOND_NETWORK = ("search", "refine", "coarse", "features", "retry_tta")

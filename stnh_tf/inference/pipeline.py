@@ -95,6 +95,10 @@ class Estimate:
       tile_ambiguity_gap: the same tile by tile
         (:func:`~stnh_tf.inference.ambiguity.tile_ambiguity_gap`); under
         ``thresholds.min_tile_ambiguity_gap`` the estimate is flagged. NaN elsewhere.
+      image_ncc: in ``estimate_images_with_info``, the NCC of the two whole work images under the
+        estimate (:func:`~stnh_tf.inference.coarse.image_ncc`; NaN: undefined, flat); below
+        ``thresholds.min_alignment_ncc`` the estimate is flagged, below
+        ``thresholds.late_start_below_ncc`` it gets the late feature start. NaN elsewhere.
     """
 
     homography: np.ndarray
@@ -120,6 +124,7 @@ class Estimate:
     undetermined: np.ndarray = None
     ambiguity_gap: np.ndarray = None
     tile_ambiguity_gap: np.ndarray = None
+    image_ncc: np.ndarray = None
 
     def __len__(self):
         return len(self.homography)
@@ -321,7 +326,7 @@ def finish(run: dict, options: EstimateOptions) -> Estimate:
         network_move_px=network_moves(run["total"], network, frames, run.get("origin", (0, 0))),
         feature_start=np.zeros(len(shift), bool), corner_std_px=np.full(len(shift), np.nan),
         undetermined=np.zeros(len(shift), bool), ambiguity_gap=np.full(len(shift), np.nan),
-        tile_ambiguity_gap=np.full(len(shift), np.nan))
+        tile_ambiguity_gap=np.full(len(shift), np.nan), image_ncc=np.full(len(shift), np.nan))
 
 
 def replacing(kept: Estimate, replaced: Estimate) -> Estimate:
