@@ -722,6 +722,44 @@ def test_an_overwrite_failing_before_its_first_checkpoint_puts_the_finished_run_
     assert (run / "model.keras").read_bytes() != before["model.keras"]
 
 
+def test_an_overwrite_stopped_before_its_end_keeps_the_run_it_replaces(tiny_data, tmp_path,
+                                                                         narrow):
+    """An --overwrite run stopped early on purpose (its time limit, a first Ctrl-C or SIGTERM:
+    the loop stops after the step and returns) counted as ended well, and the finished run it
+    replaces was deleted. It stays set aside until the new run finishes (the stop's message
+    says so); the resumed run that finishes deletes it."""
+    run = tmp_path / "run"
+    run_dir.prepare_model_dir(_cfg(tiny_data, run))
+    (run / "model.keras").write_text("finished model")
+    new = _cfg(tiny_data, run, learning_rate=0.02, train_steps=4, checkpoint_every=1)
+    said = []
+    result = training.train(new, overwrite=True, printer=said.append, time_limit_s=1e-6)
+    assert result["final_step"] < 4 and result["stopped_by"]
+    assert (run / run_dir.PREVIOUS_RUN / "model.keras").read_text() == "finished model"
+    assert any(run_dir.PREVIOUS_RUN in line and "until this one finishes" in line
+               for line in said), said
+    result = training.train(new, printer=_quiet)  # resumed to its end
+    assert result["final_step"] == 4 and not (run / run_dir.PREVIOUS_RUN).exists()
+
+
+def test_a_finished_replacement_is_the_run_a_later_overwrite_sets_aside(tiny_data, tmp_path):
+    """A replacement that finished its model but did not discard the run it replaced (its
+    result.json write failed, or a kill) was deleted by the next --overwrite, which kept the
+    older run aside and put it back when it failed early: the folder silently went back two
+    runs. The newest finished run is kept aside now."""
+    run = tmp_path / "run"
+    run_dir.prepare_model_dir(_cfg(tiny_data, run))
+    (run / "model.keras").write_text("R1")
+    run_dir.prepare_model_dir(_cfg(tiny_data, run, learning_rate=0.02), overwrite=True)
+    assert (run / run_dir.PREVIOUS_RUN / "model.keras").read_text() == "R1"
+    (run / "model.keras").write_text("R2")  # finished; R1 still aside
+    run_dir.set_aside(str(run))  # the next --overwrite
+    assert (run / run_dir.PREVIOUS_RUN / "model.keras").read_text() == "R2"
+    run_dir.undo_new_run(str(run), made_dir=False)  # that run failing before a checkpoint
+    assert (run / "model.keras").read_text() == "R2"
+    assert not (run / run_dir.PREVIOUS_RUN).exists()
+
+
 def test_an_overwrite_failing_between_the_folder_and_the_model_puts_the_run_back(
         tiny_data, tmp_path, monkeypatch):
     """A failure after the folder was prepared but before the training loop's guard (setting the

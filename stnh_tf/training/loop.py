@@ -314,7 +314,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     stream_fn = stream_fn or (train_streams.generated_stream if generated
                               else train_streams.training_stream)
     made_dir = not os.path.exists(cfg.model_dir)
-    lock, new_run, failed = None, False, False
+    lock, new_run, failed, completed = None, False, False, False
     try:
         if cluster.is_chief:  # several processes: only the chief touches model_dir
             lock = run_dir.RunLock(cfg.model_dir)  # one run per folder, held to the end
@@ -419,7 +419,10 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             by = limit.stopped_by or "time limit"
             printer(f"stopped at step {step} of {cfg.train_steps} by "
                     + (f"the time limit ({time_limit_s:g} s)" if by == "time limit" else by)
-                    + "; its checkpoint is saved: the same command resumes from there")
+                    + "; its checkpoint is saved: the same command resumes from there"
+                    + (f" (the run --overwrite replaced stays in {run_dir.PREVIOUS_RUN} until "
+                       "this one finishes)" if os.path.isdir(os.path.join(
+                           cfg.model_dir, run_dir.PREVIOUS_RUN)) else ""))
             return {"final_step": step, "stopped_at_time_limit": by == "time limit",
                     "stopped_by": by, "wall_s_this_run": time.time() - t0}
         final_path = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
@@ -433,6 +436,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
                   "history": {k: [float(x) for x in v] for k, v in history.items()}}
         if cluster.is_chief:
             atomic_write_json(os.path.join(cfg.model_dir, run_dir.RESULT_FILE), result)
+        completed = True
         return result
     except BaseException:
         failed = True
@@ -440,8 +444,8 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             run_dir.undo_new_run(cfg.model_dir, made_dir)
         raise
     finally:
-        if not failed and cluster.is_chief:  # (the run --overwrite replaced: no longer needed)
-            run_dir.discard_previous_run(cfg.model_dir)
+        if completed and cluster.is_chief:  # (the run --overwrite replaced: no longer needed;
+            run_dir.discard_previous_run(cfg.model_dir)  # kept by a run stopped before its end)
         keras.mixed_precision.set_global_policy("float32")
         if hasattr(train_ds, "close"):  # a PairStream's generator processes
             train_ds.close()

@@ -358,11 +358,15 @@ def set_aside(model_dir: str) -> None:
     run fails before its first checkpoint, :func:`discard_previous_run` deletes it. Where that
     folder already holds a whole run (a run set aside before, whose replacement has not ended
     well yet), what ``model_dir`` holds is that replacement's and is deleted instead; where it
-    holds part of one (a move cut short), the rest is moved in."""
+    holds part of one (a move cut short), the rest is moved in; where the replacement finished
+    (its model written, the older run not yet discarded), the older run goes and the
+    replacement is set aside: the newest finished run is the one kept."""
     aside = os.path.join(model_dir, PREVIOUS_RUN)
     if os.path.isfile(os.path.join(aside, CONFIG_FILE)):
-        remove_run(model_dir)
-        return
+        if not os.path.exists(os.path.join(model_dir, FINAL_MODEL)):
+            remove_run(model_dir)
+            return
+        shutil.rmtree(aside)
     os.makedirs(aside, exist_ok=True)
     for name in _run_names(model_dir):
         os.replace(os.path.join(model_dir, name), os.path.join(aside, name))
