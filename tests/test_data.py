@@ -555,6 +555,8 @@ def test_coco2014_fails_fast_without_network(tmp_path, monkeypatch):
     ({"max_images": -2}, "--max_images must be >= 0; received -2"),
     ({"split": ".."}, "split must be a plain name"),
     ({"split": "../train"}, "split must be a plain name"),
+    # its lock was the metadata's (.metadata.lock): the writer waited on itself for ever
+    ({"split": "metadata"}, "split 'metadata' is reserved"),
     ({"source": "folder", "image_dir": "MISSING"}, "does not exist"),
     ({"source": "folder", "image_dir": "EMPTY"}, "no image files found"),
 ])

@@ -128,10 +128,15 @@ def update_metadata(output_dir: str, split: str, section: Optional[dict],
 
 def check_split_name(split: str) -> str:
     """``split`` if it is a plain name like ``train`` (letters, digits, ``_`` and ``.``, not
-    starting with ``.``: no ``..``), else ``ValueError``: it names files in the output folder."""
+    starting with ``.``: no ``..``; not ``metadata``, whose split lock would be the metadata's
+    own, :data:`LOCK_FILE`: a writer waited on itself for ever), else ``ValueError``: it names
+    files in the output folder."""
     if not isinstance(split, str) or not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.]*", split):
         raise ValueError(f"split must be a plain name like 'train' (letters, digits, '_' and '.', "
                          f"not starting with '.'); received {split!r}.")
+    if f".{split}.lock" == LOCK_FILE:
+        raise ValueError(f"split {split!r} is reserved (its lock would be the dataset's "
+                         f"{LOCK_FILE}); choose another name.")
     return split
 
 
