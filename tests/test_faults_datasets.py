@@ -291,3 +291,50 @@ def test_an_incomplete_splits_old_shards_are_removed_by_the_next_run(tmp_path):
                         num_shards=1, log=QUIET)
     assert len(old) == 3 and sorted(p.name for p in out.glob("train-*.tfrecord")) == [
         "train-00000-of-00001.tfrecord"]
+
+
+def test_a_users_file_named_like_a_shard_beside_a_listed_split_is_not_written_over(complete):
+    """Files named like the split's shards that its metadata.json does not list were refused
+    only where the split had no section: beside a complete split of 2 shards, a user's
+    ``train-00000-of-00001.tfrecord`` was replaced without a word by ``--overwrite
+    --num_shards=1``. It is refused now, the user's file and the split as they were."""
+    out, before, section = complete
+    user = out / "train-00000-of-00001.tfrecord"
+    user.write_bytes(b"USER DATA")
+    with pytest.raises(ValueError, match=r"named like the 'train' split's shards .*"
+                                         r"train-00000-of-00001\.tfrecord"):
+        stage1.make_dataset("bundled", str(out), "train", seed=0, max_images=3,
+                            samples_per_image=1, num_shards=1, overwrite=True, log=QUIET)
+    assert user.read_bytes() == b"USER DATA"
+    assert {k: v for k, v in _digests(out, "train").items() if k != user.name} == before
+    assert data.split_info(str(out), "train") == section
+
+
+def test_a_run_cut_short_in_its_swap_is_finished_by_the_next(complete, monkeypatch):
+    """A run cut short while renaming its shards into place leaves shards of its own layout
+    that no complete section lists: its marker names them (``writing``), so the next run takes
+    them for the split's own (not a user's) and removes those its layout lacks."""
+    from stnh_tf.data import writer
+
+    out, _, _ = complete
+    real = os.replace
+
+    def killed(src, dst):  # the first new shard renamed into place, then the process stops
+        real(src, dst)
+        if ".tfrecord.tmp-" in os.fspath(src):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(writer.os, "replace", killed)
+    with pytest.raises(KeyboardInterrupt):
+        stage1.make_dataset("bundled", str(out), "train", seed=3, max_images=3,
+                            samples_per_image=1, num_shards=3, overwrite=True, log=QUIET)
+    monkeypatch.setattr(writer.os, "replace", real)
+    assert (out / "train-00000-of-00003.tfrecord").exists()
+    marker = metadata.read_metadata_file(str(out))["splits"]["train"]
+    assert marker["status"] == "incomplete"
+    assert "train-00000-of-00003.tfrecord" in marker["writing"]
+    stage1.make_dataset("bundled", str(out), "train", seed=3, max_images=3, samples_per_image=1,
+                        num_shards=1, log=QUIET)
+    assert sorted(p.name for p in out.glob("train-*.tfrecord")) == [
+        "train-00000-of-00001.tfrecord"]
+    assert data.split_info(str(out), "train")["status"] == "complete"

@@ -341,17 +341,23 @@ def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_it
             f"{output_dir} already holds a complete {split!r} split ({existing.get('num_samples')} "
             "samples); pass --overwrite to regenerate it (it stays readable until the new one "
             "is written).")
-    foreign = [os.path.basename(p) for p in _shard_pattern_matches(output_dir, split)]
-    if foreign and not existing:
+    names = [shard_name(split, k, num_shards) for k in range(num_shards)]
+    # the files the metadata lists: the split's shards, and those a run cut short was replacing
+    # or writing (a user's file of such a name, beside them, is not written over)
+    earlier = ([x.get("file") for x in existing.get("shards", [])] + existing.get("replacing", [])
+               + existing.get("writing", []))
+    foreign = sorted(os.path.basename(p) for p in _shard_pattern_matches(output_dir, split)
+                     if os.path.basename(p) not in earlier)
+    if foreign:
         raise ValueError(
             f"{output_dir} holds files named like the {split!r} split's shards ({foreign[:3]}) "
             f"that its {METADATA_FILE} does not list: they are not written over; move them "
             "aside, or write to another --output_dir.")
     top = {"feature_spec": features.spec_as_dict(), **(top_metadata or {})}
     meta_path = os.path.join(output_dir, METADATA_FILE)
-    earlier = [x.get("file") for x in existing.get("shards", [])] + existing.get("replacing", [])
     marker = {**(split_metadata or {}), "status": "incomplete", "started_pid": os.getpid(),
-              "replacing": earlier}  # (kept: a later run removes them if this one is cut short)
+              "replacing": earlier,  # (kept: a later run removes them if this one is cut short)
+              "writing": names}
     with _naming_write_errors(meta_path, split):  # (an earlier complete split stays readable)
         update_metadata(output_dir, split,
                         None if existing.get("status") == "complete" else marker, top, check)
@@ -362,7 +368,6 @@ def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_it
 
     import tensorflow as tf  # the parent writes; workers never import TensorFlow
 
-    names = [shard_name(split, k, num_shards) for k in range(num_shards)]
     shards = [{"file": n, "num_samples": 0, "num_bytes": 0} for n in names]
     skipped = [{"item_id": i, "reason": r} for i, r in preskipped]
     for entry in skipped:
