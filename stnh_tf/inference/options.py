@@ -98,7 +98,7 @@ class Thresholds:
       implausible_corner_shift: a corner moved more than this flags the estimate implausible (the
         models were trained on corners moved by up to 32 px).
       min_alignment_ncc: an alignment NCC below this (or undefined) flags it implausible; in
-        ``estimate_images`` also the whole work images' (:func:`stnh_tf.inference.coarse.image_ncc`).
+        ``estimate_images`` also the whole work images' (``Estimate.image_ncc``).
       min_patch_std: a patch whose intensities (on [0, 1]) vary less than this is flat: its pair
         gets the identity, flagged implausible (0: no flat rule).
       min_overlap: the fraction of patch_b's pixels that must land inside patch_a's source for
