@@ -722,6 +722,7 @@ def test_an_overwrite_failing_before_its_first_checkpoint_puts_the_finished_run_
     assert (run / "model.keras").read_bytes() != before["model.keras"]
 
 
+@pytest.mark.slow  # (two training calls: the make test time)
 def test_an_overwrite_stopped_before_its_end_keeps_the_run_it_replaces(tiny_data, tmp_path,
                                                                          narrow):
     """An --overwrite run stopped early on purpose (its time limit, a first Ctrl-C or SIGTERM:
