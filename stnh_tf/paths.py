@@ -52,6 +52,21 @@ def atomic_write_text(path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def read_document(path) -> tuple[str, str]:
+    """``(text, newline)`` of the UTF-8 text file ``path``: its text with ``\n`` line ends, and
+    the line end it uses (``"\r\n"`` where it holds one, else ``"\n"``), so that a block
+    rewritten in it (:func:`write_document`) leaves the rest byte for byte, whatever the locale
+    and the checkout's line ends."""
+    with open(path, encoding="utf-8", newline="") as f:
+        raw = f.read()
+    return raw.replace("\r\n", "\n"), "\r\n" if "\r\n" in raw else "\n"
+
+
+def document_text(text: str, newline: str) -> str:
+    """``text`` (``\n`` line ends) with the line end :func:`read_document` found."""
+    return text if newline == "\n" else text.replace("\n", newline)
+
+
 def atomic_write_bytes(path, data: bytes) -> None:
     """Write ``data`` to ``path`` as :func:`atomic_write_text` writes text (an encoded image,
     e.g.: ``cv2.imencode``'s bytes)."""

@@ -557,6 +557,7 @@ def test_coco2014_fails_fast_without_network(tmp_path, monkeypatch):
     ({"split": "../train"}, "split must be a plain name"),
     # its lock was the metadata's (.metadata.lock): the writer waited on itself for ever
     ({"split": "metadata"}, "split 'metadata' is reserved"),
+    ({"split": "Metadata"}, "split 'Metadata' is reserved"),  # (one file where case is blind)
     ({"source": "folder", "image_dir": "MISSING"}, "does not exist"),
     ({"source": "folder", "image_dir": "EMPTY"}, "no image files found"),
 ])

@@ -1541,3 +1541,26 @@ def test_the_whole_images_floor_numbers_are_the_json_s():
         assert untimed(f"ablation_seed{seed}_60_d8ab62b") == untimed(
             f"ablation_seed{seed}_60_5f57abf")
         assert _camera_file(f"ablation_seed{seed}_60_5f57abf")["commit"].startswith("5f57abf")
+
+
+def test_generated_blocks_read_and_write_a_crlf_checkout(tmp_path):
+    """A checkout with CRLF line ends (Windows, ``core.autocrlf``): the generated blocks read as
+    current (``differing`` compares the text as LF), and ``write`` of a stale block keeps the
+    document's CRLF everywhere (reading it with the newlines kept had made every block stale
+    there, and writing mixed the line ends)."""
+    import shutil
+
+    from stnh_tf.paper import results_json
+
+    for rel in set(results_json.SOURCES.values()):
+        os.makedirs(tmp_path / os.path.dirname(rel), exist_ok=True)
+        shutil.copy(os.path.join(ROOT, rel), tmp_path / rel)
+    for name in ("README.md", "BENCHMARKS.md"):
+        text = _read(name)
+        (tmp_path / name).write_bytes(text.replace("\n", "\r\n").encode())
+    assert cr.differing(str(tmp_path)) == {}
+    readme = (tmp_path / "README.md").read_bytes()
+    start = readme.index(cr.START.encode()) + len(cr.START) + 2
+    (tmp_path / "README.md").write_bytes(readme[:start] + b"stale\r\n" + readme[start:])
+    assert cr.write(str(tmp_path)) == ["README.md"]
+    assert (tmp_path / "README.md").read_bytes() == readme

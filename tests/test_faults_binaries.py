@@ -78,8 +78,9 @@ def test_an_output_never_replaces_a_model_card_a_ledger_or_a_document(tmp_path):
         with pytest.raises(FileExistsError, match=what):
             summaries.check_json_out(path)
         assert open(path, "rb").read() == before
-    (tmp_path / "empty.json").write_bytes(b"")
-    summaries.check_json_out(str(tmp_path / "empty.json"))
+    for blank in (b"", b"\n"):
+        (tmp_path / "empty.json").write_bytes(blank)
+        summaries.check_json_out(str(tmp_path / "empty.json"))
     (tmp_path / "rows.json").write_text(json.dumps([{"mace": 1.0}]))
     summaries.check_json_out(str(tmp_path / "rows.json"))
 

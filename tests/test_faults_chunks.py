@@ -552,3 +552,40 @@ def test_the_ledger_table_keeps_the_rest_of_the_document_as_it_was(tmp_path):
     with pytest.raises(ValueError, match="one .* block"):
         ledger_lib.write_ledger_table(str(root), str(doc))
     assert doc.read_bytes() == twice
+
+
+def test_a_failed_finished_model_write_leaves_no_finishing_row(tmp_path, monkeypatch):
+    """The finishing row is kept before the finished model is written; where that write fails
+    (or the chunk is killed in it), the row stayed pending and the next call added it, then
+    finished the part with a second finishing row (the ledger said "done" twice, once for a
+    part without a model). It is dropped, the steps trained committed with a row of their
+    own (the error), and the next call finishes the part with one finishing row."""
+    root, calls = tmp_path / "repo", []
+    cfg = _train_cfg("d", tmp_path / "run", train_steps=8)
+    _committed(root, cfg, 6)
+    (root / "ledger.json").write_text(json.dumps([_row(0, 6)]))
+    train = _fake_train(calls)
+
+    def to_the_end(cfg, **kw):
+        result = train(cfg, **kw)
+        (tmp_path / "run" / "model.keras").write_bytes(b"the finished model")
+        return result
+
+    def full_disk(src, dst):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(training, "train", to_the_end)
+    monkeypatch.setattr(chunks, "strip_optimizer", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    assert not (root / "sequence2.keras").exists()
+    assert not [r for r in json.loads((root / "ledger.pending.json").read_text())
+                if r.get("done")]
+    monkeypatch.setattr(chunks, "strip_optimizer",
+                        lambda src, dst: open(dst, "wb").write(open(src, "rb").read()))
+    row = chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    rows = ledger_lib.read_ledger(str(root))
+    assert row["done"] and [(r["from_step"], r["to_step"], r["done"]) for r in rows] == [
+        (0, 6, False), (6, 8, False), (8, 8, True)]
+    assert "No space left" in rows[1]["error"]
+    assert json.loads((root / "sequence2.json").read_text())["final_step"] == 8

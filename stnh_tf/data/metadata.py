@@ -134,7 +134,7 @@ def check_split_name(split: str) -> str:
     if not isinstance(split, str) or not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.]*", split):
         raise ValueError(f"split must be a plain name like 'train' (letters, digits, '_' and '.', "
                          f"not starting with '.'); received {split!r}.")
-    if f".{split}.lock" == LOCK_FILE:
+    if f".{split.lower()}.lock" == LOCK_FILE:  # (a file system blind to case: one file)
         raise ValueError(f"split {split!r} is reserved (its lock would be the dataset's "
                          f"{LOCK_FILE}); choose another name.")
     return split

@@ -97,7 +97,9 @@ def check_json_out(json_out) -> None:
         if os.path.isfile(path) and os.path.getsize(path):
             try:
                 with open(path, encoding="utf-8") as f:
-                    json.load(f)
+                    text = f.read()
+                if text.strip():  # (blank: nothing to lose)
+                    json.loads(text)
             except (UnicodeDecodeError, ValueError):
                 raise FileExistsError(f"output file {path!r} exists and is not JSON, which this "
                                       "output would replace; choose another path.") from None

@@ -36,7 +36,7 @@ import math
 import os
 import sys
 
-from stnh_tf.paths import atomic_write_text
+from stnh_tf.paths import atomic_write_text, document_text, read_document
 from stnh_tf.paper.result_cells import (FIG4_MODELS, TABLE1_ROWS, camera_rows, joined,
                                         latency_cells, latency_command, latency_machine,
                                         provenance_cells, recorded, stage_paths, table1_cells)
@@ -301,8 +301,7 @@ def differing(root: str) -> dict[str, str]:
     """
     out = {}
     for name, block in render(load_sources(root)).items():
-        with open(os.path.join(root, name), encoding="utf-8", newline="") as f:
-            text = f.read()
+        text, _ = read_document(os.path.join(root, name))  # (CRLF or LF, compared as LF)
         new = replace_block(text, block, name)
         if new != text:
             out[name] = "".join(difflib.unified_diff(
@@ -316,11 +315,10 @@ def write(root: str) -> list[str]:
     changed = []
     for name, block in render(load_sources(root)).items():
         path = os.path.join(root, name)
-        with open(path, encoding="utf-8", newline="") as f:  # (written back as read)
-            text = f.read()
+        text, newline = read_document(path)  # (written back with its own line ends)
         new = replace_block(text, block, name)
         if new != text:
-            atomic_write_text(path, new)
+            atomic_write_text(path, document_text(new, newline))
             changed.append(name)
     return changed
 

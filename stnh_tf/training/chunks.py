@@ -45,14 +45,14 @@ import shutil
 import tempfile
 import time
 
-from stnh_tf.paths import atomic_write_json, fsync_replace, inside, stage_record_path
+from stnh_tf.paths import atomic_write_json, fsync_replace, inside, read_json, stage_record_path
 from stnh_tf.provenance import machine_info
 from stnh_tf.training import checkpoints, file_parts, run_dir
 from stnh_tf.training.callbacks import deferred_signals
 from stnh_tf.training.config import TrainConfig
-from stnh_tf.training.ledger import (add_ledger_row, add_pending_rows, chain, part_name,
-                                     check_photographs, keep_pending, photographs, read_ledger,
-                                     recorded_step, row_part)
+from stnh_tf.training.ledger import (PENDING_FILE, add_ledger_row, add_pending_rows, chain,
+                                     check_photographs, keep_pending, part_name, photographs,
+                                     read_ledger, recorded_step, row_part)
 
 RESUME_DIR = "resume"
 ROOT_BUSY = ("another chunk is running on {folder} (it holds {lock}); one chunk at a time "
@@ -311,10 +311,25 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
         except ValueError as e:
             raise ValueError(f"{e} No chunk was started: mend it first (git checkout), so that "
                              "the chunk's row can be added.") from None
+        _drop_unfinished_rows(root)
         if added := add_pending_rows(root):
             printer(f"{added} ledger row(s) kept while the ledger did not read added to it")
         return _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part,
                           step_back)
+
+
+def _drop_unfinished_rows(root) -> None:
+    """Remove from ``root``'s pending rows (:data:`~stnh_tf.training.ledger.PENDING_FILE`) each
+    finishing row whose part has no finished model (:func:`finished_model`): a chunk stopped
+    while writing it; the chunk that finishes the part writes its own row."""
+    pending = os.path.join(root, PENDING_FILE)
+    if not os.path.exists(pending):
+        return
+    rows = read_json(pending, "pending ledger rows")
+    kept = [r for r in rows
+            if not (r.get("done") and not os.path.exists(finished_model(root, row_part(r))))]
+    if len(kept) != len(rows):
+        atomic_write_json(pending, kept)
 
 
 def _finish_record(cfg, root, key, printer) -> None:
@@ -400,7 +415,15 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
         # the finishing row first, where the next chunk finds it should this one stop (a kill,
         # a full disk) between the model's write and the record's (_finish_record)
         note = keep_pending(root, out)
-        strip_optimizer(final, finished)
+        try:
+            strip_optimizer(final, finished)
+        except BaseException as e:  # no finished model: not a finishing row, but the steps
+            _drop_unfinished_rows(root)  # trained are committed with a row of their own
+            error = f"{type(e).__name__}: {e}"[:300]
+            _commit_stopped(cfg.model_dir, resume, root, start_step, printer,
+                            lambda step: row(step, False, result["wall_s_this_run"],
+                                             error=error))
+            raise
         try:
             add_pending_rows(root)
         except ValueError as e:

@@ -23,7 +23,8 @@ import hashlib
 import os
 import re
 
-from stnh_tf.paths import atomic_write_json, atomic_write_text, read_json
+from stnh_tf.paths import (atomic_write_json, atomic_write_text, document_text, read_document,
+                           read_json)
 
 LEDGER_FILE = "ledger.json"
 LEDGER_START = "<!-- ledger:start -->"
@@ -145,15 +146,14 @@ def write_ledger_table(root: str, doc: str) -> bool:
       ValueError: ``doc`` lacks the markers or holds them more than once.
     """
     ledger = read_ledger(root)
-    with open(doc, encoding="utf-8", newline="") as f:  # (written back as read)
-        text = f.read()
+    text, newline = read_document(doc)  # (the rest written back as read)
     if text.count(LEDGER_START) != 1 or text.count(LEDGER_END) != 1:
         raise ValueError(f"{doc} must hold one {LEDGER_START} ... {LEDGER_END} block.")
     head, rest = text.split(LEDGER_START, 1)
     _, tail = rest.split(LEDGER_END, 1)
     new = f"{head}{LEDGER_START}\n{ledger_table(ledger)}\n{LEDGER_END}{tail}"
     if new != text:
-        atomic_write_text(doc, new)
+        atomic_write_text(doc, document_text(new, newline))
     return new != text
 
 

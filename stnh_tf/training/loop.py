@@ -314,7 +314,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     stream_fn = stream_fn or (train_streams.generated_stream if generated
                               else train_streams.training_stream)
     made_dir = not os.path.exists(cfg.model_dir)
-    lock, new_run, failed, completed = None, False, False, False
+    lock, new_run, completed = None, False, False
     try:
         if cluster.is_chief:  # several processes: only the chief touches model_dir
             lock = run_dir.RunLock(cfg.model_dir)  # one run per folder, held to the end
@@ -439,7 +439,6 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
         completed = True
         return result
     except BaseException:
-        failed = True
         if new_run:
             run_dir.undo_new_run(cfg.model_dir, made_dir)
         raise
