@@ -76,7 +76,10 @@ def main(argv):
                                             degradation=camera_pair_files.DEGRADATIONS[
                                                 FLAGS.degradation])
     print(FolderCounts(**result["photographs"]).line(), file=sys.stderr)
-    common.emit_json({"output_dir": FLAGS.output_dir, **result}, FLAGS.json_out)
+    # the manifest's fields but its format: the summary is not the set's record (a re-run with
+    # the same --json_out replaces it; paths.project_record protects records)
+    common.emit_json({"output_dir": FLAGS.output_dir,
+                      **{k: v for k, v in result.items() if k != "format"}}, FLAGS.json_out)
 
 
 if __name__ == "__main__":

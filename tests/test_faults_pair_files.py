@@ -130,3 +130,25 @@ def test_make_camera_pairs_checks_json_out_before_the_set(photos, tmp_path):
     assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
     assert "make_camera_pairs:" in proc.stderr and str(blocker) in proc.stderr
     assert not out.exists()
+
+
+def test_make_camera_pairs_rerun_replaces_its_own_json_out(photos, tmp_path):
+    """The summary ``--json_out`` carried the set manifest's ``format``, so a re-run with the same
+    ``--json_out`` (``--overwrite``) was refused as if it would replace the set's record. The
+    summary has no ``format`` now: the re-run replaces it, and the set's own manifest is still
+    a record no ``--json_out`` replaces."""
+    import json
+
+    from stnh_tf import paths
+
+    out, summary = tmp_path / "pairs", tmp_path / "summary.json"
+    env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2", PYTHONPATH=ROOT)
+    for seed in (0, 1):
+        proc = subprocess.run([sys.executable, "-m", "experiments.make_camera_pairs",
+                               f"--image_dir={photos}", f"--output_dir={out}", "--overwrite",
+                               "--pairs_per_image=1", f"--seed={seed}", f"--json_out={summary}"],
+                              cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        assert json.loads(summary.read_text())["seed"] == seed
+    assert paths.project_record(str(summary)) is None
+    assert paths.project_record(str(out / files.MANIFEST)) is not None
