@@ -260,7 +260,8 @@ STAGE3_CPU_CHUNKS = ((20, "First", 0, 12022), (21, "Second", 12022, 26399),
 SEQUENCE2_CPU_CHUNKS = ((29, "First", 0, 1399), (30, "Second", 0, 2322),
                         (31, "Third", 2322, 4763), (32, "Fourth", 4763, 7459),
                         (33, "Fifth", 7459, 9858), (34, "Sixth", 9858, 12000),
-                        (35, "Seventh", 12000, 13952), (36, "Eighth", 13952, 15816))
+                        (35, "Seventh", 12000, 13952), (36, "Eighth", 13952, 15816),
+                        (37, "Ninth", 15816, 17544))
 
 PROSE = [
     ("docs/estimate.md",
