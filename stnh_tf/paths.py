@@ -286,7 +286,7 @@ def check_apart(outputs: dict, inputs: dict) -> None:
 
 def stage_record_path(model_file) -> str:
     """The record beside a chunked run's finished stage (``stage<k>.keras`` -> ``stage<k>.json``:
-    :func:`stnh_tf.training.chunks.stage_record`), which ``experiments.ship_weights`` reads.
+    :func:`stnh_tf.training.part_records.stage_record`), which ``experiments.ship_weights`` reads.
 
     >>> stage_record_path("paper_schedule/stage1.keras")
     'paper_schedule/stage1.json'

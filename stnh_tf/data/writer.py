@@ -201,10 +201,10 @@ class _Progress:
                      f"{self.skipped} skipped, {rate:.0f} samples/s, ETA {left:.0f} s")
 
 
-def _shard_pattern_matches(output_dir, split):
+def _foreign_shards(output_dir, split, listed) -> list:
+    """The files in ``output_dir`` named like ``split``'s shards that ``listed`` lacks."""
     rx = re.compile(rf"^{re.escape(split)}-\d{{5}}-of-\d{{5}}\.tfrecord$")
-    return [p for p in glob.glob(os.path.join(output_dir, f"{glob.escape(split)}-*.tfrecord"))
-            if rx.match(os.path.basename(p))]
+    return sorted(n for n in os.listdir(output_dir) if rx.match(n) and n not in listed)
 
 
 @contextlib.contextmanager
@@ -342,17 +342,12 @@ def _write_split(output_dir, split, work_items, worker_fn, *, num_shards, num_it
             "samples); pass --overwrite to regenerate it (it stays readable until the new one "
             "is written).")
     names = [shard_name(split, k, num_shards) for k in range(num_shards)]
-    # the files the metadata lists: the split's shards, and those a run cut short was replacing
-    # or writing (a user's file of such a name, beside them, is not written over)
-    earlier = ([x.get("file") for x in existing.get("shards", [])] + existing.get("replacing", [])
-               + existing.get("writing", []))
-    foreign = sorted(os.path.basename(p) for p in _shard_pattern_matches(output_dir, split)
-                     if os.path.basename(p) not in earlier)
-    if foreign:
-        raise ValueError(
-            f"{output_dir} holds files named like the {split!r} split's shards ({foreign[:3]}) "
-            f"that its {METADATA_FILE} does not list: they are not written over; move them "
-            "aside, or write to another --output_dir.")
+    earlier = ([x.get("file") for x in existing.get("shards", [])]  # (and a cut-short run's)
+               + existing.get("replacing", []) + existing.get("writing", []))
+    if foreign := _foreign_shards(output_dir, split, earlier):  # (a user's: not written over)
+        raise ValueError(f"{output_dir} holds files named like the {split!r} split's shards "
+                         f"({foreign[:3]}) that its {METADATA_FILE} does not list: they are not "
+                         "written over; move them aside, or write to another --output_dir.")
     top = {"feature_spec": features.spec_as_dict(), **(top_metadata or {})}
     meta_path = os.path.join(output_dir, METADATA_FILE)
     marker = {**(split_metadata or {}), "status": "incomplete", "started_pid": os.getpid(),

@@ -14,8 +14,8 @@ Layout of a chunked run's repository folder ``root`` (e.g. ``paper_schedule/``):
   (``stage_estimates_<split>.npz``: :func:`stnh_tf.training.streams.stage_pairs`); updated in
   place by each chunk (``state.json`` last) and removed when the stage is done;
 * ``stage<k>.keras``: a finished stage (weights without optimizer state), and beside it
-  ``stage<k>.json`` (:func:`stage_record`: the run's configuration and its chunks), what
-  ``experiments.ship_weights`` puts in a model card;
+  ``stage<k>.json`` (:func:`~stnh_tf.training.part_records.stage_record`: the run's
+  configuration and its chunks), what ``experiments.ship_weights`` puts in a model card;
 * ``ledger.json``: one row per chunk (stage, steps, machine, steps/s, date;
   :mod:`stnh_tf.training.ledger`);
 * while a chunk runs, its lock (``.stnh_tf_run.lock``, :class:`~stnh_tf.training.run_dir.RunLock`
@@ -45,56 +45,21 @@ import shutil
 import tempfile
 import time
 
-from stnh_tf.paths import atomic_write_json, fsync_replace, inside, read_json, stage_record_path
+from stnh_tf.paths import fsync_replace, inside, stage_record_path
 from stnh_tf.provenance import machine_info
 from stnh_tf.training import checkpoints, file_parts, run_dir
 from stnh_tf.training.callbacks import deferred_signals
 from stnh_tf.training.config import TrainConfig
-from stnh_tf.training.ledger import (PENDING_FILE, add_ledger_row, add_pending_rows, chain,
-                                     check_photographs, keep_pending, part_name, photographs,
-                                     read_ledger, recorded_step, row_part)
+from stnh_tf.training.ledger import (add_ledger_row, add_pending_rows, check_photographs,
+                                     keep_pending, part_name, photographs, read_ledger,
+                                     recorded_step, row_part)
+from stnh_tf.training.part_records import (RESUME_DIR, drop_unfinished_rows,  # noqa: F401
+                                           finish_record, finished_model, resume_dir,
+                                           stage_record)
 
-RESUME_DIR = "resume"
 ROOT_BUSY = ("another chunk is running on {folder} (it holds {lock}); one chunk at a time "
              "trains a repository folder's runs: wait for it to finish.")
 """:func:`run_chunk`'s refusal while another chunk holds the repository folder's lock."""
-
-
-def resume_dir(root: str, part: int | str) -> str:
-    """The repository folder of a part's (stage k: ``k``) committed checkpoint."""
-    return os.path.join(root, RESUME_DIR, part_name(part))
-
-
-def finished_model(root: str, part: int | str) -> str:
-    """Where a finished part's model is kept (``stage<k>.keras``, ``<part>.keras``)."""
-    return os.path.join(root, f"{part_name(part)}.keras")
-
-
-def stage_record(root: str, part: int | str, config: dict) -> dict:
-    """Write and return ``stage<k>.json`` (``<part>.json``) beside the finished part: its run's
-    ``config`` (the ``config.json`` fields), the number of training photographs and pairs, the
-    ledger rows of the chunks its model is made of (:func:`~stnh_tf.training.ledger.chain`) and
-    their totals (steps, wall seconds, machines), and apart (``superseded_chunks``, not summed)
-    its rows whose steps were trained again."""
-    from stnh_tf.data import sources
-
-    name = part_name(part)
-    ledger = read_ledger(root)
-    rows = chain(ledger, name)
-    superseded = [r for r in ledger if row_part(r) == name and not any(r is c for c in rows)]
-    images = len(sources.scan_image_folders(config["image_dir"],
-                                            config.get("max_images", 0)).files) \
-        if config.get("image_dir") else None
-    record = {"format": run_dir.STAGE_RECORD_FORMAT, "stage": config.get("stage", part),
-              **({"part": name} if isinstance(part, str) else {}), "config": config,
-              "training_photographs": images,
-              "training_pairs": images and images * config["samples_per_image"], "chunks": rows,
-              **({"superseded_chunks": superseded} if superseded else {}),
-              "final_step": max((r["to_step"] for r in rows), default=0),
-              "wall_s": round(sum(r["wall_s"] for r in rows), 1),
-              "machines": sorted({f"{r['device']} ({r['backend']})" for r in rows})}
-    atomic_write_json(stage_record_path(finished_model(root, part)), record)
-    return record
 
 
 def _step(checkpoint_dir) -> int:
@@ -302,7 +267,7 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
             what = f"stage {cfg.stage}" if part is None else f"part {part_name(part)}"
             record = stage_record_path(finished)
             if not os.path.exists(record):  # the chunk that finished it stopped before it
-                _finish_record(cfg, root, key, printer)
+                finish_record(cfg, root, key, printer)
             also = f" and {record}" if os.path.exists(record) else ""
             raise FileExistsError(f"{what} is finished: {finished} exists; it is not trained "
                                   f"again (move it{also} away to train it anew).")
@@ -311,45 +276,11 @@ def run_chunk(cfg: TrainConfig, root: str, time_limit_s: float, device: str,
         except ValueError as e:
             raise ValueError(f"{e} No chunk was started: mend it first (git checkout), so that "
                              "the chunk's row can be added.") from None
-        _drop_unfinished_rows(root)
+        drop_unfinished_rows(root)
         if added := add_pending_rows(root):
             printer(f"{added} ledger row(s) kept while the ledger did not read added to it")
         return _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part,
                           step_back)
-
-
-def _drop_unfinished_rows(root) -> None:
-    """Remove from ``root``'s pending rows (:data:`~stnh_tf.training.ledger.PENDING_FILE`) each
-    finishing row whose part has no finished model (:func:`finished_model`): a chunk stopped
-    while writing it; the chunk that finishes the part writes its own row."""
-    pending = os.path.join(root, PENDING_FILE)
-    if not os.path.exists(pending):
-        return
-    rows = read_json(pending, "pending ledger rows")
-    kept = [r for r in rows
-            if not (r.get("done") and not os.path.exists(finished_model(root, row_part(r))))]
-    if len(kept) != len(rows):
-        atomic_write_json(pending, kept)
-
-
-def _finish_record(cfg, root, key, printer) -> None:
-    """A finished part's record (:func:`stage_record`, with the rows kept while the ledger did
-    not read) and ``resume/`` removed, where the chunk that finished it could not: nothing where
-    the ledger or the run folder's ``config.json`` does not read."""
-    config = os.path.join(cfg.model_dir, run_dir.CONFIG_FILE)
-    try:
-        add_pending_rows(root)
-        rows = chain(read_ledger(root), part_name(key))
-        if not rows or not rows[-1].get("done"):
-            raise ValueError(f"the ledger holds no row that finished it (its last ends at step "
-                             f"{rows[-1]['to_step'] if rows else 0}); {resume_dir(root, key)} "
-                             "is kept")
-        stage_record(root, key, run_dir.read_run_config(config) if os.path.exists(config)
-                     else cfg.to_json())
-    except ValueError as e:
-        printer(f"the record of the finished {part_name(key)} is not written: {e}")
-        return
-    shutil.rmtree(resume_dir(root, key), ignore_errors=True)
 
 
 def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step_back) -> dict:
@@ -413,12 +344,12 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
             add_ledger_row(root, out)
             return out
         # the finishing row first, where the next chunk finds it should this one stop (a kill,
-        # a full disk) between the model's write and the record's (_finish_record)
+        # a full disk) between the model's write and the record's (part_records.finish_record)
         note = keep_pending(root, out)
         try:
             strip_optimizer(final, finished)
         except BaseException as e:  # no finished model: not a finishing row, but the steps
-            _drop_unfinished_rows(root)  # trained are committed with a row of their own
+            drop_unfinished_rows(root)  # trained are committed with a row of their own
             error = f"{type(e).__name__}: {e}"[:300]
             _commit_stopped(cfg.model_dir, resume, root, start_step, printer,
                             lambda step: row(step, False, result["wall_s_this_run"],

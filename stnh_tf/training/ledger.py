@@ -59,7 +59,7 @@ def row_part(row: dict) -> str:
 LEDGER_FIELDS = ("stage", "from_step", "to_step", "device", "backend", "steps_per_s", "wall_s",
                  "date")
 """What every ledger row holds (:func:`ledger_table` shows them,
-:func:`stnh_tf.training.chunks.stage_record` sums them)."""
+:func:`stnh_tf.training.part_records.stage_record` sums them)."""
 
 
 def read_ledger(root: str) -> list:
