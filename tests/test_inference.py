@@ -1330,6 +1330,7 @@ def test_predict_outputs_of_pairs_with_the_same_names_do_not_collide(identity_mo
         "a__b-2_homography.json", "a__b-2_overlay.png"]
 
 
+@pytest.mark.slow  # (predict's subprocess: the make test time)
 def test_predict_overlay_cut_short_keeps_the_earlier_one(identity_model_path, tmp_path,
                                                         monkeypatch):
     """A re-run of a pair wrote its overlay PNG in place (``cv2.imwrite``): a failure while

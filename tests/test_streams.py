@@ -186,6 +186,7 @@ def test_config_needs_exactly_one_source():
                              in_memory=True).validate()
 
 
+@pytest.mark.slow  # (a training run each: the make test time)
 @pytest.mark.parametrize("in_memory", [False, True])
 def test_train_from_image_folder_validates_on_make_dataset_test_pairs(folder, records, tmp_path,
                                                                        narrow, in_memory):

@@ -698,6 +698,7 @@ def test_failed_start_leaves_the_folder_as_it_was(tiny_data, tmp_path, narrow):
         assert run_dir.prepare_model_dir(_cfg(tiny_data, model_dir, learning_rate=0.02)) is True
 
 
+@pytest.mark.slow  # (two training calls: the make test time)
 def test_an_overwrite_failing_before_its_first_checkpoint_puts_the_finished_run_back(
         tiny_data, tmp_path, narrow):
     """--overwrite deleted the finished run before the new one had anything: a retrain that
