@@ -163,6 +163,7 @@ def _train_cfg(data_dir, model_dir, **kw):
         **kw})
 
 
+@pytest.mark.slow  # (two training processes each: the make test time)
 @pytest.mark.parametrize("second, overwrite", [({}, False), ({"learning_rate": 0.02}, True)],
                          ids=["same flags", "other flags with --overwrite"])
 def test_a_second_run_in_the_same_folder_is_refused_while_the_first_trains(

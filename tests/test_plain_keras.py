@@ -140,6 +140,7 @@ def _fine_tuning_code():
     return code
 
 
+@pytest.mark.slow  # (a training run: the make test time)
 def test_the_fine_tuning_example_of_docs_weights_runs(tmp_path, monkeypatch):
     """The example as written (but for its steps and batch), in a folder holding a tiny
     ``data/coco_mini`` (bundled photographs): it trains the shipped stage with SGD momentum 0.9

@@ -1084,7 +1084,7 @@ def _scalars(folder):
 
 
 @pytest.mark.parametrize("log_every, checkpoint_every, train_steps, logged", [
-    (1, 2, 6, [1, 2, 3, 4, 5, 6]),
+    pytest.param(1, 2, 6, [1, 2, 3, 4, 5, 6], marks=pytest.mark.slow),  # (make test's time)
     pytest.param(50, 3, 6, [1, 2, 3, 4, 5, 6],  # a run shorter than log_every: >= ten reports
                  marks=pytest.mark.slow),
     pytest.param(4, 3, 12, [2, 4, 6, 8, 10, 12],  # checkpoint_every not a multiple of log_every
