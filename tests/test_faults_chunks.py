@@ -456,13 +456,9 @@ def test_a_ledger_broken_while_the_chunk_trained_keeps_its_row(tmp_path, monkeyp
     assert not (root / "resume" / "sequence2").exists()
 
 
-def test_a_full_disk_at_the_finishing_row_keeps_the_row_and_the_record_whole(tmp_path,
-                                                                            monkeypatch):
-    """The chunk that finishes a part wrote the finished model, then its row: a full disk (or a
-    kill) between lost the row, and the next call wrote the part's record from the rows before
-    it (final_step 6 of 8, its wall time short) and removed resume/. The row is now kept
-    (ledger.pending.json) before the model is written, so the next call adds it and writes the
-    whole record."""
+def _last_chunk_of_a_part(tmp_path):
+    """``(root, cfg, train)``: part sequence2 committed at step 6 of 8 (its ledger row 0 -> 6)
+    and a stand-in for ``loop.train`` that trains it to its end (the run folder's model)."""
     root, calls = tmp_path / "repo", []
     cfg = _train_cfg("d", tmp_path / "run", train_steps=8)
     _committed(root, cfg, 6)
@@ -474,6 +470,17 @@ def test_a_full_disk_at_the_finishing_row_keeps_the_row_and_the_record_whole(tmp
         (tmp_path / "run" / "model.keras").write_bytes(b"the finished model")
         return result
 
+    return root, cfg, to_the_end
+
+
+def test_a_full_disk_at_the_finishing_row_keeps_the_row_and_the_record_whole(tmp_path,
+                                                                            monkeypatch):
+    """The chunk that finishes a part wrote the finished model, then its row: a full disk (or a
+    kill) between lost the row, and the next call wrote the part's record from the rows before
+    it (final_step 6 of 8, its wall time short) and removed resume/. The row is now kept
+    (ledger.pending.json) before the model is written, so the next call adds it and writes the
+    whole record."""
+    root, cfg, to_the_end = _last_chunk_of_a_part(tmp_path)
     monkeypatch.setattr(training, "train", to_the_end)
     monkeypatch.setattr(chunks, "strip_optimizer",
                         lambda src, dst: open(dst, "wb").write(open(src, "rb").read()))
@@ -560,17 +567,7 @@ def test_a_failed_finished_model_write_leaves_no_finishing_row(tmp_path, monkeyp
     finished the part with a second finishing row (the ledger said "done" twice, once for a
     part without a model). It is dropped, the steps trained committed with a row of their
     own (the error), and the next call finishes the part with one finishing row."""
-    root, calls = tmp_path / "repo", []
-    cfg = _train_cfg("d", tmp_path / "run", train_steps=8)
-    _committed(root, cfg, 6)
-    (root / "ledger.json").write_text(json.dumps([_row(0, 6)]))
-    train = _fake_train(calls)
-
-    def to_the_end(cfg, **kw):
-        result = train(cfg, **kw)
-        (tmp_path / "run" / "model.keras").write_bytes(b"the finished model")
-        return result
-
+    root, cfg, to_the_end = _last_chunk_of_a_part(tmp_path)
     def full_disk(src, dst):
         raise OSError(errno.ENOSPC, "No space left on device")
 

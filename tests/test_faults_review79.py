@@ -280,12 +280,10 @@ def test_a_border_far_larger_than_image_a_is_still_drawn():
     assert filled.all()
 
 
-def test_an_old_export_that_cannot_be_put_back_is_kept_and_named(estimator, tmp_path,
-                                                                 monkeypatch):
-    """Where the move in fails and so does the move back, the staging folder holding the old
-    export aside was removed with it; it is kept now and the error names it: the old export's
-    files are there byte for byte."""
-    out = tmp_path / "out"
+def _swap_that_cannot_undo(estimator, out, monkeypatch, match):
+    """Export an old SavedModel to ``out``, then export over it with ``overwrite`` while both
+    the move in and the move back fail (EXDEV); returns the old export's files (hidden ones
+    aside) and the ``pytest.raises`` info of the error, which matches ``match``."""
     monkeypatch.setattr(export, "_write_archive", _fake_archive(b"old"))
     export.export_saved_model(estimator, out)
     before = {k: v for k, v in _files(out).items() if not k.startswith(".")}
@@ -300,10 +298,20 @@ def test_an_old_export_that_cannot_be_put_back_is_kept_and_named(estimator, tmp_
 
     monkeypatch.setattr(export, "_write_archive", _fake_archive(b"new"))
     monkeypatch.setattr(export_folder.os, "replace", both_fail)
-    with pytest.raises(OSError, match="nor the old export back .*the old export's entries are "
-                                      "in (.*); move them back by hand") as info:
+    with pytest.raises(OSError, match=match) as info:
         export.export_saved_model(estimator, out, overwrite=True)
     monkeypatch.setattr(export_folder.os, "replace", real_replace)
+    return before, info
+
+
+def test_an_old_export_that_cannot_be_put_back_is_kept_and_named(estimator, tmp_path,
+                                                                 monkeypatch):
+    """Where the move in fails and so does the move back, the staging folder holding the old
+    export aside was removed with it; it is kept now and the error names it: the old export's
+    files are there byte for byte."""
+    before, info = _swap_that_cannot_undo(
+        estimator, tmp_path / "out", monkeypatch,
+        "nor the old export back .*the old export's entries are in (.*); move them back by hand")
     aside = str(info.value).split("entries are in ")[1].split(";")[0]
     assert {k: v for k, v in _files(aside).items()} == before
 
@@ -316,23 +324,7 @@ def test_an_old_export_left_aside_is_put_back_by_the_next_export(estimator, tmp_
     old export is put back first now, and that export is refused as into any output holding
     one; the old export's files are in the output byte for byte."""
     out = tmp_path / "out"
-    monkeypatch.setattr(export, "_write_archive", _fake_archive(b"old"))
-    export.export_saved_model(estimator, out)
-    before = {k: v for k, v in _files(out).items() if not k.startswith(".")}
-    real_replace = os.replace
-
-    def both_fail(src, dst):
-        parent = os.path.basename(os.path.dirname(src))
-        if (parent.startswith(export_folder.STAGING_PREFIX) and os.path.basename(src) ==
-                "variables") or parent == export_folder.ASIDE:
-            raise OSError(errno.EXDEV, "Invalid cross-device link", src)
-        return real_replace(src, dst)
-
-    monkeypatch.setattr(export, "_write_archive", _fake_archive(b"new"))
-    monkeypatch.setattr(export_folder.os, "replace", both_fail)
-    with pytest.raises(OSError, match="nor the old export back"):
-        export.export_saved_model(estimator, out, overwrite=True)
-    monkeypatch.setattr(export_folder.os, "replace", real_replace)
+    before, _ = _swap_that_cannot_undo(estimator, out, monkeypatch, "nor the old export back")
     assert not (out / "saved_model.pb").exists()  # the old export is aside, in staging
     with pytest.raises(FileExistsError, match="holds a SavedModel|was never verified"):
         export.export_saved_model(estimator, out)
