@@ -268,17 +268,17 @@ def thresholds_from_flag(items, base):
     of ``--thresholds`` applied, each value of its field's type (an int field takes an int).
 
     Raises:
-      ValueError: an item without ``=``, an unknown or tuple-valued field, a value of the wrong
+      ValueError: an item without ``=``, an unknown field, a value of the wrong
         type, or one the field refuses (``Thresholds``' own check).
 
     >>> from stnh_tf.inference.options import Thresholds
-    >>> thresholds_from_flag(["resolution_sigma=0", "search_peaks=4"], Thresholds()).search_peaks
+    >>> thresholds_from_flag(["resolution_sigma=0", "corner_std_tile=4"], Thresholds()).corner_std_tile
     4
     """
     from stnh_tf.inference.options import WHOLE_NUMBER_TYPES
 
     fields = {f.name: int if f.type in WHOLE_NUMBER_TYPES else float
-              for f in dataclasses.fields(base) if not isinstance(getattr(base, f.name), tuple)}
+              for f in dataclasses.fields(base)}
     changes = {}
     for item in items:
         name, sep, text = item.partition("=")

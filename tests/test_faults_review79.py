@@ -217,27 +217,23 @@ def test_the_border_beyond_the_horizon_is_clipped_not_mirrored(estimator, optimi
 
 
 @pytest.mark.parametrize("changes, message", [
-    ({"refine_gaussian": 2}, "refine_gaussian must be odd"),
-    ({"refine_gaussian": 0}, "refine_gaussian must be odd"),
-    ({"search_template": 64.5}, "search_template must be a whole number"),
-    ({"search_peaks": 2.5}, "search_peaks must be a whole number"),
-    ({"search_coarse_iterations": (100.5, 50)}, "search_coarse_iterations must be a whole"),
+    ({"corner_std_tile": 8.5}, "corner_std_tile must be a whole number"),
+    ({"refine_iterations": 2.5}, "refine_iterations must be a whole number"),
     ({"min_overlap": 2.0}, r"min_overlap is a fraction of patch_b's pixels, in \[0, 1\]"),
 ])
 def test_thresholds_that_make_no_sense_are_refused_naming_the_field(changes, message):
-    """Accepted before: an even ECC pre-filter made OpenCV fail on every pair (caught, so the
-    refinement never ran and the default ECC check flagged every estimate, a perfect one
-    included); a fractional size or count failed later with a TypeError inside the search; an
-    overlap fraction above 1 made every NCC undefined (every estimate flagged). Refused when
-    the value is made, naming the field; whole numbers of NumPy's types and a float where a
-    real number is meant stay accepted."""
+    """Accepted before: a fractional size or count failed later with a TypeError; an overlap
+    fraction above 1 made every NCC undefined (every estimate flagged). Refused when the value
+    is made, naming the field; whole numbers of NumPy's types and a float where a real number
+    is meant stay accepted. (The ECC pre-filter, whose even sizes made OpenCV fail on every
+    pair, and the search's sizes are no longer fields.)"""
     from stnh_tf.inference.options import Thresholds
 
     with pytest.raises(ValueError, match=message):
         Thresholds(**changes)
-    kept = Thresholds(search_template=np.int64(32), refine_gaussian=3, min_overlap=1,
-                      coarse_corner_shift=150.5, verified_ncc=1.01)
-    assert kept.search_template == 32 and kept.coarse_corner_shift == 150.5
+    kept = Thresholds(corner_std_tile=np.int64(32), min_overlap=1, coarse_corner_shift=150.5,
+                      verified_ncc=1.01)
+    assert kept.corner_std_tile == 32 and kept.coarse_corner_shift == 150.5
 
 
 def test_the_thresholds_flag_takes_each_field_by_its_declared_type():
@@ -247,12 +243,12 @@ def test_the_thresholds_flag_takes_each_field_by_its_declared_type():
     from experiments.flags_common import thresholds_from_flag
     from stnh_tf.inference.options import Thresholds
 
-    got = thresholds_from_flag(["coarse_corner_shift=150.5", "search_peaks=4"], Thresholds())
-    assert (got.coarse_corner_shift, got.search_peaks) == (150.5, 4)
-    with pytest.raises(ValueError, match="search_peaks takes a whole number; received '2.5'"):
-        thresholds_from_flag(["search_peaks=2.5"], Thresholds())
-    with pytest.raises(ValueError, match="refine_gaussian must be odd"):
-        thresholds_from_flag(["refine_gaussian=2"], Thresholds())
+    got = thresholds_from_flag(["coarse_corner_shift=150.5", "corner_std_tile=4"], Thresholds())
+    assert (got.coarse_corner_shift, got.corner_std_tile) == (150.5, 4)
+    with pytest.raises(ValueError, match="corner_std_tile takes a whole number; received '2.5'"):
+        thresholds_from_flag(["corner_std_tile=2.5"], Thresholds())
+    with pytest.raises(ValueError, match="min_overlap is a fraction"):
+        thresholds_from_flag(["min_overlap=2"], Thresholds())
 
 
 def test_gate_stages_takes_booleans_and_refuses_other_numbers():

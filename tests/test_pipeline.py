@@ -37,9 +37,8 @@ def test_options_refuse_bad_values_naming_the_field(field, value):
         EstimateOptions(**{field: value})
 
 
-@pytest.mark.parametrize("field, value", [("verified_ncc", float("nan")), ("search_peaks", -1),
-                                          ("search_coarse_iterations", ()),
-                                          ("search_template", 200), ("min_overlap", True)])
+@pytest.mark.parametrize("field, value", [("verified_ncc", float("nan")), ("corner_std_tile", -1),
+                                          ("refine_iterations", ()), ("min_overlap", True)])
 def test_thresholds_refuse_bad_values(field, value):
     with pytest.raises(ValueError, match=field):
         Thresholds(**{field: value})
@@ -87,11 +86,11 @@ def test_the_thresholds_flag_changes_only_the_fields_it_names():
     flags_common.define_estimate_flags(("search",), base, flag_values=fv, thresholds=True)
     fv(["prog"])
     assert flags_common.options_from_flags(flag_values=fv) == base
-    fv(["prog", "--thresholds=resolution_sigma=0,search_peaks=4"])
+    fv(["prog", "--thresholds=resolution_sigma=0,corner_std_tile=4"])
     assert flags_common.options_from_flags(flag_values=fv) == dataclasses.replace(
-        base, thresholds=Thresholds(resolution_sigma=0.0, search_peaks=4))
-    for bad in ("resolution_sigma", "no_such=1", "search_coarse_iterations=1",
-                "search_peaks=2.5", "resolution_sigma=-1"):
+        base, thresholds=Thresholds(resolution_sigma=0.0, corner_std_tile=4))
+    for bad in ("resolution_sigma", "no_such=1", "search_peaks=4",
+                "corner_std_tile=2.5", "resolution_sigma=-1"):
         fv(["prog", f"--thresholds={bad}"])
         with pytest.raises(ValueError, match="Thresholds|thresholds"):
             flags_common.options_from_flags(flag_values=fv)

@@ -132,7 +132,7 @@ WITHOUT_SWITCH = {
 }
 """Rules of ``photographs()`` that no options value switches off alone, and why. Numbers that
 parametrise a measure or an algorithm (``min_overlap``, ``verified_ncc``, ``search_below_ncc``,
-the search's and ECC's sizes and iteration limits) are not rules and have no row."""
+``refine_iterations``, ``refine_eps``) are not rules and have no row."""
 
 
 def options_for(name: str, base: EstimateOptions | None = None) -> EstimateOptions:

@@ -162,11 +162,10 @@ def ecc_homography(source, template, source_from_template, iterations: int = 100
     return h / h[2, 2], rho
 
 
-def opencv_ecc(source, template, source_from_template, iterations: int, eps: float,
-               gaussian: int = 1):
-    """``cv2.findTransformECC`` (``MOTION_HOMOGRAPHY``) of float32 images from the start
-    ``source_from_template``: float64 ``[3, 3]`` (``[2, 2] = 1``), or ``None`` where OpenCV does
-    not converge or the result is not finite. Where a pixel of either image is clipped
+def opencv_ecc(source, template, source_from_template, iterations: int, eps: float):
+    """``cv2.findTransformECC`` (``MOTION_HOMOGRAPHY``, no Gaussian pre-filter) of float32 images
+    from the start ``source_from_template``: float64 ``[3, 3]`` (``[2, 2] = 1``), or ``None``
+    where OpenCV does not converge or the result is not finite. Where a pixel of either image is clipped
     (:func:`stnh_tf.pixels.unclipped`), ``cv2.findTransformECCWithMask`` with both images'
     masks of the pixels not clipped instead."""
     start = np.asarray(source_from_template, np.float64)
@@ -179,11 +178,11 @@ def opencv_ecc(source, template, source_from_template, iterations: int, eps: flo
     try:
         if all(m.all() for m in masks):
             _, warp = cv2.findTransformECC(template, source, start, cv2.MOTION_HOMOGRAPHY,
-                                           criteria, None, gaussian)
+                                           criteria, None, 1)
         else:  # clipped pixels left out of both images
             _, warp = cv2.findTransformECCWithMask(
                 template, source, *(m.astype(np.uint8) for m in masks), start,
-                cv2.MOTION_HOMOGRAPHY, criteria, gaussian)
+                cv2.MOTION_HOMOGRAPHY, criteria, 1)
     except cv2.error:
         return None
     warp = warp.astype(np.float64)

@@ -78,14 +78,9 @@ TTAS = {"none": ("identity",),
 once."""
 
 
-WHOLE_NUMBER_TYPES = ("int", "tuple[int, ...]")
+WHOLE_NUMBER_TYPES = ("int",)
 """The annotations of :class:`Thresholds`' fields that hold whole numbers (counts, sizes in px);
 the others take any real number."""
-
-
-def _values(value) -> tuple:
-    """A field's value as a tuple of numbers (a tuple field's own)."""
-    return value if isinstance(value, tuple) else (value,)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,14 +99,10 @@ class Thresholds:
       min_overlap: the fraction of patch_b's pixels that must land inside patch_a's source for
         the NCC to be defined.
       search_below_ncc: ``search="ecc"`` searches a pair aligned below this (or implausible).
-      verified_ncc: a search result must align the pair at least this well to be kept.
-      search_template: side (px) of patch_b's central square slid over the warped patch_a:
-        translations up to ``(128 - side) / 2`` px are scored.
-      search_peaks: translation peaks the search starts ECC from.
-      search_coarse_iterations: ECC iteration limits on the 32 x 32 and 64 x 64 pyramid levels.
-      search_ecc_iterations: ``cv2.findTransformECC``'s iteration limit at full size.
-      refine_iterations, refine_eps, refine_gaussian: ``cv2.findTransformECC``'s iteration
-        limit, convergence threshold and Gaussian pre-filter size in ``refine="ecc"``.
+      verified_ncc: a search result must align the pair at least this well to be kept (the
+        search's own sizes and iteration limits: :mod:`stnh_tf.inference.search`' constants).
+      refine_iterations, refine_eps: ``cv2.findTransformECC``'s iteration limit and
+        convergence threshold in ``refine="ecc"`` (no Gaussian pre-filter).
       max_refine_move: a refinement moving the corners by more than this on average is dropped.
       max_verify_move: with ``verify="ecc"``, an estimate that ECC (the refinement's settings)
         moves by more than this is flagged implausible: px, mean over the corners of the frame
@@ -174,13 +165,8 @@ class Thresholds:
     min_overlap: float = 0.25
     search_below_ncc: float = 0.9
     verified_ncc: float = 0.95
-    search_template: int = 64
-    search_peaks: int = 8
-    search_coarse_iterations: tuple[int, ...] = (100, 50)
-    search_ecc_iterations: int = 100
     refine_iterations: int = 50
     refine_eps: float = 1e-5
-    refine_gaussian: int = 1
     max_refine_move: float = 16.0
     max_verify_move: float = 5.0
     coarse_corner_shift: float = 4 * geometry.MAX_PERTURBATION
@@ -195,24 +181,16 @@ class Thresholds:
     def __post_init__(self):
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            values = _values(value)
-            if not values or any(isinstance(v, bool) or not isinstance(v, numbers.Real)
-                                 or not math.isfinite(v) or v < 0 for v in values):
+            if (isinstance(value, bool) or not isinstance(value, numbers.Real)
+                    or not math.isfinite(value) or value < 0):
                 raise ValueError(f"Thresholds.{f.name} must be finite and >= 0; received "
                                  f"{value!r}.")
-            if f.type in WHOLE_NUMBER_TYPES and not all(
-                    isinstance(v, numbers.Integral) for v in values):
+            if f.type in WHOLE_NUMBER_TYPES and not isinstance(value, numbers.Integral):
                 raise ValueError(f"Thresholds.{f.name} must be a whole number (a count or a "
                                  f"size in px); received {value!r}.")
         if self.min_overlap > 1:
             raise ValueError(f"Thresholds.min_overlap is a fraction of patch_b's pixels, in "
                              f"[0, 1]; received {self.min_overlap!r}.")
-        if self.refine_gaussian % 2 != 1:
-            raise ValueError("Thresholds.refine_gaussian must be odd (OpenCV's ECC pre-filter "
-                             f"size; 1: none); received {self.refine_gaussian!r}.")
-        if not 0 < self.search_template <= geometry.PATCH_SIZE:
-            raise ValueError(f"Thresholds.search_template must be in (0, {geometry.PATCH_SIZE}]; "
-                             f"received {self.search_template}.")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,6 +1,7 @@
 """The estimator's alignment steps after the network: the search of a poorly aligned estimate
 (:func:`search_translations`) and the ECC refinement (:func:`ecc_refine`). NumPy, OpenCV and
-SciPy; the numbers come from :class:`~stnh_tf.inference.options.Thresholds`.
+SciPy; the thresholds come from :class:`~stnh_tf.inference.options.Thresholds`, the search's
+sizes and iteration limits are the constants below.
 """
 
 from __future__ import annotations
@@ -14,11 +15,17 @@ from stnh_tf.inference.checks import alignment_ncc, corner_shift
 from stnh_tf.inference.options import Thresholds
 
 _DEFAULT = Thresholds()
+SEARCH_TEMPLATE_PX = 64
+"""Side of patch_b's central square slid over the warped patch_a: translations up to
+``(128 - 64) / 2`` px are scored."""
+SEARCH_PEAKS = 8
+"""Translation peaks the search starts coarse-to-fine ECC from (its iteration limits:
+:func:`stnh_tf.inference.ecc.coarse_to_fine_ecc`'s defaults)."""
 
 
 def ecc_refine(source_a, patch_b, a_from_b, origin=(0, 0), thresholds: Thresholds = _DEFAULT):
     """``a_from_b`` refined by OpenCV's ECC alignment (``cv2.findTransformECC``,
-    ``MOTION_HOMOGRAPHY``; ``thresholds.refine_iterations``, ``refine_eps``, ``refine_gaussian``),
+    ``MOTION_HOMOGRAPHY``; ``thresholds.refine_iterations``, ``refine_eps``, no pre-filter),
     started from it: the homography maximising the correlation of ``patch_b`` and patch_a warped
     onto it, over the pixels that land inside ``source_a``.
 
@@ -39,8 +46,7 @@ def ecc_refine(source_a, patch_b, a_from_b, origin=(0, 0), thresholds: Threshold
     """
     source_from_patch = geometry.translation(*origin)
     warp = ecc.opencv_ecc(source_a, patch_b, source_from_patch @ np.asarray(a_from_b, np.float64),
-                          thresholds.refine_iterations, thresholds.refine_eps,
-                          thresholds.refine_gaussian)
+                          thresholds.refine_iterations, thresholds.refine_eps)
     return None if warp is None else geometry.scale_to_unit(np.linalg.inv(source_from_patch) @ warp)
 
 
@@ -49,8 +55,8 @@ def search_translations(source_a, patch_b, a_from_b, origin=(0, 0),
     """A homography near ``a_from_b`` that aligns the pair almost perfectly, or ``None``.
 
     Patch_a is warped onto patch_b by ``a_from_b`` (mirror fill beyond ``source_a``), the central
-    ``thresholds.search_template`` square of ``patch_b`` is slid over it (``cv2.matchTemplate``,
-    ``TM_CCOEFF_NORMED``), and from the translations ``d`` at its ``thresholds.search_peaks``
+    :data:`SEARCH_TEMPLATE_PX` square of ``patch_b`` is slid over it (``cv2.matchTemplate``,
+    ``TM_CCOEFF_NORMED``), and from the translations ``d`` at its :data:`SEARCH_PEAKS`
     highest local peaks coarse-to-fine ECC (:func:`stnh_tf.inference.ecc.coarse_to_fine_ecc`) is
     started at ``a_from_b @ T(d)``. Of the results whose :func:`alignment_ncc` reaches
     ``thresholds.verified_ncc``, the highest is returned (the better-ranked peak on a tie). It
@@ -72,7 +78,7 @@ def search_translations(source_a, patch_b, a_from_b, origin=(0, 0),
     >>> np.round(h[:2, 2], 1), ncc > 0.95
     (array([ 9., -6.]), True)
     """
-    size, side = np.shape(patch_b)[0], thresholds.search_template
+    size, side = np.shape(patch_b)[0], SEARCH_TEMPLATE_PX
     margin = (size - side) // 2
     b = np.asarray(patch_b, np.float32)
     warped = hierarchy.warp_crop(source_a, a_from_b, origin, size, fill="reflect")
@@ -82,12 +88,10 @@ def search_translations(source_a, patch_b, a_from_b, origin=(0, 0),
     ys, xs = np.nonzero(scores >= cv2.dilate(scores, np.ones((5, 5), np.uint8)))
     source_from_patch = geometry.translation(*origin)
     best = None
-    for k in np.argsort(-scores[ys, xs], kind="stable")[:thresholds.search_peaks]:
+    for k in np.argsort(-scores[ys, xs], kind="stable")[:SEARCH_PEAKS]:
         start = np.asarray(a_from_b, np.float64) @ geometry.translation(xs[k] - margin,
                                                                          ys[k] - margin)
-        h = ecc.coarse_to_fine_ecc(source_a, b, source_from_patch @ start,
-                                   thresholds.search_coarse_iterations,
-                                   thresholds.search_ecc_iterations)
+        h = ecc.coarse_to_fine_ecc(source_a, b, source_from_patch @ start)
         if h is None:
             continue
         h = geometry.scale_to_unit(np.linalg.inv(source_from_patch) @ h)
