@@ -7,17 +7,18 @@ import contextlib
 import json
 
 from stnh_tf import provenance  # noqa: F401  (records the commit and load at the binary's start)
-from stnh_tf.paths import atomic_write_text, check_apart
+from stnh_tf.paths import check_apart
 
 
 def emit_json(result: dict, json_out: str | None = None) -> None:
-    """Print ``result`` as indented JSON and, if ``json_out`` is given, write it there too
-    (``"-"``, standard output, as :func:`stnh_tf.evaluation.summaries.emit` takes it: printed
-    only)."""
-    text = json.dumps(result, indent=2)
-    print(text)
+    """Print ``result`` as indented JSON and, if ``json_out`` is given, write it there too, with
+    the binary's name (:func:`stnh_tf.evaluation.summaries.write_json_out`; ``"-"``, standard
+    output, as :func:`stnh_tf.evaluation.summaries.emit` takes it: printed only)."""
+    from stnh_tf.evaluation import summaries
+
+    print(json.dumps(result, indent=2))
     if json_out and json_out != "-":
-        atomic_write_text(json_out, text + "\n")
+        summaries.write_json_out(result, json_out, sort_keys=False)
 
 
 @contextlib.contextmanager

@@ -315,6 +315,20 @@ def define_seed(help_text: str, flag_values=flags.FLAGS):
 
 def define_json_out(flag_values=flags.FLAGS):
     """``--json_out``: where a binary also writes the JSON it prints
-    (:func:`experiments.common.emit_json`)."""
+    (:func:`experiments.common.emit_json`), checked when the flags are read
+    (:func:`stnh_tf.evaluation.summaries.check_json_out`: only an earlier result of the same
+    binary is replaced; a missing folder is made where the JSON is written)."""
     flags.DEFINE_string("json_out", None, "Also write the JSON here ('-': standard output "
-                        "only).", flag_values=flag_values)
+                        "only); an existing file must be an earlier result of this binary.",
+                        flag_values=flag_values)
+
+    def check(value):
+        from stnh_tf.evaluation import summaries
+
+        try:
+            summaries.check_json_out(value, make_folder=False)  # (the binary's own checks next)
+        except OSError as e:
+            raise flags.ValidationError(str(e)) from None
+        return True
+
+    flags.register_validator("json_out", check, flag_values=flag_values)

@@ -19,12 +19,13 @@ flags.DEFINE_string("split", "train", "Split to histogram.")
 flags.DEFINE_string("output", None, "Output PNG path (ending in .png; the statistics go beside "
                     "it, ending in .json).")
 flags.DEFINE_integer("bins", 100, "Histogram bins per entry.", lower_bound=1)
-flags.DEFINE_integer("max_samples", 0, "Use only the first N samples (0 = all).")
+flags.DEFINE_integer("max_samples", 0, "Use only the first N samples (0 = all).", lower_bound=0)
 FLAGS = flags.FLAGS
 
 # The library pieces (the reproduce driver draws the same figure).
 from experiments import common  # noqa: E402
-from stnh_tf.paths import atomic_write_json, check_apart, check_output_file  # noqa: E402
+from stnh_tf.evaluation import summaries  # noqa: E402
+from stnh_tf.paths import check_apart, check_output_file  # noqa: E402
 from stnh_tf.paper.figures import ENTRY_NAMES, read_h_bar  # noqa: E402,F401
 from stnh_tf.paper.figures import hbar_histogram as plot_histogram  # noqa: E402
 
@@ -39,14 +40,14 @@ def main(argv):
             raise ValueError(f"--output is the figure's PNG path, ending in .png; received "
                              f"{FLAGS.output!r}.")
         check_apart({"--output": [FLAGS.output, stats_json]}, {"--data_dir": FLAGS.data_dir})
-        for path in (FLAGS.output, stats_json):
-            check_output_file(path)
+        check_output_file(FLAGS.output)
+        summaries.check_json_out(stats_json)  # only an earlier histogram's statistics
         h_bar = read_h_bar(FLAGS.data_dir, FLAGS.split, FLAGS.max_samples)
         stats = plot_histogram(h_bar, FLAGS.output, FLAGS.bins,
                                f"Value histogram of H_bar, {FLAGS.split} split of "
                                f"{FLAGS.data_dir} ({len(h_bar)} samples)")
         stats.update(data_dir=os.path.abspath(FLAGS.data_dir), split=FLAGS.split)
-        atomic_write_json(stats_json, stats, sort_keys=False)
+        summaries.write_json_out(stats, stats_json, sort_keys=False)
     print(json.dumps(stats["entries"], indent=1))
 
 

@@ -23,24 +23,27 @@ flags.DEFINE_list("logs", None, "Log files or glob patterns (quoted), in the run
 flags.DEFINE_string("output", None, "PNG to write.", required=True)
 flags.DEFINE_string("metric", "h_bar_mace", "The logged metric to draw (and val_<metric>).")
 flags.DEFINE_string("title", "", "The figure's title.")
-flags.DEFINE_string("json_out", None, "Also write {step: {metric: value}} here.")
+flags.DEFINE_string("json_out", None, "Also write {'curve': {step: {metric: value}}} here (an "
+                    "existing file must be an earlier one of this binary).")
 FLAGS = flags.FLAGS
 
 
 def main(argv):
     del argv
     from stnh_tf.paper import learning_curves
-    from stnh_tf.paths import atomic_write_json, check_apart
+    from stnh_tf.evaluation import summaries
+    from stnh_tf.paths import check_apart
 
     with common.user_errors("plot_learning_curves"):
         logs = [f for p in FLAGS.logs for f in (glob.glob(p) if glob.has_magic(p) else [p])]
         check_apart({"--output": FLAGS.output, "--json_out": FLAGS.json_out},
                     {"--logs": logs})  # (a log written over by a typo)
+        summaries.check_json_out(FLAGS.json_out)  # (a document or another tool's result)
         curve = learning_curves.read_logs(FLAGS.logs)
         drawn = learning_curves.plot(curve, FLAGS.output, FLAGS.metric, FLAGS.title)
         if FLAGS.json_out:
-            atomic_write_json(FLAGS.json_out, {str(k): v for k, v in curve.items()},
-                              sort_keys=False)
+            summaries.write_json_out({"curve": {str(k): v for k, v in curve.items()}},
+                                     FLAGS.json_out, sort_keys=False)
     print(json.dumps({"output": FLAGS.output, **drawn}))
 
 

@@ -36,6 +36,23 @@ def fsync_replace(tmp, path) -> None:
     os.replace(tmp, path)
 
 
+def atomic_copy(src, dst) -> None:
+    """``shutil.copy2(src, dst)`` (``dst`` a file path) through ``<dst>.tmp-<pid>``, fsynced and
+    renamed: a kill or a full disk midway leaves ``dst`` as it was, never a truncated copy that
+    counts as there; the temporary file is removed where the copy fails."""
+    import shutil
+
+    dst = os.fspath(dst)
+    tmp = f"{dst}.tmp-{os.getpid()}"
+    try:
+        shutil.copy2(src, tmp)
+        fsync_replace(tmp, dst)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+
+
 def atomic_write_text(path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` through a temporary file beside it
     (``<path>.tmp-<pid>``), fsynced and renamed: ``path`` holds its old text or the new one,

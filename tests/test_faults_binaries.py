@@ -56,8 +56,8 @@ def test_an_output_never_replaces_a_record_the_project_keeps(dataset, tmp_path):
         summaries.check_json_out(shard)
     assert {p: open(p, "rb").read() for p in before} == before
     result = tmp_path / "result.json"
-    result.write_text(json.dumps({"count": 2, "identity": {"mace": 1.0}}))
-    summaries.check_json_out(str(result))  # a result of its own: written over on a re-run
+    summaries.write_json_out({"count": 2, "identity": {"mace": 1.0}}, str(result), "evaluate")
+    summaries.check_json_out(str(result), "evaluate")  # its own: written over on a re-run
     assert paths.project_record(str(result)) is None
     summaries.check_json_out(str(tmp_path / "new" / "result.json"))
 
@@ -68,7 +68,7 @@ def test_an_output_never_replaces_a_model_card_a_ledger_or_a_document(tmp_path):
     benchmark result, and the paper schedule's ``ledger.json`` (a list) or ``README.md`` went
     the same way: a card and a ledger are records now, and a file that is not JSON is not an
     earlier result. The package's own card and ledger are refused as they are; an empty file
-    and a JSON result stay writable."""
+    stays writable, a JSON file the binary did not write does not (``written_by``)."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     card = os.path.join(root, "stnh_tf", "weights", "model_card.json")
     ledger = os.path.join(root, "paper_schedule", "ledger.json")
@@ -81,8 +81,9 @@ def test_an_output_never_replaces_a_model_card_a_ledger_or_a_document(tmp_path):
     for blank in (b"", b"\n"):
         (tmp_path / "empty.json").write_bytes(blank)
         summaries.check_json_out(str(tmp_path / "empty.json"))
-    (tmp_path / "rows.json").write_text(json.dumps([{"mace": 1.0}]))
-    summaries.check_json_out(str(tmp_path / "rows.json"))
+    (tmp_path / "rows.json").write_text(json.dumps([{"mace": 1.0}]))  # not a result of its own
+    with pytest.raises(FileExistsError, match="not an earlier result of evaluate"):
+        summaries.check_json_out(str(tmp_path / "rows.json"), "evaluate")
 
 
 @pytest.mark.slow

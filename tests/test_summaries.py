@@ -75,9 +75,10 @@ def test_summary_table_format_and_the_worse_line():
 def test_emit_prints_the_table_writes_the_json_or_prints_only_the_json(tmp_path):
     result = {"count": 2, "x": [1.5, "inf"]}
     printed = []
-    summaries.emit(result, "the table", str(tmp_path / "r.json"), printer=printed.append)
+    summaries.emit(result, "the table", str(tmp_path / "r.json"), printer=printed.append,
+                   writer="evaluate")
     assert printed == ["the table", f"JSON: {tmp_path / 'r.json'}"]
-    assert json.loads((tmp_path / "r.json").read_text()) == result
+    assert json.loads((tmp_path / "r.json").read_text()) == {**result, "written_by": "evaluate"}
     printed.clear()
     summaries.emit(result, "the table", "-", printer=printed.append)
     assert len(printed) == 1 and json.loads(printed[0]) == result

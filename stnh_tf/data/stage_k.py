@@ -62,17 +62,19 @@ def _records(paths):
             yield record.numpy()
 
 
-def made_from(input_dir: str, model_dir) -> dict:
+def made_from(input_dir: str, model_dir, split: str | None = None) -> dict:
     """What a stage-k split records of the stage-(k-1) dataset and model it is made from:
     ``input_dir`` and ``model_dir`` as absolute paths, the input's ``input_sha256`` (its train
-    split: :func:`stnh_tf.data.tfrecords.split_digest`) and the model file's ``model_sha256``
-    (a folder's ``model.keras``); None where there is no such split or file."""
+    split, the dataset's identity: :func:`stnh_tf.data.tfrecords.split_digest`), with ``split``
+    that split's own ``input_split_sha256`` (the pairs it is made from), and the model file's
+    ``model_sha256`` (a folder's ``model.keras``); None where there is no such split or file."""
     from stnh_tf.data.tfrecords import split_digest
     from stnh_tf.paths import file_sha256
 
     model_file = os.path.join(model_dir, "model.keras") if os.path.isdir(model_dir) else model_dir
     return {"input_dir": os.path.abspath(input_dir), "model_dir": os.path.abspath(model_dir),
             "input_sha256": split_digest(input_dir, "train"),
+            **({"input_split_sha256": split_digest(input_dir, split)} if split else {}),
             "model_sha256": file_sha256(model_file) if os.path.isfile(model_file) else None}
 
 
@@ -87,7 +89,9 @@ def _same_source(section: dict, source: dict) -> bool:
         paths = [section.get(f"{name}_dir"), source[f"{name}_dir"]]
         return len({os.path.realpath(p) if isinstance(p, str) else p for p in paths}) == 1
 
-    return same("input") and same("model")
+    return (same("input") and same("model")
+            and ("input_split_sha256" not in source  # the split's own pairs, where asked
+                 or section.get("input_split_sha256") == source["input_split_sha256"]))
 
 
 def check_one_source(output_dir: str, splits, source: dict) -> list:
@@ -100,14 +104,17 @@ def check_one_source(output_dir: str, splits, source: dict) -> list:
     Raises:
       ValueError: naming a split of ``output_dir`` made from another dataset or model.
     """
+    from stnh_tf.data.tfrecords import split_digest
+
     meta = metadata.read_metadata_file(output_dir) if os.path.isdir(output_dir) else {}
     done = []
     for name, section in meta.get("splits", {}).items():
         if "input_dir" not in section:
             continue  # (an incomplete section of a version that did not record it)
         same = _same_source(section, source)
-        if name in splits:
-            if same and section.get("status") == "complete":
+        if name in splits:  # kept only where made from the input split as it is now
+            own = {**source, "input_split_sha256": split_digest(source["input_dir"], name)}
+            if _same_source(section, own) and section.get("status") == "complete":
                 done.append(name)
         elif not same:
             raise ValueError(
@@ -170,8 +177,12 @@ def check_made(output_dir: str, split: str, input_dir: str, model_dir: str) -> N
     """
     from stnh_tf.data import tfrecords as data
 
-    section, source = data.split_info(output_dir, split), made_from(input_dir, model_dir)
+    section, source = data.split_info(output_dir, split), made_from(input_dir, model_dir, split)
     if not _same_source(section, source):
+        if _same_source(section, {k: v for k, v in source.items() if k != "input_split_sha256"}):
+            raise ValueError(f"{output_dir} holds the {split!r} pairs made from another "
+                             f"{split!r} split of {source['input_dir']} than the one there now "
+                             "(or from one it did not record): move it aside to make them again.")
         raise ValueError(f"{output_dir} holds the {split!r} pairs made from "
                          f"{section.get('input_dir')} and the model {section.get('model_dir')}, "
                          f"not from {source['input_dir']} and {source['model_dir']}: move it "
@@ -266,7 +277,7 @@ def make_stage_dataset(stage: int, input_dir: str, output_dir: str, split: str, 
     counts = collections.Counter()
     split_metadata = {
         "source": "stage",
-        **(made_from(input_dir, model_dir) if model_dir else
+        **(made_from(input_dir, model_dir, split) if model_dir else
            {"input_dir": os.path.abspath(input_dir), "model_dir": repr(predict)}),
         "input_seed": info.get("seed"),
         "protocol": info.get("protocol"),

@@ -130,7 +130,7 @@ def evaluate(model_dirs=(), data_dir: str = "", split: str = "test", baselines=(
     from stnh_tf.data import holdout
     from stnh_tf.data import tfrecords as data
 
-    check_evaluation(model_dirs, batch_size, clip_to_context)
+    check_evaluation(model_dirs, batch_size, clip_to_context, baselines)
     if max_samples is not None and max_samples < 1:
         raise ValueError(f"max_samples must be >= 1 (or unset: all pairs); received {max_samples}.")
     samples = data.load_arrays(data_dir, split, max_samples=max_samples)
@@ -176,8 +176,14 @@ def stage_notes(model_dirs, data_stage: int, data_dir: str) -> list:
     return notes
 
 
-def check_evaluation(model_dirs, batch_size: int, clip_to_context: bool) -> None:
-    """The argument checks of :func:`evaluate_arrays` (``ValueError`` naming the argument)."""
+def check_evaluation(model_dirs, batch_size: int, clip_to_context: bool, baselines=()) -> None:
+    """The argument checks of :func:`evaluate_arrays` (``ValueError`` naming the argument), an
+    unknown baseline name included (before any pair is read or model run)."""
+    from stnh_tf.evaluation.baselines import BASELINES
+
+    unknown = [b for b in baselines or () if isinstance(b, str) and b not in BASELINES]
+    if unknown:
+        raise ValueError(f"unknown baseline(s) {unknown}; choose from {sorted(BASELINES)}.")
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1; received {batch_size}.")
     if not clip_to_context and len([d for d in (model_dirs or ()) if d]) < 2:
@@ -218,7 +224,7 @@ def evaluate_arrays(samples: dict, model_dirs=(), baselines=(), batch_size=64,
     """
     from stnh_tf.evaluation import baselines as baselines_lib
 
-    check_evaluation(model_dirs, batch_size, clip_to_context)
+    check_evaluation(model_dirs, batch_size, clip_to_context, baselines)
     h_true = np.asarray(samples["h_ba"], np.float64)
     h_prev = np.asarray(samples["h_prev"], np.float64)
     out = {"count": int(len(h_true)),

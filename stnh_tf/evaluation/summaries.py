@@ -23,6 +23,7 @@ import dataclasses
 import json
 import math
 import os
+import sys
 
 JSON_OUT_HELP = ("Write the full JSON result here (its folder is created if missing and checked "
                  "before the work starts); '-': print the JSON instead of the table.")
@@ -85,37 +86,72 @@ def summary_table(identity: Row, rows, title: str = "", notes=()) -> str:
     return "\n".join(lines)
 
 
-def check_json_out(json_out) -> None:
-    """Before the work: ``json_out``'s folder is made and proved writable
-    (:func:`stnh_tf.paths.check_output_file`), and an existing file there must be JSON (an
-    earlier result), not a document or code (``--json_out=README.md``); nothing for ``None`` or
-    ``"-"``. Raises ``OSError`` naming the path."""
+WRITTEN_BY = "written_by"
+"""The key naming the binary that wrote a JSON result (:func:`emit`, :func:`write_json_out`):
+``--json_out`` replaces only a file that one of its own earlier runs wrote."""
+
+
+def writer_name() -> str:
+    """The running binary's name (``evaluate`` for ``python -m experiments.evaluate``), the
+    writer :func:`check_json_out` and :func:`emit` default to."""
+    return os.path.splitext(os.path.basename(sys.argv[0] if sys.argv else ""))[0] or "python"
+
+
+def check_json_out(json_out, writer: str | None = None, make_folder: bool = True) -> None:
+    """Before the work: ``json_out``'s folder is made (unless ``make_folder`` is False) and
+    proved writable (:func:`stnh_tf.paths.check_output_file`, which also refuses the project's
+    records), and an existing, non-blank file there must be an earlier result of the same
+    binary: a JSON object whose :data:`WRITTEN_BY` is ``writer`` (default :func:`writer_name`).
+    Anything else (a document, another tool's JSON, a run's state, a result written before the
+    key existed) is refused: remove it first or choose another path. Nothing for ``None`` or
+    ``"-"``. Raises ``OSError`` naming the path.
+
+    >>> check_json_out(None)  # nothing to write
+    """
     from stnh_tf import paths
 
     if json_out and json_out != "-":
-        path = paths.check_output_file(json_out)
+        writer = writer or writer_name()
+        path = os.path.abspath(json_out)
+        if make_folder or os.path.isdir(os.path.dirname(path)):
+            path = paths.check_output_file(json_out)
         if os.path.isfile(path) and os.path.getsize(path):
             try:
                 with open(path, encoding="utf-8") as f:
                     text = f.read()
-                if text.strip():  # (blank: nothing to lose)
-                    json.loads(text)
+                if not text.strip():  # (blank: nothing to lose)
+                    return
+                doc = json.loads(text)
             except (UnicodeDecodeError, ValueError):
                 raise FileExistsError(f"output file {path!r} exists and is not JSON, which this "
                                       "output would replace; choose another path.") from None
+            if not (isinstance(doc, dict) and doc.get(WRITTEN_BY) == writer):
+                raise FileExistsError(
+                    f"output file {path!r} exists and is not an earlier result of {writer} (its "
+                    f"{WRITTEN_BY!r} key), which this output would replace; remove it first or "
+                    "choose another path.")
 
 
-def emit(result: dict, table: str, json_out=None, printer=print) -> None:
-    """Print ``table`` and, with ``json_out``, write ``result`` there as JSON and say where;
-    ``json_out="-"``: print the JSON instead of the table (for a pipe)."""
+def write_json_out(result: dict, json_out, writer: str | None = None, **dump) -> None:
+    """``result`` with :data:`WRITTEN_BY` ``writer`` (default :func:`writer_name`) written to
+    ``json_out`` (:func:`stnh_tf.paths.atomic_write_json`; ``dump``: its options), its folder
+    made where missing."""
     from stnh_tf import paths
 
+    os.makedirs(os.path.dirname(os.path.abspath(json_out)), exist_ok=True)
+    paths.atomic_write_json(json_out, {**result, WRITTEN_BY: writer or writer_name()}, **dump)
+
+
+def emit(result: dict, table: str, json_out=None, printer=print, writer: str | None = None) -> None:
+    """Print ``table`` and, with ``json_out``, write ``result`` there as JSON
+    (:func:`write_json_out`) and say where; ``json_out="-"``: print the JSON instead of the
+    table (for a pipe)."""
     if json_out == "-":
         printer(json.dumps(result, indent=2, sort_keys=True))
         return
     printer(table)
     if json_out:
-        paths.atomic_write_json(json_out, result)
+        write_json_out(result, json_out, writer)
         printer(f"JSON: {json_out}")
 
 

@@ -60,7 +60,7 @@ def cached(path: str, wanted: dict, model_dirs) -> dict | None:
         doc = json.load(f)
     if CACHE_KEY in doc:
         had = doc[CACHE_KEY]
-        same = (wanted["pairs"] is None or had.get("pairs") == wanted["pairs"]
+        same = ((wanted["pairs"] is None or had.get("pairs") == wanted["pairs"])
                 and len(had.get("models", [])) == len(wanted["models"])
                 and all(w is None or w == h for w, h in zip(wanted["models"], had["models"])))
         return doc if same else None

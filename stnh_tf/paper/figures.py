@@ -29,6 +29,22 @@ def _pyplot():
     return plt
 
 
+def save_figure(fig, path, dpi: int) -> None:
+    """``fig.savefig`` through memory into ``path``, by
+    :func:`stnh_tf.paths.atomic_write_bytes`: a kill or a full disk leaves the old figure whole
+    (the format from ``path``'s extension, PNG without one); the figure is closed."""
+    import io
+
+    from stnh_tf import paths
+
+    buffer = io.BytesIO()
+    try:
+        fig.savefig(buffer, dpi=dpi, format=os.path.splitext(path)[1][1:].lower() or "png")
+    finally:
+        _pyplot().close(fig)
+    paths.atomic_write_bytes(path, buffer.getvalue())
+
+
 def quadrilateral(a_from_b: np.ndarray, offset: float = 0.0,
                   size: int = geometry.PATCH_SIZE) -> np.ndarray:
     """Where patch_b's four corners lie in patch_a (``H_ba @ c``), shifted by ``offset`` (e.g. the
@@ -145,10 +161,7 @@ def prediction_examples(context_a, patch_b, h_true, h_pred, path: str, titles=No
       context_a: ``[N, S+2m, S+2m]`` uint8; patch_b: ``[N, S, S(, 1)]`` uint8 or float in [0, 1].
       h_true, h_pred: ``[N, 3, 3]`` pixel ``H_ba`` (patch frame).
     """
-    plt = _pyplot()
-    fig = prediction_figure(context_a, patch_b, h_true, h_pred, titles, margin)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(prediction_figure(context_a, patch_b, h_true, h_pred, titles, margin), path, 110)
     return path
 
 
@@ -253,11 +266,8 @@ def mace_bars(results: dict, path: str, paper: dict | None = None,
     rows whose predictions the degenerate rule rejected marked, each seed a dot, the paper's
     schedule's bars (:func:`fig4_bars`), the identity's MACE as a dashed line; writes a PNG to
     ``path`` and returns it."""
-    plt = _pyplot()
-    fig = mace_bars_figure(fig4_bars(results, paper, rejected, predictions, seeds, schedule),
-                           title, label, seeds_label)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(mace_bars_figure(fig4_bars(results, paper, rejected, predictions, seeds, schedule),
+                                 title, label, seeds_label), path, 110)
     return path
 
 
@@ -294,6 +304,5 @@ def hbar_histogram(h_bar, output: str, bins: int = 100, title: str = "") -> dict
         ax.set_ylabel("count")
     fig.suptitle(title or f"Value histogram of normalized H_bar ({len(h_bar)} samples)")
     os.makedirs(os.path.dirname(os.path.abspath(output)), exist_ok=True)
-    fig.savefig(output, dpi=100)
-    plt.close(fig)
+    save_figure(fig, output, 100)
     return {"num_samples": int(len(h_bar)), "entries": stats}

@@ -90,7 +90,7 @@ def plot(curve: dict, path: str, metric: str = "h_bar_mace", title: str = "") ->
     Raises:
       ValueError: ``curve`` logs neither ``metric`` nor ``val_<metric>``.
     """
-    from stnh_tf.paper.figures import _pyplot
+    from stnh_tf.paper.figures import _pyplot, save_figure
 
     drawn = {name: series(curve, name) for name in (metric, f"val_{metric}", "lr")}
     if not drawn[metric][0] and not drawn[f"val_{metric}"][0]:
@@ -116,7 +116,6 @@ def plot(curve: dict, path: str, metric: str = "h_bar_mace", title: str = "") ->
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, 100)
     return {"points": {k: len(v[0]) for k, v in drawn.items()},
             "last": {k: [v[0][-1], v[1][-1]] for k, v in drawn.items() if v[0]}}

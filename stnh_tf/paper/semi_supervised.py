@@ -56,7 +56,7 @@ import shutil
 import numpy as np
 
 from stnh_tf.paper import eval_cache, reproduce
-from stnh_tf.paths import atomic_write_json, atomic_write_text
+from stnh_tf.paths import atomic_copy, atomic_write_bytes, atomic_write_json, atomic_write_text
 
 CLOSE_PX = 1.0
 MAX_SEEDS = 2
@@ -250,8 +250,8 @@ class SemiSupervised:
                 continue  # finished and saved before
             if os.path.exists(os.path.join(d, run_dir.FINAL_MODEL)):
                 os.makedirs(repo_dir, exist_ok=True)
-                shutil.copy2(os.path.join(d, run_dir.CONFIG_FILE),  # (before the .keras, which
-                             os.path.join(repo_dir, f"{name}.json"))  # marks the model saved)
+                atomic_copy(os.path.join(d, run_dir.CONFIG_FILE),  # (before the .keras, which
+                            os.path.join(repo_dir, f"{name}.json"))  # marks the model saved)
                 chunks.strip_optimizer(os.path.join(d, run_dir.FINAL_MODEL),
                                        os.path.join(repo_dir, f"{name}.keras"))
                 shutil.rmtree(resume, ignore_errors=True)
@@ -297,12 +297,12 @@ class SemiSupervised:
             src, dst = self.eval_file(name, repo_dir), self.eval_file(name)
             if os.path.exists(src) and not os.path.exists(dst):
                 os.makedirs(os.path.dirname(dst), exist_ok=True)
-                shutil.copyfile(src, dst)  # a new mtime: newer than the model copy2 puts in
-            if os.path.exists(keras_file):
+                atomic_write_bytes(dst, open(src, "rb").read())  # a new mtime: newer
+            if os.path.exists(keras_file):  # than the model's, which keeps the repo's
                 os.makedirs(d, exist_ok=True)
-                shutil.copy2(os.path.join(repo_dir, f"{name}.json"),
-                             os.path.join(d, run_dir.CONFIG_FILE))
-                shutil.copy2(keras_file, os.path.join(d, run_dir.FINAL_MODEL))
+                atomic_copy(os.path.join(repo_dir, f"{name}.json"),
+                            os.path.join(d, run_dir.CONFIG_FILE))
+                atomic_copy(keras_file, os.path.join(d, run_dir.FINAL_MODEL))  # (marks it done)
                 out[name] = "finished"
                 continue
             resume = os.path.join(repo_dir, chunks.RESUME_DIR, name)

@@ -45,7 +45,7 @@ import shutil
 import tempfile
 import time
 
-from stnh_tf.paths import fsync_replace, inside, stage_record_path
+from stnh_tf.paths import atomic_copy, fsync_replace, inside, stage_record_path
 from stnh_tf.provenance import machine_info
 from stnh_tf.training import checkpoints, file_parts, run_dir
 from stnh_tf.training.callbacks import deferred_signals
@@ -163,12 +163,12 @@ def sync_in(resume: str, model_dir: str, cfg: TrainConfig | None = None) -> int 
             except ValueError as e:  # named as committed, made whole from its parts or not
                 raise refused(str(e).replace(tmp, resume)) from None
         for path in estimates:
-            shutil.copy2(path, model_dir)
+            atomic_copy(path, os.path.join(model_dir, os.path.basename(path)))
         if not newer:
             return None
         config = os.path.join(model_dir, run_dir.CONFIG_FILE)
         if not os.path.exists(config):
-            shutil.copy2(os.path.join(resume, run_dir.CONFIG_FILE), config)
+            atomic_copy(os.path.join(resume, run_dir.CONFIG_FILE), config)
         return checkpoints.copy_checkpoint(committed, ckpt)
 
 
