@@ -31,6 +31,7 @@ FLAGS = flags.FLAGS
 def main(argv):
     del argv
     with common.user_errors("demo"):
+        common.check_not_a_run(FLAGS.output_dir)
         result = demo.run_demo(FLAGS.output_dir, FLAGS.seed, FLAGS.samples_per_image,
                                FLAGS.examples)
     if not result["conventions"]["ok"]:

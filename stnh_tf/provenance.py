@@ -26,14 +26,20 @@ _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the check
 
 def git_commit() -> str | None:
     """Short commit of the checkout the code runs from (``+dirty`` if tracked files are modified),
-    or ``None`` outside a git checkout (an installed package) or without git."""
+    or ``None`` outside a git checkout of this project (an installed package, even one installed
+    inside a checkout; a copy inside another repository; no git): the repository's top level
+    must be the folder holding this package, which it tracks."""
+    run = lambda *args: subprocess.run(["git", *args], cwd=_ROOT, check=True,  # noqa: E731
+                                       capture_output=True, text=True).stdout.strip()
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=_ROOT, check=True,
-                                capture_output=True, text=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                               cwd=_ROOT, check=True, capture_output=True, text=True).stdout.strip()
+        top, commit = run("rev-parse", "--show-toplevel", "--short", "HEAD").splitlines()
+        if os.path.realpath(top) != os.path.realpath(_ROOT):
+            return None
+        run("ls-files", "--error-unmatch", "--", os.path.relpath(os.path.abspath(__file__),
+                                                                _ROOT))
+        dirty = run("status", "--porcelain", "--untracked-files=no")
         return commit + ("+dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
+    except (OSError, ValueError, subprocess.CalledProcessError):
         return None
 
 

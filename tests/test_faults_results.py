@@ -207,3 +207,188 @@ def test_an_unknown_baseline_is_refused_before_any_pair_is_read(tmp_path):
 
     with pytest.raises(ValueError, match=r"unknown baseline\(s\) \['sift'\]; choose from"):
         mace.evaluate((), str(tmp_path / "no_such_data"), "test", ["identity", "sift"])
+
+
+def test_a_float_image_with_a_few_values_above_one_stays_on_the_unit_scale():
+    """One pixel at 1.01 (a sharpening's overshoot, a linear image's highlight) made the whole
+    float image read on the 0..255 scale: black, "flat". A few values above 1 are clipped now;
+    an image whose values mostly exceed 1 is still on 0..255."""
+    from stnh_tf.data import sources
+
+    unit = np.random.default_rng(0).random((60, 80))
+    expected = np.rint(unit * 255).astype(np.uint8)
+    over = unit.copy()
+    over[0, 0] = 1.01
+    got = sources.to_gray_uint8(over)
+    assert got[0, 0] == 255 and np.array_equal(got.ravel()[1:], expected.ravel()[1:])
+    assert np.array_equal(sources.to_gray_uint8(unit * 255.0), expected)
+
+
+def test_a_16_bit_alpha_channel_is_on_the_images_full_scale():
+    """A 16-bit alpha of 16384 (25%) on full-range colour was scaled by its own bit depth
+    (32767: 50%), twice as bright as the same image in 8 bits; scaled like the colour now."""
+    from stnh_tf.data import sources
+
+    colour = np.full((4, 4, 3), 65535, np.uint16)
+    alpha = np.full((4, 4, 1), 16384, np.uint16)
+    got = sources.to_gray_uint8(np.concatenate([colour, alpha], axis=2))
+    assert np.all(got == np.rint(255 * 16384 / 65535))  # 64, as RGBA8 with alpha 64 gives
+    eight = np.concatenate([np.full((4, 4, 3), 255, np.uint8), np.full((4, 4, 1), 64, np.uint8)],
+                           axis=2)
+    assert np.array_equal(sources.to_gray_uint8(eight), got)
+
+
+def test_the_demo_keeps_a_results_json_it_did_not_write(tmp_path):
+    """``demo --output_dir=D`` wrote its ``results.json`` over any file of that name (a
+    reproduction's own, by a mistyped folder); refused before any work now."""
+    from stnh_tf.paper import demo
+
+    out = tmp_path / "repro"
+    out.mkdir()
+    (out / "results.json").write_text(json.dumps({"budget": "cpu", "table1": {}}))
+    with pytest.raises(FileExistsError, match="not an earlier result of demo"):
+        demo.run_demo(str(out), samples_per_image=1, examples=1, printer=QUIET)
+    assert json.loads((out / "results.json").read_text()) == {"budget": "cpu", "table1": {}}
+    assert os.listdir(out) == ["results.json"]
+
+
+@pytest.mark.slow  # (the demo's whole evaluation, about 20 s)
+def test_the_demo_without_examples_draws_no_figure_and_writes_its_results(tmp_path):
+    """``demo --examples=0`` (the flag's lower bound) died after the whole evaluation (a figure
+    of no columns) and wrote no ``results.json``."""
+    from stnh_tf.paper import demo
+
+    result = demo.run_demo(str(tmp_path / "out"), samples_per_image=1, examples=0, printer=QUIET)
+    assert result["figure"] is None
+    saved = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert saved["written_by"] == "demo" and saved["num_pairs"] == result["num_pairs"] > 0
+
+
+def test_the_overlay_of_images_wider_than_opencv_warps_is_drawn_smaller():
+    """``predict`` on images 32,767 px or more on a side ended in a ``cv2.error`` traceback
+    (``cv2.warpPerspective`` warps below SHRT_MAX) after the estimate, writing nothing. The
+    overlay draws them at a long side of 4096 px; the border quad stays in the images' own
+    pixels (OpenCV's ``perspectiveTransform`` of image_b's corners) and the aligned overlap
+    blends to gray."""
+    import cv2
+
+    from stnh_tf.inference import overlays
+
+    rng = np.random.default_rng(0)
+    row = cv2.GaussianBlur(rng.random((1, 33200)).astype(np.float32), (0, 0), 20)
+    wide = np.repeat(np.uint8(255 * (row - row.min()) / np.ptp(row)), 64, axis=0)
+    image_a, image_b = wide[:, :33000], wide[:, 100:33100]  # b(x) = a(x + 100)
+    a_from_b = np.array([[1.0, 0, 100], [0, 1, 0], [0, 0, 1]])
+    colour = [cv2.cvtColor(im, cv2.COLOR_GRAY2BGR) for im in (image_a, image_b)]
+    panels, quad = overlays.overlay(*colour, a_from_b)
+    corners = np.float64([[0, 0], [32999, 0], [32999, 63], [0, 63]])
+    np.testing.assert_allclose(quad, cv2.perspectiveTransform(corners[None], a_from_b)[0])
+    assert panels.shape[1] <= 2 * (overlays.OVERLAY_MAX_SIDE + 8)
+    blend = panels[-2:, overlays.OVERLAY_MAX_SIDE + 8 + 200:-200]  # right panel, bottom rows
+    assert np.abs(blend[..., 0].astype(int) - blend[..., 1]).mean() < 3
+
+
+def test_an_infinite_corner_shift_is_null_in_predicts_json():
+    """``max_corner_shift_px`` was written with ``float()``: a corner mapped to infinity gave
+    ``Infinity``, which strict JSON readers refuse (the fields beside it write null)."""
+    import dataclasses
+
+    from conftest import constant_stage
+    from stnh_tf.inference import HomographyEstimator, image_files
+    from stnh_tf.inference.options import EstimateOptions
+
+    estimator = HomographyEstimator([constant_stage(np.eye(3), "results_id")])
+    a = np.random.default_rng(0).integers(0, 256, (240, 320), np.uint8)
+    made = estimator.estimate_images_with_info(a, a, EstimateOptions.network_only())
+    estimate = dataclasses.replace(made, max_corner_shift_px=np.array([np.inf]))
+    doc = image_files._estimate_json(estimate, (240, 320), np.zeros((4, 2)))
+    assert doc["max_corner_shift_px"] is None
+    json.dumps(doc, allow_nan=False)
+
+
+def test_the_commit_is_recorded_only_from_this_projects_own_checkout(tmp_path):
+    """``git_commit`` ran git in the package's parent folder and took whatever repository held
+    it: a copy of the package inside another repository (or installed into a virtual
+    environment inside a checkout) recorded that repository's commit. ``None`` there now; this
+    checkout still records its own (``git rev-parse --short HEAD``)."""
+    import shutil
+
+    repo = tmp_path / "other"
+    (repo / "vendor").mkdir(parents=True)
+    git = lambda *a: subprocess.run(["git", *a], cwd=repo, check=True,  # noqa: E731
+                                    capture_output=True, text=True).stdout.strip()
+    git("init", "-q")
+    (repo / "README").write_text("other\n")
+    (repo / ".gitignore").write_text("vendor/\n")
+    git("add", "README", ".gitignore")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "other")
+    shutil.copytree(os.path.join(ROOT, "stnh_tf"), repo / "vendor" / "stnh_tf",
+                    ignore=shutil.ignore_patterns("weights", "__pycache__"))
+    code = "from stnh_tf import provenance; print(provenance.git_commit())"
+    got = subprocess.run([sys.executable, "-c", code], cwd=repo / "vendor", capture_output=True,
+                         text=True, env={**os.environ, "PYTHONPATH": str(repo / "vendor")})
+    assert got.stdout.strip() == "None", (got.stdout, got.stderr[-2000:])
+    own = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                         text=True).stdout.strip()
+    from stnh_tf import provenance
+
+    assert provenance.git_commit().split("+")[0] == own
+
+
+def test_the_reproductions_latency_is_measured_again_for_another_precision(tmp_path,
+                                                                          monkeypatch):
+    """``Reproduction.latency`` returned any ``eval/latency.json`` there, whatever precision,
+    runs or machine measured it, and recorded no provenance, so ``results.json`` credited the
+    numbers to its own run's machine. The cache is reused only for the same runs, warm-up,
+    precision and models now, and carries where and under what load it was measured."""
+    from stnh_tf.paper import reproduce, table2
+
+    calls = []
+
+    def fake_measure(stage_dirs, runs, warmup, policy):
+        calls.append(policy)
+        return {"hierarchy": {"1": {"d_e_ms": 5.0}}, "sequence": {}, "policy": policy}
+
+    monkeypatch.setattr(table2, "measure", fake_measure)
+    run = reproduce.Reproduction(reproduce.BUDGETS["tiny"], str(tmp_path / "out"),
+                                 printer=QUIET)
+    (tmp_path / "out" / "eval").mkdir(parents=True, exist_ok=True)
+    (tmp_path / "out" / "eval" / "latency.json").write_text(json.dumps(
+        {"hierarchy": {"1": {"d_e_ms": 99.0}}, "sequence": {}, "policy": "mixed_bfloat16"}))
+    got = run.latency([])
+    want = table2.policy(reproduce.BUDGETS["tiny"].mixed_precision)
+    assert calls == [want] and got["hierarchy"]["1"]["d_e_ms"] == 5.0
+    fields = table2.results_fields(got)
+    assert fields["table2_latency_ms"] == {"1": 5.0}
+    assert fields["latency_provenance"]["policy"] == want and "loadavg_at_start" in fields[
+        "latency_provenance"]
+    assert run.latency([])["hierarchy"]["1"]["d_e_ms"] == 5.0 and calls == [want]  # reused
+
+
+def test_a_hierarchy_of_stages_from_different_runs_is_noted(tmp_path):
+    """``evaluate --model_dir=runA,runB`` with runB's stage 2 trained on pairs made by another
+    stage-1 model than runA's gave the hierarchy's numbers without a word; a note says so now
+    (the training data's recorded ``model_sha256`` against stage 1's file), and none where the
+    stage 1 is the one its pairs were made with."""
+    import hashlib
+
+    from stnh_tf.data import stage1
+    from stnh_tf.evaluation import mace
+    from stnh_tf.training import run_dir
+    from stnh_tf.training.config import TrainConfig
+
+    data = str(tmp_path / "stage2_data")
+    stage1.make_dataset("bundled", data, "train", seed=0, num_shards=1, max_images=1,
+                        samples_per_image=1, log=QUIET)
+    made_with, other = tmp_path / "made_with.keras", tmp_path / "other.keras"
+    made_with.write_bytes(b"model that made the pairs")
+    other.write_bytes(b"another stage 1")
+    meta_path = os.path.join(data, "metadata.json")
+    meta = json.load(open(meta_path))
+    meta["splits"]["train"]["model_sha256"] = hashlib.sha256(made_with.read_bytes()).hexdigest()
+    json.dump(meta, open(meta_path, "w"))
+    run2 = str(tmp_path / "run2")
+    run_dir.prepare_model_dir(TrainConfig(model_dir=run2, data_dir=data, stage=2))
+    notes = mace.stage_notes([str(other), run2], 1, data)
+    assert len(notes) == 1 and "trained on pairs made by another model than its stage 1" in notes[0]
+    assert mace.stage_notes([str(made_with), run2], 1, data) == []

@@ -13,8 +13,9 @@ Every source image becomes ``uint8 [240, 320]`` (height, width) through :func:`l
 * 16-bit and other wide integer images scaled to 8 bits by the bit depth their values use
   (``round(v * 255 / (2^b - 1))``, ``b`` the fewest bits, 8 to 16, that hold the image's largest
   value: :func:`integer_full_scale`; a 16-bit file holding 0..255 reads as the 8-bit image, 12-bit
-  data by 255/4095, full-range data by 255/65535), float images taken as ``[0, 1]`` when their
-  maximum is <= 1 (else ``[0, 255]``), booleans as 0/255;
+  data by 255/4095, full-range data by 255/65535), float images taken as ``[0, 1]`` (clipped)
+  when at most 1% of their values exceed 1 (highlights of a linear image, a sharpening's
+  overshoot; else ``[0, 255]``), booleans as 0/255;
 * colour (BGR/RGB, palette expanded, CMYK converted by the decoder) to gray with the ITU-R 601
   weights ``0.299 R + 0.587 G + 0.114 B`` (``cv2.COLOR_BGR2GRAY``);
 * an alpha channel is composited onto black (``gray * alpha``), so that hidden colour values of
@@ -49,6 +50,9 @@ RESIZE_POLICY = "cv2.INTER_AREA if both sides shrink else cv2.INTER_LINEAR"
 GRAY_POLICY = ("ITU-R 601 luma (cv2 BGR2GRAY; JPEG decoded to gray by libjpeg), 16-bit scaled by "
                "255/(2^b - 1), b the fewest bits (8 to 16) that hold its largest value, alpha "
                "composited onto black, EXIF orientation ignored")
+
+FLOAT_OVER_ONE = 0.01
+"""A float image is on ``[0, 1]`` where at most this share of its values exceed 1."""
 
 _JPEG_MAGIC = b"\xff\xd8"
 
@@ -274,8 +278,11 @@ def to_gray_uint8(image: np.ndarray, channel_order: str = "bgr") -> np.ndarray:
         b, g, r = (gray[..., 0], gray[..., 1], gray[..., 2]) if channel_order == "bgr" else \
             (gray[..., 2], gray[..., 1], gray[..., 0])
         gray = 0.299 * r + 0.587 * g + 0.114 * b
-    if alpha is not None:
-        gray = gray * _unit_float(alpha)
+    if alpha is not None:  # (integer alpha on the colour's full scale or its own, the larger)
+        gray = gray * (_unit_float(alpha) if not np.issubdtype(alpha.dtype, np.integer)
+                       or alpha.dtype == np.uint8 else
+                       np.clip(alpha.astype(np.float64), 0, 65535.0)
+                       / max(integer_full_scale(img), integer_full_scale(alpha)))
     return pixels.to_uint8(gray)
 
 
@@ -296,9 +303,10 @@ def _unit_float(img: np.ndarray) -> np.ndarray:
     if np.issubdtype(img.dtype, np.integer):
         # 16-bit (uint16, or Pillow's int32 mode "I" holding 16-bit data)
         return np.clip(img.astype(np.float64), 0, 65535.0) / integer_full_scale(img)
-    if np.issubdtype(img.dtype, np.floating):
+    if np.issubdtype(img.dtype, np.floating):  # (a few values above 1: highlights, sharpening)
         f = np.nan_to_num(img.astype(np.float64))
-        return np.clip(f if f.size == 0 or f.max() <= 1.0 else f / 255.0, 0.0, 1.0)
+        return np.clip(f if np.count_nonzero(f > 1.0) <= FLOAT_OVER_ONE * f.size else f / 255.0,
+                       0.0, 1.0)
     raise ImageDecodeError(f"unsupported pixel type {img.dtype}")
 
 

@@ -173,6 +173,26 @@ def stage_notes(model_dirs, data_stage: int, data_dir: str) -> list:
                 f"note: {model_dir}, stage {k} of the hierarchy, was trained as stage {stage} "
                 f"({record}): the hierarchy's stage {k} is meant to be a stage-{k} model, "
                 f"trained on the pairs its stages 1..{k - 1} leave.")
+    notes += lineage_notes(model_dirs) if len(model_dirs) > 1 else []
+    return notes
+
+
+def lineage_notes(model_dirs) -> list:
+    """One line per stage k >= 2 of a hierarchy trained on pairs made by another model than the
+    hierarchy's stage k-1 (its data's recorded ``model_sha256`` against that file's own:
+    :func:`stnh_tf.training.run_records.data_model_sha256`; not judged where unrecorded)."""
+    from stnh_tf.paths import file_sha256
+    from stnh_tf.training import run_dir, run_records
+
+    notes = []
+    for k in range(2, len(model_dirs) + 1):
+        made_with = run_records.data_model_sha256(model_dirs[k - 1])
+        before = model_dirs[k - 2]
+        before = os.path.join(before, run_dir.FINAL_MODEL) if os.path.isdir(before) else before
+        if made_with and os.path.isfile(before) and file_sha256(before) != made_with:
+            notes.append(f"note: {model_dirs[k - 1]}, stage {k} of the hierarchy, was trained on "
+                         f"pairs made by another model than its stage {k - 1} ({before}): the "
+                         "stages come from different runs.")
     return notes
 
 

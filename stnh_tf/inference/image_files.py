@@ -194,7 +194,7 @@ def _estimate_json(estimate, shape_b, quad) -> dict:
             "coarse": used.coarse, "features": used.features, "verify": used.verify,
             # the numbers of the checks (predict's --thresholds)
             "thresholds": used.to_json()["thresholds"],
-            "max_corner_shift_px": float(estimate.max_corner_shift_px[0]),
+            "max_corner_shift_px": _finite_or_none(estimate.max_corner_shift_px[0]),
             "alignment_ncc": ncc if np.isfinite(ncc) else None,
             # how far the steps beyond the network moved its own estimate (work image's corners)
             "network_homography": np.asarray(estimate.network_homography[0],

@@ -15,6 +15,8 @@ OVERLAY_CAPTIONS = ("image_a; green: image_b's border mapped into it",
 :func:`caption_lines`)."""
 CAPTION_MARGIN = 4
 """Pixels left free on each side of a caption line."""
+OVERLAY_MAX_SIDE = 4096
+"""The overlay draws larger images at this long side (px)."""
 MIN_PANEL_WIDTH = 240
 """Panels narrower than this are enlarged (nearest neighbour, an integer factor) before their
 caption is drawn, so that the caption stays legible (images down to 20 x 15 px are accepted)."""
@@ -177,26 +179,51 @@ def overlay(image_a, image_b, h_ba, gray_a=None, gray_b=None):
     Each caption is wrapped to its panel's width (:func:`caption_lines`), a panel narrower than
     :data:`MIN_PANEL_WIDTH` enlarged first. Returns ``(panels, quad)``, ``quad`` the ``[4, 2]``
     corners of image_b in image_a, NaN for a corner beyond image_a's horizon
-    (:func:`border_polygon`)."""
+    (:func:`border_polygon`), in the images' own pixels; images with a side above
+    :data:`OVERLAY_MAX_SIDE` are drawn at that long side (OpenCV warps below 32,767 px)."""
     import cv2
 
-    (ha, wa), (hb, wb) = image_a.shape[:2], image_b.shape[:2]
     if gray_a is None:
         gray_a = cv2.cvtColor(image_a, cv2.COLOR_BGR2GRAY)
     if gray_b is None:
         gray_b = cv2.cvtColor(image_b, cv2.COLOR_BGR2GRAY)
-    warped_a = cv2.warpPerspective(gray_a, h_ba, (wb, hb),
+    h64 = np.asarray(h_ba, np.float64)
+    hb, wb = image_b.shape[:2]
+    quad = points_in_a(h64, np.array([[0, 0], [wb - 1, 0], [wb - 1, hb - 1], [0, hb - 1]],
+                                     np.float64))
+    scales = [min(1.0, OVERLAY_MAX_SIDE / max(im.shape[:2])) for im in (image_a, image_b)]
+    if min(scales) < 1:  # a_small = S_a a, b_small = S_b b: H' = S_a H S_b^-1
+        image_a, gray_a = (_shrunk(im, scales[0]) for im in (image_a, gray_a))
+        image_b, gray_b = (_shrunk(im, scales[1]) for im in (image_b, gray_b))
+        h64 = np.diag([scales[0], scales[0], 1.0]) @ h64 @ np.diag(
+            [1 / scales[1], 1 / scales[1], 1.0])
+    return _panels(image_a, image_b, h64, gray_a, gray_b), quad
+
+
+def _shrunk(image, factor: float):
+    """``image`` resized by ``factor`` (<= 1; ``cv2.INTER_AREA``)."""
+    import cv2
+
+    if factor == 1:
+        return image
+    size = (max(1, round(image.shape[1] * factor)), max(1, round(image.shape[0] * factor)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+def _panels(image_a, image_b, h64, gray_a, gray_b):
+    """:func:`overlay`'s drawing, at the images' size."""
+    import cv2
+
+    (ha, wa), (hb, wb) = image_a.shape[:2], image_b.shape[:2]
+    warped_a = cv2.warpPerspective(gray_a, h64, (wb, hb),
                                    flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
-    valid = cv2.warpPerspective(np.ones((ha, wa), np.uint8), h_ba, (wb, hb),
+    valid = cv2.warpPerspective(np.ones((ha, wa), np.uint8), h64, (wb, hb),
                                 flags=cv2.WARP_INVERSE_MAP | cv2.INTER_NEAREST) > 0
     ys, xs = np.mgrid[:hb, :wb]
-    h64 = np.asarray(h_ba, np.float64)
     valid &= xs * h64[2, 0] + ys * h64[2, 1] + h64[2, 2] > IN_FRONT  # not the mirrored image
     warped_a = matched_brightness(warped_a, gray_b, valid)
     blend = np.stack([warped_a, gray_b, warped_a], axis=-1)  # BGR: a -> magenta, b -> green
     left = image_a.copy()
-    border_b = np.array([[0, 0], [wb - 1, 0], [wb - 1, hb - 1], [0, hb - 1]], np.float64)
-    quad = points_in_a(h64, border_b)
     thickness = max(1, round(max(wa, ha) / 300))
     drawn = border_polygon(h64, (wb, hb))
     if len(drawn):
@@ -212,4 +239,4 @@ def overlay(image_a, image_b, h_ba, gray_a=None, gray_b=None):
     height = max(p.shape[0] for p in panels)
     panels = [cv2.copyMakeBorder(p, 0, height - p.shape[0], 0, 8, cv2.BORDER_CONSTANT, value=0)
               for p in panels]
-    return np.concatenate(panels, axis=1), quad
+    return np.concatenate(panels, axis=1)

@@ -9,7 +9,6 @@ from __future__ import annotations
 import os
 import time
 
-from stnh_tf.paths import atomic_write_json
 
 
 def self_check(seed: int = 0, num_pairs: int = 8) -> dict:
@@ -77,7 +76,9 @@ def shipped_models() -> dict:
 def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, examples: int = 4,
              printer=print) -> dict:
     """Run the demo into ``output_dir`` (its test pairs are made once and reused); prints the
-    table through ``printer``; returns the result, also written to ``results.json``."""
+    table through ``printer``; returns the result, also written to ``results.json`` (an existing
+    one must be an earlier demo's: :func:`stnh_tf.evaluation.summaries.check_json_out`;
+    ``OSError`` before any work otherwise). ``examples=0``: no figure."""
     import numpy as np
 
     from stnh_tf.data import stage1
@@ -88,8 +89,11 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
     from stnh_tf.modeling import runner
     from stnh_tf.evaluation.baselines import FIGURE_BASELINES
 
+    from stnh_tf.evaluation import summaries
+
     t_start = time.time()
-    os.makedirs(output_dir, exist_ok=True)
+    results_json = os.path.join(output_dir, "results.json")
+    summaries.check_json_out(results_json, "demo")  # (a reproduction's results.json, say)
     check = self_check(seed)
     printer(f"conventions vs OpenCV: {'ok' if check['ok'] else 'FAILED'} "
             f"(STN mean abs diff {check['stn_vs_opencv_mean_abs_gray_levels']:.3f} gray levels)")
@@ -144,7 +148,7 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
         printer(f"{name:<36} {r['mace']:8.2f} {r['median']:8.2f} {fails:>6} "
                 f"{r['ms_per_pair']:8.2f}")
     png = None
-    if predictions:
+    if predictions and examples:
         best = min(predictions, key=lambda k: rows[k]["mace"])
         idx = np.linspace(0, n - 1, min(examples, n)).astype(int)
         png = figures.prediction_examples(
@@ -154,5 +158,5 @@ def run_demo(output_dir: str, seed: int = 0, samples_per_image: int = 3, example
         printer(f"\nFig. 5-style examples ({best}): {png}")
     result = {"conventions": check, "num_pairs": n, "seed": seed, "methods": rows, "figure": png,
               "wall_s": time.time() - t_start}
-    atomic_write_json(os.path.join(output_dir, "results.json"), result, sort_keys=False)
+    summaries.write_json_out(result, results_json, "demo", sort_keys=False)
     return result

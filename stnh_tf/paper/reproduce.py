@@ -25,7 +25,6 @@ whether the run is assembled from reused ones (:mod:`stnh_tf.paper.model_provena
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import shutil
 import time
@@ -361,17 +360,14 @@ class Reproduction:
         return result
 
     def latency(self, stage_dirs) -> dict:
-        """Table 2 of ``stage_dirs`` at the budget's runs, warm-up and precision
-        (:func:`stnh_tf.paper.table2.measure`), cached in ``eval/latency.json``."""
-        path = os.path.join(self.out, "eval", "latency.json")
-        if os.path.exists(path):
-            with open(path) as f:
-                return json.load(f)
+        """Table 2 of ``stage_dirs`` at the budget's runs, warm-up and precision, with where
+        and under what load it was measured (:func:`stnh_tf.paper.table2.cached`, in
+        ``eval/latency.json``: reused only for the same runs, warm-up, precision and models)."""
         b = self.budget
-        result = self._timed("latency", lambda: table2.measure(
-            stage_dirs, b.latency_runs, b.latency_warmup, table2.policy(b.mixed_precision)))
-        atomic_write_json(path, result)
-        return result
+        os.makedirs(os.path.join(self.out, "eval"), exist_ok=True)
+        return table2.cached(os.path.join(self.out, "eval", "latency.json"), stage_dirs,
+                             b.latency_runs, b.latency_warmup, table2.policy(b.mixed_precision),
+                             lambda f: self._timed("latency", f))
 
     # -- the whole run --------------------------------------------------------------------------
     def run(self) -> dict:

@@ -44,6 +44,44 @@ def measure(stage_dirs, runs: int, warmup: int, dtype_policy: str) -> dict:
     return result
 
 
+def measured(stage_dirs, runs: int, warmup: int, dtype_policy: str, models: str,
+             timed=lambda f: f()) -> dict:
+    """:func:`measure` (run through ``timed``) with its ``provenance``: ``commit``, ``machine``
+    (``{"cpu", "cores", "accelerators"}``), ``backend`` and ``command``
+    (:func:`stnh_tf.provenance.machine_info`), ``date`` (UTC, the measurement's start),
+    ``loadavg_at_start`` and ``loadavg_at_end`` (``None`` where the OS has none), ``models``
+    (what was timed, in words), ``policy``, ``runs``, ``warmup`` and ``versions``."""
+    date, load_start = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), load_average()
+    latency = timed(lambda: measure(stage_dirs, runs, warmup, dtype_policy))
+    load_end, info = load_average(), machine_info()
+    return {**latency, "provenance": {
+        "commit": info.get("git_commit") or NOT_RECORDED, "machine": machine_summary(info),
+        "backend": info.get("keras_backend") or NOT_RECORDED, "date": date,
+        "loadavg_at_start": load_start, "loadavg_at_end": load_end,
+        "command": info.get("command"), "models": models,
+        "policy": latency["policy"], "runs": runs, "warmup": warmup,
+        "versions": {k: info[k] for k in ("platform", "python", "numpy", "opencv", "tensorflow",
+                                          "jax", "keras", "stnh_tf") if k in info}}}
+
+
+def cached(path: str, stage_dirs, runs: int, warmup: int, dtype_policy: str,
+           timed=lambda f: f()) -> dict:
+    """:func:`measured` of ``stage_dirs`` (a reproduction's own stage models), kept at ``path``
+    and read back only where it was measured with these runs, warm-up, policy and models (its
+    ``cache_key``); one of another precision, or without the key, is measured again."""
+    key = {"policy": dtype_policy, "runs": runs, "warmup": warmup,
+           "models": [os.path.abspath(d) for d in stage_dirs]}
+    if os.path.exists(path):
+        with open(path) as f:
+            doc = json.load(f)
+        if isinstance(doc, dict) and doc.get("cache_key") == key:
+            return doc
+    doc = {**measured(stage_dirs, runs, warmup, dtype_policy, "this reproduction's stage "
+                      "models", timed), "cache_key": key}
+    atomic_write_json(path, doc)
+    return doc
+
+
 def results_fields(latency: dict) -> dict:
     """``results.json``'s Table 2 keys from :func:`measure`'s result: ``table2_latency_ms`` (each
     number of stages' end-to-end ``d_e``) and ``sequence_latency_ms`` (each sequence model's
@@ -102,11 +140,8 @@ def refresh(output_dir: str, printer=print) -> dict:
     - ``results.json``: :data:`REFRESHED_KEYS` replaced, every other key and the file's layout
       (key order, indentation, final newline or none) as they were.
 
-    ``latency_provenance`` holds ``commit``, ``machine`` (``{"cpu", "cores", "accelerators"}``),
-    ``backend`` and ``command`` (:func:`stnh_tf.provenance.machine_info`), ``date`` (UTC, the
-    measurement's start), ``loadavg_at_start`` and ``loadavg_at_end`` (1-, 5- and 15-minute
-    load averages just before and just after the measurement; ``None`` where the OS has none),
-    ``models``, ``policy``, ``runs``, ``warmup`` and ``versions``.
+    ``latency_provenance`` is :func:`measured`'s ``provenance`` (the load averages: 1-, 5- and
+    15-minute, just before and just after the measurement).
 
     Returns:
       The ``results.json`` written.
@@ -122,19 +157,10 @@ def refresh(output_dir: str, printer=print) -> dict:
     runs, warmup = int(budget["latency_runs"]), int(budget["latency_warmup"])
     printer(f"[latency] {path}: Table 2 again, {runs} runs after {warmup} warm-up, "
             f"{dtype_policy}, untrained models")
-    date, load_start = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), load_average()
-    latency = measure((), runs, warmup, dtype_policy)
-    load_end, info = load_average(), machine_info()
-    provenance = {
-        "commit": info.get("git_commit") or NOT_RECORDED, "machine": machine_summary(info),
-        "backend": info.get("keras_backend") or NOT_RECORDED, "date": date,
-        "loadavg_at_start": load_start, "loadavg_at_end": load_end,
-        "command": info.get("command"),
-        "models": f"untrained, built under {dtype_policy} (latency does not depend on the "
-                  "weights)",
-        "policy": latency["policy"], "runs": runs, "warmup": warmup,
-        "versions": {k: info[k] for k in ("platform", "python", "numpy", "opencv", "tensorflow",
-                                          "jax", "keras", "stnh_tf") if k in info}}
+    latency = measured((), runs, warmup, dtype_policy, f"untrained, built under {dtype_policy} "
+                       "(latency does not depend on the weights)")
+    provenance = latency.pop("provenance")
+    load_start, load_end = provenance["loadavg_at_start"], provenance["loadavg_at_end"]
     written = dict(result)  # (the replaced keys keep their place; new ones go last)
     written.update(results_fields(latency), latency_provenance=provenance)
     os.makedirs(os.path.join(output_dir, "eval"), exist_ok=True)

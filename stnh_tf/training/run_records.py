@@ -50,3 +50,23 @@ def trained_stage(model) -> tuple[int, str] | None:
         return None
     stage = doc.get("stage", 1)
     return (stage, record) if isinstance(stage, int) and not isinstance(stage, bool) else None
+
+
+def data_model_sha256(model) -> str | None:
+    """The sha256 of the stage-(k-1) model the training pairs of the model ``model`` were made
+    with: its run's ``config.json`` (:func:`trained_stage`'s record) names its ``data_dir``,
+    whose train split records ``model_sha256`` (:func:`stnh_tf.data.stage_k.made_from`).
+    ``None`` where any of these is not recorded or no longer there (stage-1 pairs included)."""
+    from stnh_tf.data import metadata
+
+    found = trained_stage(model)
+    try:
+        config = read_json(found[1], "model record") if found else None
+        data_dir = config.get("data_dir") if isinstance(config, dict) else None
+        if not isinstance(data_dir, str) or not os.path.isdir(data_dir):
+            return None
+        train = metadata.read_metadata_file(data_dir).get("splits", {}).get("train", {})
+    except ValueError:
+        return None
+    digest = train.get("model_sha256") if isinstance(train, dict) else None
+    return digest if isinstance(digest, str) else None
