@@ -26,9 +26,10 @@ flags_common.define_max_images()
 flags.DEFINE_integer("repeat", 0, "Use the image list this many times as distinct items "
                      "(0 = enough for about 1,500 samples), so the timing is not all start-up.")
 flags.DEFINE_list("workers", ["1", "2"], "Worker counts to time.")
-flags.DEFINE_integer("num_shards", 8, "Shards written.")
-flags.DEFINE_integer("batch_size", 64, "Read batch size.")
-flags.DEFINE_integer("read_batches", 200, "Batches timed when reading (after 10 warm-up).")
+flags.DEFINE_integer("num_shards", 8, "Shards written.", lower_bound=1)
+flags.DEFINE_integer("batch_size", 64, "Read batch size.", lower_bound=1)
+flags.DEFINE_integer("read_batches", 200, "Batches timed when reading (after 10 warm-up).",
+                     lower_bound=1)
 flags.DEFINE_integer("resume_skip_batches", 0, "Also time resuming the stream at this batch "
                      "(0: not timed).")
 flags_common.define_seed("Generation seed.")
@@ -41,10 +42,12 @@ def main(argv):
     del argv
     with common.user_errors("benchmark_data"):
         common.check_flags_apart(("json_out",), ("image_dir",))
-    result = benchmark.data_benchmark(
-        FLAGS.source, FLAGS.image_dir, FLAGS.max_images, FLAGS.repeat, FLAGS.workers,
-        FLAGS.num_shards, FLAGS.batch_size, FLAGS.read_batches, FLAGS.resume_skip_batches,
-        FLAGS.seed)
+        if FLAGS.source == "folder" and not FLAGS.image_dir:
+            raise ValueError("--source=folder reads --image_dir: give one.")
+        result = benchmark.data_benchmark(  # (an empty folder, every file unusable: one line)
+            FLAGS.source, FLAGS.image_dir, FLAGS.max_images, FLAGS.repeat, FLAGS.workers,
+            FLAGS.num_shards, FLAGS.batch_size, FLAGS.read_batches, FLAGS.resume_skip_batches,
+            FLAGS.seed)
     common.emit_json(result, FLAGS.json_out)
 
 

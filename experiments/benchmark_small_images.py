@@ -16,7 +16,7 @@ from absl import app, flags
 from experiments import common, flags_common
 
 flags.DEFINE_string("model", None, "Model or hierarchy (default: the shipped weights).")
-flags.DEFINE_integer("pairs", 8, "Photograph pairs per size.")
+flags.DEFINE_integer("pairs", 8, "Photograph pairs per size.", lower_bound=1)
 flags_common.define_seed("Seed of the pairs' warps.")
 flags_common.define_json_out()
 FLAGS = flags.FLAGS

@@ -30,13 +30,15 @@ from stnh_tf.evaluation import benchmarks
 flags.DEFINE_list("image_dir", None, "Folders of training images (comma-separated).",
                   required=True)
 flags.DEFINE_bool("photometric", False, "Photometric change of patch_b in the generated pairs.")
-flags.DEFINE_integer("workers", 2, "Generator processes.")
-flags.DEFINE_integer("samples_per_image", 100, "Pairs per image in one data epoch.")
-flags.DEFINE_integer("batch_size", 64, "Batch size.")
-flags.DEFINE_integer("alone_batches", 100, "Items read from the stream alone.")
+flags.DEFINE_integer("workers", 2, "Generator processes.", lower_bound=1)
+flags.DEFINE_integer("samples_per_image", 100, "Pairs per image in one data epoch.",
+                     lower_bound=1)
+flags.DEFINE_integer("batch_size", 64, "Batch size.", lower_bound=1)
+flags.DEFINE_integer("alone_batches", 100, "Items read from the stream alone.", lower_bound=1)
 flags.DEFINE_list("modes", ["array", "stream", "fresh"], "Inputs to time inside model.fit.")
-flags.DEFINE_integer("steps_per_epoch", 50, "Keras epoch length (training checkpoints each epoch).")
-flags.DEFINE_integer("epochs", 3, "Timed Keras epochs (after one untimed).")
+flags.DEFINE_integer("steps_per_epoch", 50, "Keras epoch length (training checkpoints each epoch).",
+                     lower_bound=1)
+flags.DEFINE_integer("epochs", 3, "Timed Keras epochs (after one untimed).", lower_bound=1)
 flags.DEFINE_bool("mixed_precision", True, "Keras mixed_bfloat16 policy.")
 flags_common.define_seed("Pair and weight seed.")
 flags.DEFINE_list("steps_per_execution", ["1"], "Keras steps_per_execution values to time each "
@@ -51,14 +53,14 @@ flags.adopt_module_key_flags(flags_common)  # --help lists them
 
 def main(argv):
     del argv
-    with common.user_errors("benchmark_stream"):
+    with common.user_errors("benchmark_stream"):  # (SourceError: a ValueError, one line)
         common.check_flags_apart(("json_out",), ("image_dir",))
-    result = benchmarks.stream_benchmark(
-        FLAGS.image_dir, FLAGS.workers, FLAGS.samples_per_image, FLAGS.batch_size,
-        FLAGS.alone_batches, FLAGS.modes, FLAGS.steps_per_epoch, FLAGS.epochs,
-        FLAGS.mixed_precision, FLAGS.seed, FLAGS.photometric,
-        steps_per_execution=[int(k) for k in FLAGS.steps_per_execution],
-        callbacks=FLAGS.callbacks, max_images=FLAGS.max_images)
+        result = benchmarks.stream_benchmark(
+            FLAGS.image_dir, FLAGS.workers, FLAGS.samples_per_image, FLAGS.batch_size,
+            FLAGS.alone_batches, FLAGS.modes, FLAGS.steps_per_epoch, FLAGS.epochs,
+            FLAGS.mixed_precision, FLAGS.seed, FLAGS.photometric,
+            steps_per_execution=[int(k) for k in FLAGS.steps_per_execution],
+            callbacks=FLAGS.callbacks, max_images=FLAGS.max_images)
     common.emit_json(result, FLAGS.json_out)
 
 

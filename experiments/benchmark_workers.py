@@ -4,7 +4,7 @@ of each and the all-reduce of the gradients (``--strategy=data_parallel``, JAX b
 
   python -m experiments.benchmark_workers --batch_size=64 --steps=10 --json_out=/tmp/workers.json
   python -m experiments.benchmark_workers --measure=lost_worker --repeats=2 \
-      --json_out=docs/scale_lost_worker.json
+      --json_out=docs/scale/lost_worker.json
 
 Times, on fixed in-memory batches of bundled pairs (input reading is not timed), with this
 project's model and recipe (the paper's network, losses, SGD), in float32:
@@ -50,15 +50,19 @@ from absl import app, flags
 
 from experiments import common, flags_common
 
-flags.DEFINE_integer("batch_size", 64, "Global batch (split over the processes).")
-flags.DEFINE_integer("steps", 10, "Timed steps per configuration (median reported).")
-flags.DEFINE_integer("warmup", 2, "Untimed steps first (compilation).")
-flags.DEFINE_integer("allreduce_runs", 20, "Timed all-reduces.")
+flags.DEFINE_integer("batch_size", 64, "Global batch (split over the processes).",
+                     lower_bound=1)
+flags.DEFINE_integer("steps", 10, "Timed steps per configuration (median reported).",
+                     lower_bound=1)
+flags.DEFINE_integer("warmup", 2, "Untimed steps first (compilation; at least one: a step's "
+                     "time is between two batch ends).", lower_bound=1)
+flags.DEFINE_integer("allreduce_runs", 20, "Timed all-reduces.", lower_bound=1)
 flags.DEFINE_bool("narrow", False, "The 1/16-width network of the tests (a quick check).")
 flags.DEFINE_enum("measure", "steps", ["steps", "lost_worker"], "steps: the step times of 1 and "
                   "2 processes; lost_worker: kill worker 1 of a two-worker train_stage run, time "
                   "the chief's line and resume with its command, --repeats times.")
-flags.DEFINE_integer("repeats", 2, "lost_worker: how many kills (each then resumed).")
+flags.DEFINE_integer("repeats", 2, "lost_worker: how many kills (each then resumed).",
+                     lower_bound=1)
 flags.DEFINE_enum("role", "parent", ["parent", "worker"], "Internal: parent or worker process.")
 flags.DEFINE_string("spec", "", "Internal: a worker's JSON spec.")
 flags_common.define_json_out()

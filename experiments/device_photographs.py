@@ -264,6 +264,8 @@ def parts(files: list, budget: int, first_extra: int) -> list:
 def plan_calls() -> dict:
     """Write the parts and return the report: the photographs' counts, the tree's size and the
     calls (command, what each carries, its MiB)."""
+    from stnh_tf.data import sources
+
     out = FLAGS.output_dir
     written = clear_output(out)  # what an earlier run wrote, and nothing else
     whole = os.path.join(out, "all")  # the gray coco_mini, written once, then split
@@ -274,12 +276,10 @@ def plan_calls() -> dict:
     source = {}  # path relative to .devdata/ -> the file to copy
     for root, prefix in ((os.path.join(whole, "coco_mini"), "coco_mini"),
                          (FLAGS.extra_dir, "photos_extra")):
-        for d, _, fs in os.walk(root):
-            if prefix == "photos_extra" and d == root:
-                continue  # photos_extra's own README: the photographs are in its folders
-            for f in fs:
-                source[os.path.join(prefix, os.path.relpath(os.path.join(d, f), root))] = (
-                    os.path.join(d, f))
+        # the photographs as the training lists them (sources.scan_image_folder: a link to a
+        # file listed already, a hidden file, a link leading out: not carried twice or at all)
+        for path in sources.scan_image_folder(root).files:
+            source[os.path.join(prefix, os.path.relpath(path, root))] = path
     files = [(rel, os.path.getsize(source[rel])) for rel in sorted(source)]
     tracked = subprocess.run(["git", "ls-files", "-z", "--cached", "--others",  # what travels
                               "--exclude-standard"], cwd=REPO, capture_output=True,

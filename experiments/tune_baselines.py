@@ -30,7 +30,7 @@ from stnh_tf.evaluation import baseline_tuning, summaries
 
 flags.DEFINE_string("image_dir", None, "Folder of photographs (jpg/png). Default: scikit-image's.")
 flags_common.define_max_images()
-flags.DEFINE_integer("num_pairs", 300, "Number of synthetic pairs.")
+flags.DEFINE_integer("num_pairs", 300, "Number of synthetic pairs.", lower_bound=1)
 flags_common.define_seed("Seed of the pair generator.")
 flags.DEFINE_enum("grid", "small", ["none", "small"],
                   "Settings grid: none (registered baselines only) or small.")

@@ -114,7 +114,7 @@ def test_json_out_dash_is_standard_output_only(tmp_path, monkeypatch, capsys):
     assert json.loads(capsys.readouterr().out) == {"a": 1}
     assert os.listdir(tmp_path) == []
     common.emit_json({"a": 2}, "out.json")
-    assert json.loads((tmp_path / "out.json").read_text()) == {"a": 2}
+    assert json.loads((tmp_path / "out.json").read_text())["a"] == 2
 
 
 def test_make_camera_pairs_checks_json_out_before_the_set(photos, tmp_path):
@@ -128,7 +128,7 @@ def test_make_camera_pairs_checks_json_out_before_the_set(photos, tmp_path):
                            "--pairs_per_image=1", f"--json_out={blocker}"],
                           cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
     assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
-    assert "make_camera_pairs:" in proc.stderr and str(blocker) in proc.stderr
+    assert "--json_out" in proc.stderr and f"{str(blocker)!r} is a directory" in proc.stderr
     assert not out.exists()
 
 

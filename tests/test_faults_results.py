@@ -392,3 +392,112 @@ def test_a_hierarchy_of_stages_from_different_runs_is_noted(tmp_path):
     notes = mace.stage_notes([str(other), run2], 1, data)
     assert len(notes) == 1 and "trained on pairs made by another model than its stage 1" in notes[0]
     assert mace.stage_notes([str(made_with), run2], 1, data) == []
+
+
+def test_a_committed_result_from_before_the_key_is_replaced_by_its_own_binary_only(tmp_path):
+    """The results committed before ``written_by`` record the command that wrote them
+    (``machine.command``): BENCHMARKS.md's commands that regenerate them are accepted, another
+    binary is not."""
+    for command, writer in (
+            ("python /work/main/experiments/benchmark_small_images.py --json_out=x.json",
+             "benchmark_small_images"),
+            ("python -m experiments.ablate_estimator --pairs_dirs=S --json_out=x.json",
+             "ablate_estimator")):
+        path = tmp_path / f"{writer}.json"
+        path.write_text(json.dumps({"rows": [], "machine": {"command": command}}))
+        summaries.check_json_out(str(path), writer)
+        with pytest.raises(FileExistsError, match="not an earlier result of evaluate"):
+            summaries.check_json_out(str(path), "evaluate")
+    committed = os.path.join(ROOT, "docs", "small_images.json")
+    summaries.check_json_out(committed, "benchmark_small_images")
+
+
+def test_nested_image_folders_are_refused(tmp_path):
+    """With ``p`` and ``p/sub`` both given, a photograph of ``sub`` was keyed by its path in
+    whichever folder came first: train from ``p,p/sub`` and val from ``p/sub,p`` passed the
+    hold-out check (the same folders) and shared photographs. Refused, naming both."""
+    from stnh_tf.data import sources
+
+    (tmp_path / "p" / "sub").mkdir(parents=True)
+    with pytest.raises(sources.SourceError, match="sub lies inside .*p, also given"):
+        sources.split_folders([str(tmp_path / "p"), str(tmp_path / "p" / "sub")])
+    assert sources.split_folders([str(tmp_path / "p"), str(tmp_path / "p") + "/"])  # the same
+
+
+def _jpeg(path, seed=0):
+    import cv2
+
+    image = np.random.default_rng(seed).integers(0, 256, (40, 50), np.uint8)
+    cv2.imwrite(str(path), image)
+
+
+def test_one_photograph_under_two_names_is_listed_once(tmp_path):
+    """A folder given again through a link to it, and a hard link inside a folder, listed the
+    same photograph twice (duplicates were found by the path only, or by ``realpath``, which a
+    hard link does not share); each is listed once now, the other name left out and named."""
+    from stnh_tf.data import sources
+
+    p = tmp_path / "p"
+    p.mkdir()
+    for k in range(3):
+        _jpeg(p / f"a{k}.jpg", k)
+    os.link(p / "a0.jpg", p / "hard.jpg")
+    os.symlink(p, tmp_path / "plink")
+    one = sources.scan_image_folder(str(p))
+    assert [os.path.basename(f) for f in one.files] == ["a0.jpg", "a1.jpg", "a2.jpg"]
+    assert [(os.path.basename(f), why.split(" as")[0]) for f, why in one.unreadable] == [
+        ("hard.jpg", "the same file (a link)")]
+    both = sources.scan_image_folders([str(p), str(tmp_path / "plink")])
+    assert len(both.files) == 3  # of 8 names: the other 5 named as the same file
+    assert sum(why.startswith(sources.SAME_FILE) for _, why in both.unreadable) == 5
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
+def test_a_named_pipe_in_a_photograph_folder_is_left_out_not_read(tmp_path):
+    """A FIFO named ``z.jpg`` was listed as a photograph and every reader blocked on it
+    (make_dataset, the camera pairs, tune_baselines hung). Left out, named, now."""
+    from stnh_tf.data import sources
+
+    _jpeg(tmp_path / "a.jpg")
+    os.mkfifo(tmp_path / "z.jpg")
+    listing = sources.scan_image_folder(str(tmp_path))
+    assert [os.path.basename(f) for f in listing.files] == ["a.jpg"]
+    assert listing.unreadable == [(str(tmp_path / "z.jpg"), sources.NOT_A_FILE)]
+
+
+def test_a_camera_pair_set_made_again_leaves_a_hard_linked_snapshot_whole(tmp_path):
+    """The set's PNGs were written in place (``open(target, "wb")``): a snapshot made with
+    ``cp -al`` was rewritten through its hard links and no longer matched its own manifest.
+    Each PNG is a new file renamed in now."""
+    import shutil
+
+    from stnh_tf.data import camera_pair_files
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for k in range(2):
+        _jpeg_big = np.random.default_rng(k).integers(0, 256, (240, 320), np.uint8)
+        import cv2
+
+        cv2.imwrite(str(photos / f"p{k}.png"), cv2.GaussianBlur(_jpeg_big, (0, 0), 2))
+    out, snap = tmp_path / "set", tmp_path / "snapshot"
+    camera_pair_files.write_pairs(str(photos), str(out), pairs_per_image=1, seed=0)
+    snap.mkdir()
+    for name in os.listdir(out):
+        os.link(out / name, snap / name)
+    camera_pair_files.write_pairs(str(photos), str(out), pairs_per_image=1, seed=1,
+                                  overwrite=True)
+    camera_pair_files.load_pairs(str(snap))  # its files as its manifest lists them
+    camera_pair_files.load_pairs(str(out))
+    shutil.rmtree(snap)
+
+
+def test_benchmark_flags_that_make_no_measure_are_refused():
+    """``benchmark_workers --warmup=0`` reported a negative step time (first batch end minus
+    last), ``tune_baselines --num_pairs=0`` and ``benchmark_stream --epochs=0`` failed after
+    their setup: refused at the flags now."""
+    for binary, flag in (("benchmark_workers", "--warmup=0"), ("tune_baselines", "--num_pairs=0"),
+                         ("benchmark_stream", "--epochs=0")):
+        proc = _run(f"experiments.{binary}", flag)
+        assert proc.returncode != 0 and f"flag {flag}: 0 is not a positive integer" in \
+            proc.stderr, proc.stderr[-2000:]

@@ -29,7 +29,7 @@ from stnh_tf.data.folder_counts import FolderCounts, no_photograph_message
 from stnh_tf.data.image_checks import ImageTooSmallError
 from stnh_tf.data.camera_motions import (GROUPS, MARGIN, MOTION_SETS, SOURCE_SIZE,
                                          TRAINED_OFFSET, CameraPair, Degradation, MotionRanges)
-from stnh_tf.paths import atomic_write_json, check_apart, inside
+from stnh_tf.paths import atomic_write_bytes, atomic_write_json, check_apart, inside
 
 FORMAT = "stnh_tf.camera_pairs"
 VERSION = 2  # 2: each pair's "sha256" of its PNG files, and "complete"
@@ -198,11 +198,8 @@ def write_pairs(image_dir, output_dir, pairs_per_image: int = 3, seed: int = 0,
             names, sha256 = (f"{p.index:05d}_a.png", f"{p.index:05d}_b.png"), []
             for name, image in zip(names, (p.image_a, p.image_b)):
                 data = cv2.imencode(".png", image)[1].tobytes()
-                target = os.path.join(output_dir, name)
-                if os.path.islink(target):  # (the link goes, never the file it points to)
-                    os.remove(target)
-                with open(target, "wb") as f:
-                    f.write(data)
+                # a new file renamed in: a link goes, a hard-linked copy (a snapshot) stays
+                atomic_write_bytes(os.path.join(output_dir, name), data)
                 sha256.append(_sha256(data))
             records.append({"index": p.index, "image_a": names[0], "image_b": names[1],
                             "sha256": sha256, "image_id": p.image_id, "group": p.group,

@@ -26,6 +26,8 @@ def repeated_items(source, image_dir, max_images, repeat, samples_per_image=3):
         base, _, _ = stage1.folder_items(image_dir, max_images)
     else:
         base, _, _ = stage1.bundled_items(max_images)
+    if not base:
+        raise ValueError(f"no photograph to benchmark in {image_dir or 'the bundled set'}.")
     if repeat <= 0:
         repeat = max(1, -(-1500 // (len(base) * samples_per_image)))
     items = [writer.WorkItem(r * len(base) + it.index, f"{it.item_id}#{r}", it.payload)

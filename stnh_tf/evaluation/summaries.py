@@ -94,16 +94,20 @@ WRITTEN_BY = "written_by"
 def writer_name() -> str:
     """The running binary's name (``evaluate`` for ``python -m experiments.evaluate``), the
     writer :func:`check_json_out` and :func:`emit` default to."""
-    return os.path.splitext(os.path.basename(sys.argv[0] if sys.argv else ""))[0] or "python"
+    script = sys.argv[0] if sys.argv else ""
+    name = os.path.splitext(os.path.basename(script))[0]
+    if name == "__main__":  # python -m package: the package's name
+        name = os.path.basename(os.path.dirname(script))
+    return name or "python"
 
 
 def check_json_out(json_out, writer: str | None = None, make_folder: bool = True) -> None:
     """Before the work: ``json_out``'s folder is made (unless ``make_folder`` is False) and
     proved writable (:func:`stnh_tf.paths.check_output_file`, which also refuses the project's
     records), and an existing, non-blank file there must be an earlier result of the same
-    binary: a JSON object whose :data:`WRITTEN_BY` is ``writer`` (default :func:`writer_name`).
-    Anything else (a document, another tool's JSON, a run's state, a result written before the
-    key existed) is refused: remove it first or choose another path. Nothing for ``None`` or
+    binary: a JSON object that ``writer`` (default :func:`writer_name`) wrote
+    (:func:`result_writer`). Anything else (a document, another tool's JSON, a run's state, a
+    result that records neither) is refused: remove it first or choose another path. Nothing for ``None`` or
     ``"-"``. Raises ``OSError`` naming the path.
 
     >>> check_json_out(None)  # nothing to write
@@ -125,11 +129,32 @@ def check_json_out(json_out, writer: str | None = None, make_folder: bool = True
             except (UnicodeDecodeError, ValueError):
                 raise FileExistsError(f"output file {path!r} exists and is not JSON, which this "
                                       "output would replace; choose another path.") from None
-            if not (isinstance(doc, dict) and doc.get(WRITTEN_BY) == writer):
+            if not (isinstance(doc, dict) and result_writer(doc) == writer):
                 raise FileExistsError(
                     f"output file {path!r} exists and is not an earlier result of {writer} (its "
                     f"{WRITTEN_BY!r} key), which this output would replace; remove it first or "
                     "choose another path.")
+
+
+def result_writer(doc: dict) -> str | None:
+    """The binary that wrote the JSON result ``doc``: its :data:`WRITTEN_BY`, or for a result
+    written before that key, the script or module its recorded command ran
+    (``machine.command``: ``python .../benchmark_camera_pairs.py ...`` or ``python -m
+    experiments.evaluate ...``); ``None`` where neither says.
+
+    >>> result_writer({"machine": {"command": "python -m experiments.evaluate --json_out=e.json"}})
+    'evaluate'
+    """
+    if isinstance(doc.get(WRITTEN_BY), str):
+        return doc[WRITTEN_BY]
+    machine = doc.get("machine")
+    command = machine.get("command") if isinstance(machine, dict) else None
+    for token in command.split() if isinstance(command, str) else ():
+        if token.endswith(".py"):
+            return os.path.basename(token)[:-3]
+        if token.startswith("experiments."):
+            return token.split(".", 1)[1]
+    return None
 
 
 def write_json_out(result: dict, json_out, writer: str | None = None, **dump) -> None:
