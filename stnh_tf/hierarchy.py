@@ -131,14 +131,19 @@ def stage_pairs(context_a: np.ndarray, h_ba: np.ndarray, h_prev: np.ndarray,
     warps per pair, the patches written into ``out``.
 
     Args:
-      context_a: ``[N, S+2m, S+2m]`` (uint8 or float); h_ba, h_prev: ``[N, 3, 3]`` pixel
-        homographies in the patch frame (patch_b -> patch_a).
+      context_a: ``[N, S+2m, S+2m]`` uint8 (0..255, as stored); h_ba, h_prev: ``[N, 3, 3]``
+        pixel homographies in the patch frame (patch_b -> patch_a).
       out: arrays to write into (``patch_a``, ``patch_a_t`` uint8 ``[N, S, S]``, ``h_bar``
         float32 ``[N, 8]``, e.g. row slices of larger arrays); new ones when ``None``.
     Returns:
       ``out``: ``{"patch_a": uint8 [N, S, S], "patch_a_t": uint8 [N, S, S], "h_bar": float32
       [N, 8]}``.
+    Raises:
+      ValueError: a context of another dtype (a float one on [0, 1] became 0/1 patches).
     """
+    if np.asarray(context_a).dtype != np.uint8:
+        raise ValueError(f"context_a must be uint8 (0..255, as the TFRecords store it); received "
+                         f"{np.asarray(context_a).dtype}.")
     n = len(context_a)
     if out is None:
         out = {"patch_a": np.empty((n, size, size), np.uint8),

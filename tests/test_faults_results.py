@@ -501,3 +501,31 @@ def test_benchmark_flags_that_make_no_measure_are_refused():
         proc = _run(f"experiments.{binary}", flag)
         assert proc.returncode != 0 and f"flag {flag}: 0 is not a positive integer" in \
             proc.stderr, proc.stderr[-2000:]
+
+
+def test_stage_pairs_refuse_a_float_context():
+    """A float context on [0, 1] (the docstring said "uint8 or float") was rounded straight to
+    uint8: every pixel 0 or 1. Refused now, naming the dtype."""
+    from stnh_tf import hierarchy
+
+    ctx = np.random.default_rng(0).integers(0, 256, (192, 192), np.uint8)
+    assert np.ptp(hierarchy.stage_pair(ctx, np.eye(3), np.eye(3))["patch_a"]) > 200
+    with pytest.raises(ValueError, match="context_a must be uint8.*float64"):
+        hierarchy.stage_pair(ctx / 255.0, np.eye(3), np.eye(3))
+
+
+def test_a_stage_file_without_its_weights_is_named(tmp_path):
+    """A ``.keras`` zip without its weights gave Keras' "Expected a model.weights.h5 or
+    model.weights.npz file." alone: which stage of a hierarchy was broken went unsaid."""
+    import zipfile
+
+    from stnh_tf.inference import HomographyEstimator
+
+    broken = tmp_path / "stage1.keras"
+    with zipfile.ZipFile(os.path.join(ROOT, "stnh_tf", "weights", "stage1.keras")) as src, \
+            zipfile.ZipFile(broken, "w") as dst:
+        for item in src.infolist():
+            if not item.filename.startswith("model.weights"):
+                dst.writestr(item, src.read(item.filename))
+    with pytest.raises(ValueError, match=f"cannot load a Keras model from {broken}"):
+        HomographyEstimator.load(str(broken))

@@ -181,9 +181,11 @@ class HomographyEstimator:
         for p in resolve_model_paths(path):
             try:
                 models.append(load_model(p, compute_dtype=compute_dtype))
-            except (FileNotFoundError, ValueError):
+            except FileNotFoundError:
                 raise
-            except Exception as e:  # a corrupt or foreign file
+            except Exception as e:  # a corrupt or foreign file (Keras' ValueError names none)
+                if isinstance(e, ValueError) and os.fspath(p) in str(e):
+                    raise
                 raise ValueError(f"cannot load a Keras model from {p}: {type(e).__name__}: "
                                  f"{e}") from None
             _check_model(models[-1], p)  # naming the file

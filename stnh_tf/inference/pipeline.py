@@ -87,7 +87,11 @@ class Estimate:
         ``thresholds.max_corner_std`` the estimate is flagged. NaN elsewhere.
       undetermined: in ``estimate_images_with_info`` with ``verify="ecc"``, the corner standard
         deviation exceeded ``thresholds.undetermined_corner_std``: ``homography`` is the
-        identity in place of the estimate (flagged); False elsewhere.
+        identity in place of the estimate (flagged), ``max_corner_shift_px``,
+        ``alignment_ncc`` and ``image_ncc`` the identity's; the fields of the steps
+        (``refined``, ``found``, ``feature_start``, ``network_move_px``, ``verify_move_px``,
+        ``move_confirmed``, ``corner_std_px``, the ambiguity gaps) stay those of the estimate it
+        replaced, which they explain. False elsewhere.
       ambiguity_gap: in ``estimate_images_with_info`` with ``verify="ecc"``, how much better
         the estimate aligns image_b's centre than the best other shift of it
         (:func:`~stnh_tf.inference.ambiguity.ambiguity_gap`); under
