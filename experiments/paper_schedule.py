@@ -115,8 +115,11 @@ def main(argv):
                 rows = [chunks.run_chunk(config(1), ROOT, FLAGS.time_limit_s, str(device),
                                          printer=logging.info, commit=git_commit(),
                                          part=FLAGS.part, step_back=FLAGS.step_back)]
-        finally:
-            ledger.write_ledger_table(ROOT, os.path.join(REPO, "docs", "gpu.md"))
+        finally:  # (its own error said, never in place of the chunk's)
+            try:
+                ledger.write_ledger_table(ROOT, os.path.join(REPO, "docs", "gpu.md"))
+            except (OSError, ValueError) as e:
+                logging.error("docs/gpu.md's ledger table not rewritten: %s", e)
     for row in rows:
         logging.info("chunk done: %s", row)
         print(row)

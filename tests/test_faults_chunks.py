@@ -586,3 +586,93 @@ def test_a_failed_finished_model_write_leaves_no_finishing_row(tmp_path, monkeyp
         (0, 6, False), (6, 8, False), (8, 8, True)]
     assert "No space left" in rows[1]["error"]
     assert json.loads((root / "sequence2.json").read_text())["final_step"] == 8
+
+
+def test_a_part_to_train_anew_beside_its_finished_run_folder_is_refused(tmp_path, monkeypatch):
+    """Moving the finished model and record away "to train it anew" left the run folder's
+    ``model.keras`` at ``train_steps``: the chunk took the "finished run, no training" shortcut
+    and wrote the old model back as the new one, with a 4 -> 4 row. Refused now, naming the run
+    folder to move away; nothing trained or written."""
+    root, calls = tmp_path / "repo", []
+    root.mkdir()
+    (root / "ledger.json").write_text(json.dumps([_row(0, 4, done=True)]))
+    cfg = _train_cfg("d", tmp_path / "run", train_steps=4)
+    _fake_checkpoint(tmp_path / "run" / "checkpoint", 4)
+    (tmp_path / "run" / "config.json").write_text(_config_json(cfg))
+    (tmp_path / "run" / "model.keras").write_bytes(b"the finished run")
+    monkeypatch.setattr(training, "train", _fake_train(calls))
+    before = _files(root)
+    with pytest.raises(ValueError, match=f"the run folder {tmp_path / 'run'} holds the finished"):
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    assert calls == [] and _files(root) == before
+
+
+def test_an_error_with_nothing_new_to_commit_says_so(tmp_path, monkeypatch):
+    """A chunk failing before it trained printed "its checkpoint of step N is committed ... with
+    its ledger row" although nothing was committed (it compared with the step it started from,
+    not the committed one), and a user believing it could delete the run folder. Said as it is
+    now; where the run folder is ahead of the committed checkpoint, that one is committed."""
+    run, resume, cfg = _commit_over(tmp_path, committed=2, own=2)
+    lines = []
+    chunks._commit_stopped(str(run), str(resume), str(tmp_path / "repo"), 2, lines.append,
+                           lambda step: _row(2, step))
+    assert lines == [f"training stopped by an error; nothing new to commit ({resume} holds step "
+                     "2, the run folder step 2)"]
+    _fake_checkpoint(run / "checkpoint", 8)  # trained by an earlier chunk, not committed
+    lines.clear()
+    chunks._commit_stopped(str(run), str(resume), str(tmp_path / "repo"), 8, lines.append,
+                           lambda step: _row(8, step))
+    assert json.loads((resume / "state.json").read_text())["step"] == 8
+    assert "without a row" in lines[0] and not (tmp_path / "repo" / "ledger.json").exists()
+
+
+def test_a_commit_that_fails_keeps_the_chunks_row(tmp_path, monkeypatch):
+    """A full disk in ``sync_out`` lost the chunk's row (neither in the ledger nor kept
+    pending): the next chunk went on from the run folder and the part's record left those
+    steps out. The row is kept in ``ledger.pending.json``, marked not committed."""
+    root, calls = tmp_path / "repo", []
+    cfg = _train_cfg("d", tmp_path / "run", train_steps=100)
+    _committed(root, cfg, 4)
+    (root / "ledger.json").write_text(json.dumps([_row(0, 4)]))
+    monkeypatch.setattr(training, "train", _fake_train(calls))
+
+    def full(model_dir, resume):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(chunks, "sync_out", full)
+    with pytest.raises(OSError, match="No space left"):
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    pending = json.loads((root / "ledger.pending.json").read_text())
+    assert [(r["from_step"], r["to_step"], r["committed"]) for r in pending] == [(4, 6, False)]
+
+
+@pytest.mark.slow  # (the binary in a subprocess, about 9 s)
+def test_a_ledger_table_that_cannot_be_written_never_hides_the_chunks_error(tmp_path):
+    """``paper_schedule`` rewrote docs/gpu.md's ledger table in a ``finally``: where that raised
+    (a merge-conflicted gpu.md), its error replaced the chunk's own ("pair worker crashed", or
+    that the row was kept in ledger.pending.json). The chunk's error is the one said now, the
+    table's logged beside it."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys\n"
+        "from absl import app\n"
+        "from experiments import paper_schedule as ps\n"
+        "from stnh_tf.training import chunks, ledger\n"
+        "def crashed(*a, **k):\n"
+        "    raise ValueError('pair worker crashed')\n"
+        "def conflicted(*a, **k):\n"
+        "    raise ValueError('gpu.md must hold one ledger block')\n"
+        "chunks.run_chunk = crashed\n"
+        "ledger.write_ledger_table = conflicted\n"
+        f"ps.ROOT = {str(tmp_path)!r}\n"
+        "sys.argv = ['paper_schedule', '--part=sequence2', "
+        f"'--runs_dir={tmp_path / 'runs'}', '--time_limit_s=60']\n"
+        "app.run(ps.main)\n")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.run([sys.executable, "-c", script], cwd=root, capture_output=True,
+                          text=True, timeout=300, env={**os.environ, "PYTHONPATH": root})
+    assert proc.returncode != 0 and "paper_schedule: pair worker crashed" in proc.stderr, \
+        proc.stderr[-3000:]
+    assert "ledger table not rewritten: gpu.md must hold one ledger block" in proc.stderr

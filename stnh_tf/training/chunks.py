@@ -291,7 +291,8 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
 
     finished, resume, name = finished_model(root, key), resume_dir(root, key), part_name(key)
     seen, rows = photographs(cfg), [r for r in read_ledger(root) if row_part(r) == name]
-    if rows and rows[-1].get("done"):
+    anew = bool(rows and rows[-1].get("done"))
+    if anew:
         rows = []  # a part trained anew after it was finished (its model moved away)
     check_photographs([r.get("photographs") for r in rows], seen, name, cfg, printer)
     copied = sync_in(resume, cfg.model_dir, cfg)
@@ -322,6 +323,10 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
                 **({"photographs": seen} if seen else {}), **extra}
 
     final = os.path.join(cfg.model_dir, run_dir.FINAL_MODEL)
+    if os.path.exists(final) and start_step >= cfg.train_steps and anew:
+        raise ValueError(f"{name} is to be trained anew (its finished model was moved away), but "
+                         f"the run folder {cfg.model_dir} holds the finished run of step "
+                         f"{start_step}: move that folder away too. Nothing was trained.")
     if os.path.exists(final) and start_step >= cfg.train_steps:
         # a chunk that trained to the end was stopped before it finished the part
         printer(f"{final} is the finished run (step {start_step}): finishing it, no training")
@@ -340,7 +345,12 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
         out = row(result["final_step"], done, result["wall_s_this_run"],
                   **({"note": result["note"]} if "note" in result else {}))
         if not done:
-            sync_out(cfg.model_dir, resume)
+            try:
+                sync_out(cfg.model_dir, resume)
+            except BaseException as e:  # the row kept, for the steps the run folder holds
+                keep_pending(root, {**out, "committed": False,
+                                    "error": f"{type(e).__name__}: {e}"[:300]})
+                raise
             add_ledger_row(root, out)
             return out
         # the finishing row first, where the next chunk finds it should this one stop (a kill,
@@ -374,11 +384,17 @@ def _commit_stopped(model_dir, resume, root, start_step, printer, make_row) -> N
         # (the run folder's lock: not a checkpoint another process is writing)
         with run_dir.RunLock(model_dir), deferred_signals():
             step = _step(os.path.join(model_dir, run_dir.CHECKPOINT_DIR))
+            committed = _committed_step(resume)
+            if step <= committed:
+                printer(f"training stopped by an error; nothing new to commit ({resume} holds "
+                        f"step {committed}, the run folder step {step})")
+                return
+            sync_out(model_dir, resume)
             if step > start_step:
-                sync_out(model_dir, resume)
                 add_ledger_row(root, make_row(step))
             printer(f"training stopped by an error: its checkpoint of step {step} is committed "
-                    f"in {resume} with its ledger row")
+                    f"in {resume}" + (" with its ledger row" if step > start_step else
+                                      " (trained before this chunk, without a row)"))
     except Exception as e:  # noqa: BLE001
         printer(f"training stopped by an error, and its checkpoint could not be committed "
                 f"({type(e).__name__}: {e}); it stays in {model_dir}")
