@@ -2,9 +2,10 @@ r"""The paper schedule's photographs, made small enough to carry to the GPU mach
 
   python -m experiments.device_photographs          # -> .devdata/part-K/ and the calls, as JSON
 
-Copies photos_extra as it is, and writes the coco_mini photographs as the 320x240 gray images the
-training reads (lossless PNG under the same file names, checked pixel for pixel against the
-originals' decoding), so that the pairs made on the GPU machine are the pairs made here. The
+Copies coco_mini and photos_extra as they are, byte for byte, so that the pairs made on the GPU
+machine are the pairs made here and a chunk's photographs (``ledger.listing_digest``: the
+files' names and sizes) are those of the CPU chunks of the same part (a gray re-encoding of
+coco_mini, smaller, had other sizes: every GPU chunk was refused). The
 files are split into parts ``.devdata/part-1``, ``part-2``, ... that each fit one call of the
 device tool beside the working tree that travels with it (64 MiB a call, the tree included; the
 first part leaves room for ``.whl/``). Each part holds its files under their paths relative to
@@ -203,27 +204,6 @@ def size(path: str) -> int:
     return sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(path) for f in fs)
 
 
-def gray_copy(src: str, dst: str, claim=lambda path: path) -> int:
-    """Write every image of ``src`` as the gray 320x240 PNG the training reads, same names
-    (each output path passed through ``claim`` first: :meth:`OutputFiles.claim`)."""
-    import cv2
-    import numpy as np
-
-    from stnh_tf.data import sources
-
-    files = sources.scan_image_folder(src).files
-    for path in files:
-        gray = sources.load_gray_320x240(path)
-        ok, buf = cv2.imencode(".png", gray, [cv2.IMWRITE_PNG_COMPRESSION, 9])
-        out = claim(os.path.join(dst, os.path.relpath(path, src)))
-        os.makedirs(os.path.dirname(out), exist_ok=True)
-        with open(out, "wb") as f:
-            f.write(buf.tobytes())
-        if not ok or not np.array_equal(sources.load_gray_320x240(out), gray):
-            raise RuntimeError(f"{out} does not decode to the pixels of {path}")
-    return len(files)
-
-
 def next_chunk(last_stage: int = 3) -> str | None:
     """What the next chunk trains, as the environment of ``experiments/paper_schedule_gpu.sh``:
     ``STAGE=K``, the hierarchical stage ``paper_schedule/ledger.json`` is at (its rows without a
@@ -268,13 +248,10 @@ def plan_calls() -> dict:
 
     out = FLAGS.output_dir
     written = clear_output(out)  # what an earlier run wrote, and nothing else
-    whole = os.path.join(out, "all")  # the gray coco_mini, written once, then split
-    counts = {split: gray_copy(os.path.join(FLAGS.coco_dir, split),
-                               os.path.join(whole, "coco_mini", split), written.claim)
+    counts = {split: len(sources.scan_image_folder(os.path.join(FLAGS.coco_dir, split)).files)
               for split in ("train", "test")}
-    gray = list(written.written)
-    source = {}  # path relative to .devdata/ -> the file to copy
-    for root, prefix in ((os.path.join(whole, "coco_mini"), "coco_mini"),
+    source = {}  # path relative to .devdata/ -> the file to copy (byte for byte: the chunks'
+    for root, prefix in ((FLAGS.coco_dir, "coco_mini"),  # listing digests hash the sizes)
                          (FLAGS.extra_dir, "photos_extra")):
         # the photographs as the training lists them (sources.scan_image_folder: a link to a
         # file listed already, a hidden file, a link leading out: not carried twice or at all)
@@ -300,7 +277,6 @@ def plan_calls() -> dict:
                    "bash experiments/paper_schedule_gpu.sh stage")
         calls.append({"command": command, "carry": carry, "photographs": len(part["files"]),
                       "mib": round((part["bytes"] + tree) / 2 ** 20, 1)})
-    _remove_files(out, gray)
     return {"coco_mini": counts, "photographs": len(files),
             "tracked_mib": round(tree / 2 ** 20, 1), "calls": calls}
 

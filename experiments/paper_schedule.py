@@ -30,6 +30,7 @@ each kept as ``paper_schedule/<part>.keras``.
 
 from __future__ import annotations
 
+import json
 import os
 
 from absl import app, flags, logging
@@ -64,6 +65,9 @@ flags.DEFINE_integer("steps_per_execution", 1, "Training steps per compiled call
 flags.DEFINE_integer("last_stage", 0, "Where --stage finishes within the time limit, go on with "
                      "the next stages up to this one in the time left (0: --stage only).")
 flags.DEFINE_string("device", None, "The machine, for the ledger (default: described here).")
+flags.DEFINE_string("merge_back", None, "Train nothing: merge what a chunk on another machine "
+                    "sent back (its archives unpacked into this folder) into paper_schedule/ "
+                    "(stnh_tf.training.merge_back; docs/gpu.md).")
 flags.DEFINE_bool("step_back", False, "Train on from the newest checkpoint found even where it "
                   "is below the step the ledger last recorded for the part (that checkpoint "
                   "lost; the rows past it are then superseded in the part's record).")
@@ -100,6 +104,14 @@ def main(argv):
                                              for k in range(1, stage)))
 
     device = FLAGS.device or f"{machine_info()['cpu']}, {os.cpu_count()} cores"
+    if FLAGS.merge_back:
+        from stnh_tf.training.merge_back import merge_back
+
+        with common.user_errors("paper_schedule"):
+            merged = merge_back(ROOT, FLAGS.merge_back, printer=logging.info)
+            ledger.write_ledger_table(ROOT, os.path.join(REPO, "docs", "gpu.md"))
+        print(json.dumps(merged, indent=1))
+        return
     with common.user_errors("paper_schedule"):
         common.check_flags_apart(("runs_dir",), ("image_dir", "val_image_dir"))
         if part is not None and (FLAGS.stage != 1 or FLAGS.last_stage):

@@ -106,7 +106,8 @@ status=$?
 # What the chunks write, not the whole folder, in archives of at most 16 MiB each (what comes
 # back): the ledger and the finished stages in paper_schedule.tgz, each unfinished stage's
 # committed checkpoint with its saved estimates (12 MiB) in resume_NAME.tgz.
-back="paper_schedule/ledger.json docs/gpu.md"
+back="paper_schedule/ledger.json"  # (merged here: python -m experiments.paper_schedule --merge_back)
+[ -e paper_schedule/ledger.pending.json ] && back="$back paper_schedule/ledger.pending.json"
 for f in paper_schedule/*.keras; do  # each finished stage or part, with its record
   [ -e "$f" ] && back="$back $f" && [ -e "${f%.keras}.json" ] && back="$back ${f%.keras}.json"
 done

@@ -676,3 +676,37 @@ def test_a_ledger_table_that_cannot_be_written_never_hides_the_chunks_error(tmp_
     assert proc.returncode != 0 and "paper_schedule: pair worker crashed" in proc.stderr, \
         proc.stderr[-3000:]
     assert "ledger table not rewritten: gpu.md must hold one ledger block" in proc.stderr
+
+
+def test_a_returned_chunk_merged_back_never_replaces_a_newer_committed_checkpoint(tmp_path):
+    """The runbook said to untar what a GPU call sent back over the repository: where a CPU
+    chunk had committed step 17,546 meanwhile, the sent (older) checkpoint of 17,544 came back
+    over it and its ledger row went, and the next chunk resumed from 17,544 without a word.
+    ``merge_back`` keeps the newer checkpoint and both machines' rows; a returned checkpoint of a
+    later step replaces an older one here, a finished part comes in and its resume/ goes."""
+    from stnh_tf.training.merge_back import merge_back
+
+    cfg = _train_cfg("d", tmp_path / "run", train_steps=100)
+    root, back = tmp_path / "repo", tmp_path / "back"
+    sent = [_row(0, 4)]
+    _committed(root, cfg, 6)  # the CPU chunk's, committed after the call was sent
+    (root / "ledger.json").write_text(json.dumps([*sent, _row(4, 6, device="cpu")]))
+    _committed(back / "paper_schedule", cfg, 5)  # the GPU chunk's, from step 4
+    _committed(back / "paper_schedule", cfg, 3, part="stage3")
+    (back / "paper_schedule" / "ledger.json").write_text(json.dumps(
+        [*sent, _row(4, 5, device="gpu"), _row(0, 3, part="stage3", done=True)]))
+    (back / "paper_schedule" / "stage3.keras").write_bytes(b"finished stage 3")
+    _committed(root, cfg, 2, part="stage3")
+    lines = []
+    out = merge_back(str(root), str(back), printer=lines.append)
+    assert out["kept"] == {"sequence2": 6} and out["rows"] == 2
+    assert json.loads((root / "resume" / "sequence2" / "state.json").read_text())["step"] == 6
+    rows = ledger_lib.read_ledger(str(root))
+    assert [(r["from_step"], r["to_step"], r["device"]) for r in rows] == [
+        (0, 4, "cpu"), (4, 6, "cpu"), (4, 5, "gpu"), (0, 3, "cpu")]
+    assert (root / "stage3.keras").read_bytes() == b"finished stage 3"
+    assert out["checkpoints"] == {"stage3": 3}  # (the part's resume/ came back too)
+    assert any("kept the committed checkpoint of step 6" in line for line in lines)
+    (back / "paper_schedule" / "stage3.keras").write_bytes(b"another stage 3")
+    with pytest.raises(ValueError, match="differs from .*stage3.keras"):
+        merge_back(str(root), str(back), printer=QUIET)
