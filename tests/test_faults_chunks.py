@@ -710,3 +710,19 @@ def test_a_returned_chunk_merged_back_never_replaces_a_newer_committed_checkpoin
     (back / "paper_schedule" / "stage3.keras").write_bytes(b"another stage 3")
     with pytest.raises(ValueError, match="differs from .*stage3.keras"):
         merge_back(str(root), str(back), printer=QUIET)
+
+
+@pytest.mark.parametrize("bad", [{"to_step": None}, {"from_step": "4"}, {"wall_s": "long"},
+                                 {"stage": True}])
+def test_a_ledger_row_without_its_numbers_is_refused_when_read(tmp_path, bad):
+    """A row whose step or time is null or a string (a hand edit, a merge) passed the ledger's
+    check (only the fields' presence) and failed later with a bare TypeError, in the step
+    comparisons or the table's formatting. Refused when read now, naming the row and field; a
+    pending file that is not a list of rows too."""
+    (tmp_path / "ledger.json").write_text(json.dumps([_row(0, 2), {**_row(2, 4), **bad}]))
+    with pytest.raises(ValueError, match=f"its row 1 holds no number in \\['{next(iter(bad))}'"):
+        ledger_lib.read_ledger(str(tmp_path))
+    (tmp_path / "ledger.json").write_text(json.dumps([_row(0, 2)]))
+    (tmp_path / "ledger.pending.json").write_text(json.dumps({"rows": []}))
+    with pytest.raises(ValueError, match="ledger.pending.json is not a list of ledger rows"):
+        ledger_lib.add_pending_rows(str(tmp_path))

@@ -67,7 +67,8 @@ def read_ledger(root: str) -> list:
 
     Raises:
       ValueError: naming the file, where it is not valid JSON, not a list of JSON objects, or a
-        row lacks one of :data:`LEDGER_FIELDS`.
+        row lacks one of :data:`LEDGER_FIELDS` or holds no number where a step, a stage, a rate
+        or a time is.
     """
     path = os.path.join(root, LEDGER_FILE)
     if not os.path.exists(path):
@@ -81,6 +82,11 @@ def read_ledger(root: str) -> list:
         if missing:
             raise ValueError(f"ledger {path!r}: its row {i} is not a chunk's row (it lacks "
                              f"{missing}).")
+        wrong = [k for k in ("stage", "from_step", "to_step", "steps_per_s", "wall_s")
+                 if isinstance(row[k], bool) or not isinstance(row[k], (int, float))
+                 or (k in ("stage", "from_step", "to_step") and not isinstance(row[k], int))]
+        if wrong:  # (a hand edit or a merge: a bare TypeError later, in the table or a check)
+            raise ValueError(f"ledger {path!r}: its row {i} holds no number in {wrong}.")
     return ledger
 
 
@@ -105,10 +111,19 @@ def keep_pending(root: str, row: dict) -> str:
     """Append ``row`` to ``root/``:data:`PENDING_FILE` (the rows :func:`add_pending_rows` adds
     to the ledger); returns the sentence that says so."""
     pending = os.path.join(root, PENDING_FILE)
-    kept = read_json(pending, "pending ledger rows") if os.path.exists(pending) else []
-    atomic_write_json(pending, [*kept, row])
+    atomic_write_json(pending, [*_pending(pending), row])
     return (f"The chunk's row is kept in {pending}: mend the ledger (git checkout) and the next "
             "chunk adds it.")
+
+
+def _pending(path: str) -> list:
+    """The rows kept in the pending file ``path`` (``[]`` where there is none); ``ValueError``
+    naming it where it is not a list of JSON objects."""
+    rows = read_json(path, "pending ledger rows") if os.path.exists(path) else []
+    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+        raise ValueError(f"{path} is not a list of ledger rows: mend it (the rows the ledger did "
+                         "not take) or move it away.")
+    return rows
 
 
 def add_pending_rows(root: str) -> int:
@@ -119,7 +134,7 @@ def add_pending_rows(root: str) -> int:
     if not os.path.exists(pending):
         return 0
     ledger = read_ledger(root)
-    rows = [r for r in read_json(pending, "pending ledger rows") if r not in ledger]
+    rows = [r for r in _pending(pending) if r not in ledger]
     atomic_write_json(os.path.join(root, LEDGER_FILE), [*ledger, *rows])
     os.remove(pending)
     return len(rows)
