@@ -529,3 +529,56 @@ def test_a_stage_file_without_its_weights_is_named(tmp_path):
                 dst.writestr(item, src.read(item.filename))
     with pytest.raises(ValueError, match=f"cannot load a Keras model from {broken}"):
         HomographyEstimator.load(str(broken))
+
+
+def test_an_ablation_refuses_sets_of_different_image_sizes():
+    """A 640 x 480 set (``make_camera_pairs --scale=2``) and a 320 x 240 one were pooled into
+    one cell per group: errors of two frames in one mean and one 3-px success count (an identity
+    stub: 25.9 px on the 320 set, 51.7 on the same pairs at 640, 38.8 pooled). Refused before
+    any estimate now, naming the sizes."""
+    from types import SimpleNamespace
+
+    from stnh_tf.evaluation import ablation
+
+    def pair(size):
+        image = np.zeros(size, np.uint8)
+        return SimpleNamespace(image_a=image, image_b=image, h_ba=np.eye(3), group="within")
+
+    class NoEstimates:
+        def estimate_images_with_info(self, *args):
+            raise AssertionError("an estimate before the sizes were checked")
+
+    with pytest.raises(ValueError, match=r"differ in size \(S: 320 x 240, S2: 640 x 480\)"):
+        ablation.run([("S", [pair((240, 320))]), ("S2", [pair((480, 640))])], ["default"],
+                     NoEstimates())
+
+
+def test_the_tuning_grid_holds_no_row_that_changes_nothing():
+    """``orb/ratio+crosscheck`` set ``cross_check=True``, which ORB_SETTINGS already holds (and
+    no ratio): the registered ``orb_ransac`` again, under a name saying otherwise. Every grid row
+    changes at least one setting of its baseline now."""
+    from stnh_tf.evaluation import baseline_tuning, baselines
+
+    defaults = {"orb_ransac": baselines.ORB_SETTINGS, "orb_default": baselines.ORB_DEFAULT_SETTINGS,
+                "sift_ransac": baselines.SIFT_SETTINGS}
+    for label, name, changes in baseline_tuning.settings_grid("small")[4:]:
+        assert any(defaults[name].get(k) != v for k, v in changes.items()), label
+
+
+def test_a_non_finite_homography_leaves_the_camera_pair_json_strict(monkeypatch):
+    """A method returning a NaN homography made ``mace`` and its pairs' errors infinite, and the
+    benchmark's JSON held ``Infinity``, which strict JSON readers refuse. Written as ``"inf"``
+    now (as the ablation's JSON always was)."""
+    from types import SimpleNamespace
+
+    from stnh_tf.evaluation import baselines, camera_pairs
+
+    image = np.random.default_rng(0).integers(0, 256, (240, 320), np.uint8)
+    pairs = [SimpleNamespace(image_a=image, image_b=image, h_ba=np.eye(3), group="within",
+                             index=k, kind="camera", offset_px=0.0) for k in range(2)]
+    monkeypatch.setattr(baselines.SiftRansac, "estimate_images",
+                        lambda self, a, b: (np.full((3, 3), np.nan), False))
+    result = camera_pairs.benchmark(pairs, methods=("identity", "sift_ransac"), per_pair=True)
+    text = json.dumps(result, allow_nan=False)
+    assert result["groups"]["within"]["sift_ransac"]["mace"] == "inf"
+    assert json.loads(text)["pairs"][0]["sift_ransac_error"] == "inf"

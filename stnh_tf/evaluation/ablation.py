@@ -172,17 +172,6 @@ def _take(pairs, max_pairs_per_group: int, taken: collections.Counter) -> list:
     return chosen
 
 
-def _finite(x):
-    """JSON-ready: NaN as ``None``, an infinity as ``"inf"``, containers converted inside."""
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_finite(v) for v in x]
-    if isinstance(x, float) and not math.isfinite(x):
-        return None if math.isnan(x) else "inf" if x > 0 else "-inf"
-    return x
-
-
 def cell(run: dict, errors, patch_errs, success_px=camera_pairs.SUCCESS_PX,
          flag_error_px=camera_pairs.FLAG_ERROR_PX) -> dict:
     """One ablation's numbers on one group: :func:`stnh_tf.evaluation.camera_pairs.summarize`
@@ -217,9 +206,15 @@ def run(pair_sets, names, estimator, max_pairs_per_group: int = 0,
       Each set gets one untimed warm-up call; then every ablation runs on a pair before the next
       pair, so that a change of the machine's load spreads over all ablations alike.
     Raises:
-      ValueError: an unknown ablation, or no pairs.
+      ValueError: an unknown ablation, no pairs, or sets of different image sizes (each set's
+        errors are in its own frame: 3 px at 640 x 480 is not 3 px at 320 x 240).
     """
     names = resolve(names)
+    sizes = {label: pairs[0].image_a.shape[:2] for label, pairs in pair_sets if len(pairs)}
+    if len(set(sizes.values())) > 1:
+        listed = ", ".join(f"{k}: {w} x {h}" for k, (h, w) in sizes.items())
+        raise ValueError(f"the sets' images differ in size ({listed}): their errors are in each "
+                         "set's own frame and cannot be pooled; ablate each size apart.")
     options = {n: options_for(n) for n in names}
     taken, chosen = collections.Counter(), []
     for label, pairs in pair_sets:
@@ -259,7 +254,7 @@ def run(pair_sets, names, estimator, max_pairs_per_group: int = 0,
         result[n] = {"switches_off": "nothing" if n == DEFAULT else ABLATIONS[n][0],
                      "changes": {} if n == DEFAULT else ABLATIONS[n][1],
                      "options": options[n].to_json(), "groups": cells}
-    return _finite({"ablations": result, "groups": present + ["all"],
+    return camera_pairs.json_ready({"ablations": result, "groups": present + ["all"],
                     "sets": [{"label": label, "pairs": dict(collections.Counter(
                         p.group for p in pairs))} for label, pairs in chosen],
                     "success_px": success_px, "flag_error_px": flag_error_px,

@@ -29,7 +29,6 @@ def settings_grid(grid="small"):
         ("orb/ratio0.75", "orb_ransac", {"ratio": 0.75}),
         ("orb/ratio0.9", "orb_ransac", {"ratio": 0.9}),
         ("orb/ratio0.85_no_crosscheck", "orb_ransac", {"ratio": 0.85, "cross_check": False}),
-        ("orb/ratio+crosscheck", "orb_ransac", {"cross_check": True}),
         ("orb/thresh2", "orb_ransac", {"ransac_thresh": 2.0}),
         ("orb/thresh5", "orb_ransac", {"ransac_thresh": 5.0}),
         ("orb/magsac", "orb_ransac", {"ransac_method": "USAC_MAGSAC"}),

@@ -132,6 +132,18 @@ def run_baseline(name, pairs, warm_up: bool = True) -> dict:
     return {k: np.asarray(v) for k, v in out.items()}
 
 
+def json_ready(x):
+    """JSON-ready: NaN as ``None``, an infinity as ``"inf"`` (strict JSON has neither),
+    containers converted inside."""
+    if isinstance(x, dict):
+        return {k: json_ready(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_ready(v) for v in x]
+    if isinstance(x, float) and not np.isfinite(x):
+        return None if np.isnan(x) else "inf" if x > 0 else "-inf"
+    return x
+
+
 def _json_number(x):
     """A float for JSON: ``None`` for NaN, ``"inf"`` for an infinity (strict JSON has neither)."""
     x = float(x)
@@ -247,7 +259,7 @@ def benchmark(pairs, methods=DEFAULT_METHODS, estimator=None, options=None, succ
                  "image_ncc": _json_number(runs["estimator"]["image_ncc"][i])}
                 if "estimator" in runs else {})}
             for i, p in enumerate(pairs)]
-    return result
+    return json_ready(result)  # (a method's non-finite homography: an infinite error)
 
 
 def benchmark_folder(folder, methods=DEFAULT_METHODS, model=None, options=None, max_pairs: int = 0,
