@@ -582,3 +582,32 @@ def test_a_non_finite_homography_leaves_the_camera_pair_json_strict(monkeypatch)
     text = json.dumps(result, allow_nan=False)
     assert result["groups"]["within"]["sift_ransac"]["mace"] == "inf"
     assert json.loads(text)["pairs"][0]["sift_ransac_error"] == "inf"
+
+
+@pytest.mark.slow  # (a pool of two worker processes, started and killed: about 5 s)
+def test_a_killed_pair_worker_stops_the_stream_instead_of_hanging_it(tmp_path):
+    """``multiprocessing.Pool`` replaces a worker that dies (killed, out of memory) and drops the
+    task it was running: the stream waited for that batch forever, training frozen without a
+    word. It stops with an error naming the cause now, and the pool is stopped without hanging
+    on the lock the dead worker held."""
+    import shutil
+    import signal
+    import time
+
+    from stnh_tf.data import bundled_photos, pair_datasets
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for k, (_, path) in enumerate(bundled_photos.bundled_image_files()[:4]):
+        shutil.copy(path, folder / f"{k:02d}{os.path.splitext(path)[1]}")
+    stream = pair_datasets.PairStream(str(folder), 4, samples_per_image=3, seed=0, workers=2,
+                                      prefetch=2)
+    stream[0]  # the pool started, batches read ahead
+    for worker in list(stream._pool._pool):
+        os.kill(worker.pid, signal.SIGKILL)
+    start = time.monotonic()
+    with pytest.raises(RuntimeError, match="worker process died"):
+        for step in range(1, 30):
+            stream[step]
+    assert time.monotonic() - start < 60
+    stream.close()

@@ -20,7 +20,7 @@ import numpy as np
 from stnh_tf import pixels
 from stnh_tf.data import labels, pairs, sources
 from stnh_tf.data.folder_counts import FolderCounts
-from stnh_tf.data.pools import main_not_rerun, stop_pool
+from stnh_tf.data.pools import main_not_rerun, mark_workers, pool_result, stop_pool
 from stnh_tf.data.bundled_photos import bundled_image_files
 from stnh_tf.data.sources import ImageDecodeError, SourceError, scan_image_folders
 
@@ -334,8 +334,8 @@ def generator_pool(batches: PairBatches, workers: int):
     if workers < 1:
         raise ValueError(f"workers must be >= 1; received {workers}.")
     with main_not_rerun():  # Pool starts all its processes before returning
-        return multiprocessing.get_context("forkserver").Pool(
-            workers, initializer=_init_worker, initargs=(batches,))
+        return mark_workers(multiprocessing.get_context("forkserver").Pool(
+            workers, initializer=_init_worker, initargs=(batches,)))
 
 
 def step_batch_async(pool, step: int, fresh: bool = False):
@@ -429,7 +429,7 @@ def _parts(batches: PairBatches, workers: int, tasks: list):
             if len(pending) >= 2 * workers:
                 break
         while pending:
-            part = pending[0].get()
+            part = pool_result(pool, pending[0])
             pending.popleft()
             task = next(todo, None)
             if task is not None:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import keras
 
 from stnh_tf.data.batches import PairBatches, generator_pool, model_batch, step_batch_async
-from stnh_tf.data.pools import stop_pool
+from stnh_tf.data.pools import pool_result, stop_pool
 
 
 class PairSequence(keras.utils.PyDataset):
@@ -165,7 +165,7 @@ class PairStream(keras.utils.PyDataset):
             self._submitted.append(self._pending[self._next])
             self._next += 1
         self._submitted = [r for r in self._submitted if not r.ready()]
-        return self._pending.pop(step).get()
+        return pool_result(self._pool, self._pending.pop(step))
 
     def close(self, timeout: float = 60.0):
         """Stop the worker processes (a later item starts new ones).
