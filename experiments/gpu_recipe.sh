@@ -33,7 +33,9 @@ export KERAS_BACKEND=${KERAS_BACKEND:-jax}
 export PYTHONUNBUFFERED=1
 PYTHON=${PYTHON:-python3}
 STAGES=${STAGES:-1}
-WORKERS=${WORKERS:-$(( $(nproc) > 3 ? $(nproc) - 2 : 1 ))}
+# each worker holds every decoded photograph (about 8.5 GiB for COCO's 118,000: docs/scale.md):
+# at most 6 by default, so that COCO's pairs and the workers fit 128 GiB
+WORKERS=${WORKERS:-$(( $(nproc) > 8 ? 6 : ($(nproc) > 3 ? $(nproc) - 2 : 1) ))}
 mkdir -p "$OUT_DIR"
 prev=""
 for k in $(seq 1 "$STAGES"); do
