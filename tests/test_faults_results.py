@@ -611,3 +611,31 @@ def test_a_killed_pair_worker_stops_the_stream_instead_of_hanging_it(tmp_path):
             stream[step]
     assert time.monotonic() - start < 60
     stream.close()
+
+
+def test_a_mixed_stream_is_moved_on_not_rebuilt(monkeypatch):
+    """The stream with real pairs mixed in (``--unlabeled_pairs_dir``) had no ``start_step``:
+    every fit call after the first (each chunk resumed between checkpoints) closed it and made
+    every pair again, the old set still held meanwhile. It moves on with its inner stream now,
+    its real pairs those of the new steps."""
+    from stnh_tf.data import batches, unlabeled_pairs
+    from stnh_tf.training import fit_calls
+
+    class Inner:
+        start_step = 10
+
+        def __getitem__(self, index):
+            return ("inner", self.start_step + index)
+
+    class Pairs:
+        def rows(self, step, count, seed):
+            return ("extra", step)
+
+    monkeypatch.setattr(batches, "model_batch", lambda stacked: stacked)
+    monkeypatch.setattr(unlabeled_pairs, "concat_batches", lambda a, b: (a, b))
+    inner, rebuilt = Inner(), []
+    stream = unlabeled_pairs.mixed_stream(inner, Pairs(), 2, 0, 10)
+    assert stream[1] == (("inner", 11), ("extra", 11))
+    moved = fit_calls.advance_stream(stream, 5, lambda: rebuilt.append(1))
+    assert moved is stream and rebuilt == [] and inner.start_step == 15
+    assert stream[1] == (("inner", 16), ("extra", 16))

@@ -230,14 +230,23 @@ def mixed_stream(inner, pairs: UnlabeledPairs, count: int, seed: int, start_step
     class _Mixed(keras.utils.PyDataset):
         def __init__(self):
             super().__init__()
-            self.inner = inner
+            self.inner, self._start = inner, start_step
 
         @property
         def num_batches(self):
             return None
 
+        @property
+        def start_step(self):  # moved on with ``inner`` (fit_calls.advance_stream): no rebuild
+            return self._start if isinstance(getattr(inner, "start_step", None), int) else None
+
+        @start_step.setter
+        def start_step(self, value):
+            inner.start_step += value - self._start
+            self._start = value
+
         def __getitem__(self, index):
-            extra = model_batch(pairs.rows(start_step + int(index), count, seed))
+            extra = model_batch(pairs.rows(self._start + int(index), count, seed))
             batch = concat_batches(inner[index], extra)
             return mapper(*batch) if mapper is not None else batch
 
