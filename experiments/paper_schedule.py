@@ -107,7 +107,9 @@ def main(argv):
     if FLAGS.merge_back:
         from stnh_tf.training.merge_back import merge_back
 
-        with common.user_errors("paper_schedule"):
+        from stnh_tf.training import run_dir
+
+        with common.user_errors("paper_schedule"), run_dir.RunLock(ROOT, busy=chunks.ROOT_BUSY):
             merged = merge_back(ROOT, FLAGS.merge_back, printer=logging.info)
             ledger.write_ledger_table(ROOT, os.path.join(REPO, "docs", "gpu.md"))
         print(json.dumps(merged, indent=1))

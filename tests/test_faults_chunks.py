@@ -707,6 +707,12 @@ def test_a_returned_chunk_merged_back_never_replaces_a_newer_committed_checkpoin
     assert (root / "stage3.keras").read_bytes() == b"finished stage 3"
     assert out["checkpoints"] == {"stage3": 3}  # (the part's resume/ came back too)
     assert any("kept the committed checkpoint of step 6" in line for line in lines)
+    # merged again (an interrupted merge, say): nothing twice, the pending rows included
+    (back / "paper_schedule" / "ledger.pending.json").write_text(json.dumps([_row(5, 7)]))
+    merge_back(str(root), str(back), printer=QUIET)
+    merge_back(str(root), str(back), printer=QUIET)
+    assert len(ledger_lib.read_ledger(str(root))) == 4
+    assert len(json.loads((root / "ledger.pending.json").read_text())) == 1
     (back / "paper_schedule" / "stage3.keras").write_bytes(b"another stage 3")
     with pytest.raises(ValueError, match="differs from .*stage3.keras"):
         merge_back(str(root), str(back), printer=QUIET)

@@ -147,6 +147,8 @@ def scan_image_folders(folders, max_images: int = 0) -> FolderListing:
         seen = {}  # one path per file (its device and inode): a folder given twice, a link
         for k, listing in enumerate(listings):
             for path in listing.files:
+                if path in merged.ids:  # the same folder given twice: listed once, as before
+                    continue
                 first = seen.setdefault(_file_identity(path), path)
                 if first == path:
                     merged.files.append(path)

@@ -72,9 +72,14 @@ def stop_pool(pool, in_flight=(), timeout: float = 60.0) -> None:
     ``Pool.terminate`` while a worker sends a result back leaves the result queue's lock held
     by a dead process, and the pool's threads and the caller waiting on it forever."""
     in_flight = list(in_flight)
-    if workers_died(pool):  # its lost tasks never finish, and terminate() can wait on a lock
-        for worker in list(pool._pool):  # the dead worker held: the live ones are killed
+    if workers_died(pool):  # its lost tasks never finish, and terminate() (or its finalizer
+        import multiprocessing.pool as mp_pool  # at exit) waits on a lock the dead worker held
+
+        pool._state = pool._worker_handler._state = mp_pool.TERMINATE  # no worker replaced
+        pool._change_notifier.put(None)
+        for worker in list(pool._pool):
             worker.kill()
+        pool._terminate.cancel()
         return
     pool.close()
     deadline = time.monotonic() + timeout

@@ -90,8 +90,9 @@ def _same_source(section: dict, source: dict) -> bool:
         return len({os.path.realpath(p) if isinstance(p, str) else p for p in paths}) == 1
 
     return (same("input") and same("model")
-            and ("input_split_sha256" not in source  # the split's own pairs, where asked
-                 or section.get("input_split_sha256") == source["input_split_sha256"]))
+            and ("input_split_sha256" not in source  # the split's own pairs, where asked and
+                 or "input_split_sha256" not in section  # recorded (splits made before it:
+                 or section["input_split_sha256"] == source["input_split_sha256"]))  # as then)
 
 
 def check_one_source(output_dir: str, splits, source: dict) -> list:

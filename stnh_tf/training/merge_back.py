@@ -96,6 +96,8 @@ def merge_back(root: str, back: str, printer=print) -> dict:
         if key(row) not in have:
             add_ledger_row(root, row)
             out["rows"] += 1
+    kept = os.path.join(root, PENDING_FILE)
+    have |= {key(r) for r in (_rows(root, PENDING_FILE) if os.path.exists(kept) else [])}
     for row in pending:  # (rows the ledger there did not take: the next chunk here adds them)
         if key(row) not in have:
             keep_pending(root, row)
