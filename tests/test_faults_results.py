@@ -657,3 +657,25 @@ def test_a_mixed_stream_is_moved_on_not_rebuilt(monkeypatch):
     moved = fit_calls.advance_stream(stream, 5, lambda: rebuilt.append(1))
     assert moved is stream and rebuilt == [] and inner.start_step == 15
     assert stream[1] == (("inner", 16), ("extra", 16))
+
+
+def test_every_documented_command_may_write_its_json_out_again():
+    """Each command in the docs that writes ``--json_out`` over a committed result names the
+    binary that wrote it (``written_by``, or the command the result records): run again as
+    written, it is not refused (two committed evaluations recorded neither)."""
+    import glob
+    import re
+
+    docs = [os.path.join(ROOT, n) for n in ("README.md", "BENCHMARKS.md")]
+    docs += glob.glob(os.path.join(ROOT, "docs", "*.md"))
+    checked = 0
+    for doc in docs:
+        for line in open(doc, encoding="utf-8"):
+            binary = re.search(r"python -m experiments\.(\w+)", line)
+            out = re.search(r"--json_out=([\w./-]+\.json)\b", line)
+            if not binary or not out or not os.path.isfile(os.path.join(ROOT, out.group(1))):
+                continue
+            summaries.check_json_out(os.path.join(ROOT, out.group(1)), binary.group(1),
+                                     make_folder=False)
+            checked += 1
+    assert checked >= 20
