@@ -144,12 +144,6 @@ def json_ready(x):
     return x
 
 
-def _json_number(x):
-    """A float for JSON: ``None`` for NaN, ``"inf"`` for an infinity (strict JSON has neither)."""
-    x = float(x)
-    return None if np.isnan(x) else "inf" if np.isinf(x) else x
-
-
 def _rate(num, den):
     return float(num / den) if den else None
 
@@ -248,18 +242,18 @@ def benchmark(pairs, methods=DEFAULT_METHODS, estimator=None, options=None, succ
             {"index": p.index, "group": p.group, "kind": p.kind, "offset_px": p.offset_px,
              **{f"{m}_error": float(errors[m][i]) for m in runs},
              **({"implausible": bool(runs["estimator"]["implausible"][i]),
-                 "alignment_ncc": _json_number(runs["estimator"]["alignment_ncc"][i]),
-                 "verify_move_px": _json_number(runs["estimator"]["verify_move_px"][i]),
+                 "alignment_ncc": float(runs["estimator"]["alignment_ncc"][i]),
+                 "verify_move_px": float(runs["estimator"]["verify_move_px"][i]),
                  "move_confirmed": bool(runs["estimator"]["move_confirmed"][i]),
-                 "corner_std_px": _json_number(runs["estimator"]["corner_std_px"][i]),
+                 "corner_std_px": float(runs["estimator"]["corner_std_px"][i]),
                  "undetermined": bool(runs["estimator"]["undetermined"][i]),
-                 "ambiguity_gap": _json_number(runs["estimator"]["ambiguity_gap"][i]),
-                 "tile_ambiguity_gap": _json_number(
+                 "ambiguity_gap": float(runs["estimator"]["ambiguity_gap"][i]),
+                 "tile_ambiguity_gap": float(
                      runs["estimator"]["tile_ambiguity_gap"][i]),
-                 "image_ncc": _json_number(runs["estimator"]["image_ncc"][i])}
+                 "image_ncc": float(runs["estimator"]["image_ncc"][i])}
                 if "estimator" in runs else {})}
             for i, p in enumerate(pairs)]
-    return json_ready(result)  # (a method's non-finite homography: an infinite error)
+    return json_ready(result)  # (NaN measures: null; a non-finite homography's error: "inf")
 
 
 def benchmark_folder(folder, methods=DEFAULT_METHODS, model=None, options=None, max_pairs: int = 0,
