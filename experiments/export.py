@@ -60,6 +60,10 @@ def main(argv):
         print(f"export: warning: kept your {path} (not written by an export); the export's own "
               "is not written there", file=sys.stderr)
     print(f"export: {export.verification_line(report)}", file=sys.stderr)
+    if not report["ok"] and report["kept_earlier_export"]:
+        raise SystemExit(f"export: the check failed (above): the earlier export at "
+                         f"{FLAGS.output} is kept as it was, nothing replaced; export to a new "
+                         "--output to inspect the failing one.")
     if not report["ok"]:
         raise SystemExit(f"export: the check failed (above). The SavedModel is left at "
                          f"{FLAGS.output} for inspection, not marked verified; re-export with "

@@ -199,3 +199,29 @@ def test_tensorflows_own_info_lines_are_dropped_and_the_binaries_kept():
     assert keep(record(tf_module, logging.WARNING))
     assert keep(record(os.path.join(REPO, "experiments", "flags_common.py"), logging.INFO))
     assert not keep(record("x.py", logging.WARNING, "5 calls triggered tf.function retracing"))
+
+
+def test_a_stale_evaluation_is_left_out_of_the_exports_numbers(tmp_path):
+    """After ``replace_stage`` without a new evaluation the card keeps the old one marked
+    ``evaluation_stale``; an export's README and signature.json gave it as the model's MACE. The
+    evaluation's numbers are left out now, and the README says why; the bundled check (re-computed
+    by ``replace_stage``) stays."""
+    card = json.load(open(CARD))
+    for name in ("default.json", "stage1.keras", "stage2.keras", "stage3.keras"):
+        (tmp_path / name).write_bytes(open(os.path.join(WEIGHTS, name), "rb").read())
+    (tmp_path / "model_card.json").write_text(json.dumps(card))
+    fresh = export_contract.card_numbers(str(tmp_path / "default.json"))
+    assert any(n["key"].startswith("evaluation/") for n in fresh["numbers"])  # (the control)
+    card["evaluation_stale"] = "stage 2 (stage2.keras) was replaced after this evaluation"
+    (tmp_path / "model_card.json").write_text(json.dumps(card))
+    numbers = export_contract.card_numbers(str(tmp_path / "default.json"))
+    keys = [n["key"] for n in numbers["numbers"]]
+    assert keys and not any(k.startswith("evaluation/") for k in keys)
+    assert [k for k in keys if k.startswith("bundled_check/")] == [
+        n["key"] for n in fresh["numbers"] if n["key"].startswith("bundled_check/")]
+    assert numbers["evaluation_stale"] == card["evaluation_stale"]
+    readme = export_contract.readme({"model": {"source": "s", "kind": "hierarchy",
+                                               "num_stages": 3},
+                                     "model_card": numbers, "exported_by": {}})
+    assert "evaluation is left out: stage 2 (stage2.keras) was replaced" in readme
+    assert "evaluation/" not in readme

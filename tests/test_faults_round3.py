@@ -170,9 +170,11 @@ class Killed(BaseException):
 def test_an_export_killed_during_its_check_is_not_taken_for_a_verified_one(tmp_path,
                                                                            monkeypatch, caplog):
     """A kill during the check left a complete but unchecked SavedModel, and the re-run only
-    asked for --overwrite. The folder is marked verified (``export.VERIFIED_FILE``, written
-    atomically after the check passed, naming the SavedModel's digest) only then: the re-run
-    says the export was never verified, loading it warns, and a finished export is marked."""
+    asked for --overwrite. The check runs in the staging folder now (a kill there moves nothing
+    in), and the folder is marked verified (``export.VERIFIED_FILE``, written atomically after
+    the check passed, naming the SavedModel's digest) only after the swap: a kill between the
+    two leaves the export unmarked, the re-run says it was never verified, loading it warns,
+    and a finished export is marked."""
     est = HomographyEstimator([constant_stage(SHIFT)])
     out = tmp_path / "export"
 
@@ -180,6 +182,11 @@ def test_an_export_killed_during_its_check_is_not_taken_for_a_verified_one(tmp_p
         raise Killed()
 
     monkeypatch.setattr(export, "verify_export", killed)
+    with pytest.raises(Killed):
+        export.export_and_verify(est, out, check_pairs=2)
+    monkeypatch.undo()
+    assert not (out / "saved_model.pb").exists()  # killed in its check: nothing moved in
+    monkeypatch.setattr(export.paths, "atomic_write_json", killed)  # killed before the marker
     with pytest.raises(Killed):
         export.export_and_verify(est, out, check_pairs=2)
     monkeypatch.undo()
@@ -202,6 +209,48 @@ def test_an_export_killed_during_its_check_is_not_taken_for_a_verified_one(tmp_p
     with pytest.raises(FileExistsError) as e:  # verified: only --overwrite is asked for
         export.export_and_verify(est, out, check_pairs=2)
     assert "never verified" not in str(e.value)
+
+
+def test_a_failed_check_keeps_the_earlier_verified_export(tmp_path):
+    """``--overwrite`` with a check that fails (``--tolerance=0``, a reviewer's run) swapped the
+    new SavedModel in before checking it: the earlier, verified export was gone. The check runs
+    before the swap now: the earlier export stays as it was, marked verified; into an empty
+    output the failing export still goes, unmarked, for inspection."""
+    first = HomographyEstimator([constant_stage(SHIFT)])
+    second = HomographyEstimator([constant_stage(SHIFT @ SHIFT)])
+    out = tmp_path / "export"
+    assert export.export_and_verify(first, out, check_pairs=2)["ok"]
+    digest = export.saved_model_digest(out)
+    failing = {"max_abs_diff": 1.0, "max_abs_diff_estimate": 1.0, "ok": False}
+    real = export.verify_export
+    export.verify_export = lambda *a, **k: {**real(*a, **k), **failing}
+    try:
+        report = export.export_and_verify(second, out, overwrite=True, check_pairs=2)
+        alone = export.export_and_verify(second, tmp_path / "new", check_pairs=2)
+    finally:
+        export.verify_export = real
+    assert not report["ok"] and report["kept_earlier_export"] and report["documents"] == []
+    assert export.saved_model_digest(out) == digest and export.verified_problem(out) is None
+    patch_a, patch_b = export.verification_pairs(2)
+    np.testing.assert_allclose(export.run_saved_model(out, patch_a, patch_b),
+                               np.broadcast_to(SHIFT, (2, 3, 3)), atol=1e-4)
+    assert not [n for n in os.listdir(out) if n.startswith(".stnh_tf_export_staging")]
+    assert not alone["ok"] and not alone["kept_earlier_export"]
+    assert (tmp_path / "new" / "saved_model.pb").is_file()
+    assert "never verified" in export.verified_problem(tmp_path / "new")
+
+
+def test_the_export_refuses_another_keras_backend_first(tmp_path, monkeypatch):
+    """Under ``KERAS_BACKEND=jax`` the export failed deep in its trace and said "cannot write
+    the SavedModel": refused first now, in one line naming the backend, nothing created."""
+    import keras
+
+    monkeypatch.setattr(keras.backend, "backend", lambda: "jax")
+    est = HomographyEstimator([constant_stage(SHIFT)])
+    for write in (export.export_saved_model, export.export_and_verify):
+        with pytest.raises(ValueError, match="KERAS_BACKEND=tensorflow"):
+            write(est, tmp_path / "export")
+    assert not (tmp_path / "export").exists()
 
 
 # ------------------------------------------------------------------------------------------------

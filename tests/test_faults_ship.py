@@ -108,8 +108,8 @@ def test_a_save_cut_short_leaves_the_shipped_file(shipped, runs, monkeypatch):
     assert _state(w) == before  # (was: stage2.keras of 11 bytes)
 
 
-def test_a_failed_card_write_puts_the_old_files_back(shipped, runs, monkeypatch):
-    w, before = shipped
+def _card_write_fails(monkeypatch):
+    """The card's write fails (a full disk) from now on; returns the real writer."""
     real = shipped_weights.atomic_write_json
 
     def failing(path, doc):
@@ -118,6 +118,12 @@ def test_a_failed_card_write_puts_the_old_files_back(shipped, runs, monkeypatch)
         return real(path, doc)
 
     monkeypatch.setattr(shipped_weights, "atomic_write_json", failing)
+    return real
+
+
+def test_a_failed_card_write_puts_the_old_files_back(shipped, runs, monkeypatch):
+    w, before = shipped
+    _card_write_fails(monkeypatch)
     with pytest.raises(OSError):
         shipped_weights.ship([runs["b"]], w)
     assert _state(w) == before
@@ -216,7 +222,6 @@ def test_put_back_moves_only_what_the_plan_names(shipped, monkeypatch):
     temporary file there, which put_back moved into the weights folder; one killed after its
     swap (no ``.previous`` left) must not be undone. Neither touches the weights now."""
     w, before = shipped
-    monkeypatch.setattr(shipped_weights, "_alive", lambda pid: False)  # (another process's)
     early = os.path.join(w, f"{shipped_weights.STAGING_PREFIX}1", shipped_weights.PREVIOUS)
     os.makedirs(early)
     open(os.path.join(early, "model_card.json.tmp-1"), "w").write("{half")
@@ -249,7 +254,6 @@ def test_a_failed_put_back_keeps_the_old_files_for_the_next_ship(shipped, runs, 
     monkeypatch.setattr(shipped_weights, "atomic_write_bytes", failing_bytes)
     with pytest.raises(RuntimeError, match="so did putting the old files back"):
         shipped_weights.ship([runs["b"], runs["b"]], w)
-    monkeypatch.setattr(shipped_weights, "_alive", lambda pid: False)  # (another process's)
     assert "model_card.json" in shipped_weights.put_back(w)
     assert _state(w) == before
 
@@ -325,7 +329,6 @@ def test_a_ship_killed_after_writing_its_card_is_kept(shipped, runs, tmp_path, m
     shipped_weights.ship([runs["b"], runs["b"]], w)
     after = _state(w)
     assert after != before
-    monkeypatch.setattr(shipped_weights, "_alive", lambda pid: False)  # (another process's)
     card = open(os.path.join(w, "model_card.json"), "rb").read()
     _killed_after_its_card(w, before_dir, card)
     assert shipped_weights.put_back(w) == []
@@ -362,7 +365,6 @@ def test_the_card_a_ship_writes_marks_its_swap_done(shipped, runs, monkeypatch):
     assert len(staging) == 1
     after = _state_files(w)
     assert after != before
-    monkeypatch.setattr(shipped_weights, "_alive", lambda pid: False)  # (another process's)
     assert shipped_weights.put_back(w) == []
     assert _state(w) == after
 
@@ -370,3 +372,64 @@ def test_the_card_a_ship_writes_marks_its_swap_done(shipped, runs, monkeypatch):
 def _state_files(folder):
     return {n: hashlib.sha256(open(os.path.join(folder, n), "rb").read()).hexdigest()
             for n in sorted(os.listdir(folder)) if os.path.isfile(os.path.join(folder, n))}
+
+
+def test_a_killed_ships_folder_is_put_back_whatever_process_has_its_id_now(shipped, runs,
+                                                                           tmp_path):
+    """A ship killed in its swap left its staging folder named by its process id, and the next
+    writer put it back only where no process had that id: with the id reused (across container
+    runs; pid 1 here, always running) a later ship went on over the half-swapped folder, the
+    folder stayed, and a writer after the id was free reverted the later ship to the weights
+    before both. Every writer holds the folder's lock, so a staging folder found under it is a
+    dead writer's: the next ship puts it back first, then ships whole."""
+    import shutil
+
+    w, before = shipped
+    before_dir = str(tmp_path / "before")
+    shutil.copytree(w, before_dir)
+    shipped_weights.ship([runs["b"], runs["b"]], w)
+    card = open(os.path.join(w, "model_card.json"), "rb").read()
+    _killed_after_its_card(w, before_dir, card.replace(b"stage", b"other"))  # (pid 1's name)
+    card = shipped_weights.ship([runs["b"]] * 3, w)
+    assert not [n for n in os.listdir(w) if n.startswith(shipped_weights.STAGING_PREFIX)]
+    assert [s["source"] for s in card["stages"]] == [os.path.abspath(runs["b"])] * 3
+    after = _state(w)
+    shipped_weights.refresh_check(w)  # a later writer finds nothing to put back
+    assert {n: h for n, h in _state(w).items() if n.endswith(".keras")} == {
+        n: h for n, h in after.items() if n.endswith(".keras")}
+
+
+def test_fewer_stages_shipped_over_more_leave_no_later_stage_file(shipped, runs, monkeypatch):
+    """Two stages shipped over three left the old ``stage3.keras`` beside the new manifest, and
+    ``HomographyEstimator.load(folder)`` (README's way to load a weights folder) ran it as a
+    third stage under a two-stage card. It goes with the old files now, and comes back where
+    the ship fails."""
+    from stnh_tf.inference.estimator import HomographyEstimator
+
+    w, _ = shipped
+    shipped_weights.ship([runs["a"]] * 3, w)
+    three = _state(w)
+    real = _card_write_fails(monkeypatch)
+    with pytest.raises(OSError, match="No space"):
+        shipped_weights.ship([runs["b"], runs["b"]], w)
+    assert _state(w) == three  # stage3.keras back with the rest
+    monkeypatch.setattr(shipped_weights, "atomic_write_json", real)
+    shipped_weights.ship([runs["b"], runs["b"]], w)
+    assert sorted(n for n in os.listdir(w) if n.endswith(".keras")) == ["stage1.keras",
+                                                                       "stage2.keras"]
+    assert HomographyEstimator.load(w).num_stages == 2
+
+
+def test_a_weights_folder_loads_the_hierarchy_its_manifest_names(shipped):
+    """A weights folder holding ``default.json`` and, beside it, a stage file the manifest does
+    not name (a copy, a leftover): ``load(folder)`` took every numbered stage file; it loads
+    the manifest's hierarchy, as ``load()`` does the package's."""
+    import shutil
+
+    from stnh_tf.inference import model_files
+
+    w, _ = shipped
+    shutil.copy(os.path.join(w, "stage1.keras"), os.path.join(w, "stage3.keras"))
+    assert model_files.resolve_model_paths(w) == model_files.read_manifest(
+        os.path.join(w, "default.json"))
+    assert len(model_files.resolve_model_paths(w)) == 2

@@ -44,10 +44,12 @@ Writing (:func:`export_saved_model`; :func:`export_and_verify` for ``experiments
   verification too): a second export to the same output, in this process or another, is
   refused at once with ``FileExistsError`` naming the folder, so neither can report success
   with the other's files.
-* **Verified, then marked.** :func:`export_and_verify` writes
+* **Verified, then marked.** :func:`export_and_verify` checks the new SavedModel in its
+  staging folder, before it replaces anything: one that fails its check replaces no earlier
+  export (it is moved in only into an output holding none, for inspection, unmarked). It writes
   :data:`VERIFIED_FILE` (atomically: the check's report and :func:`saved_model_digest`) only
   after the check passed, and an export removes the old one before it replaces anything: a
-  folder an export or its check was killed in (``kill -9``) has none. Loading an export
+  folder an export was killed in (``kill -9``) after its swap has none. Loading an export
   (:func:`load_serving_signature`) logs a warning where it is missing or its digest is not the
   files', and a re-export without ``overwrite`` says the folder was never verified
   (:func:`verified_problem`).
@@ -92,6 +94,7 @@ def export_saved_model(estimator, output_dir, overwrite: bool = False) -> str:
     failed write (e.g. a full disk) leaves the old export as it was and raises ``OSError``
     naming the path and the cause.
     """
+    _check_backend()
     with output_lock(output_dir, overwrite):
         _write_export(estimator, os.fspath(output_dir))
         return os.fspath(output_dir)
@@ -99,18 +102,31 @@ def export_saved_model(estimator, output_dir, overwrite: bool = False) -> str:
 
 def export_and_verify(estimator, output_dir, overwrite: bool = False, check_pairs: int = 8,
                       tolerance: float = 1e-3) -> dict:
-    """:func:`export_saved_model`, then :func:`verify_export` on :func:`verification_pairs`
-    (``check_pairs`` of them), holding the output's lock through both, so the report is about
-    this export's files; where the check passed, :data:`VERIFIED_FILE` is written last
-    (atomically). Returns ``verify_export``'s dict with ``documents`` (the paths of the
-    ``README.md`` and ``signature.json`` written), ``kept_user_files`` (files of those names
-    that the export did not write, kept in their place) and ``verified_file`` (the marker's
-    path, ``None`` where the check failed). Raises as ``export_saved_model``."""
+    """:func:`export_saved_model` with :func:`verify_export` on :func:`verification_pairs`
+    (``check_pairs`` of them) run on the new SavedModel in its staging folder, holding the
+    output's lock through both, so the report is about this export's files. Where the check
+    passed, the export is moved in and :data:`VERIFIED_FILE` written last (atomically); where
+    it failed, an earlier export in ``output_dir`` is kept as it was (``kept_earlier_export``
+    True, nothing written), and into an output holding none the unchecked export is moved for
+    inspection, unmarked. Returns ``verify_export``'s dict with ``documents`` (the paths of
+    the ``README.md`` and ``signature.json`` written), ``kept_user_files`` (files of those
+    names that the export did not write, kept in their place), ``kept_earlier_export`` and
+    ``verified_file`` (the marker's path, ``None`` where the check failed). Raises as
+    ``export_saved_model``."""
+    _check_backend()
     with output_lock(output_dir, overwrite):
-        kept = _write_export(estimator, os.fspath(output_dir))
         patch_a, patch_b = verification_pairs(check_pairs)
-        report = verify_export(output_dir, estimator, patch_a, patch_b, tolerance)
+        report = {}
+
+        def check(folder):  # the new SavedModel, before it replaces anything
+            report.update(verify_export(folder, estimator, patch_a, patch_b, tolerance))
+            return report["ok"]
+
+        kept = _write_export(estimator, os.fspath(output_dir), check)
         marker = None
+        if kept is None:  # failed its check beside an earlier export: that one stays
+            return {**report, "documents": [], "kept_user_files": [],
+                    "kept_earlier_export": True, "verified_file": None}
         if report["ok"]:
             marker = os.path.join(os.fspath(output_dir), VERIFIED_FILE)
             paths.atomic_write_json(marker, {"format": VERIFIED_FORMAT,
@@ -118,13 +134,27 @@ def export_and_verify(estimator, output_dir, overwrite: bool = False, check_pair
                                              "report": report})
     written = [os.path.join(os.fspath(output_dir), name) for name in export_contract.DOC_FILES
                if os.path.join(os.fspath(output_dir), name) not in kept]
-    return {**report, "documents": written, "kept_user_files": kept, "verified_file": marker}
+    return {**report, "documents": written, "kept_user_files": kept,
+            "kept_earlier_export": False, "verified_file": marker}
 
 
-def _write_export(estimator, output_dir) -> list:
+def _check_backend():
+    """``ValueError`` unless Keras runs on TensorFlow: the serving graph is TensorFlow's (under
+    another backend its trace fails deep inside, and was reported as a write error)."""
+    import keras
+
+    if keras.backend.backend() != "tensorflow":
+        raise ValueError(f"the SavedModel export needs Keras on TensorFlow; this process runs "
+                         f"Keras on {keras.backend.backend()!r}: run it with "
+                         "KERAS_BACKEND=tensorflow (nothing was written).")
+
+
+def _write_export(estimator, output_dir, check=None) -> list | None:
     """The write of :func:`export_saved_model`, its output's lock held; returns the paths of the
     files named like the export's documents (``README.md``, ``signature.json``) that an export
-    did not write, kept in place of the export's own (a warning is logged for each)."""
+    did not write, kept in place of the export's own (a warning is logged for each). ``check``
+    (the staging folder -> passed) runs before the swap: where it fails and ``output_dir``
+    holds an earlier SavedModel, nothing is moved in and ``None`` is returned."""
     with staging(output_dir) as folder:
         try:
             _write_archive(estimator, folder)
@@ -132,6 +162,9 @@ def _write_export(estimator, output_dir) -> list:
         except Exception as e:  # TensorFlow's write errors are not OSErrors
             raise OSError(f"cannot write the SavedModel to {output_dir}: "
                           f"{type(e).__name__}: {e}") from None
+        if check is not None and not check(folder) and os.path.isfile(
+                os.path.join(output_dir, "saved_model.pb")):
+            return None
         kept = swap_in(folder, output_dir)
     for path in kept:
         _log.warning("export: kept %s (not written by an export); the export's own %s is not "

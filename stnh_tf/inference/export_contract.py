@@ -239,7 +239,9 @@ def card_numbers(source) -> dict | None:
     :func:`_card_for`; ``None`` where none does), for the model's ``stages`` first stages:
     ``{"path", "stages", "numbers": [{"key", "value", "unit", "what", "pairs"}, ...]}``, each
     ``value`` read at ``key`` (``/``-separated) of the card, ``pairs`` saying what it was
-    measured on.
+    measured on. A card whose ``evaluation`` is marked ``evaluation_stale`` (a stage replaced
+    since it was measured: :func:`stnh_tf.inference.shipped_weights.replace_stage`) gives none
+    of its numbers, and ``"evaluation_stale"`` says why.
 
         >>> numbers = card_numbers(None)
         >>> numbers is None
@@ -274,7 +276,8 @@ def card_numbers(source) -> dict | None:
         add(f"bundled_check/{prefix}estimate_mace_{k}_stages", "px",
             "HomographyEstimator.estimate's default: with the search, more than this SavedModel "
             "computes", pairs)
-    for name, result in _evaluations(card.get("evaluation")):
+    stale = card.get("evaluation_stale")  # measured on a stage replaced since: not this model's
+    for name, result in [] if stale else _evaluations(card.get("evaluation")):
         base = f"evaluation/{name}/" if name else "evaluation/"
         data = os.path.basename(str(result.get("data_dir", ""))) or "?"
         pairs = (f"{result.get('count', '?')} {result.get('split', '')} pairs of {data} "
@@ -288,7 +291,8 @@ def card_numbers(source) -> dict | None:
                 f"the network, {k} stage(s): pairs worse than the identity", pairs)
         elif k == len(card.get("stages", [])):
             add(f"{base}model/mace", "px", f"the network, {k} stage(s)", pairs)
-    return {"path": path, "stages": k, "numbers": numbers}
+    return {"path": path, "stages": k, "numbers": numbers,
+            **({"evaluation_stale": str(stale)} if stale else {})}
 
 
 # --------------------------------------------------------------------------------------------
@@ -337,6 +341,8 @@ def readme(document) -> str:
             lines += [f"| {n['what']} | {n['value']:.2f} px | `{n['key']}` |" if n["unit"] == "px"
                       else f"| {n['what']} | {n['value']} | `{n['key']}` |" for n in numbers]
             lines.append("")
+        if card.get("evaluation_stale"):
+            lines += [f"The card's evaluation is left out: {card['evaluation_stale']}", ""]
     return "\n".join(lines)
 
 

@@ -21,6 +21,9 @@ accepts
 * a ``.json`` manifest;
 * a directory holding ``model.keras`` (a training run: single or sequence model);
 * a directory holding ``hierarchy.json`` (the manifest);
+* a directory holding ``default.json`` (a manifest) or ``default.keras``: a weights folder as
+  ``experiments.ship_weights`` writes it (the package's ``stnh_tf/weights/`` or a copy), loaded
+  as shipped whatever other stage files lie beside it;
 * a directory holding stage models named ``stage1``, ``stage2``, ... (sub-directories holding
   ``model.keras``, or files ``stage1.keras``, ...), taken as a hierarchy in numeric order (a gap
   in the numbers, or two models for one stage, is refused, naming the files);
@@ -179,7 +182,9 @@ def resolve_model_paths(path=None) -> list:
             "instead.")
     path = os.fspath(path)
     if os.path.isdir(path):
-        for candidate in (MODEL_FILE, MANIFEST_FILE):
+        # a weights folder as shipped (stnh_tf/weights/ or a copy) holds default.json: the
+        # hierarchy it names, not the stage files beside it
+        for candidate in (MODEL_FILE, MANIFEST_FILE, DEFAULT_MANIFEST, DEFAULT_MODEL):
             if os.path.isfile(os.path.join(path, candidate)):
                 break
         else:
@@ -187,8 +192,8 @@ def resolve_model_paths(path=None) -> list:
             if stages:
                 return stages
             raise FileNotFoundError(
-                f"{path} holds no model: expected {MODEL_FILE}, {MANIFEST_FILE} or stage1, "
-                "stage2, ... models.")
+                f"{path} holds no model: expected {MODEL_FILE}, {MANIFEST_FILE}, "
+                f"{DEFAULT_MANIFEST}, {DEFAULT_MODEL} or stage1, stage2, ... models.")
         path = os.path.join(path, candidate)
     if not os.path.exists(path):
         raise FileNotFoundError(f"no model at {path}.")

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 
 from stnh_tf.paths import (atomic_write_bytes, atomic_write_json, exclusive_lock, json_text,
                            stage_record_path)
@@ -25,7 +26,8 @@ def ship(model_dirs, weights_dir=None, eval_json=None, allow_worse: bool = False
 
     Every model and ``eval_json`` is read, and the new files written and checked in a staging
     folder, before anything shipped is replaced; the files, manifest and card then go in
-    together (:func:`_install`), or nothing does.
+    together (:func:`_install`), or nothing does. Stage files of the weights replaced beyond the
+    new stages (``stage3.keras`` where two stages are shipped over three) go with them.
 
     Raises:
       FileNotFoundError: a model or ``eval_json`` that is not there.
@@ -171,25 +173,28 @@ def _install(weights_dir, models: dict, card: dict, old_card, allow_worse, manif
     description; None: kept) and the card; where any of that fails, the old files, manifest and
     card are put back (a process killed meanwhile: :func:`put_back`, by the next ship). The
     card records ``bundled_check_change`` (the numbers that moved)."""
-    staging = os.path.join(weights_dir, f"{STAGING_PREFIX}{os.getpid()}")
-    os.makedirs(staging)  # (FileExistsError: this process is shipping into it already)
+    import tempfile
+
+    staging = tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=weights_dir)
     return _install_staged(weights_dir, staging, models, card, old_card, allow_worse, manifest)
 
 
 def put_back(weights_dir) -> list:
-    """Undo what a ship killed in ``weights_dir`` left (a staging folder of a process no longer
-    running): by the plan it wrote before moving anything, the files it had set aside in the
+    """Undo what a ship killed in ``weights_dir`` left (its staging folder): by the plan it wrote before moving anything, the files it had set aside in the
     folder's ``.previous`` (models, manifest, card) go back over what it had placed, a model file
     it placed where none was goes, and the folder goes: the old weights as before it. A ship
     killed after writing its card (the swap done, its folder not yet marked so) is left as it
-    finished. Called first by :func:`locked` (every writer of the folder); returns the names put
-    back or removed."""
+    finished. Called first by :func:`locked` (every writer of the folder), so every staging
+    folder it finds is a dead writer's: whether that process's id now names another process
+    says nothing (ids are reused, across containers at once); returns the names put back or
+    removed."""
     import shutil
 
     names = []
     for stale in sorted(os.listdir(weights_dir)):
-        pid, folder = stale[len(STAGING_PREFIX):], os.path.join(weights_dir, stale)
-        if not (stale.startswith(STAGING_PREFIX) and pid.isdigit() and not _alive(int(pid))):
+        folder = os.path.join(weights_dir, stale)
+        if not (stale.startswith(STAGING_PREFIX) and os.path.isdir(folder)
+                and not os.path.islink(folder)):
             continue
         # no plan: killed before it moved anything; no .previous, or its new card and every
         # new model in place (none left in the staging folder): killed after the swap
@@ -199,7 +204,8 @@ def put_back(weights_dir) -> list:
                 else {"swap": [], "new": [], "kept": []})
         if _swap_done(weights_dir, folder, plan):
             plan = {"swap": [], "new": [], "kept": []}
-        for name in plan["swap"] + plan["kept"]:  # (nothing else: no half-written temp file)
+        # (nothing else: no half-written temp file)
+        for name in plan["swap"] + plan["kept"] + plan.get("dropped", []):
             old, target = os.path.join(folder, PREVIOUS, name), os.path.join(weights_dir, name)
             if os.path.exists(old):
                 os.replace(old, target)
@@ -220,16 +226,6 @@ def _swap_done(weights_dir, folder, plan) -> bool:
             and new_card == _bytes_if_any(os.path.join(weights_dir, "model_card.json"))
             and all(os.path.exists(os.path.join(weights_dir, n))
                     and not os.path.exists(os.path.join(folder, n)) for n in plan["swap"]))
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, manifest):
@@ -256,6 +252,11 @@ def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, m
             if isinstance(v, float) and isinstance(before.get(k), float) and v != before[k]}
         kept = {n: _bytes_if_any(os.path.join(weights_dir, n))
                 for n in ("default.json", "model_card.json")}
+        # a ship of fewer stages: the earlier ship's later stage files go with the old files (a
+        # folder load of numbered stages would run them)
+        dropped = [] if manifest is None else sorted(
+            n for n in os.listdir(weights_dir) if re.fullmatch(r"stage\d+\.keras", n)
+            and n not in {s["file"] for s in card["stages"]})
         aside = os.path.join(staging, PREVIOUS)
         # the card as it will be written: put_back's sign that the swap was done
         atomic_write_bytes(os.path.join(staging, NEW_CARD), json_text(card).encode())
@@ -265,7 +266,8 @@ def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, m
                 atomic_write_bytes(os.path.join(aside, name), data)
         atomic_write_json(os.path.join(staging, PLAN), {
             "swap": list(models), "kept": [n for n, d in kept.items() if d is not None],
-            "new": [n for n in models if not os.path.exists(os.path.join(weights_dir, n))]})
+            "new": [n for n in models if not os.path.exists(os.path.join(weights_dir, n))],
+            "dropped": dropped})
         moved, placed = [], []
         try:
             for name in models:
@@ -275,6 +277,9 @@ def _install_staged(weights_dir, staging, models, card, old_card, allow_worse, m
                     moved.append(name)
                 os.replace(os.path.join(staging, name), target)
                 placed.append(name)
+            for name in dropped:
+                os.replace(os.path.join(weights_dir, name), os.path.join(aside, name))
+                moved.append(name)
             if manifest is not None:
                 model_files.write_manifest(os.path.join(weights_dir, "default.json"),
                                            [os.path.join(weights_dir, s["file"])
@@ -310,8 +315,9 @@ and the card it writes last (in place: the swap was done)."""
 
 
 STAGING_PREFIX = ".stnh_tf_ship."
-"""The hidden folder inside the weights folder that new files are written and checked in (its
-name ends in the shipping process's id; one of a process no longer running is removed)."""
+"""The hidden folders inside the weights folder that new files are written and checked in
+(``tempfile.mkdtemp``'s names); one found by the next writer, under the folder's lock, is a
+killed ship's (:func:`put_back`)."""
 
 
 def _pairs_text(worse: dict) -> str:
