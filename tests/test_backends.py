@@ -234,7 +234,8 @@ def test_training_callbacks_copy_the_jax_state_back_only_where_they_print(backen
     it. A fit of 2 epochs x 5 calls (2 steps each) with the loop's per-step callbacks, reporting
     every 4 steps: the state is copied at the 5 reports and at the first epoch's end (the second
     ends on a report), not after each of the 10 calls; the reported steps and learning rates are
-    the global step's and the schedule's (Keras' CosineDecay under TensorFlow)."""
+    the global step's and the schedule's for that step's update (Keras' CosineDecay under
+    TensorFlow, at the step before)."""
     if backend_run["backend"] != "jax":
         pytest.skip("only the JAX backend copies its training state back into the model")
     tiny = backend_run["summary"]["tiny_fit"]
@@ -242,7 +243,7 @@ def test_training_callbacks_copy_the_jax_state_back_only_where_they_print(backen
     assert [int(line.split()[1].split("/")[0]) for line in tiny["lines"]] == steps
     schedule = keras.optimizers.schedules.CosineDecay(0.1, 20)
     assert [line.split()[2] for line in tiny["lines"]] == [
-        f"lr={float(schedule(s)):.5g}" for s in steps]
+        f"lr={float(schedule(s - 1)):.5g}" for s in steps]  # (the rate step s was made with)
     assert tiny["syncs"] == len(steps) + 1
 
 

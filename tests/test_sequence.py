@@ -390,7 +390,7 @@ def test_initialize_from_single_stage_models(tmp_path, batch):
         singles.append(stn)
     seq = models.SequenceSTNHomography(num_stages=2)
     before = [w.copy() for w in seq.get_layer("regression_1").get_weights()]
-    training.initialize_from(seq, dirs)
+    model_kinds.initialize_from(seq, dirs)
     for k in (1, 2):
         src = singles[k - 1].get_layer("regression").get_weights()
         dst = seq.get_layer(f"regression_{k}").get_weights()
@@ -417,7 +417,7 @@ def test_initialize_from_rejects_other_model_kinds(tmp_path, narrow):
     d.mkdir()
     models.build_homographynet().save(d / run_dir.FINAL_MODEL)  # narrow: a 8 MB file, not 137
     with pytest.raises(ValueError, match="not a single-stage STN-Homography model"):
-        training.initialize_from(models.SequenceSTNHomography(num_stages=2), [str(d)])
+        model_kinds.initialize_from(models.SequenceSTNHomography(num_stages=2), [str(d)])
     cfg = train_config.TrainConfig(data_dir="d", model_dir="m", model="sequence", num_stages=2,
                                    init_from=("a", "b", "c"))
     with pytest.raises(ValueError, match="init_from names 3 models for 2 stages"):

@@ -17,7 +17,7 @@ from stnh_tf.evaluation import mace as evaluation
 from stnh_tf.training import config as train_config
 from stnh_tf.training import streams as train_streams
 from stnh_tf.training import loop as training
-from stnh_tf.training import run_dir
+from stnh_tf.training import stage_estimates
 from stnh_tf.data import batches
 from stnh_tf.data import tfrecords as data
 from stnh_tf.data import bundled_photos, pair_datasets, pairs, sources
@@ -339,7 +339,7 @@ def test_stage_pairs_hold_one_slice_of_context_at_a_time(folder, tmp_path, monke
             np.testing.assert_array_equal(pairs[name], reference[name], err_msg=(run, name))
         assert sum(calls) == (n if run == "fresh" else 0), run
     # the committed stage-3 estimates were saved under the key of the whole set at once
-    assert run_dir.saved_estimates_key(cfg.model_dir, "train") == old_key.hexdigest()
+    assert stage_estimates.saved_estimates_key(cfg.model_dir, "train") == old_key.hexdigest()
 
 
 def test_materialize_slices_cover_the_set_in_order(folder):

@@ -24,7 +24,7 @@ from conftest import NARROW_FILTERS, narrow_network
 from stnh_tf.data import stage1
 from stnh_tf.data.bundled_photos import bundled_image_files
 from stnh_tf import geometry
-from stnh_tf.training import checkpoints, run_dir
+from stnh_tf.training import checkpoints, run_dir, stage_estimates
 from stnh_tf.training import config as train_config
 from stnh_tf.training import precision
 from stnh_tf.training import loop as training
@@ -193,7 +193,7 @@ def test_init_from_starts_a_stage_from_a_trained_one(tiny_data, tmp_path, narrow
         training.check_start(dataclasses.replace(cfg,
                                                  init_from=(str(tmp_path / "unfinished_run"),)))
     model = model_kinds.build_model(cfg)
-    training.initialize_from(model, (str(tmp_path / "src_run"),))
+    model_kinds.initialize_from(model, (str(tmp_path / "src_run"),))
     for g, s in zip(model.get_weights(), src.get_weights()):
         np.testing.assert_array_equal(g, s)
 
@@ -391,10 +391,37 @@ def test_non_finite_loss_stops_with_step_and_checkpoint(tiny_data, tmp_path, nar
     with pytest.raises(training.TrainingDiverged) as err:
         training.train(cfg, printer=_quiet)
     msg = str(err.value)
-    assert "non-finite loss at step" in msg and "last good checkpoint" in msg
-    step = int(msg.split("non-finite loss at step ")[1].split(";")[0])
-    assert 1 <= step <= 20
+    found = re.search(r"non-finite (loss|weights) at step (\d+);", msg)
+    assert found and "last good checkpoint" in msg, msg
+    assert 1 <= int(found.group(2)) <= 20
     assert not (tmp_path / "nan" / "model.keras").exists()
+
+
+def _all_finite(weights) -> bool:
+    return all(np.isfinite(np.asarray(w, np.float64)).all() for w in weights)
+
+
+@pytest.mark.slow  # (two short training runs)
+def test_non_finite_weights_are_never_checkpointed_nor_finished(tiny_data, tmp_path, narrow):
+    """An update can overflow the weights while the loss it came from was finite: the guard
+    looked at the loss alone, so the checkpoint of that step (the one TrainingDiverged called
+    the last good one, and a chunk commits) held NaN weights, and a run whose last update did
+    it finished with a model.keras of NaN weights (a reviewer's runs, lr 1e12). Weights are
+    checked at each epoch end now, before the checkpoint: the run stops, its last checkpoint
+    finite, no model written."""
+    for name, steps in (("every", 20), ("last", 2)):
+        cfg = _cfg(tiny_data, tmp_path / name, learning_rate=1e12, warmup_steps=0,
+                   train_steps=steps, checkpoint_every=1)
+        with pytest.raises(training.TrainingDiverged, match="non-finite (loss|weights)"):
+            training.train(cfg, printer=_quiet)
+        assert not (tmp_path / name / "model.keras").exists()
+        path = checkpoints.checkpoint_weights_path(str(tmp_path / name / "checkpoint"))
+        arrays = []
+        if path is not None:  # (every float array the checkpoint holds, optimizer's included)
+            with h5py.File(path) as f:
+                f.visititems(lambda _, item: arrays.append(item[()]) if isinstance(
+                    item, h5py.Dataset) and item.dtype.kind == "f" else None)
+            assert arrays and _all_finite(arrays)
 
 
 def test_stage_mismatch_and_missing_data_are_clear_errors(tiny_data, tmp_path, narrow):
@@ -1035,42 +1062,42 @@ def test_sync_in_keeps_a_newer_local_checkpoint(tmp_path):
 def test_saved_stage_estimates_travel_with_the_committed_checkpoint(tmp_path):
     """sync_out puts the run folder's saved estimates into the resume folder; sync_in puts them
     into a run folder that lacks them (a chunk on another machine) and keeps a folder's own."""
-    from stnh_tf.training import chunks, run_dir
+    from stnh_tf.training import chunks
 
     run = tmp_path / "run"
     _h5_checkpoint(run / "checkpoint", 4)
     (run / "config.json").write_text("{}")
     h = np.random.default_rng(0).normal(size=(5, 3, 3))
-    run_dir.save_estimates(str(run), "train", "key-1", h, {"outside_context": 2})
+    stage_estimates.save_estimates(str(run), "train", "key-1", h, {"outside_context": 2})
     resume = tmp_path / "repo" / "resume" / "stage2"
     assert chunks.sync_out(str(run), str(resume)) == 4
     assert sorted(os.listdir(resume)) == ["ckpt-00000004.weights.h5", "config.json",
                                           "stage_estimates_train.npz", "state.json"]
     other = tmp_path / "other"
     assert chunks.sync_in(str(resume), str(other)) == 4
-    got, rejected = run_dir.load_estimates(str(other), "train", "key-1")
+    got, rejected = stage_estimates.load_estimates(str(other), "train", "key-1")
     np.testing.assert_array_equal(got, h.astype(np.float32))
     assert rejected == {"outside_context": 2}
-    run_dir.save_estimates(str(other), "train", "key-2", h[:1], {})
+    stage_estimates.save_estimates(str(other), "train", "key-2", h[:1], {})
     chunks.sync_in(str(resume), str(other))
-    assert run_dir.load_estimates(str(other), "train", "key-2")[0].shape == (1, 3, 3)
+    assert stage_estimates.load_estimates(str(other), "train", "key-2")[0].shape == (1, 3, 3)
 
 
 def test_saved_stage_estimates_are_read_only_under_their_key(tmp_path):
     from stnh_tf.training import run_dir
 
-    assert run_dir.load_estimates(str(tmp_path), "val", "k") is None  # none saved
+    assert stage_estimates.load_estimates(str(tmp_path), "val", "k") is None  # none saved
     h = np.random.default_rng(1).normal(size=(3, 3, 3))
-    path = run_dir.save_estimates(str(tmp_path), "val", "k", h, {"singular": 1})
+    path = stage_estimates.save_estimates(str(tmp_path), "val", "k", h, {"singular": 1})
     assert os.path.basename(path) == run_dir.ESTIMATES_FILES["val"]
-    assert run_dir.load_estimates(str(tmp_path), "train", "k") is None  # another split
-    assert run_dir.load_estimates(str(tmp_path), "val", "other") is None  # other pairs or stages
-    got, rejected = run_dir.load_estimates(str(tmp_path), "val", "k")
+    assert stage_estimates.load_estimates(str(tmp_path), "train", "k") is None  # another split
+    assert stage_estimates.load_estimates(str(tmp_path), "val", "other") is None  # other pairs or stages
+    got, rejected = stage_estimates.load_estimates(str(tmp_path), "val", "k")
     assert got.dtype == np.float64 and rejected == {"singular": 1}
     np.testing.assert_array_equal(got, h.astype(np.float32).astype(np.float64))
     with open(path, "r+b") as f:  # a torn file reads as none saved
         f.truncate(40)
-    assert run_dir.load_estimates(str(tmp_path), "val", "k") is None
+    assert stage_estimates.load_estimates(str(tmp_path), "val", "k") is None
 
 
 def _scalars(folder):
@@ -1094,7 +1121,7 @@ def test_tensorboard_scalars_are_against_the_global_step(tiny_data, tmp_path, na
                                                           checkpoint_every, train_steps, logged):
     """The loss terms and the learning rate at every reported step, the validation MACE at every
     checkpoint, read back from the event files; the learning rate equals the schedule's (Keras'
-    CosineDecay) at that step."""
+    CosineDecay) that step's update was made with (at the step before: update s - 1, 0-based)."""
     cfg = _cfg(tiny_data, tmp_path / "run", log_every=log_every,
                checkpoint_every=checkpoint_every, train_steps=train_steps, val_samples=4,
                val_split="test")  # (tiny_data has no val split: the default would not validate)
@@ -1105,7 +1132,7 @@ def test_tensorboard_scalars_are_against_the_global_step(tiny_data, tmp_path, na
         assert sorted(train[tag]) == logged, (tag, train[tag])
     schedule = training.learning_rate_schedule(cfg)
     for step, lr in train["learning_rate"].items():
-        assert lr == pytest.approx(float(schedule(step)), rel=1e-5)
+        assert lr == pytest.approx(float(schedule(step - 1)), rel=1e-5)
     validation = _scalars(tmp_path / "run" / "logs" / "validation")
     assert sorted(validation["h_bar_mace"]) == list(range(checkpoint_every, train_steps + 1,
                                                           checkpoint_every))
@@ -1135,3 +1162,119 @@ def test_fit_timing_counts_the_steps_of_each_call(monkeypatch, narrow):
     with pytest.raises(ValueError, match="must divide steps_per_epoch"):
         benchmarks.time_fit("array", pb, ["bundled"], batch_size=4, steps_per_epoch=3,
                             steps_per_execution=2, stream=pair_datasets.ArrayStream(arrays, pb))
+
+
+@pytest.mark.slow  # (three short training runs)
+def test_a_run_resumes_with_its_init_from_file_gone(tiny_data, tmp_path, narrow):
+    """A run started with ``init_from`` was refused on every resume once that file was gone (a
+    temporary copy, another machine), although a resume never reads it: the only way on was
+    ``--overwrite``, from step 0. It resumes now, and its config.json keeps the file's recorded
+    digest; another file at that path is still another configuration."""
+    training.train(_cfg(tiny_data, tmp_path / "src", train_steps=2), printer=_quiet)
+    init = tmp_path / "init.keras"
+    shutil.copy(tmp_path / "src" / "model.keras", init)
+    cfg = _cfg(tiny_data, tmp_path / "run", init_from=(str(init),))
+    assert training.train(cfg, printer=_quiet, time_limit_s=0.001)["final_step"] < 6
+    recorded = json.loads((tmp_path / "run" / "config.json").read_text())["model_sha256"]
+    os.remove(init)
+    assert training.train(cfg, printer=_quiet)["final_step"] == 6
+    assert json.loads((tmp_path / "run" / "config.json").read_text())[
+        "model_sha256"] == recorded
+
+
+@pytest.mark.slow  # (a short training run)
+def test_a_finished_model_whose_record_was_lost_is_finished_by_the_same_command(
+        tiny_data, tmp_path, narrow, monkeypatch):
+    """``model.keras`` is written, then ``result.json``: a full disk (or a kill) between left a
+    folder every later call refused as finished, and ``--overwrite`` trained it again from step
+    0. With its checkpoint at the last step the same command now writes the record (and the
+    model again, from that checkpoint: the same weights), training nothing."""
+    cfg = _cfg(tiny_data, tmp_path / "run")
+    real = training.atomic_write_json
+
+    def full_disk(path, *args, **kwargs):
+        if os.path.basename(path) == "result.json":
+            raise OSError(28, "No space left on device", path)
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(training, "atomic_write_json", full_disk)
+    with pytest.raises(OSError, match="No space"):
+        training.train(cfg, printer=_quiet)
+    monkeypatch.setattr(training, "atomic_write_json", real)
+    before = _weights(tmp_path / "run")
+    assert not (tmp_path / "run" / "result.json").exists()
+    result = training.train(cfg, printer=_quiet)
+    assert result["final_step"] == 6 and (tmp_path / "run" / "result.json").is_file()
+    for a, b in zip(before, _weights(tmp_path / "run")):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(FileExistsError, match="finished model"):  # finished now: refused
+        training.train(cfg, printer=_quiet)
+
+
+@pytest.mark.slow  # (two short training runs)
+def test_a_failed_overwrite_says_where_the_run_it_replaced_is(tiny_data, tmp_path, narrow):
+    """``--overwrite`` keeps the replaced run in ``.previous_run`` until the new one finishes;
+    a new run that failed after its first checkpoint (diverged: "train anew with a new
+    --model_dir, or --overwrite") left a folder that looked like an unfinished run with no
+    model. Every error after the first checkpoint now says where the replaced run is."""
+    training.train(_cfg(tiny_data, tmp_path / "run"), printer=_quiet)
+
+    class Fails(keras.callbacks.Callback):  # an error after the first checkpoint (step 2)
+        def on_train_batch_end(self, batch, logs=None):
+            if int(self.model.optimizer.iterations.numpy()) >= 3:
+                raise RuntimeError("failed at step 3")
+
+    lines = []
+    cfg = _cfg(tiny_data, tmp_path / "run", train_steps=8)
+    with pytest.raises(RuntimeError, match="failed at step 3"):
+        training.train(cfg, overwrite=True, printer=lines.append, extra_callbacks=[Fails()])
+    assert (tmp_path / "run" / "checkpoint" / "state.json").is_file()
+    aside = tmp_path / "run" / run_dir.PREVIOUS_RUN
+    assert (aside / "model.keras").is_file()
+    assert any(str(aside) in line and "to have it back" in line for line in lines), lines
+
+
+@pytest.mark.slow  # (a short training run)
+def test_the_logged_learning_rate_is_the_one_its_step_was_made_with(tiny_data, tmp_path,
+                                                                     narrow):
+    """The progress line (and TensorBoard's ``learning_rate``) of step s gave the schedule at
+    s, the rate of the next update: DeTone et al.'s step schedule showed its drops one step
+    early (a reviewer's run: "step 2: lr=0.001" for an update made at 0.01). Step s's update is
+    made at the schedule's value at s - 1 (Keras evaluates it at ``iterations`` before the
+    update)."""
+    cfg = _cfg(tiny_data, tmp_path / "run", lr_schedule="step", warmup_steps=0)
+    lines = []
+    training.train(cfg, printer=lines.append)
+    schedule = training.learning_rate_schedule(cfg)
+    logged = {int(m.group(1)): float(m.group(2)) for m in (
+        re.match(r"step (\d+)/6 lr=(\S+)", line) for line in lines) if m}
+    assert sorted(logged) == [1, 2, 3, 4, 5, 6]
+    made_with = {s: float(keras.ops.convert_to_numpy(schedule(s - 1))) for s in logged}
+    assert len(set(made_with.values())) == 3  # (the two drops fall inside the run)
+    for s, lr in logged.items():
+        assert lr == pytest.approx(made_with[s], rel=1e-4), (s, lr, made_with)
+
+
+def test_a_checkpoint_save_cut_short_leaves_no_temporary_file(tmp_path):
+    """A checkpoint whose weights file could not be written whole (a full disk) left its
+    ``tmp-<pid>.weights.h5``, which the clean-up of older files skips: every later failure on
+    that disk left another. It is removed, the error goes on, the committed checkpoint stays."""
+    model = keras.Sequential([keras.Input((2,)), keras.layers.Dense(1)])
+    model.compile(optimizer="sgd", loss="mse")
+    model.optimizer.build(model.trainable_variables)
+    saver = checkpoints.AtomicCheckpoint(str(tmp_path))
+    saver.set_model(model)
+    saver.on_epoch_end(0)
+    before = sorted(os.listdir(tmp_path))
+    real = model.save_weights
+
+    def full_disk(path, *args, **kwargs):
+        real(path, *args, **kwargs)
+        with open(path, "r+b") as f:  # half of it written, then the disk is full
+            f.truncate(os.path.getsize(path) // 2)
+        raise OSError(28, "No space left on device")
+
+    model.save_weights = full_disk
+    with pytest.raises(OSError, match="No space"):
+        saver.on_epoch_end(1)
+    assert sorted(os.listdir(tmp_path)) == before

@@ -233,7 +233,7 @@ def build_sequence_stn_homography(num_stages: int = 2, batch_norm: str = DEFAULT
     (patch_a_warp_{k-1}, patch_b); :class:`HomographyMerge` forms ``H_k = H_{k-1} @ H_k'``; every
     stage warps the **original** patch_a with ``H_k`` (see :func:`sequence_stages`). Each stage has
     its own regression network (sub-model ``regression_k``, the layout
-    :func:`stnh_tf.training.loop.initialize_from` copies single-stage weights into).
+    :func:`stnh_tf.training.model_kinds.initialize_from` copies single-stage weights into).
 
     Inputs ``{"patch_a", "patch_b"}`` (``[B, S, S, 1]`` float in [0, 1]); outputs ``h_bar_k``
     ``[B, 8]`` float32 (normalized ``H_ba`` after k stages) and ``patch_a_warp_k`` ``[B, S, S, 1]``

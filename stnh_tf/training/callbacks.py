@@ -15,17 +15,39 @@ import keras
 
 
 class NonFiniteGuard(keras.callbacks.Callback):
-    """Stops training at the first non-finite loss and remembers the step."""
+    """Stops training at the first non-finite loss, or at non-finite weights at an epoch end
+    (:meth:`weights_finite`; before the checkpoint callbacks after it, which then write none:
+    the last checkpoint stays the good one), and remembers the step (``bad_step``) and which it
+    was (``what``: ``"loss"`` or ``"weights"``). First in the callbacks."""
 
     def __init__(self):
         super().__init__()
-        self.bad_step = None
+        self.bad_step, self.what = None, None
 
     def on_train_batch_end(self, batch, logs=None):
         loss = (logs or {}).get("loss")
         if loss is not None and not math.isfinite(float(loss)):
-            self.bad_step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
-            self.model.stop_training = True
+            self._stop(self.model, "loss")
+
+    def on_epoch_end(self, epoch, logs=None):
+        if self.bad_step is None:
+            self.weights_finite(self.model)
+
+    def weights_finite(self, model) -> bool:
+        """Whether every floating-point weight of ``model`` is finite; where one is not, training
+        stops as at a non-finite loss (an update can overflow the weights although the loss it
+        was computed from was finite: the loss alone let such weights be checkpointed)."""
+        import numpy as np
+
+        if all(np.isfinite(np.asarray(keras.ops.convert_to_numpy(v), np.float64)).all()
+               for v in model.weights if "float" in str(v.dtype)):
+            return True
+        self._stop(model, "weights")
+        return False
+
+    def _stop(self, model, what):
+        self.bad_step, self.what = _step(model), what
+        model.stop_training = True
 
 
 def report_every(log_every: int, total: int) -> int:
@@ -43,7 +65,14 @@ def _step(model) -> int:
 
 
 def _learning_rate(model) -> float:
-    return float(keras.ops.convert_to_numpy(model.optimizer.learning_rate))
+    """The learning rate of the update that made the current step: a schedule's at the step
+    before (the optimizer's ``learning_rate`` is evaluated at ``iterations``: the next
+    update's; logged as it was, a step schedule's drop showed one step early)."""
+    optimizer = getattr(model.optimizer, "inner_optimizer", model.optimizer)  # (loss scaling)
+    schedule = getattr(optimizer, "_learning_rate", None)  # (Keras keeps no public handle)
+    if isinstance(schedule, keras.optimizers.schedules.LearningRateSchedule):
+        return float(keras.ops.convert_to_numpy(schedule(max(_step(model) - 1, 0))))
+    return float(keras.ops.convert_to_numpy(optimizer.learning_rate))
 
 
 class _GlobalStep(keras.callbacks.Callback):

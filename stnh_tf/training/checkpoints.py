@@ -74,8 +74,13 @@ class AtomicCheckpoint(keras.callbacks.Callback):
         step = int(keras.ops.convert_to_numpy(self.model.optimizer.iterations))
         name = CHECKPOINT_WEIGHTS_PATTERN.format(step=step)
         tmp = os.path.join(self.directory, f"tmp-{os.getpid()}.weights.h5")
-        self.model.save_weights(tmp)
-        fsync_replace(tmp, os.path.join(self.directory, name))
+        try:
+            self.model.save_weights(tmp)
+            fsync_replace(tmp, os.path.join(self.directory, name))
+        except BaseException:  # (a full disk: no partial file left to fill it further)
+            if os.path.exists(tmp):
+                os.remove(tmp)
+            raise
         atomic_write_json(self.state_path, {"step": step, "epoch": epoch + 1, "time": time.time(),
                                              "weights": name,
                                              "seed_states": _seed_states(self.model),

@@ -62,7 +62,7 @@ def trace(cfg: TrainConfig, steps: int, printer=None) -> list:
         keras.utils.set_random_seed(cfg.seed)
         model = loop.compile_model(model_kinds.build_model(cfg), cfg)
         if cfg.init_from:
-            loop.initialize_from(model, cfg.init_from)
+            model_kinds.initialize_from(model, cfg.init_from)
         merges = [layer for layer in model.layers if layer.name.startswith(MERGE_PREFIX)]
         probe = keras.Model(model.inputs, [model.output, [m.input for m in merges]])
         mapper = model_kinds.targets_for(cfg)

@@ -17,7 +17,8 @@ it on the TFRecord dataset in ``config.data_dir`` with:
   (between two periodic ones if need be) and resumes from there the same way.
 * TensorBoard scalars against the global step (both loss terms, learning rate, validation MACE)
   and console progress, every ``log_every`` steps and at least ten times a run.
-* A non-finite loss stops training with an error naming the step and the last good checkpoint.
+* A non-finite loss, or non-finite weights at an epoch end (never checkpointed), stops training
+  with an error naming the step and the last good checkpoint.
 * ``strategy="mirrored"`` runs under ``tf.distribute.MirroredStrategy``; ``"data_parallel"``
   (JAX backend) under ``keras.distribution.DataParallel``, also on several processes
   (``num_processes``, ``process_id``, ``coordinator_address``), of which only the chief writes
@@ -54,7 +55,6 @@ import time
 
 import keras
 
-from stnh_tf.modeling import runner
 from stnh_tf.paths import atomic_write_json, fsync_replace
 from stnh_tf.provenance import machine_info
 from stnh_tf.training import checkpoints, distribute, fit_calls, model_kinds, run_dir
@@ -90,7 +90,7 @@ STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
 class TrainingDiverged(RuntimeError):
-    """Raised when the loss becomes non-finite."""
+    """Raised when the loss or the weights become non-finite."""
 
 
 # ------------------------------------------------------------------------------------------------
@@ -189,7 +189,10 @@ def check_start(cfg: TrainConfig, time_limit_s: float | None = None) -> None:
         if val_split:
             data.shard_paths(cfg.data_dir, val_split)
     train_streams.check_labels(cfg)  # label_fraction, drop_unlabeled, unlabeled_image_dir
-    for d in (*cfg.init_from, *cfg.prev_stages):
+    resuming = os.path.isfile(os.path.join(cfg.model_dir, run_dir.CHECKPOINT_DIR,
+                                            run_dir.CHECKPOINT_STATE)) and not run_dir.finished(
+        cfg.model_dir, cfg.train_steps)  # (a resume reads no init_from)
+    for d in (*(() if resuming else cfg.init_from), *cfg.prev_stages):
         path = run_dir.model_file(d)
         if not os.path.isfile(path):
             raise FileNotFoundError(f"no trained model at {d} (looked for {path}); init_from and "
@@ -223,44 +226,13 @@ def _load_start(model, cfg: TrainConfig, ckpt_dir: str) -> int:
     (none there) ``cfg.init_from``'s weights; returns the checkpoint's step (0: fresh)."""
     start_step = checkpoints.load_checkpoint(model, ckpt_dir)
     if start_step == 0 and cfg.init_from:
-        initialize_from(model, cfg.init_from)
+        model_kinds.initialize_from(model, cfg.init_from)
     return start_step
 
 
 def tensorboard_available() -> bool:
     """Keras' TensorBoard callback writes through TensorFlow's summary ops."""
     return importlib.util.find_spec("tensorflow") is not None
-
-
-def initialize_from(model, stage_dirs):
-    """Copy the regression weights of trained single-stage STN models (``stage_dirs``: model dirs
-    holding ``model.keras``, or ``.keras`` files) into ``model``: a sequence model's
-    ``regression_k`` from dir k, or a single stage's ``regression`` from its one dir.
-
-    Raises:
-      ValueError: a dir holds another model kind, a single stage is given other than one dir, or
-        the regression networks differ in their layers (batch_norm, input_norm).
-    """
-    single = "regression" in [layer.name for layer in model.layers]
-    if single and len(stage_dirs) != 1:
-        raise ValueError(f"a single stage is initialised from one model dir; received "
-                         f"{len(stage_dirs)}.")
-    for k, d in enumerate(stage_dirs, start=1):
-        src = runner.load_model(d)
-        # (a run with unlabeled pairs adds models.WARP_VALID, "patch_a_warp_valid")
-        if sorted(set(src.output_names) - {"patch_a_warp_valid"}) != ["h_bar", "patch_a_warp"]:
-            raise ValueError(f"{d} is not a single-stage STN-Homography model (its outputs are "
-                             f"{sorted(src.output_names)}); init_from takes train_stage "
-                             "--model=stn runs.")
-        regression = src.get_layer("regression")
-        target = model.get_layer("regression" if single else f"regression_{k}")
-        src_layers, dst_layers = ([layer.name for layer in net.layers
-                                   if not isinstance(layer, keras.layers.InputLayer)]
-                                  for net in (regression, target))
-        if src_layers != dst_layers:
-            raise ValueError(f"{d}'s regression network has layers {src_layers}, this model's "
-                             f"{dst_layers}: init_from needs the same batch_norm and input_norm.")
-        target.set_weights(regression.get_weights())
 
 
 # ------------------------------------------------------------------------------------------------
@@ -410,7 +382,7 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
             last_step = (checkpoints.read_checkpoint_state(ckpt_dir)["step"] if last is not None
                          else 0)
             raise TrainingDiverged(
-                f"non-finite loss at step {guard.bad_step}; last good checkpoint: "
+                f"non-finite {guard.what} at step {guard.bad_step}; last good checkpoint: "
                 f"{last or '(none)'} (step {last_step}). Resuming with the same flags repeats the "
                 "same batches and diverges again: check the data, or train anew with a lower "
                 "--learning_rate (a new --model_dir, or --overwrite).")
@@ -441,6 +413,8 @@ def train(cfg: TrainConfig, overwrite: bool = False, printer=print, stream_fn=No
     except BaseException:
         if new_run:
             run_dir.undo_new_run(cfg.model_dir, made_dir)
+        if cluster.is_chief and os.path.isdir(os.path.join(cfg.model_dir, run_dir.PREVIOUS_RUN)):
+            printer(run_dir.previous_run_line(cfg.model_dir))
         raise
     finally:
         if completed and cluster.is_chief:  # (the run --overwrite replaced: no longer needed;

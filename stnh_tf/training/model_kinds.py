@@ -20,7 +20,7 @@ from typing import Callable
 import keras
 
 from stnh_tf.modeling import losses as losses_lib
-from stnh_tf.modeling import models
+from stnh_tf.modeling import models, runner
 from stnh_tf.modeling.layers import HOMOGRAPHYNET_SCALE
 from stnh_tf.training.config import TrainConfig
 from stnh_tf.training.presets import MODEL_KINDS
@@ -178,3 +178,34 @@ def loss_spec(cfg: TrainConfig):
 def targets_for(cfg: TrainConfig) -> Callable | None:
     """The mapper of the dataset's targets onto ``cfg.model``'s outputs (:class:`ModelKind`)."""
     return KINDS[cfg.model].targets(cfg)
+
+
+def initialize_from(model, stage_dirs):
+    """Copy the regression weights of trained single-stage STN models (``stage_dirs``: model dirs
+    holding ``model.keras``, or ``.keras`` files) into ``model``: a sequence model's
+    ``regression_k`` from dir k, or a single stage's ``regression`` from its one dir.
+
+    Raises:
+      ValueError: a dir holds another model kind, a single stage is given other than one dir, or
+        the regression networks differ in their layers (batch_norm, input_norm).
+    """
+    single = "regression" in [layer.name for layer in model.layers]
+    if single and len(stage_dirs) != 1:
+        raise ValueError(f"a single stage is initialised from one model dir; received "
+                         f"{len(stage_dirs)}.")
+    for k, d in enumerate(stage_dirs, start=1):
+        src = runner.load_model(d)
+        # (a run with unlabeled pairs adds models.WARP_VALID, "patch_a_warp_valid")
+        if sorted(set(src.output_names) - {"patch_a_warp_valid"}) != ["h_bar", "patch_a_warp"]:
+            raise ValueError(f"{d} is not a single-stage STN-Homography model (its outputs are "
+                             f"{sorted(src.output_names)}); init_from takes train_stage "
+                             "--model=stn runs.")
+        regression = src.get_layer("regression")
+        target = model.get_layer("regression" if single else f"regression_{k}")
+        src_layers, dst_layers = ([layer.name for layer in net.layers
+                                   if not isinstance(layer, keras.layers.InputLayer)]
+                                  for net in (regression, target))
+        if src_layers != dst_layers:
+            raise ValueError(f"{d}'s regression network has layers {src_layers}, this model's "
+                             f"{dst_layers}: init_from needs the same batch_norm and input_norm.")
+        target.set_weights(regression.get_weights())

@@ -6,22 +6,18 @@ Layout of ``model_dir``: ``config.json`` (the :class:`~stnh_tf.training.config.T
 :data:`CONFIG_MARKER` and :data:`MODEL_DIGESTS`: :func:`config_document`), ``checkpoint/``
 (``ckpt-<step>.weights.h5`` committed by ``state.json``: :mod:`stnh_tf.training.checkpoints`),
 ``logs/`` (TensorBoard), for an in-memory stage-k run ``stage_estimates_<split>.npz``
-(:func:`save_estimates`), and when finished ``model.keras`` and ``result.json``; while a run
+(:mod:`stnh_tf.training.stage_estimates`), and when finished ``model.keras`` and ``result.json``; while a run
 trains, its lock (:class:`RunLock`, ``.stnh_tf_run.lock``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import numbers
 import os
 import shutil
-import zipfile
 
-import numpy as np
-
-from stnh_tf.paths import atomic_write_json, file_sha256, fsync_replace, read_json
+from stnh_tf.paths import atomic_write_json, file_sha256, read_json
 from stnh_tf.training.config import MODEL_FILE_FIELDS, RESUME_FREE_FIELDS, TrainConfig
 from stnh_tf.training.presets import MODEL_KINDS
 from stnh_tf.training.run_lock import LOCK_FILE, RunLock  # noqa: F401 (the run's lock)
@@ -42,7 +38,8 @@ DATA_DIGESTS = "data_sha256"
 STAGE_RECORD_FORMAT = "stnh_tf.chunked_stage"
 CHECKPOINT_DIR = "checkpoint"  # its files: stnh_tf.training.checkpoints, committed by:
 CHECKPOINT_STATE = "state.json"
-# The finished stages' estimates of an in-memory stage-k run's pairs, per split (save_estimates).
+# The finished stages' estimates of an in-memory stage-k run's pairs, per split
+# (stnh_tf.training.stage_estimates).
 ESTIMATES_FILES = {"train": "stage_estimates_train.npz", "val": "stage_estimates_val.npz"}
 # What a run writes in model_dir besides config.json: all that --overwrite replaces (set_aside).
 RUN_ENTRIES = (FINAL_MODEL, RESULT_FILE, CHECKPOINT_DIR, LOGS_DIR, *ESTIMATES_FILES.values())
@@ -223,7 +220,7 @@ def _config_diff(new: TrainConfig | str, config_path: str) -> dict:
     if not os.path.exists(config_path):
         return {}
     old_doc = read_run_config(config_path, digests=True)
-    new_doc = (config_document(new) if isinstance(new, TrainConfig)
+    new_doc = (_keep_recorded(config_document(new), old_doc) if isinstance(new, TrainConfig)
                else read_run_config(new, digests=True))
     old, new = _resume_form(old_doc), _resume_form(new_doc)
     diff = {k: (old.get(k), v) for k, v in new.items() if old.get(k) != v}
@@ -235,6 +232,46 @@ def _config_diff(new: TrainConfig | str, config_path: str) -> dict:
             if None not in pair and pair[0] != pair[1]:  # (None: not readable where recorded)
                 diff[f"{name} (its data)"] = pair
     return diff
+
+
+def _keep_recorded(doc: dict, old_doc: dict) -> dict:
+    """``doc`` (:func:`config_document`) with the digests the run's ``old_doc`` recorded for the
+    ``init_from`` files that are not here: a resume never reads them (only a fresh start copies
+    their weights), so a run resumes where they are gone (a file there with other content is
+    still another configuration)."""
+    saved, here = old_doc.get(MODEL_DIGESTS), doc[MODEL_DIGESTS]["init_from"]
+    saved = saved.get("init_from") if isinstance(saved, dict) else None
+    if not isinstance(saved, list) or len(saved) != len(here) \
+            or old_doc.get("init_from") != doc.get("init_from"):
+        return doc
+    kept = [h if h is not None else s for h, s in zip(here, saved)]
+    return {**doc, MODEL_DIGESTS: {**doc[MODEL_DIGESTS], "init_from": kept}}
+
+
+def finished(model_dir: str, train_steps: int) -> bool:
+    """Whether ``model_dir`` holds a finished run: its model and its ``result.json``, or the
+    model without the record but with a checkpoint short of ``train_steps`` (as before). A
+    model whose record a full disk or a kill lost (written last), its checkpoint at the last
+    step, is not: the same command finishes it again from that checkpoint (nothing trained)."""
+    if not os.path.exists(os.path.join(model_dir, FINAL_MODEL)):
+        return False
+    if os.path.exists(os.path.join(model_dir, RESULT_FILE)):
+        return True
+    try:
+        state = read_json(os.path.join(model_dir, CHECKPOINT_DIR, CHECKPOINT_STATE))
+        return not (isinstance(state, dict) and isinstance(state.get("step"), int)
+                    and state["step"] >= train_steps)
+    except (OSError, ValueError):
+        return True
+
+
+def previous_run_line(model_dir: str) -> str:
+    """What to say where a run that ``--overwrite`` started fails after its first checkpoint:
+    where the run it replaced is kept, and how to have it back."""
+    aside = os.path.join(model_dir, PREVIOUS_RUN)
+    return (f"the run --overwrite replaced is kept in {aside} (its model included) until this "
+            f"one finishes: to have it back, move this run's files out of {model_dir} "
+            f"({', '.join(n for n in _run_names(model_dir))}) and {aside}'s files up into it.")
 
 
 def _check_run_folder(model_dir: str) -> None:
@@ -298,10 +335,11 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
         _put_back(cfg.model_dir)  # (a kill between set_aside and the new config: the old run)
     _check_run_folder(cfg.model_dir)
     diff = _config_diff(cfg, config_path)
-    if os.path.exists(final) and not overwrite:
+    done = finished(cfg.model_dir, cfg.train_steps)
+    if done and not overwrite:
         raise FileExistsError(f"{cfg.model_dir} holds a finished model ({final}); pass --overwrite "
                               "to train it again.")
-    if overwrite and (os.path.exists(final) or diff):
+    if overwrite and (done or diff):
         if not os.access(cfg.model_dir, os.W_OK):
             raise PermissionError(f"model_dir {cfg.model_dir} is not writable.")
         set_aside(cfg.model_dir)
@@ -318,7 +356,8 @@ def prepare_model_dir(cfg: TrainConfig, overwrite: bool = False) -> bool:
                          "(which deletes its checkpoints).")
     new_run = not os.path.exists(config_path)
     try:
-        atomic_write_json(config_path, config_document(cfg))
+        atomic_write_json(config_path, config_document(cfg) if new_run else _keep_recorded(
+            config_document(cfg), read_run_config(config_path, digests=True)))
     except BaseException:
         if new_run:
             _put_back(cfg.model_dir)  # (the run --overwrite set aside)
@@ -398,41 +437,3 @@ def _put_back(model_dir: str) -> None:
         for name in _run_names(aside):
             os.replace(os.path.join(aside, name), os.path.join(model_dir, name))
         shutil.rmtree(aside, ignore_errors=True)
-
-
-def save_estimates(model_dir: str, split: str, key: str, h_prev: np.ndarray,
-                   rejected: dict) -> str:
-    """Keep the finished stages' estimates of a stage-k run's in-memory pairs of ``split`` in
-    ``model_dir`` (``h_prev [N, 3, 3]`` as float32, the degenerate-rule counts, and ``key``, what
-    they are the estimates of), written through a temporary file. Returns the path."""
-    path = os.path.join(model_dir, ESTIMATES_FILES[split])
-    tmp = f"{path}.tmp-{os.getpid()}.npz"
-    np.savez_compressed(tmp, h_prev=np.asarray(h_prev, np.float32), key=np.array(key),
-                        rejected=np.array(json.dumps(rejected, sort_keys=True)))
-    fsync_replace(tmp, path)
-    return path
-
-
-def saved_estimates_key(model_dir: str, split: str):
-    """The ``key`` of the estimates :func:`save_estimates` kept for ``split`` in ``model_dir``
-    (what pairs and stages they are of), or ``None`` where there are none or they are
-    unreadable."""
-    try:
-        with np.load(os.path.join(model_dir, ESTIMATES_FILES[split])) as saved:
-            return str(saved["key"])
-    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
-        return None
-
-
-def load_estimates(model_dir: str, split: str, key: str):
-    """``(h_prev, rejected)`` saved by :func:`save_estimates` for ``split`` under the same
-    ``key``; ``None`` where there are none, they are unreadable, or they are of other pairs or
-    stages (another key)."""
-    path = os.path.join(model_dir, ESTIMATES_FILES[split])
-    try:
-        with np.load(path) as saved:
-            if str(saved["key"]) != key:
-                return None
-            return saved["h_prev"].astype(np.float64), json.loads(str(saved["rejected"]))
-    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
-        return None

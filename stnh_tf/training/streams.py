@@ -160,12 +160,12 @@ def stage_pairs(cfg: TrainConfig, pair_batches, split: str = "train") -> dict:
     (for stage 3's 184,800 pairs it would be 6.4 GiB more at the peak).
 
     Stage k > 1 keeps the stages' estimates (rounded to float32, as the TFRecord path stores
-    them) in ``cfg.model_dir`` (:func:`stnh_tf.training.run_dir.save_estimates`, one file per
-    ``split``: ``"train"`` or ``"val"``): a resumed run, on this machine or another, makes the
+    them) in ``cfg.model_dir`` (:func:`stnh_tf.training.stage_estimates.save_estimates`, one
+    file per ``split``: ``"train"`` or ``"val"``): a resumed run, on this machine or another, makes the
     same pairs from them without calling the stages, as long as its pairs and stages are those
     they were made for (:func:`estimates_key`, checked once every slice is made; where it
     differs, the pairs are made again from the stages)."""
-    from stnh_tf.training import run_dir
+    from stnh_tf.training import stage_estimates
 
     start = time.perf_counter()
     if cfg.stage == 1:
@@ -173,8 +173,8 @@ def stage_pairs(cfg: TrainConfig, pair_batches, split: str = "train") -> dict:
         _log.info("stage-1 pairs: %d made in %.1f s", len(pairs["patch_b"]),
                   time.perf_counter() - start)
         return pairs
-    saved_key = run_dir.saved_estimates_key(cfg.model_dir, split) if cfg.model_dir else None
-    saved = run_dir.load_estimates(cfg.model_dir, split, saved_key) if saved_key else None
+    saved_key = stage_estimates.saved_estimates_key(cfg.model_dir, split) if cfg.model_dir else None
+    saved = stage_estimates.load_estimates(cfg.model_dir, split, saved_key) if saved_key else None
     if saved is not None and len(saved[0]) != pair_batches.num_samples:
         saved = None
     made = None
@@ -199,7 +199,7 @@ def stage_pairs(cfg: TrainConfig, pair_batches, split: str = "train") -> dict:
                   made["predicting_s"], made["rejected"])
         if cfg.model_dir:
             os.makedirs(cfg.model_dir, exist_ok=True)
-            run_dir.save_estimates(cfg.model_dir, split, made["key"], made["h_prev"],
+            stage_estimates.save_estimates(cfg.model_dir, split, made["key"], made["h_prev"],
                                    made["rejected"])
     pairs = made["pairs"]
     pairs["h_bar"][pairs["h_mask"] == 0] = 0.0
