@@ -43,10 +43,11 @@ def test_a_split_from_a_folder_inside_anothers_is_said_when_made_and_evaluated(t
         lines = []
         stage1.make_dataset("folder", str(out), split, image_dir=str(folders[split]),
                             samples_per_image=1, num_workers=1, log=lines.append)
-        said = [line for line in lines if "same photograph folders" in str(line)]
+        said = [line for line in lines if "made from the same photographs" in str(line)]
         assert len(said) == (split == second), lines
     assert said[0].startswith(f"note: the {second} split of {out} is made from the same "
-                              f"photograph folders as its {first} split")
+                              "photographs (or photograph folders, one inside the other) as its "
+                              f"{first} split")
     notes = mace.evaluate([], str(out), "test", baselines=("identity",))["notes"]
     assert notes == [holdout.sharing_line(str(out), "test", ["train"])]
     elsewhere = photo_folder(tmp_path / "b", ["c.png"])
@@ -210,3 +211,80 @@ def test_a_folder_of_hidden_files_says_what_was_left_out(tmp_path):
                                                   r"\(left out: hidden 2\)"):
         stage1.make_dataset("folder", str(tmp_path / "data"), "train", image_dir=str(folder),
                             num_workers=1, log=lambda *_: None)
+
+
+# ------------------------------------------------------------------------------------------------
+# A review of the offline dataset path (2026-12-07)
+# ------------------------------------------------------------------------------------------------
+def test_two_splits_of_the_bundled_photographs_are_said_to_share_them(tmp_path):
+    """``--source=bundled`` takes the same few photographs for every split (the quickstart's
+    train and test): the check that says a split shares photographs with another looked at
+    folders only, so a test split of the training photographs went unsaid, and ``evaluate``
+    reported MACE on them without a note. Said now, when made and evaluated."""
+    from stnh_tf.evaluation import mace
+
+    out, said = tmp_path / "data", []
+    for split, seed in (("train", 0), ("test", 1)):
+        stage1.make_dataset("bundled", str(out), split, seed=seed, max_images=2,
+                            samples_per_image=1, num_workers=1, log=said.append)
+    line = holdout.sharing_line(str(out), "test", ["train"])
+    assert [str(x) for x in said].count(line) == 1
+    assert line in mace.evaluate([], str(out), "test", baselines=("identity",))["notes"]
+
+
+def test_more_shards_than_photographs_are_refused_and_an_empty_share_never_hangs(tmp_path):
+    """``--num_shards`` above the photographs wrote empty shards (shards hold whole
+    photographs), and a data-parallel process whose shards were all empty repeated them for
+    ever: its training hung without a word. make_dataset refuses such a count (nothing
+    written); a split with empty shards (a photograph left out as unreadable) is shared by
+    rows instead, every share getting its batches."""
+    with pytest.raises(ValueError, match="--num_shards=4 is more than the 2 photographs"):
+        stage1.make_dataset("bundled", str(tmp_path / "refused"), "train", max_images=2,
+                            samples_per_image=3, num_shards=4, num_workers=1,
+                            log=lambda *_: None)
+    assert not (tmp_path / "refused").exists() or not os.listdir(tmp_path / "refused")
+    out = tmp_path / "data"
+    stage1.make_dataset("bundled", str(out), "train", max_images=2, samples_per_image=3,
+                        num_shards=2, num_workers=1, log=lambda *_: None)
+    meta_path = out / "metadata.json"
+    meta = json.loads(meta_path.read_text())
+    shards = meta["splits"]["train"]["shards"]
+    empty = []
+    for k in (1, 3):  # shards 0 and 2 hold the photographs, 1 and 3 none: share 1's are empty
+        (out / f"empty{k}.tfrecord").write_bytes(b"")
+        empty.append({**shards[0], "file": f"empty{k}.tfrecord", "num_bytes": 0,
+                      "num_samples": 0})
+    meta["splits"]["train"]["shards"] = [shards[0], empty[0], shards[1], empty[1]]
+    meta_path.write_text(json.dumps(meta))
+    for k in range(2):
+        batches = list(data.load_split(str(out), "train", 2, shuffle=False, repeat=False,
+                                       share=(k, 2)))
+        assert len(batches) == 3 and all(len(b[0]["patch_a"]) == 1 for b in batches)
+
+
+def test_unlabeled_pairs_on_several_processes_are_refused(tmp_path):
+    """``--unlabeled_pairs_dir`` added all its rows of every batch to each process's share (the
+    global batch larger than asked, the same real pairs on every process), or failed naming a
+    batch size nobody gave: refused in one line with several processes."""
+    from stnh_tf.training.config import TrainConfig
+
+    cfg = TrainConfig(data_dir=str(tmp_path), model_dir=str(tmp_path / "m"),
+                      unlabeled_pairs_dir=str(tmp_path / "pairs"), num_processes=2,
+                      strategy="data_parallel", coordinator_address="localhost:1234",
+                      batch_size=8)
+    assert any("unlabeled_pairs_dir trains on one process only" in p for p in cfg.problems())
+
+
+def test_video_frames_numbered_without_zeros_are_paired_in_frame_order(tmp_path):
+    """Frames named ``frame_1.png`` ... ``frame_12.png`` (ffmpeg's ``%d``) were paired in string
+    order: frame 1 with frame 10, 12 with 2, and 9 never with 10. Digit runs compare as numbers
+    now; zero-padded names keep their order."""
+    from stnh_tf.data import unlabeled_pairs
+
+    for sub, names in (("video", [f"frame_{i}.png" for i in range(1, 13)]),
+                       ("padded", [f"f{i:04d}.png" for i in range(1, 4)])):
+        photo_folder(tmp_path / "pairs" / sub, names)
+    found = unlabeled_pairs.list_pairs(str(tmp_path / "pairs"))[0]
+    ids = [p.pair_id for p in found]
+    assert ids == (["0:padded/f0001.png>f0002.png", "0:padded/f0002.png>f0003.png"]
+                   + [f"0:video/frame_{i}.png>frame_{i + 1}.png" for i in range(1, 12)])

@@ -157,8 +157,9 @@ def sharing_splits(meta: dict, split: str, section: dict) -> list:
     """The other splits of the dataset whose ``metadata.json`` is ``meta`` that ``split`` (the
     source fields of ``section``) shares photographs with by its folders: one of its photograph
     folders is, holds or lies in one of theirs (a folder's listing takes every folder below it:
-    a train split of ``photos`` holds a test split of ``photos/test``). The two splits of one
-    hold-out share their folders by design and are not counted (:func:`check_beside`).
+    a train split of ``photos`` holds a test split of ``photos/test``), and any two splits of
+    the bundled photographs (``source="bundled"``: the same few for every split). The two splits
+    of one hold-out share their folders by design and are not counted (:func:`check_beside`).
 
         >>> meta = {"splits": {"train": {"source": "folder", "image_dir": "/p"}}}
         >>> sharing_splits(meta, "test", {"source": "folder", "image_dir": "/p/test"})
@@ -170,7 +171,9 @@ def sharing_splits(meta: dict, split: str, section: dict) -> list:
     for other, theirs in sorted(meta.get("splits", {}).items()):
         if other == split or (split in SPLITS and other in SPLITS):
             continue
-        if any(os.path.commonpath([a, b]) in (a, b) for a in mine for b in _folders(theirs)):
+        if (section.get("source") == theirs.get("source") == "bundled"  # (the same few photos)
+                or any(os.path.commonpath([a, b]) in (a, b)
+                       for a in mine for b in _folders(theirs))):
             out.append(other)
     return out
 
@@ -178,7 +181,8 @@ def sharing_splits(meta: dict, split: str, section: dict) -> list:
 def sharing_line(where: str, split: str, others: list) -> str:
     """The line that says ``split`` of the dataset ``where`` shares photographs with
     ``others`` (:func:`sharing_splits`)."""
-    return (f"note: the {split} split of {where} is made from the same photograph folders as "
-            f"its {' and '.join(others)} split (or one inside the other): its pairs come from "
-            "photographs those splits also hold, so numbers on it are not on unseen photographs; "
-            "give folders apart (e.g. photos/train and photos/test) for a held-out test.")
+    return (f"note: the {split} split of {where} is made from the same photographs (or "
+            f"photograph folders, one inside the other) as its {' and '.join(others)} split: "
+            "its pairs come from photographs those splits also hold, so numbers on it are not on "
+            "unseen photographs; give folders apart (--source=folder, e.g. photos/train and "
+            "photos/test) for a held-out test.")

@@ -179,6 +179,10 @@ def make_dataset(source: str, output_dir: str, split: str = "train", *, image_di
     output_dir = paths.check_output_dir(output_dir)
     if num_shards == 0:
         num_shards = writer.auto_num_shards(num_items, samples_per_image)
+    elif num_shards > num_items:  # (shards by photograph: the rest would be empty)
+        raise ValueError(f"--num_shards={num_shards} is more than the {num_items} photographs "
+                         "of the split (its shards hold whole photographs): give at most "
+                         f"{num_items}, or 0 (chosen by size).")
     import cv2
     import numpy as np
 

@@ -271,7 +271,8 @@ def load_split(data_dir: str, split: str, batch_size: int, shuffle: bool = True,
     ``share=(k, n)``: process k of n's share of the stream in data-parallel training
     (:mod:`stnh_tf.training.distribute`), ``batch_size`` being the global batch; by
     :func:`share_policy`, either shards k, k + n, ... read as above in batches of
-    ``batch_size / n`` (``"file"``), or rows ``[k b, (k + 1) b)`` of each batch of the whole
+    ``batch_size / n`` (``"file"``; not where a share's shards hold no sample, e.g. more shards
+    than photographs), or rows ``[k b, (k + 1) b)`` of each batch of the whole
     stream, ``b = batch_size / n``, only they parsed (``"data"``). ``(0, 1)``: the whole stream.
 
     Raises:
@@ -294,6 +295,9 @@ def load_split(data_dir: str, split: str, batch_size: int, shuffle: bool = True,
         raise ValueError(f"share {share} needs 0 <= index < count and batch_size ({batch_size}) "
                          "a multiple of count.")
     policy = share_policy(len(paths), count)
+    if policy == "file" and not all(sum(s["num_samples"] for s in info["shards"][k::count])
+                                    for k in range(count)):
+        policy = "data"  # (a share of empty shards alone would repeat them for ever: a hang)
     if policy == "file":  # this share's shards, its part of the global batch from them
         paths, batch_size = paths[index::count], batch_size // count
     files = tf.data.Dataset.from_tensor_slices(paths)

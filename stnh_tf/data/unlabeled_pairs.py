@@ -10,7 +10,8 @@ Folder layout (each folder of the comma-separated ``--unlabeled_pairs_dir``):
   (``00000_a.png``, ``00000_b.png``, ...): its ``pairs.json``, which holds the homographies, is
   not read.
 * **frame sequences**: each sub-folder (one level down) holds the frames of one video, in the
-  order of their file names; every two consecutive frames ``(f_i, f_i+1)`` make a pair (``f_i``
+  order of their file names, runs of digits compared as numbers (``frame_2`` before
+  ``frame_10``: :func:`frame_order`); every two consecutive frames ``(f_i, f_i+1)`` make a pair (``f_i``
   as image_a).
 
 An image of the folder itself without its partner, a file that cannot be decoded (the whole
@@ -44,6 +45,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import re
 
 import numpy as np
 
@@ -67,9 +69,21 @@ class PairFiles:
 
 
 def _images(folder: str) -> list:
-    return sorted(n for n in os.listdir(folder)
-                  if n.lower().endswith(sources.IMAGE_EXTENSIONS)
-                  and os.path.isfile(os.path.join(folder, n)))
+    """The image files of ``folder`` in frame order: names compared with their runs of digits as
+    numbers (``frame_2`` before ``frame_10``, as ffmpeg's ``%d`` numbers them; zero-padded names
+    keep their order)."""
+    return sorted((n for n in os.listdir(folder) if n.lower().endswith(sources.IMAGE_EXTENSIONS)
+                   and os.path.isfile(os.path.join(folder, n))), key=frame_order)
+
+
+def frame_order(name: str) -> tuple:
+    """The sort key of a file name that compares its runs of digits as numbers.
+
+    >>> sorted(["f_10.png", "f_2.png", "f_1.png"], key=frame_order)
+    ['f_1.png', 'f_2.png', 'f_10.png']
+    """
+    return tuple((0, int(part), part) if part.isdigit() else (1, 0, part)
+                 for part in re.split(r"(\d+)", name))
 
 
 def list_pairs(folders) -> tuple:

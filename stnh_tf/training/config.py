@@ -360,6 +360,9 @@ class TrainConfig:
         if n > 1 and isinstance(self.batch_size, numbers.Integral) and self.batch_size % n:
             yield (f"batch_size ({self.batch_size}) is the global batch: it must be a multiple "
                    f"of num_processes ({n}).")
+        if n > 1 and self.unlabeled_pairs_dir:  # (each process added the same rows, all of them)
+            yield ("unlabeled_pairs_dir trains on one process only: its rows are not shared out "
+                   f"between processes (num_processes={n}).")
 
     def check_losses(self):
         """Raise ``ValueError`` for loss settings the model kind cannot use (part of
