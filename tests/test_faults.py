@@ -1728,7 +1728,7 @@ def _fake_train(calls):
     config.json and a checkpoint 2 steps on from the one there."""
     from pathlib import Path
 
-    def train(cfg, printer=None, time_limit_s=None):
+    def train(cfg, printer=None, time_limit_s=None, extra_callbacks=()):
         calls.append(cfg.model_dir)
         run_dir.prepare_model_dir(cfg)
         found = checkpoints.find_checkpoint(os.path.join(cfg.model_dir, "checkpoint"))

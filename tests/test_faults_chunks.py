@@ -732,3 +732,31 @@ def test_a_ledger_row_without_its_numbers_is_refused_when_read(tmp_path, bad):
     (tmp_path / "ledger.pending.json").write_text(json.dumps({"rows": []}))
     with pytest.raises(ValueError, match="ledger.pending.json is not a list of ledger rows"):
         ledger_lib.add_pending_rows(str(tmp_path))
+
+
+def test_an_error_rows_steps_per_s_is_over_training_time(tmp_path, monkeypatch):
+    """An error row's steps/s was over the chunk's whole wall time, the pairs' making included
+    (minutes of a chunk's start), where the other rows' are over training time alone: two rows
+    of the same speed disagreed. Training's own start (the first ``fit`` call's) counts now."""
+    root, calls = tmp_path / "repo", []
+    train = _fake_train(calls)
+    cfg = _train_cfg("d", tmp_path / "run", train_steps=100)
+    _committed(root, cfg, 4)
+    (root / "ledger.json").write_text(json.dumps([_row(0, 4)]))
+    now = [1000.0]
+    monkeypatch.setattr(chunks.time, "time", lambda: now[0])
+
+    def failing(cfg, extra_callbacks=(), **kw):  # 100 s of pairs, 10 s of training, an error
+        now[0] += 100.0
+        for callback in extra_callbacks:
+            callback.on_train_begin()
+        train(cfg, **kw)
+        now[0] += 10.0
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(training, "train", failing)
+    with pytest.raises(OSError, match="No space left"):
+        chunks.run_chunk(cfg, str(root), 0, "here", printer=QUIET, part="sequence2")
+    rows = ledger_lib.read_ledger(str(root))
+    assert (rows[-1]["from_step"], rows[-1]["to_step"]) == (4, 6)
+    assert rows[-1]["steps_per_s"] == pytest.approx(2 / 10.0)  # before: 2 / 110

@@ -50,6 +50,20 @@ class NonFiniteGuard(keras.callbacks.Callback):
         model.stop_training = True
 
 
+class TrainingClock(keras.callbacks.Callback):
+    """When training began (``began``, ``time.time()`` at the first ``fit`` call's start: the
+    pairs made and the model built), for a chunk's ledger row of a training that ends in an
+    error (its steps/s over training time, as the others'; ``None``: it never began)."""
+
+    def __init__(self):
+        super().__init__()
+        self.began = None
+
+    def on_train_begin(self, logs=None):
+        if self.began is None:
+            self.began = time.time()
+
+
 def report_every(log_every: int, total: int) -> int:
     """Steps between progress reports: ``log_every``, but at least ten reports in a run of
     ``total`` steps.

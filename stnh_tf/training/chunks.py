@@ -48,7 +48,7 @@ import time
 from stnh_tf.paths import atomic_copy, fsync_replace, inside, stage_record_path
 from stnh_tf.provenance import machine_info
 from stnh_tf.training import checkpoints, file_parts, run_dir
-from stnh_tf.training.callbacks import deferred_signals
+from stnh_tf.training.callbacks import TrainingClock, deferred_signals
 from stnh_tf.training.config import TrainConfig
 from stnh_tf.training.ledger import (add_ledger_row, add_pending_rows, check_photographs,
                                      keep_pending, part_name, photographs, read_ledger,
@@ -333,12 +333,15 @@ def _run_chunk(cfg, root, key, time_limit_s, device, printer, commit, part, step
         result = {"final_step": start_step, "wall_s_this_run": 0.0,
                   "note": "finished a run trained to its end by a chunk stopped before its row"}
     else:
+        clock = TrainingClock()  # (an error's row: steps/s over training, not pair making)
         try:
-            result = loop.train(cfg, printer=printer, time_limit_s=time_limit_s)
+            result = loop.train(cfg, printer=printer, time_limit_s=time_limit_s,
+                                extra_callbacks=[clock])
         except BaseException as e:  # what it trained is committed all the same
             error = f"{type(e).__name__}: {e}"[:300]
             _commit_stopped(cfg.model_dir, resume, root, start_step, printer,
-                            lambda step: row(step, False, time.time() - t0, error=error))
+                            lambda step: row(step, False, time.time() - (clock.began or t0),
+                                             error=error))
             raise
     done = result["final_step"] >= cfg.train_steps and os.path.exists(final)
     with deferred_signals():  # a SIGTERM or Ctrl-C now acts once the commit is written
