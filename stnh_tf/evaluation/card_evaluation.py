@@ -51,6 +51,8 @@ class Evaluation:
         (those shipped inside installed packages,
         :func:`stnh_tf.data.bundled_photos.bundled_images`:
         photographs no shipped model was trained on or chosen with).
+      baselines: ``"hierarchy"``: the baselines measured beside the model (a card's single
+        ``evaluate`` result keeps those it has).
     """
 
     kind: str
@@ -59,6 +61,7 @@ class Evaluation:
     compute_dtype: str | None = "float32"
     search: str = "none"
     source: str = "folder"
+    baselines: tuple = ()
 
 
 NAMED = {
@@ -79,9 +82,11 @@ class OtherPairs(ValueError):
     """The test pairs differ from those an entry was measured on (its identity MACE)."""
 
 
-def plan(evaluation: dict) -> dict[str, Evaluation]:
-    """``{key: Evaluation}`` of what re-measuring ``evaluation`` (a card's) runs: a single result,
-    again; named entries, every entry of :data:`NAMED` (those the card lacks are added).
+def plan(evaluation: dict, num_stages: int = 3) -> dict[str, Evaluation]:
+    """``{key: Evaluation}`` of what re-measuring ``evaluation`` (a card's, of ``num_stages``
+    stages) runs: a single result, again, with its baselines; named entries, every entry of
+    :data:`NAMED` (those the card lacks are added) but, for one stage, those without the
+    clipping rule (it changes only a hierarchy).
 
     Raises:
       ValueError: a named entry that is neither in :data:`NAMED` nor :data:`KEPT`.
@@ -89,12 +94,13 @@ def plan(evaluation: dict) -> dict[str, Evaluation]:
     if "model" in evaluation:
         # A result written before --no_clip existed records no clip_to_context: it clipped.
         clip = bool(evaluation["model"].get("clip_to_context", True))
-        return {ROOT: Evaluation("hierarchy", compute_dtype=None, clip_to_context=clip)}
+        return {ROOT: Evaluation("hierarchy", compute_dtype=None, clip_to_context=clip,
+                                 baselines=tuple(sorted(evaluation.get("baselines") or {})))}
     unknown = sorted(set(evaluation) - set(NAMED) - set(KEPT))
     if unknown:
         raise ValueError(f"the card's evaluation has entries this command cannot re-measure: "
                          f"{unknown} (known: {sorted(NAMED)}; kept: {list(KEPT)}).")
-    return dict(NAMED)
+    return {k: e for k, e in NAMED.items() if e.clip_to_context or num_stages > 1}
 
 
 def _identity_mace(entry: dict):
@@ -131,7 +137,7 @@ def refresh(weights_dir: str, card: dict, test_image_dir: str, log=print) -> dic
     from stnh_tf.provenance import machine_info
 
     evaluation = card.get("evaluation") or {}
-    todo = plan(evaluation)
+    todo = plan(evaluation, len(card["stages"]))
     stages = [os.path.join(weights_dir, s["file"]) for s in card["stages"]]
     new = {} if ROOT in todo else dict(evaluation)
     with tempfile.TemporaryDirectory() as tmp:
@@ -148,14 +154,18 @@ def refresh(weights_dir: str, card: dict, test_image_dir: str, log=print) -> dic
             data_dir = data_dirs[spec.source, spec.photometric]
             if spec.kind == "hierarchy":
                 result = mace.evaluate(stages, data_dir, TEST_PAIRS["split"],
+                                       baselines=spec.baselines,
                                        compute_dtype=spec.compute_dtype,
                                        clip_to_context=spec.clip_to_context)
-                result["model"]["model_dirs"] = [s["file"] for s in card["stages"]]
+                files = [s["file"] for s in card["stages"]]  # (one: a single model's result)
+                result["model"].update({"model_dirs": files} if len(files) > 1
+                                       else {"model_dir": files[0]})
             else:
                 result = mace.implausibility_check(  # the folder's stage{k}.keras, in order
                     weights_dir, data_dir, TEST_PAIRS["split"],
                     options=EstimateOptions(search=spec.search))
                 result["model"] = [s["file"] for s in card["stages"]]
+                result["photometric"] = spec.photometric  # (its data_dir's pairs: as made)
             old = evaluation if key == ROOT else evaluation.get(key, {})
             before, after = _identity_mace(old), _identity_mace(result)
             if before is not None and after is not None and abs(before - after) > 1e-6:

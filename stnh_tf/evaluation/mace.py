@@ -396,6 +396,9 @@ def implausibility_check(model=None, data_dir=None, split="test", compute_dtype=
                          "as stored (write them with make_dataset --photometric).")
     else:
         samples = data.load_arrays(data_dir, split)
+        if not np.allclose(samples["h_prev"], np.eye(3)):  # (scored against h_ba alone)
+            raise ValueError(f"the implausibility check is made on stage-1 pairs; {data_dir} "
+                             "holds pairs with earlier-stage estimates (h_prev != identity).")
     a, b = samples["patch_a"], samples["patch_b"]
     patches_b = {"ordinary": b, "other_photograph": np.roll(b, len(b) // 2, axis=0),
                  "rotated_180": b[:, ::-1, ::-1], "moved_80px": np.roll(a, (80, 80), axis=(1, 2))}
