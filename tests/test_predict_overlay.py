@@ -125,3 +125,42 @@ def test_predicts_line_says_how_far_the_steps_beyond_the_network_moved_its_estim
         options=EstimateOptions(search="none"))
     assert alone["network_move_px"] == 0.0
     assert "no step beyond the network ran" in image_files.summary_line(alone)
+
+
+def _estimate(**fields):
+    """An Estimate's fields of one pair that the console lines read (a stand-in)."""
+    import types
+
+    from stnh_tf.inference.options import EstimateOptions
+
+    base = dict(alignment_ncc=np.array([0.9]), found=np.array([False]),
+                feature_start=np.array([True]), refined=np.array([True]),
+                retried=np.array([False]), tta_choice=np.array(["identity"]),
+                options=EstimateOptions.photographs(), undetermined=np.array([False]),
+                implausible=np.array([False]), flat=np.array([False]),
+                corner_std_px=np.array([0.054]))
+    return types.SimpleNamespace(**{**base, **{k: np.array([v]) for k, v in fields.items()}})
+
+
+def test_a_flat_pair_says_the_flat_rule_and_an_undetermined_one_its_replaced_steps():
+    """A review's pair with a flat centre: predict said the steps beyond the network (search,
+    refine, features) moved the network's estimate, and with every one of them off, that none
+    ran and the estimate was the network's own, while the flat rule had put the identity in
+    its place. An undetermined estimate's notes described the feature start and the ECC
+    refinement of the estimate it threw away as the returned one's; its warning printed a
+    precision of 0.054 px as "0 px" and called the returned map the identity where the images
+    differ in size (it is the identity of the work frames)."""
+    result = {"alignment_ncc": None, "flat": True, "network_move_px": 18.97, "search": "ecc",
+              "refine": "images", "coarse": "none", "features": "fallback",
+              "retry_tta": "none"}
+    for options in ({}, {"search": "none", "refine": "none", "features": "none"}):
+        line = image_files.summary_line({**result, **options})
+        assert "the flat rule (Thresholds.min_patch_std) put the identity" in line, line
+        assert "the network's own." not in line and "steps beyond the network (" not in line
+    plain = image_files.deviation_notes(_estimate())
+    assert len(plain) == 2 and not any("replaced" in n for n in plain)
+    replaced = image_files.deviation_notes(_estimate(undetermined=True, implausible=True))
+    assert replaced == [f"of the estimate the identity replaced (not returned): {n}"
+                        for n in plain]
+    warning = image_files.implausibility_warning(_estimate(undetermined=True, implausible=True))
+    assert "precision 0.054 px" in warning and image_files.IDENTITY_FRAMES in warning

@@ -129,7 +129,15 @@ def _note_stderr(message):
 def deviation_notes(estimate) -> list:
     """One line per step beyond the paper's network that changed the estimate of the (first)
     pair of an :class:`~stnh_tf.inference.pipeline.Estimate`: the search, the feature start, the
-    refinement, the retry, a test-time symmetry."""
+    refinement, the retry, a test-time symmetry; of an undetermined one, the steps of the
+    estimate the identity replaced, said so."""
+    notes = _step_notes(estimate)
+    if estimate.undetermined is not None and estimate.undetermined[0]:
+        return [f"of the estimate the identity replaced (not returned): {n}" for n in notes]
+    return notes
+
+
+def _step_notes(estimate) -> list:
     notes, ncc = [], float(estimate.alignment_ncc[0])
     if estimate.found[0]:
         notes.append(f"the network's estimate aligned the images poorly; the search (a deviation "
@@ -152,18 +160,23 @@ def deviation_notes(estimate) -> list:
     return notes
 
 
+IDENTITY_FRAMES = (" (of the 320x240 work frames: in the images' own frames, the map between "
+                   "their sizes where they differ)")
+"""What the identity that ``estimate_images`` returns for a flat or undetermined pair is."""
+
+
 def implausibility_warning(estimate) -> str | None:
     """The warning for the (first) pair of an :class:`~stnh_tf.inference.pipeline.Estimate`
     flagged implausible, or ``None``."""
     if not estimate.implausible[0]:
         return None
     if estimate.flat[0]:
-        return ("the central patch of image_a or image_b is flat (nothing to align): the "
-                "estimate is the identity, flagged implausible.")
+        return ("the central patch of image_a or image_b is flat (nothing to align there): the "
+                f"estimate is the identity{IDENTITY_FRAMES}, flagged implausible.")
     if estimate.undetermined is not None and estimate.undetermined[0]:
         return (f"the two images do not fix the estimate (its corner precision "
-                f"{estimate.corner_std_px[0]:.0f} px is beyond Thresholds.undetermined_corner_std):"
-                " the identity is returned in its place, flagged implausible.")
+                f"{estimate.corner_std_px[0]:.3g} px is beyond Thresholds.undetermined_corner_std):"
+                f" the identity{IDENTITY_FRAMES} is returned in its place, flagged implausible.")
     return (f"the estimate is implausible for this model (a patch corner moved "
             f"{estimate.max_corner_shift_px[0]:.1f} px at 128-px patch scale, the models were "
             f"trained on up to 32 px; {int(estimate.rejected_stages[0])} stage(s) skipped as "
@@ -239,6 +252,11 @@ def summary_line(result) -> str:
     line = (f"alignment NCC {ncc:.3f}" if ncc is not None else "alignment NCC undefined (a flat "
             "patch)") + " (the final estimate's, at the central patch); "
     steps = [k for k in BEYOND_NETWORK if result.get(k, "none") != "none"]
+    if result.get("flat"):  # (whatever ran: the flat rule put the identity in place)
+        return line + ("the central patch is flat: the flat rule (Thresholds.min_patch_std) put "
+                       "the identity in place of the network's own estimate (JSON: "
+                       "network_homography, network_move_px); --thresholds=min_patch_std=0 "
+                       "leaves it out.")
     if not steps:
         return line + "no step beyond the network ran: the estimate is the network's own."
     move = result.get("network_move_px")

@@ -67,6 +67,8 @@ trigger (:func:`stnh_tf.inference.coarse.needs_pass`), OpenCV SIFT matched with
 ``cv2.USAC_MAGSAC`` gives a start ``G``, the network's stages estimate the rest from image_a
 warped by ``G``, and the result replaces the network's where it aligns the work images better;
 ``"always"``: the same for every pair, as one more candidate scored by the same measure.
+Neither runs where a central patch is flat (the flat rule's identity, flagged:
+:func:`stnh_tf.inference.features.wanted`).
 ``EstimateOptions.photographs()`` (``estimate_images``' default) uses ``"fallback"``, which
 tries the start before the search (:func:`stnh_tf.inference.features.estimate`)."""
 
@@ -233,8 +235,8 @@ class EstimateOptions:
       features: a key of :data:`FEATURES`, used by ``estimate_images`` only (a deviation, issue
         64): a start from OpenCV SIFT matches (:mod:`stnh_tf.inference.features`) refined by the
         network's stages, kept where it aligns the work images better; ``"fallback"`` for pairs
-        the network's estimate aligns poorly, ``"always"`` for every pair. ``"none"``
-        (default; ``photographs()``: ``"fallback"``): none.
+        the network's estimate aligns poorly, ``"always"`` for every pair (but a flat one:
+        :data:`FEATURES`). ``"none"`` (default; ``photographs()``: ``"fallback"``): none.
     """
 
     search: str = "ecc"
