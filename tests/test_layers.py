@@ -455,3 +455,50 @@ def test_doctests_of_modules_with_a_backend(name):
     result = doctest.testmod(importlib.import_module(name), optionflags=doctest.ELLIPSIS)
     assert result.attempted > 0, f"{name} has no doctest"
     assert result.failed == 0, f"{result.failed} of {name}'s doctests failed"
+
+
+def test_warp_validity_leaves_out_points_behind_the_horizon():
+    """A predicted H whose horizon crosses the patch (w < 0 beyond x = 50 here): the warp, as
+    OpenCV's, samples those points where the division by their negative w puts them, and
+    WarpValidity marked 113 of them valid, so the photometric loss of unlabeled pairs scored
+    them. Now 1 exactly where the point lies inside the input on the output centre's side of
+    the horizon (a NumPy reference), for the homography and for it scaled by -2 (the same
+    projective map)."""
+    from stnh_tf.modeling.layers import WarpValidity
+
+    size = 64
+    h_pix = np.array([[-1.0, 0.0, 54.0], [0.0, -1.0, 0.0], [-0.02, 0.0, 1.0]])
+    ys, xs = np.mgrid[0:size, 0:size]
+    q = h_pix @ np.stack([xs.ravel(), ys.ravel(), np.ones(size * size)])
+    centre_w = (h_pix @ [(size - 1) / 2, (size - 1) / 2, 1.0])[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x, y = q[0] / q[2], q[1] / q[2]
+    want = ((x >= 0) & (x <= size - 1) & (y >= 0) & (y <= size - 1) & (q[2] * centre_w > 0))
+    assert ((q[2] < 0) & (x >= 0) & (x <= size - 1) & (y >= 0) & (y <= size - 1)).sum() > 100
+    m = norm_matrix(size, size)
+    for scale in (1.0, -2.0):
+        h_bar = m @ (scale * h_pix) @ np.linalg.inv(m)
+        mask = keras.ops.convert_to_numpy(WarpValidity()([
+            np.zeros((1, size, size, 1), "float32"), h_bar[None].astype("float32")]))
+        assert np.array_equal(mask[0, ..., 0].ravel() > 0, want), scale
+
+
+def test_merge_of_a_product_sending_the_centre_to_infinity_stays_finite():
+    """A product whose [2, 2] is 0 (the patch centre sent to infinity) made the merged H, the
+    loss and every gradient of the batch NaN: the merge divides by a safe denominator, as the
+    warp does, so one degenerate pair leaves the others' gradients finite; elsewhere the merge
+    is the NumPy product scaled to [2, 2] = 1, as before."""
+    h_prev = np.array([[1.0, 0.1, 0.2], [0.0, 1.0, 0.1], [0.3, 0.2, 1.0]])
+    degenerate = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.1, 0.1, 0.0]])
+    degenerate[2] -= (h_prev @ degenerate)[2, 2] * np.linalg.inv(h_prev)[2]  # [2, 2] -> 0
+    ordinary = np.array([[1.02, 0.01, 0.03], [-0.01, 0.98, 0.02], [0.01, -0.02, 1.0]])
+    assert abs((h_prev @ degenerate)[2, 2]) < 1e-12
+    a = tf.constant(np.stack([h_prev, h_prev]).astype("float32"))
+    b = tf.Variable(np.stack([degenerate, ordinary]).astype("float32"))
+    with tf.GradientTape() as tape:
+        merged = HomographyMerge(output_matrix=True)([a, b])
+        loss = tf.reduce_sum(tf.square(merged))
+    grad = tape.gradient(loss, b).numpy()
+    assert np.isfinite(merged.numpy()).all() and np.isfinite(grad).all()
+    want = h_prev @ ordinary
+    np.testing.assert_allclose(merged.numpy()[1], want / want[2, 2], rtol=1e-6, atol=1e-6)

@@ -126,11 +126,14 @@ class SpatialTransformer(keras.layers.Layer):
         return tuple(input_shape[0])
 
 
-def _source_points(h_bar, width: int, height: int, dtype):
+def _source_points(h_bar, width: int, height: int, dtype, in_front: bool = False):
     """Where the warp samples: ``(x, y)``, each ``[B, h * w]`` in ``dtype``, the pixel
     coordinates ``H_ba @ p`` in the input of every output pixel ``p`` (row-major), with
     ``H_ba = inv(M) @ H_bar @ M`` and ``h_bar`` ``[B, 3, 3]`` normalized (``M`` of ``width`` x
-    ``height``). The one computation of :class:`SpatialTransformer` and :class:`WarpValidity`."""
+    ``height``). The one computation of :class:`SpatialTransformer` and :class:`WarpValidity`.
+    With ``in_front``, also the bool ``[B, h * w]`` of the points on the same side of the
+    homography's horizon as the output's centre (``w`` of the sign it has there: a point behind
+    it has no place in the input, though the division gives it one)."""
     m = geometry.normalization_matrix(width, height)
     # H_pix = inv(M) @ H_bar @ M, applied to the pixel grid of the output; not scaled to
     # [2,2] = 1 (geometry.denormalize_homography does), which would move the w threshold below.
@@ -146,8 +149,12 @@ def _source_points(h_bar, width: int, height: int, dtype):
     # A point on the homography's line at infinity (w = 0) is sent far away, not to inf/NaN,
     # and the gradient stays finite (the safe denominator is chosen before dividing).
     w = src[:, 2]
-    w = ops.where(ops.abs(w) < 1e-6, 1e-6, w)
-    return src[:, 0] / w, src[:, 1] / w
+    safe = ops.where(ops.abs(w) < 1e-6, 1e-6, w)
+    if not in_front:
+        return src[:, 0] / safe, src[:, 1] / safe
+    centre = np.array([[(width - 1) / 2], [(height - 1) / 2], [1.0]], dtype)
+    side = ops.sign(ops.matmul(h_pix, ops.convert_to_tensor(centre))[:, 2])  # [B, 1]
+    return src[:, 0] / safe, src[:, 1] / safe, w * side > 0
 
 
 def _reflect_101(x, size: int):
@@ -210,7 +217,9 @@ class WarpValidity(keras.layers.Layer):
     """Where :class:`SpatialTransformer`'s warp (``fill="zeros"``) is defined: 1 at the output
     pixels ``p`` whose ``H_ba @ p`` falls inside the input, ``0 <= x <= w - 1`` and
     ``0 <= y <= h - 1`` (every bilinear neighbour with a weight lies in the image, so the warp
-    there is made of input pixels alone, none of the zeros outside), else 0.
+    there is made of input pixels alone, none of the zeros outside), on the output centre's
+    side of the homography's horizon (a point behind it, divided by its negative ``w``, lands
+    somewhere in the input too, but no camera sees it there), else 0.
 
     Called as ``WarpValidity()([images, h_bar])`` with :class:`SpatialTransformer`'s inputs
     (``images`` ``[B, h, w, C]`` gives the size; ``h_bar`` ``[B, 8]`` or ``[B, 3, 3]``); returns
@@ -237,9 +246,10 @@ class WarpValidity(keras.layers.Layer):
                              f"shape {tuple(images.shape)}.")
         height, width = images.shape[1], images.shape[2]
         h_bar = _homography_matrix(ops.cast(h_bar, "float32"))
-        x, y = _source_points(h_bar, width, height, "float32")
+        x, y, in_front = _source_points(h_bar, width, height, "float32", in_front=True)
         inside = ops.logical_and(ops.logical_and(x >= 0.0, x <= float(width - 1)),
                                  ops.logical_and(y >= 0.0, y <= float(height - 1)))
+        inside = ops.logical_and(inside, in_front)  # (behind the horizon: no input pixel)
         mask = ops.stop_gradient(ops.cast(inside, "float32"))
         return ops.reshape(mask, (-1, height, width, 1))
 
@@ -269,7 +279,11 @@ class HomographyMerge(keras.layers.Layer):
         dtype = self.compute_dtype if self.compute_dtype not in _LOW_PRECISION else "float32"
         h_prev = _homography_matrix(ops.cast(inputs[0], dtype), "h_prev")
         h_res = _homography_matrix(ops.cast(inputs[1], dtype), "h_residual")
-        merged = geometry.scale_to_unit(ops.matmul(h_prev, h_res))
+        product = ops.matmul(h_prev, h_res)
+        # [2, 2] = 0 (the patch centre sent to infinity): a safe denominator, as the warp's, so
+        # that one degenerate pair does not make the batch's loss and gradients NaN
+        d = product[..., 2:3, 2:3]
+        merged = product / ops.where(ops.abs(d) < 1e-6, ops.where(d < 0, -1e-6, 1e-6), d)
         return merged if self.output_matrix else geometry.matrix_to_vector(merged)
 
     def compute_output_shape(self, input_shape):
