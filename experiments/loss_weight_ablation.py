@@ -9,7 +9,7 @@ budget's schedule (--steps overrides it for the ablation only; say so next to th
 evaluated on the same stage-1 test pairs; the (1,1) and (10,1) rows with the budget's number of
 seeds (mean and range). Resumable: finished rows are kept, an interrupted row
 resumes from its checkpoint. Writes OUTPUT_DIR/table1.md and table1.json (table1_steps<N>.* with
---steps other than the budget's), keeping the rows of an earlier table there that --weights leaves
+--steps other than the budget's, its models models/ablation_*_steps<N>: beside the budget's), keeping the rows of an earlier table there that --weights leaves
 out (where their models are still there, trained as many steps). Shares its data and models with
 experiments.reproduce (same OUTPUT_DIR, same --reuse).
 """

@@ -13,7 +13,8 @@ Rows: 100% labels; 10% labels alone (--label_fraction=0.1 --drop_unlabeled); 10%
 unlabeled (--label_fraction=0.1); 0% labels (L1 only). Seed 0 each; rows within --close_px of
 another with --max_seeds seeds. Resumable (finished models and evaluations are kept); shares its
 data and models with experiments.reproduce (same OUTPUT_DIR: the 100% row is its stage 1 and
-Table 1's 1:1 seeds). Writes OUTPUT_DIR/semi_supervised.md and semi_supervised.json. No verdict
+Table 1's 1:1 seeds). Writes OUTPUT_DIR/semi_supervised.md and semi_supervised.json
+(semi_supervised_labels<F>.* with a --label_fraction other than the budget's). No verdict
 on the claim at --budget=tiny (a smoke test) or when a compared row is no better than the
 identity. See stnh_tf/paper/semi_supervised.py.
 

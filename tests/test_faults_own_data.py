@@ -288,3 +288,24 @@ def test_video_frames_numbered_without_zeros_are_paired_in_frame_order(tmp_path)
     ids = [p.pair_id for p in found]
     assert ids == (["0:padded/f0001.png>f0002.png", "0:padded/f0002.png>f0003.png"]
                    + [f"0:video/frame_{i}.png>frame_{i + 1}.png" for i in range(1, 12)])
+
+
+def test_a_share_dropping_the_unlabeled_never_hangs(tmp_path):
+    """With ``drop_unlabeled`` a data-parallel process whose shards hold no labeled record (the
+    label draw of a small split) repeated them for ever, filtering out every record: shared by
+    rows now, every share gets batches of labeled records only."""
+    from stnh_tf.data import labels
+
+    out = tmp_path / "data"
+    stage1.make_dataset("bundled", str(out), "train", max_images=4, samples_per_image=2,
+                        num_shards=2, num_workers=1, log=lambda *_: None)
+    index = data.read_index(str(out), "train")[0]  # stored order: shard 0's, then shard 1's
+    assert len(index) == 8
+    fraction = 0.4
+    seed = next(s for s in range(1000) if (lambda m: m[:4].any() and not m[4:].any())(
+        labels.labeled(s, index, fraction)))  # the second shard holds no labeled record
+    for k in range(2):  # (before: share 1's first batch never came)
+        ds = data.load_split(str(out), "train", 2, shuffle=False, seed=seed,
+                             label_fraction=fraction, drop_unlabeled=True, share=(k, 2))
+        batches = list(ds.take(2))
+        assert len(batches) == 2 and all((b[2]["h_bar"].numpy() > 0).all() for b in batches)

@@ -966,3 +966,88 @@ def test_an_in_memory_model_scores_as_on_the_records(image_folders, tmp_path, na
         json.dump(saved, f)
     with pytest.raises(ValueError, match="trained from TFRecords"):
         exp.train(exp.rows[3], 0)
+
+
+# ------------------------------------------------------------------------------------------------
+# A review of the semi-supervised path (2026-12-07)
+# ------------------------------------------------------------------------------------------------
+def test_a_tfrecord_experiment_refuses_a_repository_model_trained_in_memory(image_folders,
+                                                                            tmp_path):
+    """A TFRecord reproduction restoring from an in-memory experiment's repository took its
+    models (the budget fields alike), and the TFRecord table scored models of another pair set.
+    Pairs made in memory and TFRecords are other budgets now, both ways: refused before
+    anything is copied."""
+    from stnh_tf.paper import budgets, reproduce, semi_supervised
+    from stnh_tf.training import run_dir
+
+    _, _, records = image_folders
+    mem = _in_memory_experiment(tmp_path / "mem", image_folders)
+    row, seed = mem.rows[2], 1
+    name = mem.model_name(row, seed)
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    mem_cfg = mem.config(row, seed)
+    (repo / f"{name}.json").write_text(json.dumps(run_dir.config_document(mem_cfg)))
+    tf_exp = semi_supervised.SemiSupervised(reproduce.Reproduction(
+        reproduce.BUDGETS["tiny"], str(tmp_path / "tf"), printer=_quiet,
+        reuse={"data_stage1": records}))
+    assert tf_exp.model_name(row, seed) == name  # (the same folder name: the trap)
+    with pytest.raises(ValueError, match="in_memory"):
+        tf_exp.check_repo(str(repo))
+    mem.check_repo(str(repo))  # its own experiment's: accepted
+    assert budgets.budget_diff(run_dir.config_document(mem_cfg), tf_exp.config(row, seed)) == {
+        "in_memory": (True, False)}
+
+
+def test_other_ablation_steps_and_label_shares_are_written_beside_the_budgets(tiny_data,
+                                                                              tmp_path):
+    """``loss_weight_ablation --steps=N`` named its models as the budget's (a folder holding
+    the budget's Table 1 refused them as "another budget", and the reverse), and
+    ``semi_supervised --label_fraction=F`` wrote its table over the budget's: both beside the
+    budget's now (``_steps<N>`` models, ``semi_supervised_labels<F>.*``)."""
+    import dataclasses
+
+    from stnh_tf.paper import reproduce
+
+    budget = reproduce.BUDGETS["cpu"]
+    own = reproduce.Reproduction(budget, str(tmp_path / "a"), printer=_quiet,
+                                 reuse={"data_stage1": tiny_data})
+    other = reproduce.Reproduction(dataclasses.replace(budget, ablation_steps=8),
+                                   str(tmp_path / "a"), printer=_quiet,
+                                   reuse={"data_stage1": tiny_data})
+    assert own._ablation(10.0, 1.0, 1) == reproduce.ablation_name(10.0, 1.0, 1)
+    assert other._ablation(10.0, 1.0, 1) == reproduce.ablation_name(10.0, 1.0, 1) + "_steps8"
+    maces = {(k, 0): m for k, m in (("all", 18.0), ("labeled_alone", 24.0),
+                                     ("labeled_plus_unlabeled", 20.0), ("none", 22.0))}
+    written = {}
+    for fraction in (None, 0.2):
+        exp, _ = _experiment(tmp_path / "b", maces, tiny_data)
+        exp.fraction, exp.rows = ((exp.fraction, exp.rows) if fraction is None
+                                  else (fraction, semi_supervised_rows(fraction)))
+        exp.evaluation = lambda row, seed: {"model": {"mace": maces[(row.key, seed)]},
+                                            "identity": {"mace": 25.0, "median": 24.0},
+                                            "count": 12}
+        exp.labeled_counts = lambda n: {**{(r.key, 0): (1, 2) for r in exp.rows}, "total": 2}
+        exp.evaluated_elsewhere = lambda name: None
+        written[fraction] = exp.table()["label_fraction"]
+    for stem, fraction in (("semi_supervised", 0.1), ("semi_supervised_labels0.2", 0.2)):
+        assert json.loads((tmp_path / "b" / f"{stem}.json").read_text())[
+            "label_fraction"] == fraction
+        assert (tmp_path / "b" / f"{stem}.md").is_file()
+
+
+def semi_supervised_rows(fraction):
+    from stnh_tf.paper import semi_supervised
+
+    return semi_supervised.rows(fraction)
+
+
+def test_an_unlabeled_folder_that_adds_nothing_is_refused(tmp_path):
+    """``--unlabeled_image_dir`` naming the labeled folder itself (or one whose images all lie
+    there) added no pair, and the run's configuration recorded a source that gave nothing:
+    refused in one line."""
+    from stnh_tf.data import batches, sources
+
+    photos = _bundled_folders(tmp_path, {"train": 2})[0]
+    with pytest.raises(sources.SourceError, match="adds no unlabeled pair"):
+        batches.PairBatches(photos, 2, samples_per_image=1, unlabeled_images=photos)

@@ -252,7 +252,7 @@ def _unlabeled_entries(images, labeled_entries: list, first_index: int) -> list:
     prefixed ``unlabeled:``, less the image paths ``labeled_entries`` already hold.
 
     Raises:
-      SourceError: ``images`` lists no image.
+      SourceError: ``images`` lists no image, or none that ``labeled_entries`` lacks.
     """
     entries = _image_entries(images)[0]
     if not entries:
@@ -262,8 +262,12 @@ def _unlabeled_entries(images, labeled_entries: list, first_index: int) -> list:
         return os.path.realpath(payload) if isinstance(payload, (str, os.PathLike)) else None
 
     taken = {path(p) for _, _, p in labeled_entries} - {None}
-    return [(first_index + i, f"unlabeled:{image_id}", p) for i, image_id, p in entries
+    left = [(first_index + i, f"unlabeled:{image_id}", p) for i, image_id, p in entries
             if path(p) not in taken]
+    if not left:  # (the run's config would name a source that added nothing)
+        raise SourceError(f"every image of the unlabeled image source {images!r} is among the "
+                          "labeled images: it adds no unlabeled pair.")
+    return left
 
 
 def _image_entries(images, max_images: int = 0) -> tuple:

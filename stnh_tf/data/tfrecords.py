@@ -272,7 +272,7 @@ def load_split(data_dir: str, split: str, batch_size: int, shuffle: bool = True,
     (:mod:`stnh_tf.training.distribute`), ``batch_size`` being the global batch; by
     :func:`share_policy`, either shards k, k + n, ... read as above in batches of
     ``batch_size / n`` (``"file"``; not where a share's shards hold no sample, e.g. more shards
-    than photographs), or rows ``[k b, (k + 1) b)`` of each batch of the whole
+    than photographs, nor with ``drop_unlabeled``: they may hold no labeled one), or rows ``[k b, (k + 1) b)`` of each batch of the whole
     stream, ``b = batch_size / n``, only they parsed (``"data"``). ``(0, 1)``: the whole stream.
 
     Raises:
@@ -295,9 +295,11 @@ def load_split(data_dir: str, split: str, batch_size: int, shuffle: bool = True,
         raise ValueError(f"share {share} needs 0 <= index < count and batch_size ({batch_size}) "
                          "a multiple of count.")
     policy = share_policy(len(paths), count)
-    if policy == "file" and not all(sum(s["num_samples"] for s in info["shards"][k::count])
-                                    for k in range(count)):
-        policy = "data"  # (a share of empty shards alone would repeat them for ever: a hang)
+    if policy == "file" and (drop_unlabeled or not all(
+            sum(s["num_samples"] for s in info["shards"][k::count]) for k in range(count))):
+        # (a share of empty shards alone, or, dropping the unlabeled, of shards with no labeled
+        # record, would repeat them for ever: a hang)
+        policy = "data"
     if policy == "file":  # this share's shards, its part of the global batch from them
         paths, batch_size = paths[index::count], batch_size // count
     files = tf.data.Dataset.from_tensor_slices(paths)

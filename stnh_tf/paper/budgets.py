@@ -128,11 +128,14 @@ and Table 1's L2:L1 = 10:1 row, each with the ``TrainConfig`` fields that make i
 def budget_diff(saved: dict, cfg) -> dict:
     """``{field: (saved, wanted)}`` of the :data:`BUDGET_FIELDS` (and a sequence model's
     ``num_stages``) where a run's saved configuration ``saved`` (its ``config.json`` fields)
-    differs from ``cfg``'s."""
+    differs from ``cfg``'s, and ``in_memory`` where one trained on pairs made in memory and the
+    other on TFRecords (other pairs: a reproduction never mixes them)."""
     # A field the saved run predates had its default value then (e.g. lr_schedule="cosine").
     saved = {**train_config.TrainConfig().to_json(), **saved}
     want = cfg.to_json()
     diff = {k: (saved.get(k), want[k]) for k in BUDGET_FIELDS if saved.get(k) != want[k]}
+    if bool(saved.get("in_memory")) != bool(want.get("in_memory")):
+        diff["in_memory"] = (bool(saved.get("in_memory")), bool(want.get("in_memory")))
     if cfg.model == "sequence" and saved.get("num_stages") != cfg.num_stages:
         diff["num_stages"] = (saved.get("num_stages"), cfg.num_stages)
     return diff
@@ -140,17 +143,18 @@ def budget_diff(saved: dict, cfg) -> dict:
 
 def check_budget(model_dir: str, cfg) -> None:
     """Raise ``ValueError`` unless the finished model in ``model_dir`` was trained with ``cfg``'s
-    budget (model kind, schedule, loss weights, network options) and, where ``cfg`` trains on
-    pairs made in memory (``in_memory``), on such pairs too, not from TFRecords (a folder of
-    another reproduction)."""
+    budget (model kind, schedule, loss weights, network options) and on pairs of the same kind
+    (made in memory, ``in_memory``, or read from TFRecords: a folder of another
+    reproduction)."""
     from stnh_tf.training import run_dir
 
     saved = run_dir.read_run_config(os.path.join(model_dir, run_dir.CONFIG_FILE))
+    if bool(cfg.in_memory) != bool(saved.get("in_memory")):
+        made, wanted = (("pairs made in memory", "TFRecords") if saved.get("in_memory")
+                        else ("TFRecords", "pairs made in memory (in_memory)"))
+        raise ValueError(f"{model_dir} holds a model trained from {made}; a reproduction "
+                         f"with {wanted} trains its own: give it an output folder of its own.")
     diff = budget_diff(saved, cfg)
     if diff:
         raise ValueError(f"{model_dir} holds a model trained with a different budget {diff} "
                          "(saved, wanted); reuse only models of the same budget.")
-    if cfg.in_memory and not saved.get("in_memory"):
-        raise ValueError(f"{model_dir} holds a model trained from TFRecords; a reproduction "
-                         "with its pairs made in memory (in_memory) trains its own: give it "
-                         "an output folder of its own.")

@@ -275,7 +275,7 @@ class Reproduction:
         for l2, l1 in weights:
             for seed in table1_seeds(self.budget, l2, l1):
                 name = ("stage1" if (l2, l1, seed) == (1.0, 1.0, 0)
-                        and steps == self.budget.train_steps else ablation_name(l2, l1, seed))
+                        and steps == self.budget.train_steps else self._ablation(l2, l1, seed))
                 cfg = self.config(name, data_dir=self.data_dir(1), l2_weight=l2, l1_weight=l1,
                                   train_steps=steps, warmup_steps=min(self.budget.warmup_steps,
                                                                       steps), seed=seed)
@@ -286,6 +286,13 @@ class Reproduction:
         for key, name, cfg in planned:
             rows[key].append(self.train(name, cfg))
         return rows
+
+    def _ablation(self, l2, l1, seed) -> str:
+        """A Table 1 row's model name: ``_steps<N>`` added where ``--steps`` set other steps than
+        the budget's (its models beside the budget's, never in their folders)."""
+        steps = self.budget.ablation_train_steps
+        same = steps == BUDGETS.get(self.budget.name, self.budget).ablation_train_steps
+        return ablation_name(l2, l1, seed) + ("" if same else f"_steps{steps}")
 
     def table1(self, rows: dict, schedule=None) -> dict:
         """Evaluate the ablation rows (:meth:`ablation`'s result) with the earlier table's other
@@ -304,7 +311,7 @@ class Reproduction:
             table[(l2, l1)] = []
             for seed, d in enumerate(dirs):
                 result = self.evaluate("stage1_alone" if d == self.model_dir("stage1")
-                                       else ablation_name(l2, l1, seed), [d])
+                                       else self._ablation(l2, l1, seed), [d])
                 table[(l2, l1)].append(result["model"]["mace"])
                 identity = result["identity"]["mace"]
         per_seed = {f"{a:g},{b:g}": v for (a, b), v in table.items()}

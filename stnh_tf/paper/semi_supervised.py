@@ -26,8 +26,8 @@ row needs more. The labeled pairs of a seed are :mod:`stnh_tf.data.labels`' draw
 for the two 10% rows of a seed). ``--budget=tiny`` (the smoke test) labels 75% instead of 10%,
 since 10% of its 8 training pairs is less than one batch of 4.
 
-Writes ``semi_supervised.md`` and ``semi_supervised.json`` in the reproduction's folder; every
-model and evaluation is kept, so the same command resumes and, once done, trains nothing.
+Writes ``semi_supervised.md`` and ``.json`` (``_labels<F>`` added for another labeled share) in
+the output; every model and evaluation is kept: the same command resumes, done, trains nothing.
 
 In a reproduction made with ``in_memory`` (``--in_memory``: a machine without TensorFlow, such as
 the GPU machine under JAX), every row trains on stage-1 pairs made in memory from the image
@@ -37,13 +37,11 @@ a run of seed 1 trains on a pair set of its own (seed 1's draw). Its models and 
 never mixed with a TFRecord reproduction's: it needs an output folder and repository folder of
 its own.
 
-Across machines (the experiment takes several CPU sessions): :meth:`SemiSupervised.save` copies
-its models into a repository folder (a finished model as ``<name>.keras`` without optimizer state
-and ``<name>.json``, its run's configuration; an unfinished one's newest checkpoint as
-``resume/<name>/``; a finished one's evaluation as ``eval/<key>.json``), and
-:meth:`SemiSupervised.restore` puts them back into a reproduction's folder, where training then
-resumes or finds the model finished. An evaluation restored without its model (Table 1's 1:1
-seed 1, whose model was not kept) stands for that model: it is not trained again.
+Across machines (several CPU sessions): :meth:`SemiSupervised.save` copies its models into a
+repository folder (a finished model as ``<name>.keras`` without optimizer state and its run's
+``<name>.json``; an unfinished one's checkpoint as ``resume/<name>/``; an evaluation as
+``eval/<key>.json``), :meth:`SemiSupervised.restore` puts them back, where training resumes or
+finds the model finished; an evaluation without its model (Table 1's 1:1 seed 1) stands for it.
 """
 
 from __future__ import annotations
@@ -203,8 +201,7 @@ class SemiSupervised:
 
     def check_repo(self, repo_dir: str) -> None:
         """Refuse a ``repo_dir`` holding a model of this experiment trained with another budget
-        (its ``<name>.json`` against the row's configuration: :func:`budgets.budget_diff`),
-        before :meth:`save` or :meth:`restore` copies anything.
+        or pairs (:func:`budgets.budget_diff`), before :meth:`save` or :meth:`restore` copies.
 
         Raises:
           ValueError: naming the model and the fields (saved, wanted).
@@ -219,8 +216,9 @@ class SemiSupervised:
                 if not os.path.exists(path):
                     continue
                 cfg = self.run.config(name, data_dir=self.run.data_dir(1), seed=seed,
+                                      in_memory=self.run.in_memory,  # (no data made)
                                       label_fraction=row.label_fraction,
-                                      drop_unlabeled=row.drop_unlabeled)  # (no data made)
+                                      drop_unlabeled=row.drop_unlabeled)
                 diff = budgets.budget_diff(run_dir.read_run_config(path), cfg)
                 if diff:
                     raise ValueError(f"{repo_dir} holds {name} trained with another budget "
@@ -362,8 +360,8 @@ class SemiSupervised:
         return out
 
     def table(self) -> dict:
-        """Train and evaluate the rows (:meth:`measure`), write ``semi_supervised.md`` and
-        ``semi_supervised.json``; returns the JSON's content."""
+        """Train and evaluate the rows (:meth:`measure`), write the table (module docstring);
+        returns the JSON's content."""
         maces = self.measure()
         counts = self.labeled_counts(max(len(v) for v in maces.values()))
         b = self.run.budget
@@ -386,8 +384,10 @@ class SemiSupervised:
                 "model_dirs": [self.run.model_dir(self.model_name(r, s)) for s in seeds],
                 "evaluated_elsewhere": [s for s in seeds if self.evaluated_elsewhere(
                     self.model_name(r, s)) is not None]})
-        atomic_write_json(os.path.join(self.run.out, "semi_supervised.json"), result)
-        atomic_write_text(os.path.join(self.run.out, "semi_supervised.md"), markdown(result))
+        stem = ("semi_supervised" if self.fraction == LABEL_FRACTIONS.get(b.name, 0.1)
+                else f"semi_supervised_labels{self.fraction:g}")  # (never over the budget's)
+        atomic_write_json(os.path.join(self.run.out, f"{stem}.json"), result)
+        atomic_write_text(os.path.join(self.run.out, f"{stem}.md"), markdown(result))
         return result
 
 
