@@ -15,8 +15,8 @@
 # (keras, namex, optree wheels for the machine's Python: docs/gpu.md) once. `probe` leaves its
 # JSON in /tmp/probe.json; a later `chunk` on the same machine trains with the fastest
 # steps_per_execution it measured with the training callbacks (50 without a probe). What comes
-# back is written to $OUT: probe.json, chunk.log, paper_schedule.tgz (the ledger, docs/gpu.md and
-# the finished stages and parts) and resume_NAME.tgz (an unfinished stage's or part's committed
+# back is written to $OUT: probe.json, chunk.log, paper_schedule.tgz (the ledger and the stages
+# and parts this call finished, with their records) and resume_NAME.tgz (an unfinished stage's or part's committed
 # checkpoint, NAME stageK or the part). A chunk
 # that finishes its stage goes on with the next one, up to stage 3, in the time left. `semi`
 # trains and evaluates the semi-supervised experiment's rows (experiments.semi_supervised
@@ -45,11 +45,12 @@ workers=$(( $(nproc) - 2 ))
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 
 if [ "$mode" = probe ]; then
-  timeout 240 python3 -m experiments.benchmark_stream --image_dir="$data/photos_extra/imagenet" \
+  # coco_mini/train: in the first part carried (photos_extra comes later)
+  timeout 240 python3 -m experiments.benchmark_stream --image_dir="$data/coco_mini/train" \
     --workers="$workers" --samples_per_image=2 --alone_batches=20 --modes=array \
     --steps_per_epoch=100 --epochs=3 --steps_per_execution=1,10,50 --callbacks=none,training \
     --json_out="$out/probe.json" 2>&1 | grep -v -e "^WARNING" -e "^I0000" | tail -20
-  cp "$out/probe.json" /tmp/probe.json
+  cp "$out/probe.json" /tmp/probe.json || { echo "the probe wrote no probe.json"; exit 4; }
   exit 0
 fi
 
@@ -96,6 +97,7 @@ print(best[1])
 EOF
 )
 echo "${what[*]}, steps_per_execution $spe, time limit $seconds s, $workers workers"
+touch /tmp/stnh-call-start  # the models this call writes are newer: only they go back
 timeout $((seconds + 60)) python3 -m experiments.paper_schedule "${what[@]}" \
   --time_limit_s="$seconds" --workers="$workers" --steps_per_execution="$spe" \
   --image_dir="$data/coco_mini/train,$data/photos_extra" \
@@ -108,8 +110,11 @@ status=$?
 # committed checkpoint with its saved estimates (12 MiB) in resume_NAME.tgz.
 back="paper_schedule/ledger.json"  # (merged here: python -m experiments.paper_schedule --merge_back)
 [ -e paper_schedule/ledger.pending.json ] && back="$back paper_schedule/ledger.pending.json"
-for f in paper_schedule/*.keras; do  # each finished stage or part, with its record
-  [ -e "$f" ] && back="$back $f" && [ -e "${f%.keras}.json" ] && back="$back ${f%.keras}.json"
+for f in paper_schedule/*.keras; do  # each stage or part this call finished, with its record
+  # (those sent from here come back unchanged: all of them would pass the 16 MiB an archive may
+  # have once the 10:1 row is finished)
+  [ "$f" -nt /tmp/stnh-call-start ] && back="$back $f" && [ -e "${f%.keras}.json" ] \
+    && back="$back ${f%.keras}.json"
 done
 for d in paper_schedule/resume/*/; do
   [ -d "$d" ] && name=$(basename "$d") && tar czf "$out/resume_$name.tgz" "paper_schedule/resume/$name"

@@ -702,8 +702,14 @@ def test_a_returned_chunk_merged_back_never_replaces_a_newer_committed_checkpoin
     assert out["kept"] == {"sequence2": 6} and out["rows"] == 2
     assert json.loads((root / "resume" / "sequence2" / "state.json").read_text())["step"] == 6
     rows = ledger_lib.read_ledger(str(root))
+    # the GPU chunk's row, its weights not taken, before the CPU chunk's that goes on from the
+    # same step: appended, it was the part's last row, and the next chunk's start and the part's
+    # record (its chain of chunks) followed it (a review's find)
     assert [(r["from_step"], r["to_step"], r["device"]) for r in rows] == [
-        (0, 4, "cpu"), (4, 6, "cpu"), (4, 5, "gpu"), (0, 3, "cpu")]
+        (0, 4, "cpu"), (4, 5, "gpu"), (4, 6, "cpu"), (0, 3, "cpu")]
+    assert ledger_lib.recorded_step(rows, "sequence2") == 6
+    assert [(r["from_step"], r["to_step"]) for r in ledger_lib.chain(rows, "sequence2")] == [
+        (0, 4), (4, 6)]
     assert (root / "stage3.keras").read_bytes() == b"finished stage 3"
     assert out["checkpoints"] == {"stage3": 3}  # (the part's resume/ came back too)
     assert any("kept the committed checkpoint of step 6" in line for line in lines)

@@ -2,7 +2,8 @@
 unpacked into a folder of their own), merged into this repository's ``paper_schedule/``
 without losing what was committed here meanwhile: a returned checkpoint replaces a part's
 committed one only where it is of a later step or the same; the ledger gets the returned rows
-it lacks, and keeps its own; a finished part's model and record come in where they are not here
+it lacks (those of a checkpoint not taken placed off the kept checkpoint's chain), and keeps
+its own; a finished part's model and record come in where they are not here
 (a different one here is refused). Untarring the archives over the repository, as the runbook
 said before, put an older checkpoint back over a CPU chunk's newer one and dropped that chunk's
 ledger row.
@@ -16,9 +17,9 @@ import json
 import os
 import shutil
 
-from stnh_tf.paths import atomic_copy, file_sha256
+from stnh_tf.paths import atomic_copy, atomic_write_json, file_sha256
 from stnh_tf.training.ledger import (LEDGER_FILE, PENDING_FILE, add_ledger_row, keep_pending,
-                                     read_ledger)
+                                     read_ledger, row_part)
 from stnh_tf.training.part_records import RESUME_DIR
 
 
@@ -39,6 +40,18 @@ def _rows(folder: str, name: str) -> list:
     if not isinstance(rows, list):
         raise ValueError(f"{path} is not a list of ledger rows.")
     return rows
+
+
+def _dead_branch_place(ledger: list, row: dict) -> int:
+    """Where a returned ``row`` of a part whose checkpoint here was kept (newer) goes in
+    ``ledger``: before this repository's row of the part that goes on from the same step or
+    later, so that :func:`~stnh_tf.training.ledger.chain` from the kept checkpoint's last row
+    never walks through it and the next chunk resumes from the kept step (appended, it was the
+    part's last row: the record credited the discarded chunk and the next chunk its step)."""
+    for i, other in enumerate(ledger):
+        if row_part(other) == row_part(row) and other["from_step"] >= row["from_step"]:
+            return i
+    return len(ledger)
 
 
 def merge_back(root: str, back: str, printer=print) -> dict:
@@ -92,10 +105,18 @@ def merge_back(root: str, back: str, printer=print) -> dict:
             shutil.rmtree(os.path.join(root, RESUME_DIR, part), ignore_errors=True)
     key = lambda row: json.dumps(row, sort_keys=True)  # noqa: E731
     have = {key(r) for r in own_rows}
-    for row in back_rows:
-        if key(row) not in have:
+    new = [row for row in back_rows if key(row) not in have]
+    for row in new:
+        if row_part(row) not in out["kept"]:
             add_ledger_row(root, row)
             out["rows"] += 1
+    dead = [row for row in new if row_part(row) in out["kept"]]
+    if dead:  # the returned weights were not taken: their rows go where no chain follows them
+        ledger = read_ledger(root)
+        for row in dead:
+            ledger.insert(_dead_branch_place(ledger, row), row)
+        atomic_write_json(os.path.join(root, LEDGER_FILE), ledger)
+        out["rows"] += len(dead)
     kept = os.path.join(root, PENDING_FILE)
     have |= {key(r) for r in (_rows(root, PENDING_FILE) if os.path.exists(kept) else [])}
     for row in pending:  # (rows the ledger there did not take: the next chunk here adds them)
