@@ -262,7 +262,7 @@ SEQUENCE2_CPU_CHUNKS = ((29, "First", 0, 1399), (30, "Second", 0, 2322),
                         (33, "Fifth", 7459, 9858), (34, "Sixth", 9858, 12000),
                         (35, "Seventh", 12000, 13952), (36, "Eighth", 13952, 15816),
                         (37, "Ninth", 15816, 17544), (38, "Tenth", 17544, 19441),
-                        (39, "Eleventh", 19441, 19955))
+                        (39, "Eleventh", 19441, 19955), (40, "Twelfth", 19955, 21452))
 
 PROSE = [
     ("docs/estimate.md",
