@@ -1017,6 +1017,10 @@ def test_other_ablation_steps_and_label_shares_are_written_beside_the_budgets(ti
                                    reuse={"data_stage1": tiny_data})
     assert own._ablation(10.0, 1.0, 1) == reproduce.ablation_name(10.0, 1.0, 1)
     assert other._ablation(10.0, 1.0, 1) == reproduce.ablation_name(10.0, 1.0, 1) + "_steps8"
+    reused = reproduce.Reproduction(  # a --reuse of the row's model: that model, as before
+        dataclasses.replace(budget, ablation_steps=8), str(tmp_path / "a"), printer=_quiet,
+        reuse={"data_stage1": tiny_data, reproduce.ablation_name(10.0, 1.0, 1): "elsewhere"})
+    assert reused._ablation(10.0, 1.0, 1) == reproduce.ablation_name(10.0, 1.0, 1)
     maces = {(k, 0): m for k, m in (("all", 18.0), ("labeled_alone", 24.0),
                                      ("labeled_plus_unlabeled", 20.0), ("none", 22.0))}
     written = {}

@@ -290,9 +290,9 @@ class Reproduction:
     def _ablation(self, l2, l1, seed) -> str:
         """A Table 1 row's model name: ``_steps<N>`` added where ``--steps`` set other steps than
         the budget's (its models beside the budget's, never in their folders)."""
-        steps = self.budget.ablation_train_steps
+        steps, name = self.budget.ablation_train_steps, ablation_name(l2, l1, seed)
         same = steps == BUDGETS.get(self.budget.name, self.budget).ablation_train_steps
-        return ablation_name(l2, l1, seed) + ("" if same else f"_steps{steps}")
+        return name if same or name in self.reuse else f"{name}_steps{steps}"  # (--reuse: its)
 
     def table1(self, rows: dict, schedule=None) -> dict:
         """Evaluate the ablation rows (:meth:`ablation`'s result) with the earlier table's other
