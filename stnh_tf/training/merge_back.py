@@ -18,8 +18,8 @@ import os
 import shutil
 
 from stnh_tf.paths import atomic_copy, atomic_write_json, file_sha256
-from stnh_tf.training.ledger import (LEDGER_FILE, PENDING_FILE, add_ledger_row, keep_pending,
-                                     read_ledger, row_part)
+from stnh_tf.training.ledger import (LEDGER_FILE, PENDING_FILE, keep_pending, read_ledger,
+                                     row_part)
 from stnh_tf.training.part_records import RESUME_DIR
 
 
@@ -105,18 +105,13 @@ def merge_back(root: str, back: str, printer=print) -> dict:
             shutil.rmtree(os.path.join(root, RESUME_DIR, part), ignore_errors=True)
     key = lambda row: json.dumps(row, sort_keys=True)  # noqa: E731
     have = {key(r) for r in own_rows}
-    new = [row for row in back_rows if key(row) not in have]
-    for row in new:
-        if row_part(row) not in out["kept"]:
-            add_ledger_row(root, row)
-            out["rows"] += 1
-    dead = [row for row in new if row_part(row) in out["kept"]]
-    if dead:  # the returned weights were not taken: their rows go where no chain follows them
-        ledger = read_ledger(root)
-        for row in dead:
-            ledger.insert(_dead_branch_place(ledger, row), row)
+    new, ledger = [row for row in back_rows if key(row) not in have], list(own_rows)
+    for row in new:  # appended; where the returned weights were not taken, off their chain
+        ledger.insert(_dead_branch_place(ledger, row) if row_part(row) in out["kept"]
+                      else len(ledger), row)
+    if new:
         atomic_write_json(os.path.join(root, LEDGER_FILE), ledger)
-        out["rows"] += len(dead)
+    out["rows"] = len(new)
     kept = os.path.join(root, PENDING_FILE)
     have |= {key(r) for r in (_rows(root, PENDING_FILE) if os.path.exists(kept) else [])}
     for row in pending:  # (rows the ledger there did not take: the next chunk here adds them)
